@@ -1,0 +1,8 @@
+//! hbmu: hierarchical Bayesian model updating for modal tests of nominally identical parts.
+//!
+//! Data flows `io` (parse/write) → `stage` (one file per pipeline stage, the only place that
+//! wires I/O to kernels) → numerical kernels (`fem`, `modal`, `lab`) that are pure functions
+//! over plain data. See ARCHITECTURE.md.
+
+pub mod io;
+pub mod stage;
