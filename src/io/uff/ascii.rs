@@ -1,0 +1,284 @@
+//! Scanning of numbers in UFF ASCII records: Fortran `E`/`D` formatted floats (which can run
+//! together with no blank between fixed-width fields), integers, fixed-width field slicing, and
+//! line splitting that tolerates CRLF and trailing blanks.
+//!
+//! Hand-written because the standard's fields need Fortran semantics no crate offers: `D`
+//! exponents and fields that touch (`-1.23456E+00-2.34567E+00`, `1.0E+001.0E+00`). The common
+//! case (≤ 19 significant digits, decimal exponent within ±22) is converted exactly with one
+//! IEEE multiplication or division (Clinger's fast path); anything else goes through
+//! `f64::from_str`, so every result is correctly rounded.
+
+/// Exact powers of ten representable in f64.
+const POW10: [f64; 23] = [
+    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
+    1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
+];
+
+#[inline]
+pub(crate) fn is_space(b: u8) -> bool {
+    matches!(b, b' ' | b'\t' | b'\r' | b'\n' | b'\x0c')
+}
+
+/// A number token that could not be read: byte range within the scanned slice.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct BadToken {
+    pub start: usize,
+    pub end: usize,
+}
+
+/// Scans the next number of `s` from `*pos`, skipping blanks and line ends. Returns `None` at the
+/// end of `s`. `NaN`/`Inf` spellings are returned as such (the caller decides whether they are
+/// acceptable). On a malformed token, `*pos` moves past it (to the next blank).
+#[inline]
+pub(crate) fn next_number(s: &[u8], pos: &mut usize) -> Option<Result<f64, BadToken>> {
+    let n = s.len();
+    let mut i = *pos;
+    while i < n && is_space(s[i]) {
+        i += 1;
+    }
+    if i >= n {
+        *pos = n;
+        return None;
+    }
+    let start = i;
+    let mut neg = false;
+    if s[i] == b'+' || s[i] == b'-' {
+        neg = s[i] == b'-';
+        i += 1;
+    }
+    let mut mant: u64 = 0;
+    let mut exact = true;
+    let mut any_digit = false;
+    let mut exp10: i64 = 0;
+    while i < n && s[i].is_ascii_digit() {
+        if mant < 100_000_000_000_000_000 {
+            mant = mant * 10 + u64::from(s[i] - b'0');
+        } else {
+            exact = false;
+        }
+        any_digit = true;
+        i += 1;
+    }
+    if i < n && s[i] == b'.' {
+        i += 1;
+        while i < n && s[i].is_ascii_digit() {
+            if mant < 100_000_000_000_000_000 {
+                mant = mant * 10 + u64::from(s[i] - b'0');
+                exp10 -= 1;
+            } else {
+                exact = false;
+            }
+            any_digit = true;
+            i += 1;
+        }
+    }
+    if !any_digit {
+        return Some(special_or_bad(s, start, pos));
+    }
+    let mut gave_back = false;
+    if i < n && matches!(s[i], b'E' | b'e' | b'D' | b'd') {
+        let mut j = i + 1;
+        let mut eneg = false;
+        if j < n && (s[j] == b'+' || s[j] == b'-') {
+            eneg = s[j] == b'-';
+            j += 1;
+        }
+        let dstart = j;
+        while j < n && s[j].is_ascii_digit() {
+            j += 1;
+        }
+        if j == dstart {
+            return Some(bad_to_blank(s, start, pos));
+        }
+        // Touching fields: `1.0E+001.0E+00` scans as exponent digits `001` followed by `.`;
+        // E-format mantissas have one digit before the point, so that digit is the next field's.
+        if j < n && s[j] == b'.' && j - dstart >= 2 {
+            j -= 1;
+            gave_back = true;
+        }
+        let mut e: i64 = 0;
+        for &d in &s[dstart..j] {
+            e = (e * 10 + i64::from(d - b'0')).min(100_000);
+        }
+        exp10 += if eneg { -e } else { e };
+        i = j;
+    }
+    // What may follow a number: a blank, the end, or the start of a touching field.
+    if i < n && !(is_space(s[i]) || s[i] == b'+' || s[i] == b'-' || gave_back) {
+        return Some(bad_to_blank(s, start, pos));
+    }
+    *pos = i;
+    if mant == 0 && exact {
+        return Some(Ok(if neg { -0.0 } else { 0.0 }));
+    }
+    if exact && mant <= (1u64 << 53) && (-22..=22).contains(&exp10) {
+        let m = mant as f64;
+        let v = if exp10 >= 0 {
+            m * POW10[exp10 as usize]
+        } else {
+            m / POW10[(-exp10) as usize]
+        };
+        return Some(Ok(if neg { -v } else { v }));
+    }
+    Some(slow_parse(&s[start..i]).ok_or(BadToken { start, end: i }))
+}
+
+/// Correctly rounded conversion of a token already checked to be `[+-]d*[.d*][(E|D)[+-]d+]`.
+#[cold]
+fn slow_parse(tok: &[u8]) -> Option<f64> {
+    let text: String = tok
+        .iter()
+        .map(|&b| match b {
+            b'D' | b'd' => 'e',
+            b => char::from(b),
+        })
+        .collect();
+    text.parse::<f64>().ok()
+}
+
+#[cold]
+fn special_or_bad(s: &[u8], start: usize, pos: &mut usize) -> Result<f64, BadToken> {
+    let mut end = start;
+    while end < s.len() && !is_space(s[end]) {
+        end += 1;
+    }
+    *pos = end;
+    let tok = &s[start..end];
+    let (neg, body) = match tok.first() {
+        Some(b'-') => (true, &tok[1..]),
+        Some(b'+') => (false, &tok[1..]),
+        _ => (false, tok),
+    };
+    let v = if body.eq_ignore_ascii_case(b"nan") {
+        f64::NAN
+    } else if body.eq_ignore_ascii_case(b"inf") || body.eq_ignore_ascii_case(b"infinity") {
+        f64::INFINITY
+    } else {
+        return Err(BadToken { start, end });
+    };
+    Ok(if neg { -v } else { v })
+}
+
+#[cold]
+fn bad_to_blank(s: &[u8], start: usize, pos: &mut usize) -> Result<f64, BadToken> {
+    let mut end = start;
+    while end < s.len() && !is_space(s[end]) {
+        end += 1;
+    }
+    *pos = end;
+    Err(BadToken { start, end })
+}
+
+/// Trims blanks (space, tab, CR, LF) from both ends.
+pub(crate) fn trim(s: &[u8]) -> &[u8] {
+    let mut a = 0;
+    let mut b = s.len();
+    while a < b && is_space(s[a]) {
+        a += 1;
+    }
+    while b > a && is_space(s[b - 1]) {
+        b -= 1;
+    }
+    &s[a..b]
+}
+
+/// Bytes `[from, from + width)` of a record, cut at the record's end (short lines are
+/// implicitly blank-padded, as Fortran reads them).
+pub(crate) fn field(rec: &[u8], from: usize, width: usize) -> &[u8] {
+    let a = from.min(rec.len());
+    let b = from.saturating_add(width).min(rec.len());
+    &rec[a..b]
+}
+
+/// Parses an integer field; a blank field reads as `Some(0)` (Fortran `I` semantics).
+pub(crate) fn int_field(f: &[u8]) -> Option<i64> {
+    let t = trim(f);
+    if t.is_empty() {
+        return Some(0);
+    }
+    parse_int(t)
+}
+
+/// Parses `[+-]digits` (no blanks) into an i64, `None` on anything else or overflow.
+pub(crate) fn parse_int(t: &[u8]) -> Option<i64> {
+    let (neg, digits) = match t.first()? {
+        b'-' => (true, &t[1..]),
+        b'+' => (false, &t[1..]),
+        _ => (false, t),
+    };
+    if digits.is_empty() {
+        return None;
+    }
+    let mut v: i64 = 0;
+    for &d in digits {
+        if !d.is_ascii_digit() {
+            return None;
+        }
+        v = v.checked_mul(10)?.checked_add(i64::from(d - b'0'))?;
+    }
+    Some(if neg { -v } else { v })
+}
+
+/// A text field as a `String` (lossy UTF-8), blanks trimmed.
+pub(crate) fn text_field(f: &[u8]) -> String {
+    String::from_utf8_lossy(trim(f)).into_owned()
+}
+
+/// Up to 80 characters of a record for an error message.
+pub(crate) fn excerpt(s: &[u8]) -> String {
+    let t = trim(s);
+    let t = &t[..t.len().min(80)];
+    String::from_utf8_lossy(t).into_owned()
+}
+
+/// Line iterator over a byte slice that tracks 1-based line numbers (a line number is 1 + the
+/// number of `\n` bytes before it) and strips `\n` / `\r\n`.
+pub(crate) struct Lines<'a> {
+    pub s: &'a [u8],
+    /// Offset of the next line.
+    pub pos: usize,
+    /// 1-based number of the next line.
+    pub line: usize,
+}
+
+impl<'a> Lines<'a> {
+    pub fn new(s: &'a [u8]) -> Self {
+        Lines { s, pos: 0, line: 1 }
+    }
+
+    /// Next line as (line number, text without line end), or `None` at the end.
+    pub fn next_line(&mut self) -> Option<(usize, &'a [u8])> {
+        if self.pos >= self.s.len() {
+            return None;
+        }
+        let rest = &self.s[self.pos..];
+        let (text, adv) = match memchr::memchr(b'\n', rest) {
+            Some(k) => (&rest[..k], k + 1),
+            None => (rest, rest.len()),
+        };
+        let text = text.strip_suffix(b"\r").unwrap_or(text);
+        let no = self.line;
+        self.pos += adv;
+        self.line += 1;
+        Some((no, text))
+    }
+
+    /// Moves to byte offset `to` (≥ pos), counting the line ends passed over.
+    pub fn advance_to(&mut self, to: usize) {
+        let to = to.min(self.s.len());
+        if to > self.pos {
+            self.line += memchr::memchr_iter(b'\n', &self.s[self.pos..to]).count();
+            self.pos = to;
+        }
+    }
+}
+
+/// Whether a line is a dataset delimiter: `-1` with optional blanks around it.
+pub(crate) fn is_delimiter(text: &[u8]) -> bool {
+    trim(text) == b"-1"
+}
+
+/// Line number of byte `offset` in `s`, given that `s` starts on line `first_line`.
+pub(crate) fn line_at(s: &[u8], offset: usize, first_line: usize) -> usize {
+    first_line + memchr::memchr_iter(b'\n', &s[..offset.min(s.len())]).count()
+}

@@ -1,0 +1,170 @@
+//! Binary dataset 58b: the extended number line (`58b` byte order, floating-point format,
+//! number of ASCII lines, number of bytes), the 11 ASCII header records, then the declared
+//! number of bytes of IEEE 754 values (little or big endian, f32 for ordinate data types 2/5,
+//! f64 for 4/6; every value of a point, abscissa included, in that size, as pyuff does).
+//!
+//! Real exports deviate: some put a line end, or a few other bytes, between the data and the
+//! closing `-1` (e.g. Simcenter Test.Lab); some put the `-1` right after the data. The data are
+//! read by the declared byte count, never by line, and whatever follows up to a line that ends
+//! in `-1` is ignored.
+
+use super::ascii::{excerpt, is_space, parse_int, trim, Lines};
+use super::read::{parse_header_58, skip_to_delimiter, Ctx};
+use super::{Function58, IssueKind, UffIssue};
+
+/// Reads one 58b dataset whose number line (`text`, on line `number_line`) has been consumed.
+/// On error the cursor is left past the dataset where possible.
+pub(super) fn read_58b(
+    cur: &mut Lines<'_>,
+    text: &[u8],
+    number_line: usize,
+    ctx: Ctx,
+) -> Result<Function58, UffIssue> {
+    let bad_header = |expected: &'static str| {
+        ctx.issue(
+            number_line,
+            IssueKind::BadBinaryHeader {
+                expected,
+                found: excerpt(text),
+            },
+        )
+    };
+    // `    58b     1     2          11        4096     0     0           0           0`
+    let b_at = text
+        .iter()
+        .position(|&b| b == b'b' || b == b'B')
+        .unwrap_or(text.len());
+    let fields: Vec<&[u8]> = text[(b_at + 1).min(text.len())..]
+        .split(|&b| is_space(b))
+        .filter(|t| !t.is_empty())
+        .collect();
+    let ints: Option<Vec<i64>> = fields.iter().take(4).map(|t| parse_int(t)).collect();
+    let ints = match ints {
+        Some(v) if v.len() == 4 => v,
+        _ => {
+            skip_to_delimiter(cur);
+            return Err(bad_header(
+                "4 integers after `58b`: byte order, float format, ASCII lines, bytes",
+            ));
+        }
+    };
+    let (byte_order, fp_format, n_ascii, n_bytes) = (ints[0], ints[1], ints[2], ints[3]);
+    if n_ascii != 11 {
+        skip_to_delimiter(cur);
+        return Err(bad_header("11 ASCII header lines (field 5)"));
+    }
+    // Header records.
+    let first_line = cur.line;
+    let mut recs: [&[u8]; 11] = [&[]; 11];
+    for (k, r) in recs.iter_mut().enumerate() {
+        match cur.next_line() {
+            Some((_, t)) => *r = t,
+            None => {
+                return Err(ctx.issue(
+                    cur.line.saturating_sub(1),
+                    IssueKind::Truncated {
+                        expected: format!("11 header records, found {k}"),
+                    },
+                ))
+            }
+        }
+    }
+    let header = parse_header_58(&recs, first_line, ctx);
+    let data_start = cur.pos;
+    let data_line = cur.line;
+    let avail = cur.s.len() - data_start;
+    if n_bytes < 0 || n_bytes as u64 > avail as u64 {
+        cur.advance_to(cur.s.len());
+        return Err(ctx.issue(
+            data_line,
+            IssueKind::Truncated {
+                expected: format!("{n_bytes} bytes of binary data, found {avail}"),
+            },
+        ));
+    }
+    let n_bytes = n_bytes as usize;
+    let data = &cur.s[data_start..data_start + n_bytes];
+    cur.advance_to(data_start + n_bytes);
+    let closed = find_terminator(cur);
+    let h = header?;
+    let little = match byte_order {
+        1 => true,
+        2 => false,
+        _ => return Err(bad_header("byte order 1 (little endian) or 2 (big endian)")),
+    };
+    if fp_format != 2 {
+        return Err(bad_header("floating-point format 2 (IEEE 754)"));
+    }
+    if !closed {
+        return Err(ctx.issue(
+            cur.line.saturating_sub(1),
+            IssueKind::Truncated {
+                expected: "a closing `-1` after the binary data".into(),
+            },
+        ));
+    }
+    let size = if h.ordinate_data_type.is_double() { 8 } else { 4 };
+    let vpp = h.values_per_point();
+    let expected = h.num_points.saturating_mul(vpp);
+    let found = n_bytes / size;
+    if found != expected || n_bytes % size != 0 {
+        return Err(ctx.issue(
+            data_line,
+            IssueKind::WrongValueCount {
+                expected,
+                points: h.num_points,
+                found,
+            },
+        ));
+    }
+    let values: Vec<f64> = if size == 8 {
+        data.chunks_exact(8)
+            .map(|c| {
+                let a: [u8; 8] = [c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]];
+                if little {
+                    f64::from_le_bytes(a)
+                } else {
+                    f64::from_be_bytes(a)
+                }
+            })
+            .collect()
+    } else {
+        data.chunks_exact(4)
+            .map(|c| {
+                let a: [u8; 4] = [c[0], c[1], c[2], c[3]];
+                f64::from(if little {
+                    f32::from_le_bytes(a)
+                } else {
+                    f32::from_be_bytes(a)
+                })
+            })
+            .collect()
+    };
+    if let Some(k) = values.iter().position(|v| !v.is_finite()) {
+        let kind = if !h.even && k % vpp == 0 {
+            IssueKind::NonNumeric {
+                value_index: k,
+                found: values[k].to_string(),
+            }
+        } else {
+            IssueKind::NonFiniteOrdinate {
+                point: k / vpp,
+                value: values[k],
+            }
+        };
+        return Err(ctx.issue(data_line, kind));
+    }
+    Ok(h.into_function(&values, true, ctx))
+}
+
+/// After the binary data: consumes lines until one whose text ends in a `-1` token (alone,
+/// after blanks, or after stray bytes). Returns whether it was found.
+fn find_terminator(cur: &mut Lines<'_>) -> bool {
+    while let Some((_, t)) = cur.next_line() {
+        let t = trim(t);
+        if t == b"-1" || (t.ends_with(b"-1") && is_space(t[t.len() - 3])) {
+            return true;
+        }
+    }
+    false
+}
