@@ -4,5 +4,7 @@
 //! wires I/O to kernels) → numerical kernels (`fem`, `modal`, `lab`) that are pure functions
 //! over plain data. See ARCHITECTURE.md.
 
+pub mod findings;
 pub mod io;
+pub mod schemas;
 pub mod stage;

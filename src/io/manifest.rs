@@ -1,0 +1,222 @@
+//! Stage manifests: content hashes of inputs, configuration and outputs, and the up-to-date check.
+//!
+//! Every stage writes, next to its outputs, a manifest JSON recording the stage name, the tool
+//! version, the BLAKE3 hash of every input file and of the effective configuration (canonical
+//! JSON), the seed where there is one, and the hash of every output. The *fingerprint* is the
+//! hash of everything that determines the outputs (stage, tool version, config, seed, input
+//! hashes); a stage whose manifest has the same fingerprint and whose outputs still hash to
+//! the recorded values is up to date and is not rerun. Wall-clock facts (start time, duration,
+//! thread count) live only in the manifest, never inside data files, and never enter the
+//! fingerprint. The manifest is written last and atomically, so a killed stage leaves either
+//! the old complete manifest (whose output hashes then no longer match) or none.
+
+use crate::io::atomic;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{self, Read};
+use std::path::{Path, PathBuf};
+
+/// Version string recorded in manifests; part of the fingerprint.
+pub const TOOL_VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// One hashed file, with its path relative to a base directory where possible.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FileHash {
+    pub path: String,
+    pub blake3: String,
+    pub bytes: u64,
+}
+
+/// Hash one file with BLAKE3 (streamed, 1 MiB buffer).
+pub fn hash_file(path: &Path) -> io::Result<(String, u64)> {
+    let mut f = File::open(path)?;
+    let mut hasher = blake3::Hasher::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut n_total = 0u64;
+    loop {
+        let n = f.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        n_total += n as u64;
+        hasher.update(&buf[..n]);
+    }
+    Ok((hasher.finalize().to_hex().to_string(), n_total))
+}
+
+/// Path of `p` relative to `base` when it lies under it, else `p` as given; `/` separators.
+pub fn rel_path(p: &Path, base: &Path) -> String {
+    p.strip_prefix(base)
+        .unwrap_or(p)
+        .to_string_lossy()
+        .replace('\\', "/")
+}
+
+/// What a stage is about to do: enough to compute its fingerprint before running it.
+#[derive(Debug, Clone)]
+pub struct StageSpec {
+    pub stage: String,
+    /// Input files (hashed). Paths are recorded relative to `input_base`.
+    pub inputs: Vec<PathBuf>,
+    pub input_base: PathBuf,
+    /// The effective configuration: every option that can change the outputs.
+    pub config: serde_json::Value,
+    pub seed: Option<u64>,
+    /// Where the manifest goes; outputs are recorded relative to its directory.
+    pub manifest_path: PathBuf,
+}
+
+/// Wall-clock facts about one run: recorded, never fingerprinted.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunInfo {
+    pub started_utc: String,
+    pub wall_seconds: f64,
+    pub threads: usize,
+}
+
+/// The manifest as written to disk.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Manifest {
+    pub stage: String,
+    pub tool: String,
+    pub tool_version: String,
+    pub fingerprint: String,
+    pub config: serde_json::Value,
+    pub config_blake3: String,
+    pub seed: Option<u64>,
+    pub inputs: Vec<FileHash>,
+    pub outputs: Vec<FileHash>,
+    /// Exit code the stage returned (0 clean, 3 some measurements quarantined), so that an
+    /// up-to-date no-op reports the same outcome as the run it skips.
+    pub exit_code: i32,
+    /// Stage-specific summary (counts of findings, records, …).
+    pub summary: BTreeMap<String, serde_json::Value>,
+    pub run: RunInfo,
+}
+
+/// Inputs hashed once: the fingerprint and the per-file hashes.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    pub spec: StageSpec,
+    pub inputs: Vec<FileHash>,
+    pub config_blake3: String,
+    pub fingerprint: String,
+}
+
+/// Canonical JSON (serde_json's `Value` keeps object keys sorted with default features).
+fn canonical_json(v: &serde_json::Value) -> String {
+    serde_json::to_string(v).expect("serde_json::Value always serialises")
+}
+
+/// Hash the inputs and configuration; compute the fingerprint.
+pub fn prepare(spec: StageSpec) -> io::Result<Prepared> {
+    let mut inputs = Vec::with_capacity(spec.inputs.len());
+    for p in &spec.inputs {
+        let (h, n) = hash_file(p).map_err(|e| {
+            io::Error::new(e.kind(), format!("cannot hash input {}: {e}", p.display()))
+        })?;
+        inputs.push(FileHash {
+            path: rel_path(p, &spec.input_base),
+            blake3: h,
+            bytes: n,
+        });
+    }
+    inputs.sort_by(|a, b| a.path.cmp(&b.path));
+    let config_blake3 = blake3::hash(canonical_json(&spec.config).as_bytes())
+        .to_hex()
+        .to_string();
+    let mut h = blake3::Hasher::new();
+    h.update(b"hbmu-fingerprint-v1\0");
+    h.update(spec.stage.as_bytes());
+    h.update(b"\0");
+    h.update(TOOL_VERSION.as_bytes());
+    h.update(b"\0");
+    h.update(config_blake3.as_bytes());
+    h.update(b"\0");
+    h.update(format!("{:?}", spec.seed).as_bytes());
+    for i in &inputs {
+        h.update(b"\0");
+        h.update(i.path.as_bytes());
+        h.update(b"=");
+        h.update(i.blake3.as_bytes());
+    }
+    let fingerprint = h.finalize().to_hex().to_string();
+    Ok(Prepared {
+        spec,
+        inputs,
+        config_blake3,
+        fingerprint,
+    })
+}
+
+/// Read a manifest if present and parseable.
+pub fn read_manifest(path: &Path) -> Option<Manifest> {
+    let bytes = std::fs::read(path).ok()?;
+    serde_json::from_slice(&bytes).ok()
+}
+
+/// The existing manifest when the stage is up to date: same fingerprint, and every recorded
+/// output still exists with the recorded hash.
+pub fn up_to_date(prep: &Prepared) -> Option<Manifest> {
+    let m = read_manifest(&prep.spec.manifest_path)?;
+    if m.fingerprint != prep.fingerprint || m.stage != prep.spec.stage {
+        return None;
+    }
+    let dir = prep.spec.manifest_path.parent().unwrap_or(Path::new("."));
+    for o in &m.outputs {
+        match hash_file(&dir.join(&o.path)) {
+            Ok((h, _)) if h == o.blake3 => {}
+            _ => return None,
+        }
+    }
+    Some(m)
+}
+
+/// Hash the outputs and write the manifest atomically (last, after all outputs are in place).
+pub fn finish(
+    prep: &Prepared,
+    outputs: &[PathBuf],
+    exit_code: i32,
+    summary: BTreeMap<String, serde_json::Value>,
+    run: RunInfo,
+) -> io::Result<Manifest> {
+    let dir = prep
+        .spec
+        .manifest_path
+        .parent()
+        .unwrap_or(Path::new("."))
+        .to_path_buf();
+    let mut outs = Vec::with_capacity(outputs.len());
+    for p in outputs {
+        let (h, n) = hash_file(p)?;
+        outs.push(FileHash {
+            path: rel_path(p, &dir),
+            blake3: h,
+            bytes: n,
+        });
+    }
+    let m = Manifest {
+        stage: prep.spec.stage.clone(),
+        tool: "hbmu".into(),
+        tool_version: TOOL_VERSION.into(),
+        fingerprint: prep.fingerprint.clone(),
+        config: prep.spec.config.clone(),
+        config_blake3: prep.config_blake3.clone(),
+        seed: prep.spec.seed,
+        inputs: prep.inputs.clone(),
+        outputs: outs,
+        exit_code,
+        summary,
+        run,
+    };
+    let mut bytes = serde_json::to_vec_pretty(&m).map_err(io::Error::other)?;
+    bytes.push(b'\n');
+    atomic::write_bytes(&prep.spec.manifest_path, &bytes)?;
+    Ok(m)
+}
+
+/// Current UTC time as RFC 3339, for the manifest's run info only.
+pub fn now_utc() -> String {
+    chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
+}

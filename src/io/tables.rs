@@ -1,0 +1,362 @@
+//! Parquet tables: column specifications (name, type, unit, meaning), Arrow schemas built from
+//! them, the writer that stamps units and provenance into both the Arrow schema metadata and
+//! the Parquet file metadata, and the JSON documentation of each table under `schemas/tables/`.
+//!
+//! The [`TableSpec`]s here are the single source of truth: `schemas/tables/*.json` are
+//! generated from them (`hbmu schemas --out schemas`) and a test fails when the checked-in files
+//! drift. Columns are flat and pandas-friendly: scalars, strings, and `list<float64>` for
+//! spectra and shapes (pyarrow turns those into numpy arrays per cell). No `pandas` metadata
+//! key is written: pandas reconstructs the frame from the Arrow schema alone.
+
+use arrow::array::{ArrayRef, RecordBatch};
+use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
+use parquet::arrow::ArrowWriter;
+use parquet::basic::{Compression, ZstdLevel};
+use parquet::file::metadata::KeyValue;
+use parquet::file::properties::WriterProperties;
+use serde_json::json;
+use std::collections::{BTreeMap, HashMap};
+use std::io;
+use std::path::Path;
+use std::sync::Arc;
+
+/// Logical column types used in our tables (a small, pandas-friendly subset of Arrow's).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Col {
+    Utf8,
+    Int32,
+    Int64,
+    Float64,
+    Bool,
+    /// `list<float64>`: a spectrum or shape per row.
+    ListF64,
+    /// `list<int64>`: node ids aligned with a shape list.
+    ListI64,
+}
+
+impl Col {
+    pub fn arrow(self) -> DataType {
+        match self {
+            Col::Utf8 => DataType::Utf8,
+            Col::Int32 => DataType::Int32,
+            Col::Int64 => DataType::Int64,
+            Col::Float64 => DataType::Float64,
+            Col::Bool => DataType::Boolean,
+            Col::ListF64 => DataType::List(Arc::new(Field::new("item", DataType::Float64, true))),
+            Col::ListI64 => DataType::List(Arc::new(Field::new("item", DataType::Int64, true))),
+        }
+    }
+    fn name(self) -> &'static str {
+        match self {
+            Col::Utf8 => "string",
+            Col::Int32 => "int32",
+            Col::Int64 => "int64",
+            Col::Float64 => "float64",
+            Col::Bool => "bool",
+            Col::ListF64 => "list<float64>",
+            Col::ListI64 => "list<int64>",
+        }
+    }
+    fn json_type(self) -> serde_json::Value {
+        match self {
+            Col::Utf8 => json!("string"),
+            Col::Int32 | Col::Int64 => json!("integer"),
+            Col::Float64 => json!("number"),
+            Col::Bool => json!("boolean"),
+            Col::ListF64 => json!({"type": "array", "items": {"type": "number"}}),
+            Col::ListI64 => json!({"type": "array", "items": {"type": "integer"}}),
+        }
+    }
+}
+
+/// One column of a table.
+#[derive(Debug, Clone, Copy)]
+pub struct ColumnSpec {
+    pub name: &'static str,
+    pub ty: Col,
+    pub nullable: bool,
+    /// Unit (SI or derived), `""` for dimensionless/none.
+    pub unit: &'static str,
+    pub doc: &'static str,
+}
+
+/// A table: its file name, purpose and columns.
+#[derive(Debug, Clone, Copy)]
+pub struct TableSpec {
+    pub name: &'static str,
+    pub doc: &'static str,
+    pub columns: &'static [ColumnSpec],
+    /// True when the table may carry further columns not listed (e.g. extra sheet columns).
+    pub open: bool,
+}
+
+const fn c(
+    name: &'static str,
+    ty: Col,
+    nullable: bool,
+    unit: &'static str,
+    doc: &'static str,
+) -> ColumnSpec {
+    ColumnSpec {
+        name,
+        ty,
+        nullable,
+        unit,
+        doc,
+    }
+}
+
+impl TableSpec {
+    /// Arrow schema with per-field metadata (`unit`, `doc`) and the given table metadata.
+    pub fn schema(&self, extra: &[Field], metadata: &BTreeMap<String, String>) -> SchemaRef {
+        let mut fields: Vec<Field> = self
+            .columns
+            .iter()
+            .map(|c| {
+                let mut md = HashMap::new();
+                if !c.unit.is_empty() {
+                    md.insert("unit".to_string(), c.unit.to_string());
+                }
+                Field::new(c.name, c.ty.arrow(), c.nullable).with_metadata(md)
+            })
+            .collect();
+        fields.extend(extra.iter().cloned());
+        Arc::new(Schema::new_with_metadata(
+            fields,
+            metadata
+                .iter()
+                .map(|(k, v)| (k.clone(), v.clone()))
+                .collect::<HashMap<String, String>>(),
+        ))
+    }
+
+    /// `{column: unit}` for the columns that have one.
+    pub fn units(&self) -> BTreeMap<String, String> {
+        self.columns
+            .iter()
+            .filter(|c| !c.unit.is_empty())
+            .map(|c| (c.name.to_string(), c.unit.to_string()))
+            .collect()
+    }
+
+    /// JSON Schema (draft 2020-12) of one row, with `x-arrow-type` and `x-unit` annotations.
+    pub fn json_schema(&self) -> serde_json::Value {
+        let mut props = serde_json::Map::new();
+        for c in self.columns {
+            let ty = c.ty.json_type();
+            let ty = if c.nullable {
+                json!({"anyOf": [ty_to_schema(&ty), {"type": "null"}]})
+            } else {
+                ty_to_schema(&ty)
+            };
+            let mut o = ty.as_object().cloned().unwrap_or_default();
+            o.insert("description".into(), json!(c.doc));
+            o.insert("x-arrow-type".into(), json!(c.ty.name()));
+            if !c.unit.is_empty() {
+                o.insert("x-unit".into(), json!(c.unit));
+            }
+            props.insert(c.name.into(), serde_json::Value::Object(o));
+        }
+        json!({
+            "$schema": "https://json-schema.org/draft/2020-12/schema",
+            "$id": format!("hbmu/tables/{}.json", self.name),
+            "title": format!("{}.parquet (one row)", self.name),
+            "description": self.doc,
+            "type": "object",
+            "properties": props,
+            "required": self.columns.iter().filter(|c| !c.nullable).map(|c| c.name).collect::<Vec<_>>(),
+            "additionalProperties": self.open,
+        })
+    }
+}
+
+fn ty_to_schema(ty: &serde_json::Value) -> serde_json::Value {
+    if ty.is_string() {
+        json!({ "type": ty })
+    } else {
+        ty.clone()
+    }
+}
+
+/// Provenance and units stamped into every table we write.
+pub fn table_metadata(
+    spec: &TableSpec,
+    provenance: &BTreeMap<String, String>,
+) -> BTreeMap<String, String> {
+    let mut md = provenance.clone();
+    md.insert("hbmu.table".into(), spec.name.into());
+    md.insert(
+        "hbmu.units".into(),
+        serde_json::to_string(&spec.units()).expect("map of strings serialises"),
+    );
+    md
+}
+
+/// Write one record batch as a Parquet file, atomically, with the schema's metadata copied into
+/// the Parquet footer's key-value metadata too (pyarrow does not always carry one into the
+/// other). Deterministic: no timestamps, one writer thread, fixed compression level.
+pub fn write_parquet(path: &Path, batch: &RecordBatch) -> io::Result<()> {
+    let kv: Vec<KeyValue> = batch
+        .schema()
+        .metadata()
+        .iter()
+        .collect::<BTreeMap<_, _>>()
+        .into_iter()
+        .map(|(k, v)| KeyValue::new(k.clone(), v.clone()))
+        .collect();
+    let props = WriterProperties::builder()
+        .set_compression(Compression::ZSTD(
+            ZstdLevel::try_new(3).map_err(io::Error::other)?,
+        ))
+        .set_key_value_metadata(Some(kv))
+        .set_created_by(format!("hbmu {}", crate::io::manifest::TOOL_VERSION))
+        .build();
+    crate::io::atomic::write_with(path, |w| {
+        let mut writer =
+            ArrowWriter::try_new(w, batch.schema(), Some(props)).map_err(io::Error::other)?;
+        writer.write(batch).map_err(io::Error::other)?;
+        writer.close().map_err(io::Error::other)?;
+        Ok(())
+    })
+}
+
+/// Assemble a batch from columns in spec order (plus extra columns), checking lengths.
+pub fn batch(schema: SchemaRef, columns: Vec<ArrayRef>) -> io::Result<RecordBatch> {
+    RecordBatch::try_new(schema, columns).map_err(io::Error::other)
+}
+
+// ---------------------------------------------------------------------------------------------
+// The ingest tables.
+
+pub const MEASUREMENTS: TableSpec = TableSpec {
+    name: "measurements",
+    doc: "One row per sheet row (measurement): the sheet's columns, the ingest status, and a summary of its UFF file. Extra sheet columns follow as string columns with their header names (prefixed `sheet_` if they collide with a column here).",
+    open: true,
+    columns: &[
+        c("measurement_id", Col::Utf8, false, "", "Measurement id from the sheet."),
+        c("board_id", Col::Utf8, false, "", "Specimen id from the sheet."),
+        c("setup", Col::Utf8, false, "", "`free` or `bolted` (as written when unknown; such rows are quarantined)."),
+        c("file", Col::Utf8, false, "", "UFF path relative to the campaign directory."),
+        c("bolt_set", Col::Utf8, true, "", "Bolt/nut set identifier (bolted only)."),
+        c("torque_nm", Col::Float64, true, "N.m", "Nominal tightening torque."),
+        c("temperature_c", Col::Float64, true, "degC", "Lab temperature during the measurement."),
+        c("date", Col::Utf8, true, "", "Date as written in the sheet (ISO-8601)."),
+        c("date_unix_ns", Col::Int64, true, "ns", "Date as ns since the Unix epoch, UTC."),
+        c("operator", Col::Utf8, true, "", "Operator (free text)."),
+        c("notes", Col::Utf8, true, "", "Notes (free text)."),
+        c("sheet_line", Col::Int64, false, "", "1-based line of the row in campaign.csv."),
+        c("status", Col::Utf8, false, "", "`ok` or `quarantined`."),
+        c("status_reason", Col::Utf8, true, "", "Why the measurement was quarantined."),
+        c("function_type", Col::Int32, true, "", "UFF function type of the response records (4 FRF, 5 transmissibility)."),
+        c("reference_node", Col::Int64, true, "", "Reference node (hammer impact point or shaker reference)."),
+        c("n_scan_points", Col::Int32, false, "", "Scan points (nodes) in the file, reference node excluded."),
+        c("n_records", Col::Int32, false, "", "Response records kept (function type 4 or 5)."),
+        c("n_coherence", Col::Int32, false, "", "Coherence records kept (function type 6)."),
+        c("n_records_dropped", Col::Int32, false, "", "Records dropped (see the ingest report)."),
+        c("freq_start_hz", Col::Float64, true, "Hz", "First spectral line."),
+        c("freq_step_hz", Col::Float64, true, "Hz", "Spectral line spacing."),
+        c("n_lines", Col::Int32, true, "", "Number of spectral lines."),
+        c("uff_blake3", Col::Utf8, true, "", "BLAKE3 hash of the UFF file."),
+    ],
+};
+
+pub const SCAN_POINTS: TableSpec = TableSpec {
+    name: "scan_points",
+    doc: "Scan-point geometry of each measurement, in the board frame (origin at a board corner, x along the long edge, z normal), converted to metres.",
+    open: false,
+    columns: &[
+        c("measurement_id", Col::Utf8, false, "", "Measurement id."),
+        c("node", Col::Int64, false, "", "UFF node label."),
+        c("x_m", Col::Float64, false, "m", "x coordinate."),
+        c("y_m", Col::Float64, false, "m", "y coordinate."),
+        c("z_m", Col::Float64, false, "m", "z coordinate."),
+        c("is_reference", Col::Bool, false, "", "True for the excitation reference node (hammer point or shaker reference)."),
+        c("has_record", Col::Bool, false, "", "True when a response record exists for this node."),
+    ],
+};
+
+pub const FRF: TableSpec = TableSpec {
+    name: "frf",
+    doc: "One row per function record (scan point x function type), spectra as list columns: one row per record keeps the table at thousands of rows instead of millions, each cell becomes a numpy array in pandas, and `df.explode([\"freq_hz\",\"re\",\"im\"])` gives the long form. Ordinates in SI: mobility (m/s)/N for type 4, dimensionless for 5 (transmissibility) and 6 (coherence, `im` null).",
+    open: false,
+    columns: &[
+        c("measurement_id", Col::Utf8, false, "", "Measurement id."),
+        c("node", Col::Int64, false, "", "Response node."),
+        c("function_type", Col::Int32, false, "", "4 FRF, 5 transmissibility, 6 coherence."),
+        c("response_direction", Col::Int32, false, "", "UFF direction code of the response (3 = +Z)."),
+        c("reference_node", Col::Int64, false, "", "Reference node."),
+        c("reference_direction", Col::Int32, false, "", "UFF direction code of the reference."),
+        c("ordinate_unit", Col::Utf8, false, "", "Unit of re/im: `m/s/N`, `1`."),
+        c("freq_hz", Col::ListF64, false, "Hz", "Spectral lines."),
+        c("re", Col::ListF64, false, "", "Real part (unit in ordinate_unit)."),
+        c("im", Col::ListF64, true, "", "Imaginary part; null for real functions (coherence)."),
+    ],
+};
+
+pub const SCALE_READINGS: TableSpec = TableSpec {
+    name: "scale_readings",
+    doc: "Every balance log line (comments and blank lines excepted) with its parsed MT-SICS status.",
+    open: false,
+    columns: &[
+        c("file", Col::Utf8, false, "", "Log file relative to the campaign directory."),
+        c("line", Col::Int64, false, "", "1-based line."),
+        c("timestamp", Col::Utf8, true, "", "Timestamp as written."),
+        c("time_unix_ns", Col::Int64, true, "ns", "Timestamp as ns since the Unix epoch, UTC."),
+        c("board_id", Col::Utf8, true, "", "Board weighed."),
+        c("response", Col::Utf8, false, "", "MT-SICS response as written."),
+        c("status", Col::Utf8, false, "", "stable, dynamic, busy, overload, underload, zeroed, tared, syntax_error, transmission_error, logic_error, unparsed."),
+        c("value", Col::Float64, true, "", "Value as printed, in `unit`."),
+        c("unit", Col::Utf8, true, "", "g, mg or kg."),
+        c("mass_g", Col::Float64, true, "g", "Value in grams."),
+        c("resolution_g", Col::Float64, true, "g", "Readability inferred from the printed decimals."),
+    ],
+};
+
+pub const MASSES: TableSpec = TableSpec {
+    name: "masses",
+    doc: "Board masses from stable balance readings only.",
+    open: false,
+    columns: &[
+        c("board_id", Col::Utf8, false, "", "Board."),
+        c(
+            "mass_g",
+            Col::Float64,
+            false,
+            "g",
+            "Mean of the stable readings.",
+        ),
+        c(
+            "n_stable",
+            Col::Int32,
+            false,
+            "",
+            "Number of stable readings.",
+        ),
+        c(
+            "std_g",
+            Col::Float64,
+            false,
+            "g",
+            "Sample standard deviation of the stable readings (0 for one reading).",
+        ),
+        c(
+            "resolution_g",
+            Col::Float64,
+            false,
+            "g",
+            "Balance readability inferred from the printed decimals.",
+        ),
+        c(
+            "inconsistent",
+            Col::Bool,
+            false,
+            "",
+            "True when the readings disagree more than the resolution suggests (std > 3 d).",
+        ),
+    ],
+};
+
+/// Every table spec the tool writes (for `hbmu schemas` and the drift test).
+pub fn all_tables() -> Vec<&'static TableSpec> {
+    vec![&MEASUREMENTS, &SCAN_POINTS, &FRF, &SCALE_READINGS, &MASSES]
+}

@@ -1,0 +1,42 @@
+//! The JSON schemas of our artifacts, generated from the Rust types that write them.
+//!
+//! `schemas/tables/<table>.json` documents each Parquet table (from [`crate::io::tables`]),
+//! `schemas/mcap/<schema>.json` each MCAP channel's message schema (from
+//! [`crate::io::mcap_writer`]). `hbmu schemas --out schemas` regenerates them; a test fails when
+//! the checked-in files differ from what the code writes.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Every generated schema file: relative path → pretty JSON text (with trailing newline).
+pub fn generate() -> BTreeMap<String, String> {
+    let mut out = BTreeMap::new();
+    let pretty = |v: &serde_json::Value| {
+        let mut s = serde_json::to_string_pretty(v).expect("schema serialises");
+        s.push('\n');
+        s
+    };
+    for t in crate::io::tables::all_tables() {
+        out.insert(format!("tables/{}.json", t.name), pretty(&t.json_schema()));
+    }
+    for (_topic, name, schema) in crate::io::mcap_writer::channel_schemas() {
+        let mut v = schema;
+        if let Some(o) = v.as_object_mut() {
+            o.insert(
+                "x-mcap-schema-name".into(),
+                serde_json::Value::String(name.into()),
+            );
+        }
+        let file = format!("mcap/{}.json", name.trim_start_matches("hbmu."));
+        out.entry(file).or_insert_with(|| pretty(&v));
+    }
+    out
+}
+
+/// Write every schema under `dir`, atomically per file.
+pub fn write_all(dir: &Path) -> std::io::Result<()> {
+    for (rel, text) in generate() {
+        crate::io::atomic::write_bytes(&dir.join(rel), text.as_bytes())?;
+    }
+    Ok(())
+}
