@@ -73,16 +73,33 @@ pub(super) fn read_58b(
     let data_start = cur.pos;
     let data_line = cur.line;
     let avail = cur.s.len() - data_start;
-    if n_bytes < 0 || n_bytes as u64 > avail as u64 {
+    let declared = usize::try_from(n_bytes).unwrap_or(usize::MAX);
+    // The byte count the header implies; pyuff declares points × value size even when a point
+    // has 2 or 3 values, so a count that disagrees with the header is accepted if the implied
+    // count is followed by the closing `-1`.
+    let implied = header.as_ref().ok().map(|h| {
+        let size = if h.ordinate_data_type.is_double() {
+            8
+        } else {
+            4
+        };
+        h.num_points
+            .saturating_mul(h.values_per_point())
+            .saturating_mul(size)
+    });
+    let n_bytes = match implied {
+        Some(im) if im != declared && im <= avail && closes_at(cur.s, data_start + im) => im,
+        _ => declared,
+    };
+    if n_bytes > avail {
         cur.advance_to(cur.s.len());
         return Err(ctx.issue(
             data_line,
             IssueKind::Truncated {
-                expected: format!("{n_bytes} bytes of binary data, found {avail}"),
+                expected: format!("{} bytes of binary data, found {avail}", ints[3]),
             },
         ));
     }
-    let n_bytes = n_bytes as usize;
     let data = &cur.s[data_start..data_start + n_bytes];
     cur.advance_to(data_start + n_bytes);
     let closed = find_terminator(cur);
@@ -103,7 +120,11 @@ pub(super) fn read_58b(
             },
         ));
     }
-    let size = if h.ordinate_data_type.is_double() { 8 } else { 4 };
+    let size = if h.ordinate_data_type.is_double() {
+        8
+    } else {
+        4
+    };
     let vpp = h.values_per_point();
     let expected = h.num_points.saturating_mul(vpp);
     let found = n_bytes / size;
@@ -155,6 +176,15 @@ pub(super) fn read_58b(
         return Err(ctx.issue(data_line, kind));
     }
     Ok(h.into_function(&values, true, ctx))
+}
+
+/// Whether the bytes at `at` are (after blanks and line ends) a `-1` ending its line.
+fn closes_at(s: &[u8], at: usize) -> bool {
+    let mut i = at;
+    while i < s.len() && is_space(s[i]) {
+        i += 1;
+    }
+    s.get(i..i + 2) == Some(b"-1") && s.get(i + 2).is_none_or(|&b| is_space(b))
 }
 
 /// After the binary data: consumes lines until one whose text ends in a `-1` token (alone,

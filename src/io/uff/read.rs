@@ -204,7 +204,12 @@ pub(super) struct Header58 {
 impl Header58 {
     /// Values per point in the data records: x (if uneven) + 1 (real) or 2 (complex).
     pub fn values_per_point(&self) -> usize {
-        usize::from(!self.even) + if self.ordinate_data_type.is_complex() { 2 } else { 1 }
+        usize::from(!self.even)
+            + if self.ordinate_data_type.is_complex() {
+                2
+            } else {
+                1
+            }
     }
 
     /// Builds the dataset from the flat list of data values (already checked for count).
@@ -408,10 +413,7 @@ pub(super) fn parse_header_58(
     }
     let odt_code = vals[0] as i64;
     let Some(ordinate_data_type) = OrdinateDataType::from_code(odt_code) else {
-        return Err(ctx.issue(
-            l7,
-            IssueKind::UnknownOrdinateDataType { found: odt_code },
-        ));
+        return Err(ctx.issue(l7, IssueKind::UnknownOrdinateDataType { found: odt_code }));
     };
     if vals[1] < 0.0 || vals[1] > 1e12 {
         return Err(ctx.issue(
@@ -488,7 +490,11 @@ pub(super) fn parse_header_58(
 }
 
 /// Takes the first 11 lines of a dataset body (after the number line).
-fn header_records(body: &[u8], body_line: usize, ctx: Ctx) -> Result<([&[u8]; 11], usize), UffIssue> {
+fn header_records(
+    body: &[u8],
+    body_line: usize,
+    ctx: Ctx,
+) -> Result<([&[u8]; 11], usize), UffIssue> {
     let mut recs: [&[u8]; 11] = [&[]; 11];
     let mut cur = Lines::new(body);
     for (k, r) in recs.iter_mut().enumerate() {
@@ -558,7 +564,9 @@ fn parse_58_ascii(body: &[u8], body_line: usize, ctx: Ctx) -> Result<Function58,
         }
     }
     if found != expected {
-        let line = line_at(data, data.len(), data_line);
+        // The line of the last data record (or of the first, if there is none).
+        let end = data.iter().rposition(|&b| !super::ascii::is_space(b)).unwrap_or(0);
+        let line = line_at(data, end, data_line);
         return Err(ctx.issue(
             line,
             IssueKind::WrongValueCount {
@@ -604,7 +612,11 @@ fn parse_nodes(
                         value_index: total,
                         found: format!(
                             "{v} where {} was expected",
-                            if k < 4 { "an integer" } else { "a finite number" }
+                            if k < 4 {
+                                "an integer"
+                            } else {
+                                "a finite number"
+                            }
                         ),
                     },
                 ))
@@ -672,7 +684,8 @@ fn parse_164(body: &[u8], body_line: usize, ctx: Ctx) -> Result<Units164, UffIss
             },
         )
     };
-    let units_code = int_field(field(r1, 0, 10)).ok_or_else(|| bad("units code", field(r1, 0, 10)))?;
+    let units_code =
+        int_field(field(r1, 0, 10)).ok_or_else(|| bad("units code", field(r1, 0, 10)))?;
     let temperature_mode =
         int_field(field(r1, 30, 10)).ok_or_else(|| bad("temperature mode", field(r1, 30, 10)))?;
     let description = text_field(field(r1, 10, 20));

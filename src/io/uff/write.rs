@@ -67,7 +67,12 @@ fn put_e(out: &mut Vec<u8>, v: f64, width: usize, prec: usize, letter: u8) {
     out.extend_from_slice(edigits);
 }
 
-fn put_int(out: &mut Vec<u8>, v: i64, width: usize, field: &'static str) -> Result<(), UffWriteError> {
+fn put_int(
+    out: &mut Vec<u8>,
+    v: i64,
+    width: usize,
+    field: &'static str,
+) -> Result<(), UffWriteError> {
     let s = v.to_string();
     if s.len() > width {
         return Err(UffWriteError::FieldTooWide {
@@ -185,7 +190,10 @@ pub fn write_58(f: &Function58, format: Format, w: &mut impl Write) -> Result<()
         });
     }
     check_finite("abscissa", xs)?;
-    check_finite("abscissa minimum/increment, z value", &[min, inc, f.z_axis_value])?;
+    check_finite(
+        "abscissa minimum/increment, z value",
+        &[min, inc, f.z_axis_value],
+    )?;
 
     let vpp = usize::from(!even) + if im.is_some() { 2 } else { 1 };
     let size = if odt.is_double() { 8 } else { 4 };
@@ -371,7 +379,12 @@ pub fn write_164(u: &Units164, w: &mut impl Write) -> Result<(), UffWriteError> 
     number_line(&mut out, 164);
     put_int(&mut out, i64::from(u.units_code), 10, "units code")?;
     put_str(&mut out, &u.description, 20, true, "units description")?;
-    put_int(&mut out, i64::from(u.temperature_mode), 10, "temperature mode")?;
+    put_int(
+        &mut out,
+        i64::from(u.temperature_mode),
+        10,
+        "temperature mode",
+    )?;
     out.push(b'\n');
     put_e(&mut out, u.length_factor, 25, 17, b'D');
     put_e(&mut out, u.force_factor, 25, 17, b'D');
