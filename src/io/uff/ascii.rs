@@ -61,6 +61,26 @@ pub(crate) fn next_number(s: &[u8], pos: &mut usize) -> Option<Result<f64, BadTo
     }
     if i < n && s[i] == b'.' {
         i += 1;
+        // Eight digits at a time while the mantissa stays below 10^18.
+        while mant < 10_000_000_000 && i + 8 <= n {
+            let chunk = u64::from_le_bytes([
+                s[i],
+                s[i + 1],
+                s[i + 2],
+                s[i + 3],
+                s[i + 4],
+                s[i + 5],
+                s[i + 6],
+                s[i + 7],
+            ]);
+            if !is_8_digits(chunk) {
+                break;
+            }
+            mant = mant * 100_000_000 + parse_8_digits(chunk);
+            exp10 -= 8;
+            any_digit = true;
+            i += 8;
+        }
         while i < n && s[i].is_ascii_digit() {
             if mant < 100_000_000_000_000_000 {
                 mant = mant * 10 + u64::from(s[i] - b'0');
@@ -121,6 +141,28 @@ pub(crate) fn next_number(s: &[u8], pos: &mut usize) -> Option<Result<f64, BadTo
         return Some(Ok(if neg { -v } else { v }));
     }
     Some(slow_parse(&s[start..i]).ok_or(BadToken { start, end: i }))
+}
+
+/// Whether all 8 bytes (little-endian in `v`) are ASCII digits (SWAR test as in fast_float).
+#[inline]
+fn is_8_digits(v: u64) -> bool {
+    let a = v.wrapping_add(0x4646_4646_4646_4646);
+    let b = v.wrapping_sub(0x3030_3030_3030_3030);
+    (a | b) & 0x8080_8080_8080_8080 == 0
+}
+
+/// Value of 8 ASCII digits (first digit in the lowest byte of `v`), SWAR as in fast_float.
+#[inline]
+fn parse_8_digits(v: u64) -> u64 {
+    const MASK: u64 = 0x0000_00FF_0000_00FF;
+    const MUL1: u64 = 0x000F_4240_0000_0064; // 100 + (1_000_000 << 32)
+    const MUL2: u64 = 0x0000_2710_0000_0001; // 1 + (10_000 << 32)
+    let mut v = v.wrapping_sub(0x3030_3030_3030_3030);
+    v = v.wrapping_mul(10).wrapping_add(v >> 8);
+    (v & MASK)
+        .wrapping_mul(MUL1)
+        .wrapping_add(((v >> 16) & MASK).wrapping_mul(MUL2))
+        >> 32
 }
 
 /// Correctly rounded conversion of a token already checked to be `[+-]d*[.d*][(E|D)[+-]d+]`.

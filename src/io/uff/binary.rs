@@ -162,7 +162,7 @@ pub(super) fn read_58b(
             .collect()
     };
     if let Some(k) = values.iter().position(|v| !v.is_finite()) {
-        let kind = if !h.even && k % vpp == 0 {
+        let kind = if !h.even && k.is_multiple_of(vpp) {
             IssueKind::NonNumeric {
                 value_index: k,
                 found: values[k].to_string(),

@@ -31,6 +31,10 @@ pub struct UffFile {
 
 /// A decoded dataset.
 #[derive(Debug, Clone, PartialEq)]
+#[allow(
+    clippy::large_enum_variant,
+    reason = "a file holds tens of datasets whose bulk is on the heap; boxing saves nothing"
+)]
 pub enum Dataset {
     Units(Units164),
     Nodes(NodeSet),

@@ -97,6 +97,13 @@ pub fn parse(bytes: &[u8]) -> Result<UffFile, UffError> {
             }
             continue;
         }
+        if number == 58 {
+            match read_58_ascii(&mut cur, ctx) {
+                Ok(f) => out.datasets.push(Dataset::Function(f)),
+                Err(issue) => out.issues.push(issue),
+            }
+            continue;
+        }
         let body_start = cur.pos;
         let body_line = cur.line;
         let mut body_end = None;
@@ -121,7 +128,6 @@ pub fn parse(bytes: &[u8]) -> Result<UffFile, UffError> {
         };
         let body = &bytes[body_start..body_end];
         let result = match number {
-            58 => parse_58_ascii(body, body_line, ctx).map(Dataset::Function),
             2411 => parse_nodes(body, body_line, ctx, NodeSource::Ds2411).map(Dataset::Nodes),
             15 => parse_nodes(body, body_line, ctx, NodeSource::Ds15).map(Dataset::Nodes),
             164 => parse_164(body, body_line, ctx).map(Dataset::Units),
@@ -214,9 +220,26 @@ impl Header58 {
 
     /// Builds the dataset from the flat list of data values (already checked for count).
     pub fn into_function(self, values: &[f64], binary: bool, ctx: Ctx) -> Function58 {
-        let n = self.num_points;
         let vpp = self.values_per_point();
-        let (abscissa, ordinate) = split_values(values, n, vpp, self.even, self.ordinate_data_type);
+        let (xs, ordinate) = split_values(
+            values,
+            self.num_points,
+            vpp,
+            self.even,
+            self.ordinate_data_type,
+        );
+        self.into_function_parts(xs, ordinate, binary, ctx)
+    }
+
+    /// Builds the dataset from the uneven abscissa (empty if even) and the ordinate.
+    pub fn into_function_parts(
+        self,
+        abscissa: Vec<f64>,
+        ordinate: Ordinate,
+        binary: bool,
+        ctx: Ctx,
+    ) -> Function58 {
+        let n = self.num_points;
         let (abscissa, ordinate) = (
             if self.even {
                 Abscissa::Even {
@@ -489,86 +512,132 @@ pub(super) fn parse_header_58(
     })
 }
 
-/// Takes the first 11 lines of a dataset body (after the number line).
-fn header_records(
-    body: &[u8],
-    body_line: usize,
-    ctx: Ctx,
-) -> Result<([&[u8]; 11], usize), UffIssue> {
+/// Reads one ASCII dataset 58 whose number line has been consumed, up to and including its
+/// closing `-1`. The data are scanned once: the closing delimiter is recognised by the number
+/// scanner (a `-1` alone on its line), not by a separate pass over lines.
+fn read_58_ascii(cur: &mut Lines<'_>, ctx: Ctx) -> Result<Function58, UffIssue> {
+    let first_line = cur.line;
     let mut recs: [&[u8]; 11] = [&[]; 11];
-    let mut cur = Lines::new(body);
     for (k, r) in recs.iter_mut().enumerate() {
         match cur.next_line() {
-            Some((_, t)) => *r = t,
-            None => {
+            Some((_, t)) if !is_delimiter(t) => *r = t,
+            next => {
+                let line = next.map_or(cur.line.saturating_sub(1).max(first_line), |(l, _)| l);
                 return Err(ctx.issue(
-                    body_line + k,
+                    line,
                     IssueKind::Truncated {
-                        expected: format!("11 header records, found {k} before the closing `-1`"),
+                        expected: format!(
+                            "11 header records, found {k} before the {}",
+                            if next.is_some() {
+                                "closing `-1`"
+                            } else {
+                                "end of file"
+                            }
+                        ),
                     },
-                ))
+                ));
             }
         }
     }
-    Ok((recs, cur.pos))
-}
-
-fn parse_58_ascii(body: &[u8], body_line: usize, ctx: Ctx) -> Result<Function58, UffIssue> {
-    let (recs, data_off) = header_records(body, body_line, ctx)?;
-    let h = parse_header_58(&recs, body_line, ctx)?;
-    let data = &body[data_off..];
-    let data_line = body_line + 11;
+    let h = match parse_header_58(&recs, first_line, ctx) {
+        Ok(h) => h,
+        Err(e) => {
+            skip_to_delimiter(cur);
+            return Err(e);
+        }
+    };
+    let s = cur.s;
+    let n = s.len();
+    let data_start = cur.pos;
+    let data_line = cur.line;
+    let line_of = |at: usize| line_at(&s[data_start..], at - data_start, data_line);
     let vpp = h.values_per_point();
     let expected = h.num_points.saturating_mul(vpp);
     // Capacity bounded by what the bytes can hold (a hostile count must not allocate).
-    let mut values: Vec<f64> = Vec::with_capacity(expected.min(data.len() / 2 + 1));
-    let mut pos = 0;
+    let cap = h.num_points.min((n - data_start) / (2 * vpp) + 1);
+    let mut xs = Vec::with_capacity(if h.even { 0 } else { cap });
+    let mut re = Vec::with_capacity(cap);
+    let mut im = Vec::with_capacity(if h.ordinate_data_type.is_complex() {
+        cap
+    } else {
+        0
+    });
+    let first_component = usize::from(h.even);
+    let mut pos = data_start;
     let mut found = 0usize;
-    while let Some(r) = next_number(data, &mut pos) {
-        match r {
-            Ok(v) => {
-                if !v.is_finite() {
-                    let k = found;
-                    let is_x = !h.even && k % vpp == 0;
-                    let start = token_start(data, pos);
-                    let line = line_at(data, start, data_line);
-                    return Err(ctx.issue(
-                        line,
-                        if is_x {
+    let mut slot = 0usize;
+    let mut last_start = data_start;
+    let mut first_err: Option<UffIssue> = None;
+    loop {
+        while pos < n && super::ascii::is_space(s[pos]) {
+            pos += 1;
+        }
+        if pos >= n {
+            cur.advance_to(n);
+            return Err(ctx.issue(
+                cur.line.saturating_sub(1),
+                IssueKind::Truncated {
+                    expected: "a closing `-1` delimiter line".into(),
+                },
+            ));
+        }
+        if s[pos] == b'-' && delimiter_at(s, pos) {
+            cur.advance_to(pos);
+            cur.next_line();
+            break;
+        }
+        let start = pos;
+        match next_number(s, &mut pos) {
+            Some(Ok(v)) => {
+                if first_err.is_none() {
+                    if !v.is_finite() {
+                        let kind = if slot + first_component == 0 {
                             IssueKind::NonNumeric {
-                                value_index: k,
+                                value_index: found,
                                 found: v.to_string(),
                             }
                         } else {
                             IssueKind::NonFiniteOrdinate {
-                                point: k / vpp,
+                                point: found / vpp,
                                 value: v,
                             }
+                        };
+                        first_err = Some(ctx.issue(line_of(start), kind));
+                    } else if found < expected {
+                        match slot + first_component {
+                            0 => xs.push(v),
+                            1 => re.push(v),
+                            _ => im.push(v),
+                        }
+                    }
+                }
+            }
+            Some(Err(BadToken { start, end })) => {
+                if first_err.is_none() {
+                    first_err = Some(ctx.issue(
+                        line_of(start),
+                        IssueKind::NonNumeric {
+                            value_index: found,
+                            found: excerpt(&s[start..end]),
                         },
                     ));
                 }
-                if found < expected {
-                    values.push(v);
-                }
-                found += 1;
             }
-            Err(BadToken { start, end }) => {
-                return Err(ctx.issue(
-                    line_at(data, start, data_line),
-                    IssueKind::NonNumeric {
-                        value_index: found,
-                        found: excerpt(&data[start..end]),
-                    },
-                ))
-            }
+            None => pos = n,
+        }
+        last_start = start;
+        found += 1;
+        slot += 1;
+        if slot == vpp {
+            slot = 0;
         }
     }
+    if let Some(e) = first_err {
+        return Err(e);
+    }
     if found != expected {
-        // The line of the last data record (or of the first, if there is none).
-        let end = data.iter().rposition(|&b| !super::ascii::is_space(b)).unwrap_or(0);
-        let line = line_at(data, end, data_line);
         return Err(ctx.issue(
-            line,
+            line_of(last_start),
             IssueKind::WrongValueCount {
                 expected,
                 points: h.num_points,
@@ -576,7 +645,32 @@ fn parse_58_ascii(body: &[u8], body_line: usize, ctx: Ctx) -> Result<Function58,
             },
         ));
     }
-    Ok(h.into_function(&values, false, ctx))
+    let ordinate = if h.ordinate_data_type.is_complex() {
+        Ordinate::Complex { re, im }
+    } else {
+        Ordinate::Real(re)
+    };
+    Ok(h.into_function_parts(xs, ordinate, false, ctx))
+}
+
+/// Whether `s[at..]` starts a delimiter line: `-1` with only blanks before it on its line and
+/// only blanks after it up to the line end.
+fn delimiter_at(s: &[u8], at: usize) -> bool {
+    if s.get(at..at + 2) != Some(b"-1") {
+        return false;
+    }
+    let mut j = at + 2;
+    while j < s.len() && s[j] != b'\n' {
+        if !matches!(s[j], b' ' | b'\t' | b'\r') {
+            return false;
+        }
+        j += 1;
+    }
+    let mut i = at;
+    while i > 0 && matches!(s[i - 1], b' ' | b'\t') {
+        i -= 1;
+    }
+    i == 0 || s[i - 1] == b'\n'
 }
 
 /// Start of the token that ends at `end` (for error positions).
