@@ -12,6 +12,70 @@ use super::ascii::{excerpt, is_space, parse_int, trim, Lines};
 use super::read::{parse_header_58, skip_to_delimiter, Ctx};
 use super::{Function58, IssueKind, UffIssue};
 
+/// The integer fields after the `b` of a binary dataset's number line:
+/// `    58b     1     2          11        4096     0     0           0           0`
+/// gives (byte order, floating-point format, number of ASCII lines, number of bytes).
+fn binary_header(text: &[u8]) -> Option<[i64; 4]> {
+    let b_at = text.iter().position(|&b| b == b'b' || b == b'B')?;
+    let mut fields = text[b_at + 1..]
+        .split(|&b| is_space(b))
+        .filter(|t| !t.is_empty());
+    let mut out = [0i64; 4];
+    for v in &mut out {
+        *v = parse_int(fields.next()?)?;
+    }
+    Some(out)
+}
+
+/// Skips a binary dataset of a number this reader does not decode, using the byte count of
+/// its number line (the 58b layout, which the standard keeps for every binary dataset).
+pub(super) fn skip_binary(
+    cur: &mut Lines<'_>,
+    text: &[u8],
+    number_line: usize,
+    ctx: Ctx,
+) -> Result<(), UffIssue> {
+    let Some([_, _, n_ascii, n_bytes]) = binary_header(text) else {
+        skip_to_delimiter(cur);
+        return Err(ctx.issue(
+            number_line,
+            IssueKind::BadBinaryHeader {
+                expected: "4 integers after `b`: byte order, float format, ASCII lines, bytes",
+                found: excerpt(text),
+            },
+        ));
+    };
+    for _ in 0..n_ascii.max(0) {
+        if cur.next_line().is_none() {
+            break;
+        }
+    }
+    let to = usize::try_from(n_bytes).unwrap_or(usize::MAX);
+    let avail = cur.s.len() - cur.pos;
+    if to > avail {
+        cur.advance_to(cur.s.len());
+        return Err(ctx.issue(
+            cur.line,
+            IssueKind::Truncated {
+                expected: format!("{n_bytes} bytes of binary data"),
+                found: format!("{avail} bytes before the end of file"),
+            },
+        ));
+    }
+    cur.advance_to(cur.pos + to);
+    if find_terminator(cur) {
+        Ok(())
+    } else {
+        Err(ctx.issue(
+            cur.line.saturating_sub(1),
+            IssueKind::Truncated {
+                expected: "a closing `-1` after the binary data".into(),
+                found: "end of file".into(),
+            },
+        ))
+    }
+}
+
 /// Reads one 58b dataset whose number line (`text`, on line `number_line`) has been consumed.
 /// On error the cursor is left past the dataset where possible.
 pub(super) fn read_58b(
@@ -29,24 +93,11 @@ pub(super) fn read_58b(
             },
         )
     };
-    // `    58b     1     2          11        4096     0     0           0           0`
-    let b_at = text
-        .iter()
-        .position(|&b| b == b'b' || b == b'B')
-        .unwrap_or(text.len());
-    let fields: Vec<&[u8]> = text[(b_at + 1).min(text.len())..]
-        .split(|&b| is_space(b))
-        .filter(|t| !t.is_empty())
-        .collect();
-    let ints: Option<Vec<i64>> = fields.iter().take(4).map(|t| parse_int(t)).collect();
-    let ints = match ints {
-        Some(v) if v.len() == 4 => v,
-        _ => {
-            skip_to_delimiter(cur);
-            return Err(bad_header(
-                "4 integers after `58b`: byte order, float format, ASCII lines, bytes",
-            ));
-        }
+    let Some(ints) = binary_header(text) else {
+        skip_to_delimiter(cur);
+        return Err(bad_header(
+            "4 integers after `58b`: byte order, float format, ASCII lines, bytes",
+        ));
     };
     let (byte_order, fp_format, n_ascii, n_bytes) = (ints[0], ints[1], ints[2], ints[3]);
     if n_ascii != 11 {
@@ -63,7 +114,8 @@ pub(super) fn read_58b(
                 return Err(ctx.issue(
                     cur.line.saturating_sub(1),
                     IssueKind::Truncated {
-                        expected: format!("11 header records, found {k}"),
+                        expected: "11 header records".into(),
+                        found: format!("{k} before the end of file"),
                     },
                 ))
             }
@@ -96,7 +148,8 @@ pub(super) fn read_58b(
         return Err(ctx.issue(
             data_line,
             IssueKind::Truncated {
-                expected: format!("{} bytes of binary data, found {avail}", ints[3]),
+                expected: format!("{} bytes of binary data", ints[3]),
+                found: format!("{avail} bytes before the end of file"),
             },
         ));
     }
@@ -117,6 +170,7 @@ pub(super) fn read_58b(
             cur.line.saturating_sub(1),
             IssueKind::Truncated {
                 expected: "a closing `-1` after the binary data".into(),
+                found: "end of file".into(),
             },
         ));
     }

@@ -95,8 +95,8 @@ pub enum IssueKind {
     NonNumeric { value_index: usize, found: String },
     #[error("ordinate at point {point}: expected a finite number, found {value}")]
     NonFiniteOrdinate { point: usize, value: f64 },
-    #[error("truncated: expected {expected}, found end of file")]
-    Truncated { expected: String },
+    #[error("truncated: expected {expected}, found {found}")]
+    Truncated { expected: String, found: String },
     #[error("binary header: expected {expected}, found {found:?}")]
     BadBinaryHeader {
         expected: &'static str,

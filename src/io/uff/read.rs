@@ -97,6 +97,17 @@ pub fn parse(bytes: &[u8]) -> Result<UffFile, UffError> {
             }
             continue;
         }
+        if binary {
+            match super::binary::skip_binary(&mut cur, ntext, nl, ctx) {
+                Ok(()) => out.skipped.push(SkippedDataset {
+                    number,
+                    line: open_line,
+                    index: this_index,
+                }),
+                Err(issue) => out.issues.push(issue),
+            }
+            continue;
+        }
         if number == 58 {
             match read_58_ascii(&mut cur, ctx) {
                 Ok(f) => out.datasets.push(Dataset::Function(f)),
@@ -122,6 +133,7 @@ pub fn parse(bytes: &[u8]) -> Result<UffFile, UffError> {
                 cur.line.saturating_sub(1).max(nl),
                 IssueKind::Truncated {
                     expected: "a closing `-1` delimiter line".into(),
+                    found: "end of file".into(),
                 },
             ));
             break;
@@ -143,6 +155,13 @@ pub fn parse(bytes: &[u8]) -> Result<UffFile, UffError> {
         match result {
             Ok(d) => out.datasets.push(d),
             Err(issue) => out.issues.push(issue),
+        }
+    }
+    if !out.issues.is_empty() {
+        // An issue found at the end of the input names the input's last line.
+        let last_line = 1 + memchr::memchr_iter(b'\n', bytes).count();
+        for i in &mut out.issues {
+            i.line = i.line.clamp(1, last_line);
         }
     }
     if index == 0 {
@@ -526,8 +545,9 @@ fn read_58_ascii(cur: &mut Lines<'_>, ctx: Ctx) -> Result<Function58, UffIssue> 
                 return Err(ctx.issue(
                     line,
                     IssueKind::Truncated {
-                        expected: format!(
-                            "11 header records, found {k} before the {}",
+                        expected: "11 header records".into(),
+                        found: format!(
+                            "{k} before the {}",
                             if next.is_some() {
                                 "closing `-1`"
                             } else {
@@ -578,6 +598,7 @@ fn read_58_ascii(cur: &mut Lines<'_>, ctx: Ctx) -> Result<Function58, UffIssue> 
                 cur.line.saturating_sub(1),
                 IssueKind::Truncated {
                     expected: "a closing `-1` delimiter line".into(),
+                    found: "end of file".into(),
                 },
             ));
         }
@@ -764,6 +785,7 @@ fn parse_164(body: &[u8], body_line: usize, ctx: Ctx) -> Result<Units164, UffIss
             body_line,
             IssueKind::Truncated {
                 expected: "record 1 (units code, description, temperature mode)".into(),
+                found: "the closing `-1`".into(),
             },
         ));
     };

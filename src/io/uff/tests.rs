@@ -554,7 +554,7 @@ proptest! {
     #![proptest_config(ProptestConfig::with_cases(3000))]
     #[test]
     fn random_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..600)) {
-        let _ = parse(&bytes);
+        check_invariants(&bytes)?;
     }
 
     #[test]
@@ -573,14 +573,66 @@ proptest! {
             }
         }
         let n = cut % (b.len() + 1);
-        let whole = parse(&b);
-        let _ = parse(&b[..n]);
-        // Every opened dataset is accounted for exactly once.
-        if let Ok(f) = whole {
-            let issues_with_index = f.issues.iter().filter(|i| !matches!(i.kind, IssueKind::StrayText { .. })).count();
-            prop_assert!(f.datasets.len() + issues_with_index + f.skipped.len() >= 1);
-        }
+        check_invariants(&b)?;
+        check_invariants(&b[..n])?;
     }
+}
+
+/// What any parse result must satisfy: every line number lies in the input, every opened
+/// dataset is reported at most once (issue or skipped), and `Ok` means something was opened.
+fn check_invariants(b: &[u8]) -> Result<(), TestCaseError> {
+    let last_line = b.iter().filter(|&&c| c == b'\n').count() + 1;
+    match parse(b) {
+        Ok(f) => {
+            let mut seen = std::collections::HashSet::new();
+            for i in &f.issues {
+                prop_assert!(i.line >= 1 && i.line <= last_line, "{} of {}", i, last_line);
+                if !matches!(i.kind, IssueKind::StrayText { .. }) {
+                    prop_assert!(seen.insert(i.index), "index {} twice", i.index);
+                }
+            }
+            for sk in &f.skipped {
+                prop_assert!(sk.line >= 1 && sk.line <= last_line);
+                prop_assert!(seen.insert(sk.index), "index {} twice", sk.index);
+            }
+            let lines = f.datasets.iter().map(|d| match d {
+                Dataset::Units(u) => u.line,
+                Dataset::Nodes(n) => n.line,
+                Dataset::Function(f) => f.line,
+            });
+            for l in lines {
+                prop_assert!(l >= 1 && l <= last_line);
+            }
+            prop_assert!(f.datasets.len() + seen.len() >= 1);
+        }
+        Err(UffError::Empty) => prop_assert!(b.iter().all(|c| c.is_ascii_whitespace())),
+        Err(UffError::NotUff { .. }) => {}
+    }
+    Ok(())
+}
+
+#[test]
+fn binary_datasets_of_other_numbers_are_skipped_by_byte_count() {
+    // The payload contains a delimiter-like line: only the byte count can skip it.
+    let payload = b"\x00\x01\n    -1\n  2411\n\x02\x03";
+    let text = [
+        format!("    -1\n  2414b     1     2           2{:>12}     0     0           0           0\nline 1\nline 2\n", payload.len()).into_bytes(),
+        payload.to_vec(),
+        b"\n    -1\n".to_vec(),
+        DS2411.as_bytes().to_vec(),
+    ]
+    .concat();
+    let f = parse(&text).unwrap();
+    assert!(f.issues.is_empty(), "{:?}", f.issues);
+    assert_eq!(
+        f.skipped,
+        vec![SkippedDataset {
+            number: 2414,
+            line: 1,
+            index: 0
+        }]
+    );
+    assert_eq!(f.datasets.len(), 1);
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -175,6 +175,17 @@ pub fn write_58(f: &Function58, format: Format, w: &mut impl Write) -> Result<()
         });
     }
     check_finite("ordinate", re)?;
+    if !odt.is_double() {
+        // Single precision must hold the values (f32 overflow would write inf).
+        let all = re.iter().chain(im.unwrap_or(&[]));
+        if let Some((index, &v)) = all.enumerate().find(|(_, v)| v.abs() > f64::from(f32::MAX)) {
+            return Err(UffWriteError::NonFinite {
+                field: "ordinate (in single precision)",
+                index,
+                found: v,
+            });
+        }
+    }
     if let Some(im) = im {
         check_finite("ordinate imaginary part", im)?;
     }
