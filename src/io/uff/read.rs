@@ -38,6 +38,10 @@ impl Ctx {
 pub fn parse(bytes: &[u8]) -> Result<UffFile, UffError> {
     let mut out = UffFile::default();
     let mut cur = Lines::new(bytes);
+    // A UTF-8 byte-order mark (some Windows exporters) is not part of the first line.
+    if bytes.starts_with(b"\xEF\xBB\xBF") {
+        cur.pos = 3;
+    }
     let mut index = 0usize;
     let mut in_stray_run = false;
     while let Some((ln, text)) = cur.next_line() {
@@ -65,6 +69,7 @@ pub fn parse(bytes: &[u8]) -> Result<UffFile, UffError> {
             match cur.next_line() {
                 None => break None,
                 Some((l, t)) if is_delimiter(t) => open_line = l,
+                Some((_, t)) if trim(t).is_empty() => {}
                 Some(x) => break Some(x),
             }
         };

@@ -207,6 +207,8 @@ fn quirks_crlf_trailing_spaces_blank_lines_indented_delimiters() {
     let indented = DS58_COMPLEX.replace("    -1\n", "        -1  \n");
     let unindented = DS58_COMPLEX.replace("    -1\n", "-1\n");
     let tabs = DS58_COMPLEX.replace("  1.0000", "\t1.0000");
+    let bom = format!("\u{feff}{DS58_COMPLEX}");
+    let blank_after_open = DS58_COMPLEX.replacen("    -1\n", "    -1\n\n", 1);
     for (name, text) in [
         ("crlf", crlf),
         ("trailing", trailing),
@@ -214,6 +216,8 @@ fn quirks_crlf_trailing_spaces_blank_lines_indented_delimiters() {
         ("indented", indented),
         ("unindented", unindented),
         ("tabs", tabs),
+        ("byte-order mark", bom),
+        ("blank line after the opening -1", blank_after_open),
     ] {
         let f = parse(text.as_bytes()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert!(f.issues.is_empty(), "{name}: {:?}", f.issues);
