@@ -178,52 +178,66 @@ fn main() -> std::io::Result<()> {
         );
     }
 
-    // Single thread: read + parse, and parse alone on bytes already in memory. On a shared
-    // machine wall time includes waiting for the CPU, so the thread's CPU time is shown too.
-    let t = Instant::now();
-    let cpu0 = thread_cpu_s();
-    let mut parse_s = 0.0;
-    let mut n = (0, 0);
-    for p in &paths {
-        let bytes = std::fs::read(p)?;
-        let tp = Instant::now();
-        let c = count(&bytes);
-        parse_s += tp.elapsed().as_secs_f64();
-        n = (n.0 + c.0, n.1 + c.1);
-    }
-    let dt = t.elapsed().as_secs_f64();
-    println!(
-        "single thread: {mb:.1} MB, {} datasets ({} x 58) in {dt:.2} s: {:.0} MB/s read+parse, {:.0} MB/s parse only (wall)",
-        n.0,
-        n.1,
-        mb / dt,
-        mb / parse_s
-    );
-    if let (Some(a), Some(b)) = (cpu0, thread_cpu_s()) {
-        println!(
-            "single thread: {:.2} s CPU: {:.0} MB/s read+parse per CPU second",
-            b - a,
-            mb / (b - a)
-        );
-    }
-
-    // Rayon over files, 2 threads.
+    // On a shared machine one run can be slowed by others; each pass is repeated
+    // (env `HBMU_UFF_BENCH_ROUNDS`, default 3) and the best is reported. Wall time includes
+    // waiting for the CPU, so the thread's CPU time is shown too.
+    let rounds: usize = std::env::var("HBMU_UFF_BENCH_ROUNDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(3);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(2)
         .build()
         .map_err(std::io::Error::other)?;
-    let t = Instant::now();
-    let n2: usize = pool.install(|| {
-        paths
-            .par_iter()
-            .map(|p| count(&std::fs::read(p).expect("read bench file")).0)
-            .sum()
-    });
-    let dt = t.elapsed().as_secs_f64();
-    assert_eq!(n2, n.0);
+    let (mut best_wall, mut best_parse, mut best_cpu, mut best_par) =
+        (f64::MAX, f64::MAX, f64::MAX, f64::MAX);
+    let mut n = (0, 0);
+    for _ in 0..rounds.max(1) {
+        // Single thread: read + parse, and parse alone on bytes already in memory.
+        let t = Instant::now();
+        let cpu0 = thread_cpu_s();
+        let mut parse_s = 0.0;
+        n = (0, 0);
+        for p in &paths {
+            let bytes = std::fs::read(p)?;
+            let tp = Instant::now();
+            let c = count(&bytes);
+            parse_s += tp.elapsed().as_secs_f64();
+            n = (n.0 + c.0, n.1 + c.1);
+        }
+        best_wall = best_wall.min(t.elapsed().as_secs_f64());
+        best_parse = best_parse.min(parse_s);
+        if let (Some(a), Some(b)) = (cpu0, thread_cpu_s()) {
+            best_cpu = best_cpu.min(b - a);
+        }
+        // Rayon over files, 2 threads.
+        let t = Instant::now();
+        let n2: usize = pool.install(|| {
+            paths
+                .par_iter()
+                .map(|p| count(&std::fs::read(p).expect("read bench file")).0)
+                .sum()
+        });
+        best_par = best_par.min(t.elapsed().as_secs_f64());
+        assert_eq!(n2, n.0);
+    }
     println!(
-        "rayon, 2 threads: {mb:.1} MB in {dt:.2} s: {:.0} MB/s read+parse",
-        mb / dt
+        "single thread, best of {rounds}: {mb:.1} MB, {} datasets ({} x 58) in {best_wall:.2} s: \
+         {:.0} MB/s read+parse, {:.0} MB/s parse only (wall)",
+        n.0,
+        n.1,
+        mb / best_wall,
+        mb / best_parse
+    );
+    if best_cpu < f64::MAX {
+        println!(
+            "single thread, best of {rounds}: {best_cpu:.2} s CPU: {:.0} MB/s read+parse per CPU second",
+            mb / best_cpu
+        );
+    }
+    println!(
+        "rayon, 2 threads, best of {rounds}: {mb:.1} MB in {best_par:.2} s: {:.0} MB/s read+parse (wall)",
+        mb / best_par
     );
     Ok(())
 }
