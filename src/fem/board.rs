@@ -1,0 +1,312 @@
+//! Board description: the plain-data input of the physics core (outline, FR-4 core,
+//! copper layers with their coverage maps, bolt holes, joint data, default scan grid),
+//! parsed from TOML (`Board::from_toml_str`) and checked for physical sense.
+//!
+//! Frame: origin at a board corner, x along the long edge, y along the short edge,
+//! z normal to the board (the frame of `shared/campaign-format.md`). All lengths in
+//! metres, moduli in pascals, densities in kg/m³.
+
+use serde::{Deserialize, Serialize};
+
+use super::FemError;
+
+/// The TOML text of the default board (`data/boards/default.toml`), compiled in so the
+/// CLI can run without `--board`.
+pub const DEFAULT_BOARD_TOML: &str = include_str!("../../data/boards/default.toml");
+
+/// A printed circuit board: an orthotropic FR-4 core with copper layers, bolted at holes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Board {
+    /// Free-text name of the design, e.g. `"paper-pcb"`.
+    pub name: String,
+    /// Outline length along x, m.
+    pub length_x_m: f64,
+    /// Outline width along y, m.
+    pub width_y_m: f64,
+    /// FR-4 core (the mid-plane laminate).
+    pub core: CoreMaterial,
+    /// Copper layers, any number (0 allowed).
+    #[serde(default)]
+    pub copper: Vec<CopperLayer>,
+    /// Bolt holes (through holes of the bolted joints).
+    #[serde(default)]
+    pub holes: Vec<Hole>,
+    /// Bolted-joint data shared by all holes.
+    pub joint: JointData,
+    /// Default mesh density.
+    pub mesh: MeshOptions,
+    /// Default scan grid on which the CLI reports mode shapes.
+    pub scan_grid: ScanGrid,
+}
+
+/// Orthotropic FR-4 core, principal axes along x and y.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CoreMaterial {
+    /// Core thickness, m.
+    pub thickness_m: f64,
+    /// Young's modulus along x, Pa.
+    pub e_x_pa: f64,
+    /// Young's modulus along y, Pa.
+    pub e_y_pa: f64,
+    /// In-plane shear modulus, Pa.
+    pub g_xy_pa: f64,
+    /// Major Poisson ratio ν_xy (strain in y per strain in x under σ_x), dimensionless.
+    pub nu_xy: f64,
+    /// Density, kg/m³.
+    pub density_kg_per_m3: f64,
+}
+
+/// Which face of the core a copper layer is bonded to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Side {
+    /// z > 0 face.
+    Top,
+    /// z < 0 face.
+    Bottom,
+}
+
+/// An isotropic copper layer on one face, with the region it covers.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CopperLayer {
+    /// Layer name, e.g. `"top"`.
+    pub name: String,
+    /// Face it lies on.
+    pub side: Side,
+    /// Layer thickness, m.
+    pub thickness_m: f64,
+    /// Young's modulus, Pa.
+    pub e_pa: f64,
+    /// Poisson ratio.
+    pub nu: f64,
+    /// Density, kg/m³.
+    pub density_kg_per_m3: f64,
+    /// Covered regions (union; overlaps count once).
+    pub coverage: Vec<Region>,
+}
+
+/// A region of copper.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
+pub enum Region {
+    /// Axis-aligned rectangle `[x0, x1] × [y0, y1]`, m.
+    Rect {
+        /// Lower x, m.
+        x0_m: f64,
+        /// Lower y, m.
+        y0_m: f64,
+        /// Upper x, m.
+        x1_m: f64,
+        /// Upper y, m.
+        y1_m: f64,
+    },
+    /// Simple polygon, vertices `[x, y]` in m, either orientation.
+    Polygon {
+        /// Vertices in order.
+        vertices_m: Vec<[f64; 2]>,
+    },
+}
+
+impl Region {
+    /// Whether point (x, y) lies inside (even–odd rule for polygons).
+    pub fn contains(&self, x: f64, y: f64) -> bool {
+        match self {
+            Region::Rect {
+                x0_m,
+                y0_m,
+                x1_m,
+                y1_m,
+            } => x >= *x0_m && x <= *x1_m && y >= *y0_m && y <= *y1_m,
+            Region::Polygon { vertices_m } => {
+                let n = vertices_m.len();
+                let mut inside = false;
+                let mut j = n.wrapping_sub(1);
+                for i in 0..n {
+                    let [xi, yi] = vertices_m[i];
+                    let [xj, yj] = vertices_m[j];
+                    if (yi > y) != (yj > y) && x < (xj - xi) * (y - yi) / (yj - yi) + xi {
+                        inside = !inside;
+                    }
+                    j = i;
+                }
+                inside
+            }
+        }
+    }
+}
+
+/// A bolt hole with its clamped patch.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Hole {
+    /// Centre x, m.
+    pub x_m: f64,
+    /// Centre y, m.
+    pub y_m: f64,
+    /// Hole diameter, m.
+    pub diameter_m: f64,
+}
+
+/// Bolted-joint data common to all holes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JointData {
+    /// Outer diameter of the clamped annulus (bolt head / washer / nut contact), m.
+    pub clamp_diameter_m: f64,
+    /// Nominal total out-of-plane contact stiffness of one joint (head and nut
+    /// contacts in parallel), N/m.
+    pub k_con_n_per_m: f64,
+    /// Mass of one bolt with nut and washers, kg (used by the joint-mass variant).
+    pub bolt_mass_kg: f64,
+}
+
+/// Structured mesh density: `nx × ny` Bogner–Fox–Schmit rectangles.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MeshOptions {
+    /// Elements along x.
+    pub nx: usize,
+    /// Elements along y.
+    pub ny: usize,
+}
+
+/// Regular scan grid `nx × ny` points inset by `margin_m` from the edges.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScanGrid {
+    /// Points along x.
+    pub nx: usize,
+    /// Points along y.
+    pub ny: usize,
+    /// Inset from every edge, m.
+    pub margin_m: f64,
+}
+
+impl Board {
+    /// Parse and validate a board from TOML text.
+    pub fn from_toml_str(text: &str) -> Result<Board, FemError> {
+        let b: Board = toml::from_str(text).map_err(|e| FemError::BoardParse(e.to_string()))?;
+        b.validate()?;
+        Ok(b)
+    }
+
+    /// The compiled-in default board (paper-like, about 13 g).
+    pub fn default_board() -> Board {
+        // The default file is part of the crate and covered by a test.
+        Board::from_toml_str(DEFAULT_BOARD_TOML).unwrap_or_else(|e| {
+            unreachable!("data/boards/default.toml is invalid: {e}")
+        })
+    }
+
+    /// Check every quantity for physical sense; errors name field, expected, found.
+    pub fn validate(&self) -> Result<(), FemError> {
+        let pos = |field: &str, v: f64| -> Result<(), FemError> {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(FemError::BoardInvalid(format!(
+                    "{field}: expected a finite positive number, found {v}"
+                )))
+            }
+        };
+        pos("length_x_m", self.length_x_m)?;
+        pos("width_y_m", self.width_y_m)?;
+        let c = &self.core;
+        pos("core.thickness_m", c.thickness_m)?;
+        pos("core.e_x_pa", c.e_x_pa)?;
+        pos("core.e_y_pa", c.e_y_pa)?;
+        pos("core.g_xy_pa", c.g_xy_pa)?;
+        pos("core.density_kg_per_m3", c.density_kg_per_m3)?;
+        let nu_yx = c.nu_xy * c.e_y_pa / c.e_x_pa;
+        if !(c.nu_xy.is_finite() && c.nu_xy * nu_yx < 1.0 && c.nu_xy > -1.0) {
+            return Err(FemError::BoardInvalid(format!(
+                "core.nu_xy: expected ν_xy·ν_yx < 1 (positive-definite compliance), found ν_xy = {}",
+                c.nu_xy
+            )));
+        }
+        for (i, l) in self.copper.iter().enumerate() {
+            pos(&format!("copper[{i}].thickness_m"), l.thickness_m)?;
+            pos(&format!("copper[{i}].e_pa"), l.e_pa)?;
+            pos(&format!("copper[{i}].density_kg_per_m3"), l.density_kg_per_m3)?;
+            if !(l.nu > -1.0 && l.nu < 0.5) {
+                return Err(FemError::BoardInvalid(format!(
+                    "copper[{i}].nu: expected -1 < ν < 0.5, found {}",
+                    l.nu
+                )));
+            }
+        }
+        for (i, h) in self.holes.iter().enumerate() {
+            pos(&format!("holes[{i}].diameter_m"), h.diameter_m)?;
+            if !(h.x_m > 0.0 && h.x_m < self.length_x_m && h.y_m > 0.0 && h.y_m < self.width_y_m)
+            {
+                return Err(FemError::BoardInvalid(format!(
+                    "holes[{i}]: expected centre inside the {} × {} m outline, found ({}, {})",
+                    self.length_x_m, self.width_y_m, h.x_m, h.y_m
+                )));
+            }
+        }
+        pos("joint.clamp_diameter_m", self.joint.clamp_diameter_m)?;
+        pos("joint.k_con_n_per_m", self.joint.k_con_n_per_m)?;
+        if !(self.joint.bolt_mass_kg >= 0.0) {
+            return Err(FemError::BoardInvalid(format!(
+                "joint.bolt_mass_kg: expected >= 0, found {}",
+                self.joint.bolt_mass_kg
+            )));
+        }
+        if self.mesh.nx == 0 || self.mesh.ny == 0 {
+            return Err(FemError::BoardInvalid(format!(
+                "mesh: expected nx, ny >= 1, found {} × {}",
+                self.mesh.nx, self.mesh.ny
+            )));
+        }
+        if self.scan_grid.nx == 0 || self.scan_grid.ny == 0 {
+            return Err(FemError::BoardInvalid(format!(
+                "scan_grid: expected nx, ny >= 1, found {} × {}",
+                self.scan_grid.nx, self.scan_grid.ny
+            )));
+        }
+        Ok(())
+    }
+
+    /// Points of the default scan grid, `[x_m, y_m]`, x fastest.
+    pub fn scan_points_m(&self) -> Vec<[f64; 2]> {
+        let g = &self.scan_grid;
+        let coord = |n: usize, len: f64, i: usize| {
+            if n == 1 {
+                0.5 * len
+            } else {
+                g.margin_m + (len - 2.0 * g.margin_m) * i as f64 / (n - 1) as f64
+            }
+        };
+        let mut pts = Vec::with_capacity(g.nx * g.ny);
+        for j in 0..g.ny {
+            for i in 0..g.nx {
+                pts.push([coord(g.nx, self.length_x_m, i), coord(g.ny, self.width_y_m, j)]);
+            }
+        }
+        pts
+    }
+
+    /// Fraction of copper layer `layer` covering the rectangle `[x0,x1]×[y0,y1]`,
+    /// estimated on an `s × s` grid of sub-cell centres (s = 6: the coverage of a
+    /// cell cut by a copper edge is resolved to 1/36 of its area, which is far below
+    /// the uncertainty of the copper data itself).
+    pub fn coverage_fraction(&self, layer: usize, x0: f64, y0: f64, x1: f64, y1: f64) -> f64 {
+        const S: usize = 6;
+        let l = &self.copper[layer];
+        let mut hit = 0usize;
+        for j in 0..S {
+            let y = y0 + (y1 - y0) * (j as f64 + 0.5) / S as f64;
+            for i in 0..S {
+                let x = x0 + (x1 - x0) * (i as f64 + 0.5) / S as f64;
+                if l.coverage.iter().any(|r| r.contains(x, y)) {
+                    hit += 1;
+                }
+            }
+        }
+        hit as f64 / (S * S) as f64
+    }
+}

@@ -1,0 +1,660 @@
+//! The full finite-element model: structured BFS mesh of the board with holes,
+//! per-element laminate stiffness, the affine stiffness and mass terms on one shared
+//! sparse pattern, the setups (free, bolted with a [`JointModel`]), and the queries the
+//! rest of hbmu needs: modes, out-of-plane displacement at arbitrary points, the mass
+//! matrix, the rigid z vector and lumped point masses.
+//!
+//! Mesh: `nx × ny` equal rectangles over the outline. An element whose centroid lies
+//! inside a hole is dropped (so a hole is represented by the union of dropped
+//! elements: choose the mesh so that holes are about one element or more wide, as in
+//! the default board where each hole is centred on one 2 × 2 mm element); nodes that
+//! belong to no remaining element carry no DOF.
+//!
+//! Affine terms (stiffness): the FR-4 core's Q₁₁, Q₂₂, Q₁₂, Q₆₆ contributions
+//! (D_core = Q h³/12), copper (∝ E_Cu), the frozen coupling correction −B A⁻¹ B (see
+//! [`super::laminate`]), and the joint terms; (mass): the board (∝ `mass_scale`),
+//! point masses (constant) and joint terms.
+
+use faer::linalg::solvers::Solve;
+use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
+use faer::{Mat, Side};
+
+use super::board::{Board, MeshOptions, Side as LayerSide};
+use super::eigen::{self, EigenOptions};
+use super::joints::{joint_terms, JointModel, Which};
+use super::laminate::{coupling_correction, isotropic_q, layer_factors, orthotropic_q, Comp4};
+use super::params::{names, Coef, Coefficients, ParamMap, Params};
+use super::plate::{element_matrices, shape, NODE_IJ};
+use super::sparse::Pattern;
+use super::FemError;
+
+/// Boundary conditions of the analysis.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Setup {
+    /// Free-free (on foam): three rigid-body modes.
+    Free,
+    /// Bolted to a rigid shaker fixture through the given joint model; fixed-base modes.
+    Bolted(JointModel),
+}
+
+impl Setup {
+    /// The paper's bolted setup (one K_con for all joints).
+    pub fn bolted() -> Setup {
+        Setup::Bolted(JointModel::baseline())
+    }
+}
+
+/// Modes of the full model, ascending in frequency, rigid-body modes removed.
+#[derive(Clone, Debug)]
+pub struct Modes {
+    /// Natural frequencies, Hz.
+    pub freq_hz: Vec<f64>,
+    /// Eigenvalues λ = ω², rad²/s².
+    pub eigenvalues: Vec<f64>,
+    /// Mass-normalised shapes (φᵀ M φ = 1, unit 1/√kg), one column per mode.
+    pub shapes: Mat<f64>,
+    /// Number of rigid-body modes found and dropped (3 for a free board, else 0).
+    pub n_rigid_dropped: usize,
+}
+
+/// Interpolation operator from DOFs to out-of-plane displacement at given points:
+/// w(x_m, y_m) = Σ N_k(x, y) u_k over the 16 DOFs of the element holding the point.
+#[derive(Clone, Debug)]
+pub struct ShapeOperator {
+    /// Points, `[x_m, y_m]`.
+    pub points_m: Vec<[f64; 2]>,
+    /// Per point, 16 (DOF, weight) pairs.
+    pub rows: Vec<[(usize, f64); 16]>,
+}
+
+impl ShapeOperator {
+    /// w at the points for each column of `u` (n_dof × k) → (n_points × k).
+    pub fn apply(&self, u: faer::MatRef<'_, f64>) -> Mat<f64> {
+        Mat::from_fn(self.rows.len(), u.ncols(), |i, j| {
+            self.rows[i].iter().map(|&(d, w)| w * u[(d, j)]).sum()
+        })
+    }
+}
+
+/// Structured mesh data.
+#[derive(Clone, Debug)]
+pub struct Mesh {
+    /// Elements along x, y.
+    pub nx: usize,
+    pub ny: usize,
+    /// Element size along x, y, m.
+    pub a_m: f64,
+    pub b_m: f64,
+    /// Whether element `ey * nx + ex` is present.
+    pub active: Vec<bool>,
+    /// First DOF of node `j * (nx + 1) + i`, if the node carries DOFs.
+    pub node_dof: Vec<Option<usize>>,
+}
+
+impl Mesh {
+    fn element_nodes(&self, ex: usize, ey: usize) -> [usize; 4] {
+        NODE_IJ.map(|(i, j)| (ey + j) * (self.nx + 1) + ex + i)
+    }
+
+    /// DOFs of element (ex, ey) in BFS order, if all nodes carry DOFs.
+    fn element_dofs(&self, ex: usize, ey: usize) -> Option<[usize; 16]> {
+        let nodes = self.element_nodes(ex, ey);
+        let mut d = [0usize; 16];
+        for (k, n) in nodes.iter().enumerate() {
+            let base = self.node_dof[*n]?;
+            for c in 0..4 {
+                d[4 * k + c] = base + c;
+            }
+        }
+        Some(d)
+    }
+}
+
+/// The assembled full model.
+#[derive(Clone, Debug)]
+pub struct FeModel {
+    /// The board it was built from.
+    pub board: Board,
+    /// Its setup.
+    pub setup: Setup,
+    /// The mesh.
+    pub mesh: Mesh,
+    /// Number of DOFs (board DOFs plus the fixture DOF if any).
+    pub n_dof: usize,
+    /// Index of the fixture DOF, if any.
+    pub fixture_dof: Option<usize>,
+    /// Parameter names, nominal values and coefficient map.
+    pub map: ParamMap,
+    /// Human-readable name of each stiffness / mass term.
+    pub k_term_names: Vec<String>,
+    pub m_term_names: Vec<String>,
+    /// Joint patches: the w-DOFs of each joint's clamped nodes.
+    pub patches: Vec<Vec<usize>>,
+    pub(crate) pattern: Pattern,
+    pub(crate) k_terms: Vec<Vec<f64>>,
+    pub(crate) m_terms: Vec<Vec<f64>>,
+    symbolic: SymbolicLlt<usize>,
+}
+
+struct TermBuilder {
+    names: Vec<String>,
+    coefs: Vec<Coef>,
+    trip: Vec<Vec<(usize, usize, f64)>>,
+}
+
+impl TermBuilder {
+    fn new() -> Self {
+        TermBuilder {
+            names: vec![],
+            coefs: vec![],
+            trip: vec![],
+        }
+    }
+    fn push(&mut self, name: &str, coef: Coef, trip: Vec<(usize, usize, f64)>) {
+        self.names.push(name.to_string());
+        self.coefs.push(coef);
+        self.trip.push(trip);
+    }
+}
+
+impl FeModel {
+    /// Build the model of `board` in `setup` on the mesh `mesh`.
+    pub fn build(board: &Board, setup: Setup, mesh: &MeshOptions) -> Result<FeModel, FemError> {
+        board.validate()?;
+        if mesh.nx < 2 || mesh.ny < 2 {
+            return Err(FemError::Mesh(format!(
+                "expected at least 2 × 2 elements, found {} × {}",
+                mesh.nx, mesh.ny
+            )));
+        }
+        if let Setup::Bolted(j) = &setup {
+            j.validate()?;
+            if board.holes.is_empty() {
+                return Err(FemError::BoardInvalid(
+                    "bolted setup: expected at least one hole, found none".into(),
+                ));
+            }
+        }
+        let (nx, ny) = (mesh.nx, mesh.ny);
+        let a = board.length_x_m / nx as f64;
+        let b = board.width_y_m / ny as f64;
+        // Drop elements whose centroid is inside a hole.
+        let mut active = vec![true; nx * ny];
+        for ey in 0..ny {
+            for ex in 0..nx {
+                let (cx, cy) = ((ex as f64 + 0.5) * a, (ey as f64 + 0.5) * b);
+                if board.holes.iter().any(|h| {
+                    (cx - h.x_m).hypot(cy - h.y_m) < 0.5 * h.diameter_m
+                }) {
+                    active[ey * nx + ex] = false;
+                }
+            }
+        }
+        let n_nodes = (nx + 1) * (ny + 1);
+        let mut used = vec![false; n_nodes];
+        for ey in 0..ny {
+            for ex in 0..nx {
+                if active[ey * nx + ex] {
+                    for (i, j) in NODE_IJ {
+                        used[(ey + j) * (nx + 1) + ex + i] = true;
+                    }
+                }
+            }
+        }
+        let mut node_dof = vec![None; n_nodes];
+        let mut n_dof = 0;
+        for (n, u) in used.iter().enumerate() {
+            if *u {
+                node_dof[n] = Some(n_dof);
+                n_dof += 4;
+            }
+        }
+        let mesh_data = Mesh {
+            nx,
+            ny,
+            a_m: a,
+            b_m: b,
+            active,
+            node_dof,
+        };
+
+        // Parameters.
+        let c = &board.core;
+        let mut pnames: Vec<String> = [names::E_X, names::E_Y, names::G_XY, names::NU_XY]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        let mut nominal = vec![c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy];
+        let has_cu = !board.copper.is_empty();
+        if has_cu {
+            pnames.push(names::E_CU.into());
+            nominal.push(board.copper[0].e_pa);
+        }
+        pnames.push(names::MASS_SCALE.into());
+        nominal.push(1.0);
+        let i_mass = pnames.len() - 1;
+
+        // Per-element laminate data.
+        let em = element_matrices(a, b);
+        let h = c.thickness_m;
+        let q_core = orthotropic_q(c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy);
+        let (a_core, _, d_core) = layer_factors(-h / 2.0, h / 2.0);
+        let mut kb = TermBuilder::new();
+        let mut mb = TermBuilder::new();
+        let mut t_core: [Vec<(usize, usize, f64)>; 4] = Default::default();
+        let mut t_cu = Vec::new();
+        let mut t_corr = Vec::new();
+        let mut t_mass = Vec::new();
+        let mut any_corr = false;
+        let add = |t: &mut Vec<(usize, usize, f64)>, dofs: &[usize; 16], comp: Comp4, scale: f64| {
+            for r in 0..16 {
+                for cc in 0..16 {
+                    let v: f64 = (0..4).map(|k| comp[k] * em.k[k][r][cc]).sum::<f64>() * scale;
+                    t.push((dofs[r], dofs[cc], v));
+                }
+            }
+        };
+        for ey in 0..ny {
+            for ex in 0..nx {
+                if !mesh_data.active[ey * nx + ex] {
+                    continue;
+                }
+                let Some(dofs) = mesh_data.element_dofs(ex, ey) else {
+                    unreachable!("active element without DOFs")
+                };
+                let (x0, y0) = (ex as f64 * a, ey as f64 * b);
+                // Core: one term per Q component, assembled at the nominal Q.
+                for k in 0..4 {
+                    let mut unit = [0.0; 4];
+                    unit[k] = q_core[k] * d_core;
+                    add(&mut t_core[k], &dofs, unit, 1.0);
+                }
+                // Copper and stack integrals.
+                let mut a_st = q_core.map(|q| q * a_core);
+                let mut b_st = [0.0; 4];
+                let mut d_cu = [0.0; 4];
+                let mut rho_h = c.density_kg_per_m3 * h;
+                for (li, l) in board.copper.iter().enumerate() {
+                    let frac = board.coverage_fraction(li, x0, y0, x0 + a, y0 + b);
+                    if frac == 0.0 {
+                        continue;
+                    }
+                    let (z1, z2) = match l.side {
+                        LayerSide::Top => (h / 2.0, h / 2.0 + l.thickness_m),
+                        LayerSide::Bottom => (-h / 2.0 - l.thickness_m, -h / 2.0),
+                    };
+                    let (fa, fb, fd) = layer_factors(z1, z2);
+                    let q = isotropic_q(l.e_pa, l.nu);
+                    for k in 0..4 {
+                        a_st[k] += frac * q[k] * fa;
+                        b_st[k] += frac * q[k] * fb;
+                        d_cu[k] += frac * q[k] * fd;
+                    }
+                    rho_h += frac * l.density_kg_per_m3 * l.thickness_m;
+                }
+                if has_cu {
+                    add(&mut t_cu, &dofs, d_cu, 1.0);
+                }
+                let corr = coupling_correction(a_st, b_st);
+                if corr.iter().any(|v| *v != 0.0) {
+                    any_corr = true;
+                    add(&mut t_corr, &dofs, corr, 1.0);
+                }
+                for r in 0..16 {
+                    for cc in 0..16 {
+                        t_mass.push((dofs[r], dofs[cc], rho_h * em.m[r][cc]));
+                    }
+                }
+            }
+        }
+        let core_names = ["core_q11", "core_q22", "core_q12", "core_q66"];
+        for (k, t) in t_core.into_iter().enumerate() {
+            kb.push(core_names[k], Coef::CoreQ { comp: k }, t);
+        }
+        if has_cu {
+            let scale = board.copper[0].e_pa;
+            kb.push("copper", Coef::Linear { param: 4, scale }, t_cu);
+        }
+        if any_corr {
+            kb.push("coupling_correction", Coef::Const, t_corr);
+        }
+        mb.push(
+            "board_mass",
+            Coef::Linear {
+                param: i_mass,
+                scale: 1.0,
+            },
+            t_mass,
+        );
+
+        // Joints.
+        let mut patches = Vec::new();
+        let mut fixture_dof = None;
+        if let Setup::Bolted(jm) = &setup {
+            let r_clamp = 0.5 * board.joint.clamp_diameter_m;
+            for (hi, hole) in board.holes.iter().enumerate() {
+                let mut p = Vec::new();
+                for j in 0..=ny {
+                    for i in 0..=nx {
+                        let (x, y) = (i as f64 * a, j as f64 * b);
+                        if (x - hole.x_m).hypot(y - hole.y_m) <= r_clamp * (1.0 + 1e-9) {
+                            if let Some(d) = mesh_data.node_dof[j * (nx + 1) + i] {
+                                p.push(d);
+                            }
+                        }
+                    }
+                }
+                if p.is_empty() {
+                    return Err(FemError::Mesh(format!(
+                        "hole {hi} at ({}, {}) m: expected at least one mesh node within the clamp radius {} m, found none (refine the mesh)",
+                        hole.x_m, hole.y_m, r_clamp
+                    )));
+                }
+                patches.push(p);
+            }
+            if jm.has_fixture() {
+                fixture_dof = Some(n_dof);
+                n_dof += 1;
+            }
+            for t in joint_terms(jm, &patches, fixture_dof, board.joint.k_con_n_per_m) {
+                let param = match pnames.iter().position(|n| *n == t.param) {
+                    Some(i) => i,
+                    None => {
+                        pnames.push(t.param.clone());
+                        nominal.push(t.nominal);
+                        pnames.len() - 1
+                    }
+                };
+                let coef = Coef::Linear {
+                    param,
+                    scale: t.scale,
+                };
+                match t.which {
+                    Which::K => kb.push(&t.param, coef, t.triplets),
+                    Which::M => mb.push(&t.param, coef, t.triplets),
+                }
+            }
+        }
+
+        // Shared pattern: all element blocks plus joint entries.
+        let pattern = Pattern::from_entries(
+            n_dof,
+            kb.trip
+                .iter()
+                .chain(mb.trip.iter())
+                .flat_map(|t| t.iter().map(|&(r, c, _)| (r, c))),
+        );
+        let scatter = |trips: &[Vec<(usize, usize, f64)>]| -> Vec<Vec<f64>> {
+            trips
+                .iter()
+                .map(|t| {
+                    let mut v = vec![0.0; pattern.row_idx.len()];
+                    for &(r, c, x) in t {
+                        v[pattern.index(r, c)] += x;
+                    }
+                    v
+                })
+                .collect()
+        };
+        let k_terms = scatter(&kb.trip);
+        let m_terms = scatter(&mb.trip);
+        let symbolic = SymbolicLlt::try_new(pattern.symbolic.as_ref(), Side::Lower)
+            .map_err(|e| FemError::Factorisation(format!("symbolic analysis: {e:?}")))?;
+        let map = ParamMap {
+            names: pnames,
+            nominal,
+            k_coefs: kb.coefs,
+            m_coefs: mb.coefs,
+            core_idx: [0, 1, 2, 3],
+        };
+        Ok(FeModel {
+            board: board.clone(),
+            setup,
+            mesh: mesh_data,
+            n_dof,
+            fixture_dof,
+            map,
+            k_term_names: kb.names,
+            m_term_names: mb.names,
+            patches,
+            pattern,
+            k_terms,
+            m_terms,
+            symbolic,
+        })
+    }
+
+    /// The nominal parameters of this model (from the board).
+    pub fn nominal_params(&self) -> Params {
+        self.map.nominal_params()
+    }
+
+    /// Coefficients (and their gradients) at `p`.
+    pub fn coefficients(&self, p: &Params) -> Result<Coefficients, FemError> {
+        self.map.coefficients(p)
+    }
+
+    /// Values of K(p) on the shared pattern.
+    pub(crate) fn k_values(&self, coefs: &[f64]) -> Vec<f64> {
+        self.pattern.combine(coefs, &self.k_terms)
+    }
+
+    /// Values of M(p) on the shared pattern.
+    pub(crate) fn m_values(&self, coefs: &[f64]) -> Vec<f64> {
+        self.pattern.combine(coefs, &self.m_terms)
+    }
+
+    /// y = K(p) x.
+    pub fn stiffness_apply(&self, p: &Params, x: &[f64]) -> Result<Vec<f64>, FemError> {
+        let c = self.coefficients(p)?;
+        self.check_len(x)?;
+        let mut y = vec![0.0; self.n_dof];
+        self.pattern.matvec(&self.k_values(&c.k), x, &mut y);
+        Ok(y)
+    }
+
+    /// y = M(p) x (kg-consistent; the mass matrix for participation factors).
+    pub fn mass_apply(&self, p: &Params, x: &[f64]) -> Result<Vec<f64>, FemError> {
+        let c = self.coefficients(p)?;
+        self.check_len(x)?;
+        let mut y = vec![0.0; self.n_dof];
+        self.pattern.matvec(&self.m_values(&c.m), x, &mut y);
+        Ok(y)
+    }
+
+    /// M(p) as (row, col, value) triplets, both triangles.
+    pub fn mass_triplets(&self, p: &Params) -> Result<Vec<(usize, usize, f64)>, FemError> {
+        let c = self.coefficients(p)?;
+        Ok(self.triplets(&self.m_values(&c.m)))
+    }
+
+    /// K(p) as (row, col, value) triplets, both triangles.
+    pub fn stiffness_triplets(&self, p: &Params) -> Result<Vec<(usize, usize, f64)>, FemError> {
+        let c = self.coefficients(p)?;
+        Ok(self.triplets(&self.k_values(&c.k)))
+    }
+
+    fn triplets(&self, val: &[f64]) -> Vec<(usize, usize, f64)> {
+        let mut t = Vec::with_capacity(val.len());
+        for c in 0..self.n_dof {
+            for q in self.pattern.col_ptr[c]..self.pattern.col_ptr[c + 1] {
+                t.push((self.pattern.row_idx[q], c, val[q]));
+            }
+        }
+        t
+    }
+
+    fn check_len(&self, x: &[f64]) -> Result<(), FemError> {
+        if x.len() != self.n_dof {
+            return Err(FemError::Request(format!(
+                "vector length: expected {} DOFs, found {}",
+                self.n_dof,
+                x.len()
+            )));
+        }
+        Ok(())
+    }
+
+    /// Rigid-body z-translation vector r: w = 1 at every node (and the fixture DOF),
+    /// slopes 0. The participation of mode φ in a base motion along z is Γ = φᵀ M r.
+    pub fn rigid_z_vector(&self) -> Vec<f64> {
+        let mut r = vec![0.0; self.n_dof];
+        for d in self.mesh.node_dof.iter().flatten() {
+            r[*d] = 1.0;
+        }
+        if let Some(f) = self.fixture_dof {
+            r[f] = 1.0;
+        }
+        r
+    }
+
+    /// Modal participation factors Γᵢ = φᵢᵀ M r (√kg) of `modes` for base motion in z.
+    pub fn participation_z(&self, p: &Params, modes: &Modes) -> Result<Vec<f64>, FemError> {
+        let mr = self.mass_apply(p, &self.rigid_z_vector())?;
+        Ok((0..modes.shapes.ncols())
+            .map(|j| (0..self.n_dof).map(|i| modes.shapes[(i, j)] * mr[i]).sum())
+            .collect())
+    }
+
+    /// Total mass rᵀ M r, kg (board, point masses, joint and fixture masses).
+    pub fn total_mass_kg(&self, p: &Params) -> Result<f64, FemError> {
+        let r = self.rigid_z_vector();
+        let mr = self.mass_apply(p, &r)?;
+        Ok(r.iter().zip(&mr).map(|(a, b)| a * b).sum())
+    }
+
+    /// Add a lumped mass `mass_kg` at (x_m, y_m), consistent with the element shape
+    /// functions (M += m N Nᵀ). It enters a constant mass term.
+    pub fn add_point_mass(&mut self, x_m: f64, y_m: f64, mass_kg: f64) -> Result<(), FemError> {
+        if !(mass_kg.is_finite() && mass_kg >= 0.0) {
+            return Err(FemError::Param(format!(
+                "point mass: expected a finite non-negative mass in kg, found {mass_kg}"
+            )));
+        }
+        let row = self.interp_row(x_m, y_m)?;
+        let idx = match self.m_term_names.iter().position(|n| n == "point_masses") {
+            Some(i) => i,
+            None => {
+                self.m_term_names.push("point_masses".into());
+                self.map.m_coefs.push(Coef::Const);
+                self.m_terms.push(vec![0.0; self.pattern.row_idx.len()]);
+                self.m_terms.len() - 1
+            }
+        };
+        for &(r, wr) in &row {
+            for &(c, wc) in &row {
+                let q = self.pattern.index(r, c);
+                self.m_terms[idx][q] += mass_kg * wr * wc;
+            }
+        }
+        Ok(())
+    }
+
+    fn interp_row(&self, x_m: f64, y_m: f64) -> Result<[(usize, f64); 16], FemError> {
+        let (lx, ly) = (self.board.length_x_m, self.board.width_y_m);
+        let tol = 1e-9 * lx.max(ly);
+        let out = FemError::PointOutside { x_m, y_m };
+        if !(x_m >= -tol && x_m <= lx + tol && y_m >= -tol && y_m <= ly + tol) {
+            return Err(out);
+        }
+        let m = &self.mesh;
+        let ex = ((x_m / m.a_m).floor().max(0.0) as usize).min(m.nx - 1);
+        let ey = ((y_m / m.b_m).floor().max(0.0) as usize).min(m.ny - 1);
+        if self
+            .board
+            .holes
+            .iter()
+            .any(|h| (x_m - h.x_m).hypot(y_m - h.y_m) < 0.5 * h.diameter_m)
+        {
+            return Err(out);
+        }
+        let dofs = m.element_dofs(ex, ey).ok_or(out)?;
+        let xi = ((x_m - ex as f64 * m.a_m) / m.a_m).clamp(0.0, 1.0);
+        let eta = ((y_m - ey as f64 * m.b_m) / m.b_m).clamp(0.0, 1.0);
+        let n = shape(xi, eta, m.a_m, m.b_m);
+        let mut row = [(0usize, 0.0); 16];
+        for k in 0..16 {
+            row[k] = (dofs[k], n[0][k]);
+        }
+        Ok(row)
+    }
+
+    /// Operator giving w at `points_m` (m, board frame) from a DOF vector.
+    pub fn shape_operator(&self, points_m: &[[f64; 2]]) -> Result<ShapeOperator, FemError> {
+        let rows = points_m
+            .iter()
+            .map(|p| self.interp_row(p[0], p[1]))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(ShapeOperator {
+            points_m: points_m.to_vec(),
+            rows,
+        })
+    }
+
+    /// Out-of-plane shapes of `modes` at `points_m`: (n_points × n_modes), 1/√kg.
+    pub fn w_at(&self, modes: &Modes, points_m: &[[f64; 2]]) -> Result<Mat<f64>, FemError> {
+        Ok(self.shape_operator(points_m)?.apply(modes.shapes.as_ref()))
+    }
+
+    /// Numeric Cholesky of K − σM on the cached symbolic analysis.
+    pub(crate) fn factor(&self, kv: &[f64], mv: &[f64], sigma: f64) -> Result<Llt<usize, f64>, FemError> {
+        let a: Vec<f64> = kv.iter().zip(mv).map(|(k, m)| k - sigma * m).collect();
+        Llt::try_new_with_symbolic(self.symbolic.clone(), self.pattern.view(&a), Side::Lower)
+            .map_err(|e| {
+                FemError::Factorisation(format!(
+                    "K − σM with σ = {sigma:e}: expected positive definite, found {e:?}"
+                ))
+            })
+    }
+
+    /// The lowest `n_modes` elastic modes at `p` (shift-invert Lanczos, see
+    /// [`super::eigen`]). For the free setup three extra modes are computed and the
+    /// rigid-body ones (frequency below 1 % of the highest computed) are dropped.
+    pub fn modes(&self, p: &Params, n_modes: usize) -> Result<Modes, FemError> {
+        self.modes_with(p, n_modes, &EigenOptions::default())
+    }
+
+    /// [`FeModel::modes`] with explicit solver options.
+    pub fn modes_with(&self, p: &Params, n_modes: usize, opts: &EigenOptions) -> Result<Modes, FemError> {
+        if n_modes == 0 {
+            return Err(FemError::Request("n_modes: expected >= 1, found 0".into()));
+        }
+        let c = self.coefficients(p)?;
+        let kv = self.k_values(&c.k);
+        let mv = self.m_values(&c.m);
+        let free = matches!(self.setup, Setup::Free);
+        let extra = if free { 3 } else { 0 };
+        let nev = (n_modes + extra).min(self.n_dof);
+        let llt = self.factor(&kv, &mv, opts.shift)?;
+        let solve = |x: &mut Mat<f64>| llt.solve_in_place(x.as_mut());
+        let mmul = |x: &[f64], y: &mut [f64]| self.pattern.matvec(&mv, x, y);
+        let (lams, vecs) = eigen::shift_invert_lanczos(self.n_dof, nev, opts, solve, mmul)?;
+        let lam_max = lams.last().copied().unwrap_or(0.0).max(0.0);
+        let mut n_rigid = 0;
+        if free {
+            while n_rigid < lams.len() && lams[n_rigid] < 1e-4 * lam_max {
+                n_rigid += 1;
+            }
+        }
+        let keep: Vec<usize> = (n_rigid..lams.len()).take(n_modes).collect();
+        if keep.len() < n_modes {
+            return Err(FemError::Request(format!(
+                "expected {n_modes} elastic modes, found {} (model has {} DOFs)",
+                keep.len(),
+                self.n_dof
+            )));
+        }
+        let eigenvalues: Vec<f64> = keep.iter().map(|&i| lams[i]).collect();
+        let freq_hz = eigenvalues
+            .iter()
+            .map(|l| l.max(0.0).sqrt() / (2.0 * std::f64::consts::PI))
+            .collect();
+        let shapes = Mat::from_fn(self.n_dof, keep.len(), |i, j| vecs[(i, keep[j])]);
+        Ok(Modes {
+            freq_hz,
+            eigenvalues,
+            shapes,
+            n_rigid_dropped: n_rigid,
+        })
+    }
+}

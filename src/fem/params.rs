@@ -1,0 +1,230 @@
+//! User-facing model parameters and their map to the affine coefficients.
+//!
+//! The model is K(p) = Σᵢ cᵢ(p) Kᵢ, M(p) = Σⱼ dⱼ(p) Mⱼ. Each term's coefficient is a
+//! [`Coef`]: a ratio of a plane-stress modulus of the FR-4 core to its nominal value
+//! (Q₁₁ = E_x/(1 − ν_xy ν_yx), Q₂₂ = E_y/(1 − ν_xy ν_yx), Q₁₂ = ν_xy E_y/(1 − ν_xy ν_yx),
+//! Q₆₆ = G_xy, ν_yx = ν_xy E_y/E_x), a parameter over its nominal value (copper
+//! modulus, mass scale, joint stiffnesses and masses) over the value its term was
+//! assembled at, or the constant 1. The terms are
+//! assembled at the nominal values, so every coefficient is 1 at the nominal point.
+//! [`ParamMap::coefficients`] also returns ∂c/∂p for the chain rule of the
+//! sensitivities.
+
+use serde::{Deserialize, Serialize};
+
+use super::laminate::orthotropic_q;
+use super::FemError;
+
+/// Names of the standard parameters (units in the names).
+pub mod names {
+    /// FR-4 Young's modulus along x, Pa.
+    pub const E_X: &str = "e_x_pa";
+    /// FR-4 Young's modulus along y, Pa.
+    pub const E_Y: &str = "e_y_pa";
+    /// FR-4 shear modulus, Pa.
+    pub const G_XY: &str = "g_xy_pa";
+    /// FR-4 major Poisson ratio.
+    pub const NU_XY: &str = "nu_xy";
+    /// Copper Young's modulus, Pa (all layers scaled together).
+    pub const E_CU: &str = "e_cu_pa";
+    /// Scale of the whole board mass (FR-4 and copper), dimensionless.
+    pub const MASS_SCALE: &str = "mass_scale";
+    /// Out-of-plane contact stiffness of each joint, N/m.
+    pub const K_CON: &str = "k_con_n_per_m";
+    /// Rotational restraint of each joint, N·m/rad.
+    pub const K_ROT: &str = "k_rot_nm_per_rad";
+    /// Lumped joint mass at each joint, kg.
+    pub const JOINT_MASS: &str = "joint_mass_kg";
+    /// Fixture suspension stiffness, N/m.
+    pub const K_FIX: &str = "k_fix_n_per_m";
+    /// Fixture mass, kg.
+    pub const M_FIX: &str = "m_fix_kg";
+    /// Contact stiffness of joint `j` (1-based) in the per-joint variant, N/m.
+    pub fn k_con_joint(j: usize) -> String {
+        format!("k_con_{j}_n_per_m")
+    }
+}
+
+/// A named parameter vector.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Params {
+    /// Parameter names, in the model's order.
+    pub names: Vec<String>,
+    /// Values, same order as `names`.
+    pub values: Vec<f64>,
+}
+
+impl Params {
+    /// Value of `name`.
+    pub fn get(&self, name: &str) -> Result<f64, FemError> {
+        self.position(name).map(|i| self.values[i])
+    }
+
+    /// Set `name` to `value`.
+    pub fn set(&mut self, name: &str, value: f64) -> Result<(), FemError> {
+        let i = self.position(name)?;
+        self.values[i] = value;
+        Ok(())
+    }
+
+    /// Index of `name`.
+    pub fn position(&self, name: &str) -> Result<usize, FemError> {
+        self.names.iter().position(|n| n == name).ok_or_else(|| {
+            FemError::Param(format!(
+                "expected one of {:?}, found {name:?}",
+                self.names
+            ))
+        })
+    }
+}
+
+/// How one affine term's coefficient depends on the parameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Coef {
+    /// Q_c(E_x, E_y, G_xy, ν_xy) / Q_c(nominal), c ∈ {0: Q11, 1: Q22, 2: Q12, 3: Q66}.
+    CoreQ {
+        /// Component index.
+        comp: usize,
+    },
+    /// p_k / scale: the term was assembled at p_k = scale (the nominal value when it
+    /// is positive, else a reference value).
+    Linear {
+        /// Parameter index.
+        param: usize,
+        /// Parameter value the term was assembled at.
+        scale: f64,
+    },
+    /// Always 1.
+    Const,
+}
+
+/// The parameter list of a model and the coefficient map of its K and M terms.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ParamMap {
+    /// Parameter names.
+    pub names: Vec<String>,
+    /// Nominal values (the ones the terms were assembled at).
+    pub nominal: Vec<f64>,
+    /// Coefficient of each stiffness term.
+    pub k_coefs: Vec<Coef>,
+    /// Coefficient of each mass term.
+    pub m_coefs: Vec<Coef>,
+    /// Indices of e_x, e_y, g_xy, nu_xy.
+    pub core_idx: [usize; 4],
+}
+
+/// Coefficients and their gradients at one parameter point.
+#[derive(Clone, Debug)]
+pub struct Coefficients {
+    /// cᵢ of the stiffness terms.
+    pub k: Vec<f64>,
+    /// dⱼ of the mass terms.
+    pub m: Vec<f64>,
+    /// ∂cᵢ/∂p_k, `k_grad[i][k]`.
+    pub k_grad: Vec<Vec<f64>>,
+    /// ∂dⱼ/∂p_k.
+    pub m_grad: Vec<Vec<f64>>,
+}
+
+impl ParamMap {
+    /// The nominal parameters.
+    pub fn nominal_params(&self) -> Params {
+        Params {
+            names: self.names.clone(),
+            values: self.nominal.clone(),
+        }
+    }
+
+    /// Check `p` names the same parameters, in order, with admissible values.
+    pub fn check(&self, p: &Params) -> Result<(), FemError> {
+        if p.names != self.names {
+            return Err(FemError::Param(format!(
+                "expected parameters {:?}, found {:?}",
+                self.names, p.names
+            )));
+        }
+        for (n, v) in p.names.iter().zip(&p.values) {
+            let ok = if n == names::NU_XY {
+                v.is_finite()
+            } else {
+                v.is_finite() && *v >= 0.0
+            };
+            if !ok {
+                return Err(FemError::Param(format!(
+                    "{n}: expected a finite non-negative value, found {v}"
+                )));
+            }
+        }
+        let [ix, iy, _, inu] = self.core_idx;
+        let (ex, ey, nu) = (p.values[ix], p.values[iy], p.values[inu]);
+        if !(ex > 0.0 && ey > 0.0 && nu * nu * ey / ex < 1.0) {
+            return Err(FemError::Param(format!(
+                "core: expected E_x, E_y > 0 and ν_xy² E_y/E_x < 1, found E_x = {ex}, E_y = {ey}, ν_xy = {nu}"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Coefficients at `p`, with gradients.
+    pub fn coefficients(&self, p: &Params) -> Result<Coefficients, FemError> {
+        self.check(p)?;
+        Ok(self.coefficients_unchecked(&p.values))
+    }
+
+    /// Coefficients at raw values (caller has checked them).
+    pub fn coefficients_unchecked(&self, v: &[f64]) -> Coefficients {
+        let np = self.names.len();
+        let [ix, iy, ig, inu] = self.core_idx;
+        let q_nom = orthotropic_q(
+            self.nominal[ix],
+            self.nominal[iy],
+            self.nominal[ig],
+            self.nominal[inu],
+        );
+        let (ex, ey, g, nu) = (v[ix], v[iy], v[ig], v[inu]);
+        let den = 1.0 - nu * nu * ey / ex;
+        // ∂den/∂(E_x, E_y, ν).
+        let dden = [nu * nu * ey / (ex * ex), -nu * nu / ex, -2.0 * nu * ey / ex];
+        // (value, ∂/∂E_x, ∂/∂E_y, ∂/∂G, ∂/∂ν) of the four Q components.
+        let quot = |num: f64, dnum: [f64; 3]| -> [f64; 4] {
+            let mut d = [0.0; 4];
+            for k in 0..3 {
+                d[k] = dnum[k] / den - num * dden[k] / (den * den);
+            }
+            // reorder to (E_x, E_y, G, ν): G does not enter num/den.
+            [d[0], d[1], 0.0, d[2]]
+        };
+        let q = [ex / den, ey / den, nu * ey / den, g];
+        let dq = [
+            quot(ex, [1.0, 0.0, 0.0]),
+            quot(ey, [0.0, 1.0, 0.0]),
+            quot(nu * ey, [0.0, nu, ey]),
+            [0.0, 0.0, 1.0, 0.0],
+        ];
+        let eval = |c: &Coef| -> (f64, Vec<f64>) {
+            let mut grad = vec![0.0; np];
+            match c {
+                Coef::CoreQ { comp } => {
+                    let s = 1.0 / q_nom[*comp];
+                    for (k, idx) in [ix, iy, ig, inu].iter().enumerate() {
+                        grad[*idx] += dq[*comp][k] * s;
+                    }
+                    (q[*comp] * s, grad)
+                }
+                Coef::Linear { param, scale } => {
+                    grad[*param] = 1.0 / scale;
+                    (v[*param] / scale, grad)
+                }
+                Coef::Const => (1.0, grad),
+            }
+        };
+        let (k, k_grad): (Vec<_>, Vec<_>) = self.k_coefs.iter().map(eval).unzip();
+        let (m, m_grad): (Vec<_>, Vec<_>) = self.m_coefs.iter().map(eval).unzip();
+        Coefficients {
+            k,
+            m,
+            k_grad,
+            m_grad,
+        }
+    }
+}

@@ -1,0 +1,101 @@
+//! A symmetric sparse pattern in compressed-column form (both triangles stored) shared
+//! by all affine terms, so that K(p) = Σ cᵢ Kᵢ is a weighted sum of value arrays and the
+//! symbolic Cholesky analysis is done once per model.
+
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
+
+/// Compressed-column pattern of an `n × n` symmetric matrix, rows sorted per column.
+#[derive(Clone, Debug)]
+pub struct Pattern {
+    pub n: usize,
+    pub col_ptr: Vec<usize>,
+    pub row_idx: Vec<usize>,
+    pub symbolic: SymbolicSparseColMat<usize>,
+}
+
+impl Pattern {
+    /// Pattern holding every `(row, col)` of `entries` (duplicates merged).
+    pub fn from_entries(n: usize, entries: impl Iterator<Item = (usize, usize)>) -> Pattern {
+        let mut cols: Vec<Vec<usize>> = vec![Vec::new(); n];
+        for (r, c) in entries {
+            cols[c].push(r);
+        }
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::new();
+        col_ptr.push(0);
+        for mut rows in cols {
+            rows.sort_unstable();
+            rows.dedup();
+            row_idx.extend_from_slice(&rows);
+            col_ptr.push(row_idx.len());
+        }
+        let symbolic =
+            SymbolicSparseColMat::new_checked(n, n, col_ptr.clone(), None, row_idx.clone());
+        Pattern {
+            n,
+            col_ptr,
+            row_idx,
+            symbolic,
+        }
+    }
+
+    /// Position of entry (r, c) in the value array. Callers only ask for entries that
+    /// were put in the pattern; a miss is a programming error inside this module.
+    pub fn index(&self, r: usize, c: usize) -> usize {
+        let (s, e) = (self.col_ptr[c], self.col_ptr[c + 1]);
+        match self.row_idx[s..e].binary_search(&r) {
+            Ok(k) => s + k,
+            Err(_) => unreachable!("entry ({r}, {c}) not in the sparse pattern"),
+        }
+    }
+
+    /// y = A x for the full symmetric matrix with values `val`.
+    pub fn matvec(&self, val: &[f64], x: &[f64], y: &mut [f64]) {
+        y.iter_mut().for_each(|v| *v = 0.0);
+        for c in 0..self.n {
+            let xc = x[c];
+            if xc == 0.0 {
+                continue;
+            }
+            for p in self.col_ptr[c]..self.col_ptr[c + 1] {
+                y[self.row_idx[p]] += val[p] * xc;
+            }
+        }
+    }
+
+    /// xᵀ A y.
+    pub fn bilinear(&self, val: &[f64], x: &[f64], y: &[f64]) -> f64 {
+        let mut s = 0.0;
+        for c in 0..self.n {
+            let yc = y[c];
+            if yc == 0.0 {
+                continue;
+            }
+            let mut t = 0.0;
+            for p in self.col_ptr[c]..self.col_ptr[c + 1] {
+                t += val[p] * x[self.row_idx[p]];
+            }
+            s += t * yc;
+        }
+        s
+    }
+
+    /// faer view of the matrix with values `val`.
+    pub fn view<'a>(&'a self, val: &'a [f64]) -> SparseColMatRef<'a, usize, f64> {
+        SparseColMatRef::new(self.symbolic.as_ref(), val)
+    }
+
+    /// Σ cᵢ valsᵢ.
+    pub fn combine(&self, coefs: &[f64], terms: &[Vec<f64>]) -> Vec<f64> {
+        let mut out = vec![0.0; self.row_idx.len()];
+        for (c, t) in coefs.iter().zip(terms) {
+            if *c == 0.0 {
+                continue;
+            }
+            for (o, v) in out.iter_mut().zip(t) {
+                *o += c * v;
+            }
+        }
+        out
+    }
+}

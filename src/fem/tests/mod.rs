@@ -1,0 +1,5 @@
+//! Tests of the physics core against closed forms, published tables and identities.
+
+mod helpers;
+mod verification;
+mod board_default;
