@@ -46,51 +46,26 @@ pub(crate) fn next_number(s: &[u8], pos: &mut usize) -> Option<Result<f64, BadTo
         neg = s[i] == b'-';
         i += 1;
     }
+    if let Some((mant, exp10, end)) = fast_e_field(s, i) {
+        *pos = end;
+        return Some(Ok(to_f64(mant, exp10, neg).unwrap_or_else(|| {
+            slow_parse(&s[start..end]).unwrap_or(f64::NAN)
+        })));
+    }
     let mut mant: u64 = 0;
     let mut exact = true;
-    let mut any_digit = false;
+    let (j, _) = digit_run(s, i, &mut mant, &mut exact);
+    let mut any_digit = j > i;
+    i = j;
+    // Integer digits beyond the mantissa's capacity clear `exact`: the slow path rescans.
     let mut exp10: i64 = 0;
-    while i < n && s[i].is_ascii_digit() {
-        if mant < 100_000_000_000_000_000 {
-            mant = mant * 10 + u64::from(s[i] - b'0');
-        } else {
-            exact = false;
-        }
-        any_digit = true;
-        i += 1;
-    }
     if i < n && s[i] == b'.' {
-        i += 1;
-        // Eight digits at a time while the mantissa stays below 10^18.
-        while mant < 10_000_000_000 && i + 8 <= n {
-            let chunk = u64::from_le_bytes([
-                s[i],
-                s[i + 1],
-                s[i + 2],
-                s[i + 3],
-                s[i + 4],
-                s[i + 5],
-                s[i + 6],
-                s[i + 7],
-            ]);
-            if !is_8_digits(chunk) {
-                break;
-            }
-            mant = mant * 100_000_000 + parse_8_digits(chunk);
-            exp10 -= 8;
-            any_digit = true;
-            i += 8;
-        }
-        while i < n && s[i].is_ascii_digit() {
-            if mant < 100_000_000_000_000_000 {
-                mant = mant * 10 + u64::from(s[i] - b'0');
-                exp10 -= 1;
-            } else {
-                exact = false;
-            }
-            any_digit = true;
-            i += 1;
-        }
+        let j = i + 1;
+        let (k, frac_digits) = digit_run(s, j, &mut mant, &mut exact);
+        any_digit |= k > j;
+        // Only the digits that entered the mantissa scale it (the rest made it inexact).
+        exp10 -= frac_digits as i64;
+        i = k;
     }
     if !any_digit {
         return Some(special_or_bad(s, start, pos));
@@ -128,27 +103,160 @@ pub(crate) fn next_number(s: &[u8], pos: &mut usize) -> Option<Result<f64, BadTo
         return Some(bad_to_blank(s, start, pos));
     }
     *pos = i;
-    if mant == 0 && exact {
-        return Some(Ok(if neg { -0.0 } else { 0.0 }));
+    if exact {
+        if let Some(v) = to_f64(mant, exp10, neg) {
+            return Some(Ok(v));
+        }
     }
-    if exact && mant <= (1u64 << 53) && (-22..=22).contains(&exp10) {
+    Some(slow_parse(&s[start..i]).ok_or(BadToken { start, end: i }))
+}
+
+/// `±mant · 10^exp10` when exactly computable with one IEEE operation (Clinger's fast path:
+/// both operands exact, so the one rounding is the correct one), else `None`.
+#[inline(always)]
+fn to_f64(mant: u64, exp10: i64, neg: bool) -> Option<f64> {
+    if mant == 0 {
+        return Some(if neg { -0.0 } else { 0.0 });
+    }
+    if mant <= (1u64 << 53) && (-22..=22).contains(&exp10) {
         let m = mant as f64;
         let v = if exp10 >= 0 {
             m * POW10[exp10 as usize]
         } else {
             m / POW10[(-exp10) as usize]
         };
-        return Some(Ok(if neg { -v } else { v }));
+        return Some(if neg { -v } else { v });
     }
-    Some(slow_parse(&s[start..i]).ok_or(BadToken { start, end: i }))
+    None
 }
 
-/// Whether all 8 bytes (little-endian in `v`) are ASCII digits (SWAR test as in fast_float).
-#[inline]
-fn is_8_digits(v: u64) -> bool {
+#[inline(always)]
+fn load8(s: &[u8], i: usize) -> Option<u64> {
+    s.get(i..i.checked_add(8)?)
+        .and_then(|b| <[u8; 8]>::try_from(b).ok())
+        .map(u64::from_le_bytes)
+}
+
+/// Value of the first `nd` (< 8) digits of `chunk`.
+#[inline(always)]
+fn partial_digits(chunk: u64, nd: usize) -> u64 {
+    if nd == 0 {
+        0
+    } else {
+        parse_8_digits((chunk << (8 * (8 - nd))) | (0x3030_3030_3030_3030 >> (8 * nd)))
+    }
+}
+
+/// Fast path for the standard's E-format fields after the sign: `d.ddd…d(E|e|D|d)(+|-)dd`
+/// with 1 to 15 fraction digits and a two-digit exponent, ending at a blank, a sign (touching
+/// field) or the end. Returns (mantissa digits, decimal exponent, end), or `None` for the
+/// general scanner to handle (other shapes, touching fields after the exponent, end of input
+/// within 8 bytes).
+#[inline(always)]
+fn fast_e_field(s: &[u8], i: usize) -> Option<(u64, i64, usize)> {
+    let d0 = s.get(i)?.wrapping_sub(b'0');
+    if d0 > 9 || *s.get(i + 1)? != b'.' {
+        return None;
+    }
+    let c1 = load8(s, i + 2)?;
+    let n1 = leading_digits(c1);
+    let (mant, k) = if n1 < 8 {
+        (u64::from(d0) * POW10_U64[n1] + partial_digits(c1, n1), n1)
+    } else {
+        let c2 = load8(s, i + 10)?;
+        let n2 = leading_digits(c2);
+        if n2 > 7 {
+            return None;
+        }
+        let head = u64::from(d0) * 100_000_000 + parse_8_digits(c1);
+        (head * POW10_U64[n2] + partial_digits(c2, n2), 8 + n2)
+    };
+    if k == 0 {
+        return None;
+    }
+    let j = i + 2 + k;
+    if !matches!(*s.get(j)?, b'E' | b'e' | b'D' | b'd') {
+        return None;
+    }
+    let eneg = match *s.get(j + 1)? {
+        b'-' => true,
+        b'+' => false,
+        _ => return None,
+    };
+    let a = s.get(j + 2)?.wrapping_sub(b'0');
+    let b = s.get(j + 3)?.wrapping_sub(b'0');
+    if a > 9 || b > 9 {
+        return None;
+    }
+    let end = j + 4;
+    if let Some(&c) = s.get(end) {
+        if !(is_space(c) || c == b'-' || c == b'+') {
+            return None;
+        }
+    }
+    let e = i64::from(a * 10 + b);
+    Some((mant, if eneg { -e } else { e } - k as i64, end))
+}
+
+const POW10_U64: [u64; 9] = [
+    1,
+    10,
+    100,
+    1_000,
+    10_000,
+    100_000,
+    1_000_000,
+    10_000_000,
+    100_000_000,
+];
+
+/// Number of leading ASCII digits among the 8 bytes of `v` (first byte lowest). SWAR: a byte's
+/// high bit is set in the mask iff it is not a digit; borrows and carries only move upwards,
+/// so the lowest flagged byte is the first non-digit.
+#[inline(always)]
+fn leading_digits(v: u64) -> usize {
     let a = v.wrapping_add(0x4646_4646_4646_4646);
     let b = v.wrapping_sub(0x3030_3030_3030_3030);
-    (a | b) & 0x8080_8080_8080_8080 == 0
+    let m = (a | b) & 0x8080_8080_8080_8080;
+    (m.trailing_zeros() / 8) as usize
+}
+
+/// Scans a run of decimal digits from `i` into `mant` (8 at a time where possible). Digits
+/// that no longer fit 18 significant digits clear `exact` and are not counted. Returns the
+/// index after the run and the number of digits that entered `mant`.
+#[inline(always)]
+fn digit_run(s: &[u8], mut i: usize, mant: &mut u64, exact: &mut bool) -> (usize, usize) {
+    let mut used = 0usize;
+    while *mant < 10_000_000_000 {
+        let Some(chunk) = load8(s, i) else {
+            break;
+        };
+        let nd = leading_digits(chunk);
+        if nd == 0 {
+            return (i, used);
+        }
+        let v = if nd == 8 {
+            parse_8_digits(chunk)
+        } else {
+            partial_digits(chunk, nd)
+        };
+        *mant = *mant * POW10_U64[nd] + v;
+        used += nd;
+        i += nd;
+        if nd < 8 {
+            return (i, used);
+        }
+    }
+    while i < s.len() && s[i].is_ascii_digit() {
+        if *mant < 100_000_000_000_000_000 {
+            *mant = *mant * 10 + u64::from(s[i] - b'0');
+            used += 1;
+        } else {
+            *exact = false;
+        }
+        i += 1;
+    }
+    (i, used)
 }
 
 /// Value of 8 ASCII digits (first digit in the lowest byte of `v`), SWAR as in fast_float.

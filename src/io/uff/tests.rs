@@ -76,6 +76,33 @@ proptest! {
         prop_assert_eq!(got[0].unwrap().to_bits(), reference.to_bits(), "{}", fortran);
     }
 
+    /// The standard's (and Python's `%.pE`) layout: sign, one digit, point, p digits, `E`,
+    /// exponent sign, at least two digits; alone and as touching fields.
+    #[test]
+    fn scanner_agrees_with_std_on_fortran_layout(
+        a in any::<u64>(), b in any::<u64>(), prec in 0usize..18, letter in 0usize..4
+    ) {
+        let (va, vb) = (f64::from_bits(a), f64::from_bits(b));
+        prop_assume!(va.is_finite() && vb.is_finite());
+        let l = ["E", "e", "D", "d"][letter];
+        let fa = fortran_e(va, prec, l);
+        let fb = fortran_e(vb, prec, l);
+        let ra: f64 = fa.replace(['D', 'd'], "e").parse().unwrap();
+        let rb: f64 = fb.replace(['D', 'd'], "e").parse().unwrap();
+        let spaced = scan_all(&format!("  {fa}   {fb}\n"));
+        prop_assert_eq!(spaced.len(), 2);
+        prop_assert_eq!(spaced[0].unwrap().to_bits(), ra.to_bits(), "{}", fa);
+        prop_assert_eq!(spaced[1].unwrap().to_bits(), rb.to_bits(), "{}", fb);
+        // Touching fields are unambiguous when the second starts with a sign, or has a point
+        // (the digit before it is given back from the first field's exponent).
+        if fb.starts_with('-') || prec > 0 {
+            let touching = scan_all(&format!("{fa}{fb}"));
+            prop_assert_eq!(touching.len(), 2, "{}{}", fa, fb);
+            prop_assert_eq!(touching[0].unwrap().to_bits(), ra.to_bits(), "{}{}", fa, fb);
+            prop_assert_eq!(touching[1].unwrap().to_bits(), rb.to_bits(), "{}{}", fa, fb);
+        }
+    }
+
     /// Random digit strings (mantissa up to 25 digits, any exponent) agree with std.
     #[test]
     fn scanner_agrees_with_std_on_digit_strings(
@@ -87,6 +114,14 @@ proptest! {
         prop_assert_eq!(got.len(), 1);
         prop_assert_eq!(got[0].unwrap().to_bits(), reference.to_bits(), "{}", text);
     }
+}
+
+/// `v` as C/Python `%.{prec}E` (exponent sign and at least two digits), letter `l`.
+fn fortran_e(v: f64, prec: usize, l: &str) -> String {
+    let r = format!("{v:.prec$e}");
+    let (m, e) = r.split_once('e').unwrap();
+    let e: i32 = e.parse().unwrap();
+    format!("{m}{l}{}{:02}", if e < 0 { '-' } else { '+' }, e.abs())
 }
 
 // ---------------------------------------------------------------------------------------------
