@@ -29,7 +29,7 @@ pub(crate) struct BadToken {
 /// Scans the next number of `s` from `*pos`, skipping blanks and line ends. Returns `None` at the
 /// end of `s`. `NaN`/`Inf` spellings are returned as such (the caller decides whether they are
 /// acceptable). On a malformed token, `*pos` moves past it (to the next blank).
-#[inline]
+#[inline(always)]
 pub(crate) fn next_number(s: &[u8], pos: &mut usize) -> Option<Result<f64, BadToken>> {
     let n = s.len();
     let mut i = *pos;
@@ -48,9 +48,8 @@ pub(crate) fn next_number(s: &[u8], pos: &mut usize) -> Option<Result<f64, BadTo
     }
     if let Some((mant, exp10, end)) = fast_e_field(s, i) {
         *pos = end;
-        return Some(Ok(to_f64(mant, exp10, neg).unwrap_or_else(|| {
-            slow_parse(&s[start..end]).unwrap_or(f64::NAN)
-        })));
+        return Some(Ok(to_f64(mant, exp10, neg)
+            .unwrap_or_else(|| slow_parse(&s[start..end]).unwrap_or(f64::NAN))));
     }
     let mut mant: u64 = 0;
     let mut exact = true;
