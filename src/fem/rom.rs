@@ -1,5 +1,456 @@
-//! placeholder
-pub struct Rom;
-pub struct RomModes;
-pub struct RomOptions;
-pub struct RomShapeOperator;
+//! Parametric reduced-order model (ROM): one global reduced basis V for the whole
+//! ±20 % parameter box, the affine terms projected once (Kᵢʳ = Vᵀ Kᵢ V, Mⱼʳ = Vᵀ Mⱼ V),
+//! and a small dense generalized eigen-solve per evaluation.
+//!
+//! Basis: snapshots of the lowest `n_modes + n_extra` modes of the full model at the
+//! box centre, at the ±`box_rel` end of each parameter axis, and at `n_random` Latin
+//! hypercube points (explicit seed); the snapshots are compressed by an M-weighted POD
+//! (eigen-decomposition of the Gram matrix Sᵀ M₀ S, M₀ = M at nominal) and truncated
+//! at singular values below `pod_tol` of the largest (or at `max_basis` vectors). For
+//! the free setup the three rigid-body vectors (w = 1, x, y) lead the basis; they
+//! stay exact rigid modes of every reduced model (Kᵢ r = 0 for every term), and the
+//! evaluation drops them. Since the model is affine, the projected model is exact
+//! in its parameters: the only ROM error is the basis truncation, measured by the ROM
+//! accuracy test over ≥ 200 Latin-hypercube points.
+//!
+//! Evaluation at p: Kʳ = Σ cᵢ(p) Kᵢʳ, Mʳ = Σ dⱼ(p) Mⱼʳ. When the model has one mass
+//! term (all our standard setups: mass only through `mass_scale`), the basis is
+//! M₀-orthonormal so Mʳ = d₀ I and the pencil reduces to the symmetric eigenproblem of
+//! Kʳ/d₀; otherwise Mʳ = L Lᵀ (Cholesky) and we solve L⁻¹ Kʳ L⁻ᵀ z = λ z, y = L⁻ᵀ z.
+//! Shapes at scan points are P y with the precomputed P = S V (S: DOF → w at points).
+
+use faer::{Mat, MatRef, Side};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use super::model::{FeModel, Setup};
+use super::params::{ParamMap, Params};
+use super::{npz, FemError};
+
+/// Build options of the ROM.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RomOptions {
+    /// Modes of interest (8 for free, 7 for bolted in the acceptance test).
+    pub n_modes: usize,
+    /// Extra modes per snapshot (they enrich the basis).
+    pub n_extra: usize,
+    /// Half-width of the parameter box, relative (0.2 = ±20 %).
+    pub box_rel: f64,
+    /// Latin-hypercube snapshot points in addition to centre and axis ends.
+    pub n_random: usize,
+    /// POD truncation: keep singular values above `pod_tol` × the largest.
+    pub pod_tol: f64,
+    /// Upper bound on the basis size.
+    pub max_basis: usize,
+    /// Seed of the snapshot design.
+    pub seed: u64,
+}
+
+impl Default for RomOptions {
+    fn default() -> Self {
+        RomOptions {
+            n_modes: 8,
+            n_extra: 4,
+            box_rel: 0.2,
+            n_random: 8,
+            pod_tol: 1e-3,
+            max_basis: 40,
+            seed: 20_240_613,
+        }
+    }
+}
+
+/// A built ROM: plain data, serialisable with [`Rom::to_npz_bytes`].
+#[derive(Clone, Debug)]
+pub struct Rom {
+    /// Parameter names, nominal values and coefficient map (same as the full model's).
+    pub map: ParamMap,
+    /// Reduced stiffness terms Kᵢʳ (r × r each).
+    pub k_r: Vec<Mat<f64>>,
+    /// Reduced mass terms Mⱼʳ (r × r each).
+    pub m_r: Vec<Mat<f64>>,
+    /// Basis V (n_dof × r), M₀-orthonormal.
+    pub basis: Mat<f64>,
+    /// Number of rigid-body vectors leading the basis (3 free, 0 bolted).
+    pub n_rigid: usize,
+    /// Modes the ROM was built for.
+    pub n_modes: usize,
+    /// Setup label, `"free"` or `"bolted"`.
+    pub setup: String,
+}
+
+/// Reduced operator from reduced coordinates to w at given points: P = S V.
+#[derive(Clone, Debug)]
+pub struct RomShapeOperator {
+    /// Points `[x_m, y_m]`.
+    pub points_m: Vec<[f64; 2]>,
+    /// P, n_points × r.
+    pub p: Mat<f64>,
+}
+
+/// The ROM's modes at one parameter point.
+#[derive(Clone, Debug)]
+pub struct RomModes {
+    /// Frequencies, Hz.
+    pub freq_hz: Vec<f64>,
+    /// Eigenvalues ω², rad²/s².
+    pub eigenvalues: Vec<f64>,
+    /// Mass-normalised reduced eigenvectors y (r × n), full shape = V y.
+    pub reduced: Mat<f64>,
+    /// w at the operator's points, n_points × n (1/√kg).
+    pub shapes_at_points: Mat<f64>,
+}
+
+fn lhs_points(n: usize, dim: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<f64>> {
+    // Latin hypercube on [-1, 1]^dim: one point per stratum and dimension.
+    let mut cols: Vec<Vec<f64>> = Vec::with_capacity(dim);
+    for _ in 0..dim {
+        let mut perm: Vec<usize> = (0..n).collect();
+        for i in (1..n).rev() {
+            let j = rng.random_range(0..=i);
+            perm.swap(i, j);
+        }
+        cols.push(
+            perm.iter()
+                .map(|&k| -1.0 + 2.0 * (k as f64 + rng.random::<f64>()) / n as f64)
+                .collect(),
+        );
+    }
+    (0..n).map(|i| (0..dim).map(|d| cols[d][i]).collect()).collect()
+}
+
+/// `n` Latin-hypercube points in the ±`box_rel` box around the nominal parameters of
+/// `map` (parameters with nominal 0 stay 0). Deterministic in `seed`.
+pub fn latin_hypercube_params(map: &ParamMap, n: usize, box_rel: f64, seed: u64) -> Vec<Params> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    lhs_points(n, map.names.len(), &mut rng)
+        .into_iter()
+        .map(|u| Params {
+            names: map.names.clone(),
+            values: map
+                .nominal
+                .iter()
+                .zip(&u)
+                .map(|(v, t)| v * (1.0 + box_rel * t))
+                .collect(),
+        })
+        .collect()
+}
+
+impl Rom {
+    /// Build the ROM of `model` (see the module doc for the snapshot design).
+    pub fn build(model: &FeModel, opts: &RomOptions) -> Result<Rom, FemError> {
+        if opts.n_modes == 0 || !(opts.box_rel >= 0.0 && opts.box_rel < 1.0) {
+            return Err(FemError::Request(format!(
+                "ROM options: expected n_modes >= 1 and 0 <= box_rel < 1, found {} and {}",
+                opts.n_modes, opts.box_rel
+            )));
+        }
+        let n = model.n_dof;
+        let nominal = model.nominal_params();
+        let np = nominal.values.len();
+        let mut points = vec![nominal.clone()];
+        for k in 0..np {
+            for s in [-1.0, 1.0] {
+                let mut p = nominal.clone();
+                p.values[k] *= 1.0 + s * opts.box_rel;
+                if p.values[k] != nominal.values[k] {
+                    points.push(p);
+                }
+            }
+        }
+        points.extend(latin_hypercube_params(&model.map, opts.n_random, opts.box_rel, opts.seed));
+
+        let c0 = model.coefficients(&nominal)?;
+        let m0 = model.m_values(&c0.m);
+        let mdot = |x: &[f64]| {
+            let mut y = vec![0.0; n];
+            model.pattern.matvec(&m0, x, &mut y);
+            y
+        };
+        // Rigid vectors of the free board.
+        let free = matches!(model.setup, Setup::Free);
+        let mut lead: Vec<Vec<f64>> = Vec::new();
+        if free {
+            let mesh = &model.mesh;
+            for kind in 0..3 {
+                let mut r = vec![0.0; n];
+                for j in 0..=mesh.ny {
+                    for i in 0..=mesh.nx {
+                        if let Some(d) = mesh.node_dof[j * (mesh.nx + 1) + i] {
+                            let (x, y) = (i as f64 * mesh.a_m, j as f64 * mesh.b_m);
+                            match kind {
+                                0 => r[d] = 1.0,
+                                1 => {
+                                    r[d] = x;
+                                    r[d + 1] = 1.0;
+                                }
+                                _ => {
+                                    r[d] = y;
+                                    r[d + 2] = 1.0;
+                                }
+                            }
+                        }
+                    }
+                }
+                lead.push(r);
+            }
+            m_gram_schmidt(&mut lead, &mdot);
+        }
+        // Snapshots, M₀-orthogonalised against the lead vectors.
+        let mut snaps: Vec<Vec<f64>> = Vec::new();
+        let n_snap_modes = opts.n_modes + opts.n_extra;
+        for p in &points {
+            let modes = model.modes(p, n_snap_modes)?;
+            for j in 0..modes.shapes.ncols() {
+                let mut v: Vec<f64> = (0..n).map(|i| modes.shapes[(i, j)]).collect();
+                for _ in 0..2 {
+                    for l in &lead {
+                        let ml = mdot(l);
+                        let c: f64 = ml.iter().zip(&v).map(|(a, b)| a * b).sum();
+                        v.iter_mut().zip(l).for_each(|(x, y)| *x -= c * y);
+                    }
+                }
+                snaps.push(v);
+            }
+        }
+        // M-weighted POD via the Gram matrix.
+        let ns = snaps.len();
+        let msnaps: Vec<Vec<f64>> = snaps.iter().map(|s| mdot(s)).collect();
+        let gram = Mat::from_fn(ns, ns, |i, j| {
+            snaps[i].iter().zip(&msnaps[j]).map(|(a, b)| a * b).sum::<f64>()
+        });
+        let evd = gram
+            .self_adjoint_eigen(Side::Lower)
+            .map_err(|e| FemError::Eigen(format!("POD Gram eigen-solve: {e:?}")))?;
+        let s = evd.S().column_vector();
+        let u = evd.U();
+        let smax = s[ns - 1].max(0.0);
+        let max_pod = opts.max_basis.saturating_sub(lead.len());
+        let mut pod: Vec<Vec<f64>> = Vec::new();
+        for k in (0..ns).rev() {
+            if pod.len() >= max_pod || !(s[k] > 0.0) || s[k].sqrt() < opts.pod_tol * smax.sqrt() {
+                break;
+            }
+            let mut v = vec![0.0; n];
+            for (i, sn) in snaps.iter().enumerate() {
+                let w = u[(i, k)];
+                v.iter_mut().zip(sn).for_each(|(x, y)| *x += w * y);
+            }
+            pod.push(v);
+        }
+        let mut vecs = lead.clone();
+        let n_rigid = lead.len();
+        vecs.extend(pod);
+        m_gram_schmidt(&mut vecs, &mdot);
+        let r = vecs.len();
+        let basis = Mat::from_fn(n, r, |i, j| vecs[j][i]);
+        let project = |val: &[f64]| -> Mat<f64> {
+            let kv: Vec<Vec<f64>> = vecs
+                .iter()
+                .map(|v| {
+                    let mut y = vec![0.0; n];
+                    model.pattern.matvec(val, v, &mut y);
+                    y
+                })
+                .collect();
+            let mut m = Mat::from_fn(r, r, |i, j| {
+                vecs[i].iter().zip(&kv[j]).map(|(a, b)| a * b).sum::<f64>()
+            });
+            symmetrize(&mut m);
+            m
+        };
+        let k_r = model.k_terms.iter().map(|t| project(t)).collect();
+        let m_r = model.m_terms.iter().map(|t| project(t)).collect();
+        Ok(Rom {
+            map: model.map.clone(),
+            k_r,
+            m_r,
+            basis,
+            n_rigid,
+            n_modes: opts.n_modes,
+            setup: if free { "free".into() } else { "bolted".into() },
+        })
+    }
+
+    /// Basis dimension r.
+    pub fn dim(&self) -> usize {
+        self.basis.ncols()
+    }
+
+    /// The nominal parameters.
+    pub fn nominal_params(&self) -> Params {
+        self.map.nominal_params()
+    }
+
+    /// Reduced shape operator for `points_m`: P = S V with S from the full model.
+    pub fn shape_operator(&self, model: &FeModel, points_m: &[[f64; 2]]) -> Result<RomShapeOperator, FemError> {
+        if model.n_dof != self.basis.nrows() {
+            return Err(FemError::Request(format!(
+                "shape operator: expected a model with {} DOFs, found {}",
+                self.basis.nrows(),
+                model.n_dof
+            )));
+        }
+        let s = model.shape_operator(points_m)?;
+        Ok(RomShapeOperator {
+            points_m: points_m.to_vec(),
+            p: s.apply(self.basis.as_ref()),
+        })
+    }
+
+    /// Lowest `self.n_modes` elastic modes at `p`, with shapes at the operator's points.
+    pub fn eval(&self, p: &Params, shapes: &RomShapeOperator) -> Result<RomModes, FemError> {
+        let c = self.map.coefficients(p)?;
+        self.eval_coefs(&c.k, &c.m, shapes)
+    }
+
+    /// [`Rom::eval`] from raw affine coefficients (no parameter checks; for samplers
+    /// that have validated their parameters already).
+    pub fn eval_coefs(&self, ck: &[f64], cm: &[f64], shapes: &RomShapeOperator) -> Result<RomModes, FemError> {
+        let r = self.dim();
+        if shapes.p.ncols() != r {
+            return Err(FemError::Request(format!(
+                "shape operator: expected {r} reduced coordinates, found {}",
+                shapes.p.ncols()
+            )));
+        }
+        let mut k = Mat::<f64>::zeros(r, r);
+        for (ci, ki) in ck.iter().zip(&self.k_r) {
+            axpy_mat(&mut k, *ci, ki.as_ref());
+        }
+        let want = self.n_modes + self.n_rigid;
+        if want > r {
+            return Err(FemError::Request(format!(
+                "ROM: expected at least {want} basis vectors, found {r}"
+            )));
+        }
+        let (lam, y) = if self.m_r.len() == 1 {
+            // M₀-orthonormal basis: Mʳ = d₀ I.
+            let d0 = cm[0];
+            let evd = k
+                .self_adjoint_eigen(Side::Lower)
+                .map_err(|e| FemError::Eigen(format!("reduced eigen-solve: {e:?}")))?;
+            let s = evd.S().column_vector();
+            let u = evd.U();
+            let lam: Vec<f64> = (self.n_rigid..want).map(|i| s[i] / d0).collect();
+            let y = Mat::from_fn(r, self.n_modes, |i, j| u[(i, self.n_rigid + j)] / d0.sqrt());
+            (lam, y)
+        } else {
+            let mut m = Mat::<f64>::zeros(r, r);
+            for (ci, mi) in cm.iter().zip(&self.m_r) {
+                axpy_mat(&mut m, *ci, mi.as_ref());
+            }
+            let llt = m
+                .llt(Side::Lower)
+                .map_err(|e| FemError::Factorisation(format!("reduced mass: {e:?}")))?;
+            let l = llt.L();
+            // C = L⁻¹ K L⁻ᵀ.
+            let mut c = k.clone();
+            faer::linalg::triangular_solve::solve_lower_triangular_in_place(l, c.as_mut(), faer::Par::Seq);
+            let mut ct = c.transpose().to_owned();
+            faer::linalg::triangular_solve::solve_lower_triangular_in_place(l, ct.as_mut(), faer::Par::Seq);
+            symmetrize(&mut ct);
+            let evd = ct
+                .self_adjoint_eigen(Side::Lower)
+                .map_err(|e| FemError::Eigen(format!("reduced eigen-solve: {e:?}")))?;
+            let s = evd.S().column_vector();
+            let u = evd.U();
+            let lam: Vec<f64> = (self.n_rigid..want).map(|i| s[i]).collect();
+            let mut z = Mat::from_fn(r, self.n_modes, |i, j| u[(i, self.n_rigid + j)]);
+            faer::linalg::triangular_solve::solve_upper_triangular_in_place(
+                l.transpose(),
+                z.as_mut(),
+                faer::Par::Seq,
+            );
+            (lam, z)
+        };
+        // Deterministic sign: largest-magnitude reduced coordinate positive.
+        let mut y = y;
+        for j in 0..y.ncols() {
+            let (mut best, mut arg) = (0.0f64, 0);
+            for i in 0..r {
+                if y[(i, j)].abs() > best {
+                    best = y[(i, j)].abs();
+                    arg = i;
+                }
+            }
+            if y[(arg, j)] < 0.0 {
+                for i in 0..r {
+                    y[(i, j)] = -y[(i, j)];
+                }
+            }
+        }
+        let w = &shapes.p * &y;
+        Ok(RomModes {
+            freq_hz: lam
+                .iter()
+                .map(|l| l.max(0.0).sqrt() / (2.0 * std::f64::consts::PI))
+                .collect(),
+            eigenvalues: lam,
+            reduced: y,
+            shapes_at_points: w,
+        })
+    }
+
+    /// Full-DOF shapes V y of ROM modes (n_dof × n).
+    pub fn expand(&self, modes: &RomModes) -> Mat<f64> {
+        &self.basis * &modes.reduced
+    }
+
+    /// Serialise as NPZ (see [`super::npz`] for the layout).
+    pub fn to_npz_bytes(&self) -> Vec<u8> {
+        npz::rom_to_npz(self)
+    }
+
+    /// Read a ROM written by [`Rom::to_npz_bytes`].
+    pub fn from_npz_bytes(bytes: &[u8]) -> Result<Rom, FemError> {
+        npz::rom_from_npz(bytes)
+    }
+}
+
+fn axpy_mat(dst: &mut Mat<f64>, a: f64, x: MatRef<'_, f64>) {
+    for j in 0..dst.ncols() {
+        for i in 0..dst.nrows() {
+            dst[(i, j)] += a * x[(i, j)];
+        }
+    }
+}
+
+fn symmetrize(m: &mut Mat<f64>) {
+    for j in 0..m.ncols() {
+        for i in 0..j {
+            let v = 0.5 * (m[(i, j)] + m[(j, i)]);
+            m[(i, j)] = v;
+            m[(j, i)] = v;
+        }
+    }
+}
+
+/// Two-pass modified Gram–Schmidt in the M-inner product; drops vectors that become
+/// negligible (relative M-norm below 1e-10).
+fn m_gram_schmidt(vecs: &mut Vec<Vec<f64>>, mdot: &impl Fn(&[f64]) -> Vec<f64>) {
+    let mut out: Vec<Vec<f64>> = Vec::new();
+    let mut mout: Vec<Vec<f64>> = Vec::new();
+    for v in vecs.iter() {
+        let mut w = v.clone();
+        let n0 = {
+            let mw = mdot(&w);
+            w.iter().zip(&mw).map(|(a, b)| a * b).sum::<f64>().sqrt()
+        };
+        for _ in 0..2 {
+            for (o, mo) in out.iter().zip(&mout) {
+                let c: f64 = mo.iter().zip(&w).map(|(a, b)| a * b).sum();
+                w.iter_mut().zip(o).for_each(|(x, y)| *x -= c * y);
+            }
+        }
+        let mw = mdot(&w);
+        let nrm = w.iter().zip(&mw).map(|(a, b)| a * b).sum::<f64>().sqrt();
+        if nrm > 1e-10 * n0 {
+            out.push(w.iter().map(|x| x / nrm).collect());
+            mout.push(mw.iter().map(|x| x / nrm).collect());
+        }
+    }
+    *vecs = out;
+}

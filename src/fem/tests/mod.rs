@@ -3,3 +3,4 @@
 mod helpers;
 mod verification;
 mod board_default;
+mod rom;
