@@ -318,6 +318,19 @@ pub struct Function58 {
     pub line: usize,
 }
 
+impl Function58 {
+    /// Abscissa of point `k` (`min + k · increment` if even), `None` past the last point.
+    pub fn abscissa_at(&self, k: usize) -> Option<f64> {
+        if k >= self.num_points {
+            return None;
+        }
+        match &self.abscissa {
+            Abscissa::Even { min, increment } => Some(min + k as f64 * increment),
+            Abscissa::Uneven(x) => x.get(k).copied(),
+        }
+    }
+}
+
 /// The bytes are not a UFF at all (nothing in them could be read as a dataset).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum UffError {

@@ -231,6 +231,8 @@ fn reads_the_standard_layout() {
     assert_eq!(n.nodes[1].xyz_file_units, [-5.0, 25.0, 1.5]);
     let fun = only_function(&f);
     assert_eq!(fun.line, 14);
+    assert_eq!(fun.abscissa_at(2), Some(6.25));
+    assert_eq!(fun.abscissa_at(3), None);
     assert_ds58_values(fun);
 }
 
