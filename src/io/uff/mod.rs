@@ -60,7 +60,8 @@ pub struct UffIssue {
     pub line: usize,
     /// UFF dataset number, if its number line could be read.
     pub number: Option<u32>,
-    /// 0-based position of the dataset among all datasets of the file.
+    /// 0-based position of the dataset among all datasets of the file (for
+    /// [`IssueKind::StrayText`], which belongs to no dataset: the position the next one takes).
     pub index: usize,
     pub kind: IssueKind,
 }
