@@ -1,0 +1,356 @@
+//! Pairing identified modes with model modes: MAC matrix, optimal one-to-one assignment,
+//! acceptance thresholds, shape labels, swap and missing-mode reports, and the rule that
+//! decides which modes count as present in every measurement of a setup.
+//!
+//! Labels come from the model shape at the scan points: scan points are grouped into rows
+//! (same y) and columns (same x); along each row the sign changes of the shape are counted
+//! (ignoring components below `label_amp_fraction` of the largest), giving `nx` nodal lines
+//! crossed along x, and likewise `ny` along y (energy-weighted median over rows/columns).
+//! `(1,1)` is `torsion-1`; `(k+1, 0)` is `bending-x-k` (bending along x, k-th); `(0, k+1)` is
+//! `bending-y-k`; anything else is `plate-nx-ny`. Without a grid (fewer than two rows or
+//! columns of 3 points), the label is `mode-<model index + 1>`.
+
+use super::assign::hungarian_max;
+use super::mac::mac_matrix;
+use super::ModalError;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// A scan point in the board frame (m).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ScanPoint {
+    pub node_id: i64,
+    pub x_m: f64,
+    pub y_m: f64,
+    pub z_m: f64,
+}
+
+/// A model mode evaluated at the scan points.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelMode {
+    pub freq_hz: f64,
+    /// Real shape at the scan points, same order as the identified shapes.
+    pub shape: Vec<f64>,
+}
+
+/// Thresholds of the pairing.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PairParams {
+    /// Minimum MAC for an accepted pair (default 0.8, a common engineering threshold for
+    /// "same mode" between test and an un-updated model).
+    pub mac_min: f64,
+    /// Maximum relative frequency deviation `|f_id/f_model - 1|` of an accepted pair
+    /// (default 0.5: generous, the model is not updated yet; the MAC decides).
+    pub max_freq_deviation: f64,
+    /// Components below this fraction of the largest |component| are ignored when counting
+    /// sign changes for labels (default 0.1).
+    pub label_amp_fraction: f64,
+    /// Coordinates closer than this fraction of the point cloud's extent belong to the same
+    /// row/column (default 0.02).
+    pub grid_tol_fraction: f64,
+}
+
+impl Default for PairParams {
+    fn default() -> Self {
+        Self {
+            mac_min: 0.8,
+            max_freq_deviation: 0.5,
+            label_amp_fraction: 0.1,
+            grid_tol_fraction: 0.02,
+        }
+    }
+}
+
+/// An identified mode to pair: frequency and real shape at the scan points (`NaN` allowed).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct IdentifiedShape {
+    pub freq_hz: f64,
+    pub shape: Vec<f64>,
+}
+
+/// The pairing of one identified mode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModePair {
+    /// Index of the identified mode.
+    pub mode: usize,
+    /// Model mode it was assigned to (`None` if there are more identified than model modes).
+    pub model_mode: Option<usize>,
+    /// Label of the assigned model mode (empty if none).
+    pub label: String,
+    pub mac: f64,
+    /// MAC and frequency thresholds both met.
+    pub accepted: bool,
+}
+
+/// Result of [`pair_modes`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Pairing {
+    /// `mac[identified][model]`.
+    pub mac: Vec<Vec<f64>>,
+    /// One entry per identified mode.
+    pub pairs: Vec<ModePair>,
+    /// Labels of all model modes.
+    pub model_labels: Vec<String>,
+    /// Model modes inside the identification band without an accepted pair.
+    pub missing: Vec<usize>,
+    /// Pairs of model modes `(a, b)`, `f_model(a) < f_model(b)`, whose accepted identified
+    /// partners come in the opposite frequency order (mode swap).
+    pub swaps: Vec<(usize, usize)>,
+}
+
+/// Group coordinates into lines: returns for each point the index of its group.
+fn group_coords(vals: &[f64], tol: f64) -> Vec<usize> {
+    let mut idx: Vec<usize> = (0..vals.len()).collect();
+    idx.sort_by(|&a, &b| vals[a].total_cmp(&vals[b]));
+    let mut group = vec![0usize; vals.len()];
+    let mut g = 0usize;
+    let mut start = f64::NAN;
+    for (k, &i) in idx.iter().enumerate() {
+        if k == 0 {
+            start = vals[i];
+        } else if vals[i] - start > tol {
+            g += 1;
+            start = vals[i];
+        }
+        group[i] = g;
+    }
+    group
+}
+
+/// Energy-weighted median of sign-change counts along lines (`along` is the coordinate
+/// along the line, `line_of` the line index per point). `None` if fewer than two lines
+/// have 3 points.
+fn count_sign_changes(
+    shape: &[f64],
+    along: &[f64],
+    line_of: &[usize],
+    amp_min: f64,
+) -> Option<usize> {
+    let n_lines = line_of.iter().copied().max().map_or(0, |m| m + 1);
+    let mut counts: Vec<(usize, f64)> = Vec::new();
+    for l in 0..n_lines {
+        let mut pts: Vec<usize> = (0..shape.len())
+            .filter(|&i| line_of[i] == l && shape[i].is_finite())
+            .collect();
+        if pts.len() < 3 {
+            continue;
+        }
+        pts.sort_by(|&a, &b| along[a].total_cmp(&along[b]));
+        let energy: f64 = pts.iter().map(|&i| shape[i] * shape[i]).sum();
+        let mut last_sign = 0.0f64;
+        let mut changes = 0usize;
+        for &i in &pts {
+            if shape[i].abs() < amp_min {
+                continue;
+            }
+            let s = shape[i].signum();
+            if last_sign != 0.0 && s != last_sign {
+                changes += 1;
+            }
+            last_sign = s;
+        }
+        counts.push((changes, energy));
+    }
+    if counts.len() < 2 {
+        return None;
+    }
+    counts.sort_by_key(|c| c.0);
+    let total: f64 = counts.iter().map(|c| c.1).sum();
+    let mut acc = 0.0;
+    for (c, e) in &counts {
+        acc += e;
+        if acc >= 0.5 * total {
+            return Some(*c);
+        }
+    }
+    counts.last().map(|c| c.0)
+}
+
+/// Nodal-line counts `(nx, ny)` of a real shape at the scan points, if they form a grid.
+pub fn nodal_counts(shape: &[f64], points: &[ScanPoint], params: &PairParams) -> Option<(usize, usize)> {
+    if shape.len() != points.len() || points.is_empty() {
+        return None;
+    }
+    let xs: Vec<f64> = points.iter().map(|p| p.x_m).collect();
+    let ys: Vec<f64> = points.iter().map(|p| p.y_m).collect();
+    let ext = |v: &[f64]| {
+        v.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
+            - v.iter().cloned().fold(f64::INFINITY, f64::min)
+    };
+    let tol = params.grid_tol_fraction * ext(&xs).max(ext(&ys));
+    let rows = group_coords(&ys, tol);
+    let cols = group_coords(&xs, tol);
+    let amp = shape
+        .iter()
+        .filter(|v| v.is_finite())
+        .fold(0.0f64, |a, v| a.max(v.abs()));
+    if amp == 0.0 {
+        return None;
+    }
+    let amp_min = params.label_amp_fraction * amp;
+    let nx = count_sign_changes(shape, &xs, &rows, amp_min)?;
+    let ny = count_sign_changes(shape, &ys, &cols, amp_min)?;
+    Some((nx, ny))
+}
+
+/// Label of a shape from its nodal-line counts (see the module documentation).
+pub fn label_shape(shape: &[f64], points: &[ScanPoint], index: usize, params: &PairParams) -> String {
+    match nodal_counts(shape, points, params) {
+        Some((1, 1)) => "torsion-1".to_string(),
+        Some((nx, 0)) if nx >= 2 => format!("bending-x-{}", nx - 1),
+        Some((0, ny)) if ny >= 2 => format!("bending-y-{}", ny - 1),
+        Some((nx, ny)) => format!("plate-{nx}-{ny}"),
+        None => format!("mode-{}", index + 1),
+    }
+}
+
+/// Pair identified modes with model modes.
+///
+/// `band_hz` is the identification band: model modes inside it without an accepted partner
+/// are reported missing. Errors if a shape's length differs from the number of points.
+pub fn pair_modes(
+    identified: &[IdentifiedShape],
+    model: &[ModelMode],
+    points: &[ScanPoint],
+    band_hz: (f64, f64),
+    params: &PairParams,
+) -> Result<Pairing, ModalError> {
+    for s in identified.iter().map(|m| &m.shape).chain(model.iter().map(|m| &m.shape)) {
+        if s.len() != points.len() {
+            return Err(ModalError::ShapeLength {
+                context: "pair_modes (shape vs scan points)",
+                expected: points.len(),
+                found: s.len(),
+            });
+        }
+    }
+    let mut model_labels: Vec<String> = model
+        .iter()
+        .enumerate()
+        .map(|(j, m)| label_shape(&m.shape, points, j, params))
+        .collect();
+    // Make labels unique (second occurrence gets "#2", ...).
+    let mut seen: BTreeMap<String, usize> = BTreeMap::new();
+    for l in model_labels.iter_mut() {
+        let c = seen.entry(l.clone()).or_insert(0);
+        *c += 1;
+        if *c > 1 {
+            *l = format!("{l}#{c}");
+        }
+    }
+    let id_shapes: Vec<Vec<f64>> = identified.iter().map(|m| m.shape.clone()).collect();
+    let mo_shapes: Vec<Vec<f64>> = model.iter().map(|m| m.shape.clone()).collect();
+    let mac = mac_matrix(&id_shapes, &mo_shapes);
+    let assignment = if model.is_empty() {
+        vec![None; identified.len()]
+    } else {
+        hungarian_max(&mac)
+    };
+    let pairs: Vec<ModePair> = assignment
+        .iter()
+        .enumerate()
+        .map(|(i, a)| match a {
+            Some(j) => {
+                let m = mac[i][*j];
+                let dev = (identified[i].freq_hz / model[*j].freq_hz - 1.0).abs();
+                ModePair {
+                    mode: i,
+                    model_mode: Some(*j),
+                    label: model_labels[*j].clone(),
+                    mac: m,
+                    accepted: m >= params.mac_min && dev <= params.max_freq_deviation,
+                }
+            }
+            None => ModePair {
+                mode: i,
+                model_mode: None,
+                label: String::new(),
+                mac: 0.0,
+                accepted: false,
+            },
+        })
+        .collect();
+    let accepted_model: Vec<Option<usize>> = {
+        let mut v = vec![None; model.len()];
+        for p in pairs.iter().filter(|p| p.accepted) {
+            if let Some(j) = p.model_mode {
+                v[j] = Some(p.mode);
+            }
+        }
+        v
+    };
+    let missing = (0..model.len())
+        .filter(|&j| {
+            model[j].freq_hz >= band_hz.0 && model[j].freq_hz <= band_hz.1 && accepted_model[j].is_none()
+        })
+        .collect();
+    let mut swaps = Vec::new();
+    for a in 0..model.len() {
+        for b in 0..model.len() {
+            if model[a].freq_hz < model[b].freq_hz {
+                if let (Some(ia), Some(ib)) = (accepted_model[a], accepted_model[b]) {
+                    if identified[ia].freq_hz > identified[ib].freq_hz {
+                        swaps.push((a, b));
+                    }
+                }
+            }
+        }
+    }
+    Ok(Pairing {
+        mac,
+        pairs,
+        model_labels,
+        missing,
+        swaps,
+    })
+}
+
+/// Accepted mode labels of one measurement, for the presence rule.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PresenceRecord {
+    pub measurement_id: String,
+    pub setup: String,
+    pub accepted_labels: Vec<String>,
+}
+
+/// Presence of one mode label within one setup.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LabelPresence {
+    pub setup: String,
+    pub label: String,
+    /// Measurements of the setup in which the label was accepted.
+    pub n_present: usize,
+    pub n_measurements: usize,
+    /// `n_present >= min_fraction * n_measurements`.
+    pub used_for_updating: bool,
+}
+
+/// The paper's rule, made explicit: a mode counts for updating in a setup if it is accepted
+/// in at least `min_fraction` of that setup's measurements (the paper: `1.0`, every
+/// measurement; the remaining modes serve for validation). Sorted by setup, then label.
+pub fn modes_present(records: &[PresenceRecord], min_fraction: f64) -> Vec<LabelPresence> {
+    let mut n_meas: BTreeMap<&str, usize> = BTreeMap::new();
+    let mut counts: BTreeMap<(&str, &str), usize> = BTreeMap::new();
+    for r in records {
+        *n_meas.entry(r.setup.as_str()).or_insert(0) += 1;
+        let mut labels: Vec<&str> = r.accepted_labels.iter().map(|s| s.as_str()).collect();
+        labels.sort_unstable();
+        labels.dedup();
+        for l in labels {
+            *counts.entry((r.setup.as_str(), l)).or_insert(0) += 1;
+        }
+    }
+    counts
+        .into_iter()
+        .map(|((setup, label), n)| {
+            let total = n_meas[setup];
+            LabelPresence {
+                setup: setup.to_string(),
+                label: label.to_string(),
+                n_present: n,
+                n_measurements: total,
+                used_for_updating: n as f64 >= min_fraction * total as f64 - 1e-12,
+            }
+        })
+        .collect()
+}

@@ -1,0 +1,507 @@
+//! Tests of the modal identification against synthetic spectra built from known poles,
+//! residues and residual terms (the truth), with noise from a seeded RNG.
+
+use super::frf::{self, ResidualTerm, SynthMode};
+use super::lsfd::{mpc_mpd, real_normalise};
+use super::mac::mac_real;
+use super::pair::{self, IdentifiedShape, ModelMode, PairParams, PresenceRecord, ScanPoint};
+use super::*;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+/// A synthetic measurement and its truth.
+pub(crate) struct Synthetic {
+    pub spectra: MeasurementSpectra,
+    pub points: Vec<ScanPoint>,
+    pub freq_hz: Vec<f64>,
+    pub damping: Vec<f64>,
+    /// True real shapes at the points.
+    pub shapes: Vec<Vec<f64>>,
+    pub labels: Vec<&'static str>,
+}
+
+pub(crate) struct Case {
+    pub kind: FunctionKind,
+    /// (kx, ky, freq_hz, damping, excitation scale)
+    pub modes: Vec<(usize, usize, f64, f64, f64)>,
+    pub floor_rel: f64,
+    pub prop_rel: f64,
+    pub n_lines: usize,
+    pub f_max_hz: f64,
+    pub seed: u64,
+}
+
+/// Eight plate-like modes on an 80 x 50 mm board with a close pair (0.6 % apart).
+pub(crate) fn free_free_case(seed: u64) -> Case {
+    Case {
+        kind: FunctionKind::Mobility,
+        modes: vec![
+            (1, 1, 182.0, 0.012, 1.0),
+            (0, 2, 341.0, 0.010, 1.0),
+            (2, 0, 452.0, 0.008, 1.0),
+            (2, 1, 601.0, 0.011, 1.0),
+            (1, 2, 604.6, 0.009, 1.0),
+            (3, 0, 1012.0, 0.010, 1.0),
+            (0, 3, 1187.0, 0.013, 1.0),
+            (3, 1, 1530.0, 0.015, 1.0),
+        ],
+        floor_rel: 0.005,
+        prop_rel: 0.01,
+        n_lines: 2000,
+        f_max_hz: 2000.0,
+        seed,
+    }
+}
+
+pub(crate) fn labels_of(kx: usize, ky: usize) -> &'static str {
+    match (kx, ky) {
+        (1, 1) => "torsion-1",
+        (0, 2) => "bending-y-1",
+        (2, 0) => "bending-x-1",
+        (3, 0) => "bending-x-2",
+        (0, 3) => "bending-y-2",
+        (2, 1) => "plate-2-1",
+        (1, 2) => "plate-1-2",
+        (3, 1) => "plate-3-1",
+        (0, 0) => "plate-0-0",
+        _ => "other",
+    }
+}
+
+pub(crate) fn build(case: &Case) -> Synthetic {
+    let (l, w) = (0.08, 0.05);
+    let grid = frf::grid_points(11, 7, l, w);
+    let points: Vec<ScanPoint> = grid
+        .iter()
+        .enumerate()
+        .map(|(i, &(x, y))| ScanPoint {
+            node_id: i as i64 + 1,
+            x_m: x,
+            y_m: y,
+            z_m: 0.0,
+        })
+        .collect();
+    let df = case.f_max_hz / case.n_lines as f64;
+    let freq_hz: Vec<f64> = (1..=case.n_lines).map(|k| k as f64 * df).collect();
+    // Mass-normalised-like scale: 1/sqrt(m) with m = 0.02 kg.
+    let amp = (1.0f64 / 0.02).sqrt();
+    let reference = 0usize; // corner: an antinode of every plate-like shape
+    let mut modes = Vec::new();
+    let mut shapes = Vec::new();
+    let mut constant = vec![if case.kind == FunctionKind::Transmissibility { 1.0 } else { 0.0 }; grid.len()];
+    for &(kx, ky, f, z, exc) in &case.modes {
+        let phi: Vec<f64> = grid
+            .iter()
+            .map(|&(x, y)| amp * frf::plate_like_shape(kx, ky, x / l, y / w))
+            .collect();
+        let lam = frf::pole(f, z);
+        let residues = match case.kind {
+            FunctionKind::Transmissibility => {
+                let (r, c) = frf::transmissibility_terms(lam, &phi, 0.3 * exc / amp);
+                for (k, cv) in constant.iter_mut().zip(c) {
+                    *k += cv;
+                }
+                r
+            }
+            _ => frf::mobility_residues(lam, &phi, exc * phi[reference]),
+        };
+        modes.push(SynthMode {
+            lambda: lam,
+            residues,
+        });
+        shapes.push(phi);
+    }
+    let mut residuals = vec![ResidualTerm {
+        power: 0,
+        coeffs: constant,
+    }];
+    if case.kind == FunctionKind::Mobility {
+        // Rigid-body mass line (translation + a rotation) and an upper residual stiffness.
+        let c: Vec<f64> = grid
+            .iter()
+            .map(|&(x, _)| 50.0 * (1.0 + 0.8 * (2.0 * x / l - 1.0) * -1.0))
+            .collect();
+        residuals.push(ResidualTerm { power: -1, coeffs: c });
+        residuals.push(ResidualTerm {
+            power: 1,
+            coeffs: vec![2e-5; grid.len()],
+        });
+    }
+    let mut h = frf::synthesize(&freq_hz, &modes, &residuals);
+    let mut rng = ChaCha8Rng::seed_from_u64(case.seed);
+    frf::add_noise(&mut h, case.floor_rel, case.prop_rel, &mut rng);
+    let spectra = MeasurementSpectra {
+        freq_hz: freq_hz.clone(),
+        points: h
+            .iter()
+            .zip(&points)
+            .map(|(row, p)| PointSpectrum {
+                node_id: p.node_id,
+                re: row.iter().map(|v| v.re).collect(),
+                im: row.iter().map(|v| v.im).collect(),
+                coherence: None,
+            })
+            .collect(),
+        kind: case.kind,
+    };
+    Synthetic {
+        spectra,
+        points,
+        freq_hz: case.modes.iter().map(|m| m.2).collect(),
+        damping: case.modes.iter().map(|m| m.3).collect(),
+        shapes,
+        labels: case.modes.iter().map(|m| labels_of(m.0, m.1)).collect(),
+    }
+}
+
+/// Match identified modes to the truth by frequency (nearest, within 2 %) and return
+/// per true mode the identified index.
+fn match_truth(ex: &Extraction, truth: &Synthetic) -> Vec<Option<usize>> {
+    truth
+        .freq_hz
+        .iter()
+        .zip(&truth.shapes)
+        .map(|(f, s)| {
+            ex.modes
+                .iter()
+                .enumerate()
+                .filter(|(_, m)| (m.freq_hz - f).abs() / f < 0.02)
+                .max_by(|a, b| mac_real(&a.1.shape, s).total_cmp(&mac_real(&b.1.shape, s)))
+                .map(|(i, _)| i)
+        })
+        .collect()
+}
+
+struct Scores {
+    median_freq_err: f64,
+    max_damp_err: f64,
+    min_mac: f64,
+}
+
+fn score(ex: &Extraction, truth: &Synthetic, skip: &[usize]) -> Scores {
+    let m = match_truth(ex, truth);
+    let mut ferr = Vec::new();
+    let mut derr: f64 = 0.0;
+    let mut min_mac: f64 = 1.0;
+    for (t, mi) in m.iter().enumerate() {
+        if skip.contains(&t) {
+            continue;
+        }
+        let i = mi.unwrap_or_else(|| panic!("true mode {t} at {} Hz not identified: {:?}", truth.freq_hz[t],
+            ex.modes.iter().map(|m| m.freq_hz).collect::<Vec<_>>()));
+        let md = &ex.modes[i];
+        ferr.push((md.freq_hz - truth.freq_hz[t]).abs() / truth.freq_hz[t]);
+        derr = derr.max((md.damping_ratio - truth.damping[t]).abs() / truth.damping[t]);
+        min_mac = min_mac.min(mac_real(&md.shape, &truth.shapes[t]));
+    }
+    ferr.sort_by(|a, b| a.total_cmp(b));
+    Scores {
+        median_freq_err: ferr[ferr.len() / 2],
+        max_damp_err: derr,
+        min_mac,
+    }
+}
+
+#[test]
+fn lscf_recovers_exact_poles_without_noise() {
+    let mut case = free_free_case(1);
+    case.floor_rel = 0.0;
+    case.prop_rel = 0.0;
+    let s = build(&case);
+    let data = band_data(&s.spectra, None).unwrap();
+    let rows: Vec<&[faer::c64]> = data.h.iter().map(|r| r.as_slice()).collect();
+    let params = LscfParams {
+        min_order: 30,
+        max_order: 30,
+        order_step: 2,
+        weighting: lscf::Weighting::Rms,
+    };
+    let orders = lscf::lscf_poles(&data.freq_hz, &rows, None, &params).unwrap();
+    for (f, z) in s.freq_hz.iter().zip(&s.damping) {
+        let best = orders[0]
+            .poles
+            .iter()
+            .min_by(|a, b| (a.freq_hz - f).abs().total_cmp(&(b.freq_hz - f).abs()))
+            .unwrap();
+        assert!((best.freq_hz - f).abs() / f < 1e-6, "{} vs {f}", best.freq_hz);
+        assert!((best.damping_ratio - z).abs() / z < 1e-4, "{} vs {z}", best.damping_ratio);
+    }
+}
+
+#[test]
+fn lsfd_recovers_residues_exactly_for_exact_poles() {
+    let mut case = free_free_case(2);
+    case.floor_rel = 0.0;
+    case.prop_rel = 0.0;
+    let s = build(&case);
+    let data = band_data(&s.spectra, None).unwrap();
+    let rows: Vec<&[faer::c64]> = data.h.iter().map(|r| r.as_slice()).collect();
+    let lambdas: Vec<faer::c64> = s
+        .freq_hz
+        .iter()
+        .zip(&s.damping)
+        .map(|(f, z)| frf::pole(*f, *z))
+        .collect();
+    let fit = lsfd::lsfd(&data.freq_hz, &rows, &lambdas, &LsfdParams::for_kind(FunctionKind::Mobility)).unwrap();
+    for e in &fit.fit_error {
+        assert!(*e < 1e-9, "fit error {e}");
+    }
+    // Residue of mode r at point o = lambda phi_o phi_ref / (lambda - conj lambda).
+    for (r, lam) in lambdas.iter().enumerate() {
+        let expect = frf::mobility_residues(*lam, &s.shapes[r], s.shapes[r][0]);
+        for o in 0..expect.len() {
+            assert!((fit.residues[o][r] - expect[o]).norm() <= 1e-7 * expect[0].norm());
+        }
+    }
+}
+
+#[test]
+fn mpc_and_real_normalisation_identities() {
+    let real = [0.3, -1.0, 0.7, 0.1, -0.4];
+    let rot = faer::c64::from_polar(2.5, 0.9);
+    let v: Vec<faer::c64> = real.iter().map(|x| rot * *x).collect();
+    let mask = vec![true; v.len()];
+    let (mpc, mpd) = mpc_mpd(&v, &mask);
+    assert!((mpc - 1.0).abs() < 1e-12 && mpd.abs() < 1e-6);
+    let back = real_normalise(&v, &mask);
+    for (a, b) in back.iter().zip(real) {
+        assert!((a - b / -1.0).abs() < 1e-12, "{a} vs {b}");
+    }
+    // Two equal-magnitude components 90° apart: not collinear at all.
+    let w = [faer::c64::new(1.0, 0.0), faer::c64::new(0.0, 1.0)];
+    let (mpc, mpd) = mpc_mpd(&w, &[true, true]);
+    assert!(mpc.abs() < 1e-12 && (mpd - 45.0).abs() < 1e-9);
+}
+
+#[test]
+fn free_free_mobility_meets_acceptance() {
+    let s = build(&free_free_case(11));
+    let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
+    let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
+    assert_eq!(ex.modes.len(), s.freq_hz.len(), "spurious or missed modes: {freqs:?}");
+    let sc = score(&ex, &s, &[]);
+    eprintln!(
+        "free-free: median freq err {:.5} %, max damping err {:.2} %, min MAC {:.5}",
+        100.0 * sc.median_freq_err,
+        100.0 * sc.max_damp_err,
+        sc.min_mac
+    );
+    assert!(sc.median_freq_err < 5e-4);
+    assert!(sc.max_damp_err < 0.10);
+    assert!(sc.min_mac >= 0.99);
+    assert!(ex.point_flags.iter().all(|f| f.is_empty()), "good points flagged");
+    // The close pair (0.6 % apart) is separated: two distinct modes with the right shapes.
+    let m = match_truth(&ex, &s);
+    assert_ne!(m[3], m[4]);
+}
+
+#[test]
+fn bolted_transmissibility_meets_acceptance() {
+    let case = Case {
+        kind: FunctionKind::Transmissibility,
+        modes: vec![
+            (0, 0, 310.0, 0.020, 1.0),
+            (1, 1, 520.0, 0.015, 1.0),
+            (2, 0, 780.0, 0.012, 1.0),
+            (0, 2, 1105.0, 0.018, 1.0),
+            (2, 1, 1290.0, 0.014, 1.0),
+            (1, 2, 1300.0, 0.016, 1.0),
+        ],
+        floor_rel: 0.005,
+        prop_rel: 0.01,
+        n_lines: 2000,
+        f_max_hz: 2000.0,
+        seed: 5,
+    };
+    let s = build(&case);
+    let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
+    let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
+    assert_eq!(ex.modes.len(), s.freq_hz.len(), "spurious or missed modes: {freqs:?}");
+    let sc = score(&ex, &s, &[]);
+    eprintln!(
+        "bolted: median freq err {:.5} %, max damping err {:.2} %, min MAC {:.5}",
+        100.0 * sc.median_freq_err,
+        100.0 * sc.max_damp_err,
+        sc.min_mac
+    );
+    assert!(sc.median_freq_err < 5e-4);
+    assert!(sc.max_damp_err < 0.10);
+    assert!(sc.min_mac >= 0.99);
+}
+
+#[test]
+fn noise_points_flagged_and_weak_mode_kept() {
+    let mut case = free_free_case(21);
+    // Mode 6 (bending-y-2) barely excited: 3 % of the others.
+    case.modes[6].4 = 0.03;
+    let mut s = build(&case);
+    // Replace 10 % of the points (8 of 77) by noise of the same rms as a typical point.
+    let bad = [3usize, 15, 22, 38, 41, 57, 63, 70];
+    let mut rng = ChaCha8Rng::seed_from_u64(99);
+    let typical = {
+        let p = &s.spectra.points[40];
+        let row: Vec<faer::c64> = p.re.iter().zip(&p.im).map(|(a, b)| faer::c64::new(*a, *b)).collect();
+        frf::rms(&row)
+    };
+    for &b in &bad {
+        let mut row = vec![faer::c64::new(0.0, 0.0); s.spectra.freq_hz.len()];
+        frf::add_white_noise(&mut row, typical, &mut rng);
+        s.spectra.points[b].re = row.iter().map(|v| v.re).collect();
+        s.spectra.points[b].im = row.iter().map(|v| v.im).collect();
+    }
+    let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
+    let flagged: Vec<usize> = (0..ex.point_flags.len()).filter(|&i| !ex.point_flags[i].is_empty()).collect();
+    eprintln!("flagged {flagged:?}");
+    for &b in &bad {
+        assert!(!ex.point_flags[b].is_empty(), "noise point {b} not flagged");
+    }
+    assert!(flagged.len() <= bad.len() + 2, "too many good points flagged: {flagged:?}");
+    let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
+    assert!(ex.modes.len() <= s.freq_hz.len(), "spurious mode: {freqs:?}");
+    let m = match_truth(&ex, &s);
+    let weak_found = m[6].is_some();
+    let sc = score(&ex, &s, if weak_found { &[] } else { &[6] });
+    eprintln!(
+        "robustness: weak mode found {weak_found}, median freq err {:.5} %, max damping err {:.2} %, min MAC {:.5}",
+        100.0 * sc.median_freq_err,
+        100.0 * sc.max_damp_err,
+        sc.min_mac
+    );
+    assert!(sc.min_mac >= 0.98);
+    for md in &ex.modes {
+        for &b in &bad {
+            assert!(md.shape[b].is_nan());
+        }
+    }
+}
+
+fn model_from_truth(s: &Synthetic, freq_scale: f64) -> Vec<ModelMode> {
+    s.shapes
+        .iter()
+        .zip(&s.freq_hz)
+        .map(|(sh, f)| ModelMode {
+            freq_hz: f * freq_scale,
+            shape: sh.clone(),
+        })
+        .collect()
+}
+
+#[test]
+fn missing_mode_reported_and_never_mispaired() {
+    let mut case = free_free_case(31);
+    case.modes[2].4 = 0.0; // bending-x-1 not excited at all: absent from the data
+    let s = build(&case);
+    let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
+    let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
+    assert_eq!(ex.modes.len(), 7, "{freqs:?}");
+    let model = model_from_truth(&s, 1.08);
+    let ident: Vec<IdentifiedShape> = ex
+        .modes
+        .iter()
+        .map(|m| IdentifiedShape {
+            freq_hz: m.freq_hz,
+            shape: m.shape.clone(),
+        })
+        .collect();
+    let p = pair::pair_modes(&ident, &model, &s.points, ex.band_hz, &PairParams::default()).unwrap();
+    assert_eq!(p.missing, vec![2]);
+    for pr in &p.pairs {
+        assert!(pr.accepted);
+        assert_ne!(pr.model_mode, Some(2));
+        let j = pr.model_mode.unwrap();
+        assert!((ident[pr.mode].freq_hz - s.freq_hz[j]).abs() / s.freq_hz[j] < 0.01);
+    }
+    assert!(p.swaps.is_empty());
+    for (j, l) in p.model_labels.iter().enumerate() {
+        assert_eq!(l, s.labels[j]);
+    }
+}
+
+#[test]
+fn swap_detected_when_close_modes_change_order() {
+    let s = build(&free_free_case(41));
+    let mut model = model_from_truth(&s, 1.0);
+    // The model predicts the close pair in the opposite order.
+    let (f3, f4) = (model[3].freq_hz, model[4].freq_hz);
+    model[3].freq_hz = f4;
+    model[4].freq_hz = f3;
+    let ident: Vec<IdentifiedShape> = s
+        .shapes
+        .iter()
+        .zip(&s.freq_hz)
+        .map(|(sh, f)| IdentifiedShape {
+            freq_hz: *f,
+            shape: sh.clone(),
+        })
+        .collect();
+    let p = pair::pair_modes(&ident, &model, &s.points, (0.0, 2000.0), &PairParams::default()).unwrap();
+    assert_eq!(p.swaps, vec![(4, 3)]);
+    for pr in &p.pairs {
+        assert_eq!(pr.model_mode, Some(pr.mode));
+        assert!(pr.accepted && pr.mac > 0.999);
+    }
+}
+
+#[test]
+fn presence_rule_counts_every_measurement() {
+    let rec = |id: &str, setup: &str, labels: &[&str]| PresenceRecord {
+        measurement_id: id.into(),
+        setup: setup.into(),
+        accepted_labels: labels.iter().map(|s| s.to_string()).collect(),
+    };
+    let records = vec![
+        rec("a", "free", &["torsion-1", "bending-x-1"]),
+        rec("b", "free", &["torsion-1"]),
+        rec("c", "bolted", &["plate-0-0"]),
+    ];
+    let p = pair::modes_present(&records, 1.0);
+    let get = |s: &str, l: &str| p.iter().find(|x| x.setup == s && x.label == l).unwrap().clone();
+    assert!(get("free", "torsion-1").used_for_updating);
+    assert!(!get("free", "bending-x-1").used_for_updating);
+    assert_eq!(get("free", "bending-x-1").n_present, 1);
+    assert!(get("bolted", "plate-0-0").used_for_updating);
+    let p = pair::modes_present(&records, 0.5);
+    assert!(p.iter().all(|x| x.used_for_updating));
+}
+
+#[test]
+fn malformed_input_is_a_typed_error() {
+    let mut s = build(&free_free_case(3)).spectra;
+    s.points[5].im.pop();
+    match extract(&s, &ExtractParams::default()) {
+        Err(ModalError::SpectrumLength { index: 5, .. }) => {}
+        other => panic!("expected SpectrumLength, got {other:?}"),
+    }
+}
+
+#[test]
+#[ignore]
+fn debug_passes() {
+    for sk in 0..4 {
+        let s = build(&free_free_case(11));
+        let p = ExtractParams { sk_passes: sk, ..Default::default() };
+        let ex = extract(&s.spectra, &p).unwrap();
+        let m = match_truth(&ex, &s);
+        for (t, mi) in m.iter().enumerate() {
+            if let Some(i) = mi {
+                let md = &ex.modes[*i];
+                eprintln!("sk {sk} mode {t}: f err {:+.4} % z err {:+.2} % mac {:.5}", 100.0 * (md.freq_hz / s.freq_hz[t] - 1.0), 100.0 * (md.damping_ratio / s.damping[t] - 1.0), mac_real(&md.shape, &s.shapes[t]));
+            } else { eprintln!("sk {sk} mode {t} missing"); }
+        }
+    }
+}
+
+#[test]
+#[ignore]
+fn debug_diagram() {
+    let s = build(&free_free_case(11));
+    let data = band_data(&s.spectra, None).unwrap();
+    let rows: Vec<&[faer::c64]> = data.h.iter().map(|r| r.as_slice()).collect();
+    let orders = lscf::lscf_poles(&data.freq_hz, &rows, None, &LscfParams::default()).unwrap();
+    let d = stabilization::flag_stability(orders, (1.0, 2000.0), &StabilityParams::default());
+    for p in &d.poles {
+        if p.freq_hz > 590.0 && p.freq_hz < 615.0 || (p.freq_hz > 1270.0 && p.freq_hz < 1320.0) {
+            eprintln!("{:3} {:9.3} {:.5} {} {} {}", p.order, p.freq_hz, p.damping_ratio, p.stable_freq as u8, p.stable_damping as u8, p.stable_shape as u8);
+        }
+    }
+}
