@@ -1,0 +1,8 @@
+//! Fuzz target: the measurement-sheet parser must never panic.
+#![no_main]
+
+use libfuzzer_sys::fuzz_target;
+
+fuzz_target!(|data: &[u8]| {
+    let _ = hbmu::io::sheet::parse(data, "fuzz.csv");
+});

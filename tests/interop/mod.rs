@@ -1,0 +1,35 @@
+//! Interop with third-party clients: pandas/pyarrow read every table as documented, the
+//! official `mcap` Python reader reads every channel and schema. (UFF interop with `pyuff` is
+//! tested next to the UFF reader, in `src/io/uff/tests.rs`.)
+
+use crate::common::*;
+
+#[test]
+fn pandas_and_mcap_read_ingest_outputs() {
+    if !python_has(&["pandas", "pyarrow", "mcap"]) {
+        return;
+    }
+    let (t, c) = campaign_copy();
+    let out = t.path().join("out");
+    let o = hbmu(&["ingest", c.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let s = python(
+        "read_outputs.py",
+        &[
+            out.to_str().unwrap(),
+            repo().join("schemas").to_str().unwrap(),
+        ],
+    );
+    let v: serde_json::Value = serde_json::from_str(s.trim()).unwrap();
+    for t in ["measurements", "scan_points", "frf", "scale_readings", "masses"] {
+        assert!(v["tables"][t]["rows"].as_u64().unwrap() > 0, "{t}: {v}");
+    }
+    for topic in ["/sheet", "/scan_points", "/frf", "/coherence", "/balance"] {
+        assert!(
+            v["mcap"][topic]["messages"].as_u64().unwrap() > 0,
+            "{topic}: {v}"
+        );
+    }
+    assert_eq!(v["mcap"]["/sheet"]["messages"], 9);
+    assert_eq!(v["mcap_metadata"][0], "campaign");
+}

@@ -1,0 +1,87 @@
+#!/usr/bin/env python3
+"""Read hbmu ingest outputs with third-party clients and check them against schemas/.
+
+Usage: read_outputs.py INGEST_DIR SCHEMAS_DIR
+- every Parquet table through pandas (pyarrow engine): documented columns present, dtypes as
+  documented, units/provenance metadata in both the Arrow schema and the Parquet footer;
+- campaign.mcap through the official `mcap` Python reader: every channel, its schema (JSON
+  schema encoding, equal to the file in schemas/mcap/), every message decodes as JSON.
+Prints a JSON summary on stdout; exits non-zero on the first violation.
+"""
+import json
+import os
+import sys
+
+import pandas as pd
+import pyarrow.parquet as pq
+from mcap.reader import make_reader
+
+out, schemas = sys.argv[1], sys.argv[2]
+summary = {"tables": {}, "mcap": {}}
+
+KIND = {
+    "string": lambda s: pd.api.types.is_string_dtype(s) or s.dtype == object,
+    "int32": lambda s: str(s.dtype) in ("int32", "Int32"),
+    "int64": lambda s: str(s.dtype) in ("int64", "Int64"),
+    "float64": lambda s: str(s.dtype) == "float64",
+    "bool": lambda s: str(s.dtype) in ("bool", "boolean"),
+    "list<float64>": lambda s: s.dtype == object,
+    "list<int64>": lambda s: s.dtype == object,
+}
+
+for fn in sorted(os.listdir(os.path.join(schemas, "tables"))):
+    name = fn[:-5]
+    path = os.path.join(out, name + ".parquet")
+    if not os.path.exists(path):
+        continue
+    spec = json.load(open(os.path.join(schemas, "tables", fn)))
+    df = pd.read_parquet(path, engine="pyarrow")
+    for col, p in spec["properties"].items():
+        assert col in df.columns, f"{name}: column {col} missing"
+        kind = p["x-arrow-type"]
+        nullable = "anyOf" in p
+        s = df[col]
+        if nullable and kind in ("int32", "int64", "bool") and s.isna().any():
+            assert s.dtype in (float, object) or str(s.dtype)[0] in "fIBO", (name, col, s.dtype)
+        else:
+            assert KIND[kind](s), f"{name}.{col}: expected {kind}, pandas dtype {s.dtype}"
+        if kind.startswith("list") and len(s.dropna()):
+            import numpy as np
+            assert isinstance(s.dropna().iloc[0], np.ndarray), f"{name}.{col}: cells should be numpy arrays"
+    if not spec.get("additionalProperties", False):
+        extra = set(df.columns) - set(spec["properties"])
+        assert not extra, f"{name}: undocumented columns {extra}"
+    footer = pq.read_metadata(path).metadata
+    schema_md = pq.read_schema(path).metadata
+    for md, where in ((footer, "footer"), (schema_md, "arrow schema")):
+        for k in (b"hbmu.units", b"hbmu.fingerprint", b"hbmu.campaign", b"hbmu.table"):
+            assert k in md, f"{name}: {k!r} missing from {where} metadata"
+        assert b"pandas" not in md, f"{name}: unexpected pandas metadata in {where}"
+    units = json.loads(footer[b"hbmu.units"])
+    for col, p in spec["properties"].items():
+        if "x-unit" in p:
+            assert units.get(col) == p["x-unit"], (name, col, units.get(col), p["x-unit"])
+    summary["tables"][name] = {"rows": len(df), "columns": list(df.columns)}
+
+with open(os.path.join(out, "campaign.mcap"), "rb") as f:
+    reader = make_reader(f)
+    s = reader.get_summary()
+    assert s is not None, "no summary section"
+    assert all(ch.compression in ("zstd", "lz4") for ch in s.chunk_indexes), "chunks must be compressed"
+    assert len(s.chunk_indexes) >= 1
+    for cid, ch in s.channels.items():
+        sch = s.schemas[ch.schema_id]
+        assert sch.encoding == "jsonschema", sch.encoding
+        assert ch.message_encoding == "json"
+        on_disk = json.load(open(os.path.join(schemas, "mcap", sch.name.split(".", 1)[1] + ".json")))
+        on_disk.pop("x-mcap-schema-name", None)
+        assert json.loads(sch.data) == on_disk, f"embedded schema {sch.name} differs from schemas/"
+        summary["mcap"][ch.topic] = {"schema": sch.name, "messages": s.statistics.channel_message_counts.get(cid, 0)}
+    n = 0
+    for sch, ch, msg in reader.iter_messages():
+        json.loads(msg.data)
+        n += 1
+    summary["mcap_messages"] = n
+    meta = [m for m in reader.iter_metadata()]
+    summary["mcap_metadata"] = [m.name for m in meta]
+print(json.dumps(summary))

@@ -1,0 +1,7 @@
+//! The one integration-test binary: a module per area, each driving the real `hbmu` binary or
+//! the library on real files (ripgrep's layout).
+
+mod common;
+mod ingest;
+mod interop;
+mod layout;
