@@ -248,12 +248,19 @@ fn main() -> std::io::Result<()> {
     std::fs::create_dir_all(&vib)?;
     let mut sheet = String::from("measurement_id,board_id,setup,file\n");
     for (i, p) in paths.iter().enumerate() {
-        let name = p.file_name().expect("file name").to_string_lossy().into_owned();
+        let name = p
+            .file_name()
+            .expect("file name")
+            .to_string_lossy()
+            .into_owned();
         let dst = vib.join(&name);
         if !dst.exists() {
             std::fs::hard_link(p, &dst).or_else(|_| std::fs::copy(p, &dst).map(|_| ()))?;
         }
-        sheet.push_str(&format!("M{i:03},PCB-{:02},free,vibrometer/{name}\n", i % 7 + 1));
+        sheet.push_str(&format!(
+            "M{i:03},PCB-{:02},free,vibrometer/{name}\n",
+            i % 7 + 1
+        ));
     }
     std::fs::write(campaign.join("campaign.csv"), sheet)?;
     let mut best_ingest = f64::MAX;

@@ -61,7 +61,9 @@ pub fn python_has(modules: &[&str]) -> bool {
         .unwrap_or(false);
     if !ok {
         if std::env::var("HBMU_REQUIRE_INTEROP").as_deref() == Ok("1") {
-            panic!("python3 with {modules:?} is required (HBMU_REQUIRE_INTEROP=1) but not available");
+            panic!(
+                "python3 with {modules:?} is required (HBMU_REQUIRE_INTEROP=1) but not available"
+            );
         }
         eprintln!("SKIP: python3 with {modules:?} not available (set HBMU_REQUIRE_INTEROP=1 to fail instead)");
     }

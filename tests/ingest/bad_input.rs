@@ -12,7 +12,13 @@ struct Run {
 
 fn ingest(c: &Path) -> Run {
     let out = c.parent().unwrap().join("out");
-    let o = hbmu(&["ingest", c.to_str().unwrap(), "--out", out.to_str().unwrap(), "-v"]);
+    let o = hbmu(&[
+        "ingest",
+        c.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "-v",
+    ]);
     let err = stderr(&o);
     assert!(!err.contains("panicked"), "panic: {err}");
     let report = std::fs::read(out.join("ingest_report.json"))
@@ -152,7 +158,10 @@ fn unknown_function_type_is_dropped_with_a_finding() {
     let r = ingest(&c);
     let f = r.with_code("uff.function_type");
     assert_eq!(f.len(), 1, "{:#?}", r.findings());
-    assert!(f[0]["message"].as_str().unwrap().contains("function type 9"));
+    assert!(f[0]["message"]
+        .as_str()
+        .unwrap()
+        .contains("function type 9"));
     assert_eq!(f[0]["measurement_id"], "M004");
     assert_eq!(r.ok_count(&c), 9);
 }

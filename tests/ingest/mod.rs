@@ -13,7 +13,12 @@ fn read_json(p: &Path) -> serde_json::Value {
 fn example_campaign_ingests_cleanly() {
     let (_t, c) = campaign_copy();
     let out = c.parent().unwrap().join("out");
-    let o = hbmu(&["ingest", c.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let o = hbmu(&[
+        "ingest",
+        c.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     for f in hbmu::stage::ingest::OUTPUTS {
         assert!(out.join(f).is_file(), "missing output {f}");
@@ -33,7 +38,12 @@ fn files_bytes(dir: &Path) -> Vec<(String, Vec<u8>)> {
     let mut v: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir)
         .unwrap()
         .map(|e| e.unwrap().path())
-        .filter(|p| !p.file_name().unwrap().to_string_lossy().ends_with(".manifest.json"))
+        .filter(|p| {
+            !p.file_name()
+                .unwrap()
+                .to_string_lossy()
+                .ends_with(".manifest.json")
+        })
         .map(|p| {
             (
                 p.file_name().unwrap().to_string_lossy().into_owned(),
@@ -73,14 +83,27 @@ fn reproducible_bytes_noop_rerun_and_change_detection() {
 
     // Touch nothing → no-op (manifest untouched, message says so).
     let before = std::fs::read(out1.join("ingest.manifest.json")).unwrap();
-    let o = hbmu(&["ingest", c.to_str().unwrap(), "--out", out1.to_str().unwrap()]);
+    let o = hbmu(&[
+        "ingest",
+        c.to_str().unwrap(),
+        "--out",
+        out1.to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(0));
     assert!(stderr(&o).contains("up to date"), "{}", stderr(&o));
-    assert_eq!(before, std::fs::read(out1.join("ingest.manifest.json")).unwrap());
+    assert_eq!(
+        before,
+        std::fs::read(out1.join("ingest.manifest.json")).unwrap()
+    );
 
     // A damaged output is detected and the stage reruns.
     std::fs::write(out1.join("masses.parquet"), b"damaged").unwrap();
-    let o = hbmu(&["ingest", c.to_str().unwrap(), "--out", out1.to_str().unwrap()]);
+    let o = hbmu(&[
+        "ingest",
+        c.to_str().unwrap(),
+        "--out",
+        out1.to_str().unwrap(),
+    ]);
     assert!(!stderr(&o).contains("up to date"));
     assert_eq!(files_bytes(&out1), files_bytes(&out2));
 
@@ -89,7 +112,12 @@ fn reproducible_bytes_noop_rerun_and_change_detection() {
     let mut s = std::fs::read_to_string(&log).unwrap();
     s.push_str("2026-11-02T10:00:00 PCB-01 S S    13.0001 g\n");
     std::fs::write(&log, s).unwrap();
-    let o = hbmu(&["ingest", c.to_str().unwrap(), "--out", out1.to_str().unwrap()]);
+    let o = hbmu(&[
+        "ingest",
+        c.to_str().unwrap(),
+        "--out",
+        out1.to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(0));
     assert!(!stderr(&o).contains("up to date"));
     let m3 = read_json(&out1.join("ingest.manifest.json"));
@@ -109,7 +137,12 @@ fn reproducible_bytes_noop_rerun_and_change_detection() {
 fn no_temp_files_left_behind() {
     let (t, c) = campaign_copy();
     let out = t.path().join("out");
-    hbmu(&["ingest", c.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    hbmu(&[
+        "ingest",
+        c.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     let stray: Vec<_> = std::fs::read_dir(&out)
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())

@@ -11,7 +11,12 @@ fn pandas_and_mcap_read_ingest_outputs() {
     }
     let (t, c) = campaign_copy();
     let out = t.path().join("out");
-    let o = hbmu(&["ingest", c.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let o = hbmu(&[
+        "ingest",
+        c.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let s = python(
         "read_outputs.py",
@@ -21,7 +26,13 @@ fn pandas_and_mcap_read_ingest_outputs() {
         ],
     );
     let v: serde_json::Value = serde_json::from_str(s.trim()).unwrap();
-    for t in ["measurements", "scan_points", "frf", "scale_readings", "masses"] {
+    for t in [
+        "measurements",
+        "scan_points",
+        "frf",
+        "scale_readings",
+        "masses",
+    ] {
         assert!(v["tables"][t]["rows"].as_u64().unwrap() > 0, "{t}: {v}");
     }
     for topic in ["/sheet", "/scan_points", "/frf", "/coherence", "/balance"] {

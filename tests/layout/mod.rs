@@ -36,5 +36,8 @@ fn every_source_file_opens_with_a_module_comment() {
             }
         }
     }
-    assert!(missing.is_empty(), "files without a //! header: {missing:?}");
+    assert!(
+        missing.is_empty(),
+        "files without a //! header: {missing:?}"
+    );
 }
