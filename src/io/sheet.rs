@@ -198,6 +198,19 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
         ..Default::default()
     };
     let mut rec = csv::ByteRecord::new();
+    let (mut counted_to, mut counted_lines) = (0usize, 1u64);
+    let mut line_at = |byte: usize| -> u64 {
+        let byte = byte.min(bytes.len());
+        if byte >= counted_to {
+            counted_lines += memchr::memchr_iter(b'\n', &bytes[counted_to..byte]).count() as u64;
+            counted_to = byte;
+        } else {
+            counted_to = 0;
+            counted_lines = 1 + memchr::memchr_iter(b'\n', &bytes[..byte]).count() as u64;
+            counted_to = byte;
+        }
+        counted_lines
+    };
     loop {
         let line_hint = rdr.position().line();
         match rdr.read_byte_record(&mut rec) {
@@ -219,7 +232,16 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
                 break;
             }
         }
-        let line = rec.position().map(|p| p.line()).unwrap_or(line_hint);
+        // The csv crate's line counter skips newlines inside quoted fields; count them from the
+        // byte offset instead, so the line we report is the one an editor shows.
+        let line = match rec.position() {
+            // With CRLF the reported start can sit on the previous line's `\n`; step past it.
+            Some(p) => {
+                let b = p.byte() as usize;
+                line_at(if bytes.get(b) == Some(&b'\n') { b + 1 } else { b })
+            }
+            None => line_hint,
+        };
         let mut fields: Vec<String> = Vec::with_capacity(names.len());
         let mut bad_utf8 = false;
         for f in rec.iter() {
