@@ -49,8 +49,8 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 
 /// The `nev` eigenpairs with smallest λ of the pencil (K, M), given `solve` (in place
 /// x ← (K − σM)⁻¹ x for an n × 1 matrix) and `mmul` (y ← M x). Returns eigenvalues
-/// ascending and M-orthonormal eigenvectors (columns), each signed so that its
-/// largest-magnitude entry is positive.
+/// ascending and M-orthonormal eigenvectors (columns), each signed so that its dot
+/// product with the fixed weights [`sign_weight`] is positive.
 pub fn shift_invert_lanczos(
     n: usize,
     nev: usize,
@@ -207,18 +207,19 @@ fn ritz(
                 }
             }
         }
-        let (mut best, mut arg) = (0.0f64, 0);
-        for r in 0..n {
-            if vecs[(r, c)].abs() > best {
-                best = vecs[(r, c)].abs();
-                arg = r;
-            }
-        }
-        if vecs[(arg, c)] < 0.0 {
+        if (0..n).map(|r| sign_weight(r) * vecs[(r, c)]).sum::<f64>() < 0.0 {
             for r in 0..n {
                 vecs[(r, c)] = -vecs[(r, c)];
             }
         }
     }
     Ok(Some((lambda, vecs)))
+}
+
+/// Fixed weights that fix eigenvector signs: w_i = frac(0.618… · (i + 1)) − ½ (the
+/// golden-ratio sequence). Unlike "largest entry positive" this does not flip between
+/// symmetric entries of equal magnitude, so signs vary smoothly with the parameters
+/// except where the weighted sum crosses zero.
+pub fn sign_weight(i: usize) -> f64 {
+    ((i as f64 + 1.0) * 0.618_033_988_749_894_8).fract() - 0.5
 }

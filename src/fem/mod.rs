@@ -14,6 +14,7 @@
 //! coefficients by cheap scalar functions ([`params`]).
 
 pub mod board;
+pub mod dense;
 pub mod eigen;
 pub mod joints;
 pub mod laminate;

@@ -293,15 +293,15 @@ pub(crate) fn rom_from_npz(bytes: &[u8]) -> Result<Rom, FemError> {
             .map(|t| Mat::from_fn(r, r, |i, j| v[t * r * r + i * r + j]))
             .collect()
     };
-    Ok(Rom {
-        k_r: unstack(ks[0], &kv),
-        m_r: unstack(ms[0], &mv),
-        basis: Mat::from_fn(bs[0], r, |i, j| bv[i * r + j]),
-        map: meta.map,
-        n_rigid: meta.n_rigid,
-        n_modes: meta.n_modes,
-        setup: meta.setup,
-    })
+    Ok(Rom::from_parts(
+        meta.map,
+        unstack(ks[0], &kv),
+        unstack(ms[0], &mv),
+        Mat::from_fn(bs[0], r, |i, j| bv[i * r + j]),
+        meta.n_rigid,
+        meta.n_modes,
+        meta.setup,
+    ))
 }
 
 #[cfg(test)]

@@ -78,6 +78,8 @@ pub struct Rom {
     pub n_modes: usize,
     /// Setup label, `"free"` or `"bolted"`.
     pub setup: String,
+    /// Row-major copies of `k_r` for the hot path.
+    pub(crate) k_flat: Vec<Vec<f64>>,
 }
 
 /// Reduced operator from reduced coordinates to w at given points: P = S V.
@@ -87,6 +89,8 @@ pub struct RomShapeOperator {
     pub points_m: Vec<[f64; 2]>,
     /// P, n_points × r.
     pub p: Mat<f64>,
+    /// Row-major copy of P for the hot path.
+    p_rows: Vec<f64>,
 }
 
 /// The ROM's modes at one parameter point.
@@ -263,15 +267,46 @@ impl Rom {
         };
         let k_r = model.k_terms.iter().map(|t| project(t)).collect();
         let m_r = model.m_terms.iter().map(|t| project(t)).collect();
-        Ok(Rom {
-            map: model.map.clone(),
+        Ok(Rom::from_parts(
+            model.map.clone(),
             k_r,
             m_r,
             basis,
             n_rigid,
-            n_modes: opts.n_modes,
-            setup: if free { "free".into() } else { "bolted".into() },
-        })
+            opts.n_modes,
+            if free { "free".into() } else { "bolted".into() },
+        ))
+    }
+
+    /// Assemble a ROM from its parts (used by the builder and the NPZ loader).
+    pub fn from_parts(
+        map: ParamMap,
+        k_r: Vec<Mat<f64>>,
+        m_r: Vec<Mat<f64>>,
+        basis: Mat<f64>,
+        n_rigid: usize,
+        n_modes: usize,
+        setup: String,
+    ) -> Rom {
+        let k_flat = k_r
+            .iter()
+            .map(|m| {
+                (0..m.nrows())
+                    .flat_map(|i| (0..m.ncols()).map(move |j| (i, j)))
+                    .map(|(i, j)| m[(i, j)])
+                    .collect()
+            })
+            .collect();
+        Rom {
+            map,
+            k_r,
+            m_r,
+            basis,
+            n_rigid,
+            n_modes,
+            setup,
+            k_flat,
+        }
     }
 
     /// Basis dimension r.
@@ -294,9 +329,15 @@ impl Rom {
             )));
         }
         let s = model.shape_operator(points_m)?;
+        let p = s.apply(self.basis.as_ref());
+        let p_rows = (0..p.nrows())
+            .flat_map(|i| (0..p.ncols()).map(move |j| (i, j)))
+            .map(|(i, j)| p[(i, j)])
+            .collect();
         Ok(RomShapeOperator {
             points_m: points_m.to_vec(),
-            p: s.apply(self.basis.as_ref()),
+            p,
+            p_rows,
         })
     }
 
@@ -316,28 +357,29 @@ impl Rom {
                 shapes.p.ncols()
             )));
         }
-        let mut k = Mat::<f64>::zeros(r, r);
-        for (ci, ki) in ck.iter().zip(&self.k_r) {
-            axpy_mat(&mut k, *ci, ki.as_ref());
-        }
         let want = self.n_modes + self.n_rigid;
         if want > r {
             return Err(FemError::Request(format!(
                 "ROM: expected at least {want} basis vectors, found {r}"
             )));
         }
-        let (lam, y) = if self.m_r.len() == 1 {
-            // M₀-orthonormal basis: Mʳ = d₀ I.
-            let d0 = cm[0];
-            let evd = k
-                .self_adjoint_eigen(Side::Lower)
-                .map_err(|e| FemError::Eigen(format!("reduced eigen-solve: {e:?}")))?;
-            let s = evd.S().column_vector();
-            let u = evd.U();
-            let lam: Vec<f64> = (self.n_rigid..want).map(|i| s[i] / d0).collect();
-            let y = Mat::from_fn(r, self.n_modes, |i, j| u[(i, self.n_rigid + j)] / d0.sqrt());
-            (lam, y)
-        } else {
+        if ck.len() != self.k_r.len() || cm.len() != self.m_r.len() {
+            return Err(FemError::Request(format!(
+                "coefficients: expected {} stiffness and {} mass, found {} and {}",
+                self.k_r.len(),
+                self.m_r.len(),
+                ck.len(),
+                cm.len()
+            )));
+        }
+        if self.m_r.len() == 1 {
+            return Ok(self.eval_single_mass(ck, cm[0], shapes));
+        }
+        let mut k = Mat::<f64>::zeros(r, r);
+        for (ci, ki) in ck.iter().zip(&self.k_r) {
+            axpy_mat(&mut k, *ci, ki.as_ref());
+        }
+        let (lam, y) = {
             let mut m = Mat::<f64>::zeros(r, r);
             for (ci, mi) in cm.iter().zip(&self.m_r) {
                 axpy_mat(&mut m, *ci, mi.as_ref());
@@ -366,17 +408,10 @@ impl Rom {
             );
             (lam, z)
         };
-        // Deterministic sign: largest-magnitude reduced coordinate positive.
+        // Deterministic sign (see `eigen::sign_weight`).
         let mut y = y;
         for j in 0..y.ncols() {
-            let (mut best, mut arg) = (0.0f64, 0);
-            for i in 0..r {
-                if y[(i, j)].abs() > best {
-                    best = y[(i, j)].abs();
-                    arg = i;
-                }
-            }
-            if y[(arg, j)] < 0.0 {
+            if (0..r).map(|i| super::eigen::sign_weight(i) * y[(i, j)]).sum::<f64>() < 0.0 {
                 for i in 0..r {
                     y[(i, j)] = -y[(i, j)];
                 }
@@ -392,6 +427,50 @@ impl Rom {
             reduced: y,
             shapes_at_points: w,
         })
+    }
+
+    /// Hot path for one mass term: Mʳ = d₀ I, so the modes are the eigenpairs of
+    /// Kʳ/d₀, solved by [`super::dense::lowest_eigenpairs`] for the wanted ones only.
+    fn eval_single_mass(&self, ck: &[f64], d0: f64, shapes: &RomShapeOperator) -> RomModes {
+        let r = self.dim();
+        let nm = self.n_modes;
+        let mut a = vec![0.0; r * r];
+        for (c, kf) in ck.iter().zip(&self.k_flat) {
+            a.iter_mut().zip(kf).for_each(|(x, y)| *x += c * y);
+        }
+        let se = super::dense::lowest_eigenpairs(&mut a, r, self.n_rigid, nm);
+        let lam: Vec<f64> = se.values[self.n_rigid..self.n_rigid + nm]
+            .iter()
+            .map(|v| v / d0)
+            .collect();
+        let scale = 1.0 / d0.sqrt();
+        let mut reduced = Mat::<f64>::zeros(r, nm);
+        let npts = shapes.p.nrows();
+        let mut w = Mat::<f64>::zeros(npts, nm);
+        for (j, z) in se.vectors.iter().enumerate() {
+            let sgn = if (0..r).map(|i| super::eigen::sign_weight(i) * z[i]).sum::<f64>() < 0.0 {
+                -scale
+            } else {
+                scale
+            };
+            let y: Vec<f64> = z.iter().map(|v| v * sgn).collect();
+            for i in 0..r {
+                reduced[(i, j)] = y[i];
+            }
+            for i in 0..npts {
+                let row = &shapes.p_rows[i * r..(i + 1) * r];
+                w[(i, j)] = row.iter().zip(&y).map(|(a, b)| a * b).sum();
+            }
+        }
+        RomModes {
+            freq_hz: lam
+                .iter()
+                .map(|l| l.max(0.0).sqrt() / (2.0 * std::f64::consts::PI))
+                .collect(),
+            eigenvalues: lam,
+            reduced,
+            shapes_at_points: w,
+        }
     }
 
     /// Full-DOF shapes V y of ROM modes (n_dof × n).

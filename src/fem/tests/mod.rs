@@ -4,3 +4,4 @@ mod helpers;
 mod verification;
 mod board_default;
 mod rom;
+mod sensitivity;
