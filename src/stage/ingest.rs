@@ -527,7 +527,7 @@ fn read_measurement(dir: &Path, m: &mut Measurement) -> Findings {
         return fd;
     }
 
-    let expected_type = setup.expected_function_type() as i32;
+    let expected_type = setup.expected_function_type();
     let mut axis: Option<(f64, f64, usize)> = None;
     let mut seen: BTreeSet<(i64, i32)> = BTreeSet::new();
     let mut ref_count: BTreeMap<i64, usize> = BTreeMap::new();
