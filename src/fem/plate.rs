@@ -112,6 +112,16 @@ pub fn element_matrices(a_m: f64, b_m: f64) -> ElementMatrices {
             }
         }
     }
+    // Make the matrices exactly symmetric: (w·a)·b and (w·b)·a differ in the last bit.
+    for mat in k.iter_mut().chain(std::iter::once(&mut m)) {
+        for r in 0..16 {
+            for c in 0..r {
+                let v = 0.5 * (mat[r][c] + mat[c][r]);
+                mat[r][c] = v;
+                mat[c][r] = v;
+            }
+        }
+    }
     ElementMatrices { k, m }
 }
 

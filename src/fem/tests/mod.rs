@@ -5,3 +5,4 @@ mod verification;
 mod board_default;
 mod rom;
 mod sensitivity;
+mod joints;
