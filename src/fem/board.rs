@@ -196,9 +196,8 @@ impl Board {
     /// The compiled-in default board (paper-like, about 13 g).
     pub fn default_board() -> Board {
         // The default file is part of the crate and covered by a test.
-        Board::from_toml_str(DEFAULT_BOARD_TOML).unwrap_or_else(|e| {
-            unreachable!("data/boards/default.toml is invalid: {e}")
-        })
+        Board::from_toml_str(DEFAULT_BOARD_TOML)
+            .unwrap_or_else(|e| unreachable!("data/boards/default.toml is invalid: {e}"))
     }
 
     /// Check every quantity for physical sense; errors name field, expected, found.
@@ -230,7 +229,10 @@ impl Board {
         for (i, l) in self.copper.iter().enumerate() {
             pos(&format!("copper[{i}].thickness_m"), l.thickness_m)?;
             pos(&format!("copper[{i}].e_pa"), l.e_pa)?;
-            pos(&format!("copper[{i}].density_kg_per_m3"), l.density_kg_per_m3)?;
+            pos(
+                &format!("copper[{i}].density_kg_per_m3"),
+                l.density_kg_per_m3,
+            )?;
             if !(l.nu > -1.0 && l.nu < 0.5) {
                 return Err(FemError::BoardInvalid(format!(
                     "copper[{i}].nu: expected -1 < ν < 0.5, found {}",
@@ -240,8 +242,7 @@ impl Board {
         }
         for (i, h) in self.holes.iter().enumerate() {
             pos(&format!("holes[{i}].diameter_m"), h.diameter_m)?;
-            if !(h.x_m > 0.0 && h.x_m < self.length_x_m && h.y_m > 0.0 && h.y_m < self.width_y_m)
-            {
+            if !(h.x_m > 0.0 && h.x_m < self.length_x_m && h.y_m > 0.0 && h.y_m < self.width_y_m) {
                 return Err(FemError::BoardInvalid(format!(
                     "holes[{i}]: expected centre inside the {} × {} m outline, found ({}, {})",
                     self.length_x_m, self.width_y_m, h.x_m, h.y_m
@@ -284,7 +285,10 @@ impl Board {
         let mut pts = Vec::with_capacity(g.nx * g.ny);
         for j in 0..g.ny {
             for i in 0..g.nx {
-                pts.push([coord(g.nx, self.length_x_m, i), coord(g.ny, self.width_y_m, j)]);
+                pts.push([
+                    coord(g.nx, self.length_x_m, i),
+                    coord(g.ny, self.width_y_m, j),
+                ]);
             }
         }
         pts

@@ -247,7 +247,9 @@ fn inverse_iteration(d: &[f64], e: &[f64], lam: f64, norm_t: f64, prev: &[&Vec<f
         }
         for p in prev {
             let c: f64 = p.iter().zip(&x).map(|(a, b)| a * b).sum();
-            x.iter_mut().zip(p.iter()).for_each(|(xi, pi)| *xi -= c * pi);
+            x.iter_mut()
+                .zip(p.iter())
+                .for_each(|(xi, pi)| *xi -= c * pi);
         }
         let nrm = x.iter().map(|v| v * v).sum::<f64>().sqrt();
         if nrm > 0.0 {
@@ -285,17 +287,26 @@ mod tests {
             let got = lowest_eigenpairs(&mut a.clone(), r, 0, count);
             let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(1.0);
             for k in 0..r {
-                assert!((got.values[k] - want[k]).abs() < 1e-12 * scale * r as f64, "r {r} k {k}");
+                assert!(
+                    (got.values[k] - want[k]).abs() < 1e-12 * scale * r as f64,
+                    "r {r} k {k}"
+                );
             }
             for (k, y) in got.vectors.iter().enumerate() {
                 for i in 0..r {
                     let ay: f64 = (0..r).map(|j| a[i * r + j] * y[j]).sum();
-                    assert!((ay - got.values[k] * y[i]).abs() < 1e-10 * scale, "r {r} residual");
+                    assert!(
+                        (ay - got.values[k] * y[i]).abs() < 1e-10 * scale,
+                        "r {r} residual"
+                    );
                 }
                 for (k2, y2) in got.vectors.iter().enumerate() {
                     let dot: f64 = y.iter().zip(y2).map(|(p, q)| p * q).sum();
                     let want = if k == k2 { 1.0 } else { 0.0 };
-                    assert!((dot - want).abs() < 1e-10, "r {r} orthonormality {k} {k2}: {dot}");
+                    assert!(
+                        (dot - want).abs() < 1e-10,
+                        "r {r} orthonormality {k} {k2}: {dot}"
+                    );
                 }
             }
         }
@@ -306,7 +317,12 @@ mod tests {
         // diag(1, 1, 2, 3) rotated: the repeated pair must still give orthonormal vectors.
         let r = 4;
         let c = std::f64::consts::FRAC_1_SQRT_2;
-        let q = [[c, c, 0.0, 0.0], [-c, c, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
+        let q = [
+            [c, c, 0.0, 0.0],
+            [-c, c, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
         let lam = [1.0, 1.0, 2.0, 3.0];
         let mut a = vec![0.0; 16];
         for i in 0..4 {
@@ -316,7 +332,11 @@ mod tests {
         }
         let got = lowest_eigenpairs(&mut a.clone(), r, 0, 2);
         assert!((got.values[0] - 1.0).abs() < 1e-14 && (got.values[1] - 1.0).abs() < 1e-14);
-        let dot: f64 = got.vectors[0].iter().zip(&got.vectors[1]).map(|(p, q)| p * q).sum();
+        let dot: f64 = got.vectors[0]
+            .iter()
+            .zip(&got.vectors[1])
+            .map(|(p, q)| p * q)
+            .sum();
         assert!(dot.abs() < 1e-12);
     }
 }
@@ -360,6 +380,8 @@ mod timing {
             std::hint::black_box(lowest_eigenpairs(&mut a, r, 3, 8));
         }
         let t_all = t.elapsed().as_secs_f64() / n as f64 * 1e6;
-        eprintln!("r = {r}: tridiagonalise {t_tri:.1} µs, QL values {t_ql:.1} µs, whole {t_all:.1} µs");
+        eprintln!(
+            "r = {r}: tridiagonalise {t_tri:.1} µs, QL values {t_ql:.1} µs, whole {t_all:.1} µs"
+        );
     }
 }

@@ -88,7 +88,9 @@ pub fn shift_invert_lanczos(
     mmul(&v, &mut mv);
     let nrm = dot(&v, &mv).sqrt();
     if !(nrm > 0.0) {
-        return Err(FemError::Eigen("start vector has zero M-norm: M is singular".into()));
+        return Err(FemError::Eigen(
+            "start vector has zero M-norm: M is singular".into(),
+        ));
     }
     v.iter_mut().for_each(|x| *x /= nrm);
     mv.iter_mut().for_each(|x| *x /= nrm);

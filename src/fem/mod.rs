@@ -13,6 +13,15 @@
 //! `g_xy_pa`, `nu_xy`, `e_cu_pa`, `mass_scale`, `k_con_n_per_m`, …) map to the
 //! coefficients by cheap scalar functions ([`params`]).
 
+#![allow(
+    clippy::needless_range_loop,
+    reason = "matrix kernels index several arrays with one loop index; iterator chains would hide the math"
+)]
+#![allow(
+    clippy::neg_cmp_op_on_partial_ord,
+    reason = "`!(x > 0.0)` deliberately also rejects NaN"
+)]
+
 pub mod board;
 pub mod dense;
 pub mod eigen;

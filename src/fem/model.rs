@@ -183,9 +183,11 @@ impl FeModel {
         for ey in 0..ny {
             for ex in 0..nx {
                 let (cx, cy) = ((ex as f64 + 0.5) * a, (ey as f64 + 0.5) * b);
-                if board.holes.iter().any(|h| {
-                    (cx - h.x_m).hypot(cy - h.y_m) < 0.5 * h.diameter_m
-                }) {
+                if board
+                    .holes
+                    .iter()
+                    .any(|h| (cx - h.x_m).hypot(cy - h.y_m) < 0.5 * h.diameter_m)
+                {
                     active[ey * nx + ex] = false;
                 }
             }
@@ -246,14 +248,15 @@ impl FeModel {
         let mut t_corr = Vec::new();
         let mut t_mass = Vec::new();
         let mut any_corr = false;
-        let add = |t: &mut Vec<(usize, usize, f64)>, dofs: &[usize; 16], comp: Comp4, scale: f64| {
-            for r in 0..16 {
-                for cc in 0..16 {
-                    let v: f64 = (0..4).map(|k| comp[k] * em.k[k][r][cc]).sum::<f64>() * scale;
-                    t.push((dofs[r], dofs[cc], v));
+        let add =
+            |t: &mut Vec<(usize, usize, f64)>, dofs: &[usize; 16], comp: Comp4, scale: f64| {
+                for r in 0..16 {
+                    for cc in 0..16 {
+                        let v: f64 = (0..4).map(|k| comp[k] * em.k[k][r][cc]).sum::<f64>() * scale;
+                        t.push((dofs[r], dofs[cc], v));
+                    }
                 }
-            }
-        };
+            };
         for ey in 0..ny {
             for ex in 0..nx {
                 if !mesh_data.active[ey * nx + ex] {
@@ -597,7 +600,12 @@ impl FeModel {
     }
 
     /// Numeric Cholesky of K − σM on the cached symbolic analysis.
-    pub(crate) fn factor(&self, kv: &[f64], mv: &[f64], sigma: f64) -> Result<Llt<usize, f64>, FemError> {
+    pub(crate) fn factor(
+        &self,
+        kv: &[f64],
+        mv: &[f64],
+        sigma: f64,
+    ) -> Result<Llt<usize, f64>, FemError> {
         let a: Vec<f64> = kv.iter().zip(mv).map(|(k, m)| k - sigma * m).collect();
         Llt::try_new_with_symbolic(self.symbolic.clone(), self.pattern.view(&a), Side::Lower)
             .map_err(|e| {
@@ -615,7 +623,12 @@ impl FeModel {
     }
 
     /// [`FeModel::modes`] with explicit solver options.
-    pub fn modes_with(&self, p: &Params, n_modes: usize, opts: &EigenOptions) -> Result<Modes, FemError> {
+    pub fn modes_with(
+        &self,
+        p: &Params,
+        n_modes: usize,
+        opts: &EigenOptions,
+    ) -> Result<Modes, FemError> {
         if n_modes == 0 {
             return Err(FemError::Request("n_modes: expected >= 1, found 0".into()));
         }

@@ -44,7 +44,11 @@ fn crc32(data: &[u8]) -> u32 {
     for (i, t) in table.iter_mut().enumerate() {
         let mut c = i as u32;
         for _ in 0..8 {
-            c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
         }
         *t = c;
     }
@@ -61,10 +65,15 @@ fn npy(descr: &str, shape: &[usize], data: &[u8]) -> Vec<u8> {
         1 => format!("({},)", shape[0]),
         _ => format!(
             "({})",
-            shape.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")
+            shape
+                .iter()
+                .map(|s| s.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
         ),
     };
-    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_s}, }}");
+    let mut header =
+        format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_s}, }}");
     // Pad so that magic (6) + version (2) + length (2) + header is a multiple of 64.
     let total = 10 + header.len() + 1;
     header.push_str(&" ".repeat((64 - total % 64) % 64));
@@ -136,7 +145,10 @@ fn zip(entries: &[(&str, Vec<u8>)]) -> Vec<u8> {
 pub(crate) fn rom_to_npz(rom: &Rom) -> Vec<u8> {
     let r = rom.dim();
     let stack = |ms: &[Mat<f64>]| {
-        f64_bytes(ms.iter().flat_map(|m| (0..r).flat_map(move |i| (0..r).map(move |j| m[(i, j)]))))
+        f64_bytes(
+            ms.iter()
+                .flat_map(|m| (0..r).flat_map(move |i| (0..r).map(move |j| m[(i, j)]))),
+        )
     };
     let n = rom.basis.nrows();
     let basis = f64_bytes((0..n).flat_map(|i| (0..r).map(move |j| rom.basis[(i, j)])));
@@ -149,8 +161,14 @@ pub(crate) fn rom_to_npz(rom: &Rom) -> Vec<u8> {
     // Serialising plain data with string keys cannot fail.
     let meta = serde_json::to_vec(&meta).unwrap_or_default();
     zip(&[
-        ("k_terms.npy", npy("<f8", &[rom.k_r.len(), r, r], &stack(&rom.k_r))),
-        ("m_terms.npy", npy("<f8", &[rom.m_r.len(), r, r], &stack(&rom.m_r))),
+        (
+            "k_terms.npy",
+            npy("<f8", &[rom.k_r.len(), r, r], &stack(&rom.k_r)),
+        ),
+        (
+            "m_terms.npy",
+            npy("<f8", &[rom.m_r.len(), r, r], &stack(&rom.m_r)),
+        ),
         ("basis.npy", npy("<f8", &[n, r], &basis)),
         ("meta_json.npy", npy("|u1", &[meta.len()], &meta)),
     ])
@@ -202,7 +220,9 @@ fn unzip(b: &[u8]) -> Result<Vec<(String, Vec<u8>)>, FemError> {
 /// Parse a `.npy` v1: (descr, shape, data bytes).
 fn parse_npy(name: &str, b: &[u8]) -> Result<(String, Vec<usize>, Vec<u8>), FemError> {
     if b.len() < 10 || &b[..6] != b"\x93NUMPY" || b[6] != 1 {
-        return Err(FemError::RomFormat(format!("{name}: expected a .npy version 1.0 array")));
+        return Err(FemError::RomFormat(format!(
+            "{name}: expected a .npy version 1.0 array"
+        )));
     }
     let hl = u16_at(b, 8)? as usize;
     let header = std::str::from_utf8(
@@ -217,9 +237,16 @@ fn parse_npy(name: &str, b: &[u8]) -> Result<(String, Vec<usize>, Vec<u8>), FemE
         Ok(header[k + key.len() + 3..].trim_start())
     };
     let descr = field("descr")?;
-    let descr = descr.trim_start_matches('\'').split('\'').next().unwrap_or("").to_string();
+    let descr = descr
+        .trim_start_matches('\'')
+        .split('\'')
+        .next()
+        .unwrap_or("")
+        .to_string();
     if field("fortran_order")?.starts_with("True") {
-        return Err(FemError::RomFormat(format!("{name}: expected C order, found Fortran order")));
+        return Err(FemError::RomFormat(format!(
+            "{name}: expected C order, found Fortran order"
+        )));
     }
     let sh = field("shape")?;
     let inner = sh.trim_start_matches('(').split(')').next().unwrap_or("");
@@ -235,7 +262,11 @@ fn parse_npy(name: &str, b: &[u8]) -> Result<(String, Vec<usize>, Vec<u8>), FemE
     Ok((descr, shape, b[10 + hl..].to_vec()))
 }
 
-fn f64_array(name: &str, entries: &[(String, Vec<u8>)], dims: usize) -> Result<(Vec<usize>, Vec<f64>), FemError> {
+fn f64_array(
+    name: &str,
+    entries: &[(String, Vec<u8>)],
+    dims: usize,
+) -> Result<(Vec<usize>, Vec<f64>), FemError> {
     let (_, raw) = entries
         .iter()
         .find(|(n, _)| n == name)

@@ -70,10 +70,7 @@ impl Params {
     /// Index of `name`.
     pub fn position(&self, name: &str) -> Result<usize, FemError> {
         self.names.iter().position(|n| n == name).ok_or_else(|| {
-            FemError::Param(format!(
-                "expected one of {:?}, found {name:?}",
-                self.names
-            ))
+            FemError::Param(format!("expected one of {:?}, found {name:?}", self.names))
         })
     }
 }

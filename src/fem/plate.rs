@@ -56,7 +56,12 @@ pub fn shape(xi: f64, eta: f64, a_m: f64, b_m: f64) -> [[f64; 16]; 6] {
     let mut out = [[0.0; 16]; 6];
     for (node, &(i, j)) in NODE_IJ.iter().enumerate() {
         // (x-function index, y-function index) for w, w_x, w_y, w_xy.
-        let pairs = [(2 * i, 2 * j), (2 * i + 1, 2 * j), (2 * i, 2 * j + 1), (2 * i + 1, 2 * j + 1)];
+        let pairs = [
+            (2 * i, 2 * j),
+            (2 * i + 1, 2 * j),
+            (2 * i, 2 * j + 1),
+            (2 * i + 1, 2 * j + 1),
+        ];
         for (d, &(fx, fy)) in pairs.iter().enumerate() {
             let k = 4 * node + d;
             out[0][k] = hx[0][fx] * hy[0][fy];
@@ -77,7 +82,12 @@ fn gauss4() -> ([f64; 4], [f64; 4]) {
     let w1 = (18.0 + 30.0f64.sqrt()) / 36.0;
     let w2 = (18.0 - 30.0f64.sqrt()) / 36.0;
     (
-        [0.5 - 0.5 * p2, 0.5 - 0.5 * p1, 0.5 + 0.5 * p1, 0.5 + 0.5 * p2],
+        [
+            0.5 - 0.5 * p2,
+            0.5 - 0.5 * p1,
+            0.5 + 0.5 * p1,
+            0.5 + 0.5 * p2,
+        ],
         [0.5 * w2, 0.5 * w1, 0.5 * w1, 0.5 * w2],
     )
 }
@@ -153,7 +163,10 @@ mod tests {
         for node in 0..4 {
             r[4 * node] = 1.0;
         }
-        let mass: f64 = (0..16).flat_map(|i| (0..16).map(move |j| (i, j))).map(|(i, j)| r[i] * em.m[i][j] * r[j]).sum();
+        let mass: f64 = (0..16)
+            .flat_map(|i| (0..16).map(move |j| (i, j)))
+            .map(|(i, j)| r[i] * em.m[i][j] * r[j])
+            .sum();
         assert!((mass - a * b).abs() < 1e-15, "∫1 dA = {mass} vs {}", a * b);
         // Rigid rotation w = x: (x_node, 1, 0, 0).
         let mut rx = [0.0; 16];

@@ -121,7 +121,9 @@ fn lhs_points(n: usize, dim: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<f64>> {
                 .collect(),
         );
     }
-    (0..n).map(|i| (0..dim).map(|d| cols[d][i]).collect()).collect()
+    (0..n)
+        .map(|i| (0..dim).map(|d| cols[d][i]).collect())
+        .collect()
 }
 
 /// `n` Latin-hypercube points in the ±`box_rel` box around the nominal parameters of
@@ -164,7 +166,12 @@ impl Rom {
                 }
             }
         }
-        points.extend(latin_hypercube_params(&model.map, opts.n_random, opts.box_rel, opts.seed));
+        points.extend(latin_hypercube_params(
+            &model.map,
+            opts.n_random,
+            opts.box_rel,
+            opts.seed,
+        ));
 
         let c0 = model.coefficients(&nominal)?;
         let m0 = model.m_values(&c0.m);
@@ -223,7 +230,11 @@ impl Rom {
         let ns = snaps.len();
         let msnaps: Vec<Vec<f64>> = snaps.iter().map(|s| mdot(s)).collect();
         let gram = Mat::from_fn(ns, ns, |i, j| {
-            snaps[i].iter().zip(&msnaps[j]).map(|(a, b)| a * b).sum::<f64>()
+            snaps[i]
+                .iter()
+                .zip(&msnaps[j])
+                .map(|(a, b)| a * b)
+                .sum::<f64>()
         });
         let evd = gram
             .self_adjoint_eigen(Side::Lower)
@@ -320,7 +331,11 @@ impl Rom {
     }
 
     /// Reduced shape operator for `points_m`: P = S V with S from the full model.
-    pub fn shape_operator(&self, model: &FeModel, points_m: &[[f64; 2]]) -> Result<RomShapeOperator, FemError> {
+    pub fn shape_operator(
+        &self,
+        model: &FeModel,
+        points_m: &[[f64; 2]],
+    ) -> Result<RomShapeOperator, FemError> {
         if model.n_dof != self.basis.nrows() {
             return Err(FemError::Request(format!(
                 "shape operator: expected a model with {} DOFs, found {}",
@@ -349,7 +364,12 @@ impl Rom {
 
     /// [`Rom::eval`] from raw affine coefficients (no parameter checks; for samplers
     /// that have validated their parameters already).
-    pub fn eval_coefs(&self, ck: &[f64], cm: &[f64], shapes: &RomShapeOperator) -> Result<RomModes, FemError> {
+    pub fn eval_coefs(
+        &self,
+        ck: &[f64],
+        cm: &[f64],
+        shapes: &RomShapeOperator,
+    ) -> Result<RomModes, FemError> {
         let r = self.dim();
         if shapes.p.ncols() != r {
             return Err(FemError::Request(format!(
@@ -390,9 +410,17 @@ impl Rom {
             let l = llt.L();
             // C = L⁻¹ K L⁻ᵀ.
             let mut c = k.clone();
-            faer::linalg::triangular_solve::solve_lower_triangular_in_place(l, c.as_mut(), faer::Par::Seq);
+            faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+                l,
+                c.as_mut(),
+                faer::Par::Seq,
+            );
             let mut ct = c.transpose().to_owned();
-            faer::linalg::triangular_solve::solve_lower_triangular_in_place(l, ct.as_mut(), faer::Par::Seq);
+            faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+                l,
+                ct.as_mut(),
+                faer::Par::Seq,
+            );
             symmetrize(&mut ct);
             let evd = ct
                 .self_adjoint_eigen(Side::Lower)
@@ -411,7 +439,11 @@ impl Rom {
         // Deterministic sign (see `eigen::sign_weight`).
         let mut y = y;
         for j in 0..y.ncols() {
-            if (0..r).map(|i| super::eigen::sign_weight(i) * y[(i, j)]).sum::<f64>() < 0.0 {
+            if (0..r)
+                .map(|i| super::eigen::sign_weight(i) * y[(i, j)])
+                .sum::<f64>()
+                < 0.0
+            {
                 for i in 0..r {
                     y[(i, j)] = -y[(i, j)];
                 }
@@ -448,7 +480,11 @@ impl Rom {
         let npts = shapes.p.nrows();
         let mut w = Mat::<f64>::zeros(npts, nm);
         for (j, z) in se.vectors.iter().enumerate() {
-            let sgn = if (0..r).map(|i| super::eigen::sign_weight(i) * z[i]).sum::<f64>() < 0.0 {
+            let sgn = if (0..r)
+                .map(|i| super::eigen::sign_weight(i) * z[i])
+                .sum::<f64>()
+                < 0.0
+            {
                 -scale
             } else {
                 scale

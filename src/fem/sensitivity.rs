@@ -68,7 +68,11 @@ pub fn eigen_derivatives(
     let pat = &model.pattern;
     let mut d_lam = Mat::<f64>::zeros(nm, np);
     let mut d_f = Mat::<f64>::zeros(nm, np);
-    let mut d_shapes = with_shapes.then(|| (0..np).map(|_| Mat::<f64>::zeros(n, nm)).collect::<Vec<_>>());
+    let mut d_shapes = with_shapes.then(|| {
+        (0..np)
+            .map(|_| Mat::<f64>::zeros(n, nm))
+            .collect::<Vec<_>>()
+    });
     let kv = model.k_values(&c.k);
     let mv = model.m_values(&c.m);
     for j in 0..nm {
@@ -106,10 +110,9 @@ pub fn eigen_derivatives(
                     }
                 }
             }
-            let lu = pat
-                .view(&av)
-                .sp_lu()
-                .map_err(|e| FemError::Factorisation(format!("K − λM for mode {}: {e:?}", j + 1)))?;
+            let lu = pat.view(&av).sp_lu().map_err(|e| {
+                FemError::Factorisation(format!("K − λM for mode {}: {e:?}", j + 1))
+            })?;
             let mphi_full: Vec<f64> = {
                 let mut y = vec![0.0; n];
                 pat.matvec(&mv, &phi, &mut y);

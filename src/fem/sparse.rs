@@ -63,23 +63,6 @@ impl Pattern {
         }
     }
 
-    /// xᵀ A y.
-    pub fn bilinear(&self, val: &[f64], x: &[f64], y: &[f64]) -> f64 {
-        let mut s = 0.0;
-        for c in 0..self.n {
-            let yc = y[c];
-            if yc == 0.0 {
-                continue;
-            }
-            let mut t = 0.0;
-            for p in self.col_ptr[c]..self.col_ptr[c + 1] {
-                t += val[p] * x[self.row_idx[p]];
-            }
-            s += t * yc;
-        }
-        s
-    }
-
     /// faer view of the matrix with values `val`.
     pub fn view<'a>(&'a self, val: &'a [f64]) -> SparseColMatRef<'a, usize, f64> {
         SparseColMatRef::new(self.symbolic.as_ref(), val)

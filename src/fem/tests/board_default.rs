@@ -10,10 +10,115 @@ fn default_board_mass_and_frequencies_resemble_the_paper() {
     let p = m.nominal_params();
     let mass = m.total_mass_kg(&p).unwrap();
     let modes = m.modes(&p, 8).unwrap();
-    eprintln!("mass {mass} kg, ndof {}, dropped {}, f {:?}", m.n_dof, modes.n_rigid_dropped, modes.freq_hz);
+    eprintln!(
+        "mass {mass} kg, ndof {}, dropped {}, f {:?}",
+        m.n_dof, modes.n_rigid_dropped, modes.freq_hz
+    );
     let mb = FeModel::build(&b, Setup::bolted(), &b.mesh).unwrap();
     let mo = mb.modes(&mb.nominal_params(), 8).unwrap();
     eprintln!("bolted f {:?}", mo.freq_hz);
-    assert!((mass - 0.013).abs() < 0.0005, "mass {mass} kg, expected about 13 g");
+    assert!(
+        (mass - 0.013).abs() < 0.0005,
+        "mass {mass} kg, expected about 13 g"
+    );
     assert_eq!(modes.n_rigid_dropped, 3);
+    // Seed paper, Table 2, measured means (sorted by frequency).
+    let paper_hz = [778.5, 954.4, 1872.0, 2402.0, 2562.0, 2966.0, 3537.0, 4116.0];
+    for (f, p) in modes.freq_hz.iter().zip(paper_hz) {
+        assert!((f - p).abs() < 0.035 * p, "{f} Hz vs paper {p} Hz");
+    }
+}
+
+#[test]
+fn bad_boards_are_rejected_with_the_field_named() {
+    let good = crate::fem::board::DEFAULT_BOARD_TOML;
+    let neg = good.replace("thickness_m = 1.5e-3", "thickness_m = -1.5e-3");
+    let err = Board::from_toml_str(&neg).unwrap_err().to_string();
+    assert!(
+        err.contains("core.thickness_m") && err.contains("-0.0015"),
+        "{err}"
+    );
+    let unknown = good.replace(
+        "name = \"paper-pcb\"",
+        "name = \"paper-pcb\"\ncolour = \"green\"",
+    );
+    assert!(matches!(
+        Board::from_toml_str(&unknown),
+        Err(crate::fem::FemError::BoardParse(_))
+    ));
+    let nu = good.replace("nu_xy = 0.14", "nu_xy = 1.5");
+    assert!(Board::from_toml_str(&nu)
+        .unwrap_err()
+        .to_string()
+        .contains("nu_xy"));
+    let hole = good.replace("x_m = 0.075\ny_m = 0.045", "x_m = 0.095\ny_m = 0.045");
+    assert!(Board::from_toml_str(&hole)
+        .unwrap_err()
+        .to_string()
+        .contains("holes[3]"));
+}
+
+#[test]
+fn coverage_fraction_of_known_regions() {
+    let mut b = Board::default_board();
+    // Layer 0 covers y in [3, 22] mm: a cell inside is fully covered, one straddling
+    // y = 22 mm by half, one in the gap not at all.
+    assert_eq!(b.coverage_fraction(0, 0.010, 0.010, 0.012, 0.012), 1.0);
+    assert_eq!(b.coverage_fraction(0, 0.010, 0.021, 0.012, 0.023), 0.5);
+    assert_eq!(b.coverage_fraction(0, 0.010, 0.023, 0.012, 0.025), 0.0);
+    // Polygon (triangle) covers half of its bounding square, to the sub-grid resolution.
+    b.copper[0].coverage = vec![crate::fem::board::Region::Polygon {
+        vertices_m: vec![[0.0, 0.0], [0.01, 0.0], [0.0, 0.01]],
+    }];
+    let f = b.coverage_fraction(0, 0.0, 0.0, 0.01, 0.01);
+    assert!((f - 0.5).abs() <= 6.0 / 36.0, "{f}");
+}
+
+#[test]
+fn schema_lists_exactly_the_board_fields() {
+    // The JSON schema in schemas/ and the serde struct must name the same keys.
+    let schema: serde_json::Value =
+        serde_json::from_str(include_str!("../../../schemas/board.schema.json")).unwrap();
+    let board = serde_json::to_value(Board::default_board()).unwrap();
+    let keys = |v: &serde_json::Value| -> Vec<String> {
+        let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
+        k.sort();
+        k
+    };
+    assert_eq!(keys(&schema["properties"]), keys(&board));
+    for sub in ["core", "joint", "mesh", "scan_grid"] {
+        assert_eq!(
+            keys(&schema["properties"][sub]["properties"]),
+            keys(&board[sub]),
+            "{sub}"
+        );
+    }
+    assert_eq!(
+        keys(&schema["properties"]["copper"]["items"]["properties"]),
+        keys(&board["copper"][0])
+    );
+    assert_eq!(
+        keys(&schema["properties"]["holes"]["items"]["properties"]),
+        keys(&board["holes"][0])
+    );
+}
+
+#[test]
+fn same_inputs_give_the_same_bytes() {
+    let b = Board::default_board();
+    let m = FeModel::build(&b, Setup::bolted(), &b.mesh).unwrap();
+    let p = m.nominal_params();
+    let a = m.modes(&p, 5).unwrap();
+    let c = m.modes(&p, 5).unwrap();
+    assert_eq!(a.eigenvalues, c.eigenvalues);
+    assert_eq!(a.shapes, c.shapes);
+}
+
+#[test]
+fn scan_grid_points_lie_on_the_board_and_avoid_holes() {
+    let b = Board::default_board();
+    let m = FeModel::build(&b, Setup::Free, &b.mesh).unwrap();
+    let pts = b.scan_points_m();
+    assert_eq!(pts.len(), b.scan_grid.nx * b.scan_grid.ny);
+    assert!(m.shape_operator(&pts).is_ok());
 }

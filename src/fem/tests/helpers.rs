@@ -10,6 +10,10 @@ use crate::fem::model::{FeModel, Setup};
 use crate::fem::sparse::Pattern;
 
 /// A plain plate: no copper, no holes.
+#[allow(
+    clippy::too_many_arguments,
+    reason = "test helper mirroring the material constants one to one"
+)]
 pub fn plain_board(lx: f64, ly: f64, h: f64, ex: f64, ey: f64, g: f64, nu: f64, rho: f64) -> Board {
     Board {
         name: "plain".into(),
@@ -41,7 +45,12 @@ pub fn plain_board(lx: f64, ly: f64, h: f64, ex: f64, ey: f64, g: f64, nu: f64, 
 
 /// Lowest `nev` eigenvalues (rad²/s²) of the nominal model with the DOFs in `fixed`
 /// removed (homogeneous Dirichlet conditions).
-pub fn constrained_eigenvalues(model: &FeModel, fixed: &[usize], nev: usize, shift: f64) -> Vec<f64> {
+pub fn constrained_eigenvalues(
+    model: &FeModel,
+    fixed: &[usize],
+    nev: usize,
+    shift: f64,
+) -> Vec<f64> {
     let p = model.nominal_params();
     let n = model.n_dof;
     let mut keep = vec![true; n];
@@ -98,7 +107,9 @@ pub fn simply_supported_dofs(model: &FeModel) -> Vec<usize> {
     let mut fixed = Vec::new();
     for j in 0..=ny {
         for i in 0..=nx {
-            let Some(d) = model.mesh.node_dof[j * (nx + 1) + i] else { continue };
+            let Some(d) = model.mesh.node_dof[j * (nx + 1) + i] else {
+                continue;
+            };
             let on_x_edge = i == 0 || i == nx; // edge x = const: w and w_y vanish
             let on_y_edge = j == 0 || j == ny; // edge y = const: w and w_x vanish
             if on_x_edge || on_y_edge {

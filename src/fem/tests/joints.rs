@@ -29,11 +29,22 @@ fn variants() -> Vec<Vec<JointFeature>> {
     vec![
         vec![JointFeature::Translational],
         vec![JointFeature::PerJointTranslational],
-        vec![JointFeature::Translational, JointFeature::RotationalRestraint { k_rot_nm_per_rad: 5.0 }],
-        vec![JointFeature::Translational, JointFeature::JointMass { mass_kg: 1.2e-3 }],
         vec![
             JointFeature::Translational,
-            JointFeature::CompliantFixture { k_fix_n_per_m: 1e8, m_fix_kg: 0.2 },
+            JointFeature::RotationalRestraint {
+                k_rot_nm_per_rad: 5.0,
+            },
+        ],
+        vec![
+            JointFeature::Translational,
+            JointFeature::JointMass { mass_kg: 1.2e-3 },
+        ],
+        vec![
+            JointFeature::Translational,
+            JointFeature::CompliantFixture {
+                k_fix_n_per_m: 1e8,
+                m_fix_kg: 0.2,
+            },
         ],
     ]
 }
@@ -43,19 +54,29 @@ fn every_variant_is_symmetric_and_positive_definite() {
     for f in variants() {
         let m = model(f.clone());
         let p = m.nominal_params();
-        for trip in [m.stiffness_triplets(&p).unwrap(), m.mass_triplets(&p).unwrap()] {
+        for trip in [
+            m.stiffness_triplets(&p).unwrap(),
+            m.mass_triplets(&p).unwrap(),
+        ] {
             let mut map = std::collections::HashMap::new();
             for (r, c, v) in &trip {
                 map.insert((*r, *c), *v);
             }
             for ((r, c), v) in &map {
                 let t = map.get(&(*c, *r)).copied().unwrap_or(0.0);
-                assert!((v - t).abs() <= 1e-12 * v.abs().max(t.abs()).max(1e-300), "{f:?}: asymmetric at ({r}, {c})");
+                assert!(
+                    (v - t).abs() <= 1e-12 * v.abs().max(t.abs()).max(1e-300),
+                    "{f:?}: asymmetric at ({r}, {c})"
+                );
             }
         }
         // Fixed-base: K and M positive definite, so every eigenvalue is positive.
         let modes = m.modes(&p, 7).unwrap();
-        assert!(modes.eigenvalues[0] > 0.0, "{f:?}: lowest eigenvalue {}", modes.eigenvalues[0]);
+        assert!(
+            modes.eigenvalues[0] > 0.0,
+            "{f:?}: lowest eigenvalue {}",
+            modes.eigenvalues[0]
+        );
         assert_eq!(modes.n_rigid_dropped, 0);
     }
 }
@@ -64,22 +85,44 @@ fn every_variant_is_symmetric_and_positive_definite() {
 fn variants_reduce_to_the_baseline() {
     let base = freqs(&model(vec![JointFeature::Translational]), 7);
     // Equal per-joint stiffnesses = one K_con.
-    assert!(close(&freqs(&model(vec![JointFeature::PerJointTranslational]), 7), &base, 1e-9));
+    assert!(close(
+        &freqs(&model(vec![JointFeature::PerJointTranslational]), 7),
+        &base,
+        1e-9
+    ));
     // Zero rotational restraint, zero joint mass.
-    let zero_rot = model(vec![JointFeature::Translational, JointFeature::RotationalRestraint { k_rot_nm_per_rad: 0.0 }]);
+    let zero_rot = model(vec![
+        JointFeature::Translational,
+        JointFeature::RotationalRestraint {
+            k_rot_nm_per_rad: 0.0,
+        },
+    ]);
     assert!(close(&freqs(&zero_rot, 7), &base, 1e-9));
-    let zero_mass = model(vec![JointFeature::Translational, JointFeature::JointMass { mass_kg: 0.0 }]);
+    let zero_mass = model(vec![
+        JointFeature::Translational,
+        JointFeature::JointMass { mass_kg: 0.0 },
+    ]);
     assert!(close(&freqs(&zero_mass, 7), &base, 1e-9));
     // A fixture that becomes rigid (compliance → 0): the modes tend to the baseline.
     let mut last = f64::INFINITY;
     for k_fix in [1e9, 1e11, 1e13] {
         let m = model(vec![
             JointFeature::Translational,
-            JointFeature::CompliantFixture { k_fix_n_per_m: k_fix, m_fix_kg: 0.05 },
+            JointFeature::CompliantFixture {
+                k_fix_n_per_m: k_fix,
+                m_fix_kg: 0.05,
+            },
         ]);
         let f = freqs(&m, 7);
-        let err = f.iter().zip(&base).map(|(a, b)| (a - b).abs() / b).fold(0.0, f64::max);
-        assert!(err < last, "fixture k = {k_fix}: error {err} did not shrink");
+        let err = f
+            .iter()
+            .zip(&base)
+            .map(|(a, b)| (a - b).abs() / b)
+            .fold(0.0, f64::max);
+        assert!(
+            err < last,
+            "fixture k = {k_fix}: error {err} did not shrink"
+        );
         last = err;
     }
     assert!(last < 1e-5, "stiff fixture: error {last}");
@@ -89,13 +132,34 @@ fn variants_reduce_to_the_baseline() {
 fn added_stiffness_raises_and_added_mass_lowers_every_frequency() {
     let base = freqs(&model(vec![JointFeature::Translational]), 7);
     let rot = freqs(
-        &model(vec![JointFeature::Translational, JointFeature::RotationalRestraint { k_rot_nm_per_rad: 5.0 }]),
+        &model(vec![
+            JointFeature::Translational,
+            JointFeature::RotationalRestraint {
+                k_rot_nm_per_rad: 5.0,
+            },
+        ]),
         7,
     );
-    let mass = freqs(&model(vec![JointFeature::Translational, JointFeature::JointMass { mass_kg: 1.2e-3 }]), 7);
+    let mass = freqs(
+        &model(vec![
+            JointFeature::Translational,
+            JointFeature::JointMass { mass_kg: 1.2e-3 },
+        ]),
+        7,
+    );
     for j in 0..7 {
-        assert!(rot[j] >= base[j] * (1.0 - 1e-12), "mode {j}: {} < {}", rot[j], base[j]);
-        assert!(mass[j] <= base[j] * (1.0 + 1e-12), "mode {j}: {} > {}", mass[j], base[j]);
+        assert!(
+            rot[j] >= base[j] * (1.0 - 1e-12),
+            "mode {j}: {} < {}",
+            rot[j],
+            base[j]
+        );
+        assert!(
+            mass[j] <= base[j] * (1.0 + 1e-12),
+            "mode {j}: {} > {}",
+            mass[j],
+            base[j]
+        );
     }
     // Per-joint: stiffening one joint raises (or keeps) every frequency.
     let m = model(vec![JointFeature::PerJointTranslational]);
@@ -110,9 +174,19 @@ fn added_stiffness_raises_and_added_mass_lowers_every_frequency() {
 
 #[test]
 fn rom_with_two_mass_terms_matches_the_full_model() {
-    let m = model(vec![JointFeature::Translational, JointFeature::JointMass { mass_kg: 1.2e-3 }]);
+    let m = model(vec![
+        JointFeature::Translational,
+        JointFeature::JointMass { mass_kg: 1.2e-3 },
+    ]);
     assert_eq!(m.map.m_coefs.len(), 2);
-    let rom = Rom::build(&m, &RomOptions { n_modes: 7, ..RomOptions::default() }).unwrap();
+    let rom = Rom::build(
+        &m,
+        &RomOptions {
+            n_modes: 7,
+            ..RomOptions::default()
+        },
+    )
+    .unwrap();
     let pts = m.board.scan_points_m();
     let sop = rom.shape_operator(&m, &pts).unwrap();
     for p in latin_hypercube_params(&m.map, 12, 0.2, 99) {
@@ -120,7 +194,12 @@ fn rom_with_two_mass_terms_matches_the_full_model() {
         let red = rom.eval(&p, &sop).unwrap();
         for j in 0..7 {
             let e = (red.freq_hz[j] - full.freq_hz[j]).abs() / full.freq_hz[j];
-            assert!(e < 1e-3, "mode {j}: ROM {} vs full {}", red.freq_hz[j], full.freq_hz[j]);
+            assert!(
+                e < 1e-3,
+                "mode {j}: ROM {} vs full {}",
+                red.freq_hz[j],
+                full.freq_hz[j]
+            );
         }
     }
 }
@@ -137,8 +216,14 @@ fn point_mass_adds_exactly_its_mass_and_lowers_frequencies() {
     assert!((m.total_mass_kg(&p).unwrap() - m0 - 2e-3).abs() < 1e-15);
     let f1 = m.modes(&p, 8).unwrap().freq_hz;
     assert!(f1.iter().zip(&f0).all(|(a, b)| *a <= *b * (1.0 + 1e-12)));
-    assert!(m.add_point_mass(0.1, 0.01, 1e-3).is_err(), "outside the board");
-    assert!(m.add_point_mass(0.005, 0.005, 1e-3).is_err(), "inside a hole");
+    assert!(
+        m.add_point_mass(0.1, 0.01, 1e-3).is_err(),
+        "outside the board"
+    );
+    assert!(
+        m.add_point_mass(0.005, 0.005, 1e-3).is_err(),
+        "inside a hole"
+    );
 }
 
 #[test]
@@ -150,5 +235,8 @@ fn effective_masses_sum_to_at_most_the_total_mass() {
     let gam = m.participation_z(&p, &modes).unwrap();
     let eff: f64 = gam.iter().map(|g| g * g).sum();
     let total = m.total_mass_kg(&p).unwrap();
-    assert!(eff <= total * (1.0 + 1e-9) && eff > 0.5 * total, "effective {eff}, total {total}");
+    assert!(
+        eff <= total * (1.0 + 1e-9) && eff > 0.5 * total,
+        "effective {eff}, total {total}"
+    );
 }

@@ -1,8 +1,8 @@
 //! Tests of the physics core against closed forms, published tables and identities.
 
-mod helpers;
-mod verification;
 mod board_default;
+mod helpers;
+mod joints;
 mod rom;
 mod sensitivity;
-mod joints;
+mod verification;

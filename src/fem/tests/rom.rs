@@ -33,7 +33,7 @@ fn check_rom(setup: Setup, n_modes: usize, n_points: usize) -> (f64, f64, usize)
     let sop = model.shape_operator(&pts).unwrap();
     let rsop = rom.shape_operator(&model, &pts).unwrap();
     // A different seed from the build's snapshot design.
-    let sample = latin_hypercube_params(&model.map, n_points, 0.2, 0xACCE_55);
+    let sample = latin_hypercube_params(&model.map, n_points, 0.2, 0x00AC_CE55);
     let (mut worst_f, mut worst_mac) = (0.0f64, 1.0f64);
     for p in &sample {
         let full = model.modes(p, n_modes).unwrap();
@@ -77,7 +77,10 @@ fn rom_npz_round_trip_preserves_every_number() {
     let bytes = rom.to_npz_bytes();
     let back = Rom::from_npz_bytes(&bytes).unwrap();
     assert_eq!(back.map, rom.map);
-    assert_eq!((back.n_rigid, back.n_modes, back.setup.as_str()), (rom.n_rigid, rom.n_modes, rom.setup.as_str()));
+    assert_eq!(
+        (back.n_rigid, back.n_modes, back.setup.as_str()),
+        (rom.n_rigid, rom.n_modes, rom.setup.as_str())
+    );
     assert_eq!(back.basis, rom.basis);
     assert_eq!(back.k_r, rom.k_r);
     assert_eq!(back.m_r, rom.m_r);

@@ -24,7 +24,9 @@ fn check_derivatives(setup: Setup, n_modes: usize) {
         // Align the arbitrary eigenvector signs with the base modes.
         for other in [&mut mp, &mut mm] {
             for j in 0..n_modes {
-                let dot: f64 = (0..n).map(|i| other.shapes[(i, j)] * modes.shapes[(i, j)]).sum();
+                let dot: f64 = (0..n)
+                    .map(|i| other.shapes[(i, j)] * modes.shapes[(i, j)])
+                    .sum();
                 if dot < 0.0 {
                     for i in 0..n {
                         other.shapes[(i, j)] = -other.shapes[(i, j)];
@@ -50,7 +52,11 @@ fn check_derivatives(setup: Setup, n_modes: usize) {
                 nrm += modes.shapes[(i, j)].powi(2);
             }
             let rel = (err / nrm).sqrt();
-            assert!(rel <= 1e-4, "mode {} / {name}: shape derivative relative error {rel:e}", j + 1);
+            assert!(
+                rel <= 1e-4,
+                "mode {} / {name}: shape derivative relative error {rel:e}",
+                j + 1
+            );
         }
     }
 }
@@ -103,8 +109,16 @@ fn table_shows_the_papers_pattern() {
     // columns sum to ≈ 1, i.e. they are eigenvalue sensitivities, twice ours.)
     let driven = |m: usize, name: &str| dominant(m) == name && get(m, name) > 0.25;
     // Mode 1 torsion, mode 2 first x-bending (paper: EF1, EF2).
-    assert!(driven(1, names::G_XY), "torsion: G_xy {}", get(1, names::G_XY));
-    assert!(driven(2, names::E_X), "x-bending: E_x {}", get(2, names::E_X));
+    assert!(
+        driven(1, names::G_XY),
+        "torsion: G_xy {}",
+        get(1, names::G_XY)
+    );
+    assert!(
+        driven(2, names::E_X),
+        "x-bending: E_x {}",
+        get(2, names::E_X)
+    );
     // Some mode among the first five is y-bending (paper: EF4).
     assert!((1..=5).any(|m| driven(m, names::E_Y)));
     // ν_xy matters little (paper: |·| < 0.03).

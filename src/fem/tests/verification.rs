@@ -26,7 +26,11 @@ fn isotropic_simply_supported_plate_matches_navier() {
     exact.sort_by(f64::total_cmp);
     for k in 0..8 {
         let w = lam[k].sqrt();
-        assert!(rel(w, exact[k]) < 5e-3, "mode {k}: ω = {w}, Navier {}", exact[k]);
+        assert!(
+            rel(w, exact[k]) < 5e-3,
+            "mode {k}: ω = {w}, Navier {}",
+            exact[k]
+        );
     }
 }
 
@@ -46,13 +50,18 @@ fn orthotropic_simply_supported_plate_matches_closed_form() {
         .flat_map(|m| (1..7).map(move |n| (m as f64 / a, n as f64 / b)))
         .map(|(p, q)| {
             PI * PI / (rho * h).sqrt()
-                * (d11 * p.powi(4) + 2.0 * (d12 + 2.0 * d66) * p * p * q * q + d22 * q.powi(4)).sqrt()
+                * (d11 * p.powi(4) + 2.0 * (d12 + 2.0 * d66) * p * p * q * q + d22 * q.powi(4))
+                    .sqrt()
         })
         .collect();
     exact.sort_by(f64::total_cmp);
     for k in 0..8 {
         let w = lam[k].sqrt();
-        assert!(rel(w, exact[k]) < 5e-3, "mode {k}: ω = {w}, exact {}", exact[k]);
+        assert!(
+            rel(w, exact[k]) < 5e-3,
+            "mode {k}: ω = {w}, exact {}",
+            exact[k]
+        );
     }
 }
 
@@ -69,11 +78,18 @@ fn free_square_plate_matches_leissa() {
     let model = build(&board, Setup::Free, 16, 16);
     let p = model.nominal_params();
     let modes = model.modes(&p, 5).unwrap();
-    assert_eq!(modes.n_rigid_dropped, 3, "a free plate has three rigid-body modes");
+    assert_eq!(
+        modes.n_rigid_dropped, 3,
+        "a free plate has three rigid-body modes"
+    );
     let d = e * h.powi(3) / (12.0 * (1.0 - nu * nu));
     for k in 0..5 {
         let lam = modes.eigenvalues[k].sqrt() * a * a * (rho * h / d).sqrt();
-        assert!(rel(lam, leissa[k]) < 5e-3, "mode {k}: λ = {lam}, Leissa {}", leissa[k]);
+        assert!(
+            rel(lam, leissa[k]) < 5e-3,
+            "mode {k}: λ = {lam}, Leissa {}",
+            leissa[k]
+        );
     }
 }
 
@@ -100,9 +116,19 @@ fn mesh_convergence_rate_is_fourth_order() {
     let xs: Vec<f64> = meshes.iter().map(|n| (1.0 / *n as f64).ln()).collect();
     let ys: Vec<f64> = errs.iter().map(|e| e.ln()).collect();
     let (mx, my) = (xs.iter().sum::<f64>() / 4.0, ys.iter().sum::<f64>() / 4.0);
-    let slope = xs.iter().zip(&ys).map(|(x, y)| (x - mx) * (y - my)).sum::<f64>()
+    let slope = xs
+        .iter()
+        .zip(&ys)
+        .map(|(x, y)| (x - mx) * (y - my))
+        .sum::<f64>()
         / xs.iter().map(|x| (x - mx).powi(2)).sum::<f64>();
     eprintln!("errors {errs:?}, observed rate {slope}");
-    assert!(errs.windows(2).all(|w| w[1] < w[0]), "errors must decrease: {errs:?}");
-    assert!((slope - 4.0).abs() < 0.4, "observed rate {slope}, expected 4 (errors {errs:?})");
+    assert!(
+        errs.windows(2).all(|w| w[1] < w[0]),
+        "errors must decrease: {errs:?}"
+    );
+    assert!(
+        (slope - 4.0).abs() < 0.4,
+        "observed rate {slope}, expected 4 (errors {errs:?})"
+    );
 }
