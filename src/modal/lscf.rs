@@ -25,6 +25,7 @@
 
 use super::ModalError;
 use faer::{c64, Mat};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
@@ -97,6 +98,28 @@ pub fn noise_sigma(row: &[c64]) -> f64 {
     let mid = d.len() / 2;
     let (_, m, _) = d.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
     (*m / (2.0 * std::f64::consts::LN_2)).sqrt()
+}
+
+/// Dot product with eight independent partial sums, combined in a fixed order: breaks the
+/// floating-point dependency chain (the compiler may not reassociate a plain sum) so the
+/// loop vectorises, and stays bit-reproducible.
+#[inline]
+pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0f64; 8];
+    let chunks = n / 8;
+    for c in 0..chunks {
+        let (x, y) = (&a[c * 8..c * 8 + 8], &b[c * 8..c * 8 + 8]);
+        for l in 0..8 {
+            acc[l] += x[l] * y[l];
+        }
+    }
+    let mut tail = 0.0;
+    for k in chunks * 8..n {
+        tail += a[k] * b[k];
+    }
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
 }
 
 /// In-place Cholesky `A = L L^T` of a small dense SPD matrix (row-major `n x n`), returning
@@ -178,12 +201,15 @@ pub fn lscf_poles(
     }
     // Weighted basis powers E[m][k] = v_k^2 exp(-i omega_k m dt), m = 0..=nmax, with the
     // squared line weight folded in (every lag sum carries it exactly once).
-    let mut e = vec![c64::new(0.0, 0.0); n1 * nf];
+    // Stored as separate real and imaginary tables for vectorised dot products.
+    let mut e_re = vec![0.0; n1 * nf];
+    let mut e_im = vec![0.0; n1 * nf];
     for m in 0..n1 {
         for k in 0..nf {
             let ph = -2.0 * PI * freq_hz[k] * m as f64 * dt;
             let v2 = line_weight.map_or(1.0, |lw| lw[k] * lw[k]);
-            e[m * nf + k] = c64::new(v2 * ph.cos(), v2 * ph.sin());
+            e_re[m * nf + k] = v2 * ph.cos();
+            e_im[m * nf + k] = v2 * ph.sin();
         }
     }
     // Weights.
@@ -204,7 +230,7 @@ pub fn lscf_poles(
     // R (common to all points up to w_o^2, which is folded into H): Re c_m.
     let mut r_lag = vec![0.0; n1];
     for (m, rl) in r_lag.iter_mut().enumerate() {
-        *rl = e[m * nf..(m + 1) * nf].iter().map(|z| z.re).sum();
+        *rl = e_re[m * nf..(m + 1) * nf].iter().sum();
     }
     let mut r = vec![0.0; n1 * n1];
     for i in 0..n1 {
@@ -213,6 +239,12 @@ pub fn lscf_poles(
         }
     }
     let l = cholesky(&r, n1)?;
+    let mut lt = vec![0.0; n1 * n1]; // L^T, row-major, for contiguous back substitution
+    for i in 0..n1 {
+        for j in 0..=i {
+            lt[j * n1 + i] = l[i * n1 + j];
+        }
+    }
 
     // T summed over points: Re t_m, t_m = sum_k (sum_o w_o^2 |H_ok|^2) E[m][k].
     let mut pow_sum = vec![0.0; nf];
@@ -222,61 +254,59 @@ pub fn lscf_poles(
         }
     }
     let t_lag: Vec<f64> = (0..n1)
-        .map(|m| {
-            e[m * nf..(m + 1) * nf]
-                .iter()
-                .zip(&pow_sum)
-                .map(|(z, p)| z.re * p)
-                .sum()
-        })
+        .map(|m| dot(&e_re[m * nf..(m + 1) * nf], &pow_sum))
         .collect();
 
     // G_o = L^{-1} S_o for every point, S_o[i,j] = -Re s_{j-i}, s_m = sum_k w H_k E^m.
-    let mut g_all: Vec<Vec<f64>> = Vec::with_capacity(h.len());
-    for (row, &w) in h.iter().zip(&weights) {
-        let mut s_pos = vec![0.0; n1]; // Re s_m, m >= 0
-        let mut s_neg = vec![0.0; n1]; // Re s_{-m}
-        for m in 0..n1 {
-            let em = &e[m * nf..(m + 1) * nf];
-            let (mut a, mut b) = (0.0, 0.0);
-            for (z, v) in em.iter().zip(row.iter()) {
-                // Re(v z) and Re(v conj z)
-                let p = v.re * z.re;
-                let q = v.im * z.im;
-                a += p - q;
-                b += p + q;
+    // Per point (in parallel: independent, each computed sequentially, collected in order,
+    // so the result does not depend on the thread count).
+    let g_all: Vec<Vec<f64>> = h
+        .par_iter()
+        .zip(weights.par_iter())
+        .map(|(row, &w)| {
+            let h_re: Vec<f64> = row.iter().map(|v| v.re).collect();
+            let h_im: Vec<f64> = row.iter().map(|v| v.im).collect();
+            let mut s_pos = vec![0.0; n1]; // Re s_m, m >= 0
+            let mut s_neg = vec![0.0; n1]; // Re s_{-m}
+            for m in 0..n1 {
+                // Re(H E^m) = p - q and Re(H conj(E^m)) = p + q.
+                let p = dot(&h_re, &e_re[m * nf..(m + 1) * nf]);
+                let q = dot(&h_im, &e_im[m * nf..(m + 1) * nf]);
+                s_pos[m] = w * (p - q);
+                s_neg[m] = w * (p + q);
             }
-            s_pos[m] = w * a;
-            s_neg[m] = w * b;
-        }
-        let mut g = vec![0.0; n1 * n1];
-        for i in 0..n1 {
-            for j in 0..n1 {
-                let s = if j >= i { s_pos[j - i] } else { s_neg[i - j] };
-                g[i * n1 + j] = -s;
-            }
-        }
-        // Forward substitution L G = S, column-wise in place (row-major, row by row).
-        for i in 0..n1 {
-            for k in 0..i {
-                let lik = l[i * n1 + k];
-                if lik != 0.0 {
-                    for j in 0..n1 {
-                        g[i * n1 + j] -= lik * g[k * n1 + j];
-                    }
+            let mut g = vec![0.0; n1 * n1];
+            for i in 0..n1 {
+                for j in 0..n1 {
+                    let s = if j >= i { s_pos[j - i] } else { s_neg[i - j] };
+                    g[i * n1 + j] = -s;
                 }
             }
-            let d = l[i * n1 + i];
-            for j in 0..n1 {
-                g[i * n1 + j] /= d;
+            // Forward substitution L G = S (row-major, row by row).
+            for i in 0..n1 {
+                let (done, rest) = g.split_at_mut(i * n1);
+                let gi = &mut rest[..n1];
+                for k in 0..i {
+                    let lik = l[i * n1 + k];
+                    if lik != 0.0 {
+                        for (a, b) in gi.iter_mut().zip(&done[k * n1..(k + 1) * n1]) {
+                            *a -= lik * b;
+                        }
+                    }
+                }
+                let d = l[i * n1 + i];
+                for a in gi.iter_mut() {
+                    *a /= d;
+                }
             }
-        }
-        g_all.push(g);
-    }
+            g
+        })
+        .collect();
 
-    let mut p = vec![0.0; n1 * n1]; // accumulated sum_o sum_{k<=n} g_ok g_ok^T
+    // Denominators of all orders (sequential: P accumulates row by row).
+    let mut p = vec![0.0; n1 * n1]; // upper triangle of sum_o sum_{k<=n} g_ok g_ok^T
     let mut rows_done = 0usize;
-    let mut out = Vec::new();
+    let mut alphas: Vec<(usize, Vec<f64>)> = Vec::new();
     let mut n = params.min_order;
     while n <= nmax {
         for k in rows_done..=n {
@@ -287,8 +317,7 @@ pub fn lscf_poles(
                     if gi == 0.0 {
                         continue;
                     }
-                    let pr = &mut p[i * n1..(i + 1) * n1];
-                    for (pj, gj) in pr.iter_mut().zip(gk) {
+                    for (pj, gj) in p[i * n1 + i..(i + 1) * n1].iter_mut().zip(&gk[i..]) {
                         *pj += gi * gj;
                     }
                 }
@@ -296,86 +325,90 @@ pub fn lscf_poles(
         }
         rows_done = n + 1;
         // M = T - P on the leading (n+1) block; solve M[:n,:n] a = -M[:n,n].
-        let mm = |i: usize, j: usize| t_lag[i.abs_diff(j)] - p[i * n1 + j];
+        let mm = |i: usize, j: usize| t_lag[i.abs_diff(j)] - p[i.min(j) * n1 + i.max(j)];
         let a_mat = Mat::<f64>::from_fn(n, n, |i, j| mm(i, j));
         let rhs = Mat::<f64>::from_fn(n, 1, |i, _| -mm(i, n));
         let sol = solve_small(&a_mat, &rhs)?;
         let mut alpha: Vec<f64> = (0..n).map(|i| sol[(i, 0)]).collect();
         alpha.push(1.0);
-        if alpha.iter().any(|v| !v.is_finite()) {
-            n += params.order_step;
-            continue;
+        if alpha.iter().all(|v| v.is_finite()) {
+            alphas.push((n, alpha));
         }
-        // Companion matrix of the monic polynomial.
-        let comp = Mat::<f64>::from_fn(n, n, |i, j| {
-            if i == 0 {
-                -alpha[n - 1 - j]
-            } else if i == j + 1 {
-                1.0
-            } else {
-                0.0
+        n += params.order_step;
+    }
+
+    // Roots and shape estimates per order (in parallel, collected in order).
+    alphas
+        .par_iter()
+        .map(|(n, alpha)| {
+            let n = *n;
+            // Companion matrix of the monic polynomial.
+            let comp = Mat::<f64>::from_fn(n, n, |i, j| {
+                if i == 0 {
+                    -alpha[n - 1 - j]
+                } else if i == j + 1 {
+                    1.0
+                } else {
+                    0.0
+                }
+            });
+            let roots = comp.eigenvalues().map_err(|e| ModalError::Numerical {
+                stage: "lscf companion eigenvalues",
+                detail: format!("{e:?} at order {n}"),
+            })?;
+            let mut lambdas = Vec::new();
+            for z in roots {
+                if z.norm() == 0.0 || !z.re.is_finite() || !z.im.is_finite() {
+                    continue;
+                }
+                let lam = -z.ln() / dt;
+                if lam.im <= 0.0 {
+                    continue;
+                }
+                let f = lam.norm() / (2.0 * PI);
+                if f < f_lo || f > f_hi {
+                    continue;
+                }
+                lambdas.push((lam, z));
             }
-        });
-        let roots = comp.eigenvalues().map_err(|e| ModalError::Numerical {
-            stage: "lscf companion eigenvalues",
-            detail: format!("{e:?} at order {n}"),
-        })?;
-        // Numerator coefficients beta_o = -L^{-T} (G_o alpha) on the leading block.
-        let mut poles = Vec::new();
-        let mut lambdas = Vec::new();
-        for z in roots {
-            if z.norm() == 0.0 || !z.re.is_finite() || !z.im.is_finite() {
-                continue;
-            }
-            let lam = -z.ln() / dt;
-            if lam.im <= 0.0 {
-                continue;
-            }
-            let f = lam.norm() / (2.0 * PI);
-            if f < f_lo || f > f_hi {
-                continue;
-            }
-            lambdas.push((lam, z));
-        }
-        if !lambdas.is_empty() {
+            // Numerator coefficients beta_o = -L^{-T} (G_o alpha) on the leading block.
             let mut shapes = vec![Vec::with_capacity(h.len()); lambdas.len()];
-            let mut y = vec![0.0; n + 1];
-            let mut beta = vec![0.0; n + 1];
-            for (g, &w) in g_all.iter().zip(&weights) {
-                for i in 0..=n {
-                    y[i] = (0..=n).map(|j| g[i * n1 + j] * alpha[j]).sum();
-                }
-                // Back substitution L_n^T beta = -y.
-                for i in (0..=n).rev() {
-                    let mut s = -y[i];
-                    for k in i + 1..=n {
-                        s -= l[k * n1 + i] * beta[k];
+            if !lambdas.is_empty() {
+                let mut y = vec![0.0; n + 1];
+                let mut beta = vec![0.0; n + 1];
+                for (g, &w) in g_all.iter().zip(&weights) {
+                    for (i, yi) in y.iter_mut().enumerate() {
+                        *yi = dot(&g[i * n1..i * n1 + n + 1], alpha);
                     }
-                    beta[i] = s / l[i * n1 + i];
-                }
-                for (sh, (_, z)) in shapes.iter_mut().zip(&lambdas) {
-                    // Horner in z.
-                    let mut acc = c64::new(0.0, 0.0);
-                    for j in (0..=n).rev() {
-                        acc = acc * z + beta[j];
+                    // Back substitution L_n^T beta = -y.
+                    for i in (0..=n).rev() {
+                        let s = -y[i] - dot(&lt[i * n1 + i + 1..i * n1 + n + 1], &beta[i + 1..=n]);
+                        beta[i] = s / lt[i * n1 + i];
                     }
-                    sh.push(acc / w);
+                    for (sh, (_, z)) in shapes.iter_mut().zip(&lambdas) {
+                        // Horner in z.
+                        let mut acc = c64::new(0.0, 0.0);
+                        for j in (0..=n).rev() {
+                            acc = acc * z + beta[j];
+                        }
+                        sh.push(acc / w);
+                    }
                 }
             }
-            for ((lam, _), shape) in lambdas.into_iter().zip(shapes) {
-                poles.push(RawPole {
+            let mut poles: Vec<RawPole> = lambdas
+                .into_iter()
+                .zip(shapes)
+                .map(|((lam, _), shape)| RawPole {
                     lambda: lam,
                     freq_hz: lam.norm() / (2.0 * PI),
                     damping_ratio: -lam.re / lam.norm(),
                     shape,
-                });
-            }
-        }
-        poles.sort_by(|a, b| a.freq_hz.total_cmp(&b.freq_hz));
-        out.push(OrderPoles { order: n, poles });
-        n += params.order_step;
-    }
-    Ok(out)
+                })
+                .collect();
+            poles.sort_by(|a, b| a.freq_hz.total_cmp(&b.freq_hz));
+            Ok(OrderPoles { order: n, poles })
+        })
+        .collect()
 }
 
 /// Sanathanan–Koerner line weights `v_k = 1/|A(Omega_k)|` from a set of poles (rad/s,

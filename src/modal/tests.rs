@@ -332,8 +332,10 @@ fn bolted_transmissibility_meets_acceptance() {
 #[test]
 fn noise_points_flagged_and_weak_mode_kept() {
     let mut case = free_free_case(21);
-    // Mode 6 (bending-y-2) barely excited: 3 % of the others.
-    case.modes[6].4 = 0.03;
+    // Mode 6 (bending-y-2) barely excited: 10 % of the others, its peak is only ~4 noise
+    // standard deviations at the median point (at 3 % it is ~1 sigma: invisible, and then
+    // it must be reported missing, see `missing_mode_reported_and_never_mispaired`).
+    case.modes[6].4 = 0.1;
     let mut s = build(&case);
     // Replace 10 % of the points (8 of 77) by noise of the same rms as a typical point.
     let bad = [3usize, 15, 22, 38, 41, 57, 63, 70];
@@ -358,11 +360,9 @@ fn noise_points_flagged_and_weak_mode_kept() {
     assert!(flagged.len() <= bad.len() + 2, "too many good points flagged: {flagged:?}");
     let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
     assert!(ex.modes.len() <= s.freq_hz.len(), "spurious mode: {freqs:?}");
-    let m = match_truth(&ex, &s);
-    let weak_found = m[6].is_some();
-    let sc = score(&ex, &s, if weak_found { &[] } else { &[6] });
+    let sc = score(&ex, &s, &[]);
     eprintln!(
-        "robustness: weak mode found {weak_found}, median freq err {:.5} %, max damping err {:.2} %, min MAC {:.5}",
+        "robustness: median freq err {:.5} %, max damping err {:.2} %, min MAC {:.5}",
         100.0 * sc.median_freq_err,
         100.0 * sc.max_damp_err,
         sc.min_mac
@@ -388,32 +388,36 @@ fn model_from_truth(s: &Synthetic, freq_scale: f64) -> Vec<ModelMode> {
 
 #[test]
 fn missing_mode_reported_and_never_mispaired() {
-    let mut case = free_free_case(31);
-    case.modes[2].4 = 0.0; // bending-x-1 not excited at all: absent from the data
-    let s = build(&case);
-    let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
-    let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
-    assert_eq!(ex.modes.len(), 7, "{freqs:?}");
-    let model = model_from_truth(&s, 1.08);
-    let ident: Vec<IdentifiedShape> = ex
-        .modes
-        .iter()
-        .map(|m| IdentifiedShape {
-            freq_hz: m.freq_hz,
-            shape: m.shape.clone(),
-        })
-        .collect();
-    let p = pair::pair_modes(&ident, &model, &s.points, ex.band_hz, &PairParams::default()).unwrap();
-    assert_eq!(p.missing, vec![2]);
-    for pr in &p.pairs {
-        assert!(pr.accepted);
-        assert_ne!(pr.model_mode, Some(2));
-        let j = pr.model_mode.unwrap();
-        assert!((ident[pr.mode].freq_hz - s.freq_hz[j]).abs() / s.freq_hz[j] < 0.01);
-    }
-    assert!(p.swaps.is_empty());
-    for (j, l) in p.model_labels.iter().enumerate() {
-        assert_eq!(l, s.labels[j]);
+    // Absent (0) and buried in noise (3 %: peak about 1 noise sigma) modes must both be
+    // reported missing, with no other mode paired to them.
+    for (missing, exc) in [(2usize, 0.0), (6usize, 0.03)] {
+        let mut case = free_free_case(31);
+        case.modes[missing].4 = exc;
+        let s = build(&case);
+        let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
+        let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
+        assert_eq!(ex.modes.len(), 7, "{freqs:?}");
+        let model = model_from_truth(&s, 1.08);
+        let ident: Vec<IdentifiedShape> = ex
+            .modes
+            .iter()
+            .map(|m| IdentifiedShape {
+                freq_hz: m.freq_hz,
+                shape: m.shape.clone(),
+            })
+            .collect();
+        let p = pair::pair_modes(&ident, &model, &s.points, ex.band_hz, &PairParams::default()).unwrap();
+        assert_eq!(p.missing, vec![missing]);
+        for pr in &p.pairs {
+            assert!(pr.accepted);
+            assert_ne!(pr.model_mode, Some(missing));
+            let j = pr.model_mode.unwrap();
+            assert!((ident[pr.mode].freq_hz - s.freq_hz[j]).abs() / s.freq_hz[j] < 0.01);
+        }
+        assert!(p.swaps.is_empty());
+        for (j, l) in p.model_labels.iter().enumerate() {
+            assert_eq!(l, s.labels[j]);
+        }
     }
 }
 
@@ -494,14 +498,81 @@ fn debug_passes() {
 #[test]
 #[ignore]
 fn debug_diagram() {
+    let mut case = free_free_case(21);
+    case.modes[6].4 = 0.03;
+    let s = build(&case);
+    let data = band_data(&s.spectra, None).unwrap();
+    let _ = data;
+    let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
+    let d = ex.stabilization;
+    for p in &d.poles {
+        if p.freq_hz > 1170.0 && p.freq_hz < 1200.0 {
+            eprintln!("{:3} {:9.3} {:.5} {} {} {}", p.order, p.freq_hz, p.damping_ratio, p.stable_freq as u8, p.stable_damping as u8, p.stable_shape as u8);
+        }
+    }
+}
+
+#[test]
+#[ignore]
+fn debug_weak_snr() {
+    for exc in [0.03, 0.1, 0.3] {
+        let mut case = free_free_case(21);
+        case.modes[6].4 = exc;
+        case.floor_rel = 0.0;
+        case.prop_rel = 0.0;
+        let clean = build(&case);
+        case.modes[6].4 = 0.0;
+        let without = build(&case);
+        // noise sigma as in add_noise with default case levels
+        let rows: Vec<Vec<faer::c64>> = clean.spectra.points.iter().map(|p| p.re.iter().zip(&p.im).map(|(a, b)| faer::c64::new(*a, *b)).collect()).collect();
+        let rms: Vec<f64> = rows.iter().map(|r| frf::rms(r)).collect();
+        let mx = rms.iter().cloned().fold(0.0, f64::max);
+        let mut snr = Vec::new();
+        for o in 0..rows.len() {
+            let sigma = 0.005 * mx + 0.01 * rms[o];
+            let p = &without.spectra.points[o];
+            let peak = rows[o].iter().enumerate().map(|(k, v)| (v - faer::c64::new(p.re[k], p.im[k])).norm()).fold(0.0, f64::max);
+            snr.push(peak / sigma);
+        }
+        snr.sort_by(|a, b| a.total_cmp(b));
+        eprintln!("exc {exc}: weak-mode peak / noise sigma: median {:.2}, max {:.2}", snr[snr.len() / 2], snr[snr.len() - 1]);
+        let mut case = free_free_case(21);
+        case.modes[6].4 = exc;
+        let s = build(&case);
+        let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
+        let m = match_truth(&ex, &s);
+        eprintln!("  found: {:?}", m[6].map(|i| (ex.modes[i].freq_hz, ex.modes[i].damping_ratio, mac_real(&ex.modes[i].shape, &s.shapes[6]))));
+    }
+}
+
+#[test]
+#[ignore]
+fn debug_timing() {
     let s = build(&free_free_case(11));
     let data = band_data(&s.spectra, None).unwrap();
     let rows: Vec<&[faer::c64]> = data.h.iter().map(|r| r.as_slice()).collect();
-    let orders = lscf::lscf_poles(&data.freq_hz, &rows, None, &LscfParams::default()).unwrap();
-    let d = stabilization::flag_stability(orders, (1.0, 2000.0), &StabilityParams::default());
-    for p in &d.poles {
-        if p.freq_hz > 590.0 && p.freq_hz < 615.0 || (p.freq_hz > 1270.0 && p.freq_hz < 1320.0) {
-            eprintln!("{:3} {:9.3} {:.5} {} {} {}", p.order, p.freq_hz, p.damping_ratio, p.stable_freq as u8, p.stable_damping as u8, p.stable_shape as u8);
+    for _ in 0..3 {
+        let t = std::time::Instant::now();
+        let orders = lscf::lscf_poles(&data.freq_hz, &rows, None, &LscfParams::default()).unwrap();
+        let t1 = t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
+        for o in &orders {
+            let n = o.order;
+            let m = faer::Mat::<f64>::from_fn(n, n, |i, j| if i == 0 { 0.1 * (j as f64 + 1.0) } else if i == j + 1 { 1.0 } else { 0.0 });
+            let _ = m.eigenvalues().unwrap();
         }
+        let t2 = t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
+        let d = stabilization::flag_stability(orders, (1.0, 2000.0), &StabilityParams::default());
+        let sel = poles::select_physical_poles(&d, &SelectionParams::default());
+        let t3 = t.elapsed().as_secs_f64();
+        let lam: Vec<faer::c64> = sel.iter().map(|s| s.lambda).collect();
+        let t = std::time::Instant::now();
+        let _ = lsfd::lsfd(&data.freq_hz, &rows, &lam, &LsfdParams::for_kind(FunctionKind::Mobility)).unwrap();
+        let t4 = t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
+        let _ = extract(&s.spectra, &ExtractParams::default()).unwrap();
+        let t5 = t.elapsed().as_secs_f64();
+        eprintln!("lscf {:.1} ms (eig alone {:.1}), stab+select {:.1} ms, lsfd {:.1} ms, extract {:.1} ms", t1 * 1e3, t2 * 1e3, t3 * 1e3, t4 * 1e3, t5 * 1e3);
     }
 }

@@ -1,0 +1,101 @@
+#!/usr/bin/env python3
+"""Side-by-side check of hbmu's modal extraction against sdypy-EMA's LSCF + LSFD.
+
+Usage: python3 benches/modal_vs_sdypy.py DIR
+DIR holds one sub-directory per synthetic measurement with freq.npy, frf.npy (complex,
+points x lines) and case.json (truth and hbmu's result + timing), as written by
+`cargo bench --bench modal`. sdypy-EMA cannot pick poles by itself: it is given the TRUE
+natural frequencies as hints (select_closest_poles), which is generous to it. Its maximum
+polynomial degree equals ours (pol_order_high = max_order / 2, since sdypy doubles it).
+Prints per-mode errors against the truth, timings and the speed ratio.
+"""
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+warnings.filterwarnings("ignore")
+try:
+    import sdypy.EMA as EMA
+except ImportError:  # older packaging
+    import pyEMA as EMA
+
+
+def mac(a, b):
+    a = np.asarray(a, dtype=complex)
+    b = np.asarray(b, dtype=complex)
+    ok = np.isfinite(a) & np.isfinite(b)
+    a, b = a[ok], b[ok]
+    return float(abs(np.vdot(a, b)) ** 2 / (np.vdot(a, a).real * np.vdot(b, b).real))
+
+
+def run_sdypy(freq, frf, hints, max_order):
+    t0 = time.perf_counter()
+    m = EMA.Model(frf=frf, freq=freq, lower=float(freq[0]), upper=float(freq[-1]),
+                  pol_order_high=max_order // 2, frf_form="mobility")
+    m.get_poles(show_progress=False)
+    m.select_closest_poles(hints)
+    H, A = m.get_constants(whose_poles="own", FRF_ind="all")
+    dt = time.perf_counter() - t0
+    return np.asarray(m.nat_freq), np.asarray(m.nat_xi), np.asarray(A), dt
+
+
+def nearest(freqs, f):
+    if len(freqs) == 0:
+        return None
+    i = int(np.argmin(np.abs(np.asarray(freqs) - f)))
+    return i if abs(freqs[i] - f) / f < 0.02 else None
+
+
+def main():
+    root = Path(sys.argv[1])
+    cases = sorted(p for p in root.iterdir() if (p / "case.json").exists())
+    rows = []  # (case, mode, f_true, z_true, ours f err, ours z err, ours mac, sd f err, sd z err, sd mac)
+    t_ours, t_sd = [], []
+    for c in cases:
+        case = json.loads((c / "case.json").read_text())
+        freq = np.load(c / "freq.npy")
+        frf = np.load(c / "frf.npy")
+        tf = case["truth"]["freq_hz"]
+        tz = case["truth"]["damping_ratio"]
+        ts = case["truth"]["shapes"]
+        ours = case["ours"]["modes"]
+        of = [m["freq_hz"] for m in ours]
+        sf, sz, sA, dt = run_sdypy(freq, frf, tf, case["ours"]["max_order"])
+        t_ours.append(case["ours"]["time_s"])
+        t_sd.append(dt)
+        for r, (f, z, shp) in enumerate(zip(tf, tz, ts)):
+            i = nearest(of, f)
+            if i is not None:
+                # the closest in frequency may be the partner of a close pair: take best MAC
+                cand = [k for k, g in enumerate(of) if abs(g - f) / f < 0.02]
+                i = max(cand, key=lambda k: mac(ours[k]["shape"], shp))
+                o = ((of[i] - f) / f, (ours[i]["damping_ratio"] - z) / z, mac(ours[i]["shape"], shp))
+            else:
+                o = (np.nan, np.nan, np.nan)
+            s = ((sf[r] - f) / f, (sz[r] - z) / z, mac(sA[:, r], shp))
+            rows.append((c.name, r, f, z) + o + s)
+    print()
+    print("per-mode errors against truth (relative; MAC of shape with the true shape)")
+    print(f"{'case':8} {'mode':>4} {'f_true':>8} {'z_true':>7} | {'ours df%':>9} {'ours dz%':>9} {'ours MAC':>8} | {'sdypy df%':>9} {'sdypy dz%':>9} {'sdypy MAC':>9}")
+    for r in rows:
+        print(f"{r[0]:8} {r[1]:4d} {r[2]:8.1f} {r[3]:7.4f} | {100*r[4]:+9.4f} {100*r[5]:+9.2f} {r[6]:8.5f} | {100*r[7]:+9.4f} {100*r[8]:+9.2f} {r[9]:9.5f}")
+    a = np.array([r[4:] for r in rows], dtype=float)
+    def summary(cols, name):
+        fe, ze, mc = np.abs(a[:, cols[0]]), np.abs(a[:, cols[1]]), a[:, cols[2]]
+        print(f"{name:6}: |df| median {100*np.nanmedian(fe):.4f} % max {100*np.nanmax(fe):.4f} % | "
+              f"|dz| median {100*np.nanmedian(ze):.2f} % max {100*np.nanmax(ze):.2f} % | "
+              f"MAC min {np.nanmin(mc):.5f} | missed {int(np.isnan(fe).sum())}")
+    print()
+    summary((0, 1, 2), "ours")
+    summary((3, 4, 5), "sdypy")
+    to, ts_ = float(np.median(t_ours)), float(np.median(t_sd))
+    print(f"time per measurement (median over {len(cases)}): ours {1e3*to:.1f} ms, "
+          f"sdypy-EMA {1e3*ts_:.1f} ms, ratio {ts_/to:.1f}x")
+
+
+if __name__ == "__main__":
+    main()
