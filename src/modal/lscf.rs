@@ -126,7 +126,7 @@ pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
 /// `L` (lower, row-major). Hand-written because the LSCF needs the leading blocks of one
 /// factor for every model order and the matrices are at most ~100x100; a relative diagonal
 /// jitter is added if rounding makes the Toeplitz Gram matrix indefinite.
-fn cholesky(a: &[f64], n: usize) -> Result<Vec<f64>, ModalError> {
+pub(crate) fn cholesky(a: &[f64], n: usize) -> Result<Vec<f64>, ModalError> {
     let trace = (0..n).map(|i| a[i * n + i]).sum::<f64>() / n.max(1) as f64;
     for jitter in [0.0, 1e-12, 1e-9, 1e-6] {
         let mut l = vec![0.0; n * n];

@@ -9,8 +9,11 @@
 //! with complex residues `A_or = a + i b` and real residual coefficients `c_op`. Writing
 //! `g1 = 1/(i omega - lambda)`, `g2 = 1/(i omega - conj(lambda))`, the columns for `a` and `b`
 //! are `g1 + g2` and `i (g1 - g2)`. Real and imaginary parts of all lines are stacked into one
-//! real least-squares problem whose design matrix is shared by all points, so one QR
-//! factorisation (faer) solves every point at once. Columns are scaled to unit norm first.
+//! real least-squares problem whose design matrix is shared by all points, so one
+//! factorisation solves every point. Columns are scaled to unit norm and the (small,
+//! `2 modes + residuals` square) normal equations are solved by Cholesky: with unit-norm
+//! columns their conditioning is ample for distinct poles, and unlike faer's QR (which may
+//! split work over threads) the result is bit-identical whatever the thread count.
 //!
 //! Residual terms model what lies outside the band: for a mobility, modes below (rigid body,
 //! `1/(i omega m)`) give power -1 and modes above (`i omega / k`) power +1; for a
@@ -18,8 +21,8 @@
 //! (`omega_r^2/(i omega)^2`) and modes above power +2.
 
 use super::{FunctionKind, ModalError};
-use faer::linalg::solvers::SolveLstsq;
-use faer::{c64, Mat};
+use super::lscf::{cholesky, dot};
+use faer::c64;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
@@ -124,25 +127,50 @@ pub fn lsfd(
             }
         })
         .collect();
-    let a = Mat::<f64>::from_fn(2 * nf, ncol, |i, j| {
-        let v = if i < nf { cols[j][i].re } else { cols[j][i - nf].im };
-        v * scale[j]
-    });
-    let b = Mat::<f64>::from_fn(2 * nf, h.len(), |i, o| {
-        if i < nf {
-            h[o][i].re
-        } else {
-            h[o][i - nf].im
+    // Real design columns (real parts of all lines, then imaginary parts), unit norm.
+    let a_cols: Vec<Vec<f64>> = cols
+        .iter()
+        .zip(&scale)
+        .map(|(c, sc)| {
+            c.iter()
+                .map(|v| v.re * sc)
+                .chain(c.iter().map(|v| v.im * sc))
+                .collect()
+        })
+        .collect();
+    let gram: Vec<f64> = (0..ncol * ncol)
+        .map(|ij| dot(&a_cols[ij / ncol], &a_cols[ij % ncol]))
+        .collect();
+    let l = cholesky(&gram, ncol).map_err(|_| ModalError::Numerical {
+        stage: "lsfd",
+        detail: format!("{ncol}x{ncol} normal equations singular (coincident poles?)"),
+    })?;
+    let solve = |b: &[f64]| -> Vec<f64> {
+        let rhs: Vec<f64> = a_cols.iter().map(|c| dot(c, b)).collect();
+        let mut y = vec![0.0; ncol];
+        for i in 0..ncol {
+            y[i] = (rhs[i] - dot(&l[i * ncol..i * ncol + i], &y[..i])) / l[i * ncol + i];
         }
-    });
-    let x = a.qr().solve_lstsq(&b);
+        let mut x = vec![0.0; ncol];
+        for i in (0..ncol).rev() {
+            let s: f64 = (i + 1..ncol).map(|k| l[k * ncol + i] * x[k]).sum();
+            x[i] = (y[i] - s) / l[i * ncol + i];
+        }
+        x
+    };
     let mut residues = Vec::with_capacity(h.len());
     let mut residual_coeffs = Vec::with_capacity(h.len());
     let mut fit_error = Vec::with_capacity(h.len());
     let mut residual_sq = Vec::with_capacity(h.len());
     let mut norm_sq = Vec::with_capacity(h.len());
     for (o, row) in h.iter().enumerate() {
-        let coef: Vec<f64> = (0..ncol).map(|j| x[(j, o)] * scale[j]).collect();
+        let b: Vec<f64> = row
+            .iter()
+            .map(|v| v.re)
+            .chain(row.iter().map(|v| v.im))
+            .collect();
+        let x = solve(&b);
+        let coef: Vec<f64> = (0..ncol).map(|j| x[j] * scale[j]).collect();
         if coef.iter().any(|v| !v.is_finite()) {
             return Err(ModalError::Numerical {
                 stage: "lsfd",

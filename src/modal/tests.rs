@@ -479,100 +479,29 @@ fn malformed_input_is_a_typed_error() {
 }
 
 #[test]
-#[ignore]
-fn debug_passes() {
-    for sk in 0..4 {
-        let s = build(&free_free_case(11));
-        let p = ExtractParams { sk_passes: sk, ..Default::default() };
-        let ex = extract(&s.spectra, &p).unwrap();
-        let m = match_truth(&ex, &s);
-        for (t, mi) in m.iter().enumerate() {
-            if let Some(i) = mi {
-                let md = &ex.modes[*i];
-                eprintln!("sk {sk} mode {t}: f err {:+.4} % z err {:+.2} % mac {:.5}", 100.0 * (md.freq_hz / s.freq_hz[t] - 1.0), 100.0 * (md.damping_ratio / s.damping[t] - 1.0), mac_real(&md.shape, &s.shapes[t]));
-            } else { eprintln!("sk {sk} mode {t} missing"); }
-        }
-    }
-}
-
-#[test]
-#[ignore]
-fn debug_diagram() {
-    let mut case = free_free_case(21);
-    case.modes[6].4 = 0.03;
-    let s = build(&case);
-    let data = band_data(&s.spectra, None).unwrap();
-    let _ = data;
-    let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
-    let d = ex.stabilization;
-    for p in &d.poles {
-        if p.freq_hz > 1170.0 && p.freq_hz < 1200.0 {
-            eprintln!("{:3} {:9.3} {:.5} {} {} {}", p.order, p.freq_hz, p.damping_ratio, p.stable_freq as u8, p.stable_damping as u8, p.stable_shape as u8);
-        }
-    }
-}
-
-#[test]
-#[ignore]
-fn debug_weak_snr() {
-    for exc in [0.03, 0.1, 0.3] {
-        let mut case = free_free_case(21);
-        case.modes[6].4 = exc;
-        case.floor_rel = 0.0;
-        case.prop_rel = 0.0;
-        let clean = build(&case);
-        case.modes[6].4 = 0.0;
-        let without = build(&case);
-        // noise sigma as in add_noise with default case levels
-        let rows: Vec<Vec<faer::c64>> = clean.spectra.points.iter().map(|p| p.re.iter().zip(&p.im).map(|(a, b)| faer::c64::new(*a, *b)).collect()).collect();
-        let rms: Vec<f64> = rows.iter().map(|r| frf::rms(r)).collect();
-        let mx = rms.iter().cloned().fold(0.0, f64::max);
-        let mut snr = Vec::new();
-        for o in 0..rows.len() {
-            let sigma = 0.005 * mx + 0.01 * rms[o];
-            let p = &without.spectra.points[o];
-            let peak = rows[o].iter().enumerate().map(|(k, v)| (v - faer::c64::new(p.re[k], p.im[k])).norm()).fold(0.0, f64::max);
-            snr.push(peak / sigma);
-        }
-        snr.sort_by(|a, b| a.total_cmp(b));
-        eprintln!("exc {exc}: weak-mode peak / noise sigma: median {:.2}, max {:.2}", snr[snr.len() / 2], snr[snr.len() - 1]);
-        let mut case = free_free_case(21);
-        case.modes[6].4 = exc;
-        let s = build(&case);
-        let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
-        let m = match_truth(&ex, &s);
-        eprintln!("  found: {:?}", m[6].map(|i| (ex.modes[i].freq_hz, ex.modes[i].damping_ratio, mac_real(&ex.modes[i].shape, &s.shapes[6]))));
-    }
-}
-
-#[test]
-#[ignore]
-fn debug_timing() {
-    let s = build(&free_free_case(11));
-    let data = band_data(&s.spectra, None).unwrap();
-    let rows: Vec<&[faer::c64]> = data.h.iter().map(|r| r.as_slice()).collect();
-    for _ in 0..3 {
-        let t = std::time::Instant::now();
-        let orders = lscf::lscf_poles(&data.freq_hz, &rows, None, &LscfParams::default()).unwrap();
-        let t1 = t.elapsed().as_secs_f64();
-        let t = std::time::Instant::now();
-        for o in &orders {
-            let n = o.order;
-            let m = faer::Mat::<f64>::from_fn(n, n, |i, j| if i == 0 { 0.1 * (j as f64 + 1.0) } else if i == j + 1 { 1.0 } else { 0.0 });
-            let _ = m.eigenvalues().unwrap();
-        }
-        let t2 = t.elapsed().as_secs_f64();
-        let t = std::time::Instant::now();
-        let d = stabilization::flag_stability(orders, (1.0, 2000.0), &StabilityParams::default());
-        let sel = poles::select_physical_poles(&d, &SelectionParams::default());
-        let t3 = t.elapsed().as_secs_f64();
-        let lam: Vec<faer::c64> = sel.iter().map(|s| s.lambda).collect();
-        let t = std::time::Instant::now();
-        let _ = lsfd::lsfd(&data.freq_hz, &rows, &lam, &LsfdParams::for_kind(FunctionKind::Mobility)).unwrap();
-        let t4 = t.elapsed().as_secs_f64();
-        let t = std::time::Instant::now();
-        let _ = extract(&s.spectra, &ExtractParams::default()).unwrap();
-        let t5 = t.elapsed().as_secs_f64();
-        eprintln!("lscf {:.1} ms (eig alone {:.1}), stab+select {:.1} ms, lsfd {:.1} ms, extract {:.1} ms", t1 * 1e3, t2 * 1e3, t3 * 1e3, t4 * 1e3, t5 * 1e3);
-    }
+fn same_result_whatever_the_thread_count() {
+    let s = build(&free_free_case(7));
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| extract(&s.spectra, &ExtractParams::default()).unwrap())
+    };
+    let a = run(1);
+    let b = run(2);
+    let bits = |e: &Extraction| -> Vec<u64> {
+        e.modes
+            .iter()
+            .flat_map(|m| {
+                [m.freq_hz, m.damping_ratio, m.mpc]
+                    .into_iter()
+                    .chain(m.shape.iter().copied())
+                    .map(f64::to_bits)
+            })
+            .collect()
+    };
+    assert!(!a.modes.is_empty());
+    assert_eq!(bits(&a), bits(&b));
+    assert_eq!(a.stabilization, b.stabilization);
 }
