@@ -19,7 +19,9 @@ pub fn hungarian_min(cost: &[Vec<f64>]) -> Vec<Option<usize>> {
     }
     if n > m {
         // Solve the transpose and invert the mapping.
-        let t: Vec<Vec<f64>> = (0..m).map(|j| (0..n).map(|i| cost[i][j]).collect()).collect();
+        let t: Vec<Vec<f64>> = (0..m)
+            .map(|j| (0..n).map(|i| cost[i][j]).collect())
+            .collect();
         let tj = hungarian_min(&t);
         let mut out = vec![None; n];
         for (j, i) in tj.iter().enumerate() {

@@ -41,7 +41,11 @@ pub struct ResidualTerm {
 
 /// Evaluate the pole–residue model at every frequency: returns `h[point][line]`.
 /// The number of points is taken from the first mode or residual term (0 if none).
-pub fn synthesize(freq_hz: &[f64], modes: &[SynthMode], residuals: &[ResidualTerm]) -> Vec<Vec<c64>> {
+pub fn synthesize(
+    freq_hz: &[f64],
+    modes: &[SynthMode],
+    residuals: &[ResidualTerm],
+) -> Vec<Vec<c64>> {
     let n_points = modes
         .first()
         .map(|m| m.residues.len())

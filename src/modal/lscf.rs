@@ -141,7 +141,7 @@ pub(crate) fn cholesky(a: &[f64], n: usize) -> Result<Vec<f64>, ModalError> {
                     s -= l[i * n + k] * l[j * n + k];
                 }
                 if i == j {
-                    if !(s > 0.0) {
+                    if s.is_nan() || s <= 0.0 {
                         ok = false;
                         break 'outer;
                     }
@@ -326,7 +326,7 @@ pub fn lscf_poles(
         rows_done = n + 1;
         // M = T - P on the leading (n+1) block; solve M[:n,:n] a = -M[:n,n].
         let mm = |i: usize, j: usize| t_lag[i.abs_diff(j)] - p[i.min(j) * n1 + i.max(j)];
-        let a_mat = Mat::<f64>::from_fn(n, n, |i, j| mm(i, j));
+        let a_mat = Mat::<f64>::from_fn(n, n, &mm);
         let rhs = Mat::<f64>::from_fn(n, 1, |i, _| -mm(i, n));
         let sol = solve_small(&a_mat, &rhs)?;
         let mut alpha: Vec<f64> = (0..n).map(|i| sol[(i, 0)]).collect();

@@ -20,8 +20,8 @@
 //! base-excitation transmissibility the rigid-body 1 is power 0, modes below give power -2
 //! (`omega_r^2/(i omega)^2`) and modes above power +2.
 
-use super::{FunctionKind, ModalError};
 use super::lscf::{cholesky, dot};
+use super::{FunctionKind, ModalError};
 use faer::c64;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -236,13 +236,7 @@ pub fn real_normalise(v: &[c64], mask: &[bool]) -> Vec<f64> {
     }
     proj.iter()
         .zip(mask)
-        .map(|(p, &m)| {
-            if m && big != 0.0 {
-                p / big
-            } else {
-                f64::NAN
-            }
-        })
+        .map(|(p, &m)| if m && big != 0.0 { p / big } else { f64::NAN })
         .collect()
 }
 

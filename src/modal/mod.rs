@@ -57,7 +57,9 @@ pub use stabilization::{StabilityParams, StabilizationDiagram};
 pub enum ModalError {
     #[error("frequency axis: expected at least {expected} strictly increasing, finite, non-negative lines, found {found}")]
     FrequencyAxis { expected: usize, found: String },
-    #[error("scan point {index} (node {node_id}): expected {expected} spectral lines, found {found}")]
+    #[error(
+        "scan point {index} (node {node_id}): expected {expected} spectral lines, found {found}"
+    )]
     SpectrumLength {
         index: usize,
         node_id: i64,
@@ -86,11 +88,7 @@ pub enum ModalError {
         excluded: usize,
     },
     #[error("model orders: expected 2 <= min_order <= max_order and order_step >= 1, found min {min}, max {max}, step {step}")]
-    Orders {
-        min: usize,
-        max: usize,
-        step: usize,
-    },
+    Orders { min: usize, max: usize, step: usize },
     #[error("numerical failure in {stage}: {detail}")]
     Numerical { stage: &'static str, detail: String },
     #[error("shape length mismatch in {context}: expected {expected}, found {found}")]
@@ -269,7 +267,7 @@ pub(crate) fn band_data(
     let idx: Vec<usize> = (0..f.len())
         .filter(|&k| f[k] >= lo && f[k] <= hi && f[k] > 0.0)
         .collect();
-    if !(lo < hi) || idx.len() < MIN_LINES {
+    if lo.is_nan() || hi.is_nan() || lo >= hi || idx.len() < MIN_LINES {
         return Err(ModalError::Band {
             lo_hz: lo,
             hi_hz: hi,

@@ -167,7 +167,11 @@ fn count_sign_changes(
 }
 
 /// Nodal-line counts `(nx, ny)` of a real shape at the scan points, if they form a grid.
-pub fn nodal_counts(shape: &[f64], points: &[ScanPoint], params: &PairParams) -> Option<(usize, usize)> {
+pub fn nodal_counts(
+    shape: &[f64],
+    points: &[ScanPoint],
+    params: &PairParams,
+) -> Option<(usize, usize)> {
     if shape.len() != points.len() || points.is_empty() {
         return None;
     }
@@ -194,7 +198,12 @@ pub fn nodal_counts(shape: &[f64], points: &[ScanPoint], params: &PairParams) ->
 }
 
 /// Label of a shape from its nodal-line counts (see the module documentation).
-pub fn label_shape(shape: &[f64], points: &[ScanPoint], index: usize, params: &PairParams) -> String {
+pub fn label_shape(
+    shape: &[f64],
+    points: &[ScanPoint],
+    index: usize,
+    params: &PairParams,
+) -> String {
     match nodal_counts(shape, points, params) {
         Some((1, 1)) => "torsion-1".to_string(),
         Some((nx, 0)) if nx >= 2 => format!("bending-x-{}", nx - 1),
@@ -215,7 +224,11 @@ pub fn pair_modes(
     band_hz: (f64, f64),
     params: &PairParams,
 ) -> Result<Pairing, ModalError> {
-    for s in identified.iter().map(|m| &m.shape).chain(model.iter().map(|m| &m.shape)) {
+    for s in identified
+        .iter()
+        .map(|m| &m.shape)
+        .chain(model.iter().map(|m| &m.shape))
+    {
         if s.len() != points.len() {
             return Err(ModalError::ShapeLength {
                 context: "pair_modes (shape vs scan points)",
@@ -281,7 +294,9 @@ pub fn pair_modes(
     };
     let missing = (0..model.len())
         .filter(|&j| {
-            model[j].freq_hz >= band_hz.0 && model[j].freq_hz <= band_hz.1 && accepted_model[j].is_none()
+            model[j].freq_hz >= band_hz.0
+                && model[j].freq_hz <= band_hz.1
+                && accepted_model[j].is_none()
         })
         .collect();
     let mut swaps = Vec::new();

@@ -20,10 +20,18 @@ use serde::{Deserialize, Serialize};
 /// Why a scan point was excluded.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum PointFlag {
-    LowCoherence { mean_coherence: f64 },
-    NoiseLike { roughness: f64, median_roughness: f64 },
+    LowCoherence {
+        mean_coherence: f64,
+    },
+    NoiseLike {
+        roughness: f64,
+        median_roughness: f64,
+    },
     Dead,
-    FitOutlier { fit_error: f64, median_fit_error: f64 },
+    FitOutlier {
+        fit_error: f64,
+        median_fit_error: f64,
+    },
 }
 
 impl PointFlag {
@@ -36,7 +44,9 @@ impl PointFlag {
             PointFlag::NoiseLike {
                 roughness,
                 median_roughness,
-            } => format!("noise-like spectrum (roughness {roughness:.3}, median {median_roughness:.3})"),
+            } => format!(
+                "noise-like spectrum (roughness {roughness:.3}, median {median_roughness:.3})"
+            ),
             PointFlag::Dead => "no signal".to_string(),
             PointFlag::FitOutlier {
                 fit_error,
@@ -98,7 +108,10 @@ pub fn roughness(row: &[faer::c64]) -> f64 {
     if e <= 0.0 {
         return f64::NAN;
     }
-    row.windows(2).map(|w| (w[1] - w[0]).norm_sqr()).sum::<f64>() / (2.0 * e)
+    row.windows(2)
+        .map(|w| (w[1] - w[0]).norm_sqr())
+        .sum::<f64>()
+        / (2.0 * e)
 }
 
 /// Flags before the pole estimation (coherence, roughness, dead points).

@@ -88,7 +88,14 @@ pub(crate) fn build(case: &Case) -> Synthetic {
     let reference = 0usize; // corner: an antinode of every plate-like shape
     let mut modes = Vec::new();
     let mut shapes = Vec::new();
-    let mut constant = vec![if case.kind == FunctionKind::Transmissibility { 1.0 } else { 0.0 }; grid.len()];
+    let mut constant = vec![
+        if case.kind == FunctionKind::Transmissibility {
+            1.0
+        } else {
+            0.0
+        };
+        grid.len()
+    ];
     for &(kx, ky, f, z, exc) in &case.modes {
         let phi: Vec<f64> = grid
             .iter()
@@ -119,9 +126,12 @@ pub(crate) fn build(case: &Case) -> Synthetic {
         // Rigid-body mass line (translation + a rotation) and an upper residual stiffness.
         let c: Vec<f64> = grid
             .iter()
-            .map(|&(x, _)| 50.0 * (1.0 + 0.8 * (2.0 * x / l - 1.0) * -1.0))
+            .map(|&(x, _)| 50.0 * (1.0 - 0.8 * (2.0 * x / l - 1.0)))
             .collect();
-        residuals.push(ResidualTerm { power: -1, coeffs: c });
+        residuals.push(ResidualTerm {
+            power: -1,
+            coeffs: c,
+        });
         residuals.push(ResidualTerm {
             power: 1,
             coeffs: vec![2e-5; grid.len()],
@@ -187,8 +197,13 @@ fn score(ex: &Extraction, truth: &Synthetic, skip: &[usize]) -> Scores {
         if skip.contains(&t) {
             continue;
         }
-        let i = mi.unwrap_or_else(|| panic!("true mode {t} at {} Hz not identified: {:?}", truth.freq_hz[t],
-            ex.modes.iter().map(|m| m.freq_hz).collect::<Vec<_>>()));
+        let i = mi.unwrap_or_else(|| {
+            panic!(
+                "true mode {t} at {} Hz not identified: {:?}",
+                truth.freq_hz[t],
+                ex.modes.iter().map(|m| m.freq_hz).collect::<Vec<_>>()
+            )
+        });
         let md = &ex.modes[i];
         ferr.push((md.freq_hz - truth.freq_hz[t]).abs() / truth.freq_hz[t]);
         derr = derr.max((md.damping_ratio - truth.damping[t]).abs() / truth.damping[t]);
@@ -223,8 +238,16 @@ fn lscf_recovers_exact_poles_without_noise() {
             .iter()
             .min_by(|a, b| (a.freq_hz - f).abs().total_cmp(&(b.freq_hz - f).abs()))
             .unwrap();
-        assert!((best.freq_hz - f).abs() / f < 1e-6, "{} vs {f}", best.freq_hz);
-        assert!((best.damping_ratio - z).abs() / z < 1e-4, "{} vs {z}", best.damping_ratio);
+        assert!(
+            (best.freq_hz - f).abs() / f < 1e-6,
+            "{} vs {f}",
+            best.freq_hz
+        );
+        assert!(
+            (best.damping_ratio - z).abs() / z < 1e-4,
+            "{} vs {z}",
+            best.damping_ratio
+        );
     }
 }
 
@@ -242,7 +265,13 @@ fn lsfd_recovers_residues_exactly_for_exact_poles() {
         .zip(&s.damping)
         .map(|(f, z)| frf::pole(*f, *z))
         .collect();
-    let fit = lsfd::lsfd(&data.freq_hz, &rows, &lambdas, &LsfdParams::for_kind(FunctionKind::Mobility)).unwrap();
+    let fit = lsfd::lsfd(
+        &data.freq_hz,
+        &rows,
+        &lambdas,
+        &LsfdParams::for_kind(FunctionKind::Mobility),
+    )
+    .unwrap();
     for e in &fit.fit_error {
         assert!(*e < 1e-9, "fit error {e}");
     }
@@ -278,7 +307,11 @@ fn free_free_mobility_meets_acceptance() {
     let s = build(&free_free_case(11));
     let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
     let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
-    assert_eq!(ex.modes.len(), s.freq_hz.len(), "spurious or missed modes: {freqs:?}");
+    assert_eq!(
+        ex.modes.len(),
+        s.freq_hz.len(),
+        "spurious or missed modes: {freqs:?}"
+    );
     let sc = score(&ex, &s, &[]);
     eprintln!(
         "free-free: median freq err {:.5} %, max damping err {:.2} %, min MAC {:.5}",
@@ -289,7 +322,10 @@ fn free_free_mobility_meets_acceptance() {
     assert!(sc.median_freq_err < 5e-4);
     assert!(sc.max_damp_err < 0.10);
     assert!(sc.min_mac >= 0.99);
-    assert!(ex.point_flags.iter().all(|f| f.is_empty()), "good points flagged");
+    assert!(
+        ex.point_flags.iter().all(|f| f.is_empty()),
+        "good points flagged"
+    );
     // The close pair (0.6 % apart) is separated: two distinct modes with the right shapes.
     let m = match_truth(&ex, &s);
     assert_ne!(m[3], m[4]);
@@ -316,7 +352,11 @@ fn bolted_transmissibility_meets_acceptance() {
     let s = build(&case);
     let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
     let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
-    assert_eq!(ex.modes.len(), s.freq_hz.len(), "spurious or missed modes: {freqs:?}");
+    assert_eq!(
+        ex.modes.len(),
+        s.freq_hz.len(),
+        "spurious or missed modes: {freqs:?}"
+    );
     let sc = score(&ex, &s, &[]);
     eprintln!(
         "bolted: median freq err {:.5} %, max damping err {:.2} %, min MAC {:.5}",
@@ -342,7 +382,11 @@ fn noise_points_flagged_and_weak_mode_kept() {
     let mut rng = ChaCha8Rng::seed_from_u64(99);
     let typical = {
         let p = &s.spectra.points[40];
-        let row: Vec<faer::c64> = p.re.iter().zip(&p.im).map(|(a, b)| faer::c64::new(*a, *b)).collect();
+        let row: Vec<faer::c64> =
+            p.re.iter()
+                .zip(&p.im)
+                .map(|(a, b)| faer::c64::new(*a, *b))
+                .collect();
         frf::rms(&row)
     };
     for &b in &bad {
@@ -352,14 +396,22 @@ fn noise_points_flagged_and_weak_mode_kept() {
         s.spectra.points[b].im = row.iter().map(|v| v.im).collect();
     }
     let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
-    let flagged: Vec<usize> = (0..ex.point_flags.len()).filter(|&i| !ex.point_flags[i].is_empty()).collect();
+    let flagged: Vec<usize> = (0..ex.point_flags.len())
+        .filter(|&i| !ex.point_flags[i].is_empty())
+        .collect();
     eprintln!("flagged {flagged:?}");
     for &b in &bad {
         assert!(!ex.point_flags[b].is_empty(), "noise point {b} not flagged");
     }
-    assert!(flagged.len() <= bad.len() + 2, "too many good points flagged: {flagged:?}");
+    assert!(
+        flagged.len() <= bad.len() + 2,
+        "too many good points flagged: {flagged:?}"
+    );
     let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
-    assert!(ex.modes.len() <= s.freq_hz.len(), "spurious mode: {freqs:?}");
+    assert!(
+        ex.modes.len() <= s.freq_hz.len(),
+        "spurious mode: {freqs:?}"
+    );
     let sc = score(&ex, &s, &[]);
     eprintln!(
         "robustness: median freq err {:.5} %, max damping err {:.2} %, min MAC {:.5}",
@@ -406,7 +458,14 @@ fn missing_mode_reported_and_never_mispaired() {
                 shape: m.shape.clone(),
             })
             .collect();
-        let p = pair::pair_modes(&ident, &model, &s.points, ex.band_hz, &PairParams::default()).unwrap();
+        let p = pair::pair_modes(
+            &ident,
+            &model,
+            &s.points,
+            ex.band_hz,
+            &PairParams::default(),
+        )
+        .unwrap();
         assert_eq!(p.missing, vec![missing]);
         for pr in &p.pairs {
             assert!(pr.accepted);
@@ -438,7 +497,14 @@ fn swap_detected_when_close_modes_change_order() {
             shape: sh.clone(),
         })
         .collect();
-    let p = pair::pair_modes(&ident, &model, &s.points, (0.0, 2000.0), &PairParams::default()).unwrap();
+    let p = pair::pair_modes(
+        &ident,
+        &model,
+        &s.points,
+        (0.0, 2000.0),
+        &PairParams::default(),
+    )
+    .unwrap();
     assert_eq!(p.swaps, vec![(4, 3)]);
     for pr in &p.pairs {
         assert_eq!(pr.model_mode, Some(pr.mode));
@@ -459,7 +525,12 @@ fn presence_rule_counts_every_measurement() {
         rec("c", "bolted", &["plate-0-0"]),
     ];
     let p = pair::modes_present(&records, 1.0);
-    let get = |s: &str, l: &str| p.iter().find(|x| x.setup == s && x.label == l).unwrap().clone();
+    let get = |s: &str, l: &str| {
+        p.iter()
+            .find(|x| x.setup == s && x.label == l)
+            .unwrap()
+            .clone()
+    };
     assert!(get("free", "torsion-1").used_for_updating);
     assert!(!get("free", "bending-x-1").used_for_updating);
     assert_eq!(get("free", "bending-x-1").n_present, 1);

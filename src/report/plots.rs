@@ -64,11 +64,14 @@ pub fn stabilization_svg(
                 .collect();
             let (mn, mx) = logs
                 .iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), (_, v)| (a.min(*v), b.max(*v)));
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), (_, v)| {
+                    (a.min(*v), b.max(*v))
+                });
             if mx > mn {
                 chart
                     .draw_series(LineSeries::new(
-                        logs.iter().map(|(x, v)| (*x, 1.0 + (v - mn) / (mx - mn) * (max_order - 2.0))),
+                        logs.iter()
+                            .map(|(x, v)| (*x, 1.0 + (v - mn) / (mx - mn) * (max_order - 2.0))),
                         RGBColor(160, 160, 160).stroke_width(1),
                     ))
                     .map_err(perr(P))?;
@@ -100,10 +103,18 @@ pub fn stabilization_svg(
             .map_err(perr(P))?;
         let orange = RGBColor(230, 140, 0);
         chart
-            .draw_series(f_only.iter().map(|&c| Cross::new(c, 3, orange.stroke_width(1))))
+            .draw_series(
+                f_only
+                    .iter()
+                    .map(|&c| Cross::new(c, 3, orange.stroke_width(1))),
+            )
             .map_err(perr(P))?;
         chart
-            .draw_series(f_shape.iter().map(|&c| Circle::new(c, 3, BLUE.stroke_width(1))))
+            .draw_series(
+                f_shape
+                    .iter()
+                    .map(|&c| Circle::new(c, 3, BLUE.stroke_width(1))),
+            )
             .map_err(perr(P))?;
         let green = RGBColor(0, 150, 0);
         chart
@@ -194,7 +205,10 @@ pub fn mac_matrix_svg(
         for (j, l) in col_labels.iter().enumerate() {
             root.draw(&Text::new(
                 l.clone(),
-                (xr.start + (cw * j as f64) as i32 + 2, yr.end + 8 + 14 * (j % 2) as i32),
+                (
+                    xr.start + (cw * j as f64) as i32 + 2,
+                    yr.end + 8 + 14 * (j % 2) as i32,
+                ),
                 ("sans-serif", 11).into_font(),
             ))
             .map_err(perr(P))?;
@@ -229,13 +243,25 @@ mod tests {
             orders: vec![10, 12, 14],
             poles,
         };
-        let svg = stabilization_svg(&d, &[100.0], Some((&[50.0, 100.0, 150.0], &[1.0, 10.0, 1.0])), "m1").unwrap();
+        let svg = stabilization_svg(
+            &d,
+            &[100.0],
+            Some((&[50.0, 100.0, 150.0], &[1.0, 10.0, 1.0])),
+            "m1",
+        )
+        .unwrap();
         assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
         // 1 unstable dot + 2 stable filled circles.
         assert_eq!(svg.matches("<circle").count(), 3);
         let mac = vec![vec![1.0, 0.1], vec![0.05, 0.97]];
         let labels = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
-        let svg = mac_matrix_svg(&mac, &labels(&["a", "b"]), &labels(&["torsion-1", "bending-x-1"]), "MAC").unwrap();
+        let svg = mac_matrix_svg(
+            &mac,
+            &labels(&["a", "b"]),
+            &labels(&["torsion-1", "bending-x-1"]),
+            "MAC",
+        )
+        .unwrap();
         assert!(svg.contains("torsion-1") && svg.contains("0.97"));
         assert!(mac_matrix_svg(&mac, &labels(&["a"]), &labels(&["x", "y"]), "bad").is_err());
     }
