@@ -4,12 +4,15 @@
 //!
 //! Basis: snapshots of the lowest `n_modes + n_extra` modes of the full model at the
 //! box centre, at the ±`box_rel` end of each parameter axis, and at `n_random` Latin
-//! hypercube points (explicit seed); the snapshots are compressed by an M-weighted POD
+//! hypercube points (explicit seed), plus the centre's mode-shape derivatives
+//! p ∂φ/∂p (Nelson, [`super::sensitivity`]); the snapshots are compressed by an M-weighted POD
 //! (eigen-decomposition of the Gram matrix Sᵀ M₀ S, M₀ = M at nominal) and truncated
 //! at singular values below `pod_tol` of the largest (or at `max_basis` vectors). For
-//! the free setup the three rigid-body vectors (w = 1, x, y) lead the basis; they
-//! stay exact rigid modes of every reduced model (Kᵢ r = 0 for every term), and the
-//! evaluation drops them. Since the model is affine, the projected model is exact
+//! the free setup the snapshots are M₀-orthogonalised against the three rigid-body
+//! vectors (w = 1, x, y); with a single mass term the elastic modes are M-orthogonal
+//! to them at every p, so the rigid vectors are left out of the basis; with several
+//! mass terms (e.g. a point mass) they lead the basis, stay exact rigid modes of every
+//! reduced model (Kᵢ r = 0 for every term), and the evaluation drops them. Since the model is affine, the projected model is exact
 //! in its parameters: the only ROM error is the basis truncation, measured by the ROM
 //! accuracy test over ≥ 200 Latin-hypercube points.
 //!
@@ -45,6 +48,8 @@ pub struct RomOptions {
     pub max_basis: usize,
     /// Seed of the snapshot design.
     pub seed: u64,
+    /// Add the centre's mode-shape derivatives p ∂φ/∂p as snapshots.
+    pub derivative_snapshots: bool,
 }
 
 impl Default for RomOptions {
@@ -55,8 +60,9 @@ impl Default for RomOptions {
             box_rel: 0.2,
             n_random: 8,
             pod_tol: 1e-3,
-            max_basis: 40,
+            max_basis: 30,
             seed: 20_240_613,
+            derivative_snapshots: true,
         }
     }
 }
@@ -226,6 +232,26 @@ impl Rom {
                 snaps.push(v);
             }
         }
+        // Derivative snapshots at the centre: p_k ∂φ_j/∂p_k (Nelson), which carry the
+        // first-order change of every mode over the box.
+        if opts.derivative_snapshots {
+            let modes = model.modes(&nominal, n_snap_modes)?;
+            let d = super::sensitivity::eigen_derivatives(model, &nominal, &modes, true)?;
+            for (k, dk) in d.d_shapes.unwrap_or_default().iter().enumerate() {
+                let pk = nominal.values[k];
+                for j in 0..dk.ncols() {
+                    let mut v: Vec<f64> = (0..n).map(|i| pk * dk[(i, j)]).collect();
+                    for _ in 0..2 {
+                        for l in &lead {
+                            let ml = mdot(l);
+                            let c: f64 = ml.iter().zip(&v).map(|(a, b)| a * b).sum();
+                            v.iter_mut().zip(l).for_each(|(x, y)| *x -= c * y);
+                        }
+                    }
+                    snaps.push(v);
+                }
+            }
+        }
         // M-weighted POD via the Gram matrix.
         let ns = snaps.len();
         let msnaps: Vec<Vec<f64>> = snaps.iter().map(|s| mdot(s)).collect();
@@ -242,7 +268,11 @@ impl Rom {
         let s = evd.S().column_vector();
         let u = evd.U();
         let smax = s[ns - 1].max(0.0);
-        let max_pod = opts.max_basis.saturating_sub(lead.len());
+        let max_pod = opts.max_basis.saturating_sub(if model.m_terms.len() > 1 {
+            lead.len()
+        } else {
+            0
+        });
         let mut pod: Vec<Vec<f64>> = Vec::new();
         for k in (0..ns).rev() {
             if pod.len() >= max_pod || !(s[k] > 0.0) || s[k].sqrt() < opts.pod_tol * smax.sqrt() {
@@ -255,8 +285,13 @@ impl Rom {
             }
             pod.push(v);
         }
-        let mut vecs = lead.clone();
-        let n_rigid = lead.len();
+        // With one mass term M(p) ∝ M₀, so the elastic modes stay M₀-orthogonal to the
+        // rigid ones for every p: the rigid vectors can be left out of the basis (the
+        // snapshots were orthogonalised against them), which shrinks r by 3. With more
+        // mass terms they must stay in, and the evaluation drops their eigenvalues.
+        let keep_rigid = model.m_terms.len() > 1;
+        let mut vecs = if keep_rigid { lead.clone() } else { Vec::new() };
+        let n_rigid = vecs.len();
         vecs.extend(pod);
         m_gram_schmidt(&mut vecs, &mdot);
         let r = vecs.len();

@@ -1,0 +1,133 @@
+//! Benchmarks of the physics core (plain `Instant` timing, numbers printed):
+//! full-model assembly + lowest 20 modes on the default mesh, and ROM evaluations per
+//! second on one core (first 8 frequencies + shapes at the default scan points).
+
+use std::hint::black_box;
+use std::time::Instant;
+
+use hbmu::fem::board::Board;
+use hbmu::fem::model::{FeModel, Setup};
+use hbmu::fem::rom::{latin_hypercube_params, Rom, RomOptions};
+
+/// CPU time of this thread, s (from /proc/thread-self/schedstat, ns resolution), so
+/// that numbers are not inflated by other processes on a shared machine.
+fn cpu_s() -> f64 {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()
+        .and_then(|s| {
+            s.split_whitespace()
+                .next()
+                .and_then(|v| v.parse::<f64>().ok())
+        })
+        .map(|ns| ns * 1e-9)
+        .unwrap_or(f64::NAN)
+}
+
+fn main() {
+    faer::set_global_parallelism(faer::Par::Seq);
+    let board = Board::default_board();
+    for (label, setup) in [("free", Setup::Free), ("bolted", Setup::bolted())] {
+        let mut best_build = f64::INFINITY;
+        let mut best_modes = f64::INFINITY;
+        let mut n_dof = 0;
+        for _ in 0..3 {
+            let t0 = Instant::now();
+            let model = FeModel::build(&board, setup.clone(), &board.mesh).expect("build");
+            let t1 = Instant::now();
+            let modes = model.modes(&model.nominal_params(), 20).expect("modes");
+            let t2 = Instant::now();
+            black_box(&modes);
+            n_dof = model.n_dof;
+            best_build = best_build.min((t1 - t0).as_secs_f64());
+            best_modes = best_modes.min((t2 - t1).as_secs_f64());
+        }
+        println!(
+            "full {label}: {n_dof} DOFs, assembly {:.1} ms, lowest 20 modes {:.1} ms (best of 3)",
+            best_build * 1e3,
+            best_modes * 1e3
+        );
+    }
+    for (label, setup, n_modes) in [("free", Setup::Free, 8), ("bolted", Setup::bolted(), 7)] {
+        let model = FeModel::build(&board, setup, &board.mesh).expect("build");
+        let t0 = Instant::now();
+        let rom = Rom::build(
+            &model,
+            &RomOptions {
+                n_modes,
+                ..RomOptions::default()
+            },
+        )
+        .expect("rom");
+        let t_build = t0.elapsed().as_secs_f64();
+        let pts = board.scan_points_m();
+        let sop = rom.shape_operator(&model, &pts).expect("shape operator");
+        let sample = latin_hypercube_params(&model.map, 1000, 0.2, 7);
+        let coefs: Vec<_> = sample
+            .iter()
+            .map(|p| rom.map.coefficients(p).expect("coefs"))
+            .collect();
+        let (mut best, mut best_cpu) = (f64::INFINITY, f64::INFINITY);
+        for _ in 0..5 {
+            let (t, c0) = (Instant::now(), cpu_s());
+            for c in &coefs {
+                black_box(rom.eval_coefs(&c.k, &c.m, &sop).expect("eval"));
+            }
+            best = best.min(t.elapsed().as_secs_f64());
+            best_cpu = best_cpu.min(cpu_s() - c0);
+        }
+        // Breakdown: the dense eigen-solve alone.
+        let r_us = rom.dim();
+        let mut a0 = vec![0.0; r_us * r_us];
+        for kf in &rom.k_r {
+            for i in 0..r_us {
+                for j in 0..r_us {
+                    a0[i * r_us + j] += kf[(i, j)];
+                }
+            }
+        }
+        let c0 = cpu_s();
+        for _ in 0..coefs.len() {
+            let mut a = a0.clone();
+            black_box(hbmu::fem::dense::lowest_eigenpairs(
+                &mut a,
+                r_us,
+                rom.n_rigid,
+                n_modes,
+            ));
+        }
+        let eig_us = (cpu_s() - c0) / coefs.len() as f64 * 1e6;
+        let c0 = cpu_s();
+        for _ in 0..coefs.len() {
+            let a = faer::Mat::from_fn(r_us, r_us, |i, j| a0[i * r_us + j]);
+            black_box(a.self_adjoint_eigen(faer::Side::Lower).expect("evd"));
+        }
+        let faer_us = (cpu_s() - c0) / coefs.len() as f64 * 1e6;
+        println!("ROM {label}: dense eigen-solve alone {eig_us:.1} µs CPU (faer self_adjoint_eigen, all vectors: {faer_us:.1} µs CPU)");
+        let per_s = coefs.len() as f64 / best_cpu;
+        println!(
+            "ROM {label}: wall {:.0} evaluations/s, CPU {:.0} evaluations/s",
+            coefs.len() as f64 / best,
+            per_s
+        );
+        let r = rom.dim() as f64;
+        // Flops of one dense evaluation: affine sum (n_k r²), Householder
+        // tridiagonalisation (4/3 r³), eigenvalues by QL (~30 r), back-transformed
+        // eigenvectors (2 r² per vector), shapes at points (2 n_pts r per mode).
+        let nk = rom.k_r.len() as f64;
+        let k = (n_modes + rom.n_rigid) as f64;
+        let flops = nk * r * r
+            + 4.0 / 3.0 * r.powi(3)
+            + 4.0 * r * r * k
+            + 2.0 * pts.len() as f64 * r * n_modes as f64;
+        println!(
+            "ROM {label}: build {:.1} s, r = {}, {} scan points, {:.0} evaluations/s on one core ({:.1} µs each, ≈ {:.0} kflop each → {:.2} Gflop/s)",
+            t_build,
+            rom.dim(),
+            pts.len(),
+            per_s,
+            1e6 / per_s,
+            flops / 1e3,
+            flops * per_s / 1e9
+        );
+    }
+}
