@@ -39,7 +39,7 @@ pub use board::{Board, MeshOptions};
 pub use joints::{JointFeature, JointModel};
 pub use model::{FeModel, Modes, Setup, ShapeOperator};
 pub use params::Params;
-pub use rom::{Rom, RomModes, RomOptions, RomShapeOperator};
+pub use rom::{Rom, RomDerivatives, RomModes, RomOptions, RomShapeOperator};
 
 /// Errors of the physics core; each names what was expected and what was found.
 #[derive(Debug, thiserror::Error)]

@@ -99,6 +99,17 @@ pub struct RomShapeOperator {
     p_rows: Vec<f64>,
 }
 
+/// Analytic derivatives of the ROM's modes with respect to every parameter.
+#[derive(Clone, Debug)]
+pub struct RomDerivatives {
+    /// ∂λ_j/∂p_k, n_modes × n_params.
+    pub d_eigenvalue: Mat<f64>,
+    /// ∂f_j/∂p_k (Hz per parameter unit), n_modes × n_params.
+    pub d_freq_hz: Mat<f64>,
+    /// ∂w/∂p_k at the operator's points, one n_points × n_modes matrix per parameter.
+    pub d_shapes_at_points: Vec<Mat<f64>>,
+}
+
 /// The ROM's modes at one parameter point.
 #[derive(Clone, Debug)]
 pub struct RomModes {
@@ -542,6 +553,95 @@ impl Rom {
             reduced,
             shapes_at_points: w,
         }
+    }
+
+    /// [`Rom::eval`] plus analytic derivatives with respect to every parameter, by the
+    /// same formulas as [`super::sensitivity`] applied to the reduced pencil
+    /// (Kʳ(p), Mʳ(p)): ∂λ = yᵀ(∂Kʳ − λ ∂Mʳ)y, and Nelson's method for ∂y with a dense
+    /// LU of the r × r matrix Kʳ − λMʳ; shapes ∂w = P ∂y. For gradient-based samplers.
+    pub fn eval_with_derivatives(
+        &self,
+        p: &Params,
+        shapes: &RomShapeOperator,
+    ) -> Result<(RomModes, RomDerivatives), FemError> {
+        use faer::linalg::solvers::Solve;
+        let c = self.map.coefficients(p)?;
+        let modes = self.eval_coefs(&c.k, &c.m, shapes)?;
+        let r = self.dim();
+        let np = p.values.len();
+        let nm = self.n_modes;
+        let mut k = Mat::<f64>::zeros(r, r);
+        for (ci, ki) in c.k.iter().zip(&self.k_r) {
+            axpy_mat(&mut k, *ci, ki.as_ref());
+        }
+        let mut m = Mat::<f64>::zeros(r, r);
+        for (ci, mi) in c.m.iter().zip(&self.m_r) {
+            axpy_mat(&mut m, *ci, mi.as_ref());
+        }
+        let weighted = |grads: &[Vec<f64>], terms: &[Mat<f64>], kk: usize| {
+            let mut out = Mat::<f64>::zeros(r, r);
+            for (g, t) in grads.iter().zip(terms) {
+                if g[kk] != 0.0 {
+                    axpy_mat(&mut out, g[kk], t.as_ref());
+                }
+            }
+            out
+        };
+        let dks: Vec<Mat<f64>> = (0..np)
+            .map(|kk| weighted(&c.k_grad, &self.k_r, kk))
+            .collect();
+        let dms: Vec<Mat<f64>> = (0..np)
+            .map(|kk| weighted(&c.m_grad, &self.m_r, kk))
+            .collect();
+        let mut d_lam = Mat::<f64>::zeros(nm, np);
+        let mut d_f = Mat::<f64>::zeros(nm, np);
+        let mut d_y: Vec<Mat<f64>> = (0..np).map(|_| Mat::<f64>::zeros(r, nm)).collect();
+        for j in 0..nm {
+            let y = modes.reduced.col(j);
+            let lam = modes.eigenvalues[j];
+            let my = &m * y;
+            let q = (0..r)
+                .max_by(|&a, &b| y[a].abs().total_cmp(&y[b].abs()))
+                .unwrap_or(0);
+            let mut a = Mat::from_fn(r, r, |i, jj| k[(i, jj)] - lam * m[(i, jj)]);
+            for t in 0..r {
+                a[(q, t)] = 0.0;
+                a[(t, q)] = 0.0;
+            }
+            a[(q, q)] = 1.0;
+            let lu = a.partial_piv_lu();
+            let mut rhs = Mat::<f64>::zeros(r, np);
+            let mut ydmy = vec![0.0; np];
+            for kk in 0..np {
+                let dky = &dks[kk] * y;
+                let dmy = &dms[kk] * y;
+                let dl: f64 = (0..r).map(|i| y[i] * (dky[i] - lam * dmy[i])).sum();
+                d_lam[(j, kk)] = dl;
+                d_f[(j, kk)] =
+                    dl / (4.0 * std::f64::consts::PI * lam.max(f64::MIN_POSITIVE).sqrt());
+                ydmy[kk] = (0..r).map(|i| y[i] * dmy[i]).sum();
+                for i in 0..r {
+                    rhs[(i, kk)] = -(dky[i] - lam * dmy[i] - dl * my[i]);
+                }
+                rhs[(q, kk)] = 0.0;
+            }
+            let v = lu.solve(&rhs);
+            for kk in 0..np {
+                let cc = -(0..r).map(|i| my[i] * v[(i, kk)]).sum::<f64>() - 0.5 * ydmy[kk];
+                for i in 0..r {
+                    d_y[kk][(i, j)] = v[(i, kk)] + cc * y[i];
+                }
+            }
+        }
+        let d_shapes_at_points = d_y.iter().map(|dy| &shapes.p * dy).collect();
+        Ok((
+            modes,
+            RomDerivatives {
+                d_eigenvalue: d_lam,
+                d_freq_hz: d_f,
+                d_shapes_at_points,
+            },
+        ))
     }
 
     /// Full-DOF shapes V y of ROM modes (n_dof × n).

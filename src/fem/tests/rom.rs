@@ -131,3 +131,57 @@ fn free_rom_with_a_point_mass_keeps_and_drops_the_rigid_modes() {
         }
     }
 }
+
+#[test]
+fn rom_derivatives_match_central_differences_of_the_rom_and_the_full_model() {
+    let board = Board::default_board();
+    let model = FeModel::build(&board, Setup::bolted(), &board.mesh).unwrap();
+    let rom = Rom::build(
+        &model,
+        &RomOptions {
+            n_modes: 7,
+            ..RomOptions::default()
+        },
+    )
+    .unwrap();
+    let pts = board.scan_points_m();
+    let rsop = rom.shape_operator(&model, &pts).unwrap();
+    let p = model.nominal_params();
+    let (modes, d) = rom.eval_with_derivatives(&p, &rsop).unwrap();
+    let full = model.modes(&p, 7).unwrap();
+    let dfull = crate::fem::sensitivity::eigen_derivatives(&model, &p, &full, false).unwrap();
+    for (k, name) in p.names.iter().enumerate() {
+        let h = 1e-4 * p.values[k];
+        let (mut pp, mut pm) = (p.clone(), p.clone());
+        pp.values[k] += h;
+        pm.values[k] -= h;
+        let (a, b) = (rom.eval(&pp, &rsop).unwrap(), rom.eval(&pm, &rsop).unwrap());
+        for j in 0..7 {
+            let s = p.values[k] / modes.eigenvalues[j];
+            let fd = s * (a.eigenvalues[j] - b.eigenvalues[j]) / (2.0 * h);
+            let an = s * d.d_eigenvalue[(j, k)];
+            assert!(
+                (an - fd).abs() < 1e-5 * fd.abs().max(1e-2),
+                "{name} mode {j}: {an} vs {fd}"
+            );
+            // Against the full model's analytic derivative: the ROM's basis error only.
+            let sf = p.values[k] / full.eigenvalues[j] * dfull.d_eigenvalue[(j, k)];
+            assert!(
+                (an - sf).abs() < 1e-2 * sf.abs().max(1e-2),
+                "{name} mode {j}: ROM {an} vs full {sf}"
+            );
+            let mut err = 0.0f64;
+            let mut nrm = 0.0f64;
+            for i in 0..pts.len() {
+                let fdw = (a.shapes_at_points[(i, j)] - b.shapes_at_points[(i, j)]) / (2.0 * h);
+                err += (p.values[k] * (d.d_shapes_at_points[k][(i, j)] - fdw)).powi(2);
+                nrm += modes.shapes_at_points[(i, j)].powi(2);
+            }
+            assert!(
+                (err / nrm).sqrt() < 1e-4,
+                "{name} mode {j}: shape derivative error {}",
+                (err / nrm).sqrt()
+            );
+        }
+    }
+}
