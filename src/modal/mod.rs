@@ -11,7 +11,11 @@
 //! 1. [`quality::screen_points`]: scan points with low coherence or a noise-like spectrum
 //!    are excluded from the pole estimation (the reason is recorded).
 //! 2. [`lscf::lscf_poles`]: least-squares complex-frequency (LSCF, common denominator, z-domain
-//!    basis) estimate of the poles for every model order of the stabilization diagram.
+//!    basis) estimate of the poles for every model order of the stabilization diagram. Then
+//!    `sk_passes` (default 2) Sanathanan–Koerner passes: the LSCF is rerun with line weights
+//!    `1/|A(Omega)|` from the poles selected in the previous pass, which turns the linearised
+//!    equation error into an approximate output error and removes the bias that otherwise
+//!    merges modes closer than their half-power bandwidth (steps 3–4 run after every pass).
 //! 3. [`stabilization::flag_stability`]: each pole is compared with the poles of the previous
 //!    order (frequency, damping, shape).
 //! 4. [`poles::select_physical_poles`]: automatic selection by clustering stable poles across
@@ -229,6 +233,9 @@ pub(crate) struct BandData {
     pub h: Vec<Vec<c64>>,
     /// `coherence[point][line]` if present.
     pub coherence: Vec<Option<Vec<f64>>>,
+    /// First line (index on the full axis) with a non-finite value, per point; such a
+    /// point's spectrum is zeroed here and flagged by the screening.
+    pub non_finite: Vec<Option<usize>>,
 }
 
 /// Check the spectra and cut them to the band.
@@ -279,19 +286,24 @@ pub(crate) fn band_data(
     }
     let mut h = Vec::with_capacity(spectra.points.len());
     let mut coherence = Vec::with_capacity(spectra.points.len());
-    for (i, p) in spectra.points.iter().enumerate() {
+    let mut non_finite = Vec::with_capacity(spectra.points.len());
+    for p in spectra.points.iter() {
         let mut row = Vec::with_capacity(idx.len());
+        let mut bad_line = None;
         for &k in &idx {
             let v = c64::new(p.re[k], p.im[k]);
-            if !(v.re.is_finite() && v.im.is_finite()) {
-                return Err(ModalError::NonFinite {
-                    index: i,
-                    node_id: p.node_id,
-                    line: k,
-                });
+            if v.re.is_finite() && v.im.is_finite() {
+                row.push(v);
+            } else {
+                bad_line.get_or_insert(k);
+                row.push(c64::new(0.0, 0.0));
             }
-            row.push(v);
         }
+        if bad_line.is_some() {
+            // A corrupt record is excluded (flagged), not fatal for the measurement.
+            row.iter_mut().for_each(|v| *v = c64::new(0.0, 0.0));
+        }
+        non_finite.push(bad_line);
         h.push(row);
         coherence.push(
             p.coherence
@@ -303,6 +315,7 @@ pub(crate) fn band_data(
         freq_hz: idx.iter().map(|&k| f[k]).collect(),
         h,
         coherence,
+        non_finite,
     })
 }
 

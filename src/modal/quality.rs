@@ -7,7 +7,7 @@
 //!   if `rho > max_roughness` **and** `rho > roughness_ratio x median(rho)`: the relative
 //!   condition keeps every point when the whole measurement is coarsely resolved (sharp
 //!   peaks spanning a line or two make all spectra rough), so it adapts to the data.
-//! - *dead*: a spectrum with zero energy.
+//! - *dead*: a spectrum with zero energy; *non-finite*: a record with NaN/inf values.
 //!
 //! After the first LSFD ([`flag_fit_outliers`]):
 //! - *fit outlier*: relative fit error above `max_fit_error`, or above
@@ -28,6 +28,10 @@ pub enum PointFlag {
         median_roughness: f64,
     },
     Dead,
+    /// The record holds NaN or infinite values (first such line on the full axis).
+    NonFinite {
+        line: usize,
+    },
     FitOutlier {
         fit_error: f64,
         median_fit_error: f64,
@@ -48,6 +52,7 @@ impl PointFlag {
                 "noise-like spectrum (roughness {roughness:.3}, median {median_roughness:.3})"
             ),
             PointFlag::Dead => "no signal".to_string(),
+            PointFlag::NonFinite { line } => format!("non-finite value at line {line}"),
             PointFlag::FitOutlier {
                 fit_error,
                 median_fit_error,
@@ -123,6 +128,10 @@ pub(crate) fn screen_points(data: &BandData, params: &QualityParams) -> Vec<Vec<
         .enumerate()
         .map(|(o, row)| {
             let mut flags = Vec::new();
+            if let Some(line) = data.non_finite[o] {
+                flags.push(PointFlag::NonFinite { line });
+                return flags;
+            }
             if row.iter().all(|v| v.norm_sqr() == 0.0) {
                 flags.push(PointFlag::Dead);
                 return flags;

@@ -576,3 +576,36 @@ fn same_result_whatever_the_thread_count() {
     assert_eq!(bits(&a), bits(&b));
     assert_eq!(a.stabilization, b.stabilization);
 }
+
+#[test]
+fn low_coherence_and_corrupt_points_are_flagged_not_fatal() {
+    let mut s = build(&free_free_case(13)).spectra;
+    let n = s.freq_hz.len();
+    for (i, p) in s.points.iter_mut().enumerate() {
+        // Good points: coherence 0.98; point 10: 0.3 (mostly uncorrelated with the reference).
+        p.coherence = Some(vec![if i == 10 { 0.3 } else { 0.98 }; n]);
+    }
+    s.points[20].re[500] = f64::NAN;
+    let ex = extract(&s, &ExtractParams::default()).unwrap();
+    assert!(matches!(
+        ex.point_flags[10][..],
+        [quality::PointFlag::LowCoherence { .. }]
+    ));
+    assert!(matches!(
+        ex.point_flags[20][..],
+        [quality::PointFlag::NonFinite { line: 500 }]
+    ));
+    let others = (0..ex.point_flags.len()).filter(|&i| i != 10 && i != 20);
+    for i in others {
+        assert!(
+            ex.point_flags[i].is_empty(),
+            "point {i}: {:?}",
+            ex.point_flags[i]
+        );
+    }
+    assert_eq!(ex.modes.len(), 8);
+    assert!(ex
+        .modes
+        .iter()
+        .all(|m| m.shape[10].is_nan() && m.shape[20].is_nan()));
+}
