@@ -185,3 +185,58 @@ fn rom_derivatives_match_central_differences_of_the_rom_and_the_full_model() {
         }
     }
 }
+
+mod prop {
+    use std::sync::OnceLock;
+
+    use proptest::prelude::*;
+
+    use super::*;
+
+    fn fixture() -> &'static (FeModel, Rom, crate::fem::rom::RomShapeOperator) {
+        static F: OnceLock<(FeModel, Rom, crate::fem::rom::RomShapeOperator)> = OnceLock::new();
+        F.get_or_init(|| {
+            let board = Board::default_board();
+            let model = FeModel::build(&board, Setup::bolted(), &board.mesh).unwrap();
+            let rom = Rom::build(
+                &model,
+                &RomOptions {
+                    n_modes: 7,
+                    n_random: 2,
+                    ..RomOptions::default()
+                },
+            )
+            .unwrap();
+            let sop = rom.shape_operator(&model, &board.scan_points_m()).unwrap();
+            (model, rom, sop)
+        })
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(16))]
+        /// Anywhere in the ±20 % box, the ROM's analytic eigenvalue derivatives agree
+        /// with its own central differences.
+        #[test]
+        fn rom_eigenvalue_derivatives_hold_across_the_box(u in proptest::collection::vec(-1.0f64..1.0, 7)) {
+            let (model, rom, sop) = fixture();
+            let mut p = model.nominal_params();
+            for (v, t) in p.values.iter_mut().zip(&u) {
+                *v *= 1.0 + 0.2 * t;
+            }
+            let (modes, d) = rom.eval_with_derivatives(&p, sop).unwrap();
+            for k in 0..p.values.len() {
+                let h = 1e-4 * p.values[k];
+                let (mut pp, mut pm) = (p.clone(), p.clone());
+                pp.values[k] += h;
+                pm.values[k] -= h;
+                let (a, b) = (rom.eval(&pp, sop).unwrap(), rom.eval(&pm, sop).unwrap());
+                for j in 0..7 {
+                    let s = p.values[k] / modes.eigenvalues[j];
+                    let fd = s * (a.eigenvalues[j] - b.eigenvalues[j]) / (2.0 * h);
+                    let an = s * d.d_eigenvalue[(j, k)];
+                    prop_assert!((an - fd).abs() < 1e-5 * fd.abs().max(1e-2), "param {} mode {}: {} vs {}", k, j, an, fd);
+                }
+            }
+        }
+    }
+}
