@@ -80,10 +80,15 @@ fn write_npy(path: &Path, descr: &str, shape: &[usize], data: &[u8]) -> std::io:
         1 => format!("({},)", shape[0]),
         _ => format!(
             "({})",
-            shape.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")
+            shape
+                .iter()
+                .map(|s| s.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
         ),
     };
-    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_s}, }}");
+    let mut header =
+        format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_s}, }}");
     let total = 10 + header.len() + 1;
     header.push_str(&" ".repeat((64 - total % 64) % 64));
     header.push('\n');
@@ -135,12 +140,19 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         std::fs::create_dir_all(&sub)?;
         let fb: Vec<u8> = s.freq_hz.iter().flat_map(|v| v.to_le_bytes()).collect();
         write_npy(&sub.join("freq.npy"), "<f8", &[s.freq_hz.len()], &fb)?;
-        let hb: Vec<u8> = s
-            .h
-            .iter()
-            .flat_map(|row| row.iter().flat_map(|v| [v.re.to_le_bytes(), v.im.to_le_bytes()].concat()))
-            .collect();
-        write_npy(&sub.join("frf.npy"), "<c16", &[s.h.len(), s.freq_hz.len()], &hb)?;
+        let hb: Vec<u8> =
+            s.h.iter()
+                .flat_map(|row| {
+                    row.iter()
+                        .flat_map(|v| [v.re.to_le_bytes(), v.im.to_le_bytes()].concat())
+                })
+                .collect();
+        write_npy(
+            &sub.join("frf.npy"),
+            "<c16",
+            &[s.h.len(), s.freq_hz.len()],
+            &hb,
+        )?;
         let ours: Vec<serde_json::Value> = ex
             .modes
             .iter()
@@ -170,7 +182,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         1e3 * all_times[all_times.len() / 2]
     );
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/modal_vs_sdypy.py");
-    match std::process::Command::new("python3").arg(&script).arg(&dir).status() {
+    match std::process::Command::new("python3")
+        .arg(&script)
+        .arg(&dir)
+        .status()
+    {
         Ok(st) if st.success() => {}
         Ok(st) => println!("sdypy comparison failed ({st}); our numbers above stand alone"),
         Err(e) => println!("python3 not runnable ({e}); our numbers above stand alone"),

@@ -70,12 +70,6 @@ pub enum ModalError {
         expected: usize,
         found: usize,
     },
-    #[error("scan point {index} (node {node_id}): non-finite value at line {line}")]
-    NonFinite {
-        index: usize,
-        node_id: i64,
-        line: usize,
-    },
     #[error("band: expected f_lo < f_hi inside [{axis_lo_hz}, {axis_hi_hz}] Hz with at least {min_lines} lines, found [{lo_hz}, {hi_hz}] Hz with {lines} lines")]
     Band {
         lo_hz: f64,

@@ -10,7 +10,8 @@
 //! - *dead*: a spectrum with zero energy; *non-finite*: a record with NaN/inf values.
 //!
 //! After the first LSFD ([`flag_fit_outliers`]):
-//! - *fit outlier*: relative fit error above `max_fit_error`, or above
+//! - *fit outlier*: relative fit error above `max_fit_error` (unless the median point is
+//!   above it too: then the model, not the points, fails), or above
 //!   `median + fit_mad_k x 1.4826 MAD` of all points' errors and above `min_outlier_fit_error`
 //!   (a robust z-score, so that a uniformly noisier measurement flags nothing extra).
 
@@ -174,8 +175,11 @@ pub(crate) fn flag_fit_outliers(
         .zip(flags)
         .map(|(&e, f)| {
             let mut f = f.clone();
+            // The absolute rule only applies while the typical point fits: if the median
+            // error itself is above it, the model (not the points) is what fails, and
+            // flagging everything would only hide that.
             let outlier = !e.is_finite()
-                || e > params.max_fit_error
+                || (e > params.max_fit_error && med <= params.max_fit_error)
                 || (e > params.min_outlier_fit_error && e > med + params.fit_mad_k * mad);
             if f.is_empty() && outlier {
                 f.push(PointFlag::FitOutlier {

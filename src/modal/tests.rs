@@ -609,3 +609,67 @@ fn low_coherence_and_corrupt_points_are_flagged_not_fatal() {
         .iter()
         .all(|m| m.shape[10].is_nan() && m.shape[20].is_nan()));
 }
+
+#[test]
+#[ignore = "writes SVG files to /tmp for a visual check"]
+fn write_example_plots() {
+    let s = build(&free_free_case(11));
+    let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
+    let sel: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
+    let mag: Vec<f64> = (0..s.spectra.freq_hz.len())
+        .map(|k| {
+            s.spectra
+                .points
+                .iter()
+                .map(|p| p.re[k].hypot(p.im[k]))
+                .sum()
+        })
+        .collect();
+    let svg = crate::report::plots::stabilization_svg(
+        &ex.stabilization,
+        &sel,
+        Some((&s.spectra.freq_hz, &mag)),
+        "stabilization",
+    )
+    .unwrap();
+    std::fs::write("/tmp/stab.svg", svg).unwrap();
+    let model = model_from_truth(&s, 1.05);
+    let ident: Vec<IdentifiedShape> = ex
+        .modes
+        .iter()
+        .map(|m| IdentifiedShape {
+            freq_hz: m.freq_hz,
+            shape: m.shape.clone(),
+        })
+        .collect();
+    let p = pair::pair_modes(
+        &ident,
+        &model,
+        &s.points,
+        ex.band_hz,
+        &PairParams::default(),
+    )
+    .unwrap();
+    let rows: Vec<String> = ex
+        .modes
+        .iter()
+        .map(|m| format!("{:.1} Hz", m.freq_hz))
+        .collect();
+    let svg = crate::report::plots::mac_matrix_svg(&p.mac, &rows, &p.model_labels, "MAC").unwrap();
+    std::fs::write("/tmp/mac.svg", svg).unwrap();
+}
+
+#[test]
+fn pure_noise_gives_no_mode() {
+    let mut s = build(&free_free_case(17)).spectra;
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    for p in s.points.iter_mut() {
+        let mut row = vec![faer::c64::new(0.0, 0.0); p.re.len()];
+        frf::add_white_noise(&mut row, 1.0, &mut rng);
+        p.re = row.iter().map(|v| v.re).collect();
+        p.im = row.iter().map(|v| v.im).collect();
+    }
+    let ex = extract(&s, &ExtractParams::default()).unwrap();
+    let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
+    assert!(ex.modes.is_empty(), "spurious modes from noise: {freqs:?}");
+}
