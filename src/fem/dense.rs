@@ -348,7 +348,7 @@ mod timing {
     #[test]
     #[ignore = "timing breakdown, run by hand"]
     fn stage_times() {
-        let r = 29;
+        let r = 30;
         let mut a0 = vec![0.0; r * r];
         for i in 0..r {
             for j in 0..=i {
