@@ -12,7 +12,7 @@
 //! less than the sparse solves. We write this by hand because no crate offers a sparse
 //! generalized symmetric eigen-solver on top of faer's sparse Cholesky.
 
-use faer::{Mat, Side};
+use faer::Mat;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -174,35 +174,28 @@ fn ritz(
     if k < nev {
         return Ok(None);
     }
-    let t = Mat::from_fn(k, k, |i, j| {
-        if i == j {
-            alpha[i]
-        } else if i == j + 1 {
-            beta[j]
-        } else if j == i + 1 {
-            beta[i]
-        } else {
-            0.0
+    // Largest θ of T = lowest eigenvalues of −T, by the sequential dense solver (so the
+    // result does not depend on faer's global parallelism).
+    let mut neg_t = vec![0.0; k * k];
+    for i in 0..k {
+        neg_t[i * k + i] = -alpha[i];
+        if i + 1 < k {
+            neg_t[i * k + i + 1] = -beta[i];
+            neg_t[(i + 1) * k + i] = -beta[i];
         }
-    });
-    let evd = t
-        .self_adjoint_eigen(Side::Lower)
-        .map_err(|e| FemError::Eigen(format!("tridiagonal eigen-solve failed: {e:?}")))?;
-    let s = evd.S().column_vector();
-    let u = evd.U();
-    // Largest θ first.
-    let idx: Vec<usize> = (0..k).rev().take(nev).collect();
-    for &i in &idx {
-        let theta = s[i];
-        if !(theta > 0.0) || (b_next * u[(k - 1, i)]).abs() > opts.tol * theta {
+    }
+    let se = super::dense::lowest_eigenpairs(&mut neg_t, k, 0, nev);
+    for i in 0..nev {
+        let theta = -se.values[i];
+        if !(theta > 0.0) || (b_next * se.vectors[i][k - 1]).abs() > opts.tol * theta {
             return Ok(None);
         }
     }
-    let lambda: Vec<f64> = idx.iter().map(|&i| opts.shift + 1.0 / s[i]).collect();
+    let lambda: Vec<f64> = (0..nev).map(|i| opts.shift - 1.0 / se.values[i]).collect();
     let mut vecs = Mat::<f64>::zeros(n, nev);
-    for (c, &i) in idx.iter().enumerate() {
+    for (c, s) in se.vectors.iter().enumerate() {
         for (j, qj) in q.iter().enumerate() {
-            let w = u[(j, i)];
+            let w = s[j];
             if w != 0.0 {
                 for r in 0..n {
                     vecs[(r, c)] += w * qj[r];

@@ -15,9 +15,11 @@
 //! [`super::laminate`]), and the joint terms; (mass): the board (∝ `mass_scale`),
 //! point masses (constant) and joint terms.
 
-use faer::linalg::solvers::Solve;
-use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
-use faer::{Mat, Side};
+use std::sync::Arc;
+
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, LltRef, SymbolicCholesky};
+use faer::{Conj, Mat, MatMut, Par, Side};
 
 use super::board::{Board, MeshOptions, Side as LayerSide};
 use super::eigen::{self, EigenOptions};
@@ -133,7 +135,31 @@ pub struct FeModel {
     pub(crate) pattern: Pattern,
     pub(crate) k_terms: Vec<Vec<f64>>,
     pub(crate) m_terms: Vec<Vec<f64>>,
-    symbolic: SymbolicLlt<usize>,
+    symbolic: Arc<SymbolicCholesky<usize>>,
+}
+
+/// A numeric sparse Cholesky factor of K − σM, computed and applied with `Par::Seq`
+/// so that results do not depend on the thread count (faer's high-level solvers use
+/// its global parallelism setting).
+pub(crate) struct SeqLlt<'a> {
+    symbolic: &'a SymbolicCholesky<usize>,
+    values: Vec<f64>,
+}
+
+impl SeqLlt<'_> {
+    /// rhs ← (K − σM)⁻¹ rhs.
+    pub(crate) fn solve_in_place(&self, rhs: MatMut<'_, f64>) {
+        let req = self
+            .symbolic
+            .solve_in_place_scratch::<f64>(rhs.ncols(), Par::Seq);
+        let mut buf = MemBuffer::new(req);
+        LltRef::new(self.symbolic, &self.values).solve_in_place_with_conj(
+            Conj::No,
+            rhs,
+            Par::Seq,
+            MemStack::new(&mut buf),
+        );
+    }
 }
 
 struct TermBuilder {
@@ -401,8 +427,14 @@ impl FeModel {
         };
         let k_terms = scatter(&kb.trip);
         let m_terms = scatter(&mb.trip);
-        let symbolic = SymbolicLlt::try_new(pattern.symbolic.as_ref(), Side::Lower)
-            .map_err(|e| FemError::Factorisation(format!("symbolic analysis: {e:?}")))?;
+        let symbolic = factorize_symbolic_cholesky(
+            pattern.symbolic.as_ref(),
+            Side::Lower,
+            Default::default(),
+            Default::default(),
+        )
+        .map_err(|e| FemError::Factorisation(format!("symbolic analysis: {e:?}")))?;
+        let symbolic = Arc::new(symbolic);
         let map = ParamMap {
             names: pnames,
             nominal,
@@ -605,14 +637,32 @@ impl FeModel {
         kv: &[f64],
         mv: &[f64],
         sigma: f64,
-    ) -> Result<Llt<usize, f64>, FemError> {
+    ) -> Result<SeqLlt<'_>, FemError> {
         let a: Vec<f64> = kv.iter().zip(mv).map(|(k, m)| k - sigma * m).collect();
-        Llt::try_new_with_symbolic(self.symbolic.clone(), self.pattern.view(&a), Side::Lower)
-            .map_err(|e| {
-                FemError::Factorisation(format!(
-                    "K − σM with σ = {sigma:e}: expected positive definite, found {e:?}"
-                ))
-            })
+        let sym: &SymbolicCholesky<usize> = &self.symbolic;
+        let mut values = vec![0.0; sym.len_val()];
+        let req = sym.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default());
+        let mut buf = MemBuffer::try_new(req)
+            .map_err(|e| FemError::Factorisation(format!("workspace: {e:?}")))?;
+        sym.factorize_numeric_llt::<f64>(
+            &mut values,
+            self.pattern.view(&a),
+            Side::Lower,
+            Default::default(),
+            Par::Seq,
+            MemStack::new(&mut buf),
+            Default::default(),
+        )
+        .map(|_| ())
+        .map_err(|e| {
+            FemError::Factorisation(format!(
+                "K − σM with σ = {sigma:e}: expected positive definite, found {e:?}"
+            ))
+        })?;
+        Ok(SeqLlt {
+            symbolic: sym,
+            values,
+        })
     }
 
     /// The lowest `n_modes` elastic modes at `p` (shift-invert Lanczos, see

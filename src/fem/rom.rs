@@ -273,25 +273,29 @@ impl Rom {
                 .map(|(a, b)| a * b)
                 .sum::<f64>()
         });
-        let evd = gram
-            .self_adjoint_eigen(Side::Lower)
-            .map_err(|e| FemError::Eigen(format!("POD Gram eigen-solve: {e:?}")))?;
-        let s = evd.S().column_vector();
-        let u = evd.U();
-        let smax = s[ns - 1].max(0.0);
+        // Largest Gram eigenpairs = lowest of −G, by the sequential dense solver.
         let max_pod = opts.max_basis.saturating_sub(if model.m_terms.len() > 1 {
             lead.len()
         } else {
             0
         });
+        let mut neg_g = vec![0.0; ns * ns];
+        for i in 0..ns {
+            for j in 0..ns {
+                neg_g[i * ns + j] = -gram[(i, j)];
+            }
+        }
+        let se = super::dense::lowest_eigenpairs(&mut neg_g, ns, 0, max_pod.min(ns));
+        let smax = (-se.values[0]).max(0.0);
         let mut pod: Vec<Vec<f64>> = Vec::new();
-        for k in (0..ns).rev() {
-            if pod.len() >= max_pod || !(s[k] > 0.0) || s[k].sqrt() < opts.pod_tol * smax.sqrt() {
+        for (k, u) in se.vectors.iter().enumerate() {
+            let sk = -se.values[k];
+            if !(sk > 0.0) || sk.sqrt() < opts.pod_tol * smax.sqrt() {
                 break;
             }
             let mut v = vec![0.0; n];
             for (i, sn) in snaps.iter().enumerate() {
-                let w = u[(i, k)];
+                let w = u[i];
                 v.iter_mut().zip(sn).for_each(|(x, y)| *x += w * y);
             }
             pod.push(v);

@@ -122,3 +122,29 @@ fn scan_grid_points_lie_on_the_board_and_avoid_holes() {
     assert_eq!(pts.len(), b.scan_grid.nx * b.scan_grid.ny);
     assert!(m.shape_operator(&pts).is_ok());
 }
+
+#[test]
+fn results_do_not_depend_on_faer_parallelism() {
+    // The kernels call faer with explicit `Par::Seq`, so its global setting (which the
+    // CLI may raise) cannot change a single bit of the modes or of the ROM artifact.
+    let b = Board::default_board();
+    let m = FeModel::build(&b, Setup::bolted(), &b.mesh).unwrap();
+    let p = m.nominal_params();
+    let opts = crate::fem::rom::RomOptions {
+        n_modes: 4,
+        n_random: 2,
+        ..Default::default()
+    };
+    let run = |par: faer::Par| {
+        faer::set_global_parallelism(par);
+        let modes = m.modes(&p, 6).unwrap();
+        let rom = crate::fem::rom::Rom::build(&m, &opts).unwrap();
+        (modes.eigenvalues, modes.shapes, rom.to_npz_bytes())
+    };
+    let seq = run(faer::Par::Seq);
+    let par = run(faer::Par::rayon(2));
+    faer::set_global_parallelism(faer::Par::Seq);
+    assert_eq!(seq.0, par.0);
+    assert_eq!(seq.1, par.1);
+    assert!(seq.2 == par.2, "ROM bytes differ with the thread count");
+}
