@@ -1,0 +1,164 @@
+//! The virtual lab: simulates a complete measurement campaign (sheet, vibrometer UFF files,
+//! balance logs) in the exact input format of `shared/campaign-format.md`, from a truth
+//! model that is richer than the updating model, with switchable concealed physical
+//! effects, and returns the truth separately.
+//!
+//! [`simulate`] is a pure function: scenario + board + seed → the campaign's files as bytes
+//! (paths relative to the campaign directory) and the [`Truth`]. No file I/O; all
+//! randomness flows from the seed through child seeds derived per purpose and per
+//! board / measurement ([`child_seed`]), so the bytes do not depend on thread count or on
+//! which effects are switched on (an effect scenario shares every draw with the null
+//! scenario of the same seed).
+//!
+//! - [`scenario`]: the scenario files (`data/lab/*.toml`) and their validation;
+//! - [`truth`]: the hierarchical truth (population draws, per-measurement contact
+//!   stiffness and loose bolts, lab temperature) and the truth FE models and modes;
+//! - [`effects`]: the concealed effects in plain words and their expected diagnosis;
+//! - [`measure`]: the instruments: FRF synthesis by modal superposition, noise, coherence,
+//!   drop-outs, the UFF files, the sheet and the balance logs.
+
+pub mod effects;
+pub mod measure;
+pub mod scenario;
+pub mod truth;
+
+#[cfg(test)]
+mod tests;
+
+use std::collections::BTreeMap;
+
+use rayon::prelude::*;
+
+use crate::fem::{Board, FemError};
+
+pub use scenario::Scenario;
+pub use truth::Truth;
+
+/// Built-in scenario files, by name (`paper` is the default campaign).
+pub const BUILTIN_SCENARIOS: [(&str, &str); 7] = [
+    ("paper", include_str!("../../data/lab/paper.toml")),
+    ("null", include_str!("../../data/lab/null.toml")),
+    ("rotational", include_str!("../../data/lab/rotational.toml")),
+    ("loose_bolt", include_str!("../../data/lab/loose_bolt.toml")),
+    (
+        "temperature",
+        include_str!("../../data/lab/temperature.toml"),
+    ),
+    (
+        "lumped_mass",
+        include_str!("../../data/lab/lumped_mass.toml"),
+    ),
+    ("fixture", include_str!("../../data/lab/fixture.toml")),
+];
+
+/// Errors of the virtual lab.
+#[derive(Debug, thiserror::Error)]
+pub enum LabError {
+    /// The scenario TOML could not be parsed (the message names the field).
+    #[error("scenario: {0}")]
+    ScenarioParse(String),
+    /// A scenario value is out of range.
+    #[error("scenario field `{field}`: expected {expected}, found {found}")]
+    ScenarioInvalid {
+        field: String,
+        expected: String,
+        found: String,
+    },
+    /// The physics core refused the truth model or its parameters.
+    #[error("truth model: {0}")]
+    Fem(#[from] FemError),
+    /// A UFF record could not be written.
+    #[error("writing {file}: {message}")]
+    Write { file: String, message: String },
+    /// No built-in scenario of that name.
+    #[error("built-in scenario: expected one of {expected:?}, found {found:?}")]
+    UnknownBuiltin {
+        expected: Vec<&'static str>,
+        found: String,
+    },
+}
+
+/// A simulated campaign: the files of the campaign directory and the truth behind them.
+#[derive(Clone, Debug)]
+pub struct SimulatedCampaign {
+    /// Path relative to the campaign directory ('/'-separated) → file bytes.
+    pub files: BTreeMap<String, Vec<u8>>,
+    /// Everything that is not in the files (to be written to a separate truth file).
+    pub truth: Truth,
+}
+
+/// Parse a built-in scenario by name.
+pub fn builtin_scenario(name: &str) -> Result<Scenario, LabError> {
+    let text = BUILTIN_SCENARIOS
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, t)| *t)
+        .ok_or_else(|| LabError::UnknownBuiltin {
+            expected: BUILTIN_SCENARIOS.iter().map(|(n, _)| *n).collect(),
+            found: name.to_string(),
+        })?;
+    Scenario::from_toml_str(text)
+}
+
+/// Purposes of the child random streams.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Stream {
+    Board = 1,
+    Bolted = 2,
+    Temperature = 3,
+    Measurement = 4,
+    Balance = 5,
+}
+
+/// Child seed for `stream` and `index`: SplitMix64 finalisers over (seed, stream, index),
+/// so every board and measurement has its own independent stream whatever the order or
+/// thread count in which they are simulated.
+pub(crate) fn child_seed(seed: u64, stream: Stream, index: u64) -> u64 {
+    fn mix(mut z: u64) -> u64 {
+        z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    mix(mix(mix(seed) ^ (stream as u64)) ^ index)
+}
+
+/// Simulate the campaign of `scenario` for `board` with `seed`.
+///
+/// Deterministic: equal inputs give equal bytes and an equal truth, whatever the number
+/// of rayon threads.
+pub fn simulate(
+    scenario: &Scenario,
+    board: &Board,
+    seed: u64,
+) -> Result<SimulatedCampaign, LabError> {
+    scenario.validate()?;
+    board.validate()?;
+    let plan = truth::plan(scenario, board, seed)?;
+    let models = truth::Models::build(scenario, board)?;
+    let free_cache = truth::free_board_modes(scenario, board, &plan, &models)?;
+    let results: Vec<(truth::MeasurementTruth, Vec<u8>)> = plan
+        .measurements
+        .par_iter()
+        .map(|m| {
+            let ms = truth::measurement_modes(scenario, board, &plan, &models, &free_cache, m)?;
+            let bytes = measure::measurement_uff(scenario, &models.points, m, &ms, seed)?;
+            Ok((ms.truth, bytes))
+        })
+        .collect::<Result<_, LabError>>()?;
+    let mut files = BTreeMap::new();
+    let mut meas_truth = Vec::with_capacity(results.len());
+    for (m, (t, bytes)) in plan.measurements.iter().zip(results) {
+        files.insert(m.file.clone(), bytes);
+        meas_truth.push(t);
+    }
+    files.insert(
+        "campaign.csv".to_string(),
+        measure::sheet_csv(&plan.measurements)?,
+    );
+    let truth = truth::assemble(scenario, board, &plan, &free_cache, meas_truth);
+    for (name, bytes) in measure::balance_logs(scenario, &plan, &truth.boards) {
+        files.insert(name, bytes);
+    }
+    Ok(SimulatedCampaign { files, truth })
+}

@@ -1,0 +1,859 @@
+//! The hierarchical truth behind a virtual campaign and its modes.
+//!
+//! Draws (all from child seeds, see [`super::child_seed`]):
+//! - per board b: θ_b = θ̄ ∘ (1 + δ_b), δ_b ~ N(0, S R S) with S = diag(rel_std) and R the
+//!   correlation matrix, for θ = (E_x [Pa], E_y [Pa], G_xy [Pa], mass scale [-]);
+//! - per bolted measurement: K_con ~ N(K̄, (rel_std K̄)²) [N/m], each joint's stiffness
+//!   K_con (1 + ε_j), ε_j ~ N(0, per_joint_rel_std²), and a loose-bolt draw (used only when
+//!   the loose-bolt effect is on, so every scenario shares the same draws);
+//! - per measurement: the lab temperature T_k = T̄ + A sin(2π k / P) + N(0, σ_T²) [°C].
+//!
+//! Truth models (richer than the updating model): the board on a finer mesh than its
+//! default, bolted through per-joint contact springs on the clamped patches with the
+//! riding share of the bolt mass, plus the features of the switched-on effects. For each
+//! measurement the modes are computed twice when an effect touches its setup: with the
+//! effects and without them (the counterfactual, paired by MAC on the scan grid), so the
+//! truth file states by how much each effect moved each mode.
+
+use faer::Mat;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+use super::scenario::Scenario;
+use super::{child_seed, LabError, Stream};
+use crate::fem::params::names;
+use crate::fem::{Board, FeModel, JointFeature, JointModel, MeshOptions, Modes, Params, Setup};
+
+/// Test setup of a measurement.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SetupKind {
+    Free,
+    Bolted,
+}
+
+impl SetupKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            SetupKind::Free => "free",
+            SetupKind::Bolted => "bolted",
+        }
+    }
+}
+
+/// Cholesky factor L (lower) of a 4 × 4 symmetric matrix, `None` unless positive definite.
+pub fn cholesky4(a: &[[f64; 4]; 4]) -> Option<[[f64; 4]; 4]> {
+    let mut l = [[0.0; 4]; 4];
+    for i in 0..4 {
+        for j in 0..=i {
+            let s: f64 = a[i][j] - (0..j).map(|k| l[i][k] * l[j][k]).sum::<f64>();
+            if i == j {
+                if !(s > 1e-12) {
+                    return None;
+                }
+                l[i][i] = s.sqrt();
+            } else {
+                l[i][j] = s / l[j][j];
+            }
+        }
+    }
+    Some(l)
+}
+
+/// One board's drawn parameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BoardDraw {
+    pub board_id: String,
+    pub e_x_pa: f64,
+    pub e_y_pa: f64,
+    pub g_xy_pa: f64,
+    /// Scale of the board's distributed mass (FR-4 and copper), dimensionless.
+    pub mass_scale: f64,
+    /// The relative deviations δ drawn, (E_x, E_y, G_xy, mass scale).
+    pub deviation_rel: [f64; 4],
+}
+
+/// One bolted measurement's drawn joint state.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BoltedDraw {
+    /// The measurement's contact stiffness K_con, N/m per joint.
+    pub k_con_n_per_m: f64,
+    /// Each joint's stiffness before any loose bolt, N/m.
+    pub k_joint_n_per_m: Vec<f64>,
+    /// 0-based joint that is loose (only when the loose-bolt effect is on and drawn).
+    pub loose_joint: Option<usize>,
+    /// Bolt set id written to the sheet.
+    pub bolt_set: String,
+}
+
+/// One planned measurement.
+#[derive(Clone, Debug)]
+pub struct Planned {
+    /// 0-based position in the campaign (sheet order).
+    pub index: usize,
+    pub measurement_id: String,
+    /// 0-based board number.
+    pub board: usize,
+    pub board_id: String,
+    pub setup: SetupKind,
+    /// UFF path relative to the campaign directory.
+    pub file: String,
+    pub temperature_c: f64,
+    /// ISO-8601 date-time.
+    pub date: String,
+    pub operator: String,
+    pub notes: String,
+    pub torque_nm: Option<f64>,
+    pub bolted: Option<BoltedDraw>,
+}
+
+/// The drawn campaign.
+#[derive(Clone, Debug)]
+pub struct Plan {
+    pub boards: Vec<BoardDraw>,
+    pub measurements: Vec<Planned>,
+    /// Date (YYYY-MM-DD) of the first and of the last measurement day (weighing days).
+    pub first_day: String,
+    pub last_day: String,
+    /// The campaign seed.
+    pub seed: u64,
+}
+
+fn normal(rng: &mut ChaCha8Rng) -> f64 {
+    StandardNormal.sample(rng)
+}
+
+/// Draw the boards, the schedule, the temperatures and the bolted joint states.
+pub fn plan(s: &Scenario, board: &Board, seed: u64) -> Result<Plan, LabError> {
+    let pop = &s.population;
+    let l = cholesky4(&pop.correlation).ok_or_else(|| LabError::ScenarioInvalid {
+        field: "population.correlation".into(),
+        expected: "a positive definite matrix".into(),
+        found: format!("{:?}", pop.correlation),
+    })?;
+    let c = &board.core;
+    let boards: Vec<BoardDraw> = (0..s.campaign.n_boards)
+        .map(|b| {
+            let mut rng = ChaCha8Rng::seed_from_u64(child_seed(seed, Stream::Board, b as u64));
+            let n: [f64; 4] = std::array::from_fn(|_| normal(&mut rng));
+            let d: [f64; 4] = std::array::from_fn(|i| {
+                pop.rel_std[i] * (0..=i).map(|k| l[i][k] * n[k]).sum::<f64>()
+            });
+            BoardDraw {
+                board_id: format!("PCB-{:02}", b + 1),
+                e_x_pa: c.e_x_pa * (1.0 + d[0]),
+                e_y_pa: c.e_y_pa * (1.0 + d[1]),
+                g_xy_pa: c.g_xy_pa * (1.0 + d[2]),
+                mass_scale: 1.0 + d[3],
+                deviation_rel: d,
+            }
+        })
+        .collect();
+
+    // Sheet order: all free measurements board by board, then the bolted ones.
+    let mut order: Vec<(usize, SetupKind, usize, String)> = Vec::new();
+    for b in 0..s.campaign.n_boards {
+        for k in 0..s.campaign.free_per_board {
+            order.push((b, SetupKind::Free, k, String::new()));
+        }
+    }
+    for g in &s.campaign.bolted {
+        for &b in &g.boards {
+            for k in 0..g.per_board {
+                order.push((b - 1, SetupKind::Bolted, k, g.purpose.clone()));
+            }
+        }
+    }
+    let start =
+        chrono::NaiveDate::parse_from_str(&s.campaign.start_date, "%Y-%m-%d").map_err(|e| {
+            LabError::ScenarioInvalid {
+                field: "campaign.start_date".into(),
+                expected: "a date YYYY-MM-DD".into(),
+                found: format!("{} ({e})", s.campaign.start_date),
+            }
+        })?;
+    // 16 measurements a day from 09:00, 25 minutes each.
+    const PER_DAY: usize = 16;
+    let n_joints = board.holes.len();
+    let lab = &s.lab;
+    let mut bolted_count = 0u64;
+    let mut measurements = Vec::with_capacity(order.len());
+    for (index, (b, setup, k, purpose)) in order.into_iter().enumerate() {
+        let day = start + chrono::Days::new((index / PER_DAY) as u64);
+        let minutes = 9 * 60 + 25 * (index % PER_DAY);
+        let date = format!(
+            "{}T{:02}:{:02}:00",
+            day.format("%Y-%m-%d"),
+            minutes / 60,
+            minutes % 60
+        );
+        let mut trng =
+            ChaCha8Rng::seed_from_u64(child_seed(seed, Stream::Temperature, index as u64));
+        let temperature_c = lab.temperature_mean_c
+            + lab.temperature_swing_c
+                * (2.0 * std::f64::consts::PI * index as f64 / lab.temperature_period).sin()
+            + lab.temperature_noise_c * normal(&mut trng);
+        let board_id = boards[b].board_id.clone();
+        let (bolted, notes, torque) = match setup {
+            SetupKind::Free => (
+                None,
+                format!("free-free on foam, hammer, run {}", k + 1),
+                None,
+            ),
+            SetupKind::Bolted => {
+                let mut rng =
+                    ChaCha8Rng::seed_from_u64(child_seed(seed, Stream::Bolted, bolted_count));
+                bolted_count += 1;
+                let k_con = s.population.k_con_mean_n_per_m
+                    * (1.0 + s.population.k_con_rel_std * normal(&mut rng)).max(0.3);
+                let k_joint: Vec<f64> = (0..n_joints)
+                    .map(|_| {
+                        k_con * (1.0 + s.truth.per_joint_k_rel_std * normal(&mut rng)).max(0.3)
+                    })
+                    .collect();
+                let u: f64 = rng.random();
+                let j = ((rng.random::<f64>() * n_joints as f64) as usize).min(n_joints - 1);
+                let loose_joint = s
+                    .effects
+                    .loose_bolt
+                    .as_ref()
+                    .and_then(|lb| (u < lb.share).then_some(j));
+                let bolt_set = format!("BS-{:02}{:02}", b + 1, k + 1);
+                let notes = if k % 4 == 1 {
+                    format!("{purpose}; bolts {bolt_set}, torque checked, \"hand tight\" first")
+                } else if k % 4 == 3 {
+                    format!("{purpose}\nlaser re-focused after bolt change")
+                } else {
+                    purpose.clone()
+                };
+                (
+                    Some(BoltedDraw {
+                        k_con_n_per_m: k_con,
+                        k_joint_n_per_m: k_joint,
+                        loose_joint,
+                        bolt_set,
+                    }),
+                    notes,
+                    Some(s.campaign.torque_nm),
+                )
+            }
+        };
+        measurements.push(Planned {
+            index,
+            measurement_id: format!("M{:03}", index + 1),
+            board: b,
+            board_id,
+            setup,
+            file: format!("vibrometer/M{:03}.uff", index + 1),
+            temperature_c,
+            date,
+            operator: s.campaign.operators[index % s.campaign.operators.len()].clone(),
+            notes,
+            torque_nm: torque,
+            bolted,
+        });
+    }
+    let n_days = measurements.len().div_ceil(PER_DAY).max(1) as u64;
+    Ok(Plan {
+        boards,
+        measurements,
+        first_day: start.format("%Y-%m-%d").to_string(),
+        last_day: (start + chrono::Days::new(n_days - 1))
+            .format("%Y-%m-%d")
+            .to_string(),
+        seed,
+    })
+}
+
+/// The truth FE models: with the effects, and without them where that changes the model.
+pub struct Models {
+    pub free: FeModel,
+    pub free_cf: Option<FeModel>,
+    pub bolted: FeModel,
+    pub bolted_cf: Option<FeModel>,
+    /// Scan points, m (the board's default scan grid).
+    pub points: Vec<[f64; 2]>,
+}
+
+/// The truth joint model with or without the effect features.
+pub fn joint_model(s: &Scenario, with_effects: bool) -> JointModel {
+    let mut features = vec![
+        JointFeature::PerJointTranslational,
+        JointFeature::JointMass {
+            mass_kg: s.truth.joint_mass_kg,
+        },
+    ];
+    if with_effects {
+        if let Some(r) = &s.effects.rotational_restraint {
+            features.push(JointFeature::RotationalRestraint {
+                k_rot_nm_per_rad: r.k_rot_nm_per_rad,
+            });
+        }
+        if let Some(f) = &s.effects.compliant_fixture {
+            features.push(JointFeature::CompliantFixture {
+                k_fix_n_per_m: f.k_fix_n_per_m,
+                m_fix_kg: f.m_fix_kg,
+            });
+        }
+    }
+    JointModel { features }
+}
+
+impl Models {
+    /// Build the truth models of `s` for `board`.
+    pub fn build(s: &Scenario, board: &Board) -> Result<Models, LabError> {
+        let mesh = MeshOptions {
+            nx: s.truth.mesh_nx,
+            ny: s.truth.mesh_ny,
+        };
+        let e = &s.effects;
+        let free_plain = FeModel::build(board, Setup::Free, &mesh)?;
+        let bolted_plain = FeModel::build(board, Setup::Bolted(joint_model(s, false)), &mesh)?;
+        let (free, free_cf, bolted, bolted_cf) = {
+            let model_changes_bolted = e.rotational_restraint.is_some()
+                || e.compliant_fixture.is_some()
+                || e.lumped_mass.is_some();
+            let mut bolted = if e.rotational_restraint.is_some() || e.compliant_fixture.is_some() {
+                FeModel::build(board, Setup::Bolted(joint_model(s, true)), &mesh)?
+            } else {
+                bolted_plain.clone()
+            };
+            let mut free = free_plain.clone();
+            if let Some(lm) = &e.lumped_mass {
+                free.add_point_mass(lm.x_m, lm.y_m, lm.mass_kg)?;
+                bolted.add_point_mass(lm.x_m, lm.y_m, lm.mass_kg)?;
+            }
+            let free_cf = e.lumped_mass.is_some().then_some(free_plain);
+            let bolted_cf = model_changes_bolted.then_some(bolted_plain);
+            (free, free_cf, bolted, bolted_cf)
+        };
+        let points = board.scan_points_m();
+        // Fail early with a clear error if a scan point is off the board or in a hole.
+        free.shape_operator(&points)?;
+        Ok(Models {
+            free,
+            free_cf,
+            bolted,
+            bolted_cf,
+            points,
+        })
+    }
+}
+
+/// Stiffness factor of the temperature effect at `temperature_c` (1 without the effect).
+pub fn stiffness_factor(s: &Scenario, temperature_c: f64) -> f64 {
+    s.effects.temperature.as_ref().map_or(1.0, |t| {
+        1.0 + t.coefficient_per_k * (temperature_c - t.reference_c)
+    })
+}
+
+/// Parameters of `model` for board `bd`, FR-4 moduli scaled by `stiff`, joints per `bolted`
+/// (with the loose joint softened when `loose` is set).
+fn params(
+    s: &Scenario,
+    model: &FeModel,
+    bd: &BoardDraw,
+    stiff: f64,
+    bolted: Option<&BoltedDraw>,
+    loose: bool,
+) -> Result<Params, LabError> {
+    let mut p = model.nominal_params();
+    p.set(names::E_X, bd.e_x_pa * stiff)?;
+    p.set(names::E_Y, bd.e_y_pa * stiff)?;
+    p.set(names::G_XY, bd.g_xy_pa * stiff)?;
+    p.set(names::MASS_SCALE, bd.mass_scale)?;
+    if let Some(bo) = bolted {
+        for (j, k) in bo.k_joint_n_per_m.iter().enumerate() {
+            let f = match (loose, bo.loose_joint, &s.effects.loose_bolt) {
+                (true, Some(lj), Some(lb)) if lj == j => lb.stiffness_factor,
+                _ => 1.0,
+            };
+            p.set(&names::k_con_joint(j + 1), k * f)?;
+        }
+    }
+    Ok(p)
+}
+
+/// Modes of one model state evaluated on the scan grid.
+#[derive(Clone, Debug)]
+pub struct ModeSet {
+    pub freq_hz: Vec<f64>,
+    /// `shapes[r][o]`: mass-normalised shape of mode r at scan point o, 1/√kg.
+    pub shapes: Vec<Vec<f64>>,
+    /// Participation Γ_r = φ_rᵀ M r for base motion in z, √kg (bolted only).
+    pub gamma: Vec<f64>,
+    /// Free only: the three rigid-body shapes at the scan points (M-orthonormal).
+    pub rigid: Vec<Vec<f64>>,
+    /// Total mass rᵀ M r, kg.
+    pub total_mass_kg: f64,
+}
+
+fn to_rows(m: &Mat<f64>) -> Vec<Vec<f64>> {
+    (0..m.ncols())
+        .map(|j| (0..m.nrows()).map(|i| m[(i, j)]).collect())
+        .collect()
+}
+
+/// Rigid-body modes of a free model: w = 1, w = x − x̄, w = y − ȳ (with their slopes),
+/// M-orthonormalised by Gram–Schmidt, evaluated at `points`.
+fn rigid_shapes(
+    model: &FeModel,
+    p: &Params,
+    points: &[[f64; 2]],
+) -> Result<Vec<Vec<f64>>, LabError> {
+    let mesh = &model.mesh;
+    let mut vecs = vec![vec![0.0; model.n_dof]; 3];
+    let (cx, cy) = (0.5 * model.board.length_x_m, 0.5 * model.board.width_y_m);
+    for j in 0..=mesh.ny {
+        for i in 0..=mesh.nx {
+            if let Some(d) = mesh.node_dof[j * (mesh.nx + 1) + i] {
+                let (x, y) = (i as f64 * mesh.a_m, j as f64 * mesh.b_m);
+                vecs[0][d] = 1.0;
+                vecs[1][d] = x - cx;
+                vecs[1][d + 1] = 1.0;
+                vecs[2][d] = y - cy;
+                vecs[2][d + 2] = 1.0;
+            }
+        }
+    }
+    let mut done: Vec<(Vec<f64>, Vec<f64>)> = Vec::new(); // (v, M v)
+    for mut v in vecs {
+        for (u, mu) in &done {
+            let c: f64 = v.iter().zip(mu).map(|(a, b)| a * b).sum();
+            v.iter_mut().zip(u).for_each(|(a, b)| *a -= c * b);
+        }
+        let mv = model.mass_apply(p, &v)?;
+        let n = v.iter().zip(&mv).map(|(a, b)| a * b).sum::<f64>().sqrt();
+        let v: Vec<f64> = v.iter().map(|a| a / n).collect();
+        let mv: Vec<f64> = mv.iter().map(|a| a / n).collect();
+        done.push((v, mv));
+    }
+    let m = Mat::from_fn(model.n_dof, 3, |i, j| done[j].0[i]);
+    Ok(to_rows(&model.shape_operator(points)?.apply(m.as_ref())))
+}
+
+fn mode_set(
+    model: &FeModel,
+    p: &Params,
+    n: usize,
+    points: &[[f64; 2]],
+) -> Result<ModeSet, LabError> {
+    let modes: Modes = model.modes(p, n)?;
+    let shapes = to_rows(&model.w_at(&modes, points)?);
+    let free = matches!(model.setup, Setup::Free);
+    let gamma = if free {
+        vec![]
+    } else {
+        model.participation_z(p, &modes)?
+    };
+    let rigid = if free {
+        rigid_shapes(model, p, points)?
+    } else {
+        vec![]
+    };
+    Ok(ModeSet {
+        freq_hz: modes.freq_hz,
+        shapes,
+        gamma,
+        rigid,
+        total_mass_kg: model.total_mass_kg(p)?,
+    })
+}
+
+/// Per board: the free modes at the reference state (with and without effects), and masses.
+pub struct FreeCache {
+    /// With effects (temperature at its reference), per board.
+    pub with: Vec<ModeSet>,
+    /// Without effects, per board (`None` when no effect touches the free setup).
+    pub without: Vec<Option<ModeSet>>,
+}
+
+/// Free modes of every board at the reference temperature (in parallel, board order).
+pub fn free_board_modes(
+    s: &Scenario,
+    _board: &Board,
+    plan: &Plan,
+    m: &Models,
+) -> Result<FreeCache, LabError> {
+    use rayon::prelude::*;
+    let pairs: Vec<(ModeSet, Option<ModeSet>)> = plan
+        .boards
+        .par_iter()
+        .map(|bd| {
+            let p = params(s, &m.free, bd, 1.0, None, false)?;
+            let with = mode_set(&m.free, &p, s.truth.n_free_modes, &m.points)?;
+            let without = match &m.free_cf {
+                Some(cf) => {
+                    let p = params(s, cf, bd, 1.0, None, false)?;
+                    Some(mode_set(cf, &p, s.truth.n_free_modes, &m.points)?)
+                }
+                None => None,
+            };
+            Ok((with, without))
+        })
+        .collect::<Result<_, LabError>>()?;
+    let (with, without) = pairs.into_iter().unzip();
+    Ok(FreeCache { with, without })
+}
+
+/// One mode of a measurement's truth.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModeTruth {
+    /// 1-based mode number in ascending frequency.
+    pub mode: usize,
+    /// Undamped natural frequency of the truth model, Hz.
+    pub freq_hz: f64,
+    /// Modal damping ratio used in the synthesis.
+    pub damping_ratio: f64,
+    /// Whether the mode lies inside the measured band.
+    pub in_band: bool,
+    /// Γ = φᵀ M r, √kg (bolted), `None` for free.
+    pub participation_z: Option<f64>,
+    /// Frequency of the paired mode without the concealed effects, Hz (`None` if no mode
+    /// of the counterfactual pairs with it, e.g. the fixture's own mode).
+    pub freq_without_effects_hz: Option<f64>,
+    /// 100 (f / f_without − 1), %.
+    pub shift_percent: Option<f64>,
+    /// MAC of the pairing on the scan grid.
+    pub mac_with_counterfactual: Option<f64>,
+    /// How strongly the mode shows in the data: RMS over the scan points of its own
+    /// term's magnitude at its natural frequency, |φ_o φ_d| / (2 ζ ω_r) in (m/s)/N (free,
+    /// hammer at d) or |Γ φ_o| / (2 ζ) (bolted, dimensionless).
+    pub peak_magnitude_rms: f64,
+}
+
+/// The truth of one measurement.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MeasurementTruth {
+    pub measurement_id: String,
+    pub board_id: String,
+    pub setup: SetupKind,
+    pub file: String,
+    /// Lab temperature during the measurement (the sheet prints it to 0.1 °C), °C.
+    pub temperature_c: f64,
+    /// FR-4 stiffness factor of the temperature effect (1 without it).
+    pub stiffness_factor: f64,
+    pub k_con_n_per_m: Option<f64>,
+    pub k_joint_n_per_m: Option<Vec<f64>>,
+    /// 1-based number of the loose joint (hole order of the board file), if any.
+    pub loose_joint: Option<usize>,
+    pub bolt_set: Option<String>,
+    pub modes: Vec<ModeTruth>,
+    /// Free only: rigid-body (foam suspension) frequencies, Hz.
+    pub suspension_hz: Vec<f64>,
+    /// Node ids with no record (vibrometer marked them invalid).
+    pub missing_nodes: Vec<i64>,
+    /// Node ids whose record is mostly noise (speckle drop-out).
+    pub dropout_nodes: Vec<i64>,
+    /// The driving point: hammer impact node (free) or shaker reference node (bolted).
+    pub reference_node: i64,
+}
+
+/// Modes and draws of one measurement, ready for the instruments.
+pub struct MeasurementModes {
+    pub truth: MeasurementTruth,
+    pub set: ModeSet,
+    pub damping: Vec<f64>,
+}
+
+/// Node id of the shaker reference point of bolted measurements (off the board).
+pub const SHAKER_REFERENCE_NODE: i64 = 900;
+/// 0-based scan point of the hammer impact (node 1, near a corner: every mode responds).
+pub const HAMMER_POINT: usize = 0;
+
+/// Greedy MAC pairing: for each mode of `a` (ascending), the unused mode of `b` with the
+/// largest MAC ≥ 0.6.
+fn pair(a: &[Vec<f64>], b: &[Vec<f64>]) -> Vec<Option<(usize, f64)>> {
+    let dot = |x: &[f64], y: &[f64]| x.iter().zip(y).map(|(p, q)| p * q).sum::<f64>();
+    let mut used = vec![false; b.len()];
+    a.iter()
+        .map(|x| {
+            let best = b
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| !used[*j])
+                .map(|(j, y)| {
+                    (
+                        j,
+                        dot(x, y).powi(2) / (dot(x, x) * dot(y, y)).max(f64::MIN_POSITIVE),
+                    )
+                })
+                .filter(|(_, mac)| *mac >= 0.6)
+                .max_by(|p, q| p.1.total_cmp(&q.1));
+            if let Some((j, _)) = best {
+                used[j] = true;
+            }
+            best
+        })
+        .collect()
+}
+
+/// Modes of measurement `m` with and without effects, damping and drop-out draws.
+pub fn measurement_modes(
+    s: &Scenario,
+    _board: &Board,
+    plan: &Plan,
+    models: &Models,
+    cache: &FreeCache,
+    m: &Planned,
+) -> Result<MeasurementModes, LabError> {
+    let bd = &plan.boards[m.board];
+    let stiff = stiffness_factor(s, m.temperature_c);
+    let (set, cf): (ModeSet, Option<ModeSet>) = match m.setup {
+        SetupKind::Free => {
+            let with = if stiff != 1.0 {
+                let p = params(s, &models.free, bd, stiff, None, false)?;
+                mode_set(&models.free, &p, s.truth.n_free_modes, &models.points)?
+            } else {
+                cache.with[m.board].clone()
+            };
+            let cf = match (&cache.without[m.board], stiff != 1.0) {
+                (Some(w), _) => Some(w.clone()),
+                (None, true) => Some(cache.with[m.board].clone()),
+                (None, false) => None,
+            };
+            (with, cf)
+        }
+        SetupKind::Bolted => {
+            let bo = m.bolted.as_ref();
+            let p = params(s, &models.bolted, bd, stiff, bo, true)?;
+            let with = mode_set(&models.bolted, &p, s.truth.n_bolted_modes, &models.points)?;
+            let loose = bo.is_some_and(|b| b.loose_joint.is_some());
+            let cf = match &models.bolted_cf {
+                Some(cfm) => {
+                    let p = params(s, cfm, bd, 1.0, bo, false)?;
+                    Some(mode_set(cfm, &p, s.truth.n_bolted_modes, &models.points)?)
+                }
+                None if stiff != 1.0 || loose => {
+                    let p = params(s, &models.bolted, bd, 1.0, bo, false)?;
+                    Some(mode_set(
+                        &models.bolted,
+                        &p,
+                        s.truth.n_bolted_modes,
+                        &models.points,
+                    )?)
+                }
+                None => None,
+            };
+            (with, cf)
+        }
+    };
+    let inst = &s.measurement;
+    let mut rng = ChaCha8Rng::seed_from_u64(child_seed(
+        seed_of(plan),
+        Stream::Measurement,
+        m.index as u64,
+    ));
+    let (lo, hi) = (inst.damping_min.ln(), inst.damping_max.ln());
+    let damping: Vec<f64> = set
+        .freq_hz
+        .iter()
+        .map(|_| (lo + (hi - lo) * rng.random::<f64>()).exp())
+        .collect();
+    let suspension_hz: Vec<f64> = (0..3)
+        .map(|_| {
+            inst.suspension_hz[0]
+                + (inst.suspension_hz[1] - inst.suspension_hz[0]) * rng.random::<f64>()
+        })
+        .collect();
+    let mut missing_nodes = Vec::new();
+    let mut dropout_nodes = Vec::new();
+    let reference_node = match m.setup {
+        SetupKind::Free => HAMMER_POINT as i64 + 1,
+        SetupKind::Bolted => SHAKER_REFERENCE_NODE,
+    };
+    for o in 0..models.points.len() {
+        let (u1, u2): (f64, f64) = (rng.random(), rng.random());
+        let node = o as i64 + 1;
+        if node == reference_node {
+            continue; // the hammer point always has its record
+        }
+        if u1 < inst.missing_point_prob {
+            missing_nodes.push(node);
+        } else if u2 < inst.dropout_point_prob {
+            dropout_nodes.push(node);
+        }
+    }
+    let max_hz = match m.setup {
+        SetupKind::Free => inst.free_max_hz,
+        SetupKind::Bolted => inst.bolted_max_hz,
+    };
+    let pairing = cf.as_ref().map(|c| pair(&set.shapes, &c.shapes));
+    let modes = set
+        .freq_hz
+        .iter()
+        .enumerate()
+        .map(|(r, &f)| {
+            let (f0, mac) = match &pairing {
+                Some(pr) => match pr[r] {
+                    Some((j, mac)) => (cf.as_ref().map(|c| c.freq_hz[j]), Some(mac)),
+                    None => (None, None),
+                },
+                None => (Some(f), Some(1.0)),
+            };
+            let sh = &set.shapes[r];
+            let rms = (sh.iter().map(|v| v * v).sum::<f64>() / sh.len().max(1) as f64).sqrt();
+            let w = 2.0 * std::f64::consts::PI * f;
+            let peak_magnitude_rms = match m.setup {
+                SetupKind::Free => rms * sh[HAMMER_POINT].abs() / (2.0 * damping[r] * w),
+                SetupKind::Bolted => rms * set.gamma[r].abs() / (2.0 * damping[r]),
+            };
+            ModeTruth {
+                mode: r + 1,
+                peak_magnitude_rms,
+                freq_hz: f,
+                damping_ratio: damping[r],
+                in_band: f < max_hz,
+                participation_z: set.gamma.get(r).copied(),
+                freq_without_effects_hz: f0,
+                shift_percent: f0.map(|f0| 100.0 * (f / f0 - 1.0)),
+                mac_with_counterfactual: mac,
+            }
+        })
+        .collect();
+    let truth = MeasurementTruth {
+        measurement_id: m.measurement_id.clone(),
+        board_id: m.board_id.clone(),
+        setup: m.setup,
+        file: m.file.clone(),
+        temperature_c: m.temperature_c,
+        stiffness_factor: stiff,
+        k_con_n_per_m: m.bolted.as_ref().map(|b| b.k_con_n_per_m),
+        k_joint_n_per_m: m.bolted.as_ref().map(|b| b.k_joint_n_per_m.clone()),
+        loose_joint: m.bolted.as_ref().and_then(|b| b.loose_joint.map(|j| j + 1)),
+        bolt_set: m.bolted.as_ref().map(|b| b.bolt_set.clone()),
+        modes,
+        suspension_hz: if m.setup == SetupKind::Free {
+            suspension_hz
+        } else {
+            vec![]
+        },
+        missing_nodes,
+        dropout_nodes,
+        reference_node,
+    };
+    Ok(MeasurementModes {
+        truth,
+        set,
+        damping,
+    })
+}
+
+fn seed_of(plan: &Plan) -> u64 {
+    plan.seed
+}
+
+/// One board's truth.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BoardTruth {
+    #[serde(flatten)]
+    pub draw: BoardDraw,
+    /// Mass of the board itself (FR-4 and copper), kg.
+    pub board_mass_kg: f64,
+    /// What the balance weighs: the board plus any unmodelled lumped mass, kg.
+    pub weighed_mass_kg: f64,
+    /// Free-free elastic frequencies of the truth model at the reference state, Hz.
+    pub free_freq_hz: Vec<f64>,
+}
+
+/// The population the boards were drawn from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PopulationTruth {
+    pub parameters: [String; 4],
+    pub mean: [f64; 4],
+    pub rel_std: [f64; 4],
+    pub correlation: [[f64; 4]; 4],
+    /// Covariance in the parameters' units, Σ_ij = σ_i σ_j ρ_ij.
+    pub covariance: [[f64; 4]; 4],
+    pub k_con_mean_n_per_m: f64,
+    pub k_con_rel_std: f64,
+}
+
+/// Everything behind the campaign that the campaign directory does not contain.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Truth {
+    pub scenario_name: String,
+    pub seed: u64,
+    pub board_name: String,
+    /// How the truth model differs from the updating model, in words.
+    pub truth_model: String,
+    pub population: PopulationTruth,
+    pub boards: Vec<BoardTruth>,
+    pub measurements: Vec<MeasurementTruth>,
+    /// The concealed effects (all five, each with `enabled`) and what a correct diagnosis says.
+    pub effects: Vec<super::effects::EffectTruth>,
+    /// Plain-words summary of the hidden physics of the campaign.
+    pub summary: String,
+    /// The scenario as simulated.
+    pub scenario: Scenario,
+}
+
+/// Put the truth together.
+pub fn assemble(
+    s: &Scenario,
+    board: &Board,
+    plan: &Plan,
+    cache: &FreeCache,
+    measurements: Vec<MeasurementTruth>,
+) -> Truth {
+    let c = &board.core;
+    let mean = [c.e_x_pa, c.e_y_pa, c.g_xy_pa, 1.0];
+    let p = &s.population;
+    let sd: [f64; 4] = std::array::from_fn(|i| p.rel_std[i] * mean[i]);
+    let covariance =
+        std::array::from_fn(|i| std::array::from_fn(|j| sd[i] * sd[j] * p.correlation[i][j]));
+    let boards = plan
+        .boards
+        .iter()
+        .enumerate()
+        .map(|(b, d)| {
+            let with = &cache.with[b];
+            let plain = cache.without[b].as_ref().unwrap_or(with);
+            BoardTruth {
+                draw: d.clone(),
+                board_mass_kg: plain.total_mass_kg,
+                weighed_mass_kg: with.total_mass_kg,
+                free_freq_hz: with.freq_hz.clone(),
+            }
+        })
+        .collect();
+    let effects = super::effects::describe(s, &measurements);
+    let summary = super::effects::summary(&effects);
+    Truth {
+        scenario_name: s.name.clone(),
+        seed: plan.seed,
+        board_name: board.name.clone(),
+        truth_model: format!(
+            "board on a {}x{} BFS mesh (updating default {}x{}), holes as dropped elements; \
+             bolted: one contact stiffness per joint (K_con of the measurement scattered by {:.1} % per joint) \
+             spread over each clamped patch, {:.2} g of each bolt riding on the patch; copper pattern as in the board file",
+            s.truth.mesh_nx,
+            s.truth.mesh_ny,
+            board.mesh.nx,
+            board.mesh.ny,
+            100.0 * s.truth.per_joint_k_rel_std,
+            1e3 * s.truth.joint_mass_kg
+        ),
+        population: PopulationTruth {
+            parameters: [
+                names::E_X.to_string(),
+                names::E_Y.to_string(),
+                names::G_XY.to_string(),
+                names::MASS_SCALE.to_string(),
+            ],
+            mean,
+            rel_std: p.rel_std,
+            correlation: p.correlation,
+            covariance,
+            k_con_mean_n_per_m: p.k_con_mean_n_per_m,
+            k_con_rel_std: p.k_con_rel_std,
+        },
+        boards,
+        measurements,
+        effects,
+        summary,
+        scenario: s.clone(),
+    }
+}
