@@ -4,7 +4,10 @@
 //! wires I/O to kernels) → numerical kernels (`fem`, `modal`, `lab`) that are pure functions
 //! over plain data. See ARCHITECTURE.md.
 
+pub mod fem;
 pub mod findings;
 pub mod io;
+pub mod modal;
+pub mod report;
 pub mod schemas;
 pub mod stage;

@@ -44,6 +44,56 @@ enum Command {
         #[arg(long, default_value_t = 3.0)]
         mass_max_std_in_d: f64,
     },
+    /// The physics core: full-model modes, the parametric reduced-order model, sensitivities.
+    Fe {
+        #[command(subcommand)]
+        command: FeCommand,
+    },
+    /// Identify modes (frequency, damping, shape) per measurement from the ingest tables:
+    /// LSCF over all scan points, stabilization diagram, automatic pole selection, LSFD shapes.
+    Extract {
+        /// Output directory of `hbmu ingest`.
+        ingest_dir: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Identification band in Hz, e.g. `--band 200 4500` (default: the whole axis).
+        #[arg(long, num_args = 2, value_names = ["LO_HZ", "HI_HZ"])]
+        band: Option<Vec<f64>>,
+        /// Highest model order of the stabilization diagram.
+        #[arg(long)]
+        max_order: Option<usize>,
+        /// Do not write the stabilization-diagram SVGs.
+        #[arg(long)]
+        no_plots: bool,
+        #[arg(long)]
+        force: bool,
+    },
+    /// Pair identified modes with the model's by MAC (Hungarian assignment), label them from
+    /// the model shapes, detect missing and swapped modes, and apply the presence rule.
+    Pair {
+        /// Output directory of `hbmu extract`.
+        extract_dir: PathBuf,
+        /// Board description (TOML) of the model; default: the built-in board.
+        #[arg(long)]
+        model: Option<PathBuf>,
+        #[arg(long)]
+        out: PathBuf,
+        /// Minimum MAC for an accepted pair.
+        #[arg(long, default_value_t = 0.8)]
+        mac_min: f64,
+        /// Presence rule: a mode counts for updating when accepted in at least this fraction
+        /// of its setup's measurements (the paper: 1.0, every measurement).
+        #[arg(long, default_value_t = 1.0)]
+        min_fraction: f64,
+        /// Model modes computed per setup.
+        #[arg(long, default_value_t = 12)]
+        n_model_modes: usize,
+        #[arg(long)]
+        no_plots: bool,
+        #[arg(long)]
+        force: bool,
+    },
     /// Write the JSON schemas of every Parquet table and MCAP channel into a directory
     /// (the repository keeps them under schemas/).
     Schemas {
@@ -51,6 +101,91 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+}
+
+/// Model options shared by the `fe` subcommands.
+#[derive(clap::Args, Clone)]
+struct ModelArgs {
+    /// Board description (TOML); default: the built-in board (data/boards/default.toml).
+    #[arg(long)]
+    board: Option<PathBuf>,
+    /// Boundary conditions.
+    #[arg(long, value_enum, default_value = "free")]
+    setup: stage::fe::SetupArg,
+    /// Parameter override NAME=VALUE (repeatable), e.g. --set e_x_pa=25e9.
+    #[arg(long = "set", value_name = "NAME=VALUE")]
+    set: Vec<String>,
+    /// Mesh override, elements along x and y (default: the board file's mesh).
+    #[arg(long, num_args = 2, value_names = ["NX", "NY"])]
+    mesh: Option<Vec<usize>>,
+    /// Rerun even when up to date.
+    #[arg(long)]
+    force: bool,
+}
+
+impl ModelArgs {
+    fn options(&self) -> stage::fe::ModelOptions {
+        stage::fe::ModelOptions {
+            board: self.board.clone(),
+            setup: self.setup,
+            set: self.set.clone(),
+            mesh: self.mesh.as_ref().map(|v| (v[0], v[1])),
+        }
+    }
+}
+
+#[derive(Subcommand)]
+enum FeCommand {
+    /// Modes of the full FE model, one row per mode with the shape at the board's scan grid
+    /// (or at a measurement's scan points), as Parquet.
+    Modes {
+        #[command(flatten)]
+        model: ModelArgs,
+        /// Number of elastic modes.
+        #[arg(long, default_value_t = 10)]
+        n_modes: usize,
+        /// Report shapes at the scan points of this measurement (needs --ingest).
+        #[arg(long, requires = "ingest")]
+        measurement: Option<String>,
+        /// Ingest output directory holding scan_points.parquet.
+        #[arg(long, requires = "measurement")]
+        ingest: Option<PathBuf>,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Build the parametric reduced-order model over a parameter box and write it as NPZ
+    /// (numpy-readable; format documented in src/fem/npz.rs and src/fem/rom.rs).
+    Rom {
+        #[command(flatten)]
+        model: ModelArgs,
+        /// Modes the ROM must reproduce.
+        #[arg(long, default_value_t = 8)]
+        n_modes: usize,
+        /// Half-width of the parameter box, relative (0.2 = ±20 %).
+        #[arg(long, default_value_t = 0.2)]
+        box_rel: f64,
+        /// Seed of the snapshot design.
+        #[arg(long, default_value_t = 20_240_613)]
+        seed: u64,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// The %/% table of analytic frequency sensitivities (the paper's Table 1) as Parquet.
+    Sensitivity {
+        #[command(flatten)]
+        model: ModelArgs,
+        #[arg(long, default_value_t = 8)]
+        n_modes: usize,
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+fn report(what: &str, out: &std::path::Path, outcome: &stage::StageOutcome) -> i32 {
+    if outcome.up_to_date {
+        eprintln!("{what}: up to date ({}), nothing to do", out.display());
+    }
+    outcome.exit_code()
 }
 
 fn run(cli: Cli) -> anyhow::Result<i32> {
@@ -83,6 +218,106 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                 );
             }
             Ok(outcome.exit_code())
+        }
+        Command::Fe { command } => match command {
+            FeCommand::Modes {
+                model,
+                n_modes,
+                measurement,
+                ingest,
+                out,
+            } => {
+                let from = match (ingest, measurement) {
+                    (Some(ingest_dir), Some(measurement_id)) => Some(stage::fe::PointsFrom {
+                        ingest_dir,
+                        measurement_id,
+                    }),
+                    _ => None,
+                };
+                let o = stage::fe::run_modes(
+                    &model.options(),
+                    n_modes,
+                    from.as_ref(),
+                    &out,
+                    model.force,
+                )?;
+                Ok(report("fe modes", &out, &o))
+            }
+            FeCommand::Rom {
+                model,
+                n_modes,
+                box_rel,
+                seed,
+                out,
+            } => {
+                let ro = hbmu::fem::RomOptions {
+                    n_modes,
+                    box_rel,
+                    seed,
+                    ..Default::default()
+                };
+                let o = stage::fe::run_rom(&model.options(), &ro, &out, model.force)?;
+                Ok(report("fe rom", &out, &o))
+            }
+            FeCommand::Sensitivity {
+                model,
+                n_modes,
+                out,
+            } => {
+                let o = stage::fe::run_sensitivity(&model.options(), n_modes, &out, model.force)?;
+                Ok(report("fe sensitivity", &out, &o))
+            }
+        },
+        Command::Extract {
+            ingest_dir,
+            out,
+            band,
+            max_order,
+            no_plots,
+            force,
+        } => {
+            let mut params = hbmu::modal::ExtractParams::default();
+            if let Some(b) = band {
+                params.band_hz = Some((b[0], b[1]));
+            }
+            if let Some(m) = max_order {
+                params.lscf.max_order = m;
+            }
+            let opts = stage::extract::ExtractOptions {
+                ingest_dir,
+                out,
+                force,
+                params,
+                plots: !no_plots,
+            };
+            let o = stage::extract::run(&opts, cli.verbose)?;
+            Ok(report("extract", &opts.out, &o))
+        }
+        Command::Pair {
+            extract_dir,
+            model,
+            out,
+            mac_min,
+            min_fraction,
+            n_model_modes,
+            no_plots,
+            force,
+        } => {
+            let opts = stage::pair::PairOptions {
+                extract_dir,
+                board: model,
+                out,
+                force,
+                params: hbmu::modal::pair::PairParams {
+                    mac_min,
+                    ..Default::default()
+                },
+                n_model_modes,
+                min_fraction,
+                plots: !no_plots,
+            };
+            let o = stage::pair::run(&opts, cli.verbose)?;
+            Ok(report("pair", &opts.out, &o))
         }
         Command::Schemas { out } => {
             hbmu::schemas::write_all(&out)?;

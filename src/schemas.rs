@@ -16,7 +16,16 @@ pub fn generate() -> BTreeMap<String, String> {
         s.push('\n');
         s
     };
-    for t in crate::io::tables::all_tables() {
+    let stage_tables = [
+        &crate::stage::extract::MODES,
+        &crate::stage::extract::POINT_FLAGS,
+        &crate::stage::pair::PAIRS,
+        &crate::stage::pair::PRESENCE,
+    ];
+    for t in crate::io::tables::all_tables()
+        .into_iter()
+        .chain(stage_tables)
+    {
         out.insert(format!("tables/{}.json", t.name), pretty(&t.json_schema()));
     }
     for (_topic, name, schema) in crate::io::mcap_writer::channel_schemas() {

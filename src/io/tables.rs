@@ -358,5 +358,185 @@ pub const MASSES: TableSpec = TableSpec {
 
 /// Every table spec the tool writes (for `hbmu schemas` and the drift test).
 pub fn all_tables() -> Vec<&'static TableSpec> {
-    vec![&MEASUREMENTS, &SCAN_POINTS, &FRF, &SCALE_READINGS, &MASSES]
+    vec![
+        &MEASUREMENTS,
+        &SCAN_POINTS,
+        &FRF,
+        &SCALE_READINGS,
+        &MASSES,
+        &FE_MODES,
+        &SENSITIVITY,
+    ]
+}
+
+// ---------------------------------------------------------------------------------------------
+// The physics-core tables (`hbmu fe …`).
+
+pub const FE_MODES: TableSpec = TableSpec {
+    name: "fe_modes",
+    doc: "Modes of the full FE model, one row per elastic mode (rigid-body modes removed), with the out-of-plane shape at a point set (the board's scan grid or a measurement's scan points). Shapes are mass-normalised (phi^T M phi = 1).",
+    open: false,
+    columns: &[
+        c("setup", Col::Utf8, false, "", "`free` or `bolted`."),
+        c("mode", Col::Int32, false, "", "Mode number, 1-based, ascending frequency."),
+        c("freq_hz", Col::Float64, false, "Hz", "Natural frequency."),
+        c("node", Col::ListI64, false, "", "Point ids (scan-point node labels, or 1..n for the board grid)."),
+        c("x_m", Col::ListF64, false, "m", "Point x coordinates."),
+        c("y_m", Col::ListF64, false, "m", "Point y coordinates."),
+        c("shape_w", Col::ListF64, false, "1/sqrt(kg)", "Out-of-plane displacement of the mass-normalised mode at the points."),
+    ],
+};
+
+pub const SENSITIVITY: TableSpec = TableSpec {
+    name: "sensitivity",
+    doc: "Relative eigenfrequency sensitivities (p/f) df/dp in %/% at the nominal parameters (the analog of the seed paper's Table 1), one row per mode and parameter, from analytic eigenvalue derivatives.",
+    open: false,
+    columns: &[
+        c("setup", Col::Utf8, false, "", "`free` or `bolted`."),
+        c("mode", Col::Int32, false, "", "Mode number, 1-based."),
+        c("freq_hz", Col::Float64, false, "Hz", "Natural frequency at the nominal parameters."),
+        c("param", Col::Utf8, false, "", "Parameter name (unit in the name)."),
+        c("value", Col::Float64, false, "", "Nominal parameter value (unit in the parameter name)."),
+        c("d_freq_hz_per_unit", Col::Float64, false, "", "df/dp, Hz per parameter unit."),
+        c("pct_per_pct", Col::Float64, false, "%/%", "(p/f) df/dp."),
+    ],
+};
+
+// ---------------------------------------------------------------------------------------------
+// Readers for the tables other stages consume.
+
+use arrow::array::{Array, AsArray};
+use arrow::datatypes::{Float64Type, Int64Type};
+
+/// Read every batch of a Parquet file.
+pub fn read_parquet(path: &Path) -> io::Result<Vec<RecordBatch>> {
+    let file = std::fs::File::open(path)
+        .map_err(|e| io::Error::new(e.kind(), format!("{}: {e}", path.display())))?;
+    let reader = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(file)
+        .map_err(|e| io::Error::other(format!("{}: {e}", path.display())))?
+        .build()
+        .map_err(|e| io::Error::other(format!("{}: {e}", path.display())))?;
+    reader
+        .map(|b| b.map_err(|e| io::Error::other(format!("{}: {e}", path.display()))))
+        .collect()
+}
+
+fn column<'a>(b: &'a RecordBatch, name: &str, path: &Path) -> io::Result<&'a ArrayRef> {
+    b.column_by_name(name).ok_or_else(|| {
+        io::Error::other(format!(
+            "{}: expected column {name:?} (see schemas/tables), not found",
+            path.display()
+        ))
+    })
+}
+
+/// Typed column accessors; errors name the file, column and expected type.
+pub struct Cols<'a> {
+    pub batch: &'a RecordBatch,
+    pub path: &'a Path,
+}
+
+impl<'a> Cols<'a> {
+    fn typed<T: 'static>(&self, name: &str, what: &str) -> io::Result<&'a T> {
+        column(self.batch, name, self.path)?
+            .as_any()
+            .downcast_ref::<T>()
+            .ok_or_else(|| {
+                io::Error::other(format!(
+                    "{}: column {name:?}: expected {what}",
+                    self.path.display()
+                ))
+            })
+    }
+    pub fn str(&self, name: &str) -> io::Result<&'a arrow::array::StringArray> {
+        self.typed(name, "string")
+    }
+    pub fn f64(&self, name: &str) -> io::Result<&'a arrow::array::Float64Array> {
+        self.typed(name, "float64")
+    }
+    pub fn i64(&self, name: &str) -> io::Result<&'a arrow::array::Int64Array> {
+        self.typed(name, "int64")
+    }
+    pub fn i32(&self, name: &str) -> io::Result<&'a arrow::array::Int32Array> {
+        self.typed(name, "int32")
+    }
+    pub fn bool(&self, name: &str) -> io::Result<&'a arrow::array::BooleanArray> {
+        self.typed(name, "bool")
+    }
+    /// Row `i` of a `list<float64>` column (`None` when null).
+    pub fn list_f64(&self, name: &str, i: usize) -> io::Result<Option<Vec<f64>>> {
+        let col = column(self.batch, name, self.path)?;
+        let l = col.as_list_opt::<i32>().ok_or_else(|| {
+            io::Error::other(format!(
+                "{}: column {name:?}: expected list<float64>",
+                self.path.display()
+            ))
+        })?;
+        if l.is_null(i) {
+            return Ok(None);
+        }
+        let v = l.value(i);
+        let p = v.as_primitive_opt::<Float64Type>().ok_or_else(|| {
+            io::Error::other(format!(
+                "{}: column {name:?}: expected list<float64>",
+                self.path.display()
+            ))
+        })?;
+        Ok(Some(p.values().to_vec()))
+    }
+    /// Row `i` of a `list<int64>` column.
+    pub fn list_i64(&self, name: &str, i: usize) -> io::Result<Vec<i64>> {
+        let col = column(self.batch, name, self.path)?;
+        let l = col.as_list_opt::<i32>().ok_or_else(|| {
+            io::Error::other(format!(
+                "{}: column {name:?}: expected list<int64>",
+                self.path.display()
+            ))
+        })?;
+        let v = l.value(i);
+        let p = v.as_primitive_opt::<Int64Type>().ok_or_else(|| {
+            io::Error::other(format!(
+                "{}: column {name:?}: expected list<int64>",
+                self.path.display()
+            ))
+        })?;
+        Ok(p.values().to_vec())
+    }
+}
+
+/// One scan point read back from `scan_points.parquet`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScanPointRow {
+    pub measurement_id: String,
+    pub node: i64,
+    pub xyz_m: [f64; 3],
+    pub is_reference: bool,
+    pub has_record: bool,
+}
+
+/// Read `scan_points.parquet`.
+pub fn read_scan_points(path: &Path) -> io::Result<Vec<ScanPointRow>> {
+    let mut out = Vec::new();
+    for b in read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (m, n, x, y, z, r, h) = (
+            c.str("measurement_id")?,
+            c.i64("node")?,
+            c.f64("x_m")?,
+            c.f64("y_m")?,
+            c.f64("z_m")?,
+            c.bool("is_reference")?,
+            c.bool("has_record")?,
+        );
+        for i in 0..b.num_rows() {
+            out.push(ScanPointRow {
+                measurement_id: m.value(i).to_string(),
+                node: n.value(i),
+                xyz_m: [x.value(i), y.value(i), z.value(i)],
+                is_reference: r.value(i),
+                has_record: h.value(i),
+            });
+        }
+    }
+    Ok(out)
 }

@@ -5,7 +5,10 @@
 //! stage body (which writes its outputs atomically) and writes the manifest last. Exit codes
 //! are decided here and turned into a process exit code only in `main`.
 
+pub mod extract;
+pub mod fe;
 pub mod ingest;
+pub mod pair;
 
 use crate::io::manifest::{self, Manifest, Prepared, RunInfo, StageSpec};
 use std::collections::BTreeMap;

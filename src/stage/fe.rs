@@ -1,0 +1,367 @@
+//! Stage `fe`: the physics core from the command line — `fe modes` (full-model modes with
+//! shapes at a point set, as Parquet), `fe rom` (the parametric reduced-order model as an NPZ
+//! artifact), `fe sensitivity` (the `%/%` table of analytic frequency derivatives).
+//!
+//! Each subcommand is a hashed stage like any other: its inputs are the board file (or the
+//! compiled-in default board, whose text enters the configuration hash) and, for `modes`, the
+//! ingest table holding a measurement's scan points; its configuration is every option.
+
+use crate::fem::{self, Board, FeModel, JointModel, Params};
+use crate::io::manifest::StageSpec;
+use crate::io::tables::{self, TableSpec};
+use crate::stage::{exit, StageOutcome, StageResult};
+use anyhow::{anyhow, bail, Context};
+use arrow::array::{
+    ArrayRef, Float64Array, Float64Builder, Int32Array, Int64Builder, ListBuilder, StringArray,
+};
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// Which boundary conditions.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum SetupArg {
+    Free,
+    Bolted,
+}
+
+impl SetupArg {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            SetupArg::Free => "free",
+            SetupArg::Bolted => "bolted",
+        }
+    }
+    pub fn to_setup(self) -> fem::Setup {
+        match self {
+            SetupArg::Free => fem::Setup::Free,
+            SetupArg::Bolted => fem::Setup::Bolted(JointModel::baseline()),
+        }
+    }
+}
+
+/// Options shared by the `fe` subcommands.
+#[derive(Debug, Clone, Serialize)]
+pub struct ModelOptions {
+    /// Board description (TOML); `None` = the compiled-in default board.
+    pub board: Option<PathBuf>,
+    pub setup: SetupArg,
+    /// `NAME=VALUE` parameter overrides (names as in `fe sensitivity`, units in the names).
+    pub set: Vec<String>,
+    /// Mesh override `(nx, ny)`; `None` = the board file's mesh.
+    pub mesh: Option<(usize, usize)>,
+}
+
+/// The board, its text's hash (for the configuration), and the input files.
+fn load_board(path: Option<&Path>) -> anyhow::Result<(Board, String, Vec<PathBuf>)> {
+    match path {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read board file {}", p.display()))?;
+            let b = Board::from_toml_str(&text).with_context(|| format!("{}", p.display()))?;
+            Ok((
+                b,
+                blake3::hash(text.as_bytes()).to_hex().to_string(),
+                vec![p.to_path_buf()],
+            ))
+        }
+        None => Ok((
+            Board::default_board(),
+            blake3::hash(fem::board::DEFAULT_BOARD_TOML.as_bytes())
+                .to_hex()
+                .to_string(),
+            vec![],
+        )),
+    }
+}
+
+/// Build the model and the parameter point from the options.
+pub fn build_model(opts: &ModelOptions) -> anyhow::Result<(FeModel, Params, String, Vec<PathBuf>)> {
+    let (board, board_hash, inputs) = load_board(opts.board.as_deref())?;
+    let mut mesh = board.mesh.clone();
+    if let Some((nx, ny)) = opts.mesh {
+        mesh.nx = nx;
+        mesh.ny = ny;
+    }
+    let model = FeModel::build(&board, opts.setup.to_setup(), &mesh)?;
+    let mut p = model.nominal_params();
+    for s in &opts.set {
+        let (name, value) = s
+            .split_once('=')
+            .ok_or_else(|| anyhow!("--set {s:?}: expected NAME=VALUE, e.g. e_x_pa=25e9"))?;
+        let v: f64 = value
+            .trim()
+            .parse()
+            .map_err(|_| anyhow!("--set {s:?}: expected a number after '=', found {value:?}"))?;
+        p.set(name.trim(), v).map_err(|e| {
+            anyhow!(
+                "--set {s:?}: {e} (known parameters: {})",
+                model.map.names.join(", ")
+            )
+        })?;
+    }
+    Ok((model, p, board_hash, inputs))
+}
+
+fn spec_for(
+    stage: &str,
+    opts: &ModelOptions,
+    board_hash: &str,
+    inputs: Vec<PathBuf>,
+    extra_config: serde_json::Value,
+    out: &Path,
+    seed: Option<u64>,
+) -> StageSpec {
+    StageSpec {
+        stage: stage.into(),
+        inputs,
+        input_base: std::env::current_dir().unwrap_or_else(|_| PathBuf::from(".")),
+        config: serde_json::json!({
+            "model": opts,
+            "board_blake3": board_hash,
+            "stage": extra_config,
+        }),
+        seed,
+        manifest_path: manifest_path_for(out),
+    }
+}
+
+/// `<out>.manifest.json` next to a single-file output.
+pub fn manifest_path_for(out: &Path) -> PathBuf {
+    let mut s = out.as_os_str().to_owned();
+    s.push(".manifest.json");
+    PathBuf::from(s)
+}
+
+fn provenance(stage: &str, fingerprint: &str, board: &Board) -> BTreeMap<String, String> {
+    BTreeMap::from([
+        ("hbmu.stage".to_string(), stage.to_string()),
+        ("hbmu.fingerprint".to_string(), fingerprint.to_string()),
+        (
+            "hbmu.version".to_string(),
+            crate::io::manifest::TOOL_VERSION.to_string(),
+        ),
+        ("hbmu.board".to_string(), board.name.clone()),
+        ("hbmu.campaign".to_string(), String::new()),
+    ])
+}
+
+fn list_f64<I: IntoIterator<Item = Vec<f64>>>(it: I) -> ArrayRef {
+    let mut b = ListBuilder::new(Float64Builder::new());
+    for v in it {
+        b.values().append_slice(&v);
+        b.append(true);
+    }
+    Arc::new(b.finish())
+}
+
+fn list_i64<I: IntoIterator<Item = Vec<i64>>>(it: I) -> ArrayRef {
+    let mut b = ListBuilder::new(Int64Builder::new());
+    for v in it {
+        b.values().append_slice(&v);
+        b.append(true);
+    }
+    Arc::new(b.finish())
+}
+
+fn write(
+    path: &Path,
+    spec: &TableSpec,
+    prov: &BTreeMap<String, String>,
+    cols: Vec<ArrayRef>,
+) -> anyhow::Result<()> {
+    let schema = spec.schema(&[], &tables::table_metadata(spec, prov));
+    let b = tables::batch(schema, cols)?;
+    tables::write_parquet(path, &b).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Where `fe modes` reports the shapes: the board's scan grid, or a measurement's points.
+#[derive(Debug, Clone, Serialize)]
+pub struct PointsFrom {
+    /// An ingest output directory (its `scan_points.parquet` is read).
+    pub ingest_dir: PathBuf,
+    pub measurement_id: String,
+}
+
+/// Node ids and (x, y) of the points at which shapes are reported.
+pub fn report_points(
+    board: &Board,
+    from: Option<&PointsFrom>,
+) -> anyhow::Result<(Vec<i64>, Vec<[f64; 2]>)> {
+    match from {
+        None => {
+            let pts = board.scan_points_m();
+            Ok(((1..=pts.len() as i64).collect(), pts))
+        }
+        Some(f) => {
+            let path = f.ingest_dir.join("scan_points.parquet");
+            let rows = tables::read_scan_points(&path)?;
+            let pts: Vec<_> = rows
+                .into_iter()
+                .filter(|r| r.measurement_id == f.measurement_id && !r.is_reference)
+                .collect();
+            if pts.is_empty() {
+                bail!(
+                    "{}: no scan points for measurement {:?} (is it quarantined, or misspelt?)",
+                    path.display(),
+                    f.measurement_id
+                );
+            }
+            Ok((
+                pts.iter().map(|r| r.node).collect(),
+                pts.iter().map(|r| [r.xyz_m[0], r.xyz_m[1]]).collect(),
+            ))
+        }
+    }
+}
+
+/// `hbmu fe modes`.
+pub fn run_modes(
+    opts: &ModelOptions,
+    n_modes: usize,
+    points_from: Option<&PointsFrom>,
+    out: &Path,
+    force: bool,
+) -> anyhow::Result<StageOutcome> {
+    let (_, board_hash, board_inputs) = load_board(opts.board.as_deref())?;
+    let mut inputs = board_inputs;
+    if let Some(f) = points_from {
+        inputs.push(f.ingest_dir.join("scan_points.parquet"));
+    }
+    let spec = spec_for(
+        "fe-modes",
+        opts,
+        &board_hash,
+        inputs,
+        serde_json::json!({"n_modes": n_modes, "points_from": points_from}),
+        out,
+        None,
+    );
+    crate::stage::run(spec, force, |prep| {
+        let (model, p, _, _) = build_model(opts)?;
+        let (nodes, pts) = report_points(&model.board, points_from)?;
+        let modes = model.modes(&p, n_modes)?;
+        let w = model.w_at(&modes, &pts)?;
+        let n = modes.freq_hz.len();
+        let prov = provenance("fe-modes", &prep.fingerprint, &model.board);
+        write(
+            out,
+            &tables::FE_MODES,
+            &prov,
+            vec![
+                Arc::new(StringArray::from(vec![opts.setup.as_str(); n])),
+                Arc::new(Int32Array::from_iter_values((1..=n).map(|m| m as i32))),
+                Arc::new(Float64Array::from(modes.freq_hz.clone())),
+                list_i64((0..n).map(|_| nodes.clone())),
+                list_f64((0..n).map(|_| pts.iter().map(|p| p[0]).collect())),
+                list_f64((0..n).map(|_| pts.iter().map(|p| p[1]).collect())),
+                list_f64((0..n).map(|j| (0..pts.len()).map(|i| w[(i, j)]).collect())),
+            ],
+        )?;
+        let mut summary = BTreeMap::new();
+        summary.insert("freq_hz".into(), serde_json::to_value(&modes.freq_hz)?);
+        summary.insert("n_rigid_dropped".into(), modes.n_rigid_dropped.into());
+        summary.insert("n_dof".into(), model.n_dof.into());
+        Ok(StageResult {
+            outputs: vec![out.to_path_buf()],
+            exit_code: exit::OK,
+            summary,
+        })
+    })
+}
+
+/// `hbmu fe rom`.
+pub fn run_rom(
+    opts: &ModelOptions,
+    rom_opts: &fem::RomOptions,
+    out: &Path,
+    force: bool,
+) -> anyhow::Result<StageOutcome> {
+    let (_, board_hash, board_inputs) = load_board(opts.board.as_deref())?;
+    let spec = spec_for(
+        "fe-rom",
+        opts,
+        &board_hash,
+        board_inputs,
+        serde_json::to_value(rom_opts)?,
+        out,
+        Some(rom_opts.seed),
+    );
+    crate::stage::run(spec, force, |_prep| {
+        let (model, _p, _, _) = build_model(opts)?;
+        let rom = fem::Rom::build(&model, rom_opts)?;
+        crate::io::atomic::write_bytes(out, &rom.to_npz_bytes())
+            .with_context(|| format!("writing {}", out.display()))?;
+        let mut summary = BTreeMap::new();
+        summary.insert("basis_dim".into(), rom.dim().into());
+        summary.insert("n_modes".into(), rom.n_modes.into());
+        summary.insert("setup".into(), rom.setup.clone().into());
+        Ok(StageResult {
+            outputs: vec![out.to_path_buf()],
+            exit_code: exit::OK,
+            summary,
+        })
+    })
+}
+
+/// `hbmu fe sensitivity`.
+pub fn run_sensitivity(
+    opts: &ModelOptions,
+    n_modes: usize,
+    out: &Path,
+    force: bool,
+) -> anyhow::Result<StageOutcome> {
+    let (_, board_hash, board_inputs) = load_board(opts.board.as_deref())?;
+    let spec = spec_for(
+        "fe-sensitivity",
+        opts,
+        &board_hash,
+        board_inputs,
+        serde_json::json!({"n_modes": n_modes}),
+        out,
+        None,
+    );
+    crate::stage::run(spec, force, |prep| {
+        let (model, p, _, _) = build_model(opts)?;
+        let modes = model.modes(&p, n_modes)?;
+        let d = fem::sensitivity::eigen_derivatives(&model, &p, &modes, false)?;
+        let mut rows: Vec<(i32, f64, String, f64, f64, f64)> = vec![];
+        for j in 0..modes.freq_hz.len() {
+            for (k, name) in p.names.iter().enumerate() {
+                let df = d.d_freq_hz[(j, k)];
+                rows.push((
+                    j as i32 + 1,
+                    modes.freq_hz[j],
+                    name.clone(),
+                    p.values[k],
+                    df,
+                    p.values[k] / modes.freq_hz[j] * df,
+                ));
+            }
+        }
+        let prov = provenance("fe-sensitivity", &prep.fingerprint, &model.board);
+        write(
+            out,
+            &tables::SENSITIVITY,
+            &prov,
+            vec![
+                Arc::new(StringArray::from(vec![opts.setup.as_str(); rows.len()])),
+                Arc::new(Int32Array::from_iter_values(rows.iter().map(|r| r.0))),
+                Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.1))),
+                Arc::new(StringArray::from_iter_values(
+                    rows.iter().map(|r| r.2.as_str()),
+                )),
+                Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.3))),
+                Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.4))),
+                Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.5))),
+            ],
+        )?;
+        Ok(StageResult {
+            outputs: vec![out.to_path_buf()],
+            exit_code: exit::OK,
+            summary: BTreeMap::new(),
+        })
+    })
+}
