@@ -58,8 +58,11 @@ pub struct EffectTruth {
     pub expected_diagnosis: Option<Diagnosis>,
 }
 
+/// Per (setup, mode): the setup, the shifts (%) and the frequencies (Hz) collected.
+type ShiftAcc = BTreeMap<(u8, usize), (SetupKind, Vec<f64>, Vec<f64>)>;
+
 fn mode_stats(ms: &[&MeasurementTruth]) -> Vec<ModeEffect> {
-    let mut acc: BTreeMap<(u8, usize), (SetupKind, Vec<f64>, Vec<f64>)> = BTreeMap::new();
+    let mut acc: ShiftAcc = BTreeMap::new();
     for m in ms {
         for md in m.modes.iter().filter(|md| md.in_band) {
             if let Some(sh) = md.shift_percent {

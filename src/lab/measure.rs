@@ -61,7 +61,7 @@ pub fn file_variant(s: &Scenario, index: usize) -> FileVariant {
         } else {
             Format::Binary
         },
-        double: (v == 0 && index % 12 == 0) || v == 2,
+        double: (v == 0 && index.is_multiple_of(12)) || v == 2,
         coherence: s.measurement.coherence && index % 4 == 1,
     }
 }
@@ -362,8 +362,14 @@ pub fn sheet_csv(ms: &[Planned]) -> Result<Vec<u8>, LabError> {
 /// Balance logs: one file per weighing day; per board and session a tare, unsettled
 /// (`S D`) readings converging on the weight, occasional busy/error lines, then stable
 /// readings (`S S`) of the weighed mass with the balance's repeatability, rounded to its
-/// readability, in g, mg or kg by turns.
-pub fn balance_logs(s: &Scenario, plan: &Plan, boards: &[BoardTruth]) -> Vec<(String, Vec<u8>)> {
+/// readability, in g, mg or kg by turns. Now and then a stable reading arrives garbled
+/// (a digit replaced by `?`): the ingest reports and drops that line. Returns the files
+/// and the garbled lines as `file:line`.
+pub fn balance_logs(
+    s: &Scenario,
+    plan: &Plan,
+    boards: &[BoardTruth],
+) -> (Vec<(String, Vec<u8>)>, Vec<String>) {
     let bal = &s.balance;
     let days = [plan.first_day.clone(), plan.last_day.clone()];
     let mut files: Vec<(String, String)> = days
@@ -387,6 +393,7 @@ pub fn balance_logs(s: &Scenario, plan: &Plan, boards: &[BoardTruth]) -> Vec<(St
         })
         .collect();
     let dec_g = (-bal.resolution_g.log10()).round() as usize;
+    let mut garbled = Vec::new();
     for sess in 0..bal.sessions_per_board {
         let fi = sess % 2;
         let mut clock = 8 * 3600 + 600 * (sess / 2);
@@ -414,6 +421,8 @@ pub fn balance_logs(s: &Scenario, plan: &Plan, boards: &[BoardTruth]) -> Vec<(St
                     bt.draw.board_id,
                     text
                 ));
+                // Where the line went, `file:line` (1-based).
+                format!("{}:{}", files[fi].0, files[fi].1.lines().count())
             };
             let fmt = |v_g: f64| format!("{:>12.*} {unit}", dec, v_g * factor);
             line("Z A".into(), &mut clock);
@@ -425,22 +434,32 @@ pub fn balance_logs(s: &Scenario, plan: &Plan, boards: &[BoardTruth]) -> Vec<(St
                 }
                 let n_dyn = if k == 0 { 3 } else { 1 };
                 for j in 0..n_dyn {
-                    let off = 1e-3 * (1.0 + 20.0 * rng.random::<f64>()) * 0.25f64.powi(j as i32);
+                    let off = 1e-3 * (1.0 + 20.0 * rng.random::<f64>()) * 0.25f64.powi(j);
                     let sign = if rng.random::<f64>() < 0.5 { -1.0 } else { 1.0 };
                     line(format!("S D {}", fmt(true_g + sign * off)), &mut clock);
                 }
                 let z: f64 = StandardNormal.sample(&mut rng);
                 let v = true_g + bal.repeatability_d * bal.resolution_g * z;
                 let v = (v / bal.resolution_g).round() * bal.resolution_g;
+                if rng.random::<f64>() < bal.garbled_prob {
+                    // The garbled line replaces nothing: a clean repeat follows it.
+                    let text = fmt(v);
+                    let k = text.rfind(|c: char| c.is_ascii_digit()).unwrap_or(0);
+                    let bad = format!("{}?{}", &text[..k], &text[k + 1..]);
+                    garbled.push(line(format!("S S {bad}"), &mut clock));
+                }
                 line(format!("S S {}", fmt(v)), &mut clock);
             }
             clock += 40;
         }
     }
-    files
-        .into_iter()
-        .map(|(n, t)| (n, t.into_bytes()))
-        .collect()
+    (
+        files
+            .into_iter()
+            .map(|(n, t)| (n, t.into_bytes()))
+            .collect(),
+        garbled,
+    )
 }
 
 fn seed_of(plan: &Plan) -> u64 {

@@ -156,9 +156,11 @@ pub fn simulate(
         "campaign.csv".to_string(),
         measure::sheet_csv(&plan.measurements)?,
     );
-    let truth = truth::assemble(scenario, board, &plan, &free_cache, meas_truth);
-    for (name, bytes) in measure::balance_logs(scenario, &plan, &truth.boards) {
+    let mut truth = truth::assemble(scenario, board, &plan, &free_cache, meas_truth);
+    let (logs, garbled) = measure::balance_logs(scenario, &plan, &truth.boards);
+    for (name, bytes) in logs {
         files.insert(name, bytes);
     }
+    truth.garbled_balance_lines = garbled;
     Ok(SimulatedCampaign { files, truth })
 }

@@ -248,6 +248,9 @@ pub struct Balance {
     pub repeatability_d: f64,
     /// Probability of a busy or error line before a reading.
     pub glitch_prob: f64,
+    /// Probability that a stable reading arrives garbled (a transmission glitch the
+    /// ingest must report and drop).
+    pub garbled_prob: f64,
 }
 
 impl Default for Balance {
@@ -258,6 +261,7 @@ impl Default for Balance {
             resolution_g: 1e-4,
             repeatability_d: 0.4,
             glitch_prob: 0.3,
+            garbled_prob: 0.02,
         }
     }
 }
@@ -543,6 +547,7 @@ impl Scenario {
         }
         nonneg("balance.repeatability_d", b.repeatability_d)?;
         prob("balance.glitch_prob", b.glitch_prob)?;
+        prob("balance.garbled_prob", b.garbled_prob)?;
         let e = &self.effects;
         if let Some(r) = &e.rotational_restraint {
             pos(

@@ -244,7 +244,9 @@ fn same_scenario_and_seed_give_same_bytes_whatever_the_thread_count() {
 
 #[test]
 fn campaign_follows_the_contract_for_our_readers() {
-    let c = run("paper", 11);
+    let mut s = small(builtin_scenario("paper").unwrap());
+    s.balance.garbled_prob = 0.2; // make sure the deliberate balance glitch occurs
+    let c = simulate(&s, &Board::default_board(), 11).unwrap();
     let t = &c.truth;
     // Layout: the sheet, one UFF per row, scale logs; nothing else.
     for name in c.files.keys() {
@@ -311,12 +313,22 @@ fn campaign_follows_the_contract_for_our_readers() {
         assert!((sp.f0 + (n - 1) as f64 * sp.df - top).abs() < 1e-6 * top);
     }
     // Balance logs: parse without findings; stable readings average to the truth mass.
+    // The only findings are the garbled lines the truth lists.
     let mut readings = Vec::new();
+    let mut reported = Vec::new();
     for (name, bytes) in c.files.iter().filter(|(n, _)| n.starts_with("scale/")) {
         let (r, f) = crate::io::balance_log::parse(bytes, name);
-        assert!(f.is_empty(), "{:?}", f);
+        for x in f.iter() {
+            assert_eq!(x.code, "balance.unknown_response", "{x}");
+            reported.push(format!("{}:{}", x.file.clone().unwrap(), x.line.unwrap()));
+        }
         readings.extend(r);
     }
+    reported.sort();
+    let mut listed = t.garbled_balance_lines.clone();
+    listed.sort();
+    assert!(!listed.is_empty());
+    assert_eq!(reported, listed);
     let masses = crate::io::balance_log::board_masses(&readings, Default::default());
     assert_eq!(masses.len(), t.boards.len());
     let units: BTreeSet<String> = readings.iter().filter_map(|r| r.unit.clone()).collect();
@@ -700,4 +712,49 @@ fn default_campaign_is_fast_and_modest() {
         (1.0..=3.0).contains(&ms),
         "paper default: largest bolted shift {ms:.2} %"
     );
+}
+
+#[test]
+fn schema_describes_every_scenario_field_and_no_other() {
+    let schema: serde_json::Value =
+        serde_json::from_str(include_str!("../../schemas/lab_scenario.schema.json")).unwrap();
+    let mut s = builtin_scenario("paper").unwrap();
+    // All effects present, so that every field is serialised.
+    let all = "name = \"all\"\n[effects.loose_bolt]\nshare = 0.3\nstiffness_factor = 0.5\n\
+               [effects.temperature]\ncoefficient_per_k = -0.004\nreference_c = 23.0\n\
+               [effects.lumped_mass]\nmass_kg = 2e-4\nx_m = 0.06\ny_m = 0.03\n\
+               [effects.compliant_fixture]\nk_fix_n_per_m = 3e7\nm_fix_kg = 0.1\n";
+    let other = Scenario::from_toml_str(all).unwrap();
+    s.effects.loose_bolt = other.effects.loose_bolt;
+    s.effects.temperature = other.effects.temperature;
+    s.effects.lumped_mass = other.effects.lumped_mass;
+    s.effects.compliant_fixture = other.effects.compliant_fixture;
+    let v = serde_json::to_value(&s).unwrap();
+    fn walk(v: &serde_json::Value, sch: &serde_json::Value, path: &str) {
+        let sch = if sch["type"] == "array" {
+            &sch["items"]
+        } else {
+            sch
+        };
+        match v {
+            serde_json::Value::Object(map) => {
+                let props = sch["properties"]
+                    .as_object()
+                    .unwrap_or_else(|| panic!("{path}: no properties"));
+                let keys: BTreeSet<&String> = map.keys().collect();
+                let skeys: BTreeSet<&String> = props.keys().collect();
+                assert_eq!(keys, skeys, "{path}");
+                for (k, x) in map {
+                    walk(x, &props[k], &format!("{path}.{k}"));
+                }
+            }
+            serde_json::Value::Array(a) => {
+                for x in a {
+                    walk(x, sch, path);
+                }
+            }
+            _ => {}
+        }
+    }
+    walk(&v, &schema, "");
 }

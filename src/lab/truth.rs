@@ -50,7 +50,7 @@ pub fn cholesky4(a: &[[f64; 4]; 4]) -> Option<[[f64; 4]; 4]> {
         for j in 0..=i {
             let s: f64 = a[i][j] - (0..j).map(|k| l[i][k] * l[j][k]).sum::<f64>();
             if i == j {
-                if !(s > 1e-12) {
+                if s.is_nan() || s <= 1e-12 {
                     return None;
                 }
                 l[i][i] = s.sqrt();
@@ -786,6 +786,8 @@ pub struct Truth {
     pub effects: Vec<super::effects::EffectTruth>,
     /// Plain-words summary of the hidden physics of the campaign.
     pub summary: String,
+    /// Deliberate imperfection of the balance logs: garbled lines, `file:line` (1-based).
+    pub garbled_balance_lines: Vec<String>,
     /// The scenario as simulated.
     pub scenario: Scenario,
 }
@@ -854,6 +856,7 @@ pub fn assemble(
         measurements,
         effects,
         summary,
+        garbled_balance_lines: Vec::new(),
         scenario: s.clone(),
     }
 }
