@@ -186,21 +186,40 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
             let Some((model, fe_modes)) = models.get(&m.setup) else {
                 continue;
             };
-            let pts: Vec<[f64; 2]> = m.points.iter().map(|p| [p.x_m, p.y_m]).collect();
-            let w = match model.w_at(fe_modes, &pts) {
-                Ok(w) => w,
-                Err(e) => {
+            // Scan points the model cannot evaluate (outside the outline, inside a hole) are
+            // left out of this measurement's MAC, and reported.
+            let mut keep = vec![];
+            for (i, p) in m.points.iter().enumerate() {
+                if model.w_at(fe_modes, &[[p.x_m, p.y_m]]).is_ok() {
+                    keep.push(i);
+                } else {
                     findings.push(
                         Finding::new(
-                            Severity::Quarantined,
-                            "pair.points",
-                            format!("model shapes at the scan points: {e}"),
+                            Severity::Warning,
+                            "pair.point_outside_model",
+                            format!(
+                                "scan point node {} at ({:.4}, {:.4}) m is outside the model board or inside a hole; left out of the MAC",
+                                p.node_id, p.x_m, p.y_m
+                            ),
                         )
                         .measurement(m.measurement_id.clone()),
                     );
-                    continue;
                 }
-            };
+            }
+            if keep.len() < 3 {
+                findings.push(
+                    Finding::new(
+                        Severity::Quarantined,
+                        "pair.points",
+                        format!("only {} scan points lie on the model board (expected at least 3)", keep.len()),
+                    )
+                    .measurement(m.measurement_id.clone()),
+                );
+                continue;
+            }
+            let points: Vec<ScanPoint> = keep.iter().map(|&i| m.points[i]).collect();
+            let pts: Vec<[f64; 2]> = points.iter().map(|p| [p.x_m, p.y_m]).collect();
+            let w = model.w_at(fe_modes, &pts)?;
             let model_modes: Vec<ModelMode> = (0..fe_modes.freq_hz.len())
                 .map(|j| ModelMode {
                     freq_hz: fe_modes.freq_hz[j],
@@ -212,13 +231,13 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
                 .iter()
                 .map(|(_, f, s)| IdentifiedShape {
                     freq_hz: *f,
-                    shape: s.clone(),
+                    shape: keep.iter().map(|&i| s[i]).collect(),
                 })
                 .collect();
             let pairing = match pair::pair_modes(
                 &identified,
                 &model_modes,
-                &m.points,
+                &points,
                 m.band,
                 &opts.params,
             ) {
