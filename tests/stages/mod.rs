@@ -47,7 +47,7 @@ fn extract_recovers_the_example_modes_and_pair_labels_them() {
             }
             let k = truth_f
                 .iter()
-                .map(|t| ((f.value(i) / (t * scale(board.value(i))) - 1.0).abs()))
+                .map(|t| (f.value(i) / (t * scale(board.value(i))) - 1.0).abs())
                 .enumerate()
                 .min_by(|a, b| a.1.total_cmp(&b.1))
                 .unwrap();
