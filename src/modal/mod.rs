@@ -12,7 +12,7 @@
 //!    are excluded from the pole estimation (the reason is recorded).
 //! 2. [`lscf::lscf_poles`]: least-squares complex-frequency (LSCF, common denominator, z-domain
 //!    basis) estimate of the poles for every model order of the stabilization diagram. Then
-//!    `sk_passes` (default 2) Sanathanan–Koerner passes: the LSCF is rerun with line weights
+//!    `sk_passes` (default 1) Sanathanan–Koerner passes: the LSCF is rerun with line weights
 //!    `1/|A(Omega)|` from the poles selected in the previous pass, which turns the linearised
 //!    equation error into an approximate output error and removes the bias that otherwise
 //!    merges modes closer than their half-power bandwidth (steps 3–4 run after every pass).
@@ -23,6 +23,8 @@
 //! 5. [`lsfd::lsfd`]: residues and residual terms per scan point for the selected poles,
 //!    real-normalised shapes, modal phase collinearity (MPC), mean phase deviation (MPD),
 //!    fit error per scan point.
+//! 5a. Before the LSFD, [`refine::refine_poles`] refines each selected pole by a local
+//!    output-error fit (removes the low-SNR damping bias of the linearised LSCF).
 //! 6. Scan points whose fit error is an outlier are flagged and steps 2–5 are rerun without
 //!    them (once).
 //!
@@ -42,6 +44,7 @@ pub mod mac;
 pub mod pair;
 pub mod poles;
 pub mod quality;
+pub mod refine;
 pub mod stabilization;
 
 #[cfg(test)]
@@ -54,6 +57,7 @@ pub use lscf::LscfParams;
 pub use lsfd::LsfdParams;
 pub use poles::SelectionParams;
 pub use quality::{PointFlag, QualityParams};
+pub use refine::RefineParams;
 pub use stabilization::{StabilityParams, StabilizationDiagram};
 
 /// Errors of the modal kernels. Each names what was expected and what was found.
@@ -154,9 +158,13 @@ pub struct ExtractParams {
     /// Rerun the pole estimation without the points flagged after the first LSFD
     /// (fit-error outliers). 1 = one rerun (default), 0 = none.
     pub refit_passes: usize,
+    /// Local output-error (maximum-likelihood) refinement of the selected poles before the
+    /// LSFD ([`refine`]); `None` keeps the LSCF cluster medians. Default on.
+    pub refine: Option<RefineParams>,
     /// Sanathanan–Koerner passes: rerun the LSCF with line weights `1/|A|` built from the
-    /// poles selected in the previous pass ([`lscf::sk_line_weights`]). Default 2 (the second
-    /// pass still moves close pairs noticeably, a third does not).
+    /// poles selected in the previous pass ([`lscf::sk_line_weights`]). Default 1: it is what
+    /// separates close pairs; with the output-error refinement after it a second pass
+    /// changes nothing measurable.
     pub sk_passes: usize,
 }
 
@@ -170,7 +178,8 @@ impl Default for ExtractParams {
             lsfd: None,
             quality: QualityParams::default(),
             refit_passes: 1,
-            sk_passes: 2,
+            sk_passes: 1,
+            refine: Some(RefineParams::default()),
         }
     }
 }
@@ -358,7 +367,19 @@ pub fn extract(
             diagram = d2;
             selected = s2;
         }
-        let lambdas: Vec<c64> = selected.iter().map(|s| s.lambda).collect();
+        let mut lambdas: Vec<c64> = selected.iter().map(|s| s.lambda).collect();
+        if let Some(rp) = &params.refine {
+            let weights: Vec<f64> = h_used
+                .iter()
+                .map(|row| {
+                    let rms = frf::rms(row);
+                    1.0 / lscf::noise_sigma(row)
+                        .max(1e-6 * rms)
+                        .max(f64::MIN_POSITIVE)
+                })
+                .collect();
+            lambdas = refine::refine_poles(&data.freq_hz, &h_used, &weights, &lambdas, rp);
+        }
         // LSFD on every point (flagged ones too, to report their fit error).
         let all_rows: Vec<&[c64]> = data.h.iter().map(|r| r.as_slice()).collect();
         let fit = lsfd::lsfd(&data.freq_hz, &all_rows, &lambdas, &lsfd_params)?;
@@ -375,7 +396,7 @@ pub fn extract(
             let residues: Vec<c64> = (0..n_points).map(|o| fit.residues[o][r]).collect();
             let shape = lsfd::real_normalise(&residues, &used_mask);
             let (mpc, mpd_deg) = lsfd::mpc_mpd(&residues, &used_mask);
-            let lam = sel.lambda;
+            let lam = lambdas[r];
             let mask_nan = |v: f64, i: usize| if used_mask[i] { v } else { f64::NAN };
             modes.push(IdentifiedMode {
                 freq_hz: lam.norm() / (2.0 * std::f64::consts::PI),

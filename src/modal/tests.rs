@@ -673,3 +673,74 @@ fn pure_noise_gives_no_mode() {
     let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
     assert!(ex.modes.is_empty(), "spurious modes from noise: {freqs:?}");
 }
+
+/// Other noise levels, damping levels and excitation: never a spurious mode; every mode that
+/// is identified is accurate; a close pair that can no longer be resolved (4x noise, or 3x
+/// damping: 0.6 % apart is then 0.1 half-power bandwidths) comes out as one mode whose shape
+/// is a mix, and the pairing rejects it rather than mis-pairing it.
+#[test]
+fn other_noise_and_damping_levels() {
+    for (floor, prop, zscale, weak) in [
+        (0.0005, 0.001, 1.0, 1.0),
+        (0.02, 0.03, 1.0, 1.0),
+        (0.005, 0.01, 0.3, 1.0),
+        (0.005, 0.01, 3.0, 1.0),
+        (0.05, 0.05, 1.0, 1.0),
+    ] {
+        let mut case = free_free_case(3);
+        case.floor_rel = floor;
+        case.prop_rel = prop;
+        case.modes[6].4 = weak;
+        for m in case.modes.iter_mut() {
+            m.3 *= zscale;
+        }
+        let s = build(&case);
+        let ex = extract(&s.spectra, &ExtractParams::default()).unwrap();
+        let ctx = format!("noise {floor}/{prop}, damping x{zscale}");
+        assert!(ex.modes.len() <= s.freq_hz.len(), "{ctx}: spurious mode");
+        let model = model_from_truth(&s, 1.0);
+        let ident: Vec<IdentifiedShape> = ex
+            .modes
+            .iter()
+            .map(|m| IdentifiedShape {
+                freq_hz: m.freq_hz,
+                shape: m.shape.clone(),
+            })
+            .collect();
+        let p = pair::pair_modes(
+            &ident,
+            &model,
+            &s.points,
+            ex.band_hz,
+            &PairParams::default(),
+        )
+        .unwrap();
+        for pr in &p.pairs {
+            let md = &ex.modes[pr.mode];
+            let j = pr.model_mode.expect("fewer identified than model modes");
+            let good = mac_real(&md.shape, &s.shapes[j]) >= 0.99;
+            if good {
+                assert!(pr.accepted, "{ctx}: good mode {j} rejected");
+                assert!(
+                    (md.freq_hz / s.freq_hz[j] - 1.0).abs() < 5e-4,
+                    "{ctx}: mode {j} freq"
+                );
+                assert!(
+                    (md.damping_ratio / s.damping[j] - 1.0).abs() < 0.1,
+                    "{ctx}: mode {j} damping {}",
+                    md.damping_ratio
+                );
+            } else {
+                assert!(
+                    !pr.accepted,
+                    "{ctx}: mixed mode accepted as {j} (MAC {})",
+                    pr.mac
+                );
+                assert!(
+                    j == 3 || j == 4,
+                    "{ctx}: only the close pair may be unresolved, not {j}"
+                );
+            }
+        }
+    }
+}
