@@ -20,12 +20,12 @@
 //!    order (frequency, damping, shape).
 //! 4. [`poles::select_physical_poles`]: automatic selection by clustering stable poles across
 //!    orders; no list of approximate frequencies, no human.
-//! 5. [`lsfd::lsfd`]: residues and residual terms per scan point for the selected poles,
+//! 5. [`refine::refine_poles`]: each selected pole is refined by a local output-error
+//!    (maximum-likelihood) fit, which removes the low-SNR damping bias of the linearised LSCF.
+//! 6. [`lsfd::lsfd`]: residues and residual terms per scan point for the refined poles,
 //!    real-normalised shapes, modal phase collinearity (MPC), mean phase deviation (MPD),
 //!    fit error per scan point.
-//! 5a. Before the LSFD, [`refine::refine_poles`] refines each selected pole by a local
-//!    output-error fit (removes the low-SNR damping bias of the linearised LSCF).
-//! 6. Scan points whose fit error is an outlier are flagged and steps 2–5 are rerun without
+//! 7. Scan points whose fit error is an outlier are flagged and steps 2–6 are rerun without
 //!    them (once).
 //!
 //! Pairing ([`pair`]) uses the modal assurance criterion ([`mac`]) and an optimal one-to-one
