@@ -211,7 +211,10 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
                     Finding::new(
                         Severity::Quarantined,
                         "pair.points",
-                        format!("only {} scan points lie on the model board (expected at least 3)", keep.len()),
+                        format!(
+                            "only {} scan points lie on the model board (expected at least 3)",
+                            keep.len()
+                        ),
                     )
                     .measurement(m.measurement_id.clone()),
                 );
@@ -234,22 +237,17 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
                     shape: keep.iter().map(|&i| s[i]).collect(),
                 })
                 .collect();
-            let pairing = match pair::pair_modes(
-                &identified,
-                &model_modes,
-                &points,
-                m.band,
-                &opts.params,
-            ) {
-                Ok(p) => p,
-                Err(e) => {
-                    findings.push(
-                        Finding::new(Severity::Quarantined, "pair.failed", e.to_string())
-                            .measurement(m.measurement_id.clone()),
-                    );
-                    continue;
-                }
-            };
+            let pairing =
+                match pair::pair_modes(&identified, &model_modes, &points, m.band, &opts.params) {
+                    Ok(p) => p,
+                    Err(e) => {
+                        findings.push(
+                            Finding::new(Severity::Quarantined, "pair.failed", e.to_string())
+                                .measurement(m.measurement_id.clone()),
+                        );
+                        continue;
+                    }
+                };
             let swapped: std::collections::BTreeSet<usize> =
                 pairing.swaps.iter().flat_map(|&(a, b)| [a, b]).collect();
             let mut accepted_labels = vec![];
