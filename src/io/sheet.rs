@@ -238,7 +238,11 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
             // With CRLF the reported start can sit on the previous line's `\n`; step past it.
             Some(p) => {
                 let b = p.byte() as usize;
-                line_at(if bytes.get(b) == Some(&b'\n') { b + 1 } else { b })
+                line_at(if bytes.get(b) == Some(&b'\n') {
+                    b + 1
+                } else {
+                    b
+                })
             }
             None => line_hint,
         };
