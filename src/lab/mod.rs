@@ -136,12 +136,12 @@ pub fn simulate(
     board.validate()?;
     let plan = truth::plan(scenario, board, seed)?;
     let models = truth::Models::build(scenario, board)?;
-    let free_cache = truth::free_board_modes(scenario, board, &plan, &models)?;
+    let free_cache = truth::free_board_modes(scenario, &plan, &models)?;
     let results: Vec<(truth::MeasurementTruth, Vec<u8>)> = plan
         .measurements
         .par_iter()
         .map(|m| {
-            let ms = truth::measurement_modes(scenario, board, &plan, &models, &free_cache, m)?;
+            let ms = truth::measurement_modes(scenario, &plan, &models, &free_cache, m)?;
             let bytes = measure::measurement_uff(scenario, &models.points, m, &ms, seed)?;
             Ok((ms.truth, bytes))
         })

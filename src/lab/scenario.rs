@@ -190,6 +190,9 @@ pub struct Instrument {
     pub coherence: bool,
     /// Free-free: rigid-body modes on the foam, range of their frequencies, Hz.
     pub suspension_hz: [f64; 2],
+    /// Shaker cross-axis motion: standard deviation of the base rocking, expressed as the
+    /// rigid base motion across the scan grid relative to the reference motion.
+    pub base_rocking_rel: f64,
 }
 
 impl Default for Instrument {
@@ -207,6 +210,7 @@ impl Default for Instrument {
             dropout_point_prob: 0.02,
             coherence: true,
             suspension_hz: [8.0, 25.0],
+            base_rocking_rel: 0.03,
         }
     }
 }
@@ -261,7 +265,7 @@ impl Default for Balance {
             resolution_g: 1e-4,
             repeatability_d: 0.4,
             glitch_prob: 0.3,
-            garbled_prob: 0.02,
+            garbled_prob: 0.05,
         }
     }
 }
@@ -509,6 +513,13 @@ impl Scenario {
         nonneg("measurement.noise_prop_rel", m.noise_prop_rel)?;
         prob("measurement.missing_point_prob", m.missing_point_prob)?;
         prob("measurement.dropout_point_prob", m.dropout_point_prob)?;
+        if !(0.0..=0.3).contains(&m.base_rocking_rel) {
+            return Err(bad(
+                "measurement.base_rocking_rel",
+                "a fraction in [0, 0.3]",
+                m.base_rocking_rel,
+            ));
+        }
         if !(m.suspension_hz[0] > 0.0 && m.suspension_hz[0] <= m.suspension_hz[1]) {
             return Err(bad(
                 "measurement.suspension_hz",

@@ -459,6 +459,13 @@ fn null_scenario_changes_nothing_and_each_effect_changes_the_data_by_its_amount(
         assert!(eff.enabled);
         let d = eff.expected_diagnosis.as_ref().unwrap();
         assert!(!d.measurements_affected.is_empty(), "{name}");
+        // Only the fixture brings a mode of its own; the others move the board's modes.
+        assert_eq!(
+            d.extra_modes.is_empty(),
+            name != "fixture",
+            "{name}: {:?}",
+            d.extra_modes
+        );
         assert!(
             d.setups_affected.iter().all(|s| setups.contains(s)),
             "{name}: {:?}",

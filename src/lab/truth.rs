@@ -384,6 +384,10 @@ pub struct ModeSet {
     pub shapes: Vec<Vec<f64>>,
     /// Participation Γ_r = φ_rᵀ M r for base motion in z, √kg (bolted only).
     pub gamma: Vec<f64>,
+    /// Bolted only: participation in rigid base rotations about the shaker reference
+    /// point, φ_rᵀ M r_θ with r_θ: w = x − x_ref (resp. y − y_ref) and unit slope,
+    /// √kg·m per mode.
+    pub gamma_rock: Vec<[f64; 2]>,
     /// Free only: the three rigid-body shapes at the scan points (M-orthonormal).
     pub rigid: Vec<Vec<f64>>,
     /// Total mass rᵀ M r, kg.
@@ -453,10 +457,40 @@ fn mode_set(
     } else {
         vec![]
     };
+    let gamma_rock = if free {
+        vec![]
+    } else {
+        let [xr, yr, _] = super::measure::SHAKER_REFERENCE_M;
+        let mesh = &model.mesh;
+        let mut rx = vec![0.0; model.n_dof];
+        let mut ry = vec![0.0; model.n_dof];
+        for j in 0..=mesh.ny {
+            for i in 0..=mesh.nx {
+                if let Some(d) = mesh.node_dof[j * (mesh.nx + 1) + i] {
+                    rx[d] = i as f64 * mesh.a_m - xr;
+                    rx[d + 1] = 1.0;
+                    ry[d] = j as f64 * mesh.b_m - yr;
+                    ry[d + 2] = 1.0;
+                }
+            }
+        }
+        let (mrx, mry) = (model.mass_apply(p, &rx)?, model.mass_apply(p, &ry)?);
+        (0..modes.shapes.ncols())
+            .map(|c| {
+                let g = |mr: &[f64]| {
+                    (0..model.n_dof)
+                        .map(|i| modes.shapes[(i, c)] * mr[i])
+                        .sum::<f64>()
+                };
+                [g(&mrx), g(&mry)]
+            })
+            .collect()
+    };
     Ok(ModeSet {
         freq_hz: modes.freq_hz,
         shapes,
         gamma,
+        gamma_rock,
         rigid,
         total_mass_kg: model.total_mass_kg(p)?,
     })
@@ -471,12 +505,7 @@ pub struct FreeCache {
 }
 
 /// Free modes of every board at the reference temperature (in parallel, board order).
-pub fn free_board_modes(
-    s: &Scenario,
-    _board: &Board,
-    plan: &Plan,
-    m: &Models,
-) -> Result<FreeCache, LabError> {
+pub fn free_board_modes(s: &Scenario, plan: &Plan, m: &Models) -> Result<FreeCache, LabError> {
     use rayon::prelude::*;
     let pairs: Vec<(ModeSet, Option<ModeSet>)> = plan
         .boards
@@ -549,13 +578,20 @@ pub struct MeasurementTruth {
     pub dropout_nodes: Vec<i64>,
     /// The driving point: hammer impact node (free) or shaker reference node (bolted).
     pub reference_node: i64,
+    /// Bolted: base rocking about the reference point, (a_x, a_y) in rad per metre of
+    /// reference motion (the shaker's cross-axis motion).
+    pub base_rocking_rad_per_m: Option<[f64; 2]>,
 }
 
 /// Modes and draws of one measurement, ready for the instruments.
 pub struct MeasurementModes {
     pub truth: MeasurementTruth,
+    /// The modes; for bolted measurements `gamma` includes the base rocking.
     pub set: ModeSet,
     pub damping: Vec<f64>,
+    /// Bolted: rigid base motion at each scan point per unit reference motion,
+    /// 1 + a_x (x − x_ref) + a_y (y − y_ref); empty for free measurements.
+    pub base_motion: Vec<f64>,
 }
 
 /// Node id of the shaker reference point of bolted measurements (off the board).
@@ -563,37 +599,56 @@ pub const SHAKER_REFERENCE_NODE: i64 = 900;
 /// 0-based scan point of the hammer impact (node 1, near a corner: every mode responds).
 pub const HAMMER_POINT: usize = 0;
 
-/// Greedy MAC pairing: for each mode of `a` (ascending), the unused mode of `b` with the
-/// largest MAC ≥ 0.6.
-fn pair(a: &[Vec<f64>], b: &[Vec<f64>]) -> Vec<Option<(usize, f64)>> {
+/// Pair the modes of `a` with those of `b`: first greedily by MAC on the scan grid (each
+/// mode of `a` in ascending order takes the unused mode of `b` with the largest MAC ≥ 0.6),
+/// then the leftovers by nearest frequency within 5 % (close modes that the effect mixes
+/// lose their MAC but not their identity as a pair). Returns (index in `b`, MAC).
+fn pair(a: &ModeSet, b: &ModeSet) -> Vec<Option<(usize, f64)>> {
     let dot = |x: &[f64], y: &[f64]| x.iter().zip(y).map(|(p, q)| p * q).sum::<f64>();
-    let mut used = vec![false; b.len()];
-    a.iter()
+    let mac =
+        |x: &[f64], y: &[f64]| dot(x, y).powi(2) / (dot(x, x) * dot(y, y)).max(f64::MIN_POSITIVE);
+    let mut used = vec![false; b.shapes.len()];
+    let mut out: Vec<Option<(usize, f64)>> = a
+        .shapes
+        .iter()
         .map(|x| {
             let best = b
+                .shapes
                 .iter()
                 .enumerate()
                 .filter(|(j, _)| !used[*j])
-                .map(|(j, y)| {
-                    (
-                        j,
-                        dot(x, y).powi(2) / (dot(x, x) * dot(y, y)).max(f64::MIN_POSITIVE),
-                    )
-                })
-                .filter(|(_, mac)| *mac >= 0.6)
+                .map(|(j, y)| (j, mac(x, y)))
+                .filter(|(_, m)| *m >= 0.6)
                 .max_by(|p, q| p.1.total_cmp(&q.1));
             if let Some((j, _)) = best {
                 used[j] = true;
             }
             best
         })
-        .collect()
+        .collect();
+    for (i, o) in out.iter_mut().enumerate() {
+        if o.is_some() {
+            continue;
+        }
+        let fa = a.freq_hz[i];
+        let near = (0..b.freq_hz.len())
+            .filter(|j| !used[*j] && (b.freq_hz[*j] / fa - 1.0).abs() <= 0.05)
+            .min_by(|p, q| {
+                (b.freq_hz[*p] - fa)
+                    .abs()
+                    .total_cmp(&(b.freq_hz[*q] - fa).abs())
+            });
+        if let Some(j) = near {
+            used[j] = true;
+            *o = Some((j, mac(&a.shapes[i], &b.shapes[j])));
+        }
+    }
+    out
 }
 
 /// Modes of measurement `m` with and without effects, damping and drop-out draws.
 pub fn measurement_modes(
     s: &Scenario,
-    _board: &Board,
     plan: &Plan,
     models: &Models,
     cache: &FreeCache,
@@ -601,7 +656,7 @@ pub fn measurement_modes(
 ) -> Result<MeasurementModes, LabError> {
     let bd = &plan.boards[m.board];
     let stiff = stiffness_factor(s, m.temperature_c);
-    let (set, cf): (ModeSet, Option<ModeSet>) = match m.setup {
+    let (mut set, cf): (ModeSet, Option<ModeSet>) = match m.setup {
         SetupKind::Free => {
             let with = if stiff != 1.0 {
                 let p = params(s, &models.free, bd, stiff, None, false)?;
@@ -676,11 +731,31 @@ pub fn measurement_modes(
             dropout_nodes.push(node);
         }
     }
+    // Shaker cross-axis motion: the base rocks about the reference point by a_x, a_y
+    // (rad per metre of reference motion), so antisymmetric modes show in the data too.
+    let mut base_motion = Vec::new();
+    let mut rocking = None;
+    if m.setup == SetupKind::Bolted {
+        let lx = models.points.iter().map(|p| p[0]).fold(0.0, f64::max);
+        let ly = models.points.iter().map(|p| p[1]).fold(0.0, f64::max);
+        let ax = inst.base_rocking_rel / lx * normal(&mut rng);
+        let ay = inst.base_rocking_rel / ly * normal(&mut rng);
+        let [xr, yr, _] = super::measure::SHAKER_REFERENCE_M;
+        for (g, gr) in set.gamma.iter_mut().zip(&set.gamma_rock) {
+            *g += ax * gr[0] + ay * gr[1];
+        }
+        base_motion = models
+            .points
+            .iter()
+            .map(|p| 1.0 + ax * (p[0] - xr) + ay * (p[1] - yr))
+            .collect();
+        rocking = Some([ax, ay]);
+    }
     let max_hz = match m.setup {
         SetupKind::Free => inst.free_max_hz,
         SetupKind::Bolted => inst.bolted_max_hz,
     };
-    let pairing = cf.as_ref().map(|c| pair(&set.shapes, &c.shapes));
+    let pairing = cf.as_ref().map(|c| pair(&set, c));
     let modes = set
         .freq_hz
         .iter()
@@ -733,11 +808,13 @@ pub fn measurement_modes(
         missing_nodes,
         dropout_nodes,
         reference_node,
+        base_rocking_rad_per_m: rocking,
     };
     Ok(MeasurementModes {
         truth,
         set,
         damping,
+        base_motion,
     })
 }
 
