@@ -626,17 +626,19 @@ fn pyuff_and_pandas_read_the_campaign() {
         std::fs::create_dir_all(path.parent().unwrap()).unwrap();
         std::fs::write(&path, b).unwrap();
     }
+    // In the main crate the script sits under the manifest dir; the fallback serves the
+    // scratch crate that includes these sources by path.
     let script = concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/../../work/main/tests/interop/lab_read_campaign.py"
+        "/tests/interop/lab_read_campaign.py"
     );
     let script = if std::path::Path::new(script).exists() {
-        script.to_string()
+        script
     } else {
-        "/work/main/tests/interop/lab_read_campaign.py".to_string()
+        "/work/main/tests/interop/lab_read_campaign.py"
     };
     let out = std::process::Command::new("python3")
-        .arg(&script)
+        .arg(script)
         .arg(dir.path())
         .output()
         .expect("python3 runs");
