@@ -7,6 +7,7 @@
 pub mod fem;
 pub mod findings;
 pub mod io;
+pub mod lab;
 pub mod modal;
 pub mod report;
 pub mod schemas;

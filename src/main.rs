@@ -94,6 +94,11 @@ enum Command {
         #[arg(long)]
         force: bool,
     },
+    /// The virtual lab: simulate complete measurement campaigns (with concealed effects).
+    Lab {
+        #[command(subcommand)]
+        command: LabCommand,
+    },
     /// Write the JSON schemas of every Parquet table and MCAP channel into a directory
     /// (the repository keeps them under schemas/).
     Schemas {
@@ -132,6 +137,33 @@ impl ModelArgs {
             mesh: self.mesh.as_ref().map(|v| (v[0], v[1])),
         }
     }
+}
+
+#[derive(Subcommand)]
+enum LabCommand {
+    /// Write a campaign directory in exactly the input contract, and the truth behind it
+    /// (parameters, drawn quantities, the concealed effect and its expected diagnosis) in a
+    /// separate JSON file.
+    Simulate {
+        /// Scenario file (TOML, schemas/lab_scenario.schema.json) or a built-in name:
+        /// paper (default campaign), null, rotational, loose_bolt, temperature, lumped_mass,
+        /// fixture.
+        scenario: String,
+        /// Campaign directory to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Truth file to write (must lie outside the campaign directory).
+        #[arg(long)]
+        truth: PathBuf,
+        /// Seed (default: the scenario's).
+        #[arg(long)]
+        seed: Option<u64>,
+        /// Board description (default: the built-in board).
+        #[arg(long)]
+        board: Option<PathBuf>,
+        #[arg(long)]
+        force: bool,
+    },
 }
 
 #[derive(Subcommand)]
@@ -318,6 +350,28 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             };
             let o = stage::pair::run(&opts, cli.verbose)?;
             Ok(report("pair", &opts.out, &o))
+        }
+        Command::Lab {
+            command:
+                LabCommand::Simulate {
+                    scenario,
+                    out,
+                    truth,
+                    seed,
+                    board,
+                    force,
+                },
+        } => {
+            let opts = stage::lab::SimulateOptions {
+                scenario,
+                board,
+                out,
+                truth,
+                seed,
+                force,
+            };
+            let o = stage::lab::run(&opts)?;
+            Ok(report("lab simulate", &opts.out, &o))
         }
         Command::Schemas { out } => {
             hbmu::schemas::write_all(&out)?;

@@ -8,6 +8,7 @@
 pub mod extract;
 pub mod fe;
 pub mod ingest;
+pub mod lab;
 pub mod pair;
 
 use crate::io::manifest::{self, Manifest, Prepared, RunInfo, StageSpec};
