@@ -4,5 +4,6 @@
 mod common;
 mod ingest;
 mod interop;
+mod lab;
 mod layout;
 mod stages;
