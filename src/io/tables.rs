@@ -90,7 +90,8 @@ pub struct TableSpec {
     pub open: bool,
 }
 
-const fn c(
+/// A column spec in one line (for the table constants of every stage).
+pub const fn c(
     name: &'static str,
     ty: Col,
     nullable: bool,
@@ -218,6 +219,26 @@ pub fn write_parquet(path: &Path, batch: &RecordBatch) -> io::Result<()> {
         writer.close().map_err(io::Error::other)?;
         Ok(())
     })
+}
+
+/// A `list<float64>` column, one list per row.
+pub fn list_f64_col<I: IntoIterator<Item = Vec<f64>>>(rows: I) -> ArrayRef {
+    let mut b = arrow::array::ListBuilder::new(arrow::array::Float64Builder::new());
+    for v in rows {
+        b.values().append_slice(&v);
+        b.append(true);
+    }
+    Arc::new(b.finish())
+}
+
+/// A `list<int64>` column, one list per row.
+pub fn list_i64_col<I: IntoIterator<Item = Vec<i64>>>(rows: I) -> ArrayRef {
+    let mut b = arrow::array::ListBuilder::new(arrow::array::Int64Builder::new());
+    for v in rows {
+        b.values().append_slice(&v);
+        b.append(true);
+    }
+    Arc::new(b.finish())
 }
 
 /// Assemble a batch from columns in spec order (plus extra columns), checking lengths.

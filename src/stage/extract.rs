@@ -10,34 +10,15 @@
 
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::manifest::StageSpec;
-use crate::io::tables::{self, Col, Cols, ColumnSpec, TableSpec};
+use crate::io::tables::{self, c, Col, Cols, TableSpec};
 use crate::modal::{self, ExtractParams, FunctionKind, MeasurementSpectra, PointSpectrum};
 use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::Context;
-use arrow::array::{
-    ArrayRef, Float64Array, Float64Builder, Int32Array, Int64Array, Int64Builder, ListBuilder,
-    StringArray,
-};
+use arrow::array::{ArrayRef, Float64Array, Int32Array, Int64Array, StringArray};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-
-const fn c(
-    name: &'static str,
-    ty: Col,
-    nullable: bool,
-    unit: &'static str,
-    doc: &'static str,
-) -> ColumnSpec {
-    ColumnSpec {
-        name,
-        ty,
-        nullable,
-        unit,
-        doc,
-    }
-}
 
 pub const MODES: TableSpec = TableSpec {
     name: "modes",
@@ -198,24 +179,6 @@ struct Done {
     svg: Option<String>,
 }
 
-fn list_f64<I: IntoIterator<Item = Vec<f64>>>(it: I) -> ArrayRef {
-    let mut b = ListBuilder::new(Float64Builder::new());
-    for v in it {
-        b.values().append_slice(&v);
-        b.append(true);
-    }
-    Arc::new(b.finish())
-}
-
-fn list_i64<I: IntoIterator<Item = Vec<i64>>>(it: I) -> ArrayRef {
-    let mut b = ListBuilder::new(Int64Builder::new());
-    for v in it {
-        b.values().append_slice(&v);
-        b.append(true);
-    }
-    Arc::new(b.finish())
-}
-
 /// Options of `hbmu extract`.
 #[derive(Debug, Clone)]
 pub struct ExtractOptions {
@@ -367,19 +330,19 @@ fn write_outputs(
         Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| {
             r.0.result.as_ref().map(|x| x.band_hz.1).unwrap_or(f64::NAN)
         }))),
-        list_i64(
+        tables::list_i64_col(
             rows.iter()
                 .map(|r| r.0.input.points.iter().map(|p| p.node).collect()),
         ),
-        list_f64(
+        tables::list_f64_col(
             rows.iter()
                 .map(|r| r.0.input.points.iter().map(|p| p.xyz_m[0]).collect()),
         ),
-        list_f64(
+        tables::list_f64_col(
             rows.iter()
                 .map(|r| r.0.input.points.iter().map(|p| p.xyz_m[1]).collect()),
         ),
-        list_f64(rows.iter().map(|r| r.2.shape.clone())),
+        tables::list_f64_col(rows.iter().map(|r| r.2.shape.clone())),
     ];
     let p = out.join("modes.parquet");
     let schema = MODES.schema(&[], &tables::table_metadata(&MODES, &prov));

@@ -11,9 +11,7 @@ use crate::io::manifest::StageSpec;
 use crate::io::tables::{self, TableSpec};
 use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::{anyhow, bail, Context};
-use arrow::array::{
-    ArrayRef, Float64Array, Float64Builder, Int32Array, Int64Builder, ListBuilder, StringArray,
-};
+use arrow::array::{ArrayRef, Float64Array, Int32Array, StringArray};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -148,24 +146,6 @@ fn provenance(stage: &str, fingerprint: &str, board: &Board) -> BTreeMap<String,
     ])
 }
 
-fn list_f64<I: IntoIterator<Item = Vec<f64>>>(it: I) -> ArrayRef {
-    let mut b = ListBuilder::new(Float64Builder::new());
-    for v in it {
-        b.values().append_slice(&v);
-        b.append(true);
-    }
-    Arc::new(b.finish())
-}
-
-fn list_i64<I: IntoIterator<Item = Vec<i64>>>(it: I) -> ArrayRef {
-    let mut b = ListBuilder::new(Int64Builder::new());
-    for v in it {
-        b.values().append_slice(&v);
-        b.append(true);
-    }
-    Arc::new(b.finish())
-}
-
 fn write(
     path: &Path,
     spec: &TableSpec,
@@ -254,10 +234,10 @@ pub fn run_modes(
                 Arc::new(StringArray::from(vec![opts.setup.as_str(); n])),
                 Arc::new(Int32Array::from_iter_values((1..=n).map(|m| m as i32))),
                 Arc::new(Float64Array::from(modes.freq_hz.clone())),
-                list_i64((0..n).map(|_| nodes.clone())),
-                list_f64((0..n).map(|_| pts.iter().map(|p| p[0]).collect())),
-                list_f64((0..n).map(|_| pts.iter().map(|p| p[1]).collect())),
-                list_f64((0..n).map(|j| (0..pts.len()).map(|i| w[(i, j)]).collect())),
+                tables::list_i64_col((0..n).map(|_| nodes.clone())),
+                tables::list_f64_col((0..n).map(|_| pts.iter().map(|p| p[0]).collect())),
+                tables::list_f64_col((0..n).map(|_| pts.iter().map(|p| p[1]).collect())),
+                tables::list_f64_col((0..n).map(|j| (0..pts.len()).map(|i| w[(i, j)]).collect())),
             ],
         )?;
         let mut summary = BTreeMap::new();

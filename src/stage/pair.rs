@@ -8,7 +8,7 @@
 use crate::fem::{Board, FeModel};
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::manifest::StageSpec;
-use crate::io::tables::{self, Col, Cols, ColumnSpec, TableSpec};
+use crate::io::tables::{self, c, Col, Cols, TableSpec};
 use crate::modal::pair::{self, IdentifiedShape, ModelMode, PairParams, PresenceRecord, ScanPoint};
 use crate::stage::extract::sanitize;
 use crate::stage::fe::SetupArg;
@@ -18,22 +18,6 @@ use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-
-const fn c(
-    name: &'static str,
-    ty: Col,
-    nullable: bool,
-    unit: &'static str,
-    doc: &'static str,
-) -> ColumnSpec {
-    ColumnSpec {
-        name,
-        ty,
-        nullable,
-        unit,
-        doc,
-    }
-}
 
 pub const PAIRS: TableSpec = TableSpec {
     name: "pairs",
