@@ -130,6 +130,9 @@ impl<W: Write + Seek> CampaignMcap<W> {
             .chunk_size(Some(4 << 20))
             // Single-threaded zstd: identical bytes whatever the machine's core count.
             .compression_threads(0)
+            // Level 1: the spectra are most of the bytes, and level 1 compresses them at several
+            // hundred MB/s, where the default level made this file the stage's bottleneck.
+            .compression_level(1)
             .profile("")
             .library(format!("hbmu {}", crate::io::manifest::TOOL_VERSION));
         let mut writer = opts.create(w).map_err(mcap_err)?;
@@ -172,11 +175,17 @@ impl<W: Write + Seek> CampaignMcap<W> {
         log_time_ns: u64,
         msg: &T,
     ) -> io::Result<()> {
+        let data = serde_json::to_vec(msg).map_err(io::Error::other)?;
+        self.write_encoded(topic, log_time_ns, &data)
+    }
+
+    /// Write one message already serialised as JSON (lets callers encode in parallel and
+    /// write in a fixed order).
+    pub fn write_encoded(&mut self, topic: &str, log_time_ns: u64, data: &[u8]) -> io::Result<()> {
         let channel_id = *self
             .channels
             .get(topic)
             .ok_or_else(|| io::Error::other(format!("unknown MCAP topic {topic}")))?;
-        let data = serde_json::to_vec(msg).map_err(io::Error::other)?;
         self.sequence += 1;
         self.writer
             .write_to_known_channel(
@@ -186,7 +195,7 @@ impl<W: Write + Seek> CampaignMcap<W> {
                     log_time: log_time_ns,
                     publish_time: log_time_ns,
                 },
-                &data,
+                data,
             )
             .map_err(mcap_err)
     }

@@ -205,7 +205,18 @@ pub fn write_parquet(path: &Path, batch: &RecordBatch) -> io::Result<()> {
         .into_iter()
         .map(|(k, v)| KeyValue::new(k.clone(), v.clone()))
         .collect();
-    let props = WriterProperties::builder()
+    // Dictionary encoding pays off for strings (ids, labels) and costs time for nothing on
+    // spectra and coordinates: enable it for string columns only.
+    let mut builder = WriterProperties::builder().set_dictionary_enabled(false);
+    for f in batch.schema().fields() {
+        if f.data_type() == &DataType::Utf8 {
+            builder = builder.set_column_dictionary_enabled(
+                parquet::schema::types::ColumnPath::from(f.name().as_str()),
+                true,
+            );
+        }
+    }
+    let props = builder
         .set_compression(Compression::ZSTD(
             ZstdLevel::try_new(3).map_err(io::Error::other)?,
         ))

@@ -1102,9 +1102,35 @@ fn write_outputs(c: &Campaign, out: &Path, fingerprint: &str) -> anyhow::Result<
         ],
     )?;
 
+    let t_mcap = std::time::Instant::now();
     write_mcap(c, &p("campaign.mcap"), &prov)?;
+    log::debug(format_args!(
+        "campaign.mcap written in {:.2} s",
+        t_mcap.elapsed().as_secs_f64()
+    ));
     write_report(c, &p("ingest_report.json"), fingerprint)?;
     Ok(OUTPUTS.iter().map(|n| p(n)).collect())
+}
+
+/// Timing lines on stderr when `HBMU_TIMING` is set (benchmarks, profiling).
+mod log {
+    pub fn debug(args: std::fmt::Arguments) {
+        if std::env::var_os("HBMU_TIMING").is_some() {
+            eprintln!("timing: {args}");
+        }
+    }
+}
+
+/// JSON encoding behind a trait object, so one closure encodes any message type.
+mod erased {
+    pub trait Msg: Sync {
+        fn json(&self) -> std::io::Result<Vec<u8>>;
+    }
+    impl<T: serde::Serialize + Sync> Msg for T {
+        fn json(&self) -> std::io::Result<Vec<u8>> {
+            serde_json::to_vec(self).map_err(std::io::Error::other)
+        }
+    }
 }
 
 fn write_mcap(c: &Campaign, path: &Path, prov: &BTreeMap<String, String>) -> anyhow::Result<()> {
@@ -1142,47 +1168,61 @@ fn write_mcap(c: &Campaign, path: &Path, prov: &BTreeMap<String, String>) -> any
                 },
             )?;
         }
-        for m in c.measurements.iter().filter(|m| m.quarantine.is_none()) {
-            let t = m.row.date_unix_ns.unwrap_or(0).max(0) as u64;
-            let id = &m.row.measurement_id;
-            w.write(
-                "/scan_points",
-                t,
-                &ScanPointsMsg {
-                    measurement_id: id.clone(),
-                    points: m
-                        .points
-                        .iter()
-                        .map(|p| PointMsg {
-                            node: p.node,
-                            x_m: p.xyz_m[0],
-                            y_m: p.xyz_m[1],
-                            z_m: p.xyz_m[2],
-                            is_reference: p.is_reference,
-                        })
-                        .collect(),
-                },
-            )?;
-            for (topic, recs) in [("/frf", &m.records), ("/coherence", &m.coherence)] {
-                for r in recs {
-                    w.write(
-                        topic,
-                        t,
-                        &FunctionMsg {
-                            measurement_id: id.clone(),
-                            node: r.node,
-                            function_type: r.function_type,
-                            response_direction: r.response_direction,
-                            reference_node: r.reference_node,
-                            reference_direction: r.reference_direction,
-                            ordinate_unit: r.ordinate_unit.into(),
-                            freq_start_hz: r.freq_start_hz,
-                            freq_step_hz: r.freq_step_hz,
-                            re: r.re.clone(),
-                            im: r.im.clone().unwrap_or_default(),
-                        },
-                    )?;
+        // The spectra dominate the file: encode each measurement's messages in parallel,
+        // then write them in sheet order (same bytes whatever the thread count).
+        type Encoded<'a> = (u64, Vec<(&'a str, Vec<u8>)>);
+        let encoded: Vec<std::io::Result<Encoded>> = c
+            .measurements
+            .par_iter()
+            .filter(|m| m.quarantine.is_none())
+            .map(|m| {
+                let t = m.row.date_unix_ns.unwrap_or(0).max(0) as u64;
+                let id = &m.row.measurement_id;
+                let enc = |v: &dyn erased::Msg| v.json();
+                let mut msgs = vec![(
+                    "/scan_points",
+                    enc(&ScanPointsMsg {
+                        measurement_id: id.clone(),
+                        points: m
+                            .points
+                            .iter()
+                            .map(|p| PointMsg {
+                                node: p.node,
+                                x_m: p.xyz_m[0],
+                                y_m: p.xyz_m[1],
+                                z_m: p.xyz_m[2],
+                                is_reference: p.is_reference,
+                            })
+                            .collect(),
+                    })?,
+                )];
+                for (topic, recs) in [("/frf", &m.records), ("/coherence", &m.coherence)] {
+                    for r in recs {
+                        msgs.push((
+                            topic,
+                            enc(&FunctionMsg {
+                                measurement_id: id.clone(),
+                                node: r.node,
+                                function_type: r.function_type,
+                                response_direction: r.response_direction,
+                                reference_node: r.reference_node,
+                                reference_direction: r.reference_direction,
+                                ordinate_unit: r.ordinate_unit.into(),
+                                freq_start_hz: r.freq_start_hz,
+                                freq_step_hz: r.freq_step_hz,
+                                re: r.re.clone(),
+                                im: r.im.clone().unwrap_or_default(),
+                            })?,
+                        ));
+                    }
                 }
+                Ok((t, msgs))
+            })
+            .collect();
+        for e in encoded {
+            let (t, msgs) = e?;
+            for (topic, data) in msgs {
+                w.write_encoded(topic, t, &data)?;
             }
         }
         for r in &c.readings {
@@ -1294,8 +1334,16 @@ pub fn run(opts: &IngestOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         manifest_path: opts.out.join(MANIFEST),
     };
     crate::stage::run(spec, opts.force, |prep| {
+        let t0 = std::time::Instant::now();
         let campaign = read_campaign(&opts.campaign, &opts.config)?;
+        let t_read = t0.elapsed().as_secs_f64();
         let outputs = write_outputs(&campaign, &opts.out, &prep.fingerprint)?;
+        if verbose {
+            eprintln!(
+                "ingest: read and checked in {t_read:.2} s, outputs written in {:.2} s",
+                t0.elapsed().as_secs_f64() - t_read
+            );
+        }
         let n_q = campaign
             .measurements
             .iter()
