@@ -11,7 +11,6 @@
 //! Run: `cargo bench --bench modal` (needs `python3` with `sdypy-EMA` and `numpy`; without
 //! them only our numbers are printed).
 
-use std::io::Write;
 use std::path::Path;
 use std::time::Instant;
 
@@ -74,29 +73,9 @@ fn synth(seed: u64) -> Synth {
     Synth { freq_hz, h, shapes }
 }
 
-/// Minimal .npy (format 1.0) writer for little-endian f64 / complex128 C-order arrays.
+/// Write a .npy file (format 1.0, little-endian, C order) with the crate's NPY encoder.
 fn write_npy(path: &Path, descr: &str, shape: &[usize], data: &[u8]) -> std::io::Result<()> {
-    let shape_s = match shape.len() {
-        1 => format!("({},)", shape[0]),
-        _ => format!(
-            "({})",
-            shape
-                .iter()
-                .map(|s| s.to_string())
-                .collect::<Vec<_>>()
-                .join(", ")
-        ),
-    };
-    let mut header =
-        format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_s}, }}");
-    let total = 10 + header.len() + 1;
-    header.push_str(&" ".repeat((64 - total % 64) % 64));
-    header.push('\n');
-    let mut f = std::fs::File::create(path)?;
-    f.write_all(b"\x93NUMPY\x01\x00")?;
-    f.write_all(&(header.len() as u16).to_le_bytes())?;
-    f.write_all(header.as_bytes())?;
-    f.write_all(data)
+    std::fs::write(path, hbmu::fem::npz::npy(descr, shape, data))
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {

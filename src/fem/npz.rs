@@ -60,7 +60,7 @@ fn crc32(data: &[u8]) -> u32 {
 }
 
 /// A `.npy` v1.0 file for `data` with NumPy dtype string `descr` and `shape`.
-fn npy(descr: &str, shape: &[usize], data: &[u8]) -> Vec<u8> {
+pub fn npy(descr: &str, shape: &[usize], data: &[u8]) -> Vec<u8> {
     let shape_s = match shape.len() {
         1 => format!("({},)", shape[0]),
         _ => format!(
