@@ -2,8 +2,8 @@
 //! them, the writer that stamps units and provenance into both the Arrow schema metadata and
 //! the Parquet file metadata, and the JSON documentation of each table under `schemas/tables/`.
 //!
-//! The [`TableSpec`]s here are the single source of truth: `schemas/tables/*.json` are
-//! generated from them (`hbmu schemas --out schemas`) and a test fails when the checked-in files
+//! The [`TableSpec`]s (here for ingest and `fe`, in their stage files for `extract` and `pair`)
+//! are the single source of truth: `schemas/tables/*.json` are generated from them (`hbmu schemas --out schemas`) and a test fails when the checked-in files
 //! drift. Columns are flat and pandas-friendly: scalars, strings, and `list<float64>` for
 //! spectra and shapes (pyarrow turns those into numpy arrays per cell). No `pandas` metadata
 //! key is written: pandas reconstructs the frame from the Arrow schema alone.
