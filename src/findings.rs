@@ -10,7 +10,9 @@ use serde::{Deserialize, Serialize};
 use std::fmt;
 
 /// How serious a finding is, and therefore what happened to the data it concerns.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum Severity {
     /// Informational: expected imperfections (an ignored file, a skipped UFF dataset).
@@ -38,7 +40,8 @@ impl fmt::Display for Severity {
 }
 
 /// One thing a stage noticed, located as precisely as possible.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// Also the message type of the campaign MCAP's `/ingest/findings` channel.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Finding {
     pub severity: Severity,
     /// A short, stable machine-readable code, e.g. `uff.nan_ordinate`, `sheet.duplicate_id`.

@@ -84,18 +84,6 @@ pub struct BalanceMsg {
     pub mass_g: Option<f64>,
 }
 
-/// `/ingest/findings`: mirrors [`crate::findings::Finding`].
-#[derive(Debug, Clone, Serialize, JsonSchema)]
-pub struct FindingMsg {
-    pub severity: String,
-    pub code: String,
-    pub file: Option<String>,
-    pub line: Option<u64>,
-    pub record: Option<String>,
-    pub measurement_id: Option<String>,
-    pub message: String,
-}
-
 /// Channel topics, schema names and the JSON Schema of each channel's messages.
 pub fn channel_schemas() -> Vec<(&'static str, &'static str, serde_json::Value)> {
     fn s<T: JsonSchema>() -> serde_json::Value {
@@ -107,7 +95,11 @@ pub fn channel_schemas() -> Vec<(&'static str, &'static str, serde_json::Value)>
         ("/frf", "hbmu.FunctionRecord", s::<FunctionMsg>()),
         ("/coherence", "hbmu.FunctionRecord", s::<FunctionMsg>()),
         ("/balance", "hbmu.BalanceReading", s::<BalanceMsg>()),
-        ("/ingest/findings", "hbmu.Finding", s::<FindingMsg>()),
+        (
+            "/ingest/findings",
+            "hbmu.Finding",
+            s::<crate::findings::Finding>(),
+        ),
     ]
 }
 

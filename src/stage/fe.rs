@@ -76,14 +76,13 @@ fn load_board(path: Option<&Path>) -> anyhow::Result<(Board, String, Vec<PathBuf
 }
 
 /// Build the model and the parameter point from the options.
-pub fn build_model(opts: &ModelOptions) -> anyhow::Result<(FeModel, Params, String, Vec<PathBuf>)> {
-    let (board, board_hash, inputs) = load_board(opts.board.as_deref())?;
+pub fn build_model(board: &Board, opts: &ModelOptions) -> anyhow::Result<(FeModel, Params)> {
     let mut mesh = board.mesh.clone();
     if let Some((nx, ny)) = opts.mesh {
         mesh.nx = nx;
         mesh.ny = ny;
     }
-    let model = FeModel::build(&board, opts.setup.to_setup(), &mesh)?;
+    let model = FeModel::build(board, opts.setup.to_setup(), &mesh)?;
     let mut p = model.nominal_params();
     for s in &opts.set {
         let (name, value) = s
@@ -100,7 +99,7 @@ pub fn build_model(opts: &ModelOptions) -> anyhow::Result<(FeModel, Params, Stri
             )
         })?;
     }
-    Ok((model, p, board_hash, inputs))
+    Ok((model, p))
 }
 
 fn spec_for(
@@ -205,7 +204,7 @@ pub fn run_modes(
     out: &Path,
     force: bool,
 ) -> anyhow::Result<StageOutcome> {
-    let (_, board_hash, board_inputs) = load_board(opts.board.as_deref())?;
+    let (board, board_hash, board_inputs) = load_board(opts.board.as_deref())?;
     let mut inputs = board_inputs;
     if let Some(f) = points_from {
         inputs.push(f.ingest_dir.join("scan_points.parquet"));
@@ -220,7 +219,7 @@ pub fn run_modes(
         None,
     );
     crate::stage::run(spec, force, |prep| {
-        let (model, p, _, _) = build_model(opts)?;
+        let (model, p) = build_model(&board, opts)?;
         let (nodes, pts) = report_points(&model.board, points_from)?;
         let modes = model.modes(&p, n_modes)?;
         let w = model.w_at(&modes, &pts)?;
@@ -259,7 +258,7 @@ pub fn run_rom(
     out: &Path,
     force: bool,
 ) -> anyhow::Result<StageOutcome> {
-    let (_, board_hash, board_inputs) = load_board(opts.board.as_deref())?;
+    let (board, board_hash, board_inputs) = load_board(opts.board.as_deref())?;
     let spec = spec_for(
         "fe-rom",
         opts,
@@ -270,7 +269,7 @@ pub fn run_rom(
         Some(rom_opts.seed),
     );
     crate::stage::run(spec, force, |_prep| {
-        let (model, _p, _, _) = build_model(opts)?;
+        let (model, _) = build_model(&board, opts)?;
         let rom = fem::Rom::build(&model, rom_opts)?;
         crate::io::atomic::write_bytes(out, &rom.to_npz_bytes())
             .with_context(|| format!("writing {}", out.display()))?;
@@ -293,7 +292,7 @@ pub fn run_sensitivity(
     out: &Path,
     force: bool,
 ) -> anyhow::Result<StageOutcome> {
-    let (_, board_hash, board_inputs) = load_board(opts.board.as_deref())?;
+    let (board, board_hash, board_inputs) = load_board(opts.board.as_deref())?;
     let spec = spec_for(
         "fe-sensitivity",
         opts,
@@ -304,7 +303,7 @@ pub fn run_sensitivity(
         None,
     );
     crate::stage::run(spec, force, |prep| {
-        let (model, p, _, _) = build_model(opts)?;
+        let (model, p) = build_model(&board, opts)?;
         let modes = model.modes(&p, n_modes)?;
         let d = fem::sensitivity::eigen_derivatives(&model, &p, &modes, false)?;
         let mut rows: Vec<(i32, f64, String, f64, f64, f64)> = vec![];

@@ -12,7 +12,7 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::io::balance_log::{self, BoardMass, MassParams, Reading};
 use crate::io::manifest::{self, StageSpec};
 use crate::io::mcap_writer::{
-    BalanceMsg, CampaignMcap, FindingMsg, FunctionMsg, PointMsg, ScanPointsMsg, SheetMsg,
+    BalanceMsg, CampaignMcap, FunctionMsg, PointMsg, ScanPointsMsg, SheetMsg,
 };
 use crate::io::sheet::{self, Setup, SheetRow};
 use crate::io::tables::{self, TableSpec};
@@ -160,9 +160,8 @@ fn list_files(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
     Ok(out)
 }
 
-/// The files that determine the stage's outputs: the sheet, every file it names that exists,
-/// and every balance log. Fails with a clear message when the campaign cannot be read at all.
-pub fn discover_inputs(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
+/// The campaign directory and its sheet exist; else a clear error naming what is missing.
+fn check_campaign_dir(dir: &Path) -> anyhow::Result<()> {
     if !dir.is_dir() {
         bail!(
             "campaign directory {} does not exist or is not a directory",
@@ -176,6 +175,14 @@ pub fn discover_inputs(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
             dir.display()
         );
     }
+    Ok(())
+}
+
+/// The files that determine the stage's outputs: the sheet, every file it names that exists,
+/// and every balance log. Fails with a clear message when the campaign cannot be read at all.
+pub fn discover_inputs(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
+    check_campaign_dir(dir)?;
+    let sheet_path = dir.join("campaign.csv");
     let mut inputs: BTreeSet<PathBuf> = BTreeSet::new();
     inputs.insert(sheet_path.clone());
     let bytes = std::fs::read(&sheet_path)
@@ -200,7 +207,7 @@ pub fn discover_inputs(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
 /// Read, parse and cross-check a campaign. Fatal only when nothing can be read (no sheet, a
 /// sheet without required columns, no measurement at all).
 pub fn read_campaign(dir: &Path, cfg: &IngestConfig) -> anyhow::Result<Campaign> {
-    discover_inputs(dir)?; // the same clear errors for a missing directory or sheet
+    check_campaign_dir(dir)?;
     let name = dir
         .canonicalize()
         .ok()
@@ -1243,19 +1250,7 @@ fn write_mcap(c: &Campaign, path: &Path, prov: &BTreeMap<String, String>) -> any
             )?;
         }
         for f in c.findings.iter() {
-            w.write(
-                "/ingest/findings",
-                0,
-                &FindingMsg {
-                    severity: f.severity.to_string(),
-                    code: f.code.clone(),
-                    file: f.file.clone(),
-                    line: f.line,
-                    record: f.record.clone(),
-                    measurement_id: f.measurement_id.clone(),
-                    message: f.message.clone(),
-                },
-            )?;
+            w.write("/ingest/findings", 0, f)?;
         }
         w.finish()
     })
