@@ -11,4 +11,5 @@ pub mod lab;
 pub mod modal;
 pub mod report;
 pub mod schemas;
+pub mod simd;
 pub mod stage;

@@ -24,7 +24,8 @@
 //! with `beta_o = -R^{-1} S_o alpha`.
 
 use super::ModalError;
-use faer::{c64, Mat};
+use faer::linalg::matmul::matmul;
+use faer::{c64, Accum, Mat, MatMut, MatRef, Par};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -161,6 +162,58 @@ pub(crate) fn cholesky(a: &[f64], n: usize) -> Result<Vec<f64>, ModalError> {
     })
 }
 
+/// The z-domain basis `Omega_k^m = exp(-i omega_k m dt)`, `m = 0..=max_order`, on one
+/// frequency axis: depends only on the axis and the highest order, so [`super::extract`]
+/// builds it once and reuses it for every LSCF pass of a measurement.
+#[derive(Debug, Clone)]
+pub struct LscfBasis {
+    freq_hz: Vec<f64>,
+    max_order: usize,
+    dt: f64,
+    /// `cos(-omega_k m dt)`, column-major `n_lines x (max_order + 1)`.
+    e_re: Vec<f64>,
+    /// `sin(-omega_k m dt)`, same layout.
+    e_im: Vec<f64>,
+}
+
+impl LscfBasis {
+    /// Basis for `freq_hz` (the band) up to `max_order`. The powers are built by complex
+    /// multiplication from `Omega_k` (relative error below `max_order * 2^-52`), which is
+    /// much cheaper than one `sin`/`cos` pair per entry.
+    pub fn new(freq_hz: &[f64], max_order: usize) -> Self {
+        let nf = freq_hz.len();
+        let f_hi = freq_hz.last().copied().unwrap_or(1.0);
+        let dt = 1.0 / (2.0 * f_hi);
+        let n1 = max_order + 1;
+        let mut e_re = vec![0.0; n1 * nf];
+        let mut e_im = vec![0.0; n1 * nf];
+        for (k, &f) in freq_hz.iter().enumerate() {
+            let z1 = c64::from_polar(1.0, -2.0 * PI * f * dt);
+            let mut z = c64::new(1.0, 0.0);
+            for m in 0..n1 {
+                e_re[m * nf + k] = z.re;
+                e_im[m * nf + k] = z.im;
+                z *= z1;
+            }
+        }
+        Self {
+            freq_hz: freq_hz.to_vec(),
+            max_order,
+            dt,
+            e_re,
+            e_im,
+        }
+    }
+
+    fn e_re(&self) -> MatRef<'_, f64> {
+        MatRef::from_column_major_slice(&self.e_re, self.freq_hz.len(), self.max_order + 1)
+    }
+
+    fn e_im(&self) -> MatRef<'_, f64> {
+        MatRef::from_column_major_slice(&self.e_im, self.freq_hz.len(), self.max_order + 1)
+    }
+}
+
 /// Estimate poles for every model order `min_order, min_order+step, ..., <= max_order`.
 ///
 /// `h[o]` is the spectrum of used point `o` on `freq_hz` (the band). Returns one
@@ -176,20 +229,85 @@ pub fn lscf_poles(
     line_weight: Option<&[f64]>,
     params: &LscfParams,
 ) -> Result<Vec<OrderPoles>, ModalError> {
-    let nmax = params.max_order;
-    if params.min_order < 2 || params.min_order > nmax || params.order_step == 0 {
+    check_orders(params)?;
+    let weights = point_weights(h, params.weighting);
+    lscf_poles_with(
+        &LscfBasis::new(freq_hz, params.max_order),
+        h,
+        &weights,
+        line_weight,
+        params,
+    )
+}
+
+fn check_orders(params: &LscfParams) -> Result<(), ModalError> {
+    if params.min_order < 2 || params.min_order > params.max_order || params.order_step == 0 {
         return Err(ModalError::Orders {
             min: params.min_order,
-            max: nmax,
+            max: params.max_order,
             step: params.order_step,
         });
     }
+    Ok(())
+}
+
+/// Weight of each point in the LSCF equation error (see [`Weighting`]).
+pub fn point_weights(h: &[&[c64]], weighting: Weighting) -> Vec<f64> {
+    h.iter()
+        .map(|row| {
+            let rms = super::frf::rms(row);
+            match weighting {
+                Weighting::Unit => 1.0,
+                Weighting::Rms => 1.0 / rms.max(f64::MIN_POSITIVE),
+                Weighting::NoiseEstimate => {
+                    1.0 / noise_sigma(row).max(1e-6 * rms).max(f64::MIN_POSITIVE)
+                }
+            }
+        })
+        .collect()
+}
+
+/// [`lscf_poles`] with a prebuilt basis (`basis.max_order` must be at least
+/// `params.max_order`; the axis is the basis's) and point weights from [`point_weights`]
+/// (`params.weighting` is not consulted: the caller computes the weights once per set of
+/// points and reuses them across passes).
+///
+/// Dense linear algebra is done with faer's sequential kernels (`Par::Seq`): the extract
+/// stage already runs one measurement per core, and sequential kernels keep the result
+/// independent of the thread count. Work per call, with `n1 = max_order + 1` and `P` points:
+/// the lag sums are two `P x lines x n1` products, the whitened blocks `G_o = L^{-1} S_o`
+/// one triangular solve with `P n1` right-hand sides, the reduced normal matrices of all
+/// orders `n1` rank-`P` updates, and the numerators of all orders two more products.
+pub fn lscf_poles_with(
+    basis: &LscfBasis,
+    h: &[&[c64]],
+    weights: &[f64],
+    line_weight: Option<&[f64]>,
+    params: &LscfParams,
+) -> Result<Vec<OrderPoles>, ModalError> {
+    check_orders(params)?;
+    let nmax = params.max_order;
+    if nmax > basis.max_order {
+        return Err(ModalError::Param {
+            name: "max_order",
+            expected: "at most the basis's highest order",
+            found: format!("{nmax} > {}", basis.max_order),
+        });
+    }
+    let freq_hz = &basis.freq_hz;
     let nf = freq_hz.len();
     let f_lo = freq_hz[0];
     let f_hi = freq_hz[nf - 1];
-    let dt = 1.0 / (2.0 * f_hi);
+    let dt = basis.dt;
     let n1 = nmax + 1;
-
+    let np = h.len();
+    if let Some(row) = h.iter().find(|r| r.len() != nf) {
+        return Err(ModalError::ShapeLength {
+            context: "lscf spectra",
+            expected: nf,
+            found: row.len(),
+        });
+    }
     if let Some(lw) = line_weight {
         if lw.len() != nf || lw.iter().any(|w| !w.is_finite() || *w < 0.0) {
             return Err(ModalError::Param {
@@ -199,39 +317,24 @@ pub fn lscf_poles(
             });
         }
     }
-    // Weighted basis powers E[m][k] = v_k^2 exp(-i omega_k m dt), m = 0..=nmax, with the
-    // squared line weight folded in (every lag sum carries it exactly once).
-    // Stored as separate real and imaginary tables for vectorised dot products.
-    let mut e_re = vec![0.0; n1 * nf];
-    let mut e_im = vec![0.0; n1 * nf];
-    for m in 0..n1 {
-        for k in 0..nf {
-            let ph = -2.0 * PI * freq_hz[k] * m as f64 * dt;
-            let v2 = line_weight.map_or(1.0, |lw| lw[k] * lw[k]);
-            e_re[m * nf + k] = v2 * ph.cos();
-            e_im[m * nf + k] = v2 * ph.sin();
-        }
+    let e_re = basis.e_re().subcols(0, n1);
+    let e_im = basis.e_im().subcols(0, n1);
+    // Squared line weights: every lag sum carries them exactly once.
+    let v2: Vec<f64> = match line_weight {
+        Some(lw) => lw.iter().map(|w| w * w).collect(),
+        None => vec![1.0; nf],
+    };
+    if weights.len() != np || weights.iter().any(|w| !w.is_finite() || *w <= 0.0) {
+        return Err(ModalError::Param {
+            name: "weights",
+            expected: "one finite positive weight per point",
+            found: format!("{} weights for {np} points", weights.len()),
+        });
     }
-    // Weights.
-    let weights: Vec<f64> = h
-        .iter()
-        .map(|row| {
-            let rms = super::frf::rms(row);
-            match params.weighting {
-                Weighting::Unit => 1.0,
-                Weighting::Rms => 1.0 / rms.max(f64::MIN_POSITIVE),
-                Weighting::NoiseEstimate => {
-                    1.0 / noise_sigma(row).max(1e-6 * rms).max(f64::MIN_POSITIVE)
-                }
-            }
-        })
+    // R (common to all points up to w_o^2, which is folded into H): r_m = Re sum_k v_k^2 E^m.
+    let r_lag: Vec<f64> = (0..n1)
+        .map(|m| dot(&basis.e_re[m * nf..(m + 1) * nf], &v2))
         .collect();
-
-    // R (common to all points up to w_o^2, which is folded into H): Re c_m.
-    let mut r_lag = vec![0.0; n1];
-    for (m, rl) in r_lag.iter_mut().enumerate() {
-        *rl = e_re[m * nf..(m + 1) * nf].iter().sum();
-    }
     let mut r = vec![0.0; n1 * n1];
     for i in 0..n1 {
         for j in 0..n1 {
@@ -239,96 +342,102 @@ pub fn lscf_poles(
         }
     }
     let l = cholesky(&r, n1)?;
-    let mut lt = vec![0.0; n1 * n1]; // L^T, row-major, for contiguous back substitution
-    for i in 0..n1 {
-        for j in 0..=i {
-            lt[j * n1 + i] = l[i * n1 + j];
-        }
-    }
+    // L as a faer matrix and the inverse of L (lower), whose leading blocks are the inverses
+    // of the leading blocks of L.
+    let l_mat = Mat::<f64>::from_fn(n1, n1, |i, j| l[i * n1 + j]);
+    let mut l_inv = Mat::<f64>::identity(n1, n1);
+    faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+        l_mat.as_ref(),
+        l_inv.as_mut(),
+        Par::Seq,
+    );
 
-    // T summed over points: Re t_m, t_m = sum_k (sum_o w_o^2 |H_ok|^2) E[m][k].
+    // T summed over points: t_m = Re sum_k v_k^2 (sum_o w_o^2 |H_ok|^2) E^m.
     let mut pow_sum = vec![0.0; nf];
-    for (row, w) in h.iter().zip(&weights) {
+    for (row, w) in h.iter().zip(weights) {
         for (p, v) in pow_sum.iter_mut().zip(row.iter()) {
             *p += w * w * v.norm_sqr();
         }
     }
+    for (p, v) in pow_sum.iter_mut().zip(&v2) {
+        *p *= v;
+    }
     let t_lag: Vec<f64> = (0..n1)
-        .map(|m| dot(&e_re[m * nf..(m + 1) * nf], &pow_sum))
+        .map(|m| dot(&basis.e_re[m * nf..(m + 1) * nf], &pow_sum))
         .collect();
 
-    // G_o = L^{-1} S_o for every point, S_o[i,j] = -Re s_{j-i}, s_m = sum_k w H_k E^m.
-    // Per point (in parallel: independent, each computed sequentially, collected in order,
-    // so the result does not depend on the thread count).
-    let g_all: Vec<Vec<f64>> = h
-        .par_iter()
-        .zip(weights.par_iter())
-        .map(|(row, &w)| {
-            let h_re: Vec<f64> = row.iter().map(|v| v.re).collect();
-            let h_im: Vec<f64> = row.iter().map(|v| v.im).collect();
-            let mut s_pos = vec![0.0; n1]; // Re s_m, m >= 0
-            let mut s_neg = vec![0.0; n1]; // Re s_{-m}
-            for m in 0..n1 {
-                // Re(H E^m) = p - q and Re(H conj(E^m)) = p + q.
-                let p = dot(&h_re, &e_re[m * nf..(m + 1) * nf]);
-                let q = dot(&h_im, &e_im[m * nf..(m + 1) * nf]);
-                s_pos[m] = w * (p - q);
-                s_neg[m] = w * (p + q);
-            }
-            let mut g = vec![0.0; n1 * n1];
-            for i in 0..n1 {
-                for j in 0..n1 {
-                    let s = if j >= i { s_pos[j - i] } else { s_neg[i - j] };
-                    g[i * n1 + j] = -s;
-                }
-            }
-            // Forward substitution L G = S (row-major, row by row).
-            for i in 0..n1 {
-                let (done, rest) = g.split_at_mut(i * n1);
-                let gi = &mut rest[..n1];
-                for k in 0..i {
-                    let lik = l[i * n1 + k];
-                    if lik != 0.0 {
-                        for (a, b) in gi.iter_mut().zip(&done[k * n1..(k + 1) * n1]) {
-                            *a -= lik * b;
-                        }
-                    }
-                }
-                let d = l[i * n1 + i];
-                for a in gi.iter_mut() {
-                    *a /= d;
-                }
-            }
-            g
-        })
-        .collect();
+    // Lag sums s_m = sum_k w_o v_k^2 H_ok E^m of every point: with the weighted data as
+    // columns (lines x points), Re s_{+m} = p - q and Re s_{-m} = p + q with p = X_re^T E_re,
+    // q = X_im^T E_im (points x n1).
+    let x_re = Mat::<f64>::from_fn(nf, np, |k, o| weights[o] * v2[k] * h[o][k].re);
+    let x_im = Mat::<f64>::from_fn(nf, np, |k, o| weights[o] * v2[k] * h[o][k].im);
+    let mut pm = Mat::<f64>::zeros(np, n1);
+    let mut qm = Mat::<f64>::zeros(np, n1);
+    matmul(
+        pm.as_mut(),
+        Accum::Replace,
+        x_re.transpose(),
+        e_re,
+        1.0,
+        Par::Seq,
+    );
+    matmul(
+        qm.as_mut(),
+        Accum::Replace,
+        x_im.transpose(),
+        e_im,
+        1.0,
+        Par::Seq,
+    );
+    drop((x_re, x_im));
+    crate::simd::clear_upper_vector_state();
 
-    // Denominators of all orders (sequential: P accumulates row by row).
-    let mut p = vec![0.0; n1 * n1]; // upper triangle of sum_o sum_{k<=n} g_ok g_ok^T
+    // S'_o = S_o^T stacked over points ((P n1) x n1, column-major), with
+    // S_o[i,j] = -Re s_{j-i}; then G' = S' L^{-T}, i.e. block o of G' is G_o^T with
+    // G_o = L^{-1} S_o. Column k of G' holds row k of every G_o, contiguous.
+    let rows = np * n1;
+    let mut gp_buf = vec![0.0; rows * n1];
+    let mut gp = MatMut::from_column_major_slice_mut(&mut gp_buf, rows, n1);
+    for o in 0..np {
+        for i in 0..n1 {
+            for j in 0..n1 {
+                let s = if j >= i {
+                    pm[(o, j - i)] - qm[(o, j - i)]
+                } else {
+                    pm[(o, i - j)] + qm[(o, i - j)]
+                };
+                gp[(o * n1 + j, i)] = -s;
+            }
+        }
+    }
+    faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+        l_mat.as_ref(),
+        gp.transpose_mut(),
+        Par::Seq,
+    );
+    let gp_slice = gp_buf.as_slice();
+    crate::simd::clear_upper_vector_state();
+
+    // Denominators of all orders (sequential: P accumulates row by row). Rows k of all
+    // G_o, viewed as an n1 x P matrix W_k (column k of G'), add W_k W_k^T.
+    let mut pacc = Mat::<f64>::zeros(n1, n1);
     let mut rows_done = 0usize;
     let mut alphas: Vec<(usize, Vec<f64>)> = Vec::new();
     let mut n = params.min_order;
     while n <= nmax {
-        for k in rows_done..=n {
-            for g in &g_all {
-                let gk = &g[k * n1..(k + 1) * n1];
-                for i in 0..=nmax {
-                    let gi = gk[i];
-                    if gi == 0.0 {
-                        continue;
-                    }
-                    for (pj, gj) in p[i * n1 + i..(i + 1) * n1].iter_mut().zip(&gk[i..]) {
-                        *pj += gi * gj;
-                    }
-                }
-            }
-        }
+        let wb = MatRef::from_column_major_slice(
+            &gp_slice[rows_done * rows..(n + 1) * rows],
+            n1,
+            np * (n + 1 - rows_done),
+        );
+        matmul(pacc.as_mut(), Accum::Add, wb, wb.transpose(), 1.0, Par::Seq);
         rows_done = n + 1;
         // M = T - P on the leading (n+1) block; solve M[:n,:n] a = -M[:n,n].
-        let mm = |i: usize, j: usize| t_lag[i.abs_diff(j)] - p[i.min(j) * n1 + i.max(j)];
+        let mm = |i: usize, j: usize| t_lag[i.abs_diff(j)] - pacc[(i, j)];
         let a_mat = Mat::<f64>::from_fn(n, n, &mm);
         let rhs = Mat::<f64>::from_fn(n, 1, |i, _| -mm(i, n));
         let sol = solve_small(&a_mat, &rhs)?;
+        crate::simd::clear_upper_vector_state();
         let mut alpha: Vec<f64> = (0..n).map(|i| sol[(i, 0)]).collect();
         alpha.push(1.0);
         if alpha.iter().all(|v| v.is_finite()) {
@@ -336,25 +445,35 @@ pub fn lscf_poles(
         }
         n += params.order_step;
     }
+    drop(pacc);
+
+    // Numerators: y_o = G_o alpha for all points and orders in one product. Viewed as an
+    // n1 x (P n1) matrix, G' has entry (j, o + P i) = G_o[i, j], so
+    // Y = G'_view^T A ((P n1) x orders) with Y[o + P i, c] = (G_o alpha_c)[i].
+    let n_ord = alphas.len();
+    let a_all = Mat::<f64>::from_fn(n1, n_ord, |j, c| alphas[c].1.get(j).copied().unwrap_or(0.0));
+    let g_view = MatRef::from_column_major_slice(gp_slice, n1, rows);
+    let mut y_all = Mat::<f64>::zeros(rows, n_ord);
+    matmul(
+        y_all.as_mut(),
+        Accum::Replace,
+        g_view.transpose(),
+        a_all.as_ref(),
+        1.0,
+        Par::Seq,
+    );
+    drop(gp_buf);
+    crate::simd::clear_upper_vector_state();
 
     // Roots and shape estimates per order (in parallel, collected in order).
     alphas
         .par_iter()
-        .map(|(n, alpha)| {
+        .enumerate()
+        .map(|(c, (n, alpha))| {
             let n = *n;
-            // Companion matrix of the monic polynomial.
-            let comp = Mat::<f64>::from_fn(n, n, |i, j| {
-                if i == 0 {
-                    -alpha[n - 1 - j]
-                } else if i == j + 1 {
-                    1.0
-                } else {
-                    0.0
-                }
-            });
-            let roots = comp.eigenvalues().map_err(|e| ModalError::Numerical {
-                stage: "lscf companion eigenvalues",
-                detail: format!("{e:?} at order {n}"),
+            let roots = super::roots::poly_roots(alpha).ok_or_else(|| ModalError::Numerical {
+                stage: "lscf polynomial roots",
+                detail: format!("QR iteration did not converge at order {n}"),
             })?;
             let mut lambdas = Vec::new();
             for z in roots {
@@ -371,27 +490,56 @@ pub fn lscf_poles(
                 }
                 lambdas.push((lam, z));
             }
-            // Numerator coefficients beta_o = -L^{-T} (G_o alpha) on the leading block.
-            let mut shapes = vec![Vec::with_capacity(h.len()); lambdas.len()];
-            if !lambdas.is_empty() {
-                let mut y = vec![0.0; n + 1];
-                let mut beta = vec![0.0; n + 1];
-                for (g, &w) in g_all.iter().zip(&weights) {
-                    for (i, yi) in y.iter_mut().enumerate() {
-                        *yi = dot(&g[i * n1..i * n1 + n + 1], alpha);
+            lambdas.sort_by(|a, b| a.0.norm().total_cmp(&b.0.norm()));
+            let nz = lambdas.len();
+            let mut shapes = vec![Vec::with_capacity(np); nz];
+            if nz > 0 {
+                // beta_o = -L_n^{-T} y_o on the leading block, for all points at once:
+                // B (P x (n+1)) = -Y_c L_n^{-1}, Y_c[o, i] = Y[o + P i, c].
+                let col = y_all.col(c).try_as_col_major().expect("contiguous");
+                let y_c = MatRef::from_column_major_slice(col.as_slice(), np, n1).subcols(0, n + 1);
+                let mut b = Mat::<f64>::zeros(np, n + 1);
+                matmul(
+                    b.as_mut(),
+                    Accum::Replace,
+                    y_c,
+                    l_inv.as_ref().submatrix(0, 0, n + 1, n + 1),
+                    -1.0,
+                    Par::Seq,
+                );
+                // B_o(z_r) = sum_j beta_oj z_r^j: products with the Vandermonde matrix.
+                let mut v_re = Mat::<f64>::zeros(n + 1, nz);
+                let mut v_im = Mat::<f64>::zeros(n + 1, nz);
+                for (r, (_, z)) in lambdas.iter().enumerate() {
+                    let mut zp = c64::new(1.0, 0.0);
+                    for j in 0..=n {
+                        v_re[(j, r)] = zp.re;
+                        v_im[(j, r)] = zp.im;
+                        zp *= z;
                     }
-                    // Back substitution L_n^T beta = -y.
-                    for i in (0..=n).rev() {
-                        let s = -y[i] - dot(&lt[i * n1 + i + 1..i * n1 + n + 1], &beta[i + 1..=n]);
-                        beta[i] = s / lt[i * n1 + i];
-                    }
-                    for (sh, (_, z)) in shapes.iter_mut().zip(&lambdas) {
-                        // Horner in z.
-                        let mut acc = c64::new(0.0, 0.0);
-                        for j in (0..=n).rev() {
-                            acc = acc * z + beta[j];
-                        }
-                        sh.push(acc / w);
+                }
+                let mut s_re = Mat::<f64>::zeros(np, nz);
+                let mut s_im = Mat::<f64>::zeros(np, nz);
+                matmul(
+                    s_re.as_mut(),
+                    Accum::Replace,
+                    b.as_ref(),
+                    v_re.as_ref(),
+                    1.0,
+                    Par::Seq,
+                );
+                matmul(
+                    s_im.as_mut(),
+                    Accum::Replace,
+                    b.as_ref(),
+                    v_im.as_ref(),
+                    1.0,
+                    Par::Seq,
+                );
+                crate::simd::clear_upper_vector_state();
+                for (r, sh) in shapes.iter_mut().enumerate() {
+                    for (o, &w) in weights.iter().enumerate() {
+                        sh.push(c64::new(s_re[(o, r)], s_im[(o, r)]) / w);
                     }
                 }
             }

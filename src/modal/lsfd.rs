@@ -20,7 +20,8 @@
 //! base-excitation transmissibility the rigid-body 1 is power 0, modes below give power -2
 //! (`omega_r^2/(i omega)^2`) and modes above power +2.
 
-use super::lscf::{cholesky, dot};
+use super::linls;
+use super::lscf::dot;
 use super::{FunctionKind, ModalError};
 use faer::c64;
 use serde::{Deserialize, Serialize};
@@ -127,49 +128,30 @@ pub fn lsfd(
             }
         })
         .collect();
-    // Real design columns (real parts of all lines, then imaginary parts), unit norm.
-    let a_cols: Vec<Vec<f64>> = cols
+    // Real design (real parts of all lines, then imaginary parts; unit-norm columns),
+    // column-major 2 nf x ncol, and the data of every point as the columns of B.
+    let m = 2 * nf;
+    let a: Vec<f64> = cols
         .iter()
         .zip(&scale)
-        .map(|(c, sc)| {
+        .flat_map(|(c, sc)| {
             c.iter()
-                .map(|v| v.re * sc)
-                .chain(c.iter().map(|v| v.im * sc))
-                .collect()
+                .map(move |v| v.re * sc)
+                .chain(c.iter().map(move |v| v.im * sc))
         })
         .collect();
-    let gram: Vec<f64> = (0..ncol * ncol)
-        .map(|ij| dot(&a_cols[ij / ncol], &a_cols[ij % ncol]))
+    let b: Vec<f64> = h
+        .iter()
+        .flat_map(|row| row.iter().map(|v| v.re).chain(row.iter().map(|v| v.im)))
         .collect();
-    let l = cholesky(&gram, ncol).map_err(|_| ModalError::Numerical {
-        stage: "lsfd",
-        detail: format!("{ncol}x{ncol} normal equations singular (coincident poles?)"),
-    })?;
-    let solve = |b: &[f64]| -> Vec<f64> {
-        let rhs: Vec<f64> = a_cols.iter().map(|c| dot(c, b)).collect();
-        let mut y = vec![0.0; ncol];
-        for i in 0..ncol {
-            y[i] = (rhs[i] - dot(&l[i * ncol..i * ncol + i], &y[..i])) / l[i * ncol + i];
-        }
-        let mut x = vec![0.0; ncol];
-        for i in (0..ncol).rev() {
-            let s: f64 = (i + 1..ncol).map(|k| l[k * ncol + i] * x[k]).sum();
-            x[i] = (y[i] - s) / l[i * ncol + i];
-        }
-        x
-    };
+    let sol = linls::solve(&a, m, ncol, &b, h.len(), true, "lsfd")?;
+    let resid = sol.residual.expect("asked for");
     let mut residues = Vec::with_capacity(h.len());
     let mut residual_coeffs = Vec::with_capacity(h.len());
     let mut fit_error = Vec::with_capacity(h.len());
     let mut residual_sq = Vec::with_capacity(h.len());
     let mut norm_sq = Vec::with_capacity(h.len());
-    for (o, row) in h.iter().enumerate() {
-        let b: Vec<f64> = row
-            .iter()
-            .map(|v| v.re)
-            .chain(row.iter().map(|v| v.im))
-            .collect();
-        let x = solve(&b);
+    for (o, x) in sol.x.chunks(ncol).enumerate() {
         let coef: Vec<f64> = (0..ncol).map(|j| x[j] * scale[j]).collect();
         if coef.iter().any(|v| !v.is_finite()) {
             return Err(ModalError::Numerical {
@@ -183,15 +165,10 @@ pub fn lsfd(
                 .collect::<Vec<_>>(),
         );
         residual_coeffs.push(coef[2 * nm..].to_vec());
-        let (mut rs, mut ns) = (0.0, 0.0);
-        for (k, v) in row.iter().enumerate() {
-            let mut fit = c64::new(0.0, 0.0);
-            for (j, c) in cols.iter().enumerate() {
-                fit += c[k] * coef[j];
-            }
-            rs += (v - fit).norm_sqr();
-            ns += v.norm_sqr();
-        }
+        let r = &resid[o * m..(o + 1) * m];
+        let bo = &b[o * m..(o + 1) * m];
+        let rs = dot(r, r);
+        let ns = dot(bo, bo);
         residual_sq.push(rs);
         norm_sq.push(ns);
         fit_error.push(if ns > 0.0 { (rs / ns).sqrt() } else { f64::NAN });

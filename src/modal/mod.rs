@@ -38,6 +38,7 @@
 
 pub mod assign;
 pub mod frf;
+mod linls;
 pub mod lscf;
 pub mod lsfd;
 pub mod mac;
@@ -45,6 +46,7 @@ pub mod pair;
 pub mod poles;
 pub mod quality;
 pub mod refine;
+pub mod roots;
 pub mod stabilization;
 
 #[cfg(test)]
@@ -337,6 +339,7 @@ pub fn extract(
         .clone()
         .unwrap_or_else(|| LsfdParams::for_kind(spectra.kind));
     let mut flags = quality::screen_points(&data, &params.quality);
+    let basis = lscf::LscfBasis::new(&data.freq_hz, params.lscf.max_order);
 
     let mut pass = 0;
     loop {
@@ -349,7 +352,15 @@ pub fn extract(
             });
         }
         let h_used: Vec<&[c64]> = used.iter().map(|&i| data.h[i].as_slice()).collect();
-        let orders = lscf::lscf_poles(&data.freq_hz, &h_used, None, &params.lscf)?;
+        // Noise-level weights (1/sigma) drive the refinement; the LSCF uses them too unless
+        // told otherwise. Computed once per set of used points.
+        let noise_weights = lscf::point_weights(&h_used, lscf::Weighting::NoiseEstimate);
+        let lscf_weights = if params.lscf.weighting == lscf::Weighting::NoiseEstimate {
+            noise_weights.clone()
+        } else {
+            lscf::point_weights(&h_used, params.lscf.weighting)
+        };
+        let orders = lscf::lscf_poles_with(&basis, &h_used, &lscf_weights, None, &params.lscf)?;
         let mut diagram = stabilization::flag_stability(orders, band, &params.stability);
         let mut selected = poles::select_physical_poles(&diagram, &params.selection);
         for _ in 0..params.sk_passes {
@@ -358,7 +369,8 @@ pub fn extract(
             }
             let lam: Vec<c64> = selected.iter().map(|s| s.lambda).collect();
             let lw = lscf::sk_line_weights(&data.freq_hz, &lam);
-            let orders = lscf::lscf_poles(&data.freq_hz, &h_used, Some(&lw), &params.lscf)?;
+            let orders =
+                lscf::lscf_poles_with(&basis, &h_used, &lscf_weights, Some(&lw), &params.lscf)?;
             let d2 = stabilization::flag_stability(orders, band, &params.stability);
             let s2 = poles::select_physical_poles(&d2, &params.selection);
             if s2.is_empty() {
@@ -369,16 +381,7 @@ pub fn extract(
         }
         let mut lambdas: Vec<c64> = selected.iter().map(|s| s.lambda).collect();
         if let Some(rp) = &params.refine {
-            let weights: Vec<f64> = h_used
-                .iter()
-                .map(|row| {
-                    let rms = frf::rms(row);
-                    1.0 / lscf::noise_sigma(row)
-                        .max(1e-6 * rms)
-                        .max(f64::MIN_POSITIVE)
-                })
-                .collect();
-            lambdas = refine::refine_poles(&data.freq_hz, &h_used, &weights, &lambdas, rp);
+            lambdas = refine::refine_poles(&data.freq_hz, &h_used, &noise_weights, &lambdas, rp);
         }
         // LSFD on every point (flagged ones too, to report their fit error).
         let all_rows: Vec<&[c64]> = data.h.iter().map(|r| r.as_slice()).collect();

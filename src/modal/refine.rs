@@ -17,6 +17,7 @@
 //! of the starting pole (otherwise the LSCF pole stands).
 
 use super::frf::pole;
+use super::linls;
 use super::lscf::{cholesky, dot};
 use faer::c64;
 use serde::{Deserialize, Serialize};
@@ -55,80 +56,61 @@ impl Default for RefineParams {
 struct Group {
     omega: Vec<f64>,
     omega_c: f64,
-    /// `b[o]` = weighted real/imag stacked data of point o over the band.
-    b: Vec<Vec<f64>>,
+    /// Weighted data, column-major `2 lines x points`: column `o` holds the real parts of
+    /// point `o` over the band, then the imaginary parts.
+    b: Vec<f64>,
+    n_points: usize,
 }
 
 impl Group {
-    /// Columns of the design (real/imag stacked) for poles `(f_hz, zeta)`.
-    fn design(&self, theta: &[f64]) -> Vec<Vec<f64>> {
+    /// Design (real/imag stacked, column-major `2 lines x ncol`, unit-norm columns) for
+    /// poles `(f_hz, zeta)`.
+    fn design(&self, theta: &[f64]) -> (Vec<f64>, usize) {
         let nl = self.omega.len();
-        let mut cols: Vec<Vec<f64>> = Vec::new();
-        for p in theta.chunks(2) {
-            let lam = pole(p[0], p[1]);
-            let (mut ca, mut cb) = (vec![0.0; 2 * nl], vec![0.0; 2 * nl]);
+        let m = 2 * nl;
+        let ncol = theta.len() + 4;
+        let mut a = vec![0.0; m * ncol];
+        for (p, pc) in theta.chunks(2).enumerate() {
+            let lam = pole(pc[0], pc[1]);
+            let (ca, cb) = a[2 * p * m..(2 * p + 2) * m].split_at_mut(m);
             for (k, &w) in self.omega.iter().enumerate() {
                 let s = c64::new(0.0, w);
                 let g1 = (s - lam).inv();
                 let g2 = (s - lam.conj()).inv();
-                let a = g1 + g2;
-                let b = (g1 - g2) * c64::new(0.0, 1.0);
-                ca[k] = a.re;
-                ca[nl + k] = a.im;
-                cb[k] = b.re;
-                cb[nl + k] = b.im;
+                let x = g1 + g2;
+                let y = (g1 - g2) * c64::new(0.0, 1.0);
+                ca[k] = x.re;
+                ca[nl + k] = x.im;
+                cb[k] = y.re;
+                cb[nl + k] = y.im;
             }
-            cols.push(ca);
-            cols.push(cb);
         }
-        let mut one = vec![0.0; 2 * nl];
-        let mut eye = vec![0.0; 2 * nl];
-        let mut lin = vec![0.0; 2 * nl];
-        let mut ilin = vec![0.0; 2 * nl];
+        // Local residual columns 1, i, u, i u.
+        let base = theta.len() * m;
         for (k, &w) in self.omega.iter().enumerate() {
             let u = (w - self.omega_c) / self.omega_c;
-            one[k] = 1.0;
-            eye[nl + k] = 1.0;
-            lin[k] = u;
-            ilin[nl + k] = u;
+            a[base + k] = 1.0;
+            a[base + m + nl + k] = 1.0;
+            a[base + 2 * m + k] = u;
+            a[base + 3 * m + nl + k] = u;
         }
-        cols.extend([one, eye, lin, ilin]);
         // Unit-norm columns for conditioning.
-        for c in cols.iter_mut() {
+        for c in a.chunks_mut(m) {
             let n = dot(c, c).sqrt();
             if n > 0.0 {
                 c.iter_mut().for_each(|v| *v /= n);
             }
         }
-        cols
+        (a, ncol)
     }
 
     /// Stacked projected residuals of all points (None if the design is singular).
     fn residuals(&self, theta: &[f64]) -> Option<Vec<f64>> {
-        let cols = self.design(theta);
-        let nc = cols.len();
-        let gram: Vec<f64> = (0..nc * nc)
-            .map(|ij| dot(&cols[ij / nc], &cols[ij % nc]))
-            .collect();
-        let l = cholesky(&gram, nc).ok()?;
-        let mut out = Vec::with_capacity(self.b.len() * self.b[0].len());
-        for b in &self.b {
-            let rhs: Vec<f64> = cols.iter().map(|c| dot(c, b)).collect();
-            let mut y = vec![0.0; nc];
-            for i in 0..nc {
-                y[i] = (rhs[i] - dot(&l[i * nc..i * nc + i], &y[..i])) / l[i * nc + i];
-            }
-            let mut x = vec![0.0; nc];
-            for i in (0..nc).rev() {
-                let s: f64 = (i + 1..nc).map(|k| l[k * nc + i] * x[k]).sum();
-                x[i] = (y[i] - s) / l[i * nc + i];
-            }
-            for (k, bk) in b.iter().enumerate() {
-                let fit: f64 = cols.iter().zip(&x).map(|(c, xi)| c[k] * xi).sum();
-                out.push(bk - fit);
-            }
-        }
-        Some(out)
+        let (a, ncol) = self.design(theta);
+        let m = 2 * self.omega.len();
+        linls::solve(&a, m, ncol, &self.b, self.n_points, true, "refine")
+            .ok()?
+            .residual
     }
 }
 
@@ -188,17 +170,21 @@ pub fn refine_poles(
         }
         let omega: Vec<f64> = idx.iter().map(|&k| 2.0 * PI * freq_hz[k]).collect();
         let omega_c = 0.5 * (omega[0] + omega[omega.len() - 1]);
-        let b: Vec<Vec<f64>> = h
+        let b: Vec<f64> = h
             .iter()
             .zip(weights)
-            .map(|(row, &w)| {
+            .flat_map(|(row, &w)| {
                 idx.iter()
-                    .map(|&k| w * row[k].re)
-                    .chain(idx.iter().map(|&k| w * row[k].im))
-                    .collect()
+                    .map(move |&k| w * row[k].re)
+                    .chain(idx.iter().map(move |&k| w * row[k].im))
             })
             .collect();
-        let grp = Group { omega, omega_c, b };
+        let grp = Group {
+            omega,
+            omega_c,
+            b,
+            n_points: h.len(),
+        };
         let theta0: Vec<f64> = g.iter().flat_map(|&i| [fz[i].0, fz[i].1]).collect();
         if let Some(theta) = levenberg_marquardt(&grp, &theta0, params) {
             let ok = theta.chunks(2).zip(theta0.chunks(2)).all(|(t, t0)| {
