@@ -7,7 +7,9 @@
 //! afterwards carries a false dependency on it. Measured on this project's machines (AMD
 //! EPYC with AVX-512): the scalar pole refinement and LSFD that follow the LSCF ran 2.9x
 //! slower after a faer `matmul` until the state was cleared. No crate offers this, so it
-//! is the one-line intrinsic below, called after every block of faer dense kernels.
+//! is the one-line intrinsic below, called in the modal kernels after each block of faer
+//! products. (The FE solves, on faer's sparse Cholesky, showed no such effect: the same
+//! call after each factorisation and solve changed nothing measurable.)
 
 /// Clear the upper halves of the AVX registers (`vzeroupper`) if the CPU has AVX; a no-op
 /// elsewhere. Cheap (a few cycles) and safe to call from any code.
