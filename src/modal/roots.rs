@@ -15,9 +15,15 @@
 use faer::c64;
 
 /// Roots of `sum_j coef[j] z^j` (ascending coefficients, `coef[n] != 0`), in no particular
-/// order; complex roots come in exact conjugate pairs. `None` if the QR iteration does not
-/// converge (30 iterations per root, as in EISPACK) or a coefficient is not finite.
+/// order; complex roots come in exact conjugate pairs. If the QR iteration does not converge
+/// (30 iterations per root, as in EISPACK) faer's general eigen-solver is tried on the same
+/// matrix. `None` if that fails too or a coefficient is not finite.
 pub fn poly_roots(coef: &[f64]) -> Option<Vec<c64>> {
+    roots_with(coef, 30)
+}
+
+/// [`poly_roots`] with at most `max_its` QR sweeps per root before the fallback.
+fn roots_with(coef: &[f64], max_its: usize) -> Option<Vec<c64>> {
     let n = coef.len().checked_sub(1)?;
     if n == 0 {
         return Some(Vec::new());
@@ -36,7 +42,17 @@ pub fn poly_roots(coef: &[f64]) -> Option<Vec<c64>> {
         a[i * n + i - 1] = 1.0;
     }
     balance(&mut a, n);
-    hessenberg_eigenvalues(&mut a, n)
+    let balanced = a.clone();
+    hessenberg_eigenvalues(&mut a, n, max_its).or_else(|| {
+        // The double-shift iteration gave up (rare: 30 sweeps on one root); faer's general
+        // solver (Hessenberg reduction, multishift QR with aggressive deflation) decides.
+        let m = faer::Mat::<f64>::from_fn(n, n, |i, j| balanced[i * n + j]);
+        let ev = m.eigenvalues().ok()?;
+        crate::simd::clear_upper_vector_state();
+        ev.iter()
+            .all(|z| z.re.is_finite() && z.im.is_finite())
+            .then_some(ev)
+    })
 }
 
 /// Diagonal similarity `D^{-1} A D` with powers of two (exact in floating point) that makes
@@ -96,7 +112,8 @@ fn sign(a: f64, b: f64) -> f64 {
 }
 
 /// All eigenvalues of the upper Hessenberg matrix `a` (row-major `n x n`, destroyed).
-pub(crate) fn hessenberg_eigenvalues(a: &mut [f64], n: usize) -> Option<Vec<c64>> {
+/// `None` if one root needs more than `max_its` sweeps.
+pub(crate) fn hessenberg_eigenvalues(a: &mut [f64], n: usize, max_its: usize) -> Option<Vec<c64>> {
     let idx = |i: usize, j: usize| i * n + j;
     let mut wr = vec![0.0; n];
     let mut wi = vec![0.0; n];
@@ -166,7 +183,7 @@ pub(crate) fn hessenberg_eigenvalues(a: &mut [f64], n: usize) -> Option<Vec<c64>
                 break;
             }
             // No roots found yet: iterate.
-            if its == 30 {
+            if its == max_its {
                 return None;
             }
             if its == 10 || its == 20 {
@@ -407,11 +424,27 @@ mod tests {
                 }
             });
             let mut a: Vec<f64> = (0..n * n).map(|ij| h[(ij / n, ij % n)]).collect();
-            let found = hessenberg_eigenvalues(&mut a, n).expect("converges");
+            let found = hessenberg_eigenvalues(&mut a, n, 30).expect("converges");
             let reference = h.eigenvalues().unwrap();
             let w = worst_match(&reference, &found);
             assert!(w < 1e-9, "hessenberg {n}: {w:e}");
         }
+    }
+
+    #[test]
+    fn falls_back_to_faer_when_the_iteration_gives_up() {
+        let roots: Vec<c64> = (1..=6)
+            .flat_map(|j| {
+                let z = c64::from_polar(1.0 - 0.01 * j as f64, 0.5 * j as f64);
+                [z, z.conj()]
+            })
+            .collect();
+        let coef = poly_from_roots(&roots);
+        // No sweep allowed: every root comes from the fallback.
+        let found = roots_with(&coef, 0).expect("fallback succeeds");
+        assert!(worst_match(&roots, &found) < 1e-10);
+        let direct = poly_roots(&coef).unwrap();
+        assert!(worst_match(&direct, &found) < 1e-10);
     }
 
     #[test]
