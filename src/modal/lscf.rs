@@ -465,16 +465,27 @@ pub fn lscf_poles_with(
     drop(gp_buf);
     crate::simd::clear_upper_vector_state();
 
-    // Roots and shape estimates per order (in parallel, collected in order).
+    // Roots of every order, each started from the roots of the previous order (sequential:
+    // the polynomials of consecutive orders share most of their roots).
+    let mut all_roots: Vec<Vec<c64>> = Vec::with_capacity(alphas.len());
+    let mut prev: Vec<c64> = Vec::new();
+    for (n, alpha) in &alphas {
+        let roots =
+            super::roots::poly_roots_from(alpha, &prev).ok_or_else(|| ModalError::Numerical {
+                stage: "lscf polynomial roots",
+                detail: format!("no root-finder converged at order {n}"),
+            })?;
+        prev.clone_from(&roots);
+        all_roots.push(roots);
+    }
+
+    // Shape estimates per order (in parallel, collected in order).
     alphas
         .par_iter()
+        .zip(all_roots)
         .enumerate()
-        .map(|(c, (n, alpha))| {
+        .map(|(c, ((n, _), roots))| {
             let n = *n;
-            let roots = super::roots::poly_roots(alpha).ok_or_else(|| ModalError::Numerical {
-                stage: "lscf polynomial roots",
-                detail: format!("QR iteration did not converge at order {n}"),
-            })?;
             let mut lambdas = Vec::new();
             for z in roots {
                 if z.norm() == 0.0 || !z.re.is_finite() || !z.im.is_finite() {

@@ -11,6 +11,12 @@
 //! many orders of magnitude. Cost `O(n^3)` with a small constant and no allocation beyond
 //! the `n x n` work matrix. Verified in the tests against faer's general eigen-solver and
 //! against polynomials with known roots.
+//!
+//! Along a stabilization diagram the polynomial of order `n` has nearly the roots of order
+//! `n - 2` plus two more, so [`poly_roots_from`] starts the simultaneous Aberth–Ehrlich
+//! iteration (Bini 1996, the method of MPSolve) from those: `O(n^2)` per sweep, cubic
+//! convergence, a root stops moving once its residual is at the rounding level of the
+//! evaluation. If it has not converged after a few dozen sweeps the QR path decides.
 
 use faer::c64;
 
@@ -100,6 +106,146 @@ fn balance(a: &mut [f64], n: usize) {
             }
         }
     }
+}
+
+/// Roots of `sum_j coef[j] z^j` as [`poly_roots`], by an Aberth–Ehrlich iteration started
+/// from `guesses` (typically the roots of the previous, lower order); missing starting
+/// points (`guesses.len() < degree`) are placed on the unit circle in the widest angular
+/// gaps, surplus ones are ignored. Falls back to [`poly_roots`] if the iteration does not
+/// converge. Deterministic: a fixed sweep order, no randomness.
+pub fn poly_roots_from(coef: &[f64], guesses: &[c64]) -> Option<Vec<c64>> {
+    let n = coef.len().checked_sub(1)?;
+    if n <= 2 || coef[n] == 0.0 || coef.iter().any(|c| !c.is_finite()) {
+        return poly_roots(coef);
+    }
+    let mut z: Vec<c64> = guesses
+        .iter()
+        .filter(|g| g.re.is_finite() && g.im.is_finite())
+        .take(n)
+        .copied()
+        .collect();
+    while z.len() < n {
+        let (phi, r) = widest_gap(&z);
+        let g = c64::from_polar(r, phi);
+        z.push(g);
+        if z.len() < n {
+            z.push(g.conj());
+        }
+    }
+    // Separate coincident starting points (the iteration divides by their differences).
+    for i in 1..n {
+        for j in 0..i {
+            if (z[i] - z[j]).norm() <= 1e-10 * z[i].norm().max(1e-300) {
+                z[i] *= c64::from_polar(1.0 + 1e-6, 1e-6 * (i as f64 + 1.0));
+            }
+        }
+    }
+    if aberth(coef, &mut z, 60) {
+        Some(z)
+    } else {
+        poly_roots(coef)
+    }
+}
+
+/// Widest angular gap among the roots in the closed upper half-plane (bounded by the
+/// angles 0 and pi): its mid-angle and the median modulus of the roots (1 if none).
+fn widest_gap(z: &[c64]) -> (f64, f64) {
+    let mut ang: Vec<f64> = z
+        .iter()
+        .filter(|v| v.im >= 0.0)
+        .map(|v| v.im.atan2(v.re))
+        .collect();
+    ang.push(0.0);
+    ang.push(std::f64::consts::PI);
+    ang.sort_by(|a, b| a.total_cmp(b));
+    let (mut best, mut mid) = (-1.0, std::f64::consts::FRAC_PI_2);
+    for w in ang.windows(2) {
+        if w[1] - w[0] > best {
+            best = w[1] - w[0];
+            mid = 0.5 * (w[0] + w[1]);
+        }
+    }
+    let mut mods: Vec<f64> = z.iter().map(|v| v.norm()).filter(|m| *m > 0.0).collect();
+    mods.sort_by(|a, b| a.total_cmp(b));
+    let r = mods.get(mods.len() / 2).copied().unwrap_or(1.0);
+    (mid, r)
+}
+
+/// Newton ratio `p(z)/p'(z)` and whether `|p(z)|` is at the rounding level of its Horner
+/// evaluation (`8 n eps sum |a_j| |z|^j`). For `|z| > 1` the reversed polynomial in `1/z` is
+/// evaluated instead, which keeps the evaluation backward stable.
+fn newton_ratio(coef: &[f64], z: c64) -> (c64, bool) {
+    let n = coef.len() - 1;
+    let eps = f64::EPSILON;
+    if z.norm() <= 1.0 {
+        let (mut p, mut dp) = (c64::new(coef[n], 0.0), c64::new(0.0, 0.0));
+        let mut bound = coef[n].abs();
+        let az = z.norm();
+        for j in (0..n).rev() {
+            dp = dp * z + p;
+            p = p * z + coef[j];
+            bound = bound * az + coef[j].abs();
+        }
+        (p / dp, p.norm() <= 8.0 * n as f64 * eps * bound)
+    } else {
+        // p(z) = z^n q(y), y = 1/z, q(y) = sum_j coef[n-j] y^j; p/p' = z q / (n q - y q').
+        let y = z.inv();
+        let (mut q, mut dq) = (c64::new(coef[0], 0.0), c64::new(0.0, 0.0));
+        let mut bound = coef[0].abs();
+        let ay = y.norm();
+        for &c in &coef[1..] {
+            dq = dq * y + q;
+            q = q * y + c;
+            bound = bound * ay + c.abs();
+        }
+        let den = q * n as f64 - y * dq;
+        (z * q / den, q.norm() <= 8.0 * n as f64 * eps * bound)
+    }
+}
+
+/// Aberth–Ehrlich sweeps (Gauss–Seidel order) until every root is at its rounding level or
+/// its correction is below `4 eps |z|`; `false` after `max_sweeps` or on a non-finite value.
+fn aberth(coef: &[f64], z: &mut [c64], max_sweeps: usize) -> bool {
+    let n = z.len();
+    let mut done = vec![false; n];
+    for _ in 0..max_sweeps {
+        let mut all = true;
+        for i in 0..n {
+            if done[i] {
+                continue;
+            }
+            let zi = z[i];
+            let (ratio, converged) = newton_ratio(coef, zi);
+            // At the rounding level one more correction is still taken (it is what brings
+            // the root to full accuracy), then the root is frozen.
+            if converged {
+                done[i] = true;
+            } else {
+                all = false;
+            }
+            let mut s = c64::new(0.0, 0.0);
+            for (j, zj) in z.iter().enumerate() {
+                if j != i {
+                    s += (zi - zj).inv();
+                }
+            }
+            let w = ratio / (c64::new(1.0, 0.0) - ratio * s);
+            if !(w.re.is_finite() && w.im.is_finite()) {
+                if converged {
+                    continue;
+                }
+                return false;
+            }
+            z[i] = zi - w;
+            if w.norm() <= 4.0 * f64::EPSILON * zi.norm() {
+                done[i] = true;
+            }
+        }
+        if all {
+            return true;
+        }
+    }
+    false
 }
 
 /// `|a|` with the sign of `b` (Fortran `SIGN`).
@@ -445,6 +591,65 @@ mod tests {
         assert!(worst_match(&roots, &found) < 1e-10);
         let direct = poly_roots(&coef).unwrap();
         assert!(worst_match(&direct, &found) < 1e-10);
+    }
+
+    #[test]
+    fn warm_started_roots_agree_with_qr_along_an_order_sequence() {
+        // A sequence of polynomials like an LSCF stabilization diagram: fixed "physical"
+        // roots near the unit circle plus computational ones that change with the order.
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let physical: Vec<c64> = [0.4, 0.9, 1.3, 2.2, 2.25, 2.9]
+            .iter()
+            .map(|&a| c64::from_polar(1.0 + 0.01 * a, -a))
+            .collect();
+        let mut prev: Vec<c64> = Vec::new();
+        for half in physical.len()..=30 {
+            let mut roots: Vec<c64> = physical.clone();
+            while roots.len() < half {
+                let a = -std::f64::consts::PI * rng.random::<f64>();
+                roots.push(c64::from_polar(0.6 + 0.8 * rng.random::<f64>(), a));
+            }
+            let roots: Vec<c64> = roots.iter().flat_map(|z| [*z, z.conj()]).collect();
+            let coef = poly_from_roots(&roots);
+            let qr = poly_roots(&coef).unwrap();
+            let warm = poly_roots_from(&coef, &prev).unwrap();
+            assert_eq!(warm.len(), coef.len() - 1);
+            // Against the known roots: as accurate as the QR path (both are limited by the
+            // conditioning of the expanded polynomial).
+            let (w, wq) = (worst_match(&roots, &warm), worst_match(&roots, &qr));
+            assert!(
+                w <= 10.0 * wq + 1e-12,
+                "degree {}: warm {w:e}, qr {wq:e}",
+                coef.len() - 1
+            );
+            // The physical roots themselves to the conditioning of the problem.
+            for p in &physical {
+                let d = warm
+                    .iter()
+                    .map(|z| (z - p).norm())
+                    .fold(f64::INFINITY, f64::min);
+                assert!(
+                    d < 1e-6,
+                    "degree {}: physical root off by {d:e}",
+                    coef.len() - 1
+                );
+            }
+            prev = warm;
+        }
+        // Cold start (no guesses) and surplus guesses work too.
+        let coef = poly_from_roots(
+            &physical
+                .iter()
+                .flat_map(|z| [*z, z.conj()])
+                .collect::<Vec<_>>(),
+        );
+        let cold = poly_roots_from(&coef, &[]).unwrap();
+        assert!(worst_match(&poly_roots(&coef).unwrap(), &cold) < 1e-9);
+        let many: Vec<c64> = (0..40)
+            .map(|k| c64::from_polar(1.0, 0.1 * k as f64))
+            .collect();
+        let surplus = poly_roots_from(&coef, &many).unwrap();
+        assert!(worst_match(&poly_roots(&coef).unwrap(), &surplus) < 1e-9);
     }
 
     #[test]
