@@ -12,9 +12,12 @@
 //! residual columns `1, i, u, i u` with `u = (omega - omega_c)/omega_c` (everything outside the
 //! group is smooth across the small band), real and imaginary parts stacked. `w_o = 1/sigma_o`
 //! (noise level of the point), which makes this the maximum-likelihood estimate for white
-//! noise. Levenberg–Marquardt with a forward-difference Jacobian; a refinement is kept only if
-//! it lowers the cost and stays within `max_rel_freq_change` and a factor `max_damping_factor`
-//! of the starting pole (otherwise the LSCF pole stands).
+//! noise. Levenberg–Marquardt with the variable-projection Jacobian in Kaufman's form
+//! (Kaufman 1975; Golub & Pereyra 2003): `J_p = -P_perp (dA/dtheta_p) X`, analytic in the pole
+//! parameters and rank two per parameter, so its normal matrix costs a few inner products
+//! instead of one residual evaluation per parameter. A refinement is kept only if it lowers
+//! the cost and stays within `max_rel_freq_change` and a factor `max_damping_factor` of the
+//! starting pole (otherwise the LSCF pole stands).
 
 use super::frf::pole;
 use super::linls;
@@ -62,10 +65,28 @@ struct Group {
     n_points: usize,
 }
 
+/// The variable-projection problem evaluated at one `theta`.
+struct Eval {
+    /// Design with unit-norm columns, column-major `m x ncol`.
+    a: Vec<f64>,
+    ncol: usize,
+    /// Norms of the design columns before scaling.
+    norms: Vec<f64>,
+    /// Coefficients of the scaled columns, column-major `ncol x points`.
+    x: Vec<f64>,
+    /// Residual `B - A X`, column-major `m x points`.
+    r: Vec<f64>,
+    cost: f64,
+}
+
 impl Group {
+    fn m(&self) -> usize {
+        2 * self.omega.len()
+    }
+
     /// Design (real/imag stacked, column-major `2 lines x ncol`, unit-norm columns) for
-    /// poles `(f_hz, zeta)`.
-    fn design(&self, theta: &[f64]) -> (Vec<f64>, usize) {
+    /// poles `(f_hz, zeta)`, and the column norms before scaling.
+    fn design(&self, theta: &[f64]) -> (Vec<f64>, usize, Vec<f64>) {
         let nl = self.omega.len();
         let m = 2 * nl;
         let ncol = theta.len() + 4;
@@ -95,22 +116,110 @@ impl Group {
             a[base + 3 * m + nl + k] = u;
         }
         // Unit-norm columns for conditioning.
+        let mut norms = Vec::with_capacity(ncol);
         for c in a.chunks_mut(m) {
             let n = dot(c, c).sqrt();
             if n > 0.0 {
                 c.iter_mut().for_each(|v| *v /= n);
             }
+            norms.push(n);
         }
-        (a, ncol)
+        (a, ncol, norms)
     }
 
-    /// Stacked projected residuals of all points (None if the design is singular).
-    fn residuals(&self, theta: &[f64]) -> Option<Vec<f64>> {
-        let (a, ncol) = self.design(theta);
-        let m = 2 * self.omega.len();
-        linls::solve(&a, m, ncol, &self.b, self.n_points, true, "refine")
+    /// Residuals and coefficients at `theta` (None if the design is singular).
+    fn eval(&self, theta: &[f64]) -> Option<Eval> {
+        let (a, ncol, norms) = self.design(theta);
+        let sol = linls::solve(&a, self.m(), ncol, &self.b, self.n_points, true, "refine").ok()?;
+        let r = sol.residual?;
+        let cost = dot(&r, &r);
+        cost.is_finite().then_some(Eval {
+            a,
+            ncol,
+            norms,
+            x: sol.x,
+            r,
+            cost,
+        })
+    }
+
+    /// Gauss–Newton normal matrix `J^T J` (row-major) and gradient `J^T r` of the residual
+    /// with Kaufman's variable-projection Jacobian at `theta` (see the module
+    /// documentation). Parameter `2q` is the frequency of pole `q`, `2q + 1` its damping
+    /// ratio; both only move the pole's two columns `a_2q`, `a_2q+1`.
+    fn normal_equations(&self, theta: &[f64], ev: &Eval) -> Option<(Vec<f64>, Vec<f64>)> {
+        let nl = self.omega.len();
+        let m = self.m();
+        let np = theta.len();
+        let npts = self.n_points;
+        // D: for each parameter the derivatives of its pole's two columns, divided by the
+        // column norms (the derivative of the norm lies along the column and is removed by
+        // the projection), column-major m x 2 np.
+        let mut d = vec![0.0; m * 2 * np];
+        for (q, pc) in theta.chunks(2).enumerate() {
+            let (f, z) = (pc[0], pc[1]);
+            let lam = pole(f, z);
+            let w_n = 2.0 * PI * f;
+            let dlam = [lam / f, c64::new(-w_n, -w_n * z / (1.0 - z * z).sqrt())];
+            for (t, dl) in dlam.iter().enumerate() {
+                let p = 2 * q + t;
+                let (n1, n2) = (ev.norms[2 * q], ev.norms[2 * q + 1]);
+                let (d1, d2) = d[2 * p * m..(2 * p + 2) * m].split_at_mut(m);
+                for (k, &w) in self.omega.iter().enumerate() {
+                    let s = c64::new(0.0, w);
+                    let g1 = (s - lam).inv();
+                    let g2 = (s - lam.conj()).inv();
+                    let t1 = g1 * g1 * dl;
+                    let t2 = g2 * g2 * dl.conj();
+                    let da = (t1 + t2) / n1;
+                    let db = (t1 - t2) * c64::new(0.0, 1.0) / n2;
+                    d1[k] = da.re;
+                    d1[nl + k] = da.im;
+                    d2[k] = db.re;
+                    d2[nl + k] = db.im;
+                }
+            }
+        }
+        // E = P_perp D.
+        let e = linls::solve(&ev.a, m, ev.ncol, &d, 2 * np, true, "refine jacobian")
             .ok()?
-            .residual
+            .residual?;
+        // Rows of X for the pole columns, and R X^T for them (m x np, column j = R x_j).
+        let xrow = |j: usize| -> Vec<f64> { (0..npts).map(|o| ev.x[j + ev.ncol * o]).collect() };
+        let xr: Vec<Vec<f64>> = (0..np).map(xrow).collect();
+        let xt: Vec<f64> = xr.iter().flatten().copied().collect();
+        let mut u = vec![0.0; m * np];
+        faer::linalg::matmul::matmul(
+            faer::MatMut::from_column_major_slice_mut(&mut u, m, np),
+            faer::Accum::Replace,
+            faer::MatRef::from_column_major_slice(&ev.r, m, npts),
+            faer::MatRef::from_column_major_slice(&xt, npts, np),
+            1.0,
+            faer::Par::Seq,
+        );
+        crate::simd::clear_upper_vector_state();
+        // Parameter p uses derivative columns (p, 0), (p, 1) of D/E and coefficient rows
+        // 2q, 2q + 1 with q = p / 2.
+        let ecol = |p: usize, s: usize| &e[(2 * p + s) * m..(2 * p + s + 1) * m];
+        let xj = |p: usize, s: usize| 2 * (p / 2) + s;
+        let mut jtj = vec![0.0; np * np];
+        let mut jtr = vec![0.0; np];
+        for p in 0..np {
+            for pp in 0..=p {
+                let mut v = 0.0;
+                for s1 in 0..2 {
+                    for s2 in 0..2 {
+                        v += dot(ecol(p, s1), ecol(pp, s2)) * dot(&xr[xj(p, s1)], &xr[xj(pp, s2)]);
+                    }
+                }
+                jtj[p * np + pp] = v;
+                jtj[pp * np + p] = v;
+            }
+            jtr[p] = -(0..2)
+                .map(|s1| dot(ecol(p, s1), &u[xj(p, s1) * m..(xj(p, s1) + 1) * m]))
+                .sum::<f64>();
+        }
+        Some((jtj, jtr))
     }
 }
 
@@ -203,33 +312,16 @@ pub fn refine_poles(
     out
 }
 
-/// Levenberg–Marquardt on `theta = (f_1, zeta_1, ...)` with a forward-difference Jacobian.
-/// Returns `None` if the starting point cannot be evaluated or nothing improved.
+/// Levenberg–Marquardt on `theta = (f_1, zeta_1, ...)` with the variable-projection
+/// Jacobian. Returns `None` if the starting point cannot be evaluated or nothing improved.
 fn levenberg_marquardt(grp: &Group, theta0: &[f64], params: &RefineParams) -> Option<Vec<f64>> {
     let np = theta0.len();
     let mut theta = theta0.to_vec();
-    let mut r = grp.residuals(&theta)?;
-    let mut cost = dot(&r, &r);
-    let cost0 = cost;
+    let mut cur = grp.eval(&theta)?;
+    let cost0 = cur.cost;
     let mut mu = 1e-3;
     for _ in 0..params.max_iter {
-        // Jacobian columns.
-        let mut jac: Vec<Vec<f64>> = Vec::with_capacity(np);
-        for p in 0..np {
-            let step = if p % 2 == 0 {
-                1e-7 * theta[p]
-            } else {
-                1e-5 * theta[p]
-            };
-            let mut t = theta.clone();
-            t[p] += step;
-            let rp = grp.residuals(&t)?;
-            jac.push(rp.iter().zip(&r).map(|(a, b)| (a - b) / step).collect());
-        }
-        let jtj: Vec<f64> = (0..np * np)
-            .map(|ij| dot(&jac[ij / np], &jac[ij % np]))
-            .collect();
-        let jtr: Vec<f64> = jac.iter().map(|c| dot(c, &r)).collect();
+        let (jtj, jtr) = grp.normal_equations(&theta, &cur)?;
         let mut improved = false;
         for _ in 0..8 {
             let mut a = jtj.clone();
@@ -256,13 +348,11 @@ fn levenberg_marquardt(grp: &Group, theta0: &[f64], params: &RefineParams) -> Op
                 mu *= 10.0;
                 continue;
             }
-            if let Some(rt) = grp.residuals(&t) {
-                let ct = dot(&rt, &rt);
-                if ct < cost {
-                    let rel = (cost - ct) / cost;
+            if let Some(et) = grp.eval(&t) {
+                if et.cost < cur.cost {
+                    let rel = (cur.cost - et.cost) / cur.cost;
                     theta = t;
-                    r = rt;
-                    cost = ct;
+                    cur = et;
                     mu = (mu / 3.0).max(1e-9);
                     improved = true;
                     // A relative cost decrease of 1e-6 is a parameter change far below its
@@ -279,5 +369,5 @@ fn levenberg_marquardt(grp: &Group, theta0: &[f64], params: &RefineParams) -> Op
             break;
         }
     }
-    (cost < cost0).then_some(theta)
+    (cur.cost < cost0).then_some(theta)
 }
