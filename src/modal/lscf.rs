@@ -25,6 +25,7 @@
 
 use super::ModalError;
 use faer::linalg::matmul::matmul;
+use faer::linalg::matmul::triangular::BlockStructure;
 use faer::{c64, Accum, Mat, MatMut, MatRef, Par};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -430,10 +431,21 @@ pub fn lscf_poles_with(
             n1,
             np * (n + 1 - rows_done),
         );
-        matmul(pacc.as_mut(), Accum::Add, wb, wb.transpose(), 1.0, Par::Seq);
+        // Symmetric: only the lower triangle is accumulated (and read below).
+        faer::linalg::matmul::triangular::matmul(
+            pacc.as_mut(),
+            BlockStructure::TriangularLower,
+            Accum::Add,
+            wb,
+            BlockStructure::Rectangular,
+            wb.transpose(),
+            BlockStructure::Rectangular,
+            1.0,
+            Par::Seq,
+        );
         rows_done = n + 1;
         // M = T - P on the leading (n+1) block; solve M[:n,:n] a = -M[:n,n].
-        let mm = |i: usize, j: usize| t_lag[i.abs_diff(j)] - pacc[(i, j)];
+        let mm = |i: usize, j: usize| t_lag[i.abs_diff(j)] - pacc[(i.max(j), i.min(j))];
         let a_mat = Mat::<f64>::from_fn(n, n, &mm);
         let rhs = Mat::<f64>::from_fn(n, 1, |i, _| -mm(i, n));
         let sol = solve_small(&a_mat, &rhs)?;
@@ -488,7 +500,7 @@ pub fn lscf_poles_with(
             let n = *n;
             let mut lambdas = Vec::new();
             for z in roots {
-                if z.norm() == 0.0 || !z.re.is_finite() || !z.im.is_finite() {
+                if z.norm_sqr() == 0.0 || !z.re.is_finite() || !z.im.is_finite() {
                     continue;
                 }
                 let lam = -z.ln() / dt;
@@ -501,7 +513,7 @@ pub fn lscf_poles_with(
                 }
                 lambdas.push((lam, z));
             }
-            lambdas.sort_by(|a, b| a.0.norm().total_cmp(&b.0.norm()));
+            lambdas.sort_by(|a, b| a.0.norm_sqr().total_cmp(&b.0.norm_sqr()));
             let nz = lambdas.len();
             let mut shapes = vec![Vec::with_capacity(np); nz];
             if nz > 0 {
@@ -585,7 +597,7 @@ pub fn sk_line_weights(freq_hz: &[f64], poles: &[c64]) -> Vec<f64> {
         .map(|&f| {
             let om = c64::from_polar(1.0, -2.0 * PI * f * dt);
             -zs.iter()
-                .map(|z| (om - z).norm().ln() + (om - z.conj()).norm().ln())
+                .map(|z| 0.5 * ((om - z).norm_sqr().ln() + (om - z.conj()).norm_sqr().ln()))
                 .sum::<f64>()
         })
         .collect();

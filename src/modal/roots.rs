@@ -135,7 +135,7 @@ pub fn poly_roots_from(coef: &[f64], guesses: &[c64]) -> Option<Vec<c64>> {
     // Separate coincident starting points (the iteration divides by their differences).
     for i in 1..n {
         for j in 0..i {
-            if (z[i] - z[j]).norm() <= 1e-10 * z[i].norm().max(1e-300) {
+            if (z[i] - z[j]).norm_sqr() <= 1e-20 * z[i].norm_sqr().max(f64::MIN_POSITIVE) {
                 z[i] *= c64::from_polar(1.0 + 1e-6, 1e-6 * (i as f64 + 1.0));
             }
         }
@@ -177,29 +177,32 @@ fn widest_gap(z: &[c64]) -> (f64, f64) {
 fn newton_ratio(coef: &[f64], z: c64) -> (c64, bool) {
     let n = coef.len() - 1;
     let eps = f64::EPSILON;
-    if z.norm() <= 1.0 {
+    // (Moduli through `norm_sqr`: `norm` is a `hypot` call, which dominated this loop.)
+    if z.norm_sqr() <= 1.0 {
         let (mut p, mut dp) = (c64::new(coef[n], 0.0), c64::new(0.0, 0.0));
         let mut bound = coef[n].abs();
-        let az = z.norm();
+        let az = z.norm_sqr().sqrt();
         for j in (0..n).rev() {
             dp = dp * z + p;
             p = p * z + coef[j];
             bound = bound * az + coef[j].abs();
         }
-        (p / dp, p.norm() <= 8.0 * n as f64 * eps * bound)
+        let tol = 8.0 * n as f64 * eps * bound;
+        (p / dp, p.norm_sqr() <= tol * tol)
     } else {
         // p(z) = z^n q(y), y = 1/z, q(y) = sum_j coef[n-j] y^j; p/p' = z q / (n q - y q').
         let y = z.inv();
         let (mut q, mut dq) = (c64::new(coef[0], 0.0), c64::new(0.0, 0.0));
         let mut bound = coef[0].abs();
-        let ay = y.norm();
+        let ay = y.norm_sqr().sqrt();
         for &c in &coef[1..] {
             dq = dq * y + q;
             q = q * y + c;
             bound = bound * ay + c.abs();
         }
         let den = q * n as f64 - y * dq;
-        (z * q / den, q.norm() <= 8.0 * n as f64 * eps * bound)
+        let tol = 8.0 * n as f64 * eps * bound;
+        (z * q / den, q.norm_sqr() <= tol * tol)
     }
 }
 
@@ -237,7 +240,7 @@ fn aberth(coef: &[f64], z: &mut [c64], max_sweeps: usize) -> bool {
                 return false;
             }
             z[i] = zi - w;
-            if w.norm() <= 4.0 * f64::EPSILON * zi.norm() {
+            if w.norm_sqr() <= 16.0 * f64::EPSILON * f64::EPSILON * zi.norm_sqr() {
                 done[i] = true;
             }
         }
