@@ -12,6 +12,13 @@ use super::ModalError;
 use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, MatMut, MatRef, Par};
 
+/// Append `scale * Re(row)` then `scale * Im(row)`: one column of the real/imaginary stacked
+/// form in which complex spectra enter [`solve`].
+pub(crate) fn push_stacked(out: &mut Vec<f64>, row: &[faer::c64], scale: f64) {
+    out.extend(row.iter().map(|v| scale * v.re));
+    out.extend(row.iter().map(|v| scale * v.im));
+}
+
 /// Solution of [`solve`].
 pub(crate) struct MultiLs {
     /// `X`, column-major `ncol x nrhs`.

@@ -279,15 +279,12 @@ pub fn refine_poles(
         }
         let omega: Vec<f64> = idx.iter().map(|&k| 2.0 * PI * freq_hz[k]).collect();
         let omega_c = 0.5 * (omega[0] + omega[omega.len() - 1]);
-        let b: Vec<f64> = h
-            .iter()
-            .zip(weights)
-            .flat_map(|(row, &w)| {
-                idx.iter()
-                    .map(move |&k| w * row[k].re)
-                    .chain(idx.iter().map(move |&k| w * row[k].im))
-            })
-            .collect();
+        // The band is a contiguous run of lines (the axis is sorted).
+        let lines = idx[0]..idx[idx.len() - 1] + 1;
+        let mut b = Vec::with_capacity(2 * lines.len() * h.len());
+        for (row, &w) in h.iter().zip(weights) {
+            linls::push_stacked(&mut b, &row[lines.clone()], w);
+        }
         let grp = Group {
             omega,
             omega_c,
