@@ -370,47 +370,54 @@ pub fn lscf_poles_with(
     // Lag sums s_m = sum_k w_o v_k^2 H_ok E^m of every point: with the weighted data as
     // columns (lines x points), Re s_{+m} = p - q and Re s_{-m} = p + q with p = X_re^T E_re,
     // q = X_im^T E_im (points x n1).
-    let x_re = Mat::<f64>::from_fn(nf, np, |k, o| weights[o] * v2[k] * h[o][k].re);
-    let x_im = Mat::<f64>::from_fn(nf, np, |k, o| weights[o] * v2[k] * h[o][k].im);
-    let mut pm = Mat::<f64>::zeros(np, n1);
-    let mut qm = Mat::<f64>::zeros(np, n1);
-    matmul(
-        pm.as_mut(),
-        Accum::Replace,
-        x_re.transpose(),
-        e_re,
-        1.0,
-        Par::Seq,
-    );
-    matmul(
-        qm.as_mut(),
-        Accum::Replace,
-        x_im.transpose(),
-        e_im,
-        1.0,
-        Par::Seq,
-    );
-    drop((x_re, x_im));
+    let mut pm = vec![0.0; np * n1];
+    let mut qm = vec![0.0; np * n1];
+    for (out, im_part, e) in [(&mut pm, false, e_re), (&mut qm, true, e_im)] {
+        let x = Mat::<f64>::from_fn(nf, np, |k, o| {
+            let v = h[o][k];
+            weights[o] * v2[k] * if im_part { v.im } else { v.re }
+        });
+        matmul(
+            MatMut::from_column_major_slice_mut(out, np, n1),
+            Accum::Replace,
+            x.transpose(),
+            e,
+            1.0,
+            Par::Seq,
+        );
+    }
     crate::simd::clear_upper_vector_state();
+    // Re s_{+m} and Re s_{-m} per point, row-major points x n1.
+    let mut s_pos = vec![0.0; np * n1];
+    let mut s_neg = vec![0.0; np * n1];
+    for o in 0..np {
+        for m in 0..n1 {
+            let (p, q) = (pm[o + np * m], qm[o + np * m]);
+            s_pos[o * n1 + m] = p - q;
+            s_neg[o * n1 + m] = p + q;
+        }
+    }
+    drop((pm, qm));
 
     // S'_o = S_o^T stacked over points ((P n1) x n1, column-major), with
     // S_o[i,j] = -Re s_{j-i}; then G' = S' L^{-T}, i.e. block o of G' is G_o^T with
     // G_o = L^{-1} S_o. Column k of G' holds row k of every G_o, contiguous.
     let rows = np * n1;
     let mut gp_buf = vec![0.0; rows * n1];
-    let mut gp = MatMut::from_column_major_slice_mut(&mut gp_buf, rows, n1);
-    for o in 0..np {
-        for i in 0..n1 {
-            for j in 0..n1 {
-                let s = if j >= i {
-                    pm[(o, j - i)] - qm[(o, j - i)]
-                } else {
-                    pm[(o, i - j)] + qm[(o, i - j)]
-                };
-                gp[(o * n1 + j, i)] = -s;
+    for (i, col) in gp_buf.chunks_mut(rows).enumerate() {
+        for (o, blk) in col.chunks_mut(n1).enumerate() {
+            let (sp, sn) = (&s_pos[o * n1..(o + 1) * n1], &s_neg[o * n1..(o + 1) * n1]);
+            let (below, above) = blk.split_at_mut(i);
+            // j < i: -Re s_{-(i-j)}; j >= i: -Re s_{j-i}.
+            for (j, v) in below.iter_mut().enumerate() {
+                *v = -sn[i - j];
+            }
+            for (v, s) in above.iter_mut().zip(sp) {
+                *v = -s;
             }
         }
     }
+    let gp = MatMut::from_column_major_slice_mut(&mut gp_buf, rows, n1);
     faer::linalg::triangular_solve::solve_lower_triangular_in_place(
         l_mat.as_ref(),
         gp.transpose_mut(),
