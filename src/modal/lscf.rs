@@ -22,6 +22,11 @@
 //! `A`, `lambda_r = -ln(z_r)/dt`. For the stabilization diagram each pole also gets a shape
 //! estimate `B_o(z_r)/w_o` (proportional to the residue, up to a factor common to all points),
 //! with `beta_o = -R^{-1} S_o alpha`.
+//!
+//! Cost: the lag sums of all points, the whitened blocks `G_o`, the accumulation over orders
+//! and the numerators of all orders are dense matrix products (faer), the roots of
+//! consecutive orders are tracked by [`super::roots::poly_roots_from`]. About 5 ms per pass
+//! for 77 points x 2000 lines up to order 60 on one core (`cargo bench --bench modal`).
 
 use super::ModalError;
 use faer::linalg::matmul::matmul;
@@ -352,6 +357,7 @@ pub fn lscf_poles_with(
         l_inv.as_mut(),
         Par::Seq,
     );
+    crate::simd::clear_upper_vector_state();
 
     // T summed over points: t_m = Re sum_k v_k^2 (sum_o w_o^2 |H_ok|^2) E^m.
     let mut pow_sum = vec![0.0; nf];

@@ -10,8 +10,9 @@
 //! Pipeline of [`extract`]:
 //! 1. [`quality::screen_points`]: scan points with low coherence or a noise-like spectrum
 //!    are excluded from the pole estimation (the reason is recorded).
-//! 2. [`lscf::lscf_poles`]: least-squares complex-frequency (LSCF, common denominator, z-domain
-//!    basis) estimate of the poles for every model order of the stabilization diagram. Then
+//! 2. [`lscf::lscf_poles_with`]: least-squares complex-frequency (LSCF, common denominator,
+//!    z-domain basis, built once per measurement) estimate of the poles for every model order
+//!    of the stabilization diagram. Then
 //!    `sk_passes` (default 1) Sanathanan–Koerner passes: the LSCF is rerun with line weights
 //!    `1/|A(Omega)|` from the poles selected in the previous pass, which turns the linearised
 //!    equation error into an approximate output error and removes the bias that otherwise
