@@ -7,7 +7,7 @@
 //! [`super::lscf::cholesky`]; callers scale the columns of `A` to unit norm, which keeps the
 //! `ncol x ncol` system well conditioned for distinct poles.
 
-use super::lscf::cholesky;
+use super::lscf::{cholesky, cholesky_solve};
 use super::ModalError;
 use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, MatMut, MatRef, Par};
@@ -70,14 +70,7 @@ pub(crate) fn solve(
     })?;
     // L L^T x = rhs for every column, in place.
     for col in x.chunks_mut(ncol) {
-        for i in 0..ncol {
-            let s: f64 = (0..i).map(|k| l[i * ncol + k] * col[k]).sum();
-            col[i] = (col[i] - s) / l[i * ncol + i];
-        }
-        for i in (0..ncol).rev() {
-            let s: f64 = (i + 1..ncol).map(|k| l[k * ncol + i] * col[k]).sum();
-            col[i] = (col[i] - s) / l[i * ncol + i];
-        }
+        cholesky_solve(&l, ncol, col);
     }
     let residual = want_residual.then(|| {
         let mut r = b.to_vec();

@@ -220,6 +220,17 @@ impl LscfBasis {
     }
 }
 
+/// Solve `L L^T x = b` in place with the factor of [`cholesky`] (row-major `n x n`).
+pub(crate) fn cholesky_solve(l: &[f64], n: usize, b: &mut [f64]) {
+    for i in 0..n {
+        b[i] = (b[i] - dot(&l[i * n..i * n + i], &b[..i])) / l[i * n + i];
+    }
+    for i in (0..n).rev() {
+        let s: f64 = (i + 1..n).map(|k| l[k * n + i] * b[k]).sum();
+        b[i] = (b[i] - s) / l[i * n + i];
+    }
+}
+
 /// Estimate poles for every model order `min_order, min_order+step, ..., <= max_order`.
 ///
 /// `h[o]` is the spectrum of used point `o` on `freq_hz` (the band). Returns one

@@ -21,7 +21,7 @@
 
 use super::frf::pole;
 use super::linls;
-use super::lscf::{cholesky, dot};
+use super::lscf::{cholesky, cholesky_solve, dot};
 use faer::c64;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -329,15 +329,8 @@ fn levenberg_marquardt(grp: &Group, theta0: &[f64], params: &RefineParams) -> Op
                 mu *= 10.0;
                 continue;
             };
-            let mut y = vec![0.0; np];
-            for i in 0..np {
-                y[i] = (-jtr[i] - dot(&l[i * np..i * np + i], &y[..i])) / l[i * np + i];
-            }
-            let mut d = vec![0.0; np];
-            for i in (0..np).rev() {
-                let s: f64 = (i + 1..np).map(|k| l[k * np + i] * d[k]).sum();
-                d[i] = (y[i] - s) / l[i * np + i];
-            }
+            let mut d: Vec<f64> = jtr.iter().map(|g| -g).collect();
+            cholesky_solve(&l, np, &mut d);
             let t: Vec<f64> = theta.iter().zip(&d).map(|(a, b)| a + b).collect();
             if t.chunks(2)
                 .any(|p| !(p[0] > 0.0 && p[1] > 0.0 && p[1] < 1.0))
@@ -516,15 +509,8 @@ mod tests {
         // Gauss-Newton step at the result: negligible against the parameters.
         let n = th.len();
         let l = cholesky(&jtj, n).unwrap();
-        let mut y = vec![0.0; n];
-        for i in 0..n {
-            y[i] = (-jtr[i] - dot(&l[i * n..i * n + i], &y[..i])) / l[i * n + i];
-        }
-        let mut d = vec![0.0; n];
-        for i in (0..n).rev() {
-            let s: f64 = (i + 1..n).map(|k| l[k * n + i] * d[k]).sum();
-            d[i] = (y[i] - s) / l[i * n + i];
-        }
+        let mut d: Vec<f64> = jtr.iter().map(|g| -g).collect();
+        cholesky_solve(&l, n, &mut d);
         for (p, (dp, tp)) in d.iter().zip(&th).enumerate() {
             assert!((dp / tp).abs() < 1e-5, "parameter {p}: step {dp} at {tp}");
         }
