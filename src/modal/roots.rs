@@ -655,6 +655,52 @@ mod tests {
         assert!(worst_match(&poly_roots(&coef).unwrap(), &surplus) < 1e-9);
     }
 
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(64))]
+        /// Whatever the coefficients and the starting points, every returned root is a root
+        /// up to rounding: `|p(z)|` within a small multiple of the evaluation's error bound
+        /// `eps sum |a_j| |z|^j` (a backward-error check that needs no reference solver).
+        #[test]
+        fn every_root_has_a_rounding_level_residual(
+            coef in proptest::collection::vec(-1.0f64..1.0, 3..40),
+            guesses in proptest::collection::vec((-2.0f64..2.0, -2.0f64..2.0), 0..45),
+        ) {
+            let mut coef = coef;
+            let n = coef.len() - 1;
+            if coef[n].abs() < 1e-3 {
+                coef[n] = 1.0;
+            }
+            let g: Vec<c64> = guesses.iter().map(|&(re, im)| c64::new(re, im)).collect();
+            let roots = poly_roots_from(&coef, &g).expect("a root-finder converges");
+            proptest::prop_assert_eq!(roots.len(), n);
+            for z in &roots {
+                // Evaluate in the stable direction (reversed polynomial outside the circle).
+                let (val, bound) = if z.norm() <= 1.0 {
+                    let mut p = c64::new(0.0, 0.0);
+                    let mut b = 0.0;
+                    for c in coef.iter().rev() {
+                        p = p * z + c;
+                        b = b * z.norm() + c.abs();
+                    }
+                    (p.norm(), b)
+                } else {
+                    let y = z.inv();
+                    let mut q = c64::new(0.0, 0.0);
+                    let mut b = 0.0;
+                    for c in coef.iter() {
+                        q = q * y + c;
+                        b = b * y.norm() + c.abs();
+                    }
+                    (q.norm(), b)
+                };
+                proptest::prop_assert!(
+                    val <= 1e3 * n as f64 * f64::EPSILON * bound,
+                    "root {} of degree {}: |p| = {:e}, bound {:e}", z, n, val, bound
+                );
+            }
+        }
+    }
+
     #[test]
     fn degenerate_inputs() {
         assert_eq!(poly_roots(&[]), None);
