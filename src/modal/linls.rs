@@ -12,11 +12,16 @@ use super::ModalError;
 use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, MatMut, MatRef, Par};
 
-/// Append `scale * Re(row)` then `scale * Im(row)`: one column of the real/imaginary stacked
-/// form in which complex spectra enter [`solve`].
-pub(crate) fn push_stacked(out: &mut Vec<f64>, row: &[faer::c64], scale: f64) {
-    out.extend(row.iter().map(|v| scale * v.re));
-    out.extend(row.iter().map(|v| scale * v.im));
+/// Columns in the real/imaginary stacked form in which complex spectra enter [`solve`]:
+/// for each `(row, scale)`, `scale * Re(row)` then `scale * Im(row)`, one after another
+/// (column-major).
+pub(crate) fn stacked<'a>(cols: impl Iterator<Item = (&'a [faer::c64], f64)>) -> Vec<f64> {
+    cols.flat_map(|(row, s)| {
+        row.iter()
+            .map(move |v| s * v.re)
+            .chain(row.iter().map(move |v| s * v.im))
+    })
+    .collect()
 }
 
 /// Solution of [`solve`].

@@ -131,19 +131,8 @@ pub fn lsfd(
     // Real design (real parts of all lines, then imaginary parts; unit-norm columns),
     // column-major 2 nf x ncol, and the data of every point as the columns of B.
     let m = 2 * nf;
-    let a: Vec<f64> = cols
-        .iter()
-        .zip(&scale)
-        .flat_map(|(c, sc)| {
-            c.iter()
-                .map(move |v| v.re * sc)
-                .chain(c.iter().map(move |v| v.im * sc))
-        })
-        .collect();
-    let b: Vec<f64> = h
-        .iter()
-        .flat_map(|row| row.iter().map(|v| v.re).chain(row.iter().map(|v| v.im)))
-        .collect();
+    let a = linls::stacked(cols.iter().zip(&scale).map(|(c, &sc)| (c.as_slice(), sc)));
+    let b = linls::stacked(h.iter().map(|row| (*row, 1.0)));
     let sol = linls::solve(&a, m, ncol, &b, h.len(), true, "lsfd")?;
     let resid = sol.residual.expect("asked for");
     let mut residues = Vec::with_capacity(h.len());

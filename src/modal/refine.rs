@@ -233,9 +233,39 @@ pub fn refine_poles(
     lambdas: &[c64],
     params: &RefineParams,
 ) -> Vec<c64> {
+    let mut out = lambdas.to_vec();
+    for (g, grp, theta0) in groups(freq_hz, h, weights, lambdas, params) {
+        if let Some(theta) = levenberg_marquardt(&grp, &theta0, params) {
+            let ok = theta.chunks(2).zip(theta0.chunks(2)).all(|(t, t0)| {
+                (t[0] / t0[0] - 1.0).abs() <= params.max_rel_freq_change
+                    && t[1] > 0.0
+                    && t[1] / t0[1] <= params.max_damping_factor
+                    && t0[1] / t[1] <= params.max_damping_factor
+            });
+            if ok {
+                for (j, &i) in g.iter().enumerate() {
+                    out[i] = pole(theta[2 * j], theta[2 * j + 1]);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// The refinement problems: poles whose local bands overlap are refined together. For each
+/// group, the indices of its poles, its band data and the starting `(f_hz, zeta)` of its
+/// poles. Groups whose band has too few lines for their unknowns are left out (their poles
+/// stand).
+fn groups(
+    freq_hz: &[f64],
+    h: &[&[c64]],
+    weights: &[f64],
+    lambdas: &[c64],
+    params: &RefineParams,
+) -> Vec<(Vec<usize>, Group, Vec<f64>)> {
     let nf = freq_hz.len();
     if nf < 3 || h.is_empty() || lambdas.is_empty() {
-        return lambdas.to_vec();
+        return Vec::new();
     }
     let df = (freq_hz[nf - 1] - freq_hz[0]) / (nf - 1) as f64;
     // Band of each pole in Hz.
@@ -253,38 +283,41 @@ pub fn refine_poles(
     // Group poles with overlapping bands (in frequency order).
     let mut order: Vec<usize> = (0..lambdas.len()).collect();
     order.sort_by(|&a, &b| fz[a].0.total_cmp(&fz[b].0));
-    let mut groups: Vec<Vec<usize>> = Vec::new();
+    let mut members: Vec<Vec<usize>> = Vec::new();
     let mut hi = f64::NEG_INFINITY;
     for &i in &order {
         if bands[i].0 <= hi {
-            groups.last_mut().expect("a group exists").push(i);
+            members.last_mut().expect("a group exists").push(i);
         } else {
-            groups.push(vec![i]);
+            members.push(vec![i]);
         }
         hi = hi.max(bands[i].1);
     }
-    let mut out = lambdas.to_vec();
-    for g in groups {
+    let mut out = Vec::with_capacity(members.len());
+    for g in members {
         let lo = g.iter().map(|&i| bands[i].0).fold(f64::INFINITY, f64::min);
         let hi = g
             .iter()
             .map(|&i| bands[i].1)
             .fold(f64::NEG_INFINITY, f64::max);
-        let idx: Vec<usize> = (0..nf)
-            .filter(|&k| freq_hz[k] >= lo && freq_hz[k] <= hi)
-            .collect();
+        // The band is a contiguous run of lines (the axis is sorted).
+        let first = freq_hz.partition_point(|&f| f < lo);
+        let end = freq_hz.partition_point(|&f| f <= hi);
         let ncol = 2 * g.len() + 4;
-        if idx.len() < ncol + 2 {
+        if end < first + ncol + 2 {
             continue;
         }
-        let omega: Vec<f64> = idx.iter().map(|&k| 2.0 * PI * freq_hz[k]).collect();
+        let lines = first..end;
+        let omega: Vec<f64> = freq_hz[lines.clone()]
+            .iter()
+            .map(|f| 2.0 * PI * f)
+            .collect();
         let omega_c = 0.5 * (omega[0] + omega[omega.len() - 1]);
-        // The band is a contiguous run of lines (the axis is sorted).
-        let lines = idx[0]..idx[idx.len() - 1] + 1;
-        let mut b = Vec::with_capacity(2 * lines.len() * h.len());
-        for (row, &w) in h.iter().zip(weights) {
-            linls::push_stacked(&mut b, &row[lines.clone()], w);
-        }
+        let b = linls::stacked(
+            h.iter()
+                .zip(weights)
+                .map(|(row, &w)| (&row[lines.clone()], w)),
+        );
         let grp = Group {
             omega,
             omega_c,
@@ -292,19 +325,7 @@ pub fn refine_poles(
             n_points: h.len(),
         };
         let theta0: Vec<f64> = g.iter().flat_map(|&i| [fz[i].0, fz[i].1]).collect();
-        if let Some(theta) = levenberg_marquardt(&grp, &theta0, params) {
-            let ok = theta.chunks(2).zip(theta0.chunks(2)).all(|(t, t0)| {
-                (t[0] / t0[0] - 1.0).abs() <= params.max_rel_freq_change
-                    && t[1] > 0.0
-                    && t[1] / t0[1] <= params.max_damping_factor
-                    && t0[1] / t[1] <= params.max_damping_factor
-            });
-            if ok {
-                for (j, &i) in g.iter().enumerate() {
-                    out[i] = pole(theta[2 * j], theta[2 * j + 1]);
-                }
-            }
-        }
+        out.push((g, grp, theta0));
     }
     out
 }
@@ -404,27 +425,17 @@ mod tests {
         (freq_hz, h, truth)
     }
 
-    fn group(freq_hz: &[f64], h: &[Vec<c64>]) -> Group {
-        let omega: Vec<f64> = freq_hz.iter().map(|f| 2.0 * PI * f).collect();
-        let omega_c = 0.5 * (omega[0] + omega[omega.len() - 1]);
-        let mut b = Vec::new();
-        for row in h {
-            linls::push_stacked(&mut b, row, 1.0);
-        }
-        Group {
-            omega,
-            omega_c,
-            b,
-            n_points: h.len(),
-        }
-    }
-
     #[test]
     fn variable_projection_gradient_matches_finite_differences_of_the_cost() {
         // Kaufman's Jacobian drops a term orthogonal to the residual, so J^T r is the exact
         // half-gradient of the cost: a check of the pole-parameter derivatives.
         let (f, h, truth) = case(0.01, true);
-        let g = group(&f, &h);
+        let rows: Vec<&[c64]> = h.iter().map(|r| r.as_slice()).collect();
+        let start: Vec<c64> = truth.iter().map(|&(f, z)| frf::pole(f, z)).collect();
+        let weights = vec![1.0; rows.len()];
+        let mut gs = groups(&f, &rows, &weights, &start, &RefineParams::default());
+        assert_eq!(gs.len(), 1, "the two bands overlap: one group");
+        let (_, g, _) = gs.pop().unwrap();
         let theta = vec![
             truth[0].0 * 1.001,
             truth[0].1 * 1.2,
@@ -486,21 +497,11 @@ mod tests {
         let (f, h, truth) = case(0.02, true);
         let rows: Vec<&[c64]> = h.iter().map(|r| r.as_slice()).collect();
         let out = refine_poles(&f, &rows, &weights, &start_of(&truth), &params);
-        // The group band the refinement used, rebuilt around the starting poles.
-        let band: Vec<usize> = (0..f.len())
-            .filter(|&k| {
-                start_of(&truth).iter().any(|l| {
-                    let (fr, zr) = (l.norm() / (2.0 * PI), -l.re / l.norm());
-                    (f[k] - fr).abs() <= (8.0 * zr * fr).max(6.0 * 0.15)
-                })
-            })
-            .collect();
-        let sub_f: Vec<f64> = band.iter().map(|&k| f[k]).collect();
-        let sub_h: Vec<Vec<c64>> = h
-            .iter()
-            .map(|r| band.iter().map(|&k| r[k]).collect())
-            .collect();
-        let g = group(&sub_f, &sub_h);
+        // The problem the refinement solved: its one group (the two bands overlap).
+        let mut gs = groups(&f, &rows, &weights, &start_of(&truth), &params);
+        assert_eq!(gs.len(), 1);
+        let (members, g, _) = gs.pop().unwrap();
+        assert_eq!(members.len(), 2);
         let th = to_theta(&out);
         let t0: Vec<f64> = truth.iter().flat_map(|&(f, z)| [f, z]).collect();
         let ev = g.eval(&th).unwrap();
