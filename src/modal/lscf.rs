@@ -246,7 +246,6 @@ pub fn lscf_poles(
     line_weight: Option<&[f64]>,
     params: &LscfParams,
 ) -> Result<Vec<OrderPoles>, ModalError> {
-    check_orders(params)?;
     let weights = point_weights(h, params.weighting);
     lscf_poles_with(
         &LscfBasis::new(freq_hz, params.max_order),
@@ -537,7 +536,6 @@ pub fn lscf_poles_with(
                 }
                 lambdas.push((lam, z));
             }
-            lambdas.sort_by(|a, b| a.0.norm_sqr().total_cmp(&b.0.norm_sqr()));
             let nz = lambdas.len();
             let mut shapes = vec![Vec::with_capacity(np); nz];
             if nz > 0 {

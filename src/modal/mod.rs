@@ -356,12 +356,10 @@ pub fn extract(
         // Noise-level weights (1/sigma) drive the refinement; the LSCF uses them too unless
         // told otherwise. Computed once per set of used points.
         let noise_weights = lscf::point_weights(&h_used, lscf::Weighting::NoiseEstimate);
-        let lscf_weights = if params.lscf.weighting == lscf::Weighting::NoiseEstimate {
-            noise_weights.clone()
-        } else {
-            lscf::point_weights(&h_used, params.lscf.weighting)
-        };
-        let orders = lscf::lscf_poles_with(&basis, &h_used, &lscf_weights, None, &params.lscf)?;
+        let other_weights = (params.lscf.weighting != lscf::Weighting::NoiseEstimate)
+            .then(|| lscf::point_weights(&h_used, params.lscf.weighting));
+        let lscf_weights = other_weights.as_deref().unwrap_or(&noise_weights);
+        let orders = lscf::lscf_poles_with(&basis, &h_used, lscf_weights, None, &params.lscf)?;
         let mut diagram = stabilization::flag_stability(orders, band, &params.stability);
         let mut selected = poles::select_physical_poles(&diagram, &params.selection);
         for _ in 0..params.sk_passes {
@@ -371,7 +369,7 @@ pub fn extract(
             let lam: Vec<c64> = selected.iter().map(|s| s.lambda).collect();
             let lw = lscf::sk_line_weights(&data.freq_hz, &lam);
             let orders =
-                lscf::lscf_poles_with(&basis, &h_used, &lscf_weights, Some(&lw), &params.lscf)?;
+                lscf::lscf_poles_with(&basis, &h_used, lscf_weights, Some(&lw), &params.lscf)?;
             let d2 = stabilization::flag_stability(orders, band, &params.stability);
             let s2 = poles::select_physical_poles(&d2, &params.selection);
             if s2.is_empty() {

@@ -262,7 +262,7 @@ fn sign(a: f64, b: f64) -> f64 {
 
 /// All eigenvalues of the upper Hessenberg matrix `a` (row-major `n x n`, destroyed).
 /// `None` if one root needs more than `max_its` sweeps.
-pub(crate) fn hessenberg_eigenvalues(a: &mut [f64], n: usize, max_its: usize) -> Option<Vec<c64>> {
+fn hessenberg_eigenvalues(a: &mut [f64], n: usize, max_its: usize) -> Option<Vec<c64>> {
     let idx = |i: usize, j: usize| i * n + j;
     let mut wr = vec![0.0; n];
     let mut wi = vec![0.0; n];
