@@ -52,11 +52,16 @@ def run_sdypy(freq, frf, hints, pol_order_high):
     return np.asarray(m.nat_freq), np.asarray(m.nat_xi), np.asarray(A), dt
 
 
-def nearest(freqs, f):
-    if len(freqs) == 0:
-        return None
-    i = int(np.argmin(np.abs(np.asarray(freqs) - f)))
-    return i if abs(freqs[i] - f) / f < 0.02 else None
+def match_mode(modes, f, z, shape):
+    """Relative frequency and damping errors and MAC of the identified mode (dicts with
+    freq_hz, damping_ratio, shape) that stands for the true mode (f, z, shape): of those
+    within 2 % in frequency, the best MAC (the closest in frequency may be the partner of
+    a close pair). NaNs if none is within 2 %."""
+    cand = [k for k, m in enumerate(modes) if abs(m["freq_hz"] - f) / f < 0.02]
+    if not cand:
+        return (np.nan, np.nan, np.nan)
+    m = modes[max(cand, key=lambda k: mac(modes[k]["shape"], shape))]
+    return ((m["freq_hz"] - f) / f, (m["damping_ratio"] - z) / z, mac(m["shape"], shape))
 
 
 def main():
@@ -74,7 +79,6 @@ def main():
         tz = case["truth"]["damping_ratio"]
         ts = case["truth"]["shapes"]
         ours = case["ours"]["modes"]
-        of = [m["freq_hz"] for m in ours]
         max_order = case["ours"]["max_order"]
         # Same highest polynomial degree as ours (sdypy's degree is 2 x pol_order_high).
         sf, sz, sA, dt = run_sdypy(freq, frf, tf, max_order // 2)
@@ -83,27 +87,12 @@ def main():
         t_ours.append(case["ours"]["time_s"])
         t_pool.append(case["ours"]["time_s_pool"])
         t_lean.append(case["ours_lean"]["time_s"])
-        lm = case["ours_lean"]["modes"]
-        lf = [m["freq_hz"] for m in lm]
-        for f, z, shp in zip(tf, tz, ts):
-            cand = [k for k, g in enumerate(lf) if abs(g - f) / f < 0.02]
-            if cand:
-                i = max(cand, key=lambda k: mac(lm[k]["shape"], shp))
-                lean_rows.append(((lf[i] - f) / f, (lm[i]["damping_ratio"] - z) / z, mac(lm[i]["shape"], shp)))
-            else:
-                lean_rows.append((np.nan, np.nan, np.nan))
+        lean_rows += [match_mode(case["ours_lean"]["modes"], f, z, shp) for f, z, shp in zip(tf, tz, ts)]
         threads = case["ours"]["threads"]
         t_sd.append(dt)
         t_sd_own.append(dt_own)
         for r, (f, z, shp) in enumerate(zip(tf, tz, ts)):
-            i = nearest(of, f)
-            if i is not None:
-                # the closest in frequency may be the partner of a close pair: take best MAC
-                cand = [k for k, g in enumerate(of) if abs(g - f) / f < 0.02]
-                i = max(cand, key=lambda k: mac(ours[k]["shape"], shp))
-                o = ((of[i] - f) / f, (ours[i]["damping_ratio"] - z) / z, mac(ours[i]["shape"], shp))
-            else:
-                o = (np.nan, np.nan, np.nan)
+            o = match_mode(ours, f, z, shp)
             s = ((sf[r] - f) / f, (sz[r] - z) / z, mac(sA[:, r], shp))
             rows.append((c.name, r, f, z) + o + s)
     print()
