@@ -1,0 +1,139 @@
+//! Small numerical helpers of the sampler: log-sum-exp, normal log-densities, the effective
+//! sample size of log weights. All weights stay in log space.
+
+/// ln(2π).
+pub const LN_2PI: f64 = 1.837_877_066_409_345_5;
+
+/// log Σ exp(aᵢ), stable; −∞ for an empty slice or all −∞.
+pub fn log_sum_exp(a: &[f64]) -> f64 {
+    let m = a.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if !m.is_finite() {
+        return m;
+    }
+    m + a.iter().map(|v| (v - m).exp()).sum::<f64>().ln()
+}
+
+/// log of the mean of exp(aᵢ).
+pub fn log_mean_exp(a: &[f64]) -> f64 {
+    log_sum_exp(a) - (a.len() as f64).ln()
+}
+
+/// Normalised weights from log weights.
+pub fn normalize(logw: &[f64]) -> Vec<f64> {
+    let l = log_sum_exp(logw);
+    logw.iter().map(|v| (v - l).exp()).collect()
+}
+
+/// Effective sample size (Σw)²/Σw² of log weights, in particles.
+pub fn ess(logw: &[f64]) -> f64 {
+    let w = normalize(logw);
+    1.0 / w.iter().map(|v| v * v).sum::<f64>()
+}
+
+/// log N(x | mean, sd²).
+pub fn normal_lpdf(x: f64, mean: f64, sd: f64) -> f64 {
+    let z = (x - mean) / sd;
+    -0.5 * (LN_2PI + z * z) - sd.ln()
+}
+
+/// log of the half-normal density with scale `s` at `x ≥ 0` (−∞ below 0).
+pub fn half_normal_lpdf(x: f64, s: f64) -> f64 {
+    if x < 0.0 {
+        return f64::NEG_INFINITY;
+    }
+    std::f64::consts::LN_2 + normal_lpdf(x, 0.0, s)
+}
+
+/// Lower Cholesky factor of a symmetric positive (semi-)definite d × d matrix (row-major),
+/// with a diagonal jitter added where a pivot is not positive. Returns the factor and the
+/// jitter used (0 for a positive-definite input).
+pub fn cholesky_jittered(a: &[f64], d: usize) -> (Vec<f64>, f64) {
+    let scale = (0..d)
+        .map(|i| a[i * d + i].abs())
+        .fold(0.0, f64::max)
+        .max(1e-300);
+    let mut jitter = 0.0;
+    loop {
+        if let Some(l) = cholesky(a, d, jitter) {
+            return (l, jitter);
+        }
+        jitter = if jitter == 0.0 {
+            1e-12 * scale
+        } else {
+            jitter * 10.0
+        };
+    }
+}
+
+fn cholesky(a: &[f64], d: usize, jitter: f64) -> Option<Vec<f64>> {
+    let mut l = vec![0.0; d * d];
+    for i in 0..d {
+        for j in 0..=i {
+            let mut s = a[i * d + j] + if i == j { jitter } else { 0.0 };
+            for k in 0..j {
+                s -= l[i * d + k] * l[j * d + k];
+            }
+            if i == j {
+                if !(s > 0.0) || !s.is_finite() {
+                    return None;
+                }
+                l[i * d + i] = s.sqrt();
+            } else {
+                l[i * d + j] = s / l[j * d + j];
+            }
+        }
+    }
+    Some(l)
+}
+
+/// y = L x for a lower-triangular row-major L.
+pub fn lower_mul(l: &[f64], d: usize, x: &[f64]) -> Vec<f64> {
+    (0..d)
+        .map(|i| (0..=i).map(|k| l[i * d + k] * x[k]).sum())
+        .collect()
+}
+
+/// Solve L x = b for a lower-triangular row-major L.
+pub fn lower_solve(l: &[f64], d: usize, b: &[f64]) -> Vec<f64> {
+    let mut x = vec![0.0; d];
+    for i in 0..d {
+        let s: f64 = (0..i).map(|k| l[i * d + k] * x[k]).sum();
+        x[i] = (b[i] - s) / l[i * d + i];
+    }
+    x
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn log_sum_exp_is_stable() {
+        let a = [1000.0, 1000.0];
+        assert!((log_sum_exp(&a) - (1000.0 + 2f64.ln())).abs() < 1e-12);
+        assert_eq!(log_sum_exp(&[f64::NEG_INFINITY; 3]), f64::NEG_INFINITY);
+        assert!((ess(&[0.0; 10]) - 10.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn cholesky_reproduces_the_matrix() {
+        let a = [4.0, 2.0, 0.4, 2.0, 3.0, 0.5, 0.4, 0.5, 2.0];
+        let (l, j) = cholesky_jittered(&a, 3);
+        assert_eq!(j, 0.0);
+        for i in 0..3 {
+            for k in 0..3 {
+                let v: f64 = (0..3).map(|m| l[i * 3 + m] * l[k * 3 + m]).sum();
+                assert!((v - a[i * 3 + k]).abs() < 1e-12);
+            }
+        }
+        let b = [1.0, -2.0, 0.5];
+        let x = lower_solve(&l, 3, &b);
+        let back = lower_mul(&l, 3, &x);
+        for (u, v) in back.iter().zip(&b) {
+            assert!((u - v).abs() < 1e-12);
+        }
+        // Singular input gets a jitter, never a failure.
+        let (_, j) = cholesky_jittered(&[1.0, 1.0, 1.0, 1.0], 2);
+        assert!(j > 0.0);
+    }
+}

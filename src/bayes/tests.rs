@@ -1,0 +1,229 @@
+//! Tests of the sampler against closed forms: a linear-Gaussian hierarchical model whose
+//! posterior moments and evidence are exact, and thread-count independence.
+
+use super::smc::{self, SmcOptions, Target};
+use super::stats::{cholesky_jittered, lower_solve, LN_2PI};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+
+/// y_{b,r,k} ~ N(x_{b,k}, s_k²), x_{b,k} ~ N(μ_k, τ_k²), μ_k ~ N(m_k, v_k): coordinates are
+/// independent, so each is a Gaussian vector of dimension 1 + B + B·R.
+struct LinearGaussian {
+    m: Vec<f64>,
+    v: Vec<f64>,
+    tau: Vec<f64>,
+    s: Vec<f64>,
+    /// y[b][r][k]
+    y: Vec<Vec<Vec<f64>>>,
+}
+
+impl Target for LinearGaussian {
+    type Cache = Vec<f64>;
+    type Ctx = Vec<f64>;
+    fn n_global(&self) -> usize {
+        self.m.len()
+    }
+    fn n_units(&self) -> usize {
+        self.y.len()
+    }
+    fn unit_dim(&self) -> usize {
+        self.m.len()
+    }
+    fn sample_prior(&self, rng: &mut ChaCha8Rng) -> (Vec<f64>, Vec<Vec<f64>>) {
+        let mut n = || -> f64 { StandardNormal.sample(rng) };
+        let g: Vec<f64> = (0..self.m.len())
+            .map(|k| self.m[k] + self.v[k].sqrt() * n())
+            .collect();
+        let x = (0..self.y.len())
+            .map(|_| (0..g.len()).map(|k| g[k] + self.tau[k] * n()).collect())
+            .collect();
+        (g, x)
+    }
+    fn log_prior_global(&self, g: &[f64]) -> f64 {
+        (0..g.len())
+            .map(|k| super::stats::normal_lpdf(g[k], self.m[k], self.v[k].sqrt()))
+            .sum()
+    }
+    fn ctx(&self, g: &[f64]) -> Vec<f64> {
+        g.to_vec()
+    }
+    fn log_prior_unit(&self, ctx: &Vec<f64>, _b: usize, x: &[f64]) -> f64 {
+        (0..x.len())
+            .map(|k| super::stats::normal_lpdf(x[k], ctx[k], self.tau[k]))
+            .sum()
+    }
+    fn model(&self, _b: usize, x: &[f64]) -> Option<Vec<f64>> {
+        Some(x.to_vec())
+    }
+    fn log_lik(&self, _ctx: &Vec<f64>, b: usize, _x: &[f64], c: &Vec<f64>) -> f64 {
+        self.y[b]
+            .iter()
+            .map(|yr| {
+                (0..c.len())
+                    .map(|k| super::stats::normal_lpdf(yr[k], c[k], self.s[k]))
+                    .sum::<f64>()
+            })
+            .sum()
+    }
+    fn to_standard(&self, ctx: &Vec<f64>, _b: usize, x: &[f64]) -> Vec<f64> {
+        (0..x.len())
+            .map(|k| (x[k] - ctx[k]) / self.tau[k])
+            .collect()
+    }
+    fn from_standard(&self, ctx: &Vec<f64>, _b: usize, z: &[f64]) -> Vec<f64> {
+        (0..z.len()).map(|k| ctx[k] + self.tau[k] * z[k]).collect()
+    }
+}
+
+/// Exact posterior means and variances of (μ_k, x_{1,k} … x_{B,k}) and log p(y_k), by
+/// Gaussian conditioning of the joint vector (μ, x, y) of coordinate k.
+fn exact(t: &LinearGaussian, k: usize) -> (Vec<f64>, Vec<f64>, f64) {
+    let nb = t.y.len();
+    let nr = t.y[0].len();
+    let nl = 1 + nb; // latent
+    let no = nb * nr;
+    let (v, tau2, s2) = (t.v[k], t.tau[k] * t.tau[k], t.s[k] * t.s[k]);
+    // Latent covariance: μ ↔ everything v; x_b ↔ x_b' v + τ² δ.
+    let cov_l = |i: usize, j: usize| -> f64 {
+        let mut c = v;
+        if i > 0 && i == j {
+            c += tau2;
+        }
+        c
+    };
+    // y_{b,r} = x_b + e: cov(latent i, y_(b,r)) = cov_l(i, 1 + b).
+    let unit_of = |o: usize| 1 + o / nr;
+    let mut syy = vec![0.0; no * no];
+    for a in 0..no {
+        for b in 0..no {
+            syy[a * no + b] = cov_l(unit_of(a), unit_of(b)) + if a == b { s2 } else { 0.0 };
+        }
+    }
+    let y: Vec<f64> = (0..no).map(|o| t.y[o / nr][o % nr][k] - t.m[k]).collect();
+    let (l, _) = cholesky_jittered(&syy, no);
+    let w = lower_solve(&l, no, &y);
+    let log_z = -0.5 * (no as f64 * LN_2PI + w.iter().map(|a| a * a).sum::<f64>())
+        - (0..no).map(|i| l[i * no + i].ln()).sum::<f64>();
+    // Solve Syy α = y and Syy B = Syl.
+    let solve = |b: &[f64]| -> Vec<f64> {
+        let z = lower_solve(&l, no, b);
+        // back substitution with Lᵀ
+        let mut x = vec![0.0; no];
+        for i in (0..no).rev() {
+            let s: f64 = (i + 1..no).map(|q| l[q * no + i] * x[q]).sum();
+            x[i] = (z[i] - s) / l[i * no + i];
+        }
+        x
+    };
+    let alpha = solve(&y);
+    let mut mean = vec![0.0; nl];
+    let mut var = vec![0.0; nl];
+    for i in 0..nl {
+        let syl: Vec<f64> = (0..no).map(|o| cov_l(i, unit_of(o))).collect();
+        mean[i] = t.m[k] + syl.iter().zip(&alpha).map(|(a, b)| a * b).sum::<f64>();
+        let beta = solve(&syl);
+        var[i] = cov_l(i, i) - syl.iter().zip(&beta).map(|(a, b)| a * b).sum::<f64>();
+    }
+    (mean, var, log_z)
+}
+
+fn problem() -> LinearGaussian {
+    // Data drawn once (fixed numbers so the test does not depend on a generator).
+    let y = vec![
+        vec![vec![0.61, -1.02], vec![0.44, -0.95], vec![0.52, -1.11]],
+        vec![vec![1.35, -0.42], vec![1.21, -0.51], vec![1.30, -0.47]],
+        vec![vec![0.05, -0.88], vec![0.17, -0.79], vec![0.11, -0.90]],
+        vec![vec![0.92, -1.30], vec![0.80, -1.22], vec![0.87, -1.41]],
+    ];
+    LinearGaussian {
+        m: vec![0.0, 0.0],
+        v: vec![1.0, 4.0],
+        tau: vec![0.5, 0.3],
+        s: vec![0.08, 0.1],
+        y,
+    }
+}
+
+#[test]
+fn smc_matches_the_closed_form_hierarchical_posterior_and_evidence() {
+    let t = problem();
+    let opts = SmcOptions {
+        n_particles: 1000,
+        ..SmcOptions::default()
+    };
+    let runs = 8;
+    let results: Vec<_> = (0..runs)
+        .map(|r| smc::run(&t, &opts, 42, r, &|_| {}).expect("run"))
+        .collect();
+    let exact_log_z: f64 = (0..2).map(|k| exact(&t, k).2).sum();
+    let zs: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
+    let zm = zs.iter().sum::<f64>() / runs as f64;
+    let zsd = (zs.iter().map(|z| (z - zm).powi(2)).sum::<f64>() / (runs - 1) as f64).sqrt();
+    let zse = zsd / (runs as f64).sqrt();
+    assert!(
+        (zm - exact_log_z).abs() < 4.0 * zse + 0.02,
+        "log Z {zm:.4} ± {zse:.4} vs exact {exact_log_z:.4} (runs {zs:?})"
+    );
+    eprintln!("log Z: {zm:.4} ± {zse:.4} (sd across runs {zsd:.4}), exact {exact_log_z:.4}");
+    assert!(zsd < 0.3, "log Z spread across runs {zsd}");
+    for k in 0..2 {
+        let (mean, var, _) = exact(&t, k);
+        for i in 0..mean.len() {
+            let get = |p: &smc::Particle<Vec<f64>>| if i == 0 { p.g[k] } else { p.x[i - 1][k] };
+            let per_run: Vec<(f64, f64)> = results
+                .iter()
+                .map(|r| {
+                    let n = r.particles.len() as f64;
+                    let m = r.particles.iter().map(get).sum::<f64>() / n;
+                    let v = r
+                        .particles
+                        .iter()
+                        .map(|p| (get(p) - m).powi(2))
+                        .sum::<f64>()
+                        / n;
+                    (m, v)
+                })
+                .collect();
+            let m = per_run.iter().map(|a| a.0).sum::<f64>() / runs as f64;
+            let v = per_run.iter().map(|a| a.1).sum::<f64>() / runs as f64;
+            let se = (per_run.iter().map(|a| (a.0 - m).powi(2)).sum::<f64>()
+                / (runs - 1) as f64
+                / runs as f64)
+                .sqrt();
+            assert!(
+                (m - mean[i]).abs() < 4.0 * se + 0.01 * var[i].sqrt(),
+                "coord {k} latent {i}: mean {m} ± {se} vs exact {}",
+                mean[i]
+            );
+            assert!(
+                (v / var[i] - 1.0).abs() < 0.1,
+                "coord {k} latent {i}: variance {v} vs exact {}",
+                var[i]
+            );
+        }
+    }
+}
+
+#[test]
+fn same_seed_gives_the_same_particles_on_any_thread_count() {
+    let t = problem();
+    let opts = SmcOptions {
+        n_particles: 200,
+        ..SmcOptions::default()
+    };
+    let go = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("pool");
+        pool.install(|| smc::run(&t, &opts, 9, 0, &|_| {}).expect("run"))
+    };
+    let (a, b) = (go(1), go(3));
+    assert_eq!(a.log_evidence.to_bits(), b.log_evidence.to_bits());
+    for (p, q) in a.particles.iter().zip(&b.particles) {
+        assert_eq!(p.g, q.g);
+        assert_eq!(p.x, q.x);
+    }
+    let c = smc::run(&t, &opts, 10, 0, &|_| {}).expect("run");
+    assert_ne!(a.log_evidence, c.log_evidence);
+}
