@@ -99,6 +99,12 @@ enum Command {
         #[command(subcommand)]
         command: LabCommand,
     },
+    /// Hierarchical Bayesian updating by sequential Monte Carlo: step 1 `boards` (free-free),
+    /// step 2 `joints` (bolted, boards carried from step 1).
+    Update {
+        #[command(subcommand)]
+        command: UpdateCommand,
+    },
     /// Write the JSON schemas of every Parquet table and MCAP channel into a directory
     /// (the repository keeps them under schemas/).
     Schemas {
@@ -135,6 +141,135 @@ impl ModelArgs {
             setup: self.setup,
             set: self.set.clone(),
             mesh: self.mesh.as_ref().map(|v| (v[0], v[1])),
+        }
+    }
+}
+
+/// Options shared by both updating steps.
+#[derive(clap::Args, Clone)]
+struct UpdateArgs {
+    /// Output directory of `hbmu ingest`.
+    ingest_dir: PathBuf,
+    /// Output directory of `hbmu pair`.
+    pair_dir: PathBuf,
+    /// Output directory of `hbmu extract` (modes.parquet); default: `extract` beside PAIR_DIR.
+    #[arg(long)]
+    extract: Option<PathBuf>,
+    /// Board description (TOML) of the model; default: the built-in board.
+    #[arg(long)]
+    model: Option<PathBuf>,
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long, default_value_t = 20_261_122)]
+    seed: u64,
+    /// Particles per SMC run.
+    #[arg(long, default_value_t = 2000)]
+    particles: usize,
+    /// Independent SMC runs (R-hat, ESS and the evidence's error bar are across runs).
+    #[arg(long, default_value_t = 4)]
+    runs: usize,
+    /// Mode labels to update (comma-separated); default: those pair marks for updating.
+    #[arg(long, value_delimiter = ',')]
+    modes: Vec<String>,
+    /// Fix the relative eigenvalue prediction error of every mode to this value instead of
+    /// inferring it per mode.
+    #[arg(long)]
+    eps_fixed: Option<f64>,
+    /// Prior median of the per-mode relative eigenvalue error ε (λ = ω²; ε ≈ 2× the relative
+    /// frequency error); ln ε ~ N(ln median, 1.5²).
+    #[arg(long, default_value_t = 0.005)]
+    eps_median: f64,
+    /// Leave the mode-shape terms out of the likelihood.
+    #[arg(long)]
+    no_shapes: bool,
+    /// Fix the mode-shape error δ instead of inferring it per mode.
+    #[arg(long)]
+    delta_fixed: Option<f64>,
+    /// Prior median of the per-mode shape error δ (norm of the unit-shape residual,
+    /// δ² ≈ 1 − MAC); ln δ ~ N(ln median, 1.5²).
+    #[arg(long, default_value_t = 0.1)]
+    delta_median: f64,
+    /// LKJ shape of the population correlation prior.
+    #[arg(long, default_value_t = 2.0)]
+    lkj_eta: f64,
+    /// Target ESS fraction when choosing the next temperature.
+    #[arg(long, default_value_t = 0.5)]
+    target_ess: f64,
+    /// Rerun even when up to date.
+    #[arg(long)]
+    force: bool,
+}
+
+#[derive(Subcommand)]
+enum UpdateCommand {
+    /// Step 1: board parameters and their population from the free-free modes and masses.
+    Boards {
+        #[command(flatten)]
+        common: UpdateArgs,
+        /// Updated board parameters (names as in `fe sensitivity`).
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "e_x_pa,e_y_pa,g_xy_pa,mass_scale"
+        )]
+        params: Vec<String>,
+        /// Prior sd of the population means, relative to the board file's nominal values.
+        #[arg(long, default_value_t = 0.1)]
+        prior_width: f64,
+        /// Half-normal scale of the population sds, relative.
+        #[arg(long, default_value_t = 0.05)]
+        sigma_scale: f64,
+    },
+}
+
+impl UpdateArgs {
+    fn options(
+        self,
+        params: Vec<String>,
+        prior_width: f64,
+        sigma_scale: f64,
+    ) -> stage::update::UpdateOptions {
+        use hbmu::bayes::target::ErrorPrior;
+        stage::update::UpdateOptions {
+            ingest_dir: self.ingest_dir,
+            pair_dir: self.pair_dir,
+            extract_dir: self.extract,
+            board: self.model,
+            out: self.out,
+            force: self.force,
+            seed: self.seed,
+            runs: self.runs.max(1),
+            smc: hbmu::bayes::smc::SmcOptions {
+                n_particles: self.particles.max(2),
+                target_ess: self.target_ess,
+                ..Default::default()
+            },
+            modes: self.modes,
+            params,
+            prior_width,
+            sigma_scale,
+            lkj_eta: self.lkj_eta,
+            eps: match self.eps_fixed {
+                Some(v) => ErrorPrior::Fixed { value: v },
+                None => ErrorPrior::Inferred {
+                    median: self.eps_median,
+                    log_sd: 1.5,
+                },
+            },
+            delta: if self.no_shapes {
+                None
+            } else {
+                Some(match self.delta_fixed {
+                    Some(v) => ErrorPrior::Fixed { value: v },
+                    None => ErrorPrior::Inferred {
+                        median: self.delta_median,
+                        log_sd: 1.5,
+                    },
+                })
+            },
+            rom_box: 0.2,
+            box_tolerance: 0.01,
+            residual_draws: 250,
         }
     }
 }
@@ -372,6 +507,19 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             };
             let o = stage::lab::run(&opts)?;
             Ok(report("lab simulate", &opts.out, &o))
+        }
+        Command::Update {
+            command:
+                UpdateCommand::Boards {
+                    common,
+                    params,
+                    prior_width,
+                    sigma_scale,
+                },
+        } => {
+            let opts = common.options(params, prior_width, sigma_scale);
+            let o = stage::update::run_boards(&opts, cli.verbose)?;
+            Ok(report("update boards", &opts.out, &o))
         }
         Command::Schemas { out } => {
             hbmu::schemas::write_all(&out)?;

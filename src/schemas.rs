@@ -21,6 +21,12 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::stage::extract::POINT_FLAGS,
         &crate::stage::pair::PAIRS,
         &crate::stage::pair::PRESENCE,
+        &crate::stage::update::POPULATION,
+        &crate::stage::update::BOARDS,
+        &crate::stage::update::JOINTS,
+        &crate::stage::update::SUMMARY,
+        &crate::stage::update::STAGES,
+        &crate::stage::update::RESIDUALS,
     ];
     for t in crate::io::tables::all_tables()
         .into_iter()

@@ -4,13 +4,19 @@
 //! - [`smc`]: tempered SMC over a [`smc::Target`] with unit-blocked, centred and
 //!   non-centred mutations; log evidence.
 //! - [`resample`]: resampling schemes.
+//! - [`diagnostics`]: rank-normalised split R-hat, bulk/tail ESS (as ArviZ), posterior summaries.
 //! - [`population`]: the MVN + LKJ population prior and its unconstrained transforms.
 //! - [`stats`]: log-space helpers, small dense Cholesky.
+//! - [`modal`]: the Vanik–Beck–Au modal likelihood over a ROM (eigenvalue, shape, mass terms).
+//! - [`target`]: the hierarchical targets of step 1 (boards) and step 2 (joints).
 
+pub mod diagnostics;
+pub mod modal;
 pub mod population;
 pub mod resample;
 pub mod smc;
 pub mod stats;
+pub mod target;
 
 #[cfg(test)]
 mod tests;

@@ -26,9 +26,10 @@
 //!      move mixes well when the data pin the units, the non-centred one when they do not.
 //!
 //!    Proposal scales adapt between sweeps toward `target_acceptance`; sweeps continue until
-//!    the mean squared jump, in units of the cloud's covariance, accumulated per coordinate
-//!    over the sweeps reaches `jump_target` (an expected-squared-jump-distance rule), between
-//!    `min_sweeps` and `max_sweeps`.
+//!    the particles have forgotten where resampling put them: the mean over coordinates of
+//!    the correlation, across particles, between each coordinate after resampling and now
+//!    falls to `decorrelation_target` (a jump-distance rule: ρ = 1 − E[(x_t − x_0)²]/(2 Var x)
+//!    for a stationary cloud), between `min_sweeps` and `max_sweeps`.
 //!
 //! Randomness: every draw comes from a ChaCha8 stream keyed by (seed, run, stage, sweep,
 //! particle), and all reductions over particles run in particle order after the parallel
@@ -40,7 +41,7 @@ use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
 use super::resample;
-use super::stats::{cholesky_jittered, ess, log_mean_exp, lower_mul, lower_solve};
+use super::stats::{cholesky_jittered, ess, log_mean_exp, lower_mul};
 
 /// A hierarchical target (see the module doc).
 pub trait Target: Sync {
@@ -62,13 +63,16 @@ pub trait Target: Sync {
     fn ctx(&self, g: &[f64]) -> Self::Ctx;
     /// log p(x_b | g).
     fn log_prior_unit(&self, ctx: &Self::Ctx, b: usize, x: &[f64]) -> f64;
-    /// The model evaluation of unit b at x; `None` where the model is undefined.
-    fn model(&self, b: usize, x: &[f64]) -> Option<Self::Cache>;
+    /// The model evaluation of unit b at x, given the particle's fixed auxiliary values
+    /// (e.g. the step-1 board parameters a modular posterior carries; empty when unused);
+    /// `None` where the model is undefined.
+    fn model(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Self::Cache>;
     /// log L_b from the cached model output (cheap).
     fn log_lik(&self, ctx: &Self::Ctx, b: usize, x: &[f64], cache: &Self::Cache) -> f64;
     /// z = standardised x_b under p(x_b | g).
     fn to_standard(&self, ctx: &Self::Ctx, b: usize, x: &[f64]) -> Vec<f64>;
     /// Inverse of [`Target::to_standard`].
+    #[allow(clippy::wrong_self_convention)] // x from z, the model's own map: not a constructor.
     fn from_standard(&self, ctx: &Self::Ctx, b: usize, z: &[f64]) -> Vec<f64>;
 }
 
@@ -81,15 +85,16 @@ pub struct SmcOptions {
     pub target_ess: f64,
     /// Target acceptance rate of the random-walk moves.
     pub target_acceptance: f64,
-    /// Accumulated mean squared jump per coordinate (in posterior-sd units) that ends the
-    /// mutation of a stage.
-    pub jump_target: f64,
+    /// The mutation of a stage ends when the mean, over all coordinates (g and every
+    /// unit), of the correlation across particles between a coordinate's value after
+    /// resampling and its current value has fallen to this level.
+    pub decorrelation_target: f64,
     pub min_sweeps: usize,
     pub max_sweeps: usize,
     /// Centred moves of g per sweep (they need no model evaluation).
     pub global_moves: usize,
-    /// Add one non-centred move of g per sweep.
-    pub noncentred: bool,
+    /// Non-centred moves of g per sweep (each costs one model evaluation per unit).
+    pub noncentred: usize,
     /// Give up (with an error) after this many tempering stages.
     pub max_stages: usize,
 }
@@ -100,19 +105,21 @@ impl Default for SmcOptions {
             n_particles: 2000,
             target_ess: 0.5,
             target_acceptance: 0.3,
-            jump_target: 1.0,
+            decorrelation_target: 0.5,
             min_sweeps: 2,
-            max_sweeps: 40,
-            global_moves: 5,
-            noncentred: true,
+            max_sweeps: 25,
+            global_moves: 20,
+            noncentred: 2,
             max_stages: 400,
         }
     }
 }
 
-/// One particle: the global vector, the units, their cached model outputs and log L_b.
+/// One particle: the global vector, the units, their cached model outputs and log L_b, and
+/// fixed auxiliary values that no move changes (shared, as resampling copies them).
 #[derive(Clone, Debug)]
 pub struct Particle<C> {
+    pub aux: std::sync::Arc<Vec<f64>>,
     pub g: Vec<f64>,
     pub x: Vec<Vec<f64>>,
     pub cache: Vec<Option<C>>,
@@ -143,6 +150,8 @@ pub struct StageInfo {
     pub acceptance_noncentred: f64,
     /// Mutation sweeps run.
     pub sweeps: usize,
+    /// Mean correlation between the coordinates after resampling and after mutation.
+    pub decorrelation: f64,
     /// Distinct particles after resampling (before mutation).
     pub unique_after_resampling: usize,
     /// Model evaluations of this stage (all particles).
@@ -190,8 +199,14 @@ fn normal_vec(rng: &mut ChaCha8Rng, n: usize) -> Vec<f64> {
 }
 
 /// Evaluate unit b at x: model output and log L_b (−∞ where the model is undefined).
-fn eval_unit<T: Target>(t: &T, ctx: &T::Ctx, b: usize, x: &[f64]) -> (Option<T::Cache>, f64) {
-    match t.model(b, x) {
+fn eval_unit<T: Target>(
+    t: &T,
+    aux: &[f64],
+    ctx: &T::Ctx,
+    b: usize,
+    x: &[f64],
+) -> (Option<T::Cache>, f64) {
+    match t.model(aux, b, x) {
         Some(c) => {
             let l = t.log_lik(ctx, b, x, &c);
             (Some(c), if l.is_nan() { f64::NEG_INFINITY } else { l })
@@ -250,19 +265,18 @@ fn proposals<C>(ps: &[Particle<C>], n_units: usize) -> Proposals {
 struct SweepStats {
     acc_unit: f64,
     n_unit: f64,
+    acc_unit_z: f64,
+    n_unit_z: f64,
     acc_global: f64,
     n_global: f64,
     acc_nc: f64,
     n_nc: f64,
-    /// Σ over units of the whitened squared jump / d.
-    jump_unit: f64,
-    /// Whitened squared jump of g / dim g.
-    jump_global: f64,
     evals: u64,
 }
 
 struct Scales {
     unit: f64,
+    unit_z: f64,
     global: f64,
     nc: f64,
 }
@@ -298,21 +312,46 @@ fn sweep<T: Target>(
         if !lp_new.is_finite() {
             continue;
         }
-        let (c, ll) = eval_unit(t, &ctx, b, &xn);
+        let (c, ll) = eval_unit(t, &p.aux, &ctx, b, &xn);
         st.evals += 1;
         let lp_old = t.log_prior_unit(&ctx, b, &p.x[b]);
         let log_r = lp_new + tempered(ll) - lp_old - tempered(p.ll[b]);
         if ll > f64::NEG_INFINITY && u.ln() < log_r {
-            let w = lower_solve(&prop.unit[b], d, &step);
-            st.jump_unit += sc.unit * sc.unit * w.iter().map(|v| v * v).sum::<f64>() / d as f64;
             p.x[b] = xn;
             p.cache[b] = c;
             p.ll[b] = ll;
             st.acc_unit += 1.0;
         }
-    }
-    if t.n_units() > 0 {
-        st.jump_unit /= t.n_units() as f64;
+        // The same unit in its standardised coordinates z = (diag σ L)⁻¹ (x − μ): the
+        // proposal follows the particle's own population scale, which is the right one
+        // while the data are weak (low β); the move above, scaled by the cloud, is the right
+        // one once the data pin the unit. The map is linear given g, so the random walk in z
+        // is symmetric in x.
+        let z = t.to_standard(&ctx, b, &p.x[b]);
+        let zn: Vec<f64> = z
+            .iter()
+            .map(|v| {
+                let e: f64 = StandardNormal.sample(rng);
+                v + sc.unit_z * e
+            })
+            .collect();
+        let xn = t.from_standard(&ctx, b, &zn);
+        let u: f64 = rng.random();
+        st.n_unit_z += 1.0;
+        let lp_new = t.log_prior_unit(&ctx, b, &xn);
+        if !lp_new.is_finite() {
+            continue;
+        }
+        let (c, ll) = eval_unit(t, &p.aux, &ctx, b, &xn);
+        st.evals += 1;
+        let lp_old = t.log_prior_unit(&ctx, b, &p.x[b]);
+        let log_r = lp_new + tempered(ll) - lp_old - tempered(p.ll[b]);
+        if ll > f64::NEG_INFINITY && u.ln() < log_r {
+            p.x[b] = xn;
+            p.cache[b] = c;
+            p.ll[b] = ll;
+            st.acc_unit_z += 1.0;
+        }
     }
     // Centred moves of g: no model evaluation.
     let mut lpg = t.log_prior_global(&p.g);
@@ -343,8 +382,6 @@ fn sweep<T: Target>(
             ll_new.push(l);
         }
         if log_r.is_finite() && u.ln() < log_r {
-            let w = lower_solve(&prop.global, ng, &step);
-            st.jump_global += sc.global * sc.global * w.iter().map(|v| v * v).sum::<f64>();
             p.g = gn;
             ctx = ctx_new;
             p.ll = ll_new;
@@ -352,8 +389,8 @@ fn sweep<T: Target>(
             st.acc_global += 1.0;
         }
     }
-    // One non-centred move of g: units follow through their standardised values.
-    if opts.noncentred && t.n_units() > 0 {
+    // Non-centred moves of g: units follow through their standardised values.
+    for _ in 0..if t.n_units() > 0 { opts.noncentred } else { 0 } {
         let eps = normal_vec(rng, ng);
         let step = lower_mul(&prop.global, ng, &eps);
         let gn: Vec<f64> = p.g.iter().zip(&step).map(|(a, s)| a + sc.nc * s).collect();
@@ -367,15 +404,15 @@ fn sweep<T: Target>(
             for b in 0..t.n_units() {
                 let z = t.to_standard(&ctx, b, &p.x[b]);
                 let xn = t.from_standard(&ctx_new, b, &z);
-                let (c, l) = eval_unit(t, &ctx_new, b, &xn);
+                let (c, l) = eval_unit(t, &p.aux, &ctx_new, b, &xn);
                 st.evals += 1;
                 log_r += tempered(l) - tempered(p.ll[b]);
                 moved.push((xn, c, l));
             }
             if log_r.is_finite() && u.ln() < log_r {
-                let w = lower_solve(&prop.global, ng, &step);
-                st.jump_global += sc.nc * sc.nc * w.iter().map(|v| v * v).sum::<f64>();
                 p.g = gn;
+                ctx = ctx_new;
+                lpg = lpg_new;
                 for (b, (xn, c, l)) in moved.into_iter().enumerate() {
                     p.x[b] = xn;
                     p.cache[b] = c;
@@ -385,8 +422,47 @@ fn sweep<T: Target>(
             }
         }
     }
-    st.jump_global /= ng.max(1) as f64;
     st
+}
+
+fn flat<C>(p: &Particle<C>) -> Vec<f64> {
+    let mut v = p.g.clone();
+    for x in &p.x {
+        v.extend(x);
+    }
+    v
+}
+
+/// Mean over coordinates of the correlation across particles between `start` and the
+/// particles' current values (coordinates constant in either are left out).
+fn mean_correlation<C: Sync + Send>(start: &[Vec<f64>], ps: &[Particle<C>]) -> f64 {
+    let now: Vec<Vec<f64>> = ps.iter().map(flat).collect();
+    let n = start.len() as f64;
+    let dim = start[0].len();
+    let mut sum = 0.0;
+    let mut cnt = 0.0;
+    for k in 0..dim {
+        let (ma, mb) = (
+            start.iter().map(|v| v[k]).sum::<f64>() / n,
+            now.iter().map(|v| v[k]).sum::<f64>() / n,
+        );
+        let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+        for (a, b) in start.iter().zip(&now) {
+            let (da, db) = (a[k] - ma, b[k] - mb);
+            sab += da * db;
+            saa += da * da;
+            sbb += db * db;
+        }
+        if saa > 0.0 && sbb > 0.0 {
+            sum += sab / (saa * sbb).sqrt();
+            cnt += 1.0;
+        }
+    }
+    if cnt > 0.0 {
+        sum / cnt
+    } else {
+        0.0
+    }
 }
 
 /// Bisection for the next temperature increment: the largest Δ ≤ 1 − β whose incremental
@@ -424,20 +500,47 @@ pub fn run<T: Target>(
     run_index: usize,
     observe: &(dyn Fn(&StageInfo) + Sync),
 ) -> Result<RunResult<T::Cache>, SmcError> {
+    run_with_aux(t, opts, seed, run_index, &[], observe)
+}
+
+/// [`run`] where particle i carries `aux[i % aux.len()]` (fixed values the model reads and
+/// no move changes: e.g. step-1 posterior draws); `aux` empty = no auxiliary values. The
+/// initial distribution is then aux × prior, and the log evidence is that of the data given
+/// the aux distribution.
+pub fn run_with_aux<T: Target>(
+    t: &T,
+    opts: &SmcOptions,
+    seed: u64,
+    run_index: usize,
+    aux: &[std::sync::Arc<Vec<f64>>],
+    observe: &(dyn Fn(&StageInfo) + Sync),
+) -> Result<RunResult<T::Cache>, SmcError> {
     let n = opts.n_particles;
     let r = run_index as u64;
+    let empty = std::sync::Arc::new(Vec::new());
     let particles: Vec<Particle<T::Cache>> = (0..n)
         .into_par_iter()
         .map(|i| {
             let mut rng = rng_for(&[seed, r, 0, u64::MAX, i as u64]);
             let (g, x) = t.sample_prior(&mut rng);
             let ctx = t.ctx(&g);
+            let aux = if aux.is_empty() {
+                empty.clone()
+            } else {
+                aux[i % aux.len()].clone()
+            };
             let (cache, ll): (Vec<_>, Vec<_>) = x
                 .iter()
                 .enumerate()
-                .map(|(b, xb)| eval_unit(t, &ctx, b, xb))
+                .map(|(b, xb)| eval_unit(t, &aux, &ctx, b, xb))
                 .unzip();
-            Particle { g, x, cache, ll }
+            Particle {
+                aux,
+                g,
+                x,
+                cache,
+                ll,
+            }
         })
         .collect();
     run_from(t, opts, seed, run_index, particles, 0.0, observe)
@@ -464,6 +567,7 @@ pub fn run_from<T: Target>(
     let mut stages = Vec::new();
     let mut scales = Scales {
         unit: 2.38 / d.sqrt(),
+        unit_z: 2.38 / d.sqrt(),
         global: 2.38 / (t.n_global().max(1) as f64).sqrt(),
         nc: 2.38 / (t.n_global().max(1) as f64).sqrt(),
     };
@@ -499,8 +603,9 @@ pub fn run_from<T: Target>(
         particles = idx.iter().map(|&i| particles[i].clone()).collect();
         // Mutate.
         let prop = proposals(&particles, t.n_units());
+        let start: Vec<Vec<f64>> = particles.iter().map(flat).collect();
+        let mut rho = 1.0;
         let (mut acc_u, mut acc_g, mut acc_n) = (0.0, 0.0, 0.0);
-        let (mut jump_u, mut jump_g) = (0.0, 0.0);
         let mut sweeps = 0;
         let mut evals = 0u64;
         while sweeps < opts.max_sweeps {
@@ -517,12 +622,12 @@ pub fn run_from<T: Target>(
             for s in &stats {
                 tot.acc_unit += s.acc_unit;
                 tot.n_unit += s.n_unit;
+                tot.acc_unit_z += s.acc_unit_z;
+                tot.n_unit_z += s.n_unit_z;
                 tot.acc_global += s.acc_global;
                 tot.n_global += s.n_global;
                 tot.acc_nc += s.acc_nc;
                 tot.n_nc += s.n_nc;
-                tot.jump_unit += s.jump_unit;
-                tot.jump_global += s.jump_global;
                 tot.evals += s.evals;
             }
             evals += tot.evals;
@@ -535,8 +640,6 @@ pub fn run_from<T: Target>(
             acc_u += au;
             acc_g += ag;
             acc_n += an;
-            jump_u += tot.jump_unit / n as f64;
-            jump_g += tot.jump_global / n as f64;
             // Adapt the scales toward the target acceptance (population-wide rates).
             let adapt = |s: &mut f64, a: f64| {
                 if a.is_finite() {
@@ -544,11 +647,11 @@ pub fn run_from<T: Target>(
                 }
             };
             adapt(&mut scales.unit, au);
+            adapt(&mut scales.unit_z, rate(tot.acc_unit_z, tot.n_unit_z));
             adapt(&mut scales.global, ag);
             adapt(&mut scales.nc, an);
-            let units_ok = t.n_units() == 0 || jump_u >= opts.jump_target;
-            let global_ok = t.n_global() == 0 || jump_g >= opts.jump_target;
-            if sweeps >= opts.min_sweeps && units_ok && global_ok {
+            rho = mean_correlation(&start, &particles);
+            if sweeps >= opts.min_sweeps && rho <= opts.decorrelation_target {
                 break;
             }
         }
@@ -563,6 +666,7 @@ pub fn run_from<T: Target>(
             acceptance_global: acc_g / k,
             acceptance_noncentred: acc_n / k,
             sweeps,
+            decorrelation: rho,
             unique_after_resampling: unique,
             model_evals: evals,
         };

@@ -52,7 +52,7 @@ impl Target for LinearGaussian {
             .map(|k| super::stats::normal_lpdf(x[k], ctx[k], self.tau[k]))
             .sum()
     }
-    fn model(&self, _b: usize, x: &[f64]) -> Option<Vec<f64>> {
+    fn model(&self, _aux: &[f64], _b: usize, x: &[f64]) -> Option<Vec<f64>> {
         Some(x.to_vec())
     }
     fn log_lik(&self, _ctx: &Vec<f64>, b: usize, _x: &[f64], c: &Vec<f64>) -> f64 {

@@ -708,3 +708,69 @@ fn m_gram_schmidt(vecs: &mut Vec<Vec<f64>>, mdot: &impl Fn(&[f64]) -> Vec<f64>) 
     }
     *vecs = out;
 }
+
+/// The lowest elastic modes of a ROM at one point, in reduced coordinates only.
+#[derive(Clone, Debug)]
+pub struct ReducedModes {
+    /// Eigenvalues ω², rad²/s², ascending.
+    pub eigenvalues: Vec<f64>,
+    /// Mass-normalised reduced eigenvectors, `vectors[j]` of length r, sign as in
+    /// [`Rom::eval`].
+    pub vectors: Vec<Vec<f64>>,
+}
+
+impl Rom {
+    /// The lowest `count` (≤ `n_modes`) elastic modes from raw affine coefficients, without
+    /// shapes at points: the sampler's hot path, which needs only a few modes and forms its
+    /// shape terms from the reduced vectors (see `bayes::boards`).
+    pub fn eval_lowest(
+        &self,
+        ck: &[f64],
+        cm: &[f64],
+        count: usize,
+    ) -> Result<ReducedModes, FemError> {
+        let r = self.dim();
+        let count = count.min(self.n_modes);
+        if self.m_r.len() != 1 || ck.len() != self.k_r.len() {
+            // General pencil (several mass terms): the full path.
+            let empty = RomShapeOperator {
+                points_m: vec![],
+                p: Mat::zeros(0, r),
+                p_rows: vec![],
+            };
+            let m = self.eval_coefs(ck, cm, &empty)?;
+            return Ok(ReducedModes {
+                eigenvalues: m.eigenvalues[..count].to_vec(),
+                vectors: (0..count)
+                    .map(|j| (0..r).map(|i| m.reduced[(i, j)]).collect())
+                    .collect(),
+            });
+        }
+        let d0 = cm[0];
+        let mut a = vec![0.0; r * r];
+        for (c, kf) in ck.iter().zip(&self.k_flat) {
+            a.iter_mut().zip(kf).for_each(|(x, y)| *x += c * y);
+        }
+        let se = super::dense::lowest_eigenpairs(&mut a, r, self.n_rigid, count);
+        let scale = 1.0 / d0.sqrt();
+        let vectors = se
+            .vectors
+            .iter()
+            .map(|z| {
+                let neg = (0..r)
+                    .map(|i| super::eigen::sign_weight(i) * z[i])
+                    .sum::<f64>()
+                    < 0.0;
+                let s = if neg { -scale } else { scale };
+                z.iter().map(|v| v * s).collect()
+            })
+            .collect();
+        Ok(ReducedModes {
+            eigenvalues: se.values[self.n_rigid..self.n_rigid + count]
+                .iter()
+                .map(|v| v / d0)
+                .collect(),
+            vectors,
+        })
+    }
+}

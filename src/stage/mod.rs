@@ -10,6 +10,7 @@ pub mod fe;
 pub mod ingest;
 pub mod lab;
 pub mod pair;
+pub mod update;
 
 use crate::io::manifest::{self, Manifest, Prepared, RunInfo, StageSpec};
 use std::collections::BTreeMap;

@@ -1,0 +1,255 @@
+//! The modal likelihood after Vanik, Beck & Au (2000), over a ROM, as plain data and pure
+//! functions: what a unit's measurements are ([`UnitData`]), what the model predicts for
+//! them ([`ModalPredictor::predict`], [`Terms`]) and the log-likelihood given the
+//! prediction-error scales ([`log_lik`]).
+//!
+//! Per measurement r and updated mode m:
+//! - eigenvalue term: λ̂_rm ~ N(λ_m(θ), (ε_m λ̂_rm)²), λ = (2π f)², ε_m the relative
+//!   prediction error of mode m (measurement scatter and model error together);
+//! - shape term: the measured shape u (unit norm, at the measurement's valid scan points,
+//!   points flagged by `extract` left out) is a ψ(θ) + e with the optimal scale a and
+//!   e ~ N(0, δ_m²/n · I), n points; with a profiled out, ‖u − aψ‖² = 1 − MAC(u, ψ), so
+//!   log L = −(n/2) ln(2π δ_m²/n) − n (1 − MAC)/(2 δ_m²).
+//!   MAC is formed in the ROM's reduced coordinates: ψ = P y with P the reduced shape
+//!   operator at the points, so uᵀψ = (Pᵀu)ᵀ y and ψᵀψ = yᵀ (PᵀP) y: the r-vector Pᵀu and the
+//!   r × r Gram matrix PᵀP are precomputed once per observation, and no shape is ever
+//!   expanded to the points in the sampler's hot path;
+//! - mass term: the balance mean m̂ ~ N(m(θ), s²), s² = std²/n_stable + resolution²/12.
+//!
+//! Mode tracking: the model's modes are matched to the updated labels by the largest
+//! overlap |yᵀ y_ref| with the label's reduced vector at the ROM centre (M₀-inner product,
+//! since the ROM basis is M₀-orthonormal), not by their order, so a mode swap inside the
+//! box does not mix labels. A label whose best overlap falls below 1/√2 is lost and the
+//! model is undefined there.
+
+use crate::fem::rom::Rom;
+
+use super::stats::LN_2PI;
+
+/// One eigenvalue observation.
+#[derive(Clone, Debug)]
+pub struct FreqObs {
+    /// Index of the updated mode.
+    pub mode: usize,
+    /// Measured eigenvalue (2π f̂)², rad²/s².
+    pub lambda_hat: f64,
+}
+
+/// One mode-shape observation, reduced to what the likelihood needs.
+#[derive(Clone, Debug)]
+pub struct ShapeObs {
+    pub mode: usize,
+    /// Pᵀu, length r (u = measured shape at the valid points, unit norm).
+    pub pt_u: Vec<f64>,
+    /// Index of PᵀP in [`UnitData::grams`] (measurements with the same valid points share
+    /// one, so yᵀ(PᵀP)y is formed once per mode and point set).
+    pub gram: usize,
+    /// Valid scan points n.
+    pub n_points: usize,
+}
+
+/// A balance observation of a board's mass.
+#[derive(Clone, Debug)]
+pub struct MassObs {
+    pub mass_g: f64,
+    pub sd_g: f64,
+}
+
+/// Everything measured on one unit.
+#[derive(Clone, Debug, Default)]
+pub struct UnitData {
+    pub freq: Vec<FreqObs>,
+    pub shapes: Vec<ShapeObs>,
+    /// Distinct Gram matrices PᵀP (r × r row-major) of the shape observations.
+    pub grams: Vec<Vec<f64>>,
+    pub mass: Option<MassObs>,
+}
+
+/// The model's prediction for one unit at one parameter point.
+#[derive(Clone, Debug)]
+pub struct Terms {
+    /// λ_m of every updated mode.
+    pub lambda: Vec<f64>,
+    /// 1 − MAC of every shape observation (same order as `UnitData::shapes`).
+    pub one_minus_mac: Vec<f64>,
+    /// Model mass, g.
+    pub mass_g: f64,
+}
+
+/// The ROM with the updated modes' references: the forward model of a unit.
+#[derive(Clone, Debug)]
+pub struct ModalPredictor {
+    pub rom: Rom,
+    /// Reference reduced vectors (unit norm) of the updated modes at the ROM centre.
+    pub refs: Vec<Vec<f64>>,
+    /// Modes computed per evaluation (covers the references plus a margin for swaps).
+    pub n_track: usize,
+    /// Position of `mass_scale` among the ROM's parameters, if any, and the model mass
+    /// at the ROM centre in g.
+    pub mass_scale_idx: Option<usize>,
+    pub nominal_mass_g: f64,
+}
+
+/// Prediction of the updated modes: eigenvalues and reduced vectors in label order.
+#[derive(Clone, Debug)]
+pub struct Prediction {
+    pub lambda: Vec<f64>,
+    pub vectors: Vec<Vec<f64>>,
+}
+
+impl ModalPredictor {
+    /// `ref_modes`: for every updated mode, its 0-based index among the ROM's modes at the
+    /// centre.
+    pub fn new(
+        rom: Rom,
+        ref_modes: &[usize],
+        nominal_mass_g: f64,
+    ) -> Result<ModalPredictor, crate::fem::FemError> {
+        let max = ref_modes.iter().copied().max().unwrap_or(0);
+        if max >= rom.n_modes {
+            return Err(crate::fem::FemError::Request(format!(
+                "updated mode {} of the model is beyond the ROM's {} modes",
+                max + 1,
+                rom.n_modes
+            )));
+        }
+        let n_track = (max + 3).min(rom.n_modes);
+        let c = rom.map.coefficients_unchecked(&rom.map.nominal);
+        let centre = rom.eval_lowest(&c.k, &c.m, n_track)?;
+        let refs = ref_modes
+            .iter()
+            .map(|&j| {
+                let v = &centre.vectors[j];
+                let n = v.iter().map(|a| a * a).sum::<f64>().sqrt();
+                v.iter().map(|a| a / n).collect()
+            })
+            .collect();
+        let mass_scale_idx = rom
+            .map
+            .names
+            .iter()
+            .position(|n| n == crate::fem::params::names::MASS_SCALE);
+        Ok(ModalPredictor {
+            rom,
+            refs,
+            n_track,
+            mass_scale_idx,
+            nominal_mass_g,
+        })
+    }
+
+    /// Model mass at `values` (the ROM's full parameter vector), g.
+    pub fn mass_g(&self, values: &[f64]) -> f64 {
+        match self.mass_scale_idx {
+            Some(i) => self.nominal_mass_g * values[i] / self.rom.map.nominal[i],
+            None => self.nominal_mass_g,
+        }
+    }
+
+    /// The updated modes at `values`; `None` where the parameters are inadmissible or a
+    /// label cannot be tracked.
+    pub fn predict(&self, values: &[f64]) -> Option<Prediction> {
+        let map = &self.rom.map;
+        for (n, v) in map.names.iter().zip(values) {
+            let ok = if n == crate::fem::params::names::NU_XY {
+                v.is_finite()
+            } else {
+                v.is_finite() && *v > 0.0
+            };
+            if !ok {
+                return None;
+            }
+        }
+        let [ix, iy, _, inu] = map.core_idx;
+        if values[inu] * values[inu] * values[iy] / values[ix] >= 1.0 {
+            return None;
+        }
+        let c = map.coefficients_unchecked(values);
+        let modes = self.rom.eval_lowest(&c.k, &c.m, self.n_track).ok()?;
+        // Greedy assignment by overlap (few modes: a full Hungarian step is not needed,
+        // a unique best match is checked instead).
+        let nm = self.refs.len();
+        let mut taken = vec![false; modes.vectors.len()];
+        let mut out_l = vec![0.0; nm];
+        let mut out_v = vec![Vec::new(); nm];
+        let mut pairs: Vec<(f64, usize, usize)> = Vec::with_capacity(nm * modes.vectors.len());
+        for (m, r) in self.refs.iter().enumerate() {
+            for (j, y) in modes.vectors.iter().enumerate() {
+                let ny = y.iter().map(|a| a * a).sum::<f64>().sqrt();
+                let o = y.iter().zip(r).map(|(a, b)| a * b).sum::<f64>().abs() / ny;
+                pairs.push((o, m, j));
+            }
+        }
+        pairs.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let mut done = vec![false; nm];
+        for (o, m, j) in pairs {
+            if done[m] || taken[j] {
+                continue;
+            }
+            if o < std::f64::consts::FRAC_1_SQRT_2 {
+                return None;
+            }
+            done[m] = true;
+            taken[j] = true;
+            out_l[m] = modes.eigenvalues[j];
+            out_v[m] = modes.vectors[j].clone();
+        }
+        Some(Prediction {
+            lambda: out_l,
+            vectors: out_v,
+        })
+    }
+
+    /// The likelihood's inputs for `data` from a prediction.
+    pub fn terms(&self, pred: &Prediction, data: &UnitData, values: &[f64]) -> Terms {
+        let r = self.rom.dim();
+        // yᵀ G y per (Gram, mode), formed on first use.
+        let nm = pred.vectors.len();
+        let mut yy = vec![f64::NAN; data.grams.len() * nm];
+        let one_minus_mac = data
+            .shapes
+            .iter()
+            .map(|s| {
+                let y = &pred.vectors[s.mode];
+                let uy: f64 = s.pt_u.iter().zip(y).map(|(a, b)| a * b).sum();
+                let slot = &mut yy[s.gram * nm + s.mode];
+                if slot.is_nan() {
+                    let g = &data.grams[s.gram];
+                    let mut q = 0.0;
+                    for i in 0..r {
+                        let row = &g[i * r..(i + 1) * r];
+                        q += y[i] * row.iter().zip(y).map(|(a, b)| a * b).sum::<f64>();
+                    }
+                    *slot = q;
+                }
+                (1.0 - uy * uy / *slot).max(0.0)
+            })
+            .collect();
+        Terms {
+            lambda: pred.lambda.clone(),
+            one_minus_mac,
+            mass_g: self.mass_g(values),
+        }
+    }
+}
+
+/// log L of one unit given its terms, the relative eigenvalue errors ε (per mode) and the
+/// shape errors δ (per mode; unused when the unit has no shape observations).
+pub fn log_lik(data: &UnitData, t: &Terms, eps: &[f64], delta: &[f64]) -> f64 {
+    let mut l = 0.0;
+    for f in &data.freq {
+        let sd = eps[f.mode] * f.lambda_hat;
+        let z = (f.lambda_hat - t.lambda[f.mode]) / sd;
+        l -= 0.5 * (LN_2PI + z * z) + sd.ln();
+    }
+    for (s, omm) in data.shapes.iter().zip(&t.one_minus_mac) {
+        let n = s.n_points as f64;
+        let d2 = delta[s.mode] * delta[s.mode];
+        l -= 0.5 * n * (LN_2PI + (d2 / n).ln()) + n * omm / (2.0 * d2);
+    }
+    if let Some(m) = &data.mass {
+        let z = (m.mass_g - t.mass_g) / m.sd_g;
+        l -= 0.5 * (LN_2PI + z * z) + m.sd_g.ln();
+    }
+    l
+}

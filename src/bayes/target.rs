@@ -1,0 +1,239 @@
+//! The hierarchical modal-updating targets of both steps, as one [`smc::Target`]:
+//! population prior over the units' parameters, prediction-error scales per mode, and the
+//! modal likelihood of [`super::modal`].
+//!
+//! - Step 1 (boards, free-free): a unit is a board, x = relative deviations of the updated
+//!   parameters from the board file's nominal values (p = p₀ (1 + x)).
+//! - Step 2 (joints, bolted): a unit is a bolted measurement, x = ln(K_con / K₀); the
+//!   board's parameters come from the particle's auxiliary values (a step-1 posterior draw,
+//!   physical units, board-major), which no move changes: the modular ("cut") structure.
+//!
+//! Global vector: [population (see [`PopulationPrior`]) | ln ε per mode | ln δ per mode];
+//! the error blocks are absent when fixed. ln ε and ln δ are normal (log-normal scales): a
+//! weakly informative prior over orders of magnitude that, unlike a half-normal, puts no
+//! appreciable mass on absurdly small errors (a half-normal's ln-scale density decays only
+//! like ε as ε → 0, which made the first tempering stages do nothing but remove those).
+
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::Serialize;
+
+use super::modal::{self, ModalPredictor, Terms, UnitData};
+use super::population::{Population, PopulationPrior};
+use super::smc::Target;
+use super::stats::normal_lpdf;
+
+/// How one family of prediction-error scales is treated.
+#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum ErrorPrior {
+    /// Inferred per mode with a log-normal prior: ln value ~ N(ln median, log_sd²).
+    Inferred { median: f64, log_sd: f64 },
+    /// Fixed to this value for every mode.
+    Fixed { value: f64 },
+}
+
+/// Prediction-error scales: ε (relative, on eigenvalues) and δ (on unit-norm shapes).
+#[derive(Clone, Debug, Serialize)]
+pub struct ErrorModel {
+    pub n_modes: usize,
+    pub eps: ErrorPrior,
+    /// `None`: shape terms are not used.
+    pub delta: Option<ErrorPrior>,
+}
+
+impl ErrorModel {
+    fn block(p: &ErrorPrior, n: usize) -> usize {
+        match p {
+            ErrorPrior::Inferred { .. } => n,
+            ErrorPrior::Fixed { .. } => 0,
+        }
+    }
+    /// Coordinates in the global vector.
+    pub fn dim(&self) -> usize {
+        Self::block(&self.eps, self.n_modes)
+            + self.delta.map_or(0, |d| Self::block(&d, self.n_modes))
+    }
+    /// Names of the coordinates given the mode labels.
+    pub fn names(&self, labels: &[String]) -> Vec<String> {
+        let mut out = vec![];
+        if let ErrorPrior::Inferred { .. } = self.eps {
+            out.extend(labels.iter().map(|l| format!("log_eps_{l}")));
+        }
+        if let Some(ErrorPrior::Inferred { .. }) = self.delta {
+            out.extend(labels.iter().map(|l| format!("log_delta_{l}")));
+        }
+        out
+    }
+    fn unpack_one(p: &ErrorPrior, h: &[f64], n: usize) -> (Vec<f64>, usize) {
+        match p {
+            ErrorPrior::Inferred { .. } => (h[..n].iter().map(|v| v.exp()).collect(), n),
+            ErrorPrior::Fixed { value } => (vec![*value; n], 0),
+        }
+    }
+    /// (ε, δ) per mode; δ empty without shape terms.
+    pub fn unpack(&self, h: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        let (eps, used) = Self::unpack_one(&self.eps, h, self.n_modes);
+        let delta = match &self.delta {
+            Some(d) => Self::unpack_one(d, &h[used..], self.n_modes).0,
+            None => vec![],
+        };
+        (eps, delta)
+    }
+    fn lp_one(p: &ErrorPrior, h: &[f64]) -> (f64, usize) {
+        match p {
+            ErrorPrior::Inferred { median, log_sd } => (
+                h.iter()
+                    .map(|&v| normal_lpdf(v, median.ln(), *log_sd))
+                    .sum(),
+                h.len(),
+            ),
+            ErrorPrior::Fixed { .. } => (0.0, 0),
+        }
+    }
+    /// Log prior of the error block (with the log-scale Jacobians).
+    pub fn log_prior(&self, h: &[f64]) -> f64 {
+        let n = Self::block(&self.eps, self.n_modes);
+        let (a, _) = Self::lp_one(&self.eps, &h[..n]);
+        let b = match &self.delta {
+            Some(d) => Self::lp_one(d, &h[n..]).0,
+            None => 0.0,
+        };
+        a + b
+    }
+    /// A prior draw of the error block.
+    pub fn sample(&self, rng: &mut ChaCha8Rng) -> Vec<f64> {
+        let mut out = vec![];
+        for p in std::iter::once(&self.eps).chain(self.delta.as_ref()) {
+            if let ErrorPrior::Inferred { median, log_sd } = p {
+                for _ in 0..self.n_modes {
+                    let z: f64 = StandardNormal.sample(rng);
+                    out.push(median.ln() + log_sd * z);
+                }
+            }
+        }
+        out
+    }
+}
+
+/// How a unit's x and the particle's aux become the ROM's parameter vector.
+#[derive(Clone, Debug)]
+pub enum Compose {
+    /// Step 1: p[updated[k]] = reference[k] (1 + x_k); the reference is the board file's
+    /// nominal value, which need not be the ROM's centre.
+    Boards {
+        updated: Vec<usize>,
+        reference: Vec<f64>,
+    },
+    /// Step 2: board parameters from aux (board `unit_board[b]`, `board_params.len()` values
+    /// each, in the order of `board_params`), K_con = k_ref exp(x₀).
+    Joints {
+        board_params: Vec<usize>,
+        k_idx: usize,
+        k_ref: f64,
+        unit_board: Vec<usize>,
+    },
+}
+
+/// One hierarchical modal target (step 1 or step 2).
+#[derive(Clone, Debug)]
+pub struct ModalTarget {
+    pub predictor: ModalPredictor,
+    pub compose: Compose,
+    pub prior: PopulationPrior,
+    pub errors: ErrorModel,
+    pub units: Vec<UnitData>,
+}
+
+/// Unpacked global vector.
+pub struct Ctx {
+    pub pop: Population,
+    pub eps: Vec<f64>,
+    pub delta: Vec<f64>,
+}
+
+impl ModalTarget {
+    /// The ROM parameter vector of unit b.
+    pub fn values(&self, aux: &[f64], b: usize, x: &[f64]) -> Vec<f64> {
+        let map = &self.predictor.rom.map;
+        let mut v = map.nominal.clone();
+        match &self.compose {
+            Compose::Boards { updated, reference } => {
+                for (k, &i) in updated.iter().enumerate() {
+                    v[i] = reference[k] * (1.0 + x[k]);
+                }
+            }
+            Compose::Joints {
+                board_params,
+                k_idx,
+                k_ref,
+                unit_board,
+            } => {
+                let d = board_params.len();
+                let ob = unit_board[b] * d;
+                for (k, &i) in board_params.iter().enumerate() {
+                    v[i] = aux[ob + k];
+                }
+                v[*k_idx] = k_ref * x[0].exp();
+            }
+        }
+        v
+    }
+}
+
+impl Target for ModalTarget {
+    type Cache = Terms;
+    type Ctx = Ctx;
+    fn n_global(&self) -> usize {
+        self.prior.dim() + self.errors.dim()
+    }
+    fn n_units(&self) -> usize {
+        self.units.len()
+    }
+    fn unit_dim(&self) -> usize {
+        self.prior.d()
+    }
+    fn sample_prior(&self, rng: &mut ChaCha8Rng) -> (Vec<f64>, Vec<Vec<f64>>) {
+        let mut g = self.prior.sample(rng);
+        g.extend(self.errors.sample(rng));
+        let pop = self.prior.unpack(&g);
+        let d = self.prior.d();
+        let x = (0..self.units.len())
+            .map(|_| {
+                let z: Vec<f64> = (0..d).map(|_| StandardNormal.sample(rng)).collect();
+                pop.from_standard(&z)
+            })
+            .collect();
+        (g, x)
+    }
+    fn log_prior_global(&self, g: &[f64]) -> f64 {
+        let k = self.prior.dim();
+        self.prior.log_prior(&g[..k]) + self.errors.log_prior(&g[k..])
+    }
+    fn ctx(&self, g: &[f64]) -> Ctx {
+        let k = self.prior.dim();
+        let (eps, delta) = self.errors.unpack(&g[k..]);
+        Ctx {
+            pop: self.prior.unpack(&g[..k]),
+            eps,
+            delta,
+        }
+    }
+    fn log_prior_unit(&self, ctx: &Ctx, _b: usize, x: &[f64]) -> f64 {
+        ctx.pop.log_density(x)
+    }
+    fn model(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Terms> {
+        let v = self.values(aux, b, x);
+        let pred = self.predictor.predict(&v)?;
+        Some(self.predictor.terms(&pred, &self.units[b], &v))
+    }
+    fn log_lik(&self, ctx: &Ctx, b: usize, _x: &[f64], c: &Terms) -> f64 {
+        modal::log_lik(&self.units[b], c, &ctx.eps, &ctx.delta)
+    }
+    fn to_standard(&self, ctx: &Ctx, _b: usize, x: &[f64]) -> Vec<f64> {
+        ctx.pop.to_standard(x)
+    }
+    fn from_standard(&self, ctx: &Ctx, _b: usize, z: &[f64]) -> Vec<f64> {
+        ctx.pop.from_standard(z)
+    }
+}

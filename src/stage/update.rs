@@ -1,0 +1,1459 @@
+//! Stage `update`: two-step hierarchical Bayesian updating (see `bayes`).
+//!
+//! - `update boards` (step 1): free-free modes of every board + the balance masses update the
+//!   boards' parameters and their population (MVN + LKJ), with per-mode prediction errors.
+//! - `update joints` (step 2): bolted modes update the joints' contact stiffness per bolted
+//!   measurement and its population, with the boards' parameters carried from step 1
+//!   (modular posterior by default).
+//!
+//! Inputs: `measurements`/`masses` of ingest, `modes` of extract, `pairs`/`presence` of pair,
+//! a board description (default: the built-in board); the ROM is built here from the board.
+//! Outputs (flat Parquet, schemas in `schemas/tables/`): `population`, `boards` or `joints`,
+//! `summary`, `stages`, `residuals`, and `evidence.json`, `update_report.json`.
+
+use crate::bayes::modal::{FreqObs, MassObs, ModalPredictor, ShapeObs, UnitData};
+use crate::bayes::population::PopulationPrior;
+use crate::bayes::smc::{self, Particle, SmcOptions, StageInfo};
+use crate::bayes::target::{Compose, ErrorModel, ErrorPrior, ModalTarget};
+use crate::fem::params::names;
+use crate::fem::{Board, FeModel, Rom, RomOptions, Setup};
+use crate::findings::{Finding, Findings, Severity};
+use crate::io::manifest::StageSpec;
+use crate::io::tables::{self, c, Col, Cols, TableSpec};
+use crate::stage::{exit, StageOutcome, StageResult};
+use anyhow::{anyhow, bail, Context};
+use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
+use arrow::datatypes::{DataType, Field};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+pub const MANIFEST_BOARDS: &str = "update_boards.manifest.json";
+pub const MANIFEST_JOINTS: &str = "update_joints.manifest.json";
+
+pub const POPULATION: TableSpec = TableSpec {
+    name: "population",
+    doc: "Posterior draws of the population (hyper-)parameters, one row per particle; run = independent SMC run (ArviZ: chain = run, draw = draw). Step 1 (boards): for every updated parameter <p> (unit in its name) `mu_<p>` (population mean, unit of <p>), `sigma_<p>` (population standard deviation, unit of <p>), `corr_<p>_<q>` (population correlation); step 2 (joints): `mu_ln_k_con` (mean of ln K_con, K_con in N/m), `sigma_ln_k_con`. Prediction errors per mode label <l>: `eps_<l>` (relative standard deviation of the eigenvalue λ = ω², dimensionless) and `delta_<l>` (standard deviation of the unit-norm shape residual), when inferred.",
+    open: true,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
+        c("draw", Col::Int32, false, "", "Particle index within the run (ArviZ draw)."),
+    ],
+};
+
+pub const BOARDS: TableSpec = TableSpec {
+    name: "boards",
+    doc: "Step-1 posterior draws of every board's parameters, one row per particle and board; one column per updated parameter, named with its unit (e.g. e_x_pa, e_y_pa, g_xy_pa, mass_scale).",
+    open: true,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
+        c("draw", Col::Int32, false, "", "Particle index within the run."),
+        c("board_id", Col::Utf8, false, "", "Board."),
+        c("mass_g", Col::Float64, false, "g", "Model mass of the board at this draw."),
+    ],
+};
+
+pub const JOINTS: TableSpec = TableSpec {
+    name: "joints",
+    doc: "Step-2 posterior draws of the joint contact stiffness of every bolted measurement, one row per particle and measurement.",
+    open: false,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
+        c("draw", Col::Int32, false, "", "Particle index within the run."),
+        c("measurement_id", Col::Utf8, false, "", "Bolted measurement."),
+        c("board_id", Col::Utf8, false, "", "Board of the measurement."),
+        c("k_con_n_per_m", Col::Float64, false, "N/m", "Total out-of-plane contact stiffness of one joint."),
+    ],
+};
+
+pub const SUMMARY: TableSpec = TableSpec {
+    name: "summary",
+    doc: "Posterior summary, one row per parameter (and board or measurement where it has one): moments and quantiles over all runs' draws; rank-normalised split R-hat and bulk/tail ESS across runs (Vehtari et al. 2021, the definitions ArviZ uses).",
+    open: false,
+    columns: &[
+        c("parameter", Col::Utf8, false, "", "Column name in population/boards/joints (unit in the name)."),
+        c("board_id", Col::Utf8, true, "", "Board, for per-board parameters."),
+        c("measurement_id", Col::Utf8, true, "", "Measurement, for per-joint parameters."),
+        c("mean", Col::Float64, false, "", "Posterior mean (unit of the parameter)."),
+        c("sd", Col::Float64, false, "", "Posterior standard deviation."),
+        c("q05", Col::Float64, false, "", "5 % quantile."),
+        c("q50", Col::Float64, false, "", "Median."),
+        c("q95", Col::Float64, false, "", "95 % quantile."),
+        c("r_hat", Col::Float64, false, "", "Rank-normalised split R-hat across runs."),
+        c("ess_bulk", Col::Float64, false, "", "Bulk effective sample size."),
+        c("ess_tail", Col::Float64, false, "", "Tail effective sample size."),
+    ],
+};
+
+pub const STAGES: TableSpec = TableSpec {
+    name: "stages",
+    doc: "The tempering path: one row per SMC run and tempering stage.",
+    open: false,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run."),
+        c("stage", Col::Int32, false, "", "Tempering stage, 1-based."),
+        c(
+            "beta",
+            Col::Float64,
+            false,
+            "",
+            "Inverse temperature after the stage.",
+        ),
+        c(
+            "ess",
+            Col::Float64,
+            false,
+            "",
+            "Effective sample size of the incremental weights, particles.",
+        ),
+        c(
+            "log_evidence_increment",
+            Col::Float64,
+            false,
+            "",
+            "log mean of the incremental weights.",
+        ),
+        c(
+            "acceptance_unit",
+            Col::Float64,
+            false,
+            "",
+            "Acceptance rate of the per-unit moves.",
+        ),
+        c(
+            "acceptance_global",
+            Col::Float64,
+            true,
+            "",
+            "Acceptance rate of the centred population moves.",
+        ),
+        c(
+            "acceptance_noncentred",
+            Col::Float64,
+            true,
+            "",
+            "Acceptance rate of the non-centred population moves.",
+        ),
+        c("mutation_steps", Col::Int32, false, "", "Mutation sweeps."),
+        c(
+            "unique_after_resampling",
+            Col::Int32,
+            false,
+            "",
+            "Distinct particles after resampling.",
+        ),
+        c(
+            "model_evals",
+            Col::Float64,
+            false,
+            "",
+            "ROM evaluations of the stage.",
+        ),
+    ],
+};
+
+pub const RESIDUALS: TableSpec = TableSpec {
+    name: "residuals",
+    doc: "Measured vs posterior-predictive model modes, one row per measurement and accepted paired mode of the step's setup (updating and validation modes).",
+    open: false,
+    columns: &[
+        c("measurement_id", Col::Utf8, false, "", "Measurement."),
+        c("board_id", Col::Utf8, false, "", "Board."),
+        c("setup", Col::Utf8, false, "", "`free` or `bolted`."),
+        c("label", Col::Utf8, false, "", "Mode label (from pair)."),
+        c("freq_hz", Col::Float64, false, "Hz", "Identified frequency."),
+        c("model_freq_hz_mean", Col::Float64, false, "Hz", "Posterior mean of the model frequency of this board/measurement."),
+        c("model_freq_hz_sd", Col::Float64, false, "Hz", "Posterior standard deviation of the model frequency (parameter uncertainty)."),
+        c("predictive_sd_hz", Col::Float64, false, "Hz", "Posterior-predictive standard deviation of a measurement: parameter uncertainty and, for updated modes, the inferred prediction error."),
+        c("rel_residual", Col::Float64, false, "", "(freq_hz - model_freq_hz_mean) / model_freq_hz_mean."),
+        c("std_residual", Col::Float64, false, "", "(freq_hz - model_freq_hz_mean) / predictive_sd_hz."),
+        c("mac", Col::Float64, true, "", "MAC of the measured shape and the model shape (posterior mean); null without a usable shape."),
+        c("used_for_updating", Col::Bool, false, "", "The mode's label was used for updating."),
+    ],
+};
+
+/// Every table this stage writes (for `hbmu schemas`).
+pub fn tables() -> Vec<&'static TableSpec> {
+    vec![&POPULATION, &BOARDS, &JOINTS, &SUMMARY, &STAGES, &RESIDUALS]
+}
+
+/// Options shared by both steps.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct UpdateOptions {
+    #[serde(skip)]
+    pub ingest_dir: PathBuf,
+    #[serde(skip)]
+    pub pair_dir: PathBuf,
+    /// Extract output (modes.parquet); default: `extract` next to the pair directory.
+    #[serde(skip)]
+    pub extract_dir: Option<PathBuf>,
+    #[serde(skip)]
+    pub board: Option<PathBuf>,
+    #[serde(skip)]
+    pub out: PathBuf,
+    #[serde(skip)]
+    pub force: bool,
+    pub seed: u64,
+    pub runs: usize,
+    pub smc: SmcOptions,
+    /// Mode labels to update; empty = those `pair` marks `used_for_updating`.
+    pub modes: Vec<String>,
+    /// Step 1: the updated board parameters (ROM parameter names).
+    pub params: Vec<String>,
+    /// Prior sd of the population means, relative to nominal (step 1) or in ln K (step 2).
+    pub prior_width: f64,
+    /// Half-normal scale of the population sds (relative, or in ln K).
+    pub sigma_scale: f64,
+    pub lkj_eta: f64,
+    pub eps: ErrorPrior,
+    /// `None`: shape terms off.
+    pub delta: Option<ErrorPrior>,
+    /// ROM half-width (relative) and the largest posterior mass allowed outside it.
+    pub rom_box: f64,
+    pub box_tolerance: f64,
+    /// Draws per run used for the posterior-predictive residuals.
+    pub residual_draws: usize,
+}
+
+impl UpdateOptions {
+    fn extract_dir(&self) -> PathBuf {
+        self.extract_dir.clone().unwrap_or_else(|| {
+            self.pair_dir
+                .parent()
+                .map(|p| p.join("extract"))
+                .unwrap_or_else(|| PathBuf::from("extract"))
+        })
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reading the campaign's tables.
+
+#[derive(Debug, Clone)]
+struct PairRow {
+    measurement_id: String,
+    board_id: String,
+    setup: String,
+    mode: i32,
+    freq_hz: f64,
+    model_mode: i32,
+    label: String,
+}
+
+fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairRow>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (mid, bid, setup, mode, f, mm, label, acc) = (
+            c.str("measurement_id")?,
+            c.str("board_id")?,
+            c.str("setup")?,
+            c.i32("mode")?,
+            c.f64("freq_hz")?,
+            c.i32("model_mode")?,
+            c.str("label")?,
+            c.bool("accepted")?,
+        );
+        for i in 0..b.num_rows() {
+            use arrow::array::Array;
+            if !acc.value(i) || mode.is_null(i) || f.is_null(i) || mm.is_null(i) {
+                continue;
+            }
+            out.push(PairRow {
+                measurement_id: mid.value(i).into(),
+                board_id: bid.value(i).into(),
+                setup: setup.value(i).into(),
+                mode: mode.value(i),
+                freq_hz: f.value(i),
+                model_mode: mm.value(i),
+                label: label.value(i).into(),
+            });
+        }
+    }
+    Ok(out)
+}
+
+fn read_presence(path: &Path, setup: &str) -> anyhow::Result<Vec<String>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (s, l, u) = (
+            c.str("setup")?,
+            c.str("label")?,
+            c.bool("used_for_updating")?,
+        );
+        for i in 0..b.num_rows() {
+            if s.value(i) == setup && u.value(i) {
+                out.push(l.value(i).to_string());
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Identified shapes: (measurement, mode) → (shape, x, y).
+type ShapeMap = BTreeMap<(String, i32), (Vec<f64>, Vec<f64>, Vec<f64>)>;
+
+fn read_shapes(path: &Path, wanted: &BTreeSet<(String, i32)>) -> anyhow::Result<ShapeMap> {
+    let mut out = BTreeMap::new();
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (mid, mode) = (c.str("measurement_id")?, c.i32("mode")?);
+        for i in 0..b.num_rows() {
+            let key = (mid.value(i).to_string(), mode.value(i));
+            if !wanted.contains(&key) {
+                continue;
+            }
+            let s = c.list_f64("shape", i)?.unwrap_or_default();
+            let x = c.list_f64("x_m", i)?.unwrap_or_default();
+            let y = c.list_f64("y_m", i)?.unwrap_or_default();
+            out.insert(key, (s, x, y));
+        }
+    }
+    Ok(out)
+}
+
+#[derive(Debug, Clone)]
+struct MassRow {
+    mass_g: f64,
+    n_stable: i32,
+    std_g: f64,
+    resolution_g: f64,
+    inconsistent: bool,
+}
+
+fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
+    let mut out = BTreeMap::new();
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (bid, m, n, s, r, inc) = (
+            c.str("board_id")?,
+            c.f64("mass_g")?,
+            c.i32("n_stable")?,
+            c.f64("std_g")?,
+            c.f64("resolution_g")?,
+            c.bool("inconsistent")?,
+        );
+        for i in 0..b.num_rows() {
+            out.insert(
+                bid.value(i).to_string(),
+                MassRow {
+                    mass_g: m.value(i),
+                    n_stable: n.value(i),
+                    std_g: s.value(i),
+                    resolution_g: r.value(i),
+                    inconsistent: inc.value(i),
+                },
+            );
+        }
+    }
+    Ok(out)
+}
+
+fn load_board(path: Option<&Path>) -> anyhow::Result<(Board, String)> {
+    let text = match path {
+        Some(p) => std::fs::read_to_string(p)
+            .with_context(|| format!("cannot read board file {}", p.display()))?,
+        None => crate::fem::board::DEFAULT_BOARD_TOML.to_string(),
+    };
+    let board = Board::from_toml_str(&text).map_err(|e| match path {
+        Some(p) => anyhow!("{}: {e}", p.display()),
+        None => anyhow!("built-in board: {e}"),
+    })?;
+    Ok((board, text))
+}
+
+// ---------------------------------------------------------------------------------------------
+// From tables to the likelihood's data.
+
+/// The updated labels and, per label, the model mode (0-based) it pairs with at the centre.
+struct Labels {
+    labels: Vec<String>,
+    model_mode: Vec<usize>,
+}
+
+fn select_labels(
+    pairs: &[PairRow],
+    setup: &str,
+    requested: &[String],
+    presence: &[String],
+    findings: &mut Findings,
+) -> anyhow::Result<Labels> {
+    let chosen: Vec<String> = if requested.is_empty() {
+        presence.to_vec()
+    } else {
+        requested.to_vec()
+    };
+    if chosen.is_empty() {
+        bail!(
+            "no {setup} mode is marked for updating (presence.parquet) and none was requested with --modes: nothing to update"
+        );
+    }
+    let mut labels = vec![];
+    let mut model_mode = vec![];
+    for l in chosen {
+        let mut counts: BTreeMap<i32, usize> = BTreeMap::new();
+        for p in pairs.iter().filter(|p| p.setup == setup && p.label == l) {
+            *counts.entry(p.model_mode).or_default() += 1;
+        }
+        match counts.iter().max_by_key(|(_, n)| **n) {
+            Some((mm, _)) if *mm >= 1 => {
+                labels.push(l);
+                model_mode.push((*mm - 1) as usize);
+            }
+            _ => findings.push(Finding::new(
+                Severity::Warning,
+                "update.label_unpaired",
+                format!("mode {l:?} has no accepted {setup} pair; left out of the updating"),
+            )),
+        }
+    }
+    if labels.is_empty() {
+        bail!("none of the {setup} modes to update has an accepted pair in pairs.parquet");
+    }
+    Ok(Labels { labels, model_mode })
+}
+
+/// A shape observation of one identified mode at its valid scan points, or `None` (with a
+/// finding) when fewer than 3 points remain.
+fn shape_obs(
+    model: &FeModel,
+    rom: &Rom,
+    mode: usize,
+    shape: &(Vec<f64>, Vec<f64>, Vec<f64>),
+    measurement_id: &str,
+    grams: &mut Vec<Vec<f64>>,
+    findings: &mut Findings,
+) -> anyhow::Result<Option<ShapeObs>> {
+    let (s, xs, ys) = shape;
+    let mut pts = vec![];
+    let mut u = vec![];
+    for ((v, x), y) in s.iter().zip(xs).zip(ys) {
+        if !v.is_finite() {
+            continue;
+        }
+        if model.shape_operator(&[[*x, *y]]).is_err() {
+            continue;
+        }
+        pts.push([*x, *y]);
+        u.push(*v);
+    }
+    let nrm = u.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if pts.len() < 3 || nrm == 0.0 {
+        findings.push(
+            Finding::new(
+                Severity::Warning,
+                "update.shape_points",
+                format!(
+                    "only {} usable scan points for a mode shape (expected at least 3); its shape term is left out",
+                    pts.len()
+                ),
+            )
+            .measurement(measurement_id.to_string()),
+        );
+        return Ok(None);
+    }
+    let op = rom.shape_operator(model, &pts)?;
+    let r = rom.dim();
+    let n = pts.len();
+    let mut pt_u = vec![0.0; r];
+    let mut gram = vec![0.0; r * r];
+    for (i, ui) in u.iter().enumerate() {
+        for a in 0..r {
+            let pa = op.p[(i, a)];
+            pt_u[a] += pa * ui / nrm;
+            for b in 0..r {
+                gram[a * r + b] += pa * op.p[(i, b)];
+            }
+        }
+    }
+    let gram = match grams.iter().position(|g| *g == gram) {
+        Some(i) => i,
+        None => {
+            grams.push(gram);
+            grams.len() - 1
+        }
+    };
+    Ok(Some(ShapeObs {
+        mode,
+        pt_u,
+        gram,
+        n_points: n,
+    }))
+}
+
+/// Where a frequency observation came from, and the index of its shape observation.
+#[derive(Clone, Debug)]
+struct ObsMeta {
+    measurement_id: String,
+    board_id: String,
+    label: usize,
+    freq_hz: f64,
+    shape: Option<usize>,
+}
+
+/// The data of one group of measurements (a board's free-free measurements, or one bolted
+/// measurement) for the given labels.
+fn unit_data(
+    rows: &[&PairRow],
+    labels: &[String],
+    shapes: Option<(&FeModel, &Rom, &ShapeMap)>,
+    findings: &mut Findings,
+) -> anyhow::Result<(UnitData, Vec<ObsMeta>)> {
+    let mut d = UnitData::default();
+    let mut meta = vec![];
+    for p in rows {
+        let Some(m) = labels.iter().position(|l| *l == p.label) else {
+            continue;
+        };
+        let w = 2.0 * std::f64::consts::PI * p.freq_hz;
+        d.freq.push(FreqObs {
+            mode: m,
+            lambda_hat: w * w,
+        });
+        meta.push(ObsMeta {
+            measurement_id: p.measurement_id.clone(),
+            board_id: p.board_id.clone(),
+            label: m,
+            freq_hz: p.freq_hz,
+            shape: None,
+        });
+        if let Some((model, rom, map)) = shapes {
+            match map.get(&(p.measurement_id.clone(), p.mode)) {
+                Some(s) => {
+                    if let Some(o) = shape_obs(model, rom, m, s, &p.measurement_id, &mut d.grams, findings)? {
+                        meta.last_mut().expect("pushed above").shape = Some(d.shapes.len());
+                        d.shapes.push(o);
+                    }
+                }
+                None => findings.push(
+                    Finding::new(
+                        Severity::Warning,
+                        "update.shape_missing",
+                        format!("identified mode {} has no shape in modes.parquet; its shape term is left out", p.mode),
+                    )
+                    .measurement(p.measurement_id.clone()),
+                ),
+            }
+        }
+    }
+    Ok((d, meta))
+}
+
+fn mass_obs(m: &MassRow, board_id: &str, findings: &mut Findings) -> Option<MassObs> {
+    if m.n_stable < 1 || !m.mass_g.is_finite() {
+        return None;
+    }
+    let res2 = m.resolution_g * m.resolution_g / 12.0;
+    let sd2 = if m.inconsistent {
+        findings.push(Finding::new(
+            Severity::Warning,
+            "update.mass_inconsistent",
+            format!("board {board_id}: the balance readings disagree (ingest flagged them); the mass term uses their full spread, not the spread of the mean"),
+        ));
+        m.std_g * m.std_g + res2
+    } else {
+        m.std_g * m.std_g / m.n_stable as f64 + res2
+    };
+    // A floor of 2e-4 of the mass: the balance's readability is not its accuracy. Weighing a
+    // board (ρ ≈ 1.9 g/cm³) against steel calibration weights (8 g/cm³) without the air-
+    // buoyancy correction alone shifts the reading by ≈ 0.05 % (ρ_air V (1 − ρ/ρ_ref));
+    // calibration adds to it. Without the floor a 0.1 mg readability pins mass_scale to
+    // 2e-6, a precision no other part of the model has.
+    let sd = sd2.sqrt().max(2e-4 * m.mass_g.abs()).max(1e-9);
+    Some(MassObs {
+        mass_g: m.mass_g,
+        sd_g: sd,
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Draw tables and their summary.
+
+/// Draws of named scalar columns, one row per (run, draw[, key]).
+struct DrawTable {
+    run: Vec<i32>,
+    draw: Vec<i32>,
+    /// board_id or measurement_id (None for population draws).
+    key: Vec<Option<String>>,
+    /// Column names (unit in the name) and values, one value per row.
+    cols: Vec<(String, String, Vec<f64>)>,
+}
+
+impl DrawTable {
+    fn new(names_units: &[(String, String)]) -> DrawTable {
+        DrawTable {
+            run: vec![],
+            draw: vec![],
+            key: vec![],
+            cols: names_units
+                .iter()
+                .map(|(n, u)| (n.clone(), u.clone(), vec![]))
+                .collect(),
+        }
+    }
+    fn push(&mut self, run: usize, draw: usize, key: Option<&str>, values: &[f64]) {
+        self.run.push(run as i32);
+        self.draw.push(draw as i32);
+        self.key.push(key.map(str::to_string));
+        for (c, v) in self.cols.iter_mut().zip(values) {
+            c.2.push(*v);
+        }
+    }
+
+    /// Summary rows: per column and key, chains = runs.
+    fn summarize(&self, runs: usize, key_is_board: bool) -> Vec<SummaryRow> {
+        let keys: BTreeSet<Option<String>> = self.key.iter().cloned().collect();
+        let mut out = vec![];
+        for k in &keys {
+            for (name, _, vals) in &self.cols {
+                let mut chains: Vec<Vec<f64>> = vec![vec![]; runs];
+                for i in 0..vals.len() {
+                    if &self.key[i] == k {
+                        chains[self.run[i] as usize].push(vals[i]);
+                    }
+                }
+                let s = crate::bayes::diagnostics::summarize(&chains);
+                out.push(SummaryRow {
+                    parameter: name.clone(),
+                    board_id: if key_is_board { k.clone() } else { None },
+                    measurement_id: if key_is_board { None } else { k.clone() },
+                    s,
+                });
+            }
+        }
+        out
+    }
+}
+
+struct SummaryRow {
+    parameter: String,
+    board_id: Option<String>,
+    measurement_id: Option<String>,
+    s: crate::bayes::diagnostics::Summary,
+}
+
+fn provenance(stage: &str, fingerprint: &str) -> BTreeMap<String, String> {
+    BTreeMap::from([
+        ("hbmu.stage".to_string(), stage.to_string()),
+        ("hbmu.fingerprint".to_string(), fingerprint.to_string()),
+        (
+            "hbmu.version".to_string(),
+            crate::io::manifest::TOOL_VERSION.to_string(),
+        ),
+        ("hbmu.campaign".to_string(), String::new()),
+    ])
+}
+
+/// Write a table of `spec` with extra float columns (name, unit) after the spec's columns.
+fn write_table(
+    path: &Path,
+    spec: &TableSpec,
+    mut cols: Vec<ArrayRef>,
+    extra: &[(String, String, Vec<f64>)],
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<()> {
+    let fields: Vec<Field> = extra
+        .iter()
+        .map(|(n, u, _)| {
+            let mut md = std::collections::HashMap::new();
+            if !u.is_empty() {
+                md.insert("unit".to_string(), u.clone());
+            }
+            Field::new(n, DataType::Float64, false).with_metadata(md)
+        })
+        .collect();
+    let mut md = tables::table_metadata(spec, prov);
+    let mut units = spec.units();
+    for (n, u, _) in extra {
+        if !u.is_empty() {
+            units.insert(n.clone(), u.clone());
+        }
+    }
+    md.insert("hbmu.units".into(), serde_json::to_string(&units)?);
+    let schema = spec.schema(&fields, &md);
+    for (_, _, v) in extra {
+        cols.push(Arc::new(Float64Array::from(v.clone())));
+    }
+    tables::write_parquet(path, &tables::batch(schema, cols)?)?;
+    Ok(())
+}
+
+fn write_draws(
+    path: &Path,
+    spec: &TableSpec,
+    t: &DrawTable,
+    key_col: Option<(&[Option<String>], &[String])>,
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<()> {
+    let mut cols: Vec<ArrayRef> = vec![
+        Arc::new(Int32Array::from(t.run.clone())),
+        Arc::new(Int32Array::from(t.draw.clone())),
+    ];
+    if let Some((keys, _)) = key_col {
+        cols.push(Arc::new(StringArray::from_iter_values(
+            keys.iter().map(|k| k.as_deref().unwrap_or("")),
+        )));
+    }
+    if let Some((_, extra_str)) = key_col {
+        // A second string column (board_id of a joint draw).
+        if !extra_str.is_empty() {
+            cols.push(Arc::new(StringArray::from_iter_values(
+                extra_str.iter().map(String::as_str),
+            )));
+        }
+    }
+    // Spec float columns are taken from the table by name, the rest are extra.
+    let spec_names: Vec<&str> = spec.columns.iter().map(|c| c.name).collect();
+    let mut extra = vec![];
+    for col in &t.cols {
+        if spec_names.contains(&col.0.as_str()) {
+            cols.push(Arc::new(Float64Array::from(col.2.clone())));
+        } else {
+            extra.push(col.clone());
+        }
+    }
+    write_table(path, spec, cols, &extra, prov)
+}
+
+fn write_summary(
+    path: &Path,
+    rows: &[SummaryRow],
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<()> {
+    let f = |g: fn(&crate::bayes::diagnostics::Summary) -> f64| -> ArrayRef {
+        Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| g(&r.s))))
+    };
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.parameter.as_str()),
+        )),
+        Arc::new(StringArray::from_iter(
+            rows.iter().map(|r| r.board_id.as_deref()),
+        )),
+        Arc::new(StringArray::from_iter(
+            rows.iter().map(|r| r.measurement_id.as_deref()),
+        )),
+        f(|s| s.mean),
+        f(|s| s.sd),
+        f(|s| s.q05),
+        f(|s| s.q50),
+        f(|s| s.q95),
+        f(|s| s.r_hat),
+        f(|s| s.ess_bulk),
+        f(|s| s.ess_tail),
+    ];
+    write_table(path, &SUMMARY, cols, &[], prov)
+}
+
+fn write_stages(
+    path: &Path,
+    st: &[StageInfo],
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<()> {
+    let nan_null = |v: f64| if v.is_finite() { Some(v) } else { None };
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(Int32Array::from_iter_values(
+            st.iter().map(|s| s.run as i32),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            st.iter().map(|s| s.stage as i32),
+        )),
+        Arc::new(Float64Array::from_iter_values(st.iter().map(|s| s.beta))),
+        Arc::new(Float64Array::from_iter_values(st.iter().map(|s| s.ess))),
+        Arc::new(Float64Array::from_iter_values(
+            st.iter().map(|s| s.log_evidence_increment),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            st.iter().map(|s| s.acceptance_unit),
+        )),
+        Arc::new(Float64Array::from_iter(
+            st.iter().map(|s| nan_null(s.acceptance_global)),
+        )),
+        Arc::new(Float64Array::from_iter(
+            st.iter().map(|s| nan_null(s.acceptance_noncentred)),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            st.iter().map(|s| s.sweeps as i32),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            st.iter().map(|s| s.unique_after_resampling as i32),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            st.iter().map(|s| s.model_evals as f64),
+        )),
+    ];
+    write_table(path, &STAGES, cols, &[], prov)
+}
+
+/// One residual row.
+struct Residual {
+    measurement_id: String,
+    board_id: String,
+    setup: String,
+    label: String,
+    freq_hz: f64,
+    mean: f64,
+    sd: f64,
+    pred_sd: f64,
+    mac: Option<f64>,
+    used: bool,
+}
+
+fn write_residuals(
+    path: &Path,
+    rows: &[Residual],
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<()> {
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.measurement_id.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.board_id.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.setup.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.label.as_str()),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            rows.iter().map(|r| r.freq_hz),
+        )),
+        Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.mean))),
+        Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.sd))),
+        Arc::new(Float64Array::from_iter_values(
+            rows.iter().map(|r| r.pred_sd),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            rows.iter().map(|r| (r.freq_hz - r.mean) / r.mean),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            rows.iter().map(|r| (r.freq_hz - r.mean) / r.pred_sd),
+        )),
+        Arc::new(Float64Array::from_iter(rows.iter().map(|r| r.mac))),
+        Arc::new(BooleanArray::from_iter(rows.iter().map(|r| Some(r.used)))),
+    ];
+    write_table(path, &RESIDUALS, cols, &[], prov)
+}
+
+/// Evidence of the runs: each run's log evidence, their mean and standard error.
+fn evidence_json(log_z: &[f64], posterior: &str) -> serde_json::Value {
+    let n = log_z.len() as f64;
+    let mean = log_z.iter().sum::<f64>() / n;
+    let sd = if log_z.len() > 1 {
+        (log_z.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
+    } else {
+        f64::NAN
+    };
+    serde_json::json!({
+        "posterior": posterior,
+        "log_evidence_runs": log_z,
+        "log_evidence_mean": mean,
+        "log_evidence_sd_across_runs": if sd.is_finite() { serde_json::json!(sd) } else { serde_json::Value::Null },
+        "log_evidence_standard_error": if sd.is_finite() { serde_json::json!(sd / n.sqrt()) } else { serde_json::Value::Null },
+        "note": "log p(data | model) from independent SMC runs (product of the mean incremental weights); standard error = sd across runs / sqrt(runs)",
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Running the sampler.
+
+/// Independent runs of one target, with a progress bar over the tempering path.
+fn run_smc(
+    target: &ModalTarget,
+    opts: &UpdateOptions,
+    what: &str,
+    aux: &[Vec<Arc<Vec<f64>>>],
+    verbose: bool,
+) -> anyhow::Result<Vec<smc::RunResult<crate::bayes::modal::Terms>>> {
+    let pb = crate::stage::progress_bar((opts.runs * 1000) as u64, what);
+    let mut out = vec![];
+    for r in 0..opts.runs {
+        let base = (r * 1000) as u64;
+        let observe = |s: &StageInfo| {
+            if verbose {
+                eprintln!(
+                    "{what} run {} stage {:3} beta {:.3e} ess {:6.0} acc unit/global/nc {:.2}/{:.2}/{:.2} sweeps {:2} rho {:.2} unique {:5} evals {}",
+                    r + 1, s.stage, s.beta, s.ess, s.acceptance_unit, s.acceptance_global,
+                    s.acceptance_noncentred, s.sweeps, s.decorrelation, s.unique_after_resampling, s.model_evals
+                );
+            }
+            pb.set_position(base + (s.beta * 1000.0) as u64);
+            pb.set_message(format!(
+                "{what} run {}/{} stage {}",
+                r + 1,
+                opts.runs,
+                s.stage
+            ));
+        };
+        let a: &[Arc<Vec<f64>>] = if aux.is_empty() {
+            &[]
+        } else {
+            &aux[r % aux.len()]
+        };
+        let res = smc::run_with_aux(target, &opts.smc, opts.seed, r, a, &observe)
+            .map_err(|e| anyhow!("{what}, run {}: {e}", r + 1))?;
+        out.push(res);
+    }
+    pb.finish_and_clear();
+    Ok(out)
+}
+
+/// The ROM-box rule: the fraction of posterior draws, per unit parameter, outside the box
+/// the ROM was built and verified for. Returns a description of every violation.
+fn box_violations(
+    results: &[smc::RunResult<crate::bayes::modal::Terms>],
+    unit_names: &[String],
+    param_names: &[String],
+    inside: impl Fn(usize, f64) -> bool,
+    tolerance: f64,
+) -> Vec<String> {
+    let mut out = vec![];
+    for (b, unit) in unit_names.iter().enumerate() {
+        for (k, pn) in param_names.iter().enumerate() {
+            let mut n = 0usize;
+            let mut bad = 0usize;
+            for r in results {
+                for p in &r.particles {
+                    n += 1;
+                    if !inside(k, p.x[b][k]) {
+                        bad += 1;
+                    }
+                }
+            }
+            let frac = bad as f64 / n.max(1) as f64;
+            if frac > tolerance {
+                out.push(format!(
+                    "{unit}: {pn}: {:.1} % of the posterior lies outside the ROM's box",
+                    100.0 * frac
+                ));
+            }
+        }
+    }
+    out
+}
+
+fn particles_of(
+    results: &[smc::RunResult<crate::bayes::modal::Terms>],
+) -> Vec<(usize, usize, &Particle<crate::bayes::modal::Terms>)> {
+    results
+        .iter()
+        .enumerate()
+        .flat_map(|(r, res)| {
+            res.particles
+                .iter()
+                .enumerate()
+                .map(move |(i, p)| (r, i, p))
+        })
+        .collect()
+}
+
+/// A function from a global vector to the population table's values.
+type PopulationRow<'a> = Box<dyn Fn(&[f64]) -> Vec<f64> + 'a>;
+
+/// Population columns of a draw: step 1 in physical units of the parameters.
+fn population_columns<'a>(
+    target: &'a ModalTarget,
+    param_names: &[String],
+    reference: &[f64],
+    labels: &[String],
+    log_k: bool,
+) -> (Vec<(String, String)>, PopulationRow<'a>) {
+    let d = param_names.len();
+    let unit = |n: &str| -> String {
+        if n.ends_with("_pa") {
+            "Pa".into()
+        } else if n.ends_with("_n_per_m") {
+            "N/m".into()
+        } else {
+            String::new()
+        }
+    };
+    let mut cols: Vec<(String, String)> = vec![];
+    if log_k {
+        cols.push(("mu_ln_k_con".into(), String::new()));
+        cols.push(("sigma_ln_k_con".into(), String::new()));
+    } else {
+        for n in param_names {
+            cols.push((format!("mu_{n}"), unit(n)));
+        }
+        for n in param_names {
+            cols.push((format!("sigma_{n}"), unit(n)));
+        }
+        for i in 0..d {
+            for j in i + 1..d {
+                cols.push((
+                    format!("corr_{}_{}", param_names[i], param_names[j]),
+                    String::new(),
+                ));
+            }
+        }
+    }
+    let infer_eps = matches!(target.errors.eps, ErrorPrior::Inferred { .. });
+    let infer_delta = matches!(target.errors.delta, Some(ErrorPrior::Inferred { .. }));
+    if infer_eps {
+        cols.extend(labels.iter().map(|l| (format!("eps_{l}"), String::new())));
+    }
+    if infer_delta {
+        cols.extend(labels.iter().map(|l| (format!("delta_{l}"), String::new())));
+    }
+    let reference = reference.to_vec();
+    let f = Box::new(move |g: &[f64]| -> Vec<f64> {
+        let ctx = smc::Target::ctx(target, g);
+        let mut v = vec![];
+        if log_k {
+            v.push(ctx.pop.mu[0] + reference[0].ln());
+            v.push(ctx.pop.sigma[0]);
+        } else {
+            v.extend(
+                reference
+                    .iter()
+                    .zip(&ctx.pop.mu)
+                    .map(|(r, m)| r * (1.0 + m)),
+            );
+            v.extend(reference.iter().zip(&ctx.pop.sigma).map(|(r, s)| r * s));
+            let o = ctx.pop.correlation();
+            for i in 0..d {
+                for j in i + 1..d {
+                    v.push(o[i * d + j]);
+                }
+            }
+        }
+        if infer_eps {
+            v.extend(&ctx.eps);
+        }
+        if infer_delta {
+            v.extend(&ctx.delta);
+        }
+        v
+    });
+    (cols, f)
+}
+
+/// Posterior-predictive residuals of every accepted paired mode (updating and validation
+/// labels) of the units, from up to `opts.residual_draws` draws per run.
+#[allow(clippy::too_many_arguments)]
+fn residuals(
+    target: &ModalTarget,
+    all_pred: &ModalPredictor,
+    all_labels: &[String],
+    updated: &[String],
+    units_all: &[(UnitData, Vec<ObsMeta>)],
+    results: &[smc::RunResult<crate::bayes::modal::Terms>],
+    setup: &str,
+    draws_per_run: usize,
+) -> Vec<Residual> {
+    use rayon::prelude::*;
+    let upd_idx: Vec<Option<usize>> = all_labels
+        .iter()
+        .map(|l| updated.iter().position(|u| u == l))
+        .collect();
+    units_all
+        .par_iter()
+        .enumerate()
+        .flat_map_iter(|(b, (data, meta))| {
+            let nf = data.freq.len();
+            let mut s1 = vec![0.0; nf];
+            let mut s2 = vec![0.0; nf];
+            let mut se = vec![0.0; nf];
+            let mut mac = vec![0.0; data.shapes.len()];
+            let mut n = 0.0;
+            for r in results {
+                let step = (r.particles.len() / draws_per_run.max(1)).max(1);
+                for p in r.particles.iter().step_by(step) {
+                    let v = target.values(&p.aux, b, &p.x[b]);
+                    let Some(pred) = all_pred.predict(&v) else {
+                        continue;
+                    };
+                    let t = all_pred.terms(&pred, data, &v);
+                    let ctx = smc::Target::ctx(target, &p.g);
+                    for (k, f) in data.freq.iter().enumerate() {
+                        let fm = t.lambda[f.mode].max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
+                        s1[k] += fm;
+                        s2[k] += fm * fm;
+                        if let Some(u) = upd_idx[f.mode] {
+                            let e = ctx.eps[u] * fm / 2.0;
+                            se[k] += e * e;
+                        }
+                    }
+                    for (k, omm) in t.one_minus_mac.iter().enumerate() {
+                        mac[k] += 1.0 - omm;
+                    }
+                    n += 1.0;
+                }
+            }
+            meta.iter()
+                .enumerate()
+                .filter(|_| n > 0.0)
+                .map(|(k, m)| {
+                    let mean = s1[k] / n;
+                    let var = (s2[k] / n - mean * mean).max(0.0);
+                    Residual {
+                        measurement_id: m.measurement_id.clone(),
+                        board_id: m.board_id.clone(),
+                        setup: setup.to_string(),
+                        label: all_labels[m.label].clone(),
+                        freq_hz: m.freq_hz,
+                        mean,
+                        sd: var.sqrt(),
+                        pred_sd: (var + se[k] / n).sqrt().max(1e-12),
+                        mac: m.shape.map(|i| mac[i] / n),
+                        used: upd_idx[m.label].is_some(),
+                    }
+                })
+                .collect::<Vec<_>>()
+        })
+        .collect()
+}
+
+/// Labels of every accepted pair of a setup, with their model mode (0-based), in model order.
+fn all_labels(pairs: &[PairRow], setup: &str, n_modes: usize) -> Labels {
+    let mut by: BTreeMap<String, BTreeMap<i32, usize>> = BTreeMap::new();
+    for p in pairs.iter().filter(|p| p.setup == setup) {
+        *by.entry(p.label.clone())
+            .or_default()
+            .entry(p.model_mode)
+            .or_default() += 1;
+    }
+    let mut v: Vec<(usize, String)> = by
+        .into_iter()
+        .filter_map(|(l, c)| {
+            let (mm, _) = c.into_iter().max_by_key(|(_, n)| *n)?;
+            (mm >= 1 && (mm as usize) <= n_modes).then(|| ((mm - 1) as usize, l))
+        })
+        .collect();
+    v.sort();
+    Labels {
+        labels: v.iter().map(|(_, l)| l.clone()).collect(),
+        model_mode: v.iter().map(|(m, _)| *m).collect(),
+    }
+}
+
+fn rom_for(model: &FeModel, n_modes_needed: usize, opts: &UpdateOptions) -> anyhow::Result<Rom> {
+    let ro = RomOptions {
+        n_modes: n_modes_needed.max(RomOptions::default().n_modes),
+        box_rel: opts.rom_box,
+        ..RomOptions::default()
+    };
+    Ok(Rom::build(model, &ro)?)
+}
+
+/// Step 1: boards, free-free.
+pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
+    let extract_dir = opts.extract_dir();
+    let pairs_path = opts.pair_dir.join("pairs.parquet");
+    let presence_path = opts.pair_dir.join("presence.parquet");
+    let modes_path = extract_dir.join("modes.parquet");
+    let masses_path = opts.ingest_dir.join("masses.parquet");
+    let mut inputs = vec![
+        pairs_path.clone(),
+        presence_path.clone(),
+        modes_path.clone(),
+        masses_path.clone(),
+    ];
+    if let Some(b) = &opts.board {
+        inputs.push(b.clone());
+    }
+    let (board, board_text) = load_board(opts.board.as_deref())?;
+    let mut config = serde_json::to_value(opts)?;
+    config["board_blake3"] = blake3::hash(board_text.as_bytes())
+        .to_hex()
+        .to_string()
+        .into();
+    config["step"] = "boards".into();
+    let spec = StageSpec {
+        stage: "update_boards".into(),
+        inputs,
+        input_base: std::env::current_dir().unwrap_or_else(|_| PathBuf::from(".")),
+        config,
+        seed: Some(opts.seed),
+        manifest_path: opts.out.join(MANIFEST_BOARDS),
+    };
+    crate::stage::run(spec, opts.force, |prep| {
+        let mut findings = Findings::default();
+        let pairs = read_pairs(&pairs_path)?;
+        let presence = read_presence(&presence_path, "free")?;
+        let labels = select_labels(&pairs, "free", &opts.modes, &presence, &mut findings)?;
+        let model = FeModel::build(&board, Setup::Free, &board.mesh)?;
+        let nominal = model.nominal_params();
+        let mut updated = vec![];
+        for p in &opts.params {
+            updated.push(nominal.position(p).map_err(|_| {
+                anyhow!(
+                    "--params: {p:?} is not a parameter of the model; expected some of {:?}",
+                    nominal.names
+                )
+            })?);
+        }
+        let reference: Vec<f64> = updated.iter().map(|&i| nominal.values[i]).collect();
+        if let Some((i, _)) = reference.iter().enumerate().find(|(_, v)| **v == 0.0) {
+            bail!(
+                "--params: {} has nominal value 0; relative updating needs a non-zero nominal",
+                opts.params[i]
+            );
+        }
+        let all = all_labels(&pairs, "free", 40);
+        let need = labels
+            .model_mode
+            .iter()
+            .chain(&all.model_mode)
+            .copied()
+            .max()
+            .unwrap_or(0)
+            + 1;
+        let rom = rom_for(&model, need, opts)?;
+        let nominal_mass_g = model.total_mass_kg(&nominal)? * 1e3;
+        let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?;
+        let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?;
+        // Units: every board with free-free pairs or a mass.
+        let masses = read_masses(&masses_path)?;
+        let wanted: BTreeSet<(String, i32)> = pairs
+            .iter()
+            .filter(|p| p.setup == "free")
+            .map(|p| (p.measurement_id.clone(), p.mode))
+            .collect();
+        let shapes = read_shapes(&modes_path, &wanted)?;
+        let mut board_ids: BTreeSet<String> = pairs
+            .iter()
+            .filter(|p| p.setup == "free")
+            .map(|p| p.board_id.clone())
+            .collect();
+        board_ids.extend(masses.keys().cloned());
+        let mass_updated = opts.params.iter().any(|p| p == names::MASS_SCALE);
+        let use_shapes = opts.delta.is_some();
+        let mut units = vec![];
+        let mut units_all = vec![];
+        let mut unit_names = vec![];
+        for b in &board_ids {
+            let rows: Vec<&PairRow> = pairs
+                .iter()
+                .filter(|p| p.setup == "free" && &p.board_id == b)
+                .collect();
+            let sh = use_shapes.then_some((&model, &rom, &shapes));
+            let (mut data, _) = unit_data(&rows, &labels.labels, sh, &mut findings)?;
+            let mut scratch = Findings::default();
+            let (data_all, meta_all) = unit_data(
+                &rows,
+                &all.labels,
+                Some((&model, &rom, &shapes)),
+                &mut scratch,
+            )?;
+            data.mass = match masses.get(b) {
+                Some(m) if mass_updated => mass_obs(m, b, &mut findings),
+                Some(_) => None,
+                None => {
+                    findings.push(Finding::new(
+                        Severity::Warning,
+                        "update.not_weighed",
+                        format!("board {b} was never weighed (no stable balance reading): its mass is informed by the population only"),
+                    ));
+                    None
+                }
+            };
+            if data.freq.is_empty() && data.mass.is_none() {
+                findings.push(Finding::new(
+                    Severity::Warning,
+                    "update.board_no_data",
+                    format!("board {b} has no paired free-free mode to update and no usable mass; left out of step 1"),
+                ));
+                continue;
+            }
+            if data.freq.is_empty() {
+                findings.push(Finding::new(
+                    Severity::Warning,
+                    "update.board_no_modes",
+                    format!("board {b} has no paired free-free mode to update; only its mass informs it"),
+                ));
+            }
+            // Modes missing in some measurements: reported, the rest are used.
+            let meas: BTreeSet<&str> = rows.iter().map(|p| p.measurement_id.as_str()).collect();
+            for (m, l) in labels.labels.iter().enumerate() {
+                let n = data.freq.iter().filter(|f| f.mode == m).count();
+                if n > 0 && n < meas.len() {
+                    findings.push(Finding::new(
+                        Severity::Info,
+                        "update.mode_missing",
+                        format!("board {b}: mode {l:?} is paired in {n} of {} measurements; the others contribute no term for it", meas.len()),
+                    ));
+                }
+            }
+            units.push(data);
+            units_all.push((data_all, meta_all));
+            unit_names.push(b.clone());
+        }
+        if units.is_empty() {
+            bail!("no board has data for step 1 (no paired free-free mode and no mass)");
+        }
+        let d = updated.len();
+        let target = ModalTarget {
+            predictor,
+            compose: Compose::Boards {
+                updated: updated.clone(),
+                reference: reference.clone(),
+            },
+            prior: PopulationPrior {
+                mu_mean: vec![0.0; d],
+                mu_sd: vec![opts.prior_width; d],
+                sigma_scale: vec![opts.sigma_scale; d],
+                lkj_eta: opts.lkj_eta,
+            },
+            errors: ErrorModel {
+                n_modes: labels.labels.len(),
+                eps: opts.eps,
+                delta: opts.delta,
+            },
+            units,
+        };
+        let t0 = std::time::Instant::now();
+        let results = run_smc(&target, opts, "boards", &[], verbose)?;
+        let sampler_seconds = t0.elapsed().as_secs_f64();
+        let violations = box_violations(
+            &results,
+            &unit_names,
+            &opts.params,
+            |_, x| x.abs() <= opts.rom_box,
+            opts.box_tolerance,
+        );
+        if !violations.is_empty() {
+            bail!(
+                "the posterior presses against the ROM's ±{:.0} % box (relative to the board file's nominal values):\n  {}\nThe ROM is not verified there. Re-centre the model: put the posterior means in the board file (--model) and run again.",
+                100.0 * opts.rom_box,
+                violations.join("\n  ")
+            );
+        }
+        // Outputs.
+        let prov = provenance("update_boards", &prep.fingerprint);
+        let mut outputs = vec![];
+        let (pcols, pop_of) =
+            population_columns(&target, &opts.params, &reference, &labels.labels, false);
+        let mut pop = DrawTable::new(&pcols);
+        let mut bcols: Vec<(String, String)> = opts
+            .params
+            .iter()
+            .map(|p| (p.clone(), String::new()))
+            .collect();
+        bcols.push(("mass_g".into(), "g".into()));
+        let mut boards = DrawTable::new(&bcols);
+        for (r, i, p) in particles_of(&results) {
+            pop.push(r, i, None, &pop_of(&p.g));
+            for (b, name) in unit_names.iter().enumerate() {
+                let v = target.values(&p.aux, b, &p.x[b]);
+                let mut row: Vec<f64> = updated.iter().map(|&k| v[k]).collect();
+                row.push(target.predictor.mass_g(&v));
+                boards.push(r, i, Some(name), &row);
+            }
+        }
+        let mut summary = pop.summarize(opts.runs, true);
+        summary.extend(boards.summarize(opts.runs, true));
+        let p = opts.out.join("population.parquet");
+        write_draws(&p, &POPULATION, &pop, None, &prov)?;
+        outputs.push(p);
+        let p = opts.out.join("boards.parquet");
+        write_draws(&p, &BOARDS, &boards, Some((&boards.key, &[])), &prov)?;
+        outputs.push(p);
+        let p = opts.out.join("summary.parquet");
+        write_summary(&p, &summary, &prov)?;
+        outputs.push(p);
+        let stages: Vec<StageInfo> = results.iter().flat_map(|r| r.stages.clone()).collect();
+        let p = opts.out.join("stages.parquet");
+        write_stages(&p, &stages, &prov)?;
+        outputs.push(p);
+        let res = residuals(
+            &target,
+            &all_pred,
+            &all.labels,
+            &labels.labels,
+            &units_all,
+            &results,
+            "free",
+            opts.residual_draws,
+        );
+        let p = opts.out.join("residuals.parquet");
+        write_residuals(&p, &res, &prov)?;
+        outputs.push(p);
+        let log_z: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
+        let ev = evidence_json(&log_z, "boards (step 1)");
+        let p = opts.out.join("evidence.json");
+        crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
+        outputs.push(p);
+        finish(
+            opts,
+            findings,
+            outputs,
+            &results,
+            &summary,
+            ev,
+            sampler_seconds,
+            &labels.labels,
+            verbose,
+            "update boards",
+        )
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn finish(
+    opts: &UpdateOptions,
+    findings: Findings,
+    mut outputs: Vec<PathBuf>,
+    results: &[smc::RunResult<crate::bayes::modal::Terms>],
+    summary: &[SummaryRow],
+    ev: serde_json::Value,
+    sampler_seconds: f64,
+    labels: &[String],
+    verbose: bool,
+    what: &str,
+) -> anyhow::Result<StageResult> {
+    for f in findings.iter() {
+        if verbose || f.severity >= Severity::Warning {
+            eprintln!("{f}");
+        }
+    }
+    let max_rhat = summary.iter().map(|r| r.s.r_hat).fold(f64::NAN, f64::max);
+    let min_ess = summary
+        .iter()
+        .map(|r| r.s.ess_bulk.min(r.s.ess_tail))
+        .fold(f64::NAN, f64::min);
+    let evals: u64 = results
+        .iter()
+        .flat_map(|r| &r.stages)
+        .map(|s| s.model_evals)
+        .sum();
+    let report = serde_json::json!({
+        "labels": labels,
+        "runs": results.len(),
+        "particles": opts.smc.n_particles,
+        "stages_per_run": results.iter().map(|r| r.stages.len()).collect::<Vec<_>>(),
+        "max_r_hat": max_rhat,
+        "min_ess": min_ess,
+        "evidence": ev,
+        "findings": findings.0,
+    });
+    let p = opts.out.join("update_report.json");
+    crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    outputs.push(p);
+    eprintln!(
+        "{what}: {} runs × {} particles, {} stages per run, log evidence {:.2} ± {:.2}, max R-hat {:.4}, min ESS {:.0}; {} ROM evaluations in {:.1} s; {}",
+        results.len(),
+        opts.smc.n_particles,
+        results.iter().map(|r| r.stages.len().to_string()).collect::<Vec<_>>().join("/"),
+        ev["log_evidence_mean"].as_f64().unwrap_or(f64::NAN),
+        ev["log_evidence_standard_error"].as_f64().unwrap_or(f64::NAN),
+        max_rhat,
+        min_ess,
+        evals,
+        sampler_seconds,
+        findings.summary()
+    );
+    let mut s = BTreeMap::new();
+    s.insert("max_r_hat".into(), serde_json::json!(max_rhat));
+    s.insert("rom_evaluations".into(), serde_json::json!(evals));
+    s.insert("sampler_seconds".into(), serde_json::json!(sampler_seconds));
+    Ok(StageResult {
+        outputs,
+        exit_code: exit::OK,
+        summary: s,
+    })
+}
