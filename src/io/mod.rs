@@ -4,6 +4,7 @@
 
 pub mod atomic;
 pub mod balance_log;
+pub mod cache;
 pub mod manifest;
 pub mod mcap_writer;
 pub mod sheet;
