@@ -228,6 +228,52 @@ fn concurrent_jobs_on_one_cache_key_leave_a_valid_artifact() {
     assert_eq!(sidecar.trim(), blake3::hash(&first).to_hex().as_str());
 }
 
+/// `pipelines/slurm/fanout.sh` under a scheduler: every task runs once with its index in the
+/// arguments and the environment; the status is 0, 3 when some quarantined, 1 naming the
+/// failed tasks.
+fn check_fanout(scheduler: &str, dir: &Path, envs: &[(&str, &Path)]) {
+    let fanout = repo().join("pipelines/slurm/fanout.sh");
+    let run = |name: &str, fail: &str| -> Output {
+        let script = format!(
+            "echo \"$HBMU_TASK/$HBMU_TASKS\" > '{}/{name}-part-'\"$1\"; case \" {fail} \" in *\" $1 \"*) exit $1 ;; esac",
+            dir.display()
+        );
+        let mut c = Command::new(&fanout);
+        c.args([scheduler, name, "4"])
+            .arg(dir.join("logs"))
+            .args(["--time=5", "--", "sh", "-c", &script, "task", "{task}"]);
+        for (k, v) in envs {
+            c.env(k, v);
+        }
+        c.output().expect("run fanout.sh")
+    };
+    let o = run("ok", "");
+    assert_ok(&o, "fanout with no failure");
+    for t in 0..4 {
+        let part = std::fs::read_to_string(dir.join(format!("ok-part-{t}"))).unwrap();
+        assert_eq!(part.trim(), format!("{t}/4"));
+    }
+    // Task 3 exits 3 (quarantined): success with 3.
+    assert_eq!(run("q", "3").status.code(), Some(3));
+    // Task 1 fails, task 3 quarantines: failure, naming task 1; every task still ran.
+    let o = run("f", "1 3");
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains(" 1(1)") && !err.contains(" 3(3)"), "{err}");
+    for t in 0..4 {
+        assert!(
+            dir.join(format!("f-part-{t}")).exists(),
+            "task {t} did not run"
+        );
+    }
+}
+
+#[test]
+fn fanout_runs_every_task_once_and_reports_failures_locally() {
+    let t = tempfile::tempdir().unwrap();
+    check_fanout("local", t.path(), &[]);
+}
+
 /// A shell wrapper around `hbmu` that appends each invocation (its arguments) to `log`, and
 /// holds an invocation whose arguments contain every word of the `gate` file's first line at
 /// its start (writing `held` with its Slurm job id) until the gate file is removed.
@@ -514,6 +560,11 @@ fn slurm_nightly_matches_local_recovers_a_cancel_and_redoes_only_what_changed() 
         BTreeSet::new(),
         "a second nightly ran stages"
     );
+
+    // The fan-out as a job array.
+    let fo = t.path().join("fanout");
+    std::fs::create_dir_all(&fo).unwrap();
+    check_fanout("slurm", &fo, &env);
 
     // Only a changed campaign is reprocessed (c3, through its link).
     simulate(&real_c3, &truths.join("c3.json"), 33);
