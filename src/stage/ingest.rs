@@ -60,6 +60,8 @@ pub const OUTPUTS: [&str; 7] = [
     "ingest_report.json",
 ];
 pub const MANIFEST: &str = "ingest.manifest.json";
+/// Version of the output layout (2: frf.parquet's axis as start + step, not a list per row).
+pub const OUTPUT_LAYOUT: u32 = 2;
 
 /// One function record, SI units, evenly spaced axis.
 #[derive(Debug, Clone)]
@@ -1043,33 +1045,6 @@ fn write_outputs(c: &Campaign, out: &Path, fingerprint: &str) -> anyhow::Result<
                 .map(move |r| (m.row.measurement_id.as_str(), r))
         })
         .collect();
-    let freqs: Vec<Vec<f64>> = recs
-        .iter()
-        .map(|(_, r)| {
-            (0..r.re.len())
-                .map(|k| r.freq_start_hz + k as f64 * r.freq_step_hz)
-                .collect()
-        })
-        .collect();
-    write_table(
-        &p("frf.parquet"),
-        &tables::FRF,
-        &prov,
-        &[],
-        vec![
-            strs(recs.iter().map(|(m, _)| Some(*m))),
-            i64s(recs.iter().map(|(_, r)| Some(r.node))),
-            i32s(recs.iter().map(|(_, r)| Some(r.function_type))),
-            i32s(recs.iter().map(|(_, r)| Some(r.response_direction))),
-            i64s(recs.iter().map(|(_, r)| Some(r.reference_node))),
-            i32s(recs.iter().map(|(_, r)| Some(r.reference_direction))),
-            strs(recs.iter().map(|(_, r)| Some(r.ordinate_unit))),
-            list_f64(freqs.iter().map(|f| Some(f.as_slice()))),
-            list_f64(recs.iter().map(|(_, r)| Some(r.re.as_slice()))),
-            list_f64(recs.iter().map(|(_, r)| r.im.as_deref())),
-        ],
-    )?;
-
     // scale readings
     let rs = &c.readings;
     write_table(
@@ -1109,11 +1084,40 @@ fn write_outputs(c: &Campaign, out: &Path, fingerprint: &str) -> anyhow::Result<
         ],
     )?;
 
-    let t_mcap = std::time::Instant::now();
-    write_mcap(c, &p("campaign.mcap"), &prov)?;
+    // The two big outputs, the spectra table and the MCAP, are encoded side by side (each
+    // file's bytes do not depend on the other, nor on the thread count).
+    let t_big = std::time::Instant::now();
+    let (frf, mcap) = rayon::join(
+        || -> anyhow::Result<()> {
+            write_table(
+                &p("frf.parquet"),
+                &tables::FRF,
+                &prov,
+                &[],
+                vec![
+                    strs(recs.iter().map(|(m, _)| Some(*m))),
+                    i64s(recs.iter().map(|(_, r)| Some(r.node))),
+                    i32s(recs.iter().map(|(_, r)| Some(r.function_type))),
+                    i32s(recs.iter().map(|(_, r)| Some(r.response_direction))),
+                    i64s(recs.iter().map(|(_, r)| Some(r.reference_node))),
+                    i32s(recs.iter().map(|(_, r)| Some(r.reference_direction))),
+                    strs(recs.iter().map(|(_, r)| Some(r.ordinate_unit))),
+                    f64s(recs.iter().map(|(_, r)| Some(r.freq_start_hz))),
+                    f64s(recs.iter().map(|(_, r)| Some(r.freq_step_hz))),
+                    i32s(recs.iter().map(|(_, r)| Some(r.re.len() as i32))),
+                    list_f64(recs.iter().map(|(_, r)| Some(r.re.as_slice()))),
+                    list_f64(recs.iter().map(|(_, r)| r.im.as_deref())),
+                ],
+            )?;
+            Ok(())
+        },
+        || write_mcap(c, &p("campaign.mcap"), &prov),
+    );
+    frf?;
+    mcap?;
     log::debug(format_args!(
-        "campaign.mcap written in {:.2} s",
-        t_mcap.elapsed().as_secs_f64()
+        "frf.parquet and campaign.mcap written in {:.2} s",
+        t_big.elapsed().as_secs_f64()
     ));
     write_report(c, &p("ingest_report.json"), fingerprint)?;
     Ok(OUTPUTS.iter().map(|n| p(n)).collect())
@@ -1324,7 +1328,8 @@ pub fn run(opts: &IngestOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         stage: "ingest".into(),
         inputs,
         input_base: opts.campaign.clone(),
-        config: serde_json::to_value(&opts.config)?,
+        // The layout of the outputs is part of the configuration: a new layout reruns ingest.
+        config: serde_json::json!({"checks": opts.config, "layout": OUTPUT_LAYOUT}),
         seed: None,
         manifest_path: opts.out.join(MANIFEST),
     };
