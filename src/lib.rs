@@ -4,6 +4,7 @@
 //! wires I/O to kernels) → numerical kernels (`fem`, `modal`, `lab`) that are pure functions
 //! over plain data. See ARCHITECTURE.md.
 
+pub mod campaign;
 pub mod fem;
 pub mod findings;
 pub mod io;
