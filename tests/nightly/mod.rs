@@ -579,3 +579,100 @@ fn slurm_nightly_matches_local_recovers_a_cancel_and_redoes_only_what_changed() 
         "only c3's campaign stages should rerun: {ran:?}"
     );
 }
+
+/// A stage killed (SIGKILL, as a cancelled or timed-out job is in the end) while it writes
+/// leaves no manifest and no output under its final name that was not complete; the rerun
+/// redoes the stage and gives the same bytes as an uninterrupted run.
+#[test]
+fn a_stage_killed_while_writing_is_redone_with_the_same_bytes() {
+    let t = tempfile::tempdir().unwrap();
+    let campaign = t.path().join("campaign");
+    // Large enough that the kill lands while the outputs are written: 35 measurements.
+    let scenario = t.path().join("bigger.toml");
+    std::fs::write(
+        &scenario,
+        "name = \"bigger\"\nseed = 11\n[campaign]\nn_boards = 7\nfree_per_board = 5\nbolted = []\n",
+    )
+    .unwrap();
+    let o = crate::common::hbmu(&[
+        "lab",
+        "simulate",
+        scenario.to_str().unwrap(),
+        "--out",
+        campaign.to_str().unwrap(),
+        "--truth",
+        t.path().join("truth.json").to_str().unwrap(),
+    ]);
+    assert_ok(&o, "lab simulate");
+    let reference = t.path().join("reference");
+    let o = crate::common::hbmu(&[
+        "ingest",
+        campaign.to_str().unwrap(),
+        "--out",
+        reference.to_str().unwrap(),
+    ]);
+    assert_ok(&o, "uninterrupted ingest");
+
+    let out = t.path().join("killed");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_hbmu"))
+        .args([
+            "ingest",
+            campaign.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .env("CI", "1")
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // Kill as soon as a temp file shows that an output is being written.
+    let t0 = Instant::now();
+    let writing = loop {
+        let temp = std::fs::read_dir(&out).ok().and_then(|rd| {
+            rd.flatten()
+                .find(|e| e.file_name().to_string_lossy().contains(".tmp-"))
+        });
+        if temp.is_some() {
+            child.kill().unwrap();
+            break true;
+        }
+        if child.try_wait().unwrap().is_some() || t0.elapsed() > Duration::from_secs(120) {
+            break false;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    };
+    let _ = child.wait();
+    assert!(
+        writing,
+        "ingest finished before a temp file was seen: the campaign is too small for this machine"
+    );
+    assert!(
+        !out.join("ingest.manifest.json").exists(),
+        "a killed stage must not leave a manifest"
+    );
+    // Whatever lies under a final name is complete: identical to the reference.
+    for name in hbmu::stage::ingest::OUTPUTS {
+        let p = out.join(name);
+        if p.exists() {
+            assert!(
+                std::fs::read(&p).unwrap() == std::fs::read(reference.join(name)).unwrap(),
+                "{name} is under its final name but not complete"
+            );
+        }
+    }
+    // The rerun (what the next nightly does) redoes the stage: same bytes as uninterrupted.
+    let o = crate::common::hbmu(&[
+        "ingest",
+        campaign.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_ok(&o, "ingest after the kill");
+    assert!(!crate::common::stderr(&o).contains("up to date"));
+    for name in hbmu::stage::ingest::OUTPUTS {
+        assert!(
+            std::fs::read(out.join(name)).unwrap() == std::fs::read(reference.join(name)).unwrap(),
+            "{name} differs after the rerun"
+        );
+    }
+}
