@@ -282,5 +282,21 @@ fn main() -> std::io::Result<()> {
         "hbmu ingest (whole stage, 2 threads), best of {rounds}: {mb:.1} MB in {best_ingest:.2} s: {:.0} MB/s",
         mb / best_ingest
     );
+    // Bytes written, per output (the writing, not the reading, dominated the stage).
+    let out = dir.join("ingest-out");
+    let mut written = 0u64;
+    let mut parts = vec![];
+    for name in hbmu::stage::ingest::OUTPUTS {
+        let n = std::fs::metadata(out.join(name))
+            .map(|m| m.len())
+            .unwrap_or(0);
+        written += n;
+        parts.push(format!("{name} {:.1} MB", n as f64 / 1e6));
+    }
+    println!(
+        "hbmu ingest wrote {:.1} MB: {}",
+        written as f64 / 1e6,
+        parts.join(", ")
+    );
     Ok(())
 }

@@ -5,6 +5,7 @@
 //! over plain data. See ARCHITECTURE.md.
 
 pub mod bayes;
+pub mod campaign;
 pub mod fem;
 pub mod findings;
 pub mod io;

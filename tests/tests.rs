@@ -6,4 +6,5 @@ mod ingest;
 mod interop;
 mod lab;
 mod layout;
+mod nightly;
 mod stages;

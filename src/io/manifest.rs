@@ -4,7 +4,7 @@
 //! version, the BLAKE3 hash of every input file and of the effective configuration (canonical
 //! JSON), the seed where there is one, and the hash of every output. The *fingerprint* is the
 //! hash of everything that determines the outputs (stage, tool version, config, seed, input
-//! hashes); a stage whose manifest has the same fingerprint and whose outputs still hash to
+//! hashes, and input names relative to the stage's input directory, never absolute paths); a stage whose manifest has the same fingerprint and whose outputs still hash to
 //! the recorded values is up to date and is not rerun. Wall-clock facts (start time, duration,
 //! thread count) live only in the manifest, never inside data files, and never enter the
 //! fingerprint. The manifest is written last and atomically, so a killed stage leaves either
@@ -59,6 +59,12 @@ pub struct StageSpec {
     pub stage: String,
     /// Input files (hashed). Paths are recorded relative to `input_base`.
     pub inputs: Vec<PathBuf>,
+    /// The directory that names the inputs: an input under it enters the fingerprint by its
+    /// path relative to it and its content; an input elsewhere (a board file, a scenario) by
+    /// its content alone. Use the stage's input directory (campaign, ingest or extract
+    /// output), never the current directory, and an empty path when no input has a name that
+    /// matters: absolute paths differ between work directories and cluster nodes, and must
+    /// never reach a fingerprint.
     pub input_base: PathBuf,
     /// The effective configuration: every option that can change the outputs.
     pub config: serde_json::Value,
@@ -112,10 +118,12 @@ fn canonical_json(v: &serde_json::Value) -> String {
 /// Hash the inputs and configuration; compute the fingerprint.
 pub fn prepare(spec: StageSpec) -> io::Result<Prepared> {
     let mut inputs = Vec::with_capacity(spec.inputs.len());
+    let mut keys = Vec::with_capacity(spec.inputs.len());
     for p in &spec.inputs {
         let (h, n) = hash_file(p).map_err(|e| {
             io::Error::new(e.kind(), format!("cannot hash input {}: {e}", p.display()))
         })?;
+        keys.push((fingerprint_name(p, &spec.input_base), h.clone()));
         inputs.push(FileHash {
             path: rel_path(p, &spec.input_base),
             blake3: h,
@@ -123,6 +131,7 @@ pub fn prepare(spec: StageSpec) -> io::Result<Prepared> {
         });
     }
     inputs.sort_by(|a, b| a.path.cmp(&b.path));
+    keys.sort();
     let config_blake3 = blake3::hash(canonical_json(&spec.config).as_bytes())
         .to_hex()
         .to_string();
@@ -135,11 +144,11 @@ pub fn prepare(spec: StageSpec) -> io::Result<Prepared> {
     h.update(config_blake3.as_bytes());
     h.update(b"\0");
     h.update(format!("{:?}", spec.seed).as_bytes());
-    for i in &inputs {
+    for (name, blake3) in &keys {
         h.update(b"\0");
-        h.update(i.path.as_bytes());
+        h.update(name.as_bytes());
         h.update(b"=");
-        h.update(i.blake3.as_bytes());
+        h.update(blake3.as_bytes());
     }
     let fingerprint = h.finalize().to_hex().to_string();
     Ok(Prepared {
@@ -148,6 +157,15 @@ pub fn prepare(spec: StageSpec) -> io::Result<Prepared> {
         config_blake3,
         fingerprint,
     })
+}
+
+/// An input's name in the fingerprint: its path relative to `base` when it lies under a
+/// non-empty base, else empty (the input then counts by its content alone).
+fn fingerprint_name(p: &Path, base: &Path) -> String {
+    match p.strip_prefix(base) {
+        Ok(rel) if !base.as_os_str().is_empty() => rel.to_string_lossy().replace('\\', "/"),
+        _ => String::new(),
+    }
 }
 
 /// Read a manifest if present and parseable.

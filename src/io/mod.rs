@@ -4,6 +4,9 @@
 
 pub mod atomic;
 pub mod balance_log;
+pub mod cache;
+pub mod campaign_dir;
+pub mod ingest_outputs;
 pub mod manifest;
 pub mod mcap_writer;
 pub mod sheet;

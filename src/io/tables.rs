@@ -309,7 +309,7 @@ pub const SCAN_POINTS: TableSpec = TableSpec {
 
 pub const FRF: TableSpec = TableSpec {
     name: "frf",
-    doc: "One row per function record (scan point x function type), spectra as list columns: one row per record keeps the table at thousands of rows instead of millions, each cell becomes a numpy array in pandas, and `df.explode([\"freq_hz\",\"re\",\"im\"])` gives the long form. Ordinates in SI: mobility (m/s)/N for type 4, dimensionless for 5 (transmissibility) and 6 (coherence, `im` null).",
+    doc: "One row per function record (scan point x function type), spectra as list columns: one row per record keeps the table at thousands of rows instead of millions, and each cell becomes a numpy array in pandas. The frequency axis is evenly spaced and stored once per record, not per line: line k of `re`/`im` lies at `freq_start_hz + k * freq_step_hz`, k = 0..n_lines-1 (pandas: `frf[\"freq_hz\"] = [r.freq_start_hz + r.freq_step_hz * np.arange(r.n_lines) for r in frf.itertuples()]`, then `frf[frf.function_type != 6].explode([\"freq_hz\",\"re\",\"im\"])` gives the long form of the responses). Ordinates in SI: mobility (m/s)/N for type 4, dimensionless for 5 (transmissibility) and 6 (coherence, `im` null). Tables written before layout 2 had a `freq_hz` list column instead of the three axis columns; readers refuse them with a message to re-run ingest.",
     open: false,
     columns: &[
         c("measurement_id", Col::Utf8, false, "", "Measurement id."),
@@ -319,7 +319,9 @@ pub const FRF: TableSpec = TableSpec {
         c("reference_node", Col::Int64, false, "", "Reference node."),
         c("reference_direction", Col::Int32, false, "", "UFF direction code of the reference."),
         c("ordinate_unit", Col::Utf8, false, "", "Unit of re/im: `m/s/N`, `1`."),
-        c("freq_hz", Col::ListF64, false, "Hz", "Spectral lines."),
+        c("freq_start_hz", Col::Float64, false, "Hz", "Frequency of the first spectral line."),
+        c("freq_step_hz", Col::Float64, false, "Hz", "Spacing of the spectral lines."),
+        c("n_lines", Col::Int32, false, "", "Number of spectral lines (length of re and im)."),
         c("re", Col::ListF64, false, "", "Real part (unit in ordinate_unit)."),
         c("im", Col::ListF64, true, "", "Imaginary part; null for real functions (coherence)."),
     ],
@@ -462,6 +464,20 @@ fn column<'a>(b: &'a RecordBatch, name: &str, path: &Path) -> io::Result<&'a Arr
     })
 }
 
+/// `frf.parquet` of layout 2 (frequency axis as start + step per record); a table of the
+/// older layout (a `freq_hz` list per record) is refused with what to do.
+pub fn check_frf_layout(b: &RecordBatch, path: &Path) -> io::Result<()> {
+    if b.column_by_name("freq_start_hz").is_none() && b.column_by_name("freq_hz").is_some() {
+        return Err(io::Error::other(format!(
+            "{}: old frf.parquet layout (a freq_hz list per record, written before hbmu's frf \
+             layout 2); this version stores the axis as freq_start_hz + freq_step_hz per record \
+             (schemas/tables/frf.json): re-run `hbmu ingest CAMPAIGN --out DIR --force`",
+            path.display()
+        )));
+    }
+    Ok(())
+}
+
 /// Typed column accessors; errors name the file, column and expected type.
 pub struct Cols<'a> {
     pub batch: &'a RecordBatch,
@@ -571,4 +587,37 @@ pub fn read_scan_points(path: &Path) -> io::Result<Vec<ScanPointRow>> {
         }
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn old_frf_layout_is_refused_with_what_to_do() {
+        let old = RecordBatch::try_from_iter(vec![
+            (
+                "node",
+                Arc::new(arrow::array::Int64Array::from(vec![1])) as ArrayRef,
+            ),
+            ("freq_hz", list_f64_col([vec![1.0, 2.0]])),
+        ])
+        .unwrap();
+        let e = check_frf_layout(&old, Path::new("w/ingest/frf.parquet")).unwrap_err();
+        let msg = e.to_string();
+        assert!(msg.contains("w/ingest/frf.parquet") && msg.contains("old frf.parquet layout"));
+        assert!(msg.contains("hbmu ingest"), "{msg}");
+        let new = RecordBatch::try_from_iter(vec![
+            (
+                "freq_start_hz",
+                Arc::new(arrow::array::Float64Array::from(vec![0.0])) as ArrayRef,
+            ),
+            (
+                "freq_step_hz",
+                Arc::new(arrow::array::Float64Array::from(vec![1.0])) as ArrayRef,
+            ),
+        ])
+        .unwrap();
+        assert!(check_frf_layout(&new, Path::new("frf.parquet")).is_ok());
+    }
 }

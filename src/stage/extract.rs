@@ -103,6 +103,7 @@ pub fn read_ingest(dir: &Path) -> anyhow::Result<Vec<MeasurementInput>> {
     let mut coh: BTreeMap<String, BTreeMap<i64, Vec<f64>>> = BTreeMap::new();
     let fpath = dir.join("frf.parquet");
     for b in tables::read_parquet(&fpath)? {
+        tables::check_frf_layout(&b, &fpath)?;
         let c = Cols {
             batch: &b,
             path: &fpath,
@@ -113,8 +114,12 @@ pub fn read_ingest(dir: &Path) -> anyhow::Result<Vec<MeasurementInput>> {
             c.i32("function_type")?,
         );
         for i in 0..b.num_rows() {
-            let freq = c.list_f64("freq_hz", i)?.unwrap_or_default();
             let re = c.list_f64("re", i)?.unwrap_or_default();
+            let (f0, df) = (
+                c.f64("freq_start_hz")?.value(i),
+                c.f64("freq_step_hz")?.value(i),
+            );
+            let freq: Vec<f64> = (0..re.len()).map(|k| f0 + k as f64 * df).collect();
             let im = c.list_f64("im", i)?;
             if ft.value(i) == 6 {
                 coh.entry(id.value(i).into())

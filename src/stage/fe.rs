@@ -7,7 +7,8 @@
 //! ingest table holding a measurement's scan points; its configuration is every option.
 
 use crate::fem::{self, Board, FeModel, JointModel, Params};
-use crate::io::manifest::StageSpec;
+use crate::io::cache::{Cache, Fetch};
+use crate::io::manifest::{Prepared, StageSpec};
 use crate::io::tables::{self, TableSpec};
 use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::{anyhow, bail, Context};
@@ -114,15 +115,27 @@ fn spec_for(
     StageSpec {
         stage: stage.into(),
         inputs,
-        input_base: std::env::current_dir().unwrap_or_else(|_| PathBuf::from(".")),
+        // The board counts by content (callers name a base when an input's name matters).
+        input_base: PathBuf::new(),
         config: serde_json::json!({
-            "model": opts,
+            "model": fingerprinted_model_options(opts),
             "board_blake3": board_hash,
             "stage": extra_config,
         }),
         seed,
         manifest_path: manifest_path_for(out),
     }
+}
+
+/// The model options as the configuration sees them: without the board's path, which enters
+/// by its content (`board_blake3`), so that moving the file or the work directory changes no
+/// fingerprint.
+fn fingerprinted_model_options(opts: &ModelOptions) -> serde_json::Value {
+    let mut v = serde_json::to_value(opts).expect("ModelOptions serialises");
+    if let Some(m) = v.as_object_mut() {
+        m.remove("board");
+    }
+    v
 }
 
 /// `<out>.manifest.json` next to a single-file output.
@@ -196,6 +209,54 @@ pub fn report_points(
     }
 }
 
+/// The cache key of an `fe` artifact: stage, tool version, seed and the configuration, which
+/// holds the board's content hash and every option, but no path (the board given as a file or
+/// as the built-in default with the same text is one artifact).
+fn cache_key(prep: &Prepared) -> String {
+    let mut h = blake3::Hasher::new();
+    h.update(b"hbmu-cache-v1\0");
+    h.update(prep.spec.stage.as_bytes());
+    h.update(b"\0");
+    h.update(crate::io::manifest::TOOL_VERSION.as_bytes());
+    h.update(b"\0");
+    h.update(prep.config_blake3.as_bytes());
+    h.update(b"\0");
+    h.update(format!("{:?}", prep.spec.seed).as_bytes());
+    h.finalize().to_hex().to_string()
+}
+
+/// Produce a single-file artifact at `out` through the shared cache when `HBMU_CACHE` is set:
+/// the cached copy when there is one under `key` ([`cache_key`]), else `build` writes `out`
+/// and the bytes are published to the cache. Says on stderr which it was.
+fn through_cache(
+    kind: &str,
+    key: &str,
+    ext: &str,
+    out: &Path,
+    build: impl FnOnce(&Path) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let Some(cache) = Cache::from_env() else {
+        return build(out);
+    };
+    let (p, how) = cache
+        .fetch_or_build(kind, key, ext, || {
+            build(out).map_err(std::io::Error::other)?;
+            std::fs::read(out)
+        })
+        .with_context(|| format!("model cache {}", cache.path(kind, key, ext).display()))?;
+    match how {
+        Fetch::Hit => {
+            let bytes =
+                std::fs::read(&p).with_context(|| format!("reading cached {}", p.display()))?;
+            crate::io::atomic::write_bytes(out, &bytes)
+                .with_context(|| format!("writing {}", out.display()))?;
+            eprintln!("{kind}: from the cache ({})", p.display());
+        }
+        Fetch::Built => eprintln!("{kind}: built, published to the cache ({})", p.display()),
+    }
+    Ok(())
+}
+
 /// `hbmu fe modes`.
 pub fn run_modes(
     opts: &ModelOptions,
@@ -214,10 +275,20 @@ pub fn run_modes(
         opts,
         &board_hash,
         inputs,
-        serde_json::json!({"n_modes": n_modes, "points_from": points_from}),
+        serde_json::json!({
+            "n_modes": n_modes,
+            "points_from_measurement": points_from.map(|f| &f.measurement_id),
+        }),
         out,
         None,
     );
+    // scan_points.parquet by its name in the ingest directory.
+    let spec = StageSpec {
+        input_base: points_from
+            .map(|f| f.ingest_dir.clone())
+            .unwrap_or_default(),
+        ..spec
+    };
     crate::stage::run(spec, force, |prep| {
         let (model, p) = build_model(&board, opts)?;
         let (nodes, pts) = report_points(&model.board, points_from)?;
@@ -268,15 +339,15 @@ pub fn run_rom(
         out,
         Some(rom_opts.seed),
     );
-    crate::stage::run(spec, force, |_prep| {
-        let (model, _) = build_model(&board, opts)?;
-        let rom = fem::Rom::build(&model, rom_opts)?;
-        crate::io::atomic::write_bytes(out, &rom.to_npz_bytes())
-            .with_context(|| format!("writing {}", out.display()))?;
+    crate::stage::run(spec, force, |prep| {
+        through_cache("fe-rom", &cache_key(prep), "npz", out, |out| {
+            let (model, _) = build_model(&board, opts)?;
+            let rom = fem::Rom::build(&model, rom_opts)?;
+            crate::io::atomic::write_bytes(out, &rom.to_npz_bytes())
+                .with_context(|| format!("writing {}", out.display()))
+        })?;
         let mut summary = BTreeMap::new();
-        summary.insert("basis_dim".into(), rom.dim().into());
-        summary.insert("n_modes".into(), rom.n_modes.into());
-        summary.insert("setup".into(), rom.setup.clone().into());
+        summary.insert("setup".into(), opts.setup.as_str().into());
         Ok(StageResult {
             outputs: vec![out.to_path_buf()],
             exit_code: exit::OK,
@@ -303,44 +374,60 @@ pub fn run_sensitivity(
         None,
     );
     crate::stage::run(spec, force, |prep| {
-        let (model, p) = build_model(&board, opts)?;
-        let modes = model.modes(&p, n_modes)?;
-        let d = fem::sensitivity::eigen_derivatives(&model, &p, &modes, false)?;
-        let mut rows: Vec<(i32, f64, String, f64, f64, f64)> = vec![];
-        for j in 0..modes.freq_hz.len() {
-            for (k, name) in p.names.iter().enumerate() {
-                let df = d.d_freq_hz[(j, k)];
-                rows.push((
-                    j as i32 + 1,
-                    modes.freq_hz[j],
-                    name.clone(),
-                    p.values[k],
-                    df,
-                    p.values[k] / modes.freq_hz[j] * df,
-                ));
-            }
-        }
-        let prov = provenance("fe-sensitivity", &prep.fingerprint, &model.board);
-        write(
-            out,
-            &tables::SENSITIVITY,
-            &prov,
-            vec![
-                Arc::new(StringArray::from(vec![opts.setup.as_str(); rows.len()])),
-                Arc::new(Int32Array::from_iter_values(rows.iter().map(|r| r.0))),
-                Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.1))),
-                Arc::new(StringArray::from_iter_values(
-                    rows.iter().map(|r| r.2.as_str()),
-                )),
-                Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.3))),
-                Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.4))),
-                Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.5))),
-            ],
-        )?;
+        // The table's `hbmu.fingerprint` is the cache key, so that a cached copy carries the
+        // same provenance whichever campaign built it.
+        let key = cache_key(prep);
+        through_cache("fe-sensitivity", &key, "parquet", out, |out| {
+            write_sensitivity(&board, opts, n_modes, &key, out)
+        })?;
         Ok(StageResult {
             outputs: vec![out.to_path_buf()],
             exit_code: exit::OK,
             summary: BTreeMap::new(),
         })
     })
+}
+
+/// The sensitivity table of the model at its parameter point, written to `out`.
+fn write_sensitivity(
+    board: &Board,
+    opts: &ModelOptions,
+    n_modes: usize,
+    fingerprint: &str,
+    out: &Path,
+) -> anyhow::Result<()> {
+    let (model, p) = build_model(board, opts)?;
+    let modes = model.modes(&p, n_modes)?;
+    let d = fem::sensitivity::eigen_derivatives(&model, &p, &modes, false)?;
+    let mut rows: Vec<(i32, f64, String, f64, f64, f64)> = vec![];
+    for j in 0..modes.freq_hz.len() {
+        for (k, name) in p.names.iter().enumerate() {
+            let df = d.d_freq_hz[(j, k)];
+            rows.push((
+                j as i32 + 1,
+                modes.freq_hz[j],
+                name.clone(),
+                p.values[k],
+                df,
+                p.values[k] / modes.freq_hz[j] * df,
+            ));
+        }
+    }
+    let prov = provenance("fe-sensitivity", fingerprint, &model.board);
+    write(
+        out,
+        &tables::SENSITIVITY,
+        &prov,
+        vec![
+            Arc::new(StringArray::from(vec![opts.setup.as_str(); rows.len()])),
+            Arc::new(Int32Array::from_iter_values(rows.iter().map(|r| r.0))),
+            Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.1))),
+            Arc::new(StringArray::from_iter_values(
+                rows.iter().map(|r| r.2.as_str()),
+            )),
+            Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.3))),
+            Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.4))),
+            Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.5))),
+        ],
+    )
 }

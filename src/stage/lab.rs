@@ -68,11 +68,13 @@ pub fn run(opts: &SimulateOptions) -> anyhow::Result<StageOutcome> {
     let spec = StageSpec {
         stage: "lab-simulate".into(),
         inputs,
-        input_base: std::env::current_dir().unwrap_or_else(|_| PathBuf::from(".")),
+        // The scenario and board files count by content; the campaign directory by its place
+        // relative to the truth file (a different place must rerun), never by absolute path.
+        input_base: PathBuf::new(),
         config: serde_json::json!({
             "scenario": scenario_text,
             "board_blake3": blake3::hash(board_text.as_bytes()).to_hex().to_string(),
-            "out": opts.out,
+            "out": crate::io::manifest::rel_path(&opts.out, &truth_dir),
         }),
         seed: Some(seed),
         manifest_path: crate::stage::fe::manifest_path_for(&opts.truth),

@@ -138,7 +138,8 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
     let spec = StageSpec {
         stage: "pair".into(),
         inputs,
-        input_base: std::env::current_dir().unwrap_or_else(|_| PathBuf::from(".")),
+        // modes.parquet by name; the board file by content (its path is the user's business).
+        input_base: opts.extract_dir.clone(),
         config: serde_json::json!({
             "params": opts.params,
             "n_model_modes": opts.n_model_modes,

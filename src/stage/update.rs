@@ -1166,7 +1166,9 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
     let spec = StageSpec {
         stage: "update_boards".into(),
         inputs,
-        input_base: std::env::current_dir().unwrap_or_else(|_| PathBuf::from(".")),
+        // Inputs from several stage directories: named by their content alone (no path
+        // may reach a fingerprint, see `StageSpec::input_base`).
+        input_base: PathBuf::new(),
         config,
         seed: Some(opts.seed),
         manifest_path: opts.out.join(MANIFEST_BOARDS),

@@ -1,0 +1,856 @@
+//! The campaign model and its cross-checks, pure: the sheet, one UFF per measurement and the
+//! balance logs of `campaign-format.md`, read through a [`Source`] (names and bytes; the
+//! directory behind it is `io::campaign_dir`), parsed, checked against each other (every sheet
+//! row has its file, every UFF is in the sheet, every board weighed, scan points consistent
+//! within a setup, unique ids) and converted to SI. One bad measurement never sinks the
+//! campaign: it is quarantined with its reason. Nothing is silently dropped: every dropped
+//! record and every ignored file is a [`Finding`]. The writers of the ingest outputs are in
+//! `io::ingest_outputs`; the stage that wires both is `stage::ingest`.
+
+use crate::findings::{Finding, Findings, Severity};
+use crate::io::balance_log::{self, BoardMass, MassParams, Reading};
+use crate::io::sheet::{self, Setup, SheetRow};
+use crate::io::uff::{self, Abscissa, Dataset, FunctionType, Ordinate};
+use anyhow::{bail, Context};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+
+/// Where a campaign's files come from. The checks ask for names (relative to the campaign
+/// root, `/` separators) and bytes; they never open paths.
+pub trait Source: Sync {
+    /// The campaign's name (its directory's name).
+    fn name(&self) -> String;
+    /// How to name the campaign in an error message (its directory).
+    fn describe(&self) -> String;
+    /// Every regular file except hidden ones, relative, sorted.
+    fn list(&self) -> std::io::Result<Vec<String>>;
+    /// `rel` names an existing regular file.
+    fn is_file(&self, rel: &str) -> bool;
+    /// The identity of the file `rel` names: equal for two names of one file (a symbolic link
+    /// and its target); `rel` itself when unknown.
+    fn identity(&self, rel: &str) -> String;
+    /// The file's bytes.
+    fn read(&self, rel: &str) -> std::io::Result<Vec<u8>>;
+}
+
+/// Tunable checks of the ingest stage (part of the fingerprint).
+#[derive(Debug, Clone, Serialize)]
+pub struct IngestConfig {
+    /// Balance-spread flag: std of stable readings above this many resolution steps.
+    pub mass_max_std_in_d: f64,
+    /// Two scan points with the same node id in two measurements of one setup are "the same
+    /// point" when within this distance; beyond it the grids are reported inconsistent.
+    pub scan_point_tolerance_m: f64,
+}
+
+impl Default for IngestConfig {
+    fn default() -> Self {
+        IngestConfig {
+            mass_max_std_in_d: MassParams::default().max_std_in_d,
+            scan_point_tolerance_m: 0.5e-3,
+        }
+    }
+}
+
+/// One function record, SI units, evenly spaced axis.
+#[derive(Debug, Clone)]
+pub struct Record {
+    pub node: i64,
+    pub function_type: i32,
+    pub response_direction: i32,
+    pub reference_node: i64,
+    pub reference_direction: i32,
+    pub ordinate_unit: &'static str,
+    pub freq_start_hz: f64,
+    pub freq_step_hz: f64,
+    pub re: Vec<f64>,
+    pub im: Option<Vec<f64>>,
+}
+
+/// One scan point, metres.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Point {
+    pub node: i64,
+    pub xyz_m: [f64; 3],
+    pub is_reference: bool,
+    pub has_record: bool,
+}
+
+/// One measurement after ingest.
+#[derive(Debug, Clone)]
+pub struct Measurement {
+    pub row: SheetRow,
+    /// `Some(reason)` when quarantined.
+    pub quarantine: Option<String>,
+    pub uff_blake3: Option<String>,
+    pub points: Vec<Point>,
+    pub records: Vec<Record>,
+    pub coherence: Vec<Record>,
+    pub dropped: usize,
+}
+
+impl Measurement {
+    fn new(row: SheetRow) -> Self {
+        Measurement {
+            row,
+            quarantine: None,
+            uff_blake3: None,
+            points: vec![],
+            records: vec![],
+            coherence: vec![],
+            dropped: 0,
+        }
+    }
+    /// The excitation reference node (of the first response record).
+    pub fn reference_node(&self) -> Option<i64> {
+        self.records.first().map(|r| r.reference_node)
+    }
+    /// Scan points with a response (the reference only when it has a record).
+    pub fn n_scan_points(&self) -> usize {
+        self.points
+            .iter()
+            .filter(|p| !p.is_reference || p.has_record)
+            .count()
+    }
+}
+
+/// Everything read from a campaign, before writing.
+#[derive(Debug, Default)]
+pub struct Campaign {
+    pub name: String,
+    pub measurements: Vec<Measurement>,
+    pub readings: Vec<Reading>,
+    pub masses: Vec<BoardMass>,
+    pub findings: Findings,
+    /// Extra sheet columns, in header order.
+    pub extra_columns: Vec<String>,
+}
+
+/// Read, parse and cross-check a campaign. Fatal only when nothing can be read (no sheet, a
+/// sheet without required columns, no measurement at all).
+///
+/// `on_file` is called once per UFF file read (a progress bar, or nothing).
+pub fn read_campaign(
+    src: &dyn Source,
+    cfg: &IngestConfig,
+    on_file: &(dyn Fn() + Sync),
+) -> anyhow::Result<Campaign> {
+    let name = src.name();
+    let mut findings = Findings::default();
+    let sheet_bytes = src
+        .read("campaign.csv")
+        .with_context(|| format!("{}: cannot read campaign.csv", src.describe()))?;
+    let sheet = sheet::parse(&sheet_bytes, "campaign.csv")?;
+    findings.extend(sheet.findings.clone());
+    if sheet.rows.is_empty() {
+        bail!(
+            "{}: empty campaign: campaign.csv has a header but no measurement rows",
+            src.describe()
+        );
+    }
+
+    // Row-level checks: ids, setup, file.
+    let mut measurements: Vec<Measurement> =
+        sheet.rows.iter().cloned().map(Measurement::new).collect();
+    let mut first_line: HashMap<String, u64> = HashMap::new();
+    for m in &mut measurements {
+        let row = &m.row;
+        let f = |code: &str, msg: String| {
+            Finding::new(Severity::Quarantined, code, msg)
+                .file("campaign.csv")
+                .line(row.line)
+                .measurement(row.measurement_id.clone())
+        };
+        let reason = if row.measurement_id.is_empty() {
+            Some(f(
+                "sheet.empty_id",
+                "measurement_id is empty (expected a unique id)".into(),
+            ))
+        } else if let Some(l) = first_line.get(&row.measurement_id) {
+            Some(f(
+                "sheet.duplicate_id",
+                format!(
+                    "duplicate measurement_id {:?} (first used on line {l}); this row is quarantined",
+                    row.measurement_id
+                ),
+            ))
+        } else if row.board_id.is_empty() {
+            Some(f(
+                "sheet.empty_board",
+                "board_id is empty (expected the specimen id)".into(),
+            ))
+        } else if row.setup.is_none() {
+            Some(f(
+                "sheet.unknown_setup",
+                format!(
+                    "setup: expected `free` or `bolted`, found {:?}",
+                    row.setup_raw
+                ),
+            ))
+        } else if row.file.is_empty() {
+            Some(f(
+                "sheet.empty_file",
+                "file is empty (expected the UFF path)".into(),
+            ))
+        } else if !src.is_file(&row.file) {
+            Some(f(
+                "sheet.missing_file",
+                format!(
+                    "file {:?} does not exist in the campaign directory",
+                    row.file
+                ),
+            ))
+        } else {
+            None
+        };
+        if !row.measurement_id.is_empty() {
+            first_line
+                .entry(row.measurement_id.clone())
+                .or_insert(row.line);
+        }
+        if let Some(fd) = reason {
+            m.quarantine = Some(fd.message.clone());
+            findings.push(fd);
+        }
+    }
+
+    // UFF files, in parallel; results collected in sheet order (deterministic).
+    let per_meas: Vec<Findings> = measurements
+        .par_iter_mut()
+        .map(|m| {
+            let out = if m.quarantine.is_none() {
+                read_measurement(src, m)
+            } else {
+                Findings::default()
+            };
+            on_file();
+            out
+        })
+        .collect();
+    for f in per_meas {
+        findings.extend(f);
+    }
+
+    // Files nobody asked for.
+    let named: BTreeSet<String> = measurements
+        .iter()
+        .map(|m| src.identity(&m.row.file))
+        .collect();
+    let files = src
+        .list()
+        .with_context(|| format!("cannot list {}", src.describe()))?;
+    for r in files.iter().cloned() {
+        if r == "campaign.csv" || named.contains(&src.identity(&r)) {
+            continue;
+        }
+        if r.starts_with("scale/") && r.ends_with(".log") {
+            continue;
+        }
+        if r.starts_with("vibrometer/") && r.to_ascii_lowercase().ends_with(".uff") {
+            findings.push(
+                Finding::new(
+                    Severity::Warning,
+                    "campaign.uff_not_in_sheet",
+                    "UFF file is not named by any row of campaign.csv (expected every vibrometer file in the sheet); not ingested",
+                )
+                .file(r),
+            );
+        } else {
+            findings.push(
+                Finding::new(
+                    Severity::Info,
+                    "campaign.ignored_file",
+                    "not part of the campaign contract; ignored",
+                )
+                .file(r),
+            );
+        }
+    }
+
+    check_scan_point_consistency(&measurements, cfg, &mut findings);
+
+    // Balance logs.
+    let mut readings = Vec::new();
+    for r in files
+        .iter()
+        .filter(|r| r.starts_with("scale/") && r.ends_with(".log"))
+    {
+        let bytes = src.read(r).with_context(|| format!("cannot read {r}"))?;
+        let (rs, f) = balance_log::parse(&bytes, r);
+        readings.extend(rs);
+        findings.extend(f);
+    }
+    let masses = balance_log::board_masses(
+        &readings,
+        MassParams {
+            max_std_in_d: cfg.mass_max_std_in_d,
+        },
+    );
+    let weighed: BTreeSet<&str> = masses.iter().map(|m| m.board_id.as_str()).collect();
+    let boards: BTreeSet<&str> = measurements
+        .iter()
+        .map(|m| m.row.board_id.as_str())
+        .filter(|b| !b.is_empty())
+        .collect();
+    for b in &boards {
+        if !weighed.contains(b) {
+            findings.push(Finding::new(
+                Severity::Warning,
+                "balance.board_not_weighed",
+                format!("board {b} has no stable balance reading in scale/*.log (expected every board weighed)"),
+            ));
+        }
+    }
+    for m in &masses {
+        if !boards.contains(m.board_id.as_str()) {
+            findings.push(Finding::new(
+                Severity::Info,
+                "balance.unknown_board",
+                format!(
+                    "board {} was weighed but has no measurement in the sheet",
+                    m.board_id
+                ),
+            ));
+        }
+        if m.inconsistent {
+            findings.push(Finding::new(
+                Severity::Warning,
+                "balance.inconsistent_readings",
+                format!(
+                    "board {}: {} stable readings spread {:.4} g (std), more than {} x the balance resolution {:.4} g",
+                    m.board_id, m.n_stable, m.std_g, cfg.mass_max_std_in_d, m.resolution_g
+                ),
+            ));
+        }
+    }
+    Ok(Campaign {
+        name,
+        measurements,
+        readings,
+        masses,
+        findings,
+        extra_columns: sheet.extra_columns,
+    })
+}
+
+/// Unit conversion of one function record's ordinate, file units → SI.
+fn ordinate_factor(f: &uff::Function58, units: Option<&uff::Units164>) -> f64 {
+    let Some(u) = units else { return 1.0 };
+    let num = &f.ordinate_axis;
+    let den = &f.denominator_axis;
+    let le = (num.length_exp - den.length_exp) as i32;
+    let fe = (num.force_exp - den.force_exp) as i32;
+    // SI = value / (L^le · F^fe), UFF factors divide.
+    1.0 / (u.length_factor.powi(le) * u.force_factor.powi(fe))
+}
+
+/// Parse one measurement's UFF and fill `m`; returns its findings. Quarantines on fatal issues.
+fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
+    let mut fd = Findings::default();
+    let file = m.row.file.clone();
+    let mid = m.row.measurement_id.clone();
+    let setup = m.row.setup.expect("checked before");
+    let quarantine = |m: &mut Measurement, fd: &mut Findings, code: &str, msg: String| {
+        fd.push(
+            Finding::new(Severity::Quarantined, code, msg.clone())
+                .file(file.clone())
+                .measurement(mid.clone()),
+        );
+        m.quarantine = Some(msg);
+    };
+    let bytes = match src.read(&file) {
+        Ok(b) => b,
+        Err(e) => {
+            quarantine(
+                m,
+                &mut fd,
+                "uff.unreadable",
+                format!("cannot read file: {e}"),
+            );
+            return fd;
+        }
+    };
+    m.uff_blake3 = Some(blake3::hash(&bytes).to_hex().to_string());
+    let parsed = match uff::parse(&bytes) {
+        Ok(p) => p,
+        Err(e) => {
+            quarantine(m, &mut fd, "uff.not_uff", e.to_string());
+            return fd;
+        }
+    };
+    for iss in &parsed.issues {
+        fd.push(
+            Finding::new(
+                Severity::RecordDropped,
+                "uff.bad_dataset",
+                format!("{}; dataset dropped", iss.kind),
+            )
+            .file(file.clone())
+            .line(iss.line as u64)
+            .record(format!(
+                "dataset {} #{}",
+                iss.number.map_or("?".into(), |n| n.to_string()),
+                iss.index
+            ))
+            .measurement(mid.clone()),
+        );
+        m.dropped += 1;
+    }
+    for s in &parsed.skipped {
+        fd.push(
+            Finding::new(
+                Severity::Info,
+                "uff.skipped_dataset",
+                format!("dataset {} is not used by hbmu; skipped", s.number),
+            )
+            .file(file.clone())
+            .line(s.line as u64)
+            .record(format!("dataset {} #{}", s.number, s.index))
+            .measurement(mid.clone()),
+        );
+    }
+    let units = parsed.datasets.iter().find_map(|d| match d {
+        Dataset::Units(u) => Some(u.clone()),
+        _ => None,
+    });
+    let to_m = |v: f64| match &units {
+        Some(u) => u.length_to_metres(v),
+        None => v * 1e-3, // contract: millimetres without dataset 164
+    };
+    // Nodes: merged over all node datasets; a repeated id with other coordinates is reported.
+    let mut nodes: BTreeMap<i64, [f64; 3]> = BTreeMap::new();
+    for d in &parsed.datasets {
+        if let Dataset::Nodes(ns) = d {
+            for n in &ns.nodes {
+                let xyz = n.xyz_file_units.map(to_m);
+                if let Some(old) = nodes.insert(n.id, xyz) {
+                    if old != xyz {
+                        fd.push(
+                            Finding::new(
+                                Severity::Warning,
+                                "uff.node_redefined",
+                                format!("node {} defined twice with different coordinates; the later definition is used", n.id),
+                            )
+                            .file(file.clone())
+                            .line(ns.line as u64)
+                            .measurement(mid.clone()),
+                        );
+                    }
+                }
+            }
+        }
+    }
+    if nodes.is_empty() {
+        quarantine(
+            m,
+            &mut fd,
+            "uff.no_geometry",
+            "no scan-point geometry (expected dataset 2411 or 15 with the scan points)".into(),
+        );
+        return fd;
+    }
+
+    let expected_type = setup.expected_function_type();
+    let mut axis: Option<(f64, f64, usize)> = None;
+    let mut seen: BTreeSet<(i64, i32)> = BTreeSet::new();
+    let mut ref_count: BTreeMap<i64, usize> = BTreeMap::new();
+    for d in &parsed.datasets {
+        let Dataset::Function(f) = d else { continue };
+        let ft = f.function_type.code() as i32;
+        let loc = format!("dataset 58 at line {} (node {})", f.line, f.response_node);
+        let mut drop = |fd: &mut Findings, code: &str, msg: String| {
+            fd.push(
+                Finding::new(
+                    Severity::RecordDropped,
+                    code,
+                    format!("{msg}; record dropped"),
+                )
+                .file(file.clone())
+                .line(f.line as u64)
+                .record(loc.clone())
+                .measurement(mid.clone()),
+            );
+            m.dropped += 1;
+        };
+        let is_coh = f.function_type == FunctionType::Coherence;
+        if !is_coh && ft != expected_type {
+            let what = match f.function_type {
+                FunctionType::Frf | FunctionType::Transmissibility => "does not match the setup",
+                _ => "is not one the contract knows",
+            };
+            drop(
+                &mut fd,
+                "uff.function_type",
+                format!(
+                    "function type {ft} {what} (expected {expected_type} for setup `{}`, or 6 coherence)",
+                    setup.as_str()
+                ),
+            );
+            continue;
+        }
+        let mut sign = 1.0;
+        match f.response_direction {
+            3 => {}
+            -3 => {
+                sign = -1.0;
+                fd.push(
+                    Finding::new(
+                        Severity::Info,
+                        "uff.direction_flipped",
+                        "response direction -Z; ordinate negated to +Z",
+                    )
+                    .file(file.clone())
+                    .line(f.line as u64)
+                    .record(loc.clone())
+                    .measurement(mid.clone()),
+                );
+            }
+            d => {
+                drop(
+                    &mut fd,
+                    "uff.direction",
+                    format!("response direction {d} (expected 3 = +Z)"),
+                );
+                continue;
+            }
+        }
+        if !nodes.contains_key(&f.response_node) {
+            drop(
+                &mut fd,
+                "uff.unknown_node",
+                format!(
+                    "response node {} has no coordinates in dataset 2411/15",
+                    f.response_node
+                ),
+            );
+            continue;
+        }
+        let (min, inc) = match &f.abscissa {
+            Abscissa::Even { min, increment } => (*min, *increment),
+            Abscissa::Uneven(_) => {
+                drop(
+                    &mut fd,
+                    "uff.uneven_abscissa",
+                    "abscissa is unevenly spaced (expected evenly spaced frequency lines)".into(),
+                );
+                continue;
+            }
+        };
+        let n = f.ordinate.len();
+        if !(inc.is_finite() && inc > 0.0 && min.is_finite() && min >= 0.0) || n < 2 {
+            drop(
+                &mut fd,
+                "uff.bad_abscissa",
+                format!("abscissa start {min} Hz, step {inc} Hz, {n} lines (expected start >= 0, step > 0, >= 2 lines)"),
+            );
+            continue;
+        }
+        if !is_coh {
+            match axis {
+                None => axis = Some((min, inc, n)),
+                Some((a0, da, na)) => {
+                    let same = na == n
+                        && (a0 - min).abs() <= 1e-9 * da.max(1.0)
+                        && (da - inc).abs() <= 1e-9 * da;
+                    if !same {
+                        drop(
+                            &mut fd,
+                            "uff.axis_mismatch",
+                            format!("frequency axis {min} Hz + k*{inc} Hz, {n} lines differs from the measurement's first record ({a0} Hz + k*{da} Hz, {na} lines)"),
+                        );
+                        continue;
+                    }
+                }
+            }
+        }
+        if !seen.insert((f.response_node, ft)) {
+            drop(
+                &mut fd,
+                "uff.duplicate_record",
+                format!(
+                    "second record of function type {ft} for node {} (the first is kept)",
+                    f.response_node
+                ),
+            );
+            continue;
+        }
+        let factor = sign
+            * if is_coh {
+                1.0
+            } else {
+                ordinate_factor(f, units.as_ref())
+            };
+        let (re, im) = match (&f.ordinate, is_coh) {
+            (Ordinate::Complex { re, im }, false) => (
+                re.iter().map(|v| v * factor).collect(),
+                Some(im.iter().map(|v| v * factor).collect()),
+            ),
+            (Ordinate::Real(v), true) => (v.clone(), None),
+            (Ordinate::Real(_), false) => {
+                drop(
+                    &mut fd,
+                    "uff.real_ordinate",
+                    format!("function type {ft} has a real ordinate (expected complex)"),
+                );
+                continue;
+            }
+            (Ordinate::Complex { re, im }, true) => {
+                // Coherence is real by definition; some writers store it as complex with a
+                // zero imaginary part. Keep the real part, and say so.
+                let max_im = im.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+                fd.push(
+                    Finding::new(
+                        Severity::Info,
+                        "uff.complex_coherence",
+                        format!("coherence stored as complex (max |imag| = {max_im:.3e}); real part used"),
+                    )
+                    .file(file.clone())
+                    .line(f.line as u64)
+                    .record(loc.clone())
+                    .measurement(mid.clone()),
+                );
+                (re.clone(), None)
+            }
+        };
+        if !is_coh {
+            *ref_count.entry(f.reference_node).or_default() += 1;
+        }
+        let rec = Record {
+            node: f.response_node,
+            function_type: ft,
+            response_direction: 3,
+            reference_node: f.reference_node,
+            reference_direction: f.reference_direction as i32,
+            ordinate_unit: match ft {
+                4 => "m/s/N",
+                _ => "1",
+            },
+            freq_start_hz: min,
+            freq_step_hz: inc,
+            re,
+            im,
+        };
+        if is_coh {
+            m.coherence.push(rec);
+        } else {
+            m.records.push(rec);
+        }
+    }
+    if m.records.is_empty() {
+        quarantine(
+            m,
+            &mut fd,
+            "uff.no_records",
+            format!(
+                "no usable response record (expected dataset 58 records of function type {expected_type})"
+            ),
+        );
+        return fd;
+    }
+    // Coherence on another axis than the response records is of no use.
+    if let Some((a0, da, na)) = axis {
+        let before = m.coherence.len();
+        m.coherence.retain(|c| {
+            c.re.len() == na
+                && (c.freq_start_hz - a0).abs() <= 1e-9 * da.max(1.0)
+                && (c.freq_step_hz - da).abs() <= 1e-9 * da
+        });
+        let lost = before - m.coherence.len();
+        if lost > 0 {
+            m.dropped += lost;
+            fd.push(
+                Finding::new(
+                    Severity::RecordDropped,
+                    "uff.coherence_axis",
+                    format!("{lost} coherence record(s) on another frequency axis than the response records; dropped"),
+                )
+                .file(file.clone())
+                .measurement(mid.clone()),
+            );
+        }
+    }
+    let main_ref = ref_count
+        .iter()
+        .max_by_key(|(node, n)| (**n, -**node))
+        .map(|(node, _)| *node)
+        .expect("records non-empty");
+    if ref_count.len() > 1 {
+        fd.push(
+            Finding::new(
+                Severity::Warning,
+                "uff.mixed_reference",
+                format!("records use {} different reference nodes ({:?}); expected one reference per measurement", ref_count.len(), ref_count.keys().collect::<Vec<_>>()),
+            )
+            .file(file.clone())
+            .measurement(mid.clone()),
+        );
+    }
+    // Put the main reference first so `reference_node()` reports it.
+    m.records
+        .sort_by_key(|r| (r.reference_node != main_ref, r.node));
+    m.coherence.sort_by_key(|r| r.node);
+    let with_record: BTreeSet<i64> = m.records.iter().map(|r| r.node).collect();
+    if !nodes.contains_key(&main_ref) {
+        fd.push(
+            Finding::new(
+                Severity::Warning,
+                "uff.reference_without_geometry",
+                format!("reference node {main_ref} has no coordinates in dataset 2411/15"),
+            )
+            .file(file.clone())
+            .measurement(mid.clone()),
+        );
+    }
+    m.points = nodes
+        .iter()
+        .map(|(&node, &xyz_m)| Point {
+            node,
+            xyz_m,
+            is_reference: node == main_ref,
+            has_record: with_record.contains(&node),
+        })
+        .collect();
+    let no_record = m
+        .points
+        .iter()
+        .filter(|p| !p.is_reference && !p.has_record)
+        .count();
+    if no_record > 0 {
+        fd.push(
+            Finding::new(
+                Severity::Info,
+                "uff.points_without_record",
+                format!("{no_record} scan point(s) have no response record (marked invalid by the vibrometer, or dropped)"),
+            )
+            .file(file)
+            .measurement(mid),
+        );
+    }
+    fd
+}
+
+/// Within one setup, the same node id must sit at the same place in every measurement, and the
+/// grids should match. Compared with the first good measurement of the setup (sheet order).
+fn check_scan_point_consistency(ms: &[Measurement], cfg: &IngestConfig, fd: &mut Findings) {
+    for setup in [Setup::Free, Setup::Bolted] {
+        let good: Vec<&Measurement> = ms
+            .iter()
+            .filter(|m| m.quarantine.is_none() && m.row.setup == Some(setup))
+            .collect();
+        let Some(first) = good.first() else { continue };
+        let grid = |m: &Measurement| -> BTreeMap<i64, [f64; 3]> {
+            m.points
+                .iter()
+                .filter(|p| !p.is_reference)
+                .map(|p| (p.node, p.xyz_m))
+                .collect()
+        };
+        let g0 = grid(first);
+        for m in good.iter().skip(1) {
+            let g = grid(m);
+            let moved: Vec<i64> = g
+                .iter()
+                .filter_map(|(n, p)| {
+                    let q = g0.get(n)?;
+                    let d = ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2))
+                        .sqrt();
+                    (d > cfg.scan_point_tolerance_m).then_some(*n)
+                })
+                .collect();
+            let only_here = g.keys().filter(|n| !g0.contains_key(n)).count();
+            let missing = g0.keys().filter(|n| !g.contains_key(n)).count();
+            if !moved.is_empty() || only_here > 0 || missing > 0 {
+                fd.push(
+                    Finding::new(
+                        Severity::Warning,
+                        "campaign.scan_grid_inconsistent",
+                        format!(
+                            "scan points differ from measurement {} of the same setup `{}`: {} node(s) moved by more than {:.1} mm (e.g. {:?}), {} extra, {} missing",
+                            first.row.measurement_id,
+                            setup.as_str(),
+                            moved.len(),
+                            cfg.scan_point_tolerance_m * 1e3,
+                            moved.iter().take(5).collect::<Vec<_>>(),
+                            only_here,
+                            missing
+                        ),
+                    )
+                    .file(m.row.file.clone())
+                    .measurement(m.row.measurement_id.clone()),
+                );
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::BTreeMap;
+
+    /// A campaign held in memory: the checks need nothing but names and bytes.
+    struct InMemory(BTreeMap<String, Vec<u8>>);
+
+    impl Source for InMemory {
+        fn name(&self) -> String {
+            "in-memory".into()
+        }
+        fn describe(&self) -> String {
+            "in-memory campaign".into()
+        }
+        fn list(&self) -> std::io::Result<Vec<String>> {
+            Ok(self.0.keys().cloned().collect())
+        }
+        fn is_file(&self, rel: &str) -> bool {
+            self.0.contains_key(rel)
+        }
+        fn identity(&self, rel: &str) -> String {
+            rel.into()
+        }
+        fn read(&self, rel: &str) -> std::io::Result<Vec<u8>> {
+            self.0
+                .get(rel)
+                .cloned()
+                .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::NotFound, rel.to_string()))
+        }
+    }
+
+    /// The example campaign (written by pyuff) from memory, and with one UFF missing: the
+    /// same checks as from disk, the missing file quarantines its measurement only.
+    #[test]
+    fn campaign_checks_run_on_names_and_bytes_alone() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/example/campaign");
+        let mut files = BTreeMap::new();
+        let mut stack = vec![root.clone()];
+        while let Some(d) = stack.pop() {
+            for e in std::fs::read_dir(&d).unwrap() {
+                let p = e.unwrap().path();
+                if p.is_dir() {
+                    stack.push(p);
+                } else {
+                    let rel = p
+                        .strip_prefix(&root)
+                        .unwrap()
+                        .to_string_lossy()
+                        .replace('\\', "/");
+                    files.insert(rel, std::fs::read(&p).unwrap());
+                }
+            }
+        }
+        let cfg = IngestConfig::default();
+        let c = read_campaign(&InMemory(files.clone()), &cfg, &|| {}).unwrap();
+        assert!(!c.measurements.is_empty());
+        assert!(c.measurements.iter().all(|m| m.quarantine.is_none()));
+        assert!(c.measurements.iter().all(|m| !m.records.is_empty()));
+        let gone = c.measurements[0].row.file.clone();
+        files.remove(&gone);
+        let c2 = read_campaign(&InMemory(files), &cfg, &|| {}).unwrap();
+        assert!(c2.measurements[0].quarantine.is_some());
+        assert!(c2.measurements[1..].iter().all(|m| m.quarantine.is_none()));
+        assert!(c2
+            .findings
+            .iter()
+            .any(|f| f.code == "sheet.missing_file" && f.message.contains(&gone)));
+    }
+}
