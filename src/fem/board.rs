@@ -249,6 +249,15 @@ impl Board {
                 )));
             }
         }
+        for (i, h) in self.holes.iter().enumerate() {
+            for (j, g) in self.holes.iter().enumerate().skip(i + 1) {
+                if (h.x_m - g.x_m).hypot(h.y_m - g.y_m) < 0.5 * (h.diameter_m + g.diameter_m) {
+                    return Err(FemError::BoardInvalid(format!(
+                        "holes[{i}] and holes[{j}]: expected disjoint holes, found overlapping discs"
+                    )));
+                }
+            }
+        }
         pos("joint.clamp_diameter_m", self.joint.clamp_diameter_m)?;
         pos("joint.k_con_n_per_m", self.joint.k_con_n_per_m)?;
         if !(self.joint.bolt_mass_kg >= 0.0) {

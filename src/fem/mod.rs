@@ -25,6 +25,7 @@
 pub mod board;
 pub mod dense;
 pub mod eigen;
+pub mod geometry;
 pub mod joints;
 pub mod laminate;
 pub mod model;

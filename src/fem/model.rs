@@ -4,11 +4,14 @@
 //! rest of hbmu needs: modes, out-of-plane displacement at arbitrary points, the mass
 //! matrix, the rigid z vector and lumped point masses.
 //!
-//! Mesh: `nx × ny` equal rectangles over the outline. An element whose centroid lies
-//! inside a hole is dropped (so a hole is represented by the union of dropped
-//! elements: choose the mesh so that holes are about one element or more wide, as in
-//! the default board where each hole is centred on one 2 × 2 mm element); nodes that
-//! belong to no remaining element carry no DOF.
+//! Mesh: `nx × ny` equal rectangles over the outline. Holes are cut cells: an
+//! element's stiffness and mass are integrated over its material part only (the
+//! element minus its intersection with each hole, by the polar cut-cell quadrature of
+//! [`super::geometry`]), so results change smoothly with the mesh and a hole never
+//! vanishes, whatever its size relative to the elements. Since the BFS space restricted
+//! to the material is still conforming, the eigenvalues remain Rayleigh–Ritz upper
+//! bounds. Elements with no material are dropped; nodes that belong to no remaining
+//! element carry no DOF.
 //!
 //! Affine terms (stiffness): the FR-4 core's Q₁₁, Q₂₂, Q₁₂, Q₆₆ contributions
 //! (D_core = Q h³/12), copper (∝ E_Cu), the frozen coupling correction −B A⁻¹ B (see
@@ -23,10 +26,11 @@ use faer::{Conj, Mat, MatMut, Par, Side};
 
 use super::board::{Board, MeshOptions, Side as LayerSide};
 use super::eigen::{self, EigenOptions};
-use super::joints::{joint_terms, JointModel, Which};
+use super::geometry::{annulus_rect_quadrature, QPoint, Rect};
+use super::joints::{joint_terms, JointModel, Patch, Which};
 use super::laminate::{coupling_correction, isotropic_q, layer_factors, orthotropic_q, Comp4};
 use super::params::{names, Coef, Coefficients, ParamMap, Params};
-use super::plate::{element_matrices, shape, NODE_IJ};
+use super::plate::{element_matrices, part_integrals, shape, ElementMatrices, NODE_IJ};
 use super::sparse::Pattern;
 use super::FemError;
 
@@ -78,6 +82,68 @@ impl ShapeOperator {
     }
 }
 
+/// Elements with a smaller material fraction than this are dropped (see `FeModel::build`).
+const MIN_MATERIAL_FRACTION: f64 = 1e-12;
+
+/// Stiffness of the void part of a cut element relative to material (finite-cell
+/// stabilisation): a node whose elements hold only slivers of material would otherwise
+/// make K − σM singular to working precision. It only adds stiffness (eigenvalues rise
+/// by at most ~1e-10 relative); the void carries no mass, so no spurious mode can live
+/// in a hole.
+const VOID_STIFFNESS: f64 = 1e-10;
+
+/// Quadrature of a cut element: its material part directly (one hole), or its void
+/// parts to subtract from the whole element (several holes).
+#[derive(Clone, Debug)]
+enum CutCell {
+    Material(Vec<QPoint>),
+    Void(Vec<QPoint>),
+}
+
+/// Unit matrices of a cut element over its material part, plus `VOID_STIFFNESS` × the
+/// stiffness of its void part.
+fn cut_cell_matrices(
+    full: &ElementMatrices,
+    cc: &CutCell,
+    x0: f64,
+    y0: f64,
+    a: f64,
+    b: f64,
+) -> ElementMatrices {
+    let mut m = match cc {
+        CutCell::Material(pts) => {
+            let mut m = ElementMatrices {
+                k: [[[0.0; 16]; 16]; 4],
+                m: [[0.0; 16]; 16],
+            };
+            m.add_points(pts, x0, y0, a, b, 1.0);
+            m
+        }
+        CutCell::Void(pts) => {
+            let mut m = full.clone();
+            m.add_points(pts, x0, y0, a, b, -1.0);
+            m
+        }
+    };
+    for k in 0..4 {
+        for r in 0..16 {
+            for c in 0..16 {
+                m.k[k][r][c] += VOID_STIFFNESS * (full.k[k][r][c] - m.k[k][r][c]);
+            }
+        }
+    }
+    m
+}
+
+fn element_rect(ex: usize, ey: usize, a: f64, b: f64) -> Rect {
+    Rect {
+        x0: ex as f64 * a,
+        y0: ey as f64 * b,
+        x1: (ex + 1) as f64 * a,
+        y1: (ey + 1) as f64 * b,
+    }
+}
+
 /// Structured mesh data.
 #[derive(Clone, Debug)]
 pub struct Mesh {
@@ -89,6 +155,9 @@ pub struct Mesh {
     pub b_m: f64,
     /// Whether element `ey * nx + ex` is present.
     pub active: Vec<bool>,
+    /// Fraction of element `ey * nx + ex` that is material (not hole), exact to
+    /// quadrature accuracy (~1e-12).
+    pub material_fraction: Vec<f64>,
     /// First DOF of node `j * (nx + 1) + i`, if the node carries DOFs.
     pub node_dof: Vec<Option<usize>>,
 }
@@ -130,7 +199,9 @@ pub struct FeModel {
     /// Human-readable name of each stiffness / mass term.
     pub k_term_names: Vec<String>,
     pub m_term_names: Vec<String>,
-    /// Joint patches: the w-DOFs of each joint's clamped nodes.
+    /// Joint patches: the w-DOFs of the nodes of every element each joint's clamped
+    /// annulus covers (the joint acts through all of them, weighted by the shape
+    /// functions over the annulus).
     pub patches: Vec<Vec<usize>>,
     pub(crate) pattern: Pattern,
     pub(crate) k_terms: Vec<Vec<f64>>,
@@ -204,18 +275,52 @@ impl FeModel {
         let (nx, ny) = (mesh.nx, mesh.ny);
         let a = board.length_x_m / nx as f64;
         let b = board.width_y_m / ny as f64;
-        // Drop elements whose centroid is inside a hole.
+        // Cut cells: per element, the quadrature points of its part inside each hole
+        // (holes do not overlap, see `Board::validate`), and its material fraction.
+        // An element with (almost) no material is dropped; below 1e-9 of its area the
+        // material it would carry changes no frequency by more than rounding, while its
+        // DOFs would make K − σM singular to working precision.
         let mut active = vec![true; nx * ny];
+        let mut material_fraction = vec![1.0; nx * ny];
+        let mut cut_points: Vec<Option<CutCell>> = vec![None; nx * ny];
         for ey in 0..ny {
             for ex in 0..nx {
-                let (cx, cy) = ((ex as f64 + 0.5) * a, (ey as f64 + 0.5) * b);
-                if board
-                    .holes
-                    .iter()
-                    .any(|h| (cx - h.x_m).hypot(cy - h.y_m) < 0.5 * h.diameter_m)
-                {
-                    active[ey * nx + ex] = false;
+                let e = ey * nx + ex;
+                let rect = element_rect(ex, ey, a, b);
+                let mut voids: Vec<(usize, Vec<QPoint>)> = Vec::new();
+                for (hi, h) in board.holes.iter().enumerate() {
+                    let q = annulus_rect_quadrature(h.x_m, h.y_m, 0.0, 0.5 * h.diameter_m, &rect);
+                    if !q.is_empty() {
+                        voids.push((hi, q));
+                    }
                 }
+                if voids.is_empty() {
+                    continue;
+                }
+                let void: f64 = voids.iter().flat_map(|v| &v.1).map(|q| q.2).sum();
+                material_fraction[e] = (1.0 - void / rect.area()).clamp(0.0, 1.0);
+                if material_fraction[e] < MIN_MATERIAL_FRACTION {
+                    active[e] = false;
+                    continue;
+                }
+                cut_points[e] = Some(if voids.len() == 1 {
+                    // Integrate the material part directly (rays from the hole centre,
+                    // from its radius to the far side of the element): no cancellation
+                    // when little material is left.
+                    let h = &board.holes[voids[0].0];
+                    let far = (rect.x1 - rect.x0).hypot(rect.y1 - rect.y0)
+                        + (h.x_m - rect.x0).abs()
+                        + (h.y_m - rect.y0).abs();
+                    CutCell::Material(annulus_rect_quadrature(
+                        h.x_m,
+                        h.y_m,
+                        0.5 * h.diameter_m,
+                        far,
+                        &rect,
+                    ))
+                } else {
+                    CutCell::Void(voids.into_iter().flat_map(|v| v.1).collect())
+                });
             }
         }
         let n_nodes = (nx + 1) * (ny + 1);
@@ -243,6 +348,7 @@ impl FeModel {
             a_m: a,
             b_m: b,
             active,
+            material_fraction,
             node_dof,
         };
 
@@ -274,15 +380,17 @@ impl FeModel {
         let mut t_corr = Vec::new();
         let mut t_mass = Vec::new();
         let mut any_corr = false;
-        let add =
-            |t: &mut Vec<(usize, usize, f64)>, dofs: &[usize; 16], comp: Comp4, scale: f64| {
-                for r in 0..16 {
-                    for cc in 0..16 {
-                        let v: f64 = (0..4).map(|k| comp[k] * em.k[k][r][cc]).sum::<f64>() * scale;
-                        t.push((dofs[r], dofs[cc], v));
-                    }
+        let add = |t: &mut Vec<(usize, usize, f64)>,
+                   em: &ElementMatrices,
+                   dofs: &[usize; 16],
+                   comp: Comp4| {
+            for r in 0..16 {
+                for cc in 0..16 {
+                    let v: f64 = (0..4).map(|k| comp[k] * em.k[k][r][cc]).sum::<f64>();
+                    t.push((dofs[r], dofs[cc], v));
                 }
-            };
+            }
+        };
         for ey in 0..ny {
             for ex in 0..nx {
                 if !mesh_data.active[ey * nx + ex] {
@@ -292,11 +400,20 @@ impl FeModel {
                     unreachable!("active element without DOFs")
                 };
                 let (x0, y0) = (ex as f64 * a, ey as f64 * b);
+                // The element's matrices over its material part only.
+                let cut;
+                let eme = match &cut_points[ey * nx + ex] {
+                    None => &em,
+                    Some(cc) => {
+                        cut = cut_cell_matrices(&em, cc, x0, y0, a, b);
+                        &cut
+                    }
+                };
                 // Core: one term per Q component, assembled at the nominal Q.
                 for k in 0..4 {
                     let mut unit = [0.0; 4];
                     unit[k] = q_core[k] * d_core;
-                    add(&mut t_core[k], &dofs, unit, 1.0);
+                    add(&mut t_core[k], eme, &dofs, unit);
                 }
                 // Copper and stack integrals.
                 let mut a_st = q_core.map(|q| q * a_core);
@@ -322,16 +439,16 @@ impl FeModel {
                     rho_h += frac * l.density_kg_per_m3 * l.thickness_m;
                 }
                 if has_cu {
-                    add(&mut t_cu, &dofs, d_cu, 1.0);
+                    add(&mut t_cu, eme, &dofs, d_cu);
                 }
                 let corr = coupling_correction(a_st, b_st);
                 if corr.iter().any(|v| *v != 0.0) {
                     any_corr = true;
-                    add(&mut t_corr, &dofs, corr, 1.0);
+                    add(&mut t_corr, eme, &dofs, corr);
                 }
                 for r in 0..16 {
                     for cc in 0..16 {
-                        t_mass.push((dofs[r], dofs[cc], rho_h * em.m[r][cc]));
+                        t_mass.push((dofs[r], dofs[cc], rho_h * eme.m[r][cc]));
                     }
                 }
             }
@@ -361,31 +478,49 @@ impl FeModel {
         let mut fixture_dof = None;
         if let Setup::Bolted(jm) = &setup {
             let r_clamp = 0.5 * board.joint.clamp_diameter_m;
+            let mut jpatches = Vec::new();
             for (hi, hole) in board.holes.iter().enumerate() {
-                let mut p = Vec::new();
-                for j in 0..=ny {
-                    for i in 0..=nx {
-                        let (x, y) = (i as f64 * a, j as f64 * b);
-                        if (x - hole.x_m).hypot(y - hole.y_m) <= r_clamp * (1.0 + 1e-9) {
-                            if let Some(d) = mesh_data.node_dof[j * (nx + 1) + i] {
-                                p.push(d);
-                            }
+                let r_hole = 0.5 * hole.diameter_m;
+                let mut parts = Vec::new();
+                let mut w_dofs = Vec::new();
+                for ey in 0..ny {
+                    for ex in 0..nx {
+                        if !mesh_data.active[ey * nx + ex] {
+                            continue;
                         }
+                        let rect = element_rect(ex, ey, a, b);
+                        let pts =
+                            annulus_rect_quadrature(hole.x_m, hole.y_m, r_hole, r_clamp, &rect);
+                        if pts.is_empty() {
+                            continue;
+                        }
+                        let Some(dofs) = mesh_data.element_dofs(ex, ey) else {
+                            unreachable!("active element without DOFs")
+                        };
+                        let pi = part_integrals(&pts, rect.x0, rect.y0, a, b);
+                        for k in 0..4 {
+                            w_dofs.push(dofs[4 * k]);
+                        }
+                        parts.push((dofs, pi));
                     }
                 }
-                if p.is_empty() {
+                let area_m2: f64 = parts.iter().map(|(_, p)| p.area_m2).sum();
+                if !(area_m2 > 0.0) {
                     return Err(FemError::Mesh(format!(
-                        "hole {hi} at ({}, {}) m: expected at least one mesh node within the clamp radius {} m, found none (refine the mesh)",
-                        hole.x_m, hole.y_m, r_clamp
+                        "hole {hi} at ({}, {}) m: expected a clamped annulus of positive area between the hole radius {r_hole} m and the clamp radius {r_clamp} m, found none",
+                        hole.x_m, hole.y_m
                     )));
                 }
-                patches.push(p);
+                w_dofs.sort_unstable();
+                w_dofs.dedup();
+                patches.push(w_dofs);
+                jpatches.push(Patch { area_m2, parts });
             }
             if jm.has_fixture() {
                 fixture_dof = Some(n_dof);
                 n_dof += 1;
             }
-            for t in joint_terms(jm, &patches, fixture_dof, board.joint.k_con_n_per_m) {
+            for t in joint_terms(jm, &jpatches, fixture_dof, board.joint.k_con_n_per_m) {
                 let param = match pnames.iter().position(|n| *n == t.param) {
                     Some(i) => i,
                     None => {
