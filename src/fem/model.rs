@@ -14,7 +14,9 @@
 //! element carry no DOF.
 //!
 //! Affine terms (stiffness): the FR-4 core's Q₁₁, Q₂₂, Q₁₂, Q₆₆ contributions
-//! (D_core = Q h³/12), copper (∝ E_Cu), the frozen coupling correction −B A⁻¹ B (see
+//! (D_core = Q h³/12), copper (∝ E_Cu), the coupling correction −B A⁻¹ B as an exact
+//! expansion in Chebyshev nodes of the copper variable whose coefficients follow the
+//! moduli (frozen at nominal only when copper layers differ in material; see
 //! [`super::laminate`]), and the joint terms; (mass): the board (∝ `mass_scale`),
 //! point masses (constant) and joint terms.
 
@@ -28,7 +30,10 @@ use super::board::{Board, MeshOptions, Side as LayerSide};
 use super::eigen::{self, EigenOptions};
 use super::geometry::{annulus_rect_quadrature, QPoint, Rect};
 use super::joints::{joint_terms, JointModel, Patch, Which};
-use super::laminate::{coupling_correction, isotropic_q, layer_factors, orthotropic_q, Comp4};
+use super::laminate::{
+    chebyshev_nodes, coupling_correction, coupling_kernel, isotropic_q, lagrange_basis,
+    layer_factors, orthotropic_q, Comp4,
+};
 use super::params::{names, Coef, Coefficients, ParamMap, Params};
 use super::plate::{element_matrices, part_integrals, shape, ElementMatrices, NODE_IJ};
 use super::sparse::Pattern;
@@ -91,6 +96,24 @@ const MIN_MATERIAL_FRACTION: f64 = 1e-12;
 /// by at most ~1e-10 relative); the void carries no mass, so no spurious mode can live
 /// in a hole.
 const VOID_STIFFNESS: f64 = 1e-10;
+
+/// Number of Chebyshev nodes in the copper variable s ∈ [0, s_max] for an
+/// interpolation error of G(s) below ~1e-9 relative anywhere in a ±50 % box: G has its
+/// pole at s = −h Q_core/(ε Q_cu), and the error of n-point interpolation falls like
+/// ρ⁻ⁿ with ρ = |x| + √(x² − 1), x the pole mapped to [−1, 1].
+fn coupling_nodes(q_core: &Comp4, h: f64, q_cu: &Comp4, s_max: f64) -> usize {
+    // Pole of each block (normal: worst of the diagonal entries; shear), with the core
+    // at half and copper at 1.5 × nominal.
+    let pole = [0usize, 1, 3]
+        .iter()
+        .map(|&k| h * 0.5 * q_core[k] / (1.5 * q_cu[k]))
+        .fold(f64::INFINITY, f64::min);
+    let x = 1.0 + 2.0 * pole / s_max;
+    let rho = x + (x * x - 1.0).sqrt();
+    // Interpolation error ~ρ⁻ⁿ below 1e-9 of G; G is a few % of D, so D is exact to
+    // ~1e-10 relative.
+    ((9.0 / rho.log10()).ceil() as usize + 1).clamp(3, 16)
+}
 
 /// Quadrature of a cut element: its material part directly (one hole), or its void
 /// parts to subtract from the whole element (several holes).
@@ -380,6 +403,19 @@ impl FeModel {
         let mut t_corr = Vec::new();
         let mut t_mass = Vec::new();
         let mut any_corr = false;
+        // Exact coupling expansion when all copper is one material (see `laminate`).
+        let uniform_cu = board
+            .copper
+            .first()
+            .filter(|l0| {
+                board
+                    .copper
+                    .iter()
+                    .all(|l| l.e_pa == l0.e_pa && l.nu == l0.nu)
+            })
+            .map(|l0| (l0.e_pa, isotropic_q(l0.e_pa, l0.nu)));
+        // (element, s, t) of every element with B ≠ 0, for the exact expansion.
+        let mut coupled: Vec<(usize, usize, f64, f64)> = Vec::new();
         let add = |t: &mut Vec<(usize, usize, f64)>,
                    em: &ElementMatrices,
                    dofs: &[usize; 16],
@@ -420,6 +456,7 @@ impl FeModel {
                 let mut b_st = [0.0; 4];
                 let mut d_cu = [0.0; 4];
                 let mut rho_h = c.density_kg_per_m3 * h;
+                let (mut s_cu, mut t_cu_m2) = (0.0, 0.0);
                 for (li, l) in board.copper.iter().enumerate() {
                     let frac = board.coverage_fraction(li, x0, y0, x0 + a, y0 + b);
                     if frac == 0.0 {
@@ -437,14 +474,22 @@ impl FeModel {
                         d_cu[k] += frac * q[k] * fd;
                     }
                     rho_h += frac * l.density_kg_per_m3 * l.thickness_m;
+                    s_cu += frac * fa;
+                    t_cu_m2 += frac * fb;
                 }
                 if has_cu {
                     add(&mut t_cu, eme, &dofs, d_cu);
                 }
-                let corr = coupling_correction(a_st, b_st);
-                if corr.iter().any(|v| *v != 0.0) {
-                    any_corr = true;
-                    add(&mut t_corr, eme, &dofs, corr);
+                if uniform_cu.is_some() {
+                    if t_cu_m2 != 0.0 {
+                        coupled.push((ex, ey, s_cu, t_cu_m2));
+                    }
+                } else {
+                    let corr = coupling_correction(a_st, b_st);
+                    if corr.iter().any(|v| *v != 0.0) {
+                        any_corr = true;
+                        add(&mut t_corr, eme, &dofs, corr);
+                    }
                 }
                 for r in 0..16 {
                     for cc in 0..16 {
@@ -560,8 +605,67 @@ impl FeModel {
                 })
                 .collect()
         };
-        let k_terms = scatter(&kb.trip);
+        let mut k_terms = scatter(&kb.trip);
         let m_terms = scatter(&mb.trip);
+        if let (Some((e_cu0, q_cu)), false) = (uniform_cu, coupled.is_empty()) {
+            let i_cu = pnames
+                .iter()
+                .position(|n| n == names::E_CU)
+                .unwrap_or_else(|| unreachable!("copper without e_cu_pa"));
+            let s_max: f64 = board.copper.iter().map(|l| l.thickness_m).sum();
+            let nodes = chebyshev_nodes(coupling_nodes(&q_core, h, &q_cu, s_max), s_max);
+            let mut vals = vec![vec![0.0; pattern.row_idx.len()]; 4 * nodes.len()];
+            let scales: Vec<[f64; 4]> = nodes
+                .iter()
+                .map(|sk| {
+                    coupling_kernel(q_core, h, q_cu, 1.0, *sk)
+                        .0
+                        .map(|g| if g != 0.0 { g } else { 1.0 })
+                })
+                .collect();
+            for &(ex, ey, s_e, t_e) in &coupled {
+                let (x0, y0) = (ex as f64 * a, ey as f64 * b);
+                let cut;
+                let eme = match &cut_points[ey * nx + ex] {
+                    None => &em,
+                    Some(cc) => {
+                        cut = cut_cell_matrices(&em, cc, x0, y0, a, b);
+                        &cut
+                    }
+                };
+                let Some(dofs) = mesh_data.element_dofs(ex, ey) else {
+                    unreachable!("active element without DOFs")
+                };
+                let idx: Vec<usize> = (0..256)
+                    .map(|q| pattern.index(dofs[q / 16], dofs[q % 16]))
+                    .collect();
+                let l = lagrange_basis(&nodes, s_e);
+                for (k, lk) in l.iter().enumerate() {
+                    for comp in 0..4 {
+                        let w = -t_e * t_e * lk * scales[k][comp];
+                        let v = &mut vals[4 * k + comp];
+                        for (q, &iq) in idx.iter().enumerate() {
+                            v[iq] += w * eme.k[comp][q / 16][q % 16];
+                        }
+                    }
+                }
+            }
+            for (k, sk) in nodes.iter().enumerate() {
+                for comp in 0..4 {
+                    kb.names.push(format!("coupling_s{k}_c{comp}"));
+                    kb.coefs.push(Coef::Coupling {
+                        s_node_m: *sk,
+                        comp,
+                        scale: scales[k][comp],
+                        h_core_m: h,
+                        q_cu_pa: q_cu,
+                        e_cu_param: i_cu,
+                        e_cu_nominal_pa: e_cu0,
+                    });
+                }
+            }
+            k_terms.extend(vals);
+        }
         let symbolic = factorize_symbolic_cholesky(
             pattern.symbolic.as_ref(),
             Side::Lower,
