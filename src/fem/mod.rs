@@ -23,6 +23,7 @@
 )]
 
 pub mod board;
+pub mod convergence;
 pub mod dense;
 pub mod eigen;
 pub mod geometry;
