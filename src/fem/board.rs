@@ -8,6 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::geometry::{polygon_rect_area, Rect};
 use super::FemError;
 
 /// The TOML text of the default board (`data/boards/default.toml`), compiled in so the
@@ -84,8 +85,20 @@ pub struct CopperLayer {
     pub nu: f64,
     /// Density, kg/m³.
     pub density_kg_per_m3: f64,
-    /// Covered regions (union; overlaps count once).
+    /// Covered regions, each with its coverage fraction (overlaps take the maximum).
     pub coverage: Vec<Region>,
+    /// Subtractive regions (plane cut-outs, anti-pads), each removing its `fraction`
+    /// of copper where it lies; the result is capped to [0, 1].
+    #[serde(default)]
+    pub cutouts: Vec<Region>,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+fn is_one(v: &f64) -> bool {
+    *v == 1.0
 }
 
 /// A region of copper.
@@ -102,15 +115,80 @@ pub enum Region {
         x1_m: f64,
         /// Upper y, m.
         y1_m: f64,
+        /// Fraction of the region that is copper (hatched pours, smeared pad rows;
+        /// 1 = solid), or removed by it for a cut-out.
+        #[serde(default = "one", skip_serializing_if = "is_one")]
+        fraction: f64,
     },
     /// Simple polygon, vertices `[x, y]` in m, either orientation.
     Polygon {
         /// Vertices in order.
         vertices_m: Vec<[f64; 2]>,
+        /// As for `Rect`.
+        #[serde(default = "one", skip_serializing_if = "is_one")]
+        fraction: f64,
     },
 }
 
 impl Region {
+    /// The region's copper (or removal) fraction.
+    pub fn fraction(&self) -> f64 {
+        match self {
+            Region::Rect { fraction, .. } | Region::Polygon { fraction, .. } => *fraction,
+        }
+    }
+
+    /// Exact area of the region inside `r`, m² (polygon clipping).
+    pub fn area_in(&self, r: &Rect) -> f64 {
+        match self {
+            Region::Rect {
+                x0_m,
+                y0_m,
+                x1_m,
+                y1_m,
+                ..
+            } => {
+                let w = (x1_m.min(r.x1) - x0_m.max(r.x0)).max(0.0);
+                let h = (y1_m.min(r.y1) - y0_m.max(r.y0)).max(0.0);
+                w * h
+            }
+            Region::Polygon { vertices_m, .. } => polygon_rect_area(vertices_m, r),
+        }
+    }
+
+    fn check(&self, what: &str) -> Result<(), FemError> {
+        let f = self.fraction();
+        if !(0.0..=1.0).contains(&f) {
+            return Err(FemError::BoardInvalid(format!(
+                "{what}.fraction: expected 0 <= fraction <= 1, found {f}"
+            )));
+        }
+        match self {
+            Region::Rect {
+                x0_m,
+                y0_m,
+                x1_m,
+                y1_m,
+                ..
+            } => {
+                if !(x0_m < x1_m && y0_m < y1_m) {
+                    return Err(FemError::BoardInvalid(format!(
+                        "{what}: expected x0_m < x1_m and y0_m < y1_m, found [{x0_m}, {x1_m}] × [{y0_m}, {y1_m}]"
+                    )));
+                }
+            }
+            Region::Polygon { vertices_m, .. } => {
+                if vertices_m.len() < 3 || vertices_m.iter().flatten().any(|v| !v.is_finite()) {
+                    return Err(FemError::BoardInvalid(format!(
+                        "{what}: expected a polygon of at least 3 finite vertices, found {} vertices",
+                        vertices_m.len()
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Whether point (x, y) lies inside (even–odd rule for polygons).
     pub fn contains(&self, x: f64, y: f64) -> bool {
         match self {
@@ -119,8 +197,9 @@ impl Region {
                 y0_m,
                 x1_m,
                 y1_m,
+                ..
             } => x >= *x0_m && x <= *x1_m && y >= *y0_m && y <= *y1_m,
-            Region::Polygon { vertices_m } => {
+            Region::Polygon { vertices_m, .. } => {
                 let n = vertices_m.len();
                 let mut inside = false;
                 let mut j = n.wrapping_sub(1);
@@ -233,6 +312,12 @@ impl Board {
                 &format!("copper[{i}].density_kg_per_m3"),
                 l.density_kg_per_m3,
             )?;
+            for (k, r) in l.coverage.iter().enumerate() {
+                r.check(&format!("copper[{i}].coverage[{k}]"))?;
+            }
+            for (k, r) in l.cutouts.iter().enumerate() {
+                r.check(&format!("copper[{i}].cutouts[{k}]"))?;
+            }
             if !(l.nu > -1.0 && l.nu < 0.5) {
                 return Err(FemError::BoardInvalid(format!(
                     "copper[{i}].nu: expected -1 < ν < 0.5, found {}",
@@ -247,6 +332,15 @@ impl Board {
                     "holes[{i}]: expected centre inside the {} × {} m outline, found ({}, {})",
                     self.length_x_m, self.width_y_m, h.x_m, h.y_m
                 )));
+            }
+        }
+        for (i, h) in self.holes.iter().enumerate() {
+            for (j, g) in self.holes.iter().enumerate().skip(i + 1) {
+                if (h.x_m - g.x_m).hypot(h.y_m - g.y_m) < 0.5 * (h.diameter_m + g.diameter_m) {
+                    return Err(FemError::BoardInvalid(format!(
+                        "holes[{i}] and holes[{j}]: expected disjoint holes, found overlapping discs"
+                    )));
+                }
             }
         }
         pos("joint.clamp_diameter_m", self.joint.clamp_diameter_m)?;
@@ -294,23 +388,33 @@ impl Board {
         pts
     }
 
-    /// Fraction of copper layer `layer` covering the rectangle `[x0,x1]×[y0,y1]`,
-    /// estimated on an `s × s` grid of sub-cell centres (s = 6: the coverage of a
-    /// cell cut by a copper edge is resolved to 1/36 of its area, which is far below
-    /// the uncertainty of the copper data itself).
+    /// Fraction of copper layer `layer` covering the rectangle `[x0,x1]×[y0,y1]`.
+    /// The rectangle is split into 4 × 4 sub-cells; in each, every region's exact
+    /// clipped area (times its fraction) is taken, overlapping regions give the
+    /// maximum, cut-outs subtract the maximum of theirs, and the result is capped to
+    /// [0, 1]. Where regions do not share a sub-cell this is the exact area fraction,
+    /// and it is continuous in the geometry (no sampling steps).
     pub fn coverage_fraction(&self, layer: usize, x0: f64, y0: f64, x1: f64, y1: f64) -> f64 {
-        const S: usize = 6;
+        const S: usize = 4;
         let l = &self.copper[layer];
-        let mut hit = 0usize;
+        let mut sum = 0.0;
         for j in 0..S {
-            let y = y0 + (y1 - y0) * (j as f64 + 0.5) / S as f64;
             for i in 0..S {
-                let x = x0 + (x1 - x0) * (i as f64 + 0.5) / S as f64;
-                if l.coverage.iter().any(|r| r.contains(x, y)) {
-                    hit += 1;
-                }
+                let r = Rect {
+                    x0: x0 + (x1 - x0) * i as f64 / S as f64,
+                    x1: x0 + (x1 - x0) * (i + 1) as f64 / S as f64,
+                    y0: y0 + (y1 - y0) * j as f64 / S as f64,
+                    y1: y0 + (y1 - y0) * (j + 1) as f64 / S as f64,
+                };
+                let a = r.area();
+                let frac = |rs: &[Region]| {
+                    rs.iter()
+                        .map(|g| g.fraction() * g.area_in(&r) / a)
+                        .fold(0.0, f64::max)
+                };
+                sum += (frac(&l.coverage) - frac(&l.cutouts)).clamp(0.0, 1.0);
             }
         }
-        hit as f64 / (S * S) as f64
+        sum / (S * S) as f64
     }
 }

@@ -1,17 +1,21 @@
 //! The bolted-joint family. A joint ties the board to the shaker fixture over the
 //! clamped annulus around its hole (the bolt-head / washer / nut contact, outer
-//! diameter `joint.clamp_diameter_m`): every mesh node of the board inside that disc
-//! belongs to the joint's patch, and a joint's stiffness or mass is shared equally by
-//! its patch nodes. The bolts are rigid and move with the fixture, so their own mass
+//! diameter `joint.clamp_diameter_m`, inner edge the hole): a joint is a distributed
+//! layer over that annulus, its stiffness (or mass) per area being the joint's total
+//! over the annulus area, integrated consistently with the element shape functions
+//! over the exact part of the annulus in each element (cut-cell quadrature,
+//! [`super::geometry`]). So `k_con_n_per_m` is the joint's physical total stiffness
+//! whatever the mesh, and the model converges with the mesh like the plate itself. The bolts are rigid and move with the fixture, so their own mass
 //! does not enter the fixed-base modes (it enters only through [`JointFeature::JointMass`]).
 //!
 //! Features combine; each adds affine terms and parameters:
 //! - [`JointFeature::Translational`] (the paper's baseline): out-of-plane springs of total
 //!   stiffness K_con (`k_con_n_per_m`, head and nut contacts in parallel) per joint;
 //! - [`JointFeature::PerJointTranslational`]: the same with one `k_con_{j}_n_per_m` per joint;
-//! - [`JointFeature::RotationalRestraint`]: springs on ∂w/∂x and ∂w/∂y of the patch
-//!   nodes, total `k_rot_nm_per_rad` per joint and axis;
-//! - [`JointFeature::JointMass`]: a lumped z-mass `joint_mass_kg` per joint on its patch;
+//! - [`JointFeature::RotationalRestraint`]: a layer on the slopes ∂w/∂x and ∂w/∂y, total
+//!   `k_rot_nm_per_rad` per joint and axis (a uniform rotation θ stores ½ k_rot θ²);
+//! - [`JointFeature::JointMass`]: a z-mass `joint_mass_kg` per joint spread uniformly
+//!   over its annulus;
 //! - [`JointFeature::CompliantFixture`]: the fixture becomes one z-DOF with mass
 //!   `m_fix_kg` on a spring `k_fix_n_per_m` to the (rigid, moving) base; joint springs
 //!   then attach to the fixture DOF instead of the base.
@@ -22,6 +26,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::params::names;
+use super::plate::{Mat16, PartIntegrals};
 use super::FemError;
 
 /// One ingredient of a joint model.
@@ -130,22 +135,60 @@ pub struct JointTerm {
     pub triplets: Vec<(usize, usize, f64)>,
 }
 
-/// Patch of one joint: the global w-DOF index of each patch node (the slopes follow
-/// at +1, +2 in the BFS DOF order).
-pub type Patch = Vec<usize>;
+/// The clamped annulus of one joint on the mesh: per element it touches, the element's
+/// DOFs and the integrals of its shape functions over the part of the annulus inside
+/// it ([`PartIntegrals`], cut-cell quadrature), and the annulus area (the sum of the
+/// parts, m²). Stiffness and mass per area are the joint's totals over this area, so
+/// every total is the physical one whatever the mesh.
+#[derive(Clone, Debug)]
+pub struct Patch {
+    /// Area of the clamped annulus on the board, m².
+    pub area_m2: f64,
+    /// `(element DOFs, integrals)` of every element the annulus covers in part.
+    pub parts: Vec<([usize; 16], PartIntegrals)>,
+}
 
-fn spring(t: &mut Vec<(usize, usize, f64)>, i: usize, to: Option<usize>, k: f64) {
-    t.push((i, i, k));
-    if let Some(f) = to {
-        t.push((f, f, k));
-        t.push((i, f, -k));
-        t.push((f, i, -k));
+/// Out-of-plane spring layer of total stiffness `k` (N/m) over `p`, to the ground or
+/// to the fixture DOF `to`: energy ½ (k/A) ∫ (w − u_f)² dA.
+fn spring_layer(t: &mut Vec<(usize, usize, f64)>, p: &Patch, to: Option<usize>, k: f64) {
+    let kpa = k / p.area_m2;
+    for (dofs, pi) in &p.parts {
+        for r in 0..16 {
+            for c in 0..16 {
+                t.push((dofs[r], dofs[c], kpa * pi.nn[r][c]));
+            }
+        }
+        if let Some(f) = to {
+            t.push((f, f, kpa * pi.area_m2));
+            for r in 0..16 {
+                t.push((dofs[r], f, -kpa * pi.n[r]));
+                t.push((f, dofs[r], -kpa * pi.n[r]));
+            }
+        }
+    }
+}
+
+/// Layer over `p` with matrix `pick(part)` per element and total `v` per unit of the
+/// matrix's rigid response: entries (v/A) × the integral.
+fn layer(
+    t: &mut Vec<(usize, usize, f64)>,
+    p: &Patch,
+    v: f64,
+    pick: impl Fn(&PartIntegrals) -> &Mat16,
+) {
+    let per_area = v / p.area_m2;
+    for (dofs, pi) in &p.parts {
+        let m = pick(pi);
+        for r in 0..16 {
+            for c in 0..16 {
+                t.push((dofs[r], dofs[c], per_area * m[r][c]));
+            }
+        }
     }
 }
 
 /// The affine terms of `model` for the given patches. `fixture_dof` is the index of
-/// the fixture z-DOF when the model has one. `k_con_nominal` and `bolt_mass_kg` come
-/// from the board.
+/// the fixture z-DOF when the model has one. `k_con_nominal` comes from the board.
 pub fn joint_terms(
     model: &JointModel,
     patches: &[Patch],
@@ -159,10 +202,7 @@ pub fn joint_terms(
             JointFeature::Translational => {
                 let mut t = Vec::new();
                 for p in patches {
-                    let k = k_con_nominal / p.len() as f64;
-                    for &w in p {
-                        spring(&mut t, w, fixture_dof, k);
-                    }
+                    spring_layer(&mut t, p, fixture_dof, k_con_nominal);
                 }
                 out.push(JointTerm {
                     which: Which::K,
@@ -175,10 +215,7 @@ pub fn joint_terms(
             JointFeature::PerJointTranslational => {
                 for (j, p) in patches.iter().enumerate() {
                     let mut t = Vec::new();
-                    let k = k_con_nominal / p.len() as f64;
-                    for &w in p {
-                        spring(&mut t, w, fixture_dof, k);
-                    }
+                    spring_layer(&mut t, p, fixture_dof, k_con_nominal);
                     out.push(JointTerm {
                         which: Which::K,
                         param: names::k_con_joint(j + 1),
@@ -189,14 +226,12 @@ pub fn joint_terms(
                 }
             }
             JointFeature::RotationalRestraint { k_rot_nm_per_rad } => {
+                // Energy ½ (k_rot/A) ∫ (w_x² + w_y²) dA: a uniform rotation θ about
+                // either axis stores ½ k_rot θ².
                 let scale = ref_or(*k_rot_nm_per_rad, 1.0);
                 let mut t = Vec::new();
                 for p in patches {
-                    let k = scale / p.len() as f64;
-                    for &w in p {
-                        t.push((w + 1, w + 1, k));
-                        t.push((w + 2, w + 2, k));
-                    }
+                    layer(&mut t, p, scale, |pi| &pi.grad);
                 }
                 out.push(JointTerm {
                     which: Which::K,
@@ -207,13 +242,11 @@ pub fn joint_terms(
                 });
             }
             JointFeature::JointMass { mass_kg } => {
+                // Mass per area m/A over the annulus, consistent: ∫ (m/A) N Nᵀ dA.
                 let scale = ref_or(*mass_kg, 1e-3);
                 let mut t = Vec::new();
                 for p in patches {
-                    let m = scale / p.len() as f64;
-                    for &w in p {
-                        t.push((w, w, m));
-                    }
+                    layer(&mut t, p, scale, |pi| &pi.nn);
                 }
                 out.push(JointTerm {
                     which: Which::M,

@@ -23,8 +23,10 @@
 )]
 
 pub mod board;
+pub mod convergence;
 pub mod dense;
 pub mod eigen;
+pub mod geometry;
 pub mod joints;
 pub mod laminate;
 pub mod model;

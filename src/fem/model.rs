@@ -4,14 +4,19 @@
 //! rest of hbmu needs: modes, out-of-plane displacement at arbitrary points, the mass
 //! matrix, the rigid z vector and lumped point masses.
 //!
-//! Mesh: `nx × ny` equal rectangles over the outline. An element whose centroid lies
-//! inside a hole is dropped (so a hole is represented by the union of dropped
-//! elements: choose the mesh so that holes are about one element or more wide, as in
-//! the default board where each hole is centred on one 2 × 2 mm element); nodes that
-//! belong to no remaining element carry no DOF.
+//! Mesh: `nx × ny` equal rectangles over the outline. Holes are cut cells: an
+//! element's stiffness and mass are integrated over its material part only (the
+//! element minus its intersection with each hole, by the polar cut-cell quadrature of
+//! [`super::geometry`]), so results change smoothly with the mesh and a hole never
+//! vanishes, whatever its size relative to the elements. Since the BFS space restricted
+//! to the material is still conforming, the eigenvalues remain Rayleigh–Ritz upper
+//! bounds. Elements with no material are dropped; nodes that belong to no remaining
+//! element carry no DOF.
 //!
 //! Affine terms (stiffness): the FR-4 core's Q₁₁, Q₂₂, Q₁₂, Q₆₆ contributions
-//! (D_core = Q h³/12), copper (∝ E_Cu), the frozen coupling correction −B A⁻¹ B (see
+//! (D_core = Q h³/12), copper (∝ E_Cu), the coupling correction −B A⁻¹ B as an exact
+//! expansion in Chebyshev nodes of the copper variable whose coefficients follow the
+//! moduli (frozen at nominal only when copper layers differ in material; see
 //! [`super::laminate`]), and the joint terms; (mass): the board (∝ `mass_scale`),
 //! point masses (constant) and joint terms.
 
@@ -23,10 +28,14 @@ use faer::{Conj, Mat, MatMut, Par, Side};
 
 use super::board::{Board, MeshOptions, Side as LayerSide};
 use super::eigen::{self, EigenOptions};
-use super::joints::{joint_terms, JointModel, Which};
-use super::laminate::{coupling_correction, isotropic_q, layer_factors, orthotropic_q, Comp4};
+use super::geometry::{annulus_rect_quadrature, QPoint, Rect};
+use super::joints::{joint_terms, JointModel, Patch, Which};
+use super::laminate::{
+    chebyshev_nodes, coupling_correction, coupling_kernel, isotropic_q, lagrange_basis,
+    layer_factors, orthotropic_q, Comp4,
+};
 use super::params::{names, Coef, Coefficients, ParamMap, Params};
-use super::plate::{element_matrices, shape, NODE_IJ};
+use super::plate::{element_matrices, part_integrals, shape, ElementMatrices, NODE_IJ};
 use super::sparse::Pattern;
 use super::FemError;
 
@@ -78,6 +87,86 @@ impl ShapeOperator {
     }
 }
 
+/// Elements with a smaller material fraction than this are dropped (see `FeModel::build`).
+const MIN_MATERIAL_FRACTION: f64 = 1e-12;
+
+/// Stiffness of the void part of a cut element relative to material (finite-cell
+/// stabilisation): a node whose elements hold only slivers of material would otherwise
+/// make K − σM singular to working precision. It only adds stiffness (eigenvalues rise
+/// by at most ~1e-10 relative); the void carries no mass, so no spurious mode can live
+/// in a hole.
+const VOID_STIFFNESS: f64 = 1e-10;
+
+/// Number of Chebyshev nodes in the copper variable s ∈ [0, s_max] for an
+/// interpolation error of G(s) below ~1e-9 relative anywhere in a ±50 % box: G has its
+/// pole at s = −h Q_core/(ε Q_cu), and the error of n-point interpolation falls like
+/// ρ⁻ⁿ with ρ = |x| + √(x² − 1), x the pole mapped to [−1, 1].
+fn coupling_nodes(q_core: &Comp4, h: f64, q_cu: &Comp4, s_max: f64) -> usize {
+    // Pole of each block (normal: worst of the diagonal entries; shear), with the core
+    // at half and copper at 1.5 × nominal.
+    let pole = [0usize, 1, 3]
+        .iter()
+        .map(|&k| h * 0.5 * q_core[k] / (1.5 * q_cu[k]))
+        .fold(f64::INFINITY, f64::min);
+    let x = 1.0 + 2.0 * pole / s_max;
+    let rho = x + (x * x - 1.0).sqrt();
+    // Interpolation error ~ρ⁻ⁿ below 1e-9 of G; G is a few % of D, so D is exact to
+    // ~1e-10 relative.
+    ((9.0 / rho.log10()).ceil() as usize + 1).clamp(3, 16)
+}
+
+/// Quadrature of a cut element: its material part directly (one hole), or its void
+/// parts to subtract from the whole element (several holes).
+#[derive(Clone, Debug)]
+enum CutCell {
+    Material(Vec<QPoint>),
+    Void(Vec<QPoint>),
+}
+
+/// Unit matrices of a cut element over its material part, plus `VOID_STIFFNESS` × the
+/// stiffness of its void part.
+fn cut_cell_matrices(
+    full: &ElementMatrices,
+    cc: &CutCell,
+    x0: f64,
+    y0: f64,
+    a: f64,
+    b: f64,
+) -> ElementMatrices {
+    let mut m = match cc {
+        CutCell::Material(pts) => {
+            let mut m = ElementMatrices {
+                k: [[[0.0; 16]; 16]; 4],
+                m: [[0.0; 16]; 16],
+            };
+            m.add_points(pts, x0, y0, a, b, 1.0);
+            m
+        }
+        CutCell::Void(pts) => {
+            let mut m = full.clone();
+            m.add_points(pts, x0, y0, a, b, -1.0);
+            m
+        }
+    };
+    for k in 0..4 {
+        for r in 0..16 {
+            for c in 0..16 {
+                m.k[k][r][c] += VOID_STIFFNESS * (full.k[k][r][c] - m.k[k][r][c]);
+            }
+        }
+    }
+    m
+}
+
+fn element_rect(ex: usize, ey: usize, a: f64, b: f64) -> Rect {
+    Rect {
+        x0: ex as f64 * a,
+        y0: ey as f64 * b,
+        x1: (ex + 1) as f64 * a,
+        y1: (ey + 1) as f64 * b,
+    }
+}
+
 /// Structured mesh data.
 #[derive(Clone, Debug)]
 pub struct Mesh {
@@ -89,6 +178,9 @@ pub struct Mesh {
     pub b_m: f64,
     /// Whether element `ey * nx + ex` is present.
     pub active: Vec<bool>,
+    /// Fraction of element `ey * nx + ex` that is material (not hole), exact to
+    /// quadrature accuracy (~1e-12).
+    pub material_fraction: Vec<f64>,
     /// First DOF of node `j * (nx + 1) + i`, if the node carries DOFs.
     pub node_dof: Vec<Option<usize>>,
 }
@@ -130,7 +222,9 @@ pub struct FeModel {
     /// Human-readable name of each stiffness / mass term.
     pub k_term_names: Vec<String>,
     pub m_term_names: Vec<String>,
-    /// Joint patches: the w-DOFs of each joint's clamped nodes.
+    /// Joint patches: the w-DOFs of the nodes of every element each joint's clamped
+    /// annulus covers (the joint acts through all of them, weighted by the shape
+    /// functions over the annulus).
     pub patches: Vec<Vec<usize>>,
     pub(crate) pattern: Pattern,
     pub(crate) k_terms: Vec<Vec<f64>>,
@@ -204,18 +298,52 @@ impl FeModel {
         let (nx, ny) = (mesh.nx, mesh.ny);
         let a = board.length_x_m / nx as f64;
         let b = board.width_y_m / ny as f64;
-        // Drop elements whose centroid is inside a hole.
+        // Cut cells: per element, the quadrature points of its part inside each hole
+        // (holes do not overlap, see `Board::validate`), and its material fraction.
+        // An element with (almost) no material is dropped; below 1e-9 of its area the
+        // material it would carry changes no frequency by more than rounding, while its
+        // DOFs would make K − σM singular to working precision.
         let mut active = vec![true; nx * ny];
+        let mut material_fraction = vec![1.0; nx * ny];
+        let mut cut_points: Vec<Option<CutCell>> = vec![None; nx * ny];
         for ey in 0..ny {
             for ex in 0..nx {
-                let (cx, cy) = ((ex as f64 + 0.5) * a, (ey as f64 + 0.5) * b);
-                if board
-                    .holes
-                    .iter()
-                    .any(|h| (cx - h.x_m).hypot(cy - h.y_m) < 0.5 * h.diameter_m)
-                {
-                    active[ey * nx + ex] = false;
+                let e = ey * nx + ex;
+                let rect = element_rect(ex, ey, a, b);
+                let mut voids: Vec<(usize, Vec<QPoint>)> = Vec::new();
+                for (hi, h) in board.holes.iter().enumerate() {
+                    let q = annulus_rect_quadrature(h.x_m, h.y_m, 0.0, 0.5 * h.diameter_m, &rect);
+                    if !q.is_empty() {
+                        voids.push((hi, q));
+                    }
                 }
+                if voids.is_empty() {
+                    continue;
+                }
+                let void: f64 = voids.iter().flat_map(|v| &v.1).map(|q| q.2).sum();
+                material_fraction[e] = (1.0 - void / rect.area()).clamp(0.0, 1.0);
+                if material_fraction[e] < MIN_MATERIAL_FRACTION {
+                    active[e] = false;
+                    continue;
+                }
+                cut_points[e] = Some(if voids.len() == 1 {
+                    // Integrate the material part directly (rays from the hole centre,
+                    // from its radius to the far side of the element): no cancellation
+                    // when little material is left.
+                    let h = &board.holes[voids[0].0];
+                    let far = (rect.x1 - rect.x0).hypot(rect.y1 - rect.y0)
+                        + (h.x_m - rect.x0).abs()
+                        + (h.y_m - rect.y0).abs();
+                    CutCell::Material(annulus_rect_quadrature(
+                        h.x_m,
+                        h.y_m,
+                        0.5 * h.diameter_m,
+                        far,
+                        &rect,
+                    ))
+                } else {
+                    CutCell::Void(voids.into_iter().flat_map(|v| v.1).collect())
+                });
             }
         }
         let n_nodes = (nx + 1) * (ny + 1);
@@ -243,6 +371,7 @@ impl FeModel {
             a_m: a,
             b_m: b,
             active,
+            material_fraction,
             node_dof,
         };
 
@@ -274,15 +403,30 @@ impl FeModel {
         let mut t_corr = Vec::new();
         let mut t_mass = Vec::new();
         let mut any_corr = false;
-        let add =
-            |t: &mut Vec<(usize, usize, f64)>, dofs: &[usize; 16], comp: Comp4, scale: f64| {
-                for r in 0..16 {
-                    for cc in 0..16 {
-                        let v: f64 = (0..4).map(|k| comp[k] * em.k[k][r][cc]).sum::<f64>() * scale;
-                        t.push((dofs[r], dofs[cc], v));
-                    }
+        // Exact coupling expansion when all copper is one material (see `laminate`).
+        let uniform_cu = board
+            .copper
+            .first()
+            .filter(|l0| {
+                board
+                    .copper
+                    .iter()
+                    .all(|l| l.e_pa == l0.e_pa && l.nu == l0.nu)
+            })
+            .map(|l0| (l0.e_pa, isotropic_q(l0.e_pa, l0.nu)));
+        // (element, s, t) of every element with B ≠ 0, for the exact expansion.
+        let mut coupled: Vec<(usize, usize, f64, f64)> = Vec::new();
+        let add = |t: &mut Vec<(usize, usize, f64)>,
+                   em: &ElementMatrices,
+                   dofs: &[usize; 16],
+                   comp: Comp4| {
+            for r in 0..16 {
+                for cc in 0..16 {
+                    let v: f64 = (0..4).map(|k| comp[k] * em.k[k][r][cc]).sum::<f64>();
+                    t.push((dofs[r], dofs[cc], v));
                 }
-            };
+            }
+        };
         for ey in 0..ny {
             for ex in 0..nx {
                 if !mesh_data.active[ey * nx + ex] {
@@ -292,17 +436,27 @@ impl FeModel {
                     unreachable!("active element without DOFs")
                 };
                 let (x0, y0) = (ex as f64 * a, ey as f64 * b);
+                // The element's matrices over its material part only.
+                let cut;
+                let eme = match &cut_points[ey * nx + ex] {
+                    None => &em,
+                    Some(cc) => {
+                        cut = cut_cell_matrices(&em, cc, x0, y0, a, b);
+                        &cut
+                    }
+                };
                 // Core: one term per Q component, assembled at the nominal Q.
                 for k in 0..4 {
                     let mut unit = [0.0; 4];
                     unit[k] = q_core[k] * d_core;
-                    add(&mut t_core[k], &dofs, unit, 1.0);
+                    add(&mut t_core[k], eme, &dofs, unit);
                 }
                 // Copper and stack integrals.
                 let mut a_st = q_core.map(|q| q * a_core);
                 let mut b_st = [0.0; 4];
                 let mut d_cu = [0.0; 4];
                 let mut rho_h = c.density_kg_per_m3 * h;
+                let (mut s_cu, mut t_cu_m2) = (0.0, 0.0);
                 for (li, l) in board.copper.iter().enumerate() {
                     let frac = board.coverage_fraction(li, x0, y0, x0 + a, y0 + b);
                     if frac == 0.0 {
@@ -320,18 +474,26 @@ impl FeModel {
                         d_cu[k] += frac * q[k] * fd;
                     }
                     rho_h += frac * l.density_kg_per_m3 * l.thickness_m;
+                    s_cu += frac * fa;
+                    t_cu_m2 += frac * fb;
                 }
                 if has_cu {
-                    add(&mut t_cu, &dofs, d_cu, 1.0);
+                    add(&mut t_cu, eme, &dofs, d_cu);
                 }
-                let corr = coupling_correction(a_st, b_st);
-                if corr.iter().any(|v| *v != 0.0) {
-                    any_corr = true;
-                    add(&mut t_corr, &dofs, corr, 1.0);
+                if uniform_cu.is_some() {
+                    if t_cu_m2 != 0.0 {
+                        coupled.push((ex, ey, s_cu, t_cu_m2));
+                    }
+                } else {
+                    let corr = coupling_correction(a_st, b_st);
+                    if corr.iter().any(|v| *v != 0.0) {
+                        any_corr = true;
+                        add(&mut t_corr, eme, &dofs, corr);
+                    }
                 }
                 for r in 0..16 {
                     for cc in 0..16 {
-                        t_mass.push((dofs[r], dofs[cc], rho_h * em.m[r][cc]));
+                        t_mass.push((dofs[r], dofs[cc], rho_h * eme.m[r][cc]));
                     }
                 }
             }
@@ -361,31 +523,49 @@ impl FeModel {
         let mut fixture_dof = None;
         if let Setup::Bolted(jm) = &setup {
             let r_clamp = 0.5 * board.joint.clamp_diameter_m;
+            let mut jpatches = Vec::new();
             for (hi, hole) in board.holes.iter().enumerate() {
-                let mut p = Vec::new();
-                for j in 0..=ny {
-                    for i in 0..=nx {
-                        let (x, y) = (i as f64 * a, j as f64 * b);
-                        if (x - hole.x_m).hypot(y - hole.y_m) <= r_clamp * (1.0 + 1e-9) {
-                            if let Some(d) = mesh_data.node_dof[j * (nx + 1) + i] {
-                                p.push(d);
-                            }
+                let r_hole = 0.5 * hole.diameter_m;
+                let mut parts = Vec::new();
+                let mut w_dofs = Vec::new();
+                for ey in 0..ny {
+                    for ex in 0..nx {
+                        if !mesh_data.active[ey * nx + ex] {
+                            continue;
                         }
+                        let rect = element_rect(ex, ey, a, b);
+                        let pts =
+                            annulus_rect_quadrature(hole.x_m, hole.y_m, r_hole, r_clamp, &rect);
+                        if pts.is_empty() {
+                            continue;
+                        }
+                        let Some(dofs) = mesh_data.element_dofs(ex, ey) else {
+                            unreachable!("active element without DOFs")
+                        };
+                        let pi = part_integrals(&pts, rect.x0, rect.y0, a, b);
+                        for k in 0..4 {
+                            w_dofs.push(dofs[4 * k]);
+                        }
+                        parts.push((dofs, pi));
                     }
                 }
-                if p.is_empty() {
+                let area_m2: f64 = parts.iter().map(|(_, p)| p.area_m2).sum();
+                if !(area_m2 > 0.0) {
                     return Err(FemError::Mesh(format!(
-                        "hole {hi} at ({}, {}) m: expected at least one mesh node within the clamp radius {} m, found none (refine the mesh)",
-                        hole.x_m, hole.y_m, r_clamp
+                        "hole {hi} at ({}, {}) m: expected a clamped annulus of positive area between the hole radius {r_hole} m and the clamp radius {r_clamp} m, found none",
+                        hole.x_m, hole.y_m
                     )));
                 }
-                patches.push(p);
+                w_dofs.sort_unstable();
+                w_dofs.dedup();
+                patches.push(w_dofs);
+                jpatches.push(Patch { area_m2, parts });
             }
             if jm.has_fixture() {
                 fixture_dof = Some(n_dof);
                 n_dof += 1;
             }
-            for t in joint_terms(jm, &patches, fixture_dof, board.joint.k_con_n_per_m) {
+            for t in joint_terms(jm, &jpatches, fixture_dof, board.joint.k_con_n_per_m) {
                 let param = match pnames.iter().position(|n| *n == t.param) {
                     Some(i) => i,
                     None => {
@@ -425,8 +605,67 @@ impl FeModel {
                 })
                 .collect()
         };
-        let k_terms = scatter(&kb.trip);
+        let mut k_terms = scatter(&kb.trip);
         let m_terms = scatter(&mb.trip);
+        if let (Some((e_cu0, q_cu)), false) = (uniform_cu, coupled.is_empty()) {
+            let i_cu = pnames
+                .iter()
+                .position(|n| n == names::E_CU)
+                .unwrap_or_else(|| unreachable!("copper without e_cu_pa"));
+            let s_max: f64 = board.copper.iter().map(|l| l.thickness_m).sum();
+            let nodes = chebyshev_nodes(coupling_nodes(&q_core, h, &q_cu, s_max), s_max);
+            let mut vals = vec![vec![0.0; pattern.row_idx.len()]; 4 * nodes.len()];
+            let scales: Vec<[f64; 4]> = nodes
+                .iter()
+                .map(|sk| {
+                    coupling_kernel(q_core, h, q_cu, 1.0, *sk)
+                        .0
+                        .map(|g| if g != 0.0 { g } else { 1.0 })
+                })
+                .collect();
+            for &(ex, ey, s_e, t_e) in &coupled {
+                let (x0, y0) = (ex as f64 * a, ey as f64 * b);
+                let cut;
+                let eme = match &cut_points[ey * nx + ex] {
+                    None => &em,
+                    Some(cc) => {
+                        cut = cut_cell_matrices(&em, cc, x0, y0, a, b);
+                        &cut
+                    }
+                };
+                let Some(dofs) = mesh_data.element_dofs(ex, ey) else {
+                    unreachable!("active element without DOFs")
+                };
+                let idx: Vec<usize> = (0..256)
+                    .map(|q| pattern.index(dofs[q / 16], dofs[q % 16]))
+                    .collect();
+                let l = lagrange_basis(&nodes, s_e);
+                for (k, lk) in l.iter().enumerate() {
+                    for comp in 0..4 {
+                        let w = -t_e * t_e * lk * scales[k][comp];
+                        let v = &mut vals[4 * k + comp];
+                        for (q, &iq) in idx.iter().enumerate() {
+                            v[iq] += w * eme.k[comp][q / 16][q % 16];
+                        }
+                    }
+                }
+            }
+            for (k, sk) in nodes.iter().enumerate() {
+                for comp in 0..4 {
+                    kb.names.push(format!("coupling_s{k}_c{comp}"));
+                    kb.coefs.push(Coef::Coupling {
+                        s_node_m: *sk,
+                        comp,
+                        scale: scales[k][comp],
+                        h_core_m: h,
+                        q_cu_pa: q_cu,
+                        e_cu_param: i_cu,
+                        e_cu_nominal_pa: e_cu0,
+                    });
+                }
+            }
+            k_terms.extend(vals);
+        }
         let symbolic = factorize_symbolic_cholesky(
             pattern.symbolic.as_ref(),
             Side::Lower,

@@ -12,7 +12,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::laminate::orthotropic_q;
+use super::laminate::{coupling_kernel, orthotropic_q};
 use super::FemError;
 
 /// Names of the standard parameters (units in the names).
@@ -93,6 +93,26 @@ pub enum Coef {
     },
     /// Always 1.
     Const,
+    /// One term of the exact coupling-correction expansion ([`super::laminate`]):
+    /// G_comp(s_node; p) / scale, where G is [`super::laminate::coupling_kernel`] with
+    /// the core moduli and ε = E_cu / `e_cu_nominal_pa` of `p`; the term was assembled
+    /// with −scale = −G_comp(s_node; nominal) (or −1 when that vanishes).
+    Coupling {
+        /// Interpolation node, m (copper variable s).
+        s_node_m: f64,
+        /// Component 0..4 of `[c11, c22, c12, c66]`.
+        comp: usize,
+        /// Value of G the term was assembled at.
+        scale: f64,
+        /// Core thickness h, m.
+        h_core_m: f64,
+        /// Plane-stress stiffness of copper at its nominal modulus, Pa.
+        q_cu_pa: [f64; 4],
+        /// Index of `e_cu_pa`.
+        e_cu_param: usize,
+        /// Nominal copper modulus, Pa.
+        e_cu_nominal_pa: f64,
+    },
 }
 
 /// The parameter list of a model and the coefficient map of its K and M terms.
@@ -213,6 +233,26 @@ impl ParamMap {
                     (v[*param] / scale, grad)
                 }
                 Coef::Const => (1.0, grad),
+                Coef::Coupling {
+                    s_node_m,
+                    comp,
+                    scale,
+                    h_core_m,
+                    q_cu_pa,
+                    e_cu_param,
+                    e_cu_nominal_pa,
+                } => {
+                    let eps = v[*e_cu_param] / e_cu_nominal_pa;
+                    let (g, d_core, d_eps) =
+                        coupling_kernel(q, *h_core_m, *q_cu_pa, eps, *s_node_m);
+                    for j in 0..4 {
+                        for (k, idx) in [ix, iy, ig, inu].iter().enumerate() {
+                            grad[*idx] += d_core[j][*comp] * dq[j][k] / scale;
+                        }
+                    }
+                    grad[*e_cu_param] += d_eps[*comp] / (e_cu_nominal_pa * scale);
+                    (g[*comp] / scale, grad)
+                }
             }
         };
         let (k, k_grad): (Vec<_>, Vec<_>) = self.k_coefs.iter().map(eval).unzip();

@@ -124,15 +124,101 @@ pub fn element_matrices(a_m: f64, b_m: f64) -> ElementMatrices {
     }
     // Make the matrices exactly symmetric: (w·a)·b and (w·b)·a differ in the last bit.
     for mat in k.iter_mut().chain(std::iter::once(&mut m)) {
+        symmetrize16(mat);
+    }
+    ElementMatrices { k, m }
+}
+
+impl ElementMatrices {
+    /// Add `sign` × the integrals over the quadrature points `pts` (global `(x_m, y_m,
+    /// weight_m2)`, all inside the element whose lower-left corner is `(x0_m, y0_m)`)
+    /// to the unit matrices: with `sign = -1` and the points of a hole, the element's
+    /// matrices become integrals over its material part only (cut-cell quadrature).
+    pub fn add_points(
+        &mut self,
+        pts: &[(f64, f64, f64)],
+        x0_m: f64,
+        y0_m: f64,
+        a_m: f64,
+        b_m: f64,
+        sign: f64,
+    ) {
+        for &(x, y, w) in pts {
+            let n = shape((x - x0_m) / a_m, (y - y0_m) / b_m, a_m, b_m);
+            let w = sign * w;
+            for r in 0..16 {
+                let (nxx, nyy, nxy, n0) =
+                    (w * n[3][r], w * n[4][r], 4.0 * w * n[5][r], w * n[0][r]);
+                for c in 0..16 {
+                    self.k[0][r][c] += nxx * n[3][c];
+                    self.k[1][r][c] += nyy * n[4][c];
+                    self.k[2][r][c] += nxx * n[4][c] + nyy * n[3][c];
+                    self.k[3][r][c] += nxy * n[5][c];
+                    self.m[r][c] += n0 * n[0][c];
+                }
+            }
+        }
+        for mat in self.k.iter_mut().chain(std::iter::once(&mut self.m)) {
+            symmetrize16(mat);
+        }
+    }
+}
+
+/// Make a 16 × 16 matrix exactly symmetric (quadrature sums differ in the last bit).
+fn symmetrize16(mat: &mut Mat16) {
+    for r in 0..16 {
+        for c in 0..r {
+            let v = 0.5 * (mat[r][c] + mat[c][r]);
+            mat[r][c] = v;
+            mat[c][r] = v;
+        }
+    }
+}
+
+/// Integrals of one element's shape functions over part of it (a joint patch):
+/// `nn` = ∫ N Nᵀ dA (m²), `n` = ∫ N dA (m²), `grad` = ∫ (N_x N_xᵀ + N_y N_yᵀ) dA
+/// (dimensionless), `area_m2` = ∫ dA.
+#[derive(Clone, Debug)]
+pub struct PartIntegrals {
+    /// ∫ N Nᵀ dA, m².
+    pub nn: Mat16,
+    /// ∫ N dA, m².
+    pub n: [f64; 16],
+    /// ∫ (N_x N_xᵀ + N_y N_yᵀ) dA.
+    pub grad: Mat16,
+    /// ∫ dA, m².
+    pub area_m2: f64,
+}
+
+/// [`PartIntegrals`] over the quadrature points `pts` of the element with lower-left
+/// corner `(x0_m, y0_m)` and size `a_m × b_m`.
+pub fn part_integrals(
+    pts: &[(f64, f64, f64)],
+    x0_m: f64,
+    y0_m: f64,
+    a_m: f64,
+    b_m: f64,
+) -> PartIntegrals {
+    let mut out = PartIntegrals {
+        nn: [[0.0; 16]; 16],
+        n: [0.0; 16],
+        grad: [[0.0; 16]; 16],
+        area_m2: 0.0,
+    };
+    for &(x, y, w) in pts {
+        let s = shape((x - x0_m) / a_m, (y - y0_m) / b_m, a_m, b_m);
+        out.area_m2 += w;
         for r in 0..16 {
-            for c in 0..r {
-                let v = 0.5 * (mat[r][c] + mat[c][r]);
-                mat[r][c] = v;
-                mat[c][r] = v;
+            out.n[r] += w * s[0][r];
+            for c in 0..16 {
+                out.nn[r][c] += w * s[0][r] * s[0][c];
+                out.grad[r][c] += w * (s[1][r] * s[1][c] + s[2][r] * s[2][c]);
             }
         }
     }
-    ElementMatrices { k, m }
+    symmetrize16(&mut out.nn);
+    symmetrize16(&mut out.grad);
+    out
 }
 
 #[cfg(test)]

@@ -58,9 +58,9 @@ impl Default for RomOptions {
             n_modes: 8,
             n_extra: 4,
             box_rel: 0.2,
-            n_random: 8,
-            pod_tol: 1e-3,
-            max_basis: 30,
+            n_random: 32,
+            pod_tol: 1e-5,
+            max_basis: 64,
             seed: 20_240_613,
             derivative_snapshots: true,
         }

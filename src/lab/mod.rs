@@ -156,8 +156,8 @@ pub fn simulate(
         "campaign.csv".to_string(),
         measure::sheet_csv(&plan.measurements)?,
     );
-    let mapping = truth::k_con_mapping(scenario, board, &models)?;
-    let mut truth = truth::assemble(scenario, board, &plan, &free_cache, meas_truth, mapping);
+    let misfit = truth::model_misfit(scenario, board, &models)?;
+    let mut truth = truth::assemble(scenario, board, &plan, &free_cache, meas_truth, misfit);
     let (logs, garbled) = measure::balance_logs(scenario, &plan, &truth.boards);
     for (name, bytes) in logs {
         files.insert(name, bytes);

@@ -295,7 +295,30 @@ pub fn run_modes(
         let modes = model.modes(&p, n_modes)?;
         let w = model.w_at(&modes, &pts)?;
         let n = modes.freq_hz.len();
-        let prov = provenance("fe-modes", &prep.fingerprint, &model.board);
+        // Discretization check: Richardson from this mesh and one twice as fine, on the
+        // first (up to) 8 modes; a warning when the estimate exceeds the 0.05 % target.
+        let mesh = fem::MeshOptions {
+            nx: model.mesh.nx,
+            ny: model.mesh.ny,
+        };
+        let check = fem::convergence::mesh_check(&board, &model.setup, &mesh, &p, n.min(8))?;
+        if check.max_rel_error > fem::convergence::TARGET_REL_ERROR {
+            eprintln!(
+                "warning: mesh {}x{} is coarser than needed: estimated discretization error of the first {} frequencies up to {:.3} % (target {:.2} %; Richardson with {}x{}); pass a finer --mesh",
+                mesh.nx,
+                mesh.ny,
+                check.rel_error.len(),
+                100.0 * check.max_rel_error,
+                100.0 * fem::convergence::TARGET_REL_ERROR,
+                check.finer_mesh[0],
+                check.finer_mesh[1]
+            );
+        }
+        let mut prov = provenance("fe-modes", &prep.fingerprint, &model.board);
+        prov.insert(
+            "hbmu.fe.discretization".to_string(),
+            serde_json::to_string(&check)?,
+        );
         write(
             out,
             &tables::FE_MODES,
@@ -314,6 +337,10 @@ pub fn run_modes(
         summary.insert("freq_hz".into(), serde_json::to_value(&modes.freq_hz)?);
         summary.insert("n_rigid_dropped".into(), modes.n_rigid_dropped.into());
         summary.insert("n_dof".into(), model.n_dof.into());
+        summary.insert(
+            "discretization_rel_error".into(),
+            serde_json::to_value(&check.rel_error)?,
+        );
         Ok(StageResult {
             outputs: vec![out.to_path_buf()],
             exit_code: exit::OK,

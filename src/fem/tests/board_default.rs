@@ -66,12 +66,36 @@ fn coverage_fraction_of_known_regions() {
     assert_eq!(b.coverage_fraction(0, 0.010, 0.010, 0.012, 0.012), 1.0);
     assert_eq!(b.coverage_fraction(0, 0.010, 0.021, 0.012, 0.023), 0.5);
     assert_eq!(b.coverage_fraction(0, 0.010, 0.023, 0.012, 0.025), 0.0);
-    // Polygon (triangle) covers half of its bounding square, to the sub-grid resolution.
+    // Polygon (triangle) covers exactly half of its bounding square.
     b.copper[0].coverage = vec![crate::fem::board::Region::Polygon {
         vertices_m: vec![[0.0, 0.0], [0.01, 0.0], [0.0, 0.01]],
+        fraction: 1.0,
     }];
     let f = b.coverage_fraction(0, 0.0, 0.0, 0.01, 0.01);
-    assert!((f - 0.5).abs() <= 6.0 / 36.0, "{f}");
+    assert!((f - 0.5).abs() <= 1e-12, "{f}");
+    // A 40 % hatched pour over the cell, a solid pad overlapping its left quarter
+    // (overlap takes the max: 1 there), and a cut-out removing the top half.
+    use crate::fem::board::Region;
+    let rect = |x0, y0, x1, y1, fraction| Region::Rect {
+        x0_m: x0,
+        y0_m: y0,
+        x1_m: x1,
+        y1_m: y1,
+        fraction,
+    };
+    b.copper[0].coverage = vec![
+        rect(0.0, 0.0, 0.01, 0.01, 0.4),
+        rect(0.0, 0.0, 0.0025, 0.01, 1.0),
+    ];
+    let f = b.coverage_fraction(0, 0.0, 0.0, 0.01, 0.01);
+    assert!((f - (0.25 + 0.75 * 0.4)).abs() < 1e-12, "{f}");
+    b.copper[0].cutouts = vec![rect(-1.0, 0.005, 1.0, 1.0, 1.0)];
+    let f = b.coverage_fraction(0, 0.0, 0.0, 0.01, 0.01);
+    assert!((f - 0.5 * (0.25 + 0.75 * 0.4)).abs() < 1e-12, "{f}");
+    // Bad fractions are refused with the field named.
+    b.copper[0].coverage[0] = rect(0.0, 0.0, 0.01, 0.01, 1.4);
+    let e = b.validate().unwrap_err().to_string();
+    assert!(e.contains("copper[0].coverage[0].fraction"), "{e}");
 }
 
 #[test]

@@ -1,7 +1,8 @@
 //! Tests of the physics core against closed forms, published tables and identities.
 
 mod board_default;
-mod helpers;
+mod convergence;
+pub(crate) mod helpers;
 mod joints;
 mod rom;
 mod sensitivity;

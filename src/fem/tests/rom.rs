@@ -61,16 +61,16 @@ fn check_rom(setup: Setup, n_modes: usize, n_points: usize) -> (f64, f64, usize)
 fn rom_matches_full_model_free_over_latin_hypercube() {
     let (f, m, r) = check_rom(Setup::Free, 8, 200);
     eprintln!("free: worst freq error {f:e}, worst MAC {m}, dim {r}");
-    assert!(f < 1e-3, "worst relative frequency error {f}");
-    assert!(m >= 0.999, "worst MAC {m}");
+    assert!(f <= 1e-4, "worst relative frequency error {f}");
+    assert!(m >= 0.9999, "worst MAC {m}");
 }
 
 #[test]
 fn rom_matches_full_model_bolted_over_latin_hypercube() {
     let (f, m, r) = check_rom(Setup::bolted(), 7, 200);
     eprintln!("bolted: worst freq error {f:e}, worst MAC {m}, dim {r}");
-    assert!(f < 1e-3, "worst relative frequency error {f}");
-    assert!(m >= 0.999, "worst MAC {m}");
+    assert!(f <= 1e-4, "worst relative frequency error {f}");
+    assert!(m >= 0.9999, "worst MAC {m}");
 }
 
 #[test]
