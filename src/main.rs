@@ -195,6 +195,9 @@ struct UpdateArgs {
     /// Target ESS fraction when choosing the next temperature.
     #[arg(long, default_value_t = 0.5)]
     target_ess: f64,
+    /// Cap the ROM's basis size (faster, less accurate; default: the physics core's).
+    #[arg(long)]
+    rom_basis: Option<usize>,
     /// Rerun even when up to date.
     #[arg(long)]
     force: bool,
@@ -270,6 +273,7 @@ impl UpdateArgs {
             rom_box: 0.2,
             box_tolerance: 0.01,
             residual_draws: 250,
+            rom_max_basis: self.rom_basis,
         }
     }
 }

@@ -213,6 +213,9 @@ pub struct UpdateOptions {
     pub box_tolerance: f64,
     /// Draws per run used for the posterior-predictive residuals.
     pub residual_draws: usize,
+    /// Cap on the ROM's basis (None: the physics core's default). A smaller basis is faster
+    /// and less accurate; the ROM accuracy test states the error of the default.
+    pub rom_max_basis: Option<usize>,
 }
 
 impl UpdateOptions {
@@ -1132,10 +1135,12 @@ fn all_labels(pairs: &[PairRow], setup: &str, n_modes: usize) -> Labels {
 }
 
 fn rom_for(model: &FeModel, n_modes_needed: usize, opts: &UpdateOptions) -> anyhow::Result<Rom> {
+    let d = RomOptions::default();
     let ro = RomOptions {
-        n_modes: n_modes_needed.max(RomOptions::default().n_modes),
+        n_modes: n_modes_needed.max(d.n_modes),
         box_rel: opts.rom_box,
-        ..RomOptions::default()
+        max_basis: opts.rom_max_basis.unwrap_or(d.max_basis),
+        ..d
     };
     Ok(Rom::build(model, &ro)?)
 }
