@@ -9,27 +9,21 @@ use std::time::Instant;
 
 use hbmu::bayes::diagnostics::summarize;
 
-/// SplitMix64 + Box-Muller: deterministic draws without a `rand` dependency.
-struct Rng(u64);
+/// Deterministic draws from the crate's seeded generator.
+struct Rng(rand_chacha::ChaCha8Rng);
 
 impl Rng {
-    fn uniform(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        ((z >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    fn new(seed: u64) -> Rng {
+        Rng(rand::SeedableRng::seed_from_u64(seed))
     }
 
     fn normal(&mut self) -> f64 {
-        let (u, v) = (self.uniform(), self.uniform());
-        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut self.0)
     }
 }
 
 fn main() {
-    let mut rng = Rng(7);
+    let mut rng = Rng::new(7);
     for n_draw in [2000usize, 5000] {
         let params: Vec<Vec<Vec<f64>>> = (0..50)
             .map(|_| {

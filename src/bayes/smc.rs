@@ -281,6 +281,35 @@ struct Scales {
     nc: f64,
 }
 
+/// Metropolis step of unit b to `xn` (symmetric proposal) with uniform `u`: returns
+/// (1 if accepted else 0, model evaluations made).
+fn unit_move<T: Target>(
+    t: &T,
+    p: &mut Particle<T::Cache>,
+    ctx: &T::Ctx,
+    b: usize,
+    xn: Vec<f64>,
+    u: f64,
+    beta: f64,
+) -> (f64, u64) {
+    let tempered = |ll: f64| if beta == 0.0 { 0.0 } else { beta * ll };
+    let lp_new = t.log_prior_unit(ctx, b, &xn);
+    if !lp_new.is_finite() {
+        return (0.0, 0);
+    }
+    let (c, ll) = eval_unit(t, &p.aux, ctx, b, &xn);
+    let lp_old = t.log_prior_unit(ctx, b, &p.x[b]);
+    let log_r = lp_new + tempered(ll) - lp_old - tempered(p.ll[b]);
+    if ll > f64::NEG_INFINITY && u.ln() < log_r {
+        p.x[b] = xn;
+        p.cache[b] = c;
+        p.ll[b] = ll;
+        (1.0, 1)
+    } else {
+        (0.0, 1)
+    }
+}
+
 /// One Metropolis-within-Gibbs sweep of one particle at β.
 #[allow(clippy::too_many_arguments)]
 fn sweep<T: Target>(
@@ -306,22 +335,11 @@ fn sweep<T: Target>(
             .zip(&step)
             .map(|(a, s)| a + sc.unit * s)
             .collect();
-        let lp_new = t.log_prior_unit(&ctx, b, &xn);
         let u: f64 = rng.random();
         st.n_unit += 1.0;
-        if !lp_new.is_finite() {
-            continue;
-        }
-        let (c, ll) = eval_unit(t, &p.aux, &ctx, b, &xn);
-        st.evals += 1;
-        let lp_old = t.log_prior_unit(&ctx, b, &p.x[b]);
-        let log_r = lp_new + tempered(ll) - lp_old - tempered(p.ll[b]);
-        if ll > f64::NEG_INFINITY && u.ln() < log_r {
-            p.x[b] = xn;
-            p.cache[b] = c;
-            p.ll[b] = ll;
-            st.acc_unit += 1.0;
-        }
+        let (acc, evals) = unit_move(t, p, &ctx, b, xn, u, beta);
+        st.acc_unit += acc;
+        st.evals += evals;
         // The same unit in its standardised coordinates z = (diag σ L)⁻¹ (x − μ): the
         // proposal follows the particle's own population scale, which is the right one
         // while the data are weak (low β); the move above, scaled by the cloud, is the right
@@ -338,20 +356,9 @@ fn sweep<T: Target>(
         let xn = t.from_standard(&ctx, b, &zn);
         let u: f64 = rng.random();
         st.n_unit_z += 1.0;
-        let lp_new = t.log_prior_unit(&ctx, b, &xn);
-        if !lp_new.is_finite() {
-            continue;
-        }
-        let (c, ll) = eval_unit(t, &p.aux, &ctx, b, &xn);
-        st.evals += 1;
-        let lp_old = t.log_prior_unit(&ctx, b, &p.x[b]);
-        let log_r = lp_new + tempered(ll) - lp_old - tempered(p.ll[b]);
-        if ll > f64::NEG_INFINITY && u.ln() < log_r {
-            p.x[b] = xn;
-            p.cache[b] = c;
-            p.ll[b] = ll;
-            st.acc_unit_z += 1.0;
-        }
+        let (acc, evals) = unit_move(t, p, &ctx, b, xn, u, beta);
+        st.acc_unit_z += acc;
+        st.evals += evals;
     }
     // Centred moves of g: no model evaluation.
     let mut lpg = t.log_prior_global(&p.g);
