@@ -253,3 +253,97 @@ pub fn log_lik(data: &UnitData, t: &Terms, eps: &[f64], delta: &[f64]) -> f64 {
     }
     l
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fem::{Board, FeModel, RomOptions, Setup};
+
+    /// The shape term's MAC, formed in reduced coordinates from Pᵀu and PᵀP, equals the MAC
+    /// of the shapes expanded to the points; the eigenvalue is the ROM's; the modes are
+    /// tracked to their labels by overlap even when the labels are given out of order.
+    #[test]
+    fn reduced_mac_and_tracking_match_the_expanded_rom() {
+        let board = Board::default_board();
+        let model = FeModel::build(&board, Setup::Free, &board.mesh).expect("model");
+        let rom = crate::fem::Rom::build(
+            &model,
+            &RomOptions {
+                max_basis: 30,
+                ..RomOptions::default()
+            },
+        )
+        .expect("rom");
+        let pts = board.scan_points_m();
+        let op = rom.shape_operator(&model, &pts).expect("operator");
+        let mut p = rom.nominal_params();
+        p.values[0] *= 1.07; // e_x off-centre, inside the box
+        p.values[2] *= 0.93; // g_xy
+        let full = rom.eval(&p, &op).expect("eval");
+        // Labels out of model order: modes 3, 1, 2 (0-based 2, 0, 1).
+        let refs = [2usize, 0, 1];
+        let pred = ModalPredictor::new(rom.clone(), &refs, 12.7).expect("predictor");
+        let r = rom.dim();
+        let n = pts.len();
+        let mut gram = vec![0.0; r * r];
+        for i in 0..n {
+            for a in 0..r {
+                for b in 0..r {
+                    gram[a * r + b] += op.p[(i, a)] * op.p[(i, b)];
+                }
+            }
+        }
+        let mut data = UnitData {
+            grams: vec![gram],
+            ..UnitData::default()
+        };
+        // "Measured" shapes: the expanded shape of each label's mode plus a fixed
+        // perturbation, unit norm.
+        let mut direct = vec![];
+        for (m, &j) in refs.iter().enumerate() {
+            let w: Vec<f64> = (0..n).map(|i| full.shapes_at_points[(i, j)]).collect();
+            let wn = w.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let u: Vec<f64> = w
+                .iter()
+                .enumerate()
+                .map(|(i, v)| v / wn + 0.05 * ((i * 7 + m) as f64).sin())
+                .collect();
+            let un = u.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let u: Vec<f64> = u.iter().map(|v| v / un).collect();
+            let uw: f64 = u.iter().zip(&w).map(|(a, b)| a * b).sum();
+            direct.push(1.0 - uw * uw / (wn * wn));
+            let pt_u = (0..r)
+                .map(|a| (0..n).map(|i| op.p[(i, a)] * u[i]).sum())
+                .collect();
+            data.shapes.push(ShapeObs {
+                mode: m,
+                pt_u,
+                gram: 0,
+                n_points: n,
+            });
+        }
+        let v = p.values.clone();
+        let pr = pred.predict(&v).expect("tracked");
+        let t = pred.terms(&pr, &data, &v);
+        for (m, &j) in refs.iter().enumerate() {
+            assert!(
+                (pr.lambda[m] / full.eigenvalues[j] - 1.0).abs() < 1e-10,
+                "label {m}: λ {} vs ROM mode {j} {}",
+                pr.lambda[m],
+                full.eigenvalues[j]
+            );
+            assert!(
+                (t.one_minus_mac[m] - direct[m]).abs() < 1e-9,
+                "label {m}: 1 − MAC {} vs expanded {}",
+                t.one_minus_mac[m],
+                direct[m]
+            );
+            assert!(direct[m] > 1e-4, "the perturbation must matter");
+        }
+        // Mass follows mass_scale linearly.
+        let i = pred.mass_scale_idx.expect("mass_scale is a parameter");
+        let mut v2 = v.clone();
+        v2[i] *= 1.1;
+        assert!((pred.mass_g(&v2) / pred.mass_g(&v) - 1.1).abs() < 1e-12);
+    }
+}
