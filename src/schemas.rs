@@ -23,7 +23,6 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::stage::pair::PRESENCE,
         &crate::stage::update::POPULATION,
         &crate::stage::update::BOARDS,
-        &crate::stage::update::JOINTS,
         &crate::stage::update::SUMMARY,
         &crate::stage::update::STAGES,
         &crate::stage::update::RESIDUALS,

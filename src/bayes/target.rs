@@ -1,12 +1,11 @@
-//! The hierarchical modal-updating targets of both steps, as one [`smc::Target`]:
+//! The hierarchical modal-updating target, as an [`smc::Target`]:
 //! population prior over the units' parameters, prediction-error scales per mode, and the
 //! modal likelihood of [`super::modal`].
 //!
 //! - Step 1 (boards, free-free): a unit is a board, x = relative deviations of the updated
 //!   parameters from the board file's nominal values (p = p₀ (1 + x)).
-//! - Step 2 (joints, bolted): a unit is a bolted measurement, x = ln(K_con / K₀); the
-//!   board's parameters come from the particle's auxiliary values (a step-1 posterior draw,
-//!   physical units, board-major), which no move changes: the modular ("cut") structure.
+//! - Step 2 (joints, bolted) is to come: a unit will be a bolted measurement, with the
+//!   board's parameters in the particle's auxiliary values (`smc::run_with_aux`).
 //!
 //! Global vector: [population (see [`PopulationPrior`]) | ln ε per mode | ln δ per mode];
 //! the error blocks are absent when fixed. ln ε and ln δ are normal (log-normal scales): a
@@ -116,7 +115,8 @@ impl ErrorModel {
     }
 }
 
-/// How a unit's x and the particle's aux become the ROM's parameter vector.
+/// How a unit's x (and, for step 2 when it comes, the particle's aux) become the ROM's
+/// parameter vector.
 #[derive(Clone, Debug)]
 pub enum Compose {
     /// Step 1: p[updated[k]] = reference[k] (1 + x_k); the reference is the board file's
@@ -125,17 +125,9 @@ pub enum Compose {
         updated: Vec<usize>,
         reference: Vec<f64>,
     },
-    /// Step 2: board parameters from aux (board `unit_board[b]`, `board_params.len()` values
-    /// each, in the order of `board_params`), K_con = k_ref exp(x₀).
-    Joints {
-        board_params: Vec<usize>,
-        k_idx: usize,
-        k_ref: f64,
-        unit_board: Vec<usize>,
-    },
 }
 
-/// One hierarchical modal target (step 1 or step 2).
+/// One hierarchical modal target.
 #[derive(Clone, Debug)]
 pub struct ModalTarget {
     pub predictor: ModalPredictor,
@@ -153,8 +145,9 @@ pub struct Ctx {
 }
 
 impl ModalTarget {
-    /// The ROM parameter vector of unit b.
-    pub fn values(&self, aux: &[f64], b: usize, x: &[f64]) -> Vec<f64> {
+    /// The ROM parameter vector of unit b. `aux` and `b` are read by no variant yet: step 2
+    /// will take the board's parameters from them.
+    pub fn values(&self, _aux: &[f64], _b: usize, x: &[f64]) -> Vec<f64> {
         let map = &self.predictor.rom.map;
         let mut v = map.nominal.clone();
         match &self.compose {
@@ -162,19 +155,6 @@ impl ModalTarget {
                 for (k, &i) in updated.iter().enumerate() {
                     v[i] = reference[k] * (1.0 + x[k]);
                 }
-            }
-            Compose::Joints {
-                board_params,
-                k_idx,
-                k_ref,
-                unit_board,
-            } => {
-                let d = board_params.len();
-                let ob = unit_board[b] * d;
-                for (k, &i) in board_params.iter().enumerate() {
-                    v[i] = aux[ob + k];
-                }
-                v[*k_idx] = k_ref * x[0].exp();
             }
         }
         v

@@ -29,11 +29,10 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 pub const MANIFEST_BOARDS: &str = "update_boards.manifest.json";
-pub const MANIFEST_JOINTS: &str = "update_joints.manifest.json";
 
 pub const POPULATION: TableSpec = TableSpec {
     name: "population",
-    doc: "Posterior draws of the population (hyper-)parameters, one row per particle; run = independent SMC run (ArviZ: chain = run, draw = draw). Step 1 (boards): for every updated parameter <p> (unit in its name) `mu_<p>` (population mean, unit of <p>), `sigma_<p>` (population standard deviation, unit of <p>), `corr_<p>_<q>` (population correlation); step 2 (joints): `mu_ln_k_con` (mean of ln K_con, K_con in N/m), `sigma_ln_k_con`. Prediction errors per mode label <l>: `eps_<l>` (relative standard deviation of the eigenvalue λ = ω², dimensionless) and `delta_<l>` (standard deviation of the unit-norm shape residual), when inferred.",
+    doc: "Posterior draws of the population (hyper-)parameters, one row per particle; run = independent SMC run (ArviZ: chain = run, draw = draw). Step 1 (boards): for every updated parameter <p> (unit in its name) `mu_<p>` (population mean, unit of <p>), `sigma_<p>` (population standard deviation, unit of <p>), `corr_<p>_<q>` (population correlation). Prediction errors per mode label <l>: `eps_<l>` (relative standard deviation of the eigenvalue λ = ω², dimensionless) and `delta_<l>` (standard deviation of the unit-norm shape residual), when inferred.",
     open: true,
     columns: &[
         c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
@@ -53,27 +52,14 @@ pub const BOARDS: TableSpec = TableSpec {
     ],
 };
 
-pub const JOINTS: TableSpec = TableSpec {
-    name: "joints",
-    doc: "Step-2 posterior draws of the joint contact stiffness of every bolted measurement, one row per particle and measurement.",
-    open: false,
-    columns: &[
-        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
-        c("draw", Col::Int32, false, "", "Particle index within the run."),
-        c("measurement_id", Col::Utf8, false, "", "Bolted measurement."),
-        c("board_id", Col::Utf8, false, "", "Board of the measurement."),
-        c("k_con_n_per_m", Col::Float64, false, "N/m", "Total out-of-plane contact stiffness of one joint."),
-    ],
-};
-
 pub const SUMMARY: TableSpec = TableSpec {
     name: "summary",
     doc: "Posterior summary, one row per parameter (and board or measurement where it has one): moments and quantiles over all runs' draws; rank-normalised split R-hat and bulk/tail ESS across runs (Vehtari et al. 2021, the definitions ArviZ uses).",
     open: false,
     columns: &[
-        c("parameter", Col::Utf8, false, "", "Column name in population/boards/joints (unit in the name)."),
+        c("parameter", Col::Utf8, false, "", "Column name in population/boards (unit in the name)."),
         c("board_id", Col::Utf8, true, "", "Board, for per-board parameters."),
-        c("measurement_id", Col::Utf8, true, "", "Measurement, for per-joint parameters."),
+        c("measurement_id", Col::Utf8, true, "", "Measurement, for per-measurement parameters (none yet: step 2 is to come)."),
         c("mean", Col::Float64, false, "", "Posterior mean (unit of the parameter)."),
         c("sd", Col::Float64, false, "", "Posterior standard deviation."),
         c("q05", Col::Float64, false, "", "5 % quantile."),
@@ -171,11 +157,6 @@ pub const RESIDUALS: TableSpec = TableSpec {
         c("used_for_updating", Col::Bool, false, "", "The mode's label was used for updating."),
     ],
 };
-
-/// Every table this stage writes (for `hbmu schemas`).
-pub fn tables() -> Vec<&'static TableSpec> {
-    vec![&POPULATION, &BOARDS, &JOINTS, &SUMMARY, &STAGES, &RESIDUALS]
-}
 
 /// Options shared by both steps.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -686,25 +667,17 @@ fn write_draws(
     path: &Path,
     spec: &TableSpec,
     t: &DrawTable,
-    key_col: Option<(&[Option<String>], &[String])>,
+    with_key: bool,
     prov: &BTreeMap<String, String>,
 ) -> anyhow::Result<()> {
     let mut cols: Vec<ArrayRef> = vec![
         Arc::new(Int32Array::from(t.run.clone())),
         Arc::new(Int32Array::from(t.draw.clone())),
     ];
-    if let Some((keys, _)) = key_col {
+    if with_key {
         cols.push(Arc::new(StringArray::from_iter_values(
-            keys.iter().map(|k| k.as_deref().unwrap_or("")),
+            t.key.iter().map(|k| k.as_deref().unwrap_or("")),
         )));
-    }
-    if let Some((_, extra_str)) = key_col {
-        // A second string column (board_id of a joint draw).
-        if !extra_str.is_empty() {
-            cols.push(Arc::new(StringArray::from_iter_values(
-                extra_str.iter().map(String::as_str),
-            )));
-        }
     }
     // Spec float columns are taken from the table by name, the rest are extra.
     let spec_names: Vec<&str> = spec.columns.iter().map(|c| c.name).collect();
@@ -956,13 +929,12 @@ fn particles_of(
 /// A function from a global vector to the population table's values.
 type PopulationRow<'a> = Box<dyn Fn(&[f64]) -> Vec<f64> + 'a>;
 
-/// Population columns of a draw: step 1 in physical units of the parameters.
+/// Population columns of a draw, in physical units of the parameters.
 fn population_columns<'a>(
     target: &'a ModalTarget,
     param_names: &[String],
     reference: &[f64],
     labels: &[String],
-    log_k: bool,
 ) -> (Vec<(String, String)>, PopulationRow<'a>) {
     let d = param_names.len();
     let unit = |n: &str| -> String {
@@ -975,23 +947,14 @@ fn population_columns<'a>(
         }
     };
     let mut cols: Vec<(String, String)> = vec![];
-    if log_k {
-        cols.push(("mu_ln_k_con".into(), String::new()));
-        cols.push(("sigma_ln_k_con".into(), String::new()));
-    } else {
-        for n in param_names {
-            cols.push((format!("mu_{n}"), unit(n)));
-        }
-        for n in param_names {
-            cols.push((format!("sigma_{n}"), unit(n)));
-        }
-        for i in 0..d {
-            for j in i + 1..d {
-                cols.push((
-                    format!("corr_{}_{}", param_names[i], param_names[j]),
-                    String::new(),
-                ));
-            }
+    cols.extend(param_names.iter().map(|n| (format!("mu_{n}"), unit(n))));
+    cols.extend(param_names.iter().map(|n| (format!("sigma_{n}"), unit(n))));
+    for i in 0..d {
+        for j in i + 1..d {
+            cols.push((
+                format!("corr_{}_{}", param_names[i], param_names[j]),
+                String::new(),
+            ));
         }
     }
     let infer_eps = matches!(target.errors.eps, ErrorPrior::Inferred { .. });
@@ -1005,23 +968,16 @@ fn population_columns<'a>(
     let reference = reference.to_vec();
     let f = Box::new(move |g: &[f64]| -> Vec<f64> {
         let ctx = smc::Target::ctx(target, g);
-        let mut v = vec![];
-        if log_k {
-            v.push(ctx.pop.mu[0] + reference[0].ln());
-            v.push(ctx.pop.sigma[0]);
-        } else {
-            v.extend(
-                reference
-                    .iter()
-                    .zip(&ctx.pop.mu)
-                    .map(|(r, m)| r * (1.0 + m)),
-            );
-            v.extend(reference.iter().zip(&ctx.pop.sigma).map(|(r, s)| r * s));
-            let o = ctx.pop.correlation();
-            for i in 0..d {
-                for j in i + 1..d {
-                    v.push(o[i * d + j]);
-                }
+        let mut v: Vec<f64> = reference
+            .iter()
+            .zip(&ctx.pop.mu)
+            .map(|(r, m)| r * (1.0 + m))
+            .collect();
+        v.extend(reference.iter().zip(&ctx.pop.sigma).map(|(r, s)| r * s));
+        let o = ctx.pop.correlation();
+        for i in 0..d {
+            for j in i + 1..d {
+                v.push(o[i * d + j]);
             }
         }
         if infer_eps {
@@ -1240,13 +1196,20 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 .collect();
             let sh = use_shapes.then_some((&model, &rom, &shapes));
             let (mut data, _) = unit_data(&rows, &labels.labels, sh, &mut findings)?;
-            let mut scratch = Findings::default();
+            // The residuals' data (every paired label, shapes always): its findings are
+            // reported too, once each (the updated labels' ones were reported above).
+            let mut residual_findings = Findings::default();
             let (data_all, meta_all) = unit_data(
                 &rows,
                 &all.labels,
                 Some((&model, &rom, &shapes)),
-                &mut scratch,
+                &mut residual_findings,
             )?;
+            for f in residual_findings.0 {
+                if !findings.0.contains(&f) {
+                    findings.push(f);
+                }
+            }
             data.mass = match masses.get(b) {
                 Some(m) if mass_updated => mass_obs(m, b, &mut findings),
                 Some(_) => None,
@@ -1333,8 +1296,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         // Outputs.
         let prov = provenance("update_boards", &prep.fingerprint);
         let mut outputs = vec![];
-        let (pcols, pop_of) =
-            population_columns(&target, &opts.params, &reference, &labels.labels, false);
+        let (pcols, pop_of) = population_columns(&target, &opts.params, &reference, &labels.labels);
         let mut pop = DrawTable::new(&pcols);
         let mut bcols: Vec<(String, String)> = opts
             .params
@@ -1355,10 +1317,10 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         let mut summary = pop.summarize(opts.runs, true);
         summary.extend(boards.summarize(opts.runs, true));
         let p = opts.out.join("population.parquet");
-        write_draws(&p, &POPULATION, &pop, None, &prov)?;
+        write_draws(&p, &POPULATION, &pop, false, &prov)?;
         outputs.push(p);
         let p = opts.out.join("boards.parquet");
-        write_draws(&p, &BOARDS, &boards, Some((&boards.key, &[])), &prov)?;
+        write_draws(&p, &BOARDS, &boards, true, &prov)?;
         outputs.push(p);
         let p = opts.out.join("summary.parquet");
         write_summary(&p, &summary, &prov)?;
