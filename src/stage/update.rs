@@ -2,13 +2,11 @@
 //!
 //! - `update boards` (step 1): free-free modes of every board + the balance masses update the
 //!   boards' parameters and their population (MVN + LKJ), with per-mode prediction errors.
-//! - `update joints` (step 2): bolted modes update the joints' contact stiffness per bolted
-//!   measurement and its population, with the boards' parameters carried from step 1
-//!   (modular posterior by default).
+//! - `update joints` (step 2, bolted, boards carried from step 1) is not built yet.
 //!
-//! Inputs: `measurements`/`masses` of ingest, `modes` of extract, `pairs`/`presence` of pair,
-//! a board description (default: the built-in board); the ROM is built here from the board.
-//! Outputs (flat Parquet, schemas in `schemas/tables/`): `population`, `boards` or `joints`,
+//! Inputs: `masses` of ingest, `modes` of extract, `pairs`/`presence` of pair, a board
+//! description (default: the built-in board); the ROM is built here from the board.
+//! Outputs (flat Parquet, schemas in `schemas/tables/`): `population`, `boards`,
 //! `summary`, `stages`, `residuals`, and `evidence.json`, `update_report.json`.
 
 use crate::bayes::modal::{FreqObs, MassObs, ModalPredictor, ShapeObs, UnitData};
