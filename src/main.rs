@@ -198,6 +198,14 @@ struct UpdateArgs {
     /// Cap the ROM's basis size (faster, less accurate; default: the physics core's).
     #[arg(long)]
     rom_basis: Option<usize>,
+    /// Start tempering from the prior instead of a Laplace-type reference fitted to the data
+    /// (slower: about as many stages as the data carry information; same posterior).
+    #[arg(long)]
+    from_prior: bool,
+    /// Evaluate the ROM at every step instead of verified local surrogates corrected to the
+    /// ROM at the end (slower; same posterior).
+    #[arg(long)]
+    no_surrogate: bool,
     /// Rerun even when up to date.
     #[arg(long)]
     force: bool,
@@ -221,6 +229,21 @@ enum UpdateCommand {
         prior_width: f64,
         /// Half-normal scale of the population sds, relative.
         #[arg(long, default_value_t = 0.05)]
+        sigma_scale: f64,
+    },
+    /// Step 2: joint contact stiffness per bolted measurement and its population, from the
+    /// bolted modes, carrying every step-1 draw (the modular, "cut", posterior).
+    Joints {
+        #[command(flatten)]
+        common: UpdateArgs,
+        /// Step-1 output directory (boards.parquet).
+        #[arg(long)]
+        boards: PathBuf,
+        /// Prior sd of the population mean of ln k_con around the board file's value.
+        #[arg(long, default_value_t = 1.0)]
+        prior_width: f64,
+        /// Half-normal scale of the population sd of ln k_con.
+        #[arg(long, default_value_t = 0.5)]
         sigma_scale: f64,
     },
 }
@@ -274,6 +297,8 @@ impl UpdateArgs {
             box_tolerance: 0.01,
             residual_draws: 250,
             rom_max_basis: self.rom_basis,
+            from_prior: self.from_prior,
+            surrogate: !self.no_surrogate,
         }
     }
 }
@@ -524,6 +549,19 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             let opts = common.options(params, prior_width, sigma_scale);
             let o = stage::update::run_boards(&opts, cli.verbose)?;
             Ok(report("update boards", &opts.out, &o))
+        }
+        Command::Update {
+            command:
+                UpdateCommand::Joints {
+                    common,
+                    boards,
+                    prior_width,
+                    sigma_scale,
+                },
+        } => {
+            let opts = common.options(vec![], prior_width, sigma_scale);
+            let o = stage::update::run_joints(&opts, &boards, cli.verbose)?;
+            Ok(report("update joints", &opts.out, &o))
         }
         Command::Schemas { out } => {
             hbmu::schemas::write_all(&out)?;

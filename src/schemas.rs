@@ -26,6 +26,8 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::stage::update::SUMMARY,
         &crate::stage::update::STAGES,
         &crate::stage::update::RESIDUALS,
+        &crate::stage::update::JOINTS,
+        &crate::stage::update::POPULATION_JOINTS,
     ];
     for t in crate::io::tables::all_tables()
         .into_iter()

@@ -13,9 +13,11 @@
 pub mod diagnostics;
 pub mod modal;
 pub mod population;
+pub mod reference;
 pub mod resample;
 pub mod smc;
 pub mod stats;
+pub mod surrogate;
 pub mod target;
 
 #[cfg(test)]

@@ -33,6 +33,18 @@ pub struct FreqObs {
     pub mode: usize,
     /// Measured eigenvalue (2π f̂)², rad²/s².
     pub lambda_hat: f64,
+    /// ln λ̂ (precomputed: the likelihood's hot path).
+    pub ln_lambda_hat: f64,
+}
+
+impl FreqObs {
+    pub fn new(mode: usize, lambda_hat: f64) -> FreqObs {
+        FreqObs {
+            mode,
+            lambda_hat,
+            ln_lambda_hat: lambda_hat.ln(),
+        }
+    }
 }
 
 /// One mode-shape observation, reduced to what the likelihood needs.
@@ -46,6 +58,8 @@ pub struct ShapeObs {
     pub gram: usize,
     /// Valid scan points n.
     pub n_points: usize,
+    /// ln n (precomputed).
+    pub ln_n: f64,
 }
 
 /// A balance observation of a board's mass.
@@ -236,16 +250,19 @@ impl ModalPredictor {
 /// log L of one unit given its terms, the relative eigenvalue errors ε (per mode) and the
 /// shape errors δ (per mode; unused when the unit has no shape observations).
 pub fn log_lik(data: &UnitData, t: &Terms, eps: &[f64], delta: &[f64]) -> f64 {
+    // Logarithms per mode, not per observation (the sampler's hot path).
+    let ln_eps: Vec<f64> = eps.iter().map(|e| e.ln()).collect();
+    let ln_d2: Vec<f64> = delta.iter().map(|d| 2.0 * d.ln()).collect();
     let mut l = 0.0;
     for f in &data.freq {
         let sd = eps[f.mode] * f.lambda_hat;
         let z = (f.lambda_hat - t.lambda[f.mode]) / sd;
-        l -= 0.5 * (LN_2PI + z * z) + sd.ln();
+        l -= 0.5 * (LN_2PI + z * z) + ln_eps[f.mode] + f.ln_lambda_hat;
     }
     for (s, omm) in data.shapes.iter().zip(&t.one_minus_mac) {
         let n = s.n_points as f64;
         let d2 = delta[s.mode] * delta[s.mode];
-        l -= 0.5 * n * (LN_2PI + (d2 / n).ln()) + n * omm / (2.0 * d2);
+        l -= 0.5 * n * (LN_2PI + ln_d2[s.mode] - s.ln_n) + n * omm / (2.0 * d2);
     }
     if let Some(m) = &data.mass {
         let z = (m.mass_g - t.mass_g) / m.sd_g;
@@ -320,6 +337,7 @@ mod tests {
                 pt_u,
                 gram: 0,
                 n_points: n,
+                ln_n: (n as f64).ln(),
             });
         }
         let v = p.values.clone();

@@ -40,6 +40,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
+use super::reference::GaussianReference;
 use super::resample;
 use super::stats::{cholesky_jittered, ess, log_mean_exp, lower_mul};
 
@@ -85,9 +86,9 @@ pub struct SmcOptions {
     pub target_ess: f64,
     /// Target acceptance rate of the random-walk moves.
     pub target_acceptance: f64,
-    /// The mutation of a stage ends when the mean, over all coordinates (g and every
-    /// unit), of the correlation across particles between a coordinate's value after
-    /// resampling and its current value has fallen to this level.
+    /// The mutation of a stage ends when the largest, over all coordinates (g and every
+    /// unit), correlation across particles between a coordinate's value after resampling
+    /// and its current value has fallen to this level.
     pub decorrelation_target: f64,
     pub min_sweeps: usize,
     pub max_sweeps: usize,
@@ -97,6 +98,19 @@ pub struct SmcOptions {
     pub noncentred: usize,
     /// Give up (with an error) after this many tempering stages.
     pub max_stages: usize,
+    /// Independent groups of consecutive particles (1 = one population). With G > 1 the
+    /// weights are normalised and resampled within each group of N/G particles, so each
+    /// group is its own sampler of the same target given its particles' fixed auxiliary
+    /// values: the modular ("cut") posterior of a second step, where every group carries one
+    /// first-step draw that the second step's data must not reweight (Plummer 2015). The
+    /// temperature follows the mean within-group ESS; the log evidence is the log of the
+    /// mean over groups of each group's evidence.
+    #[serde(default = "one")]
+    pub groups: usize,
+}
+
+fn one() -> usize {
+    1
 }
 
 impl Default for SmcOptions {
@@ -111,6 +125,7 @@ impl Default for SmcOptions {
             global_moves: 20,
             noncentred: 2,
             max_stages: 400,
+            groups: 1,
         }
     }
 }
@@ -144,6 +159,9 @@ pub struct StageInfo {
     pub ess: f64,
     /// log mean of the incremental weights.
     pub log_evidence_increment: f64,
+    /// With groups: each group's log mean incremental weight (empty without groups).
+    #[serde(skip)]
+    pub group_log_evidence_increments: Vec<f64>,
     /// Acceptance rates of the unit moves, centred global moves and non-centred moves.
     pub acceptance_unit: f64,
     pub acceptance_global: f64,
@@ -156,6 +174,8 @@ pub struct StageInfo {
     pub unique_after_resampling: usize,
     /// Model evaluations of this stage (all particles).
     pub model_evals: u64,
+    /// `temper` (a tempering stage) or `correct` (a correction stage at β = 1, [`correct`]).
+    pub kind: &'static str,
 }
 
 /// The result of one run.
@@ -163,6 +183,8 @@ pub struct StageInfo {
 pub struct RunResult<C> {
     pub particles: Vec<Particle<C>>,
     pub log_evidence: f64,
+    /// With groups: each group's log evidence (empty without groups).
+    pub group_log_evidence: Vec<f64>,
     pub stages: Vec<StageInfo>,
 }
 
@@ -171,6 +193,8 @@ pub struct RunResult<C> {
 pub enum SmcError {
     #[error("no prior draw has a finite likelihood ({0} particles): the model cannot be evaluated anywhere the prior puts mass")]
     NoFiniteLikelihood(usize),
+    #[error("{n} particles cannot form {groups} equal groups")]
+    Groups { n: usize, groups: usize },
     #[error("tempering did not reach β = 1 within {stages} stages (β = {beta:.3e})")]
     TooManyStages { stages: usize, beta: f64 },
 }
@@ -196,6 +220,77 @@ fn rng_for(parts: &[u64]) -> ChaCha8Rng {
 
 fn normal_vec(rng: &mut ChaCha8Rng, n: usize) -> Vec<f64> {
     (0..n).map(|_| StandardNormal.sample(rng)).collect()
+}
+
+/// Where tempering starts (β = 0).
+#[derive(Clone, Debug, Default)]
+pub enum Start {
+    /// The prior: π_β ∝ p(g) Π_b p(x_b | g) · L^β.
+    #[default]
+    Prior,
+    /// A normalised reference q (see [`super::reference`]): π_β ∝ q^{1−β} · (p L)^β. The log
+    /// evidence is still that of p L, because q is normalised.
+    Reference(std::sync::Arc<GaussianReference>),
+}
+
+/// The tempered density π_β, split as the moves need it: a global part and one part per unit.
+struct Tempered<'a, T: Target> {
+    t: &'a T,
+    start: &'a Start,
+    beta: f64,
+}
+
+/// (1 − β) a + β b, exact at the ends (where the other side may be −∞).
+fn mix(a: f64, b: f64, beta: f64) -> f64 {
+    if beta == 0.0 {
+        a
+    } else if beta == 1.0 {
+        b
+    } else {
+        (1.0 - beta) * a + beta * b
+    }
+}
+
+impl<T: Target> Tempered<'_, T> {
+    fn global(&self, g: &[f64]) -> f64 {
+        let lp = self.t.log_prior_global(g);
+        match self.start {
+            Start::Prior => lp,
+            Start::Reference(q) => mix(q.global.lpdf(g), lp, self.beta),
+        }
+    }
+    /// The unit's part given its log prior under g and its log-likelihood.
+    fn unit(&self, b: usize, x: &[f64], lp: f64, ll: f64) -> f64 {
+        match self.start {
+            Start::Prior => {
+                lp + if self.beta == 0.0 {
+                    0.0
+                } else {
+                    self.beta * ll
+                }
+            }
+            Start::Reference(q) => mix(q.units[b].lpdf(x), lp + ll, self.beta),
+        }
+    }
+    /// log (p L / q) of a particle: what the next temperature increment weights by.
+    fn log_ratio(&self, p: &Particle<T::Cache>) -> f64 {
+        match self.start {
+            Start::Prior => p.log_lik(),
+            Start::Reference(q) => {
+                let ctx = self.t.ctx(&p.g);
+                let mut s = self.t.log_prior_global(&p.g) - q.global.lpdf(&p.g);
+                for b in 0..p.x.len() {
+                    s += self.t.log_prior_unit(&ctx, b, &p.x[b]) + p.ll[b]
+                        - q.units[b].lpdf(&p.x[b]);
+                }
+                if s.is_nan() {
+                    f64::NEG_INFINITY
+                } else {
+                    s
+                }
+            }
+        }
+    }
 }
 
 /// Evaluate unit b at x: model output and log L_b (−∞ where the model is undefined).
@@ -251,6 +346,8 @@ fn cloud_cholesky(vs: &[&[f64]]) -> Vec<f64> {
 struct Proposals {
     unit: Vec<Vec<f64>>,
     global: Vec<f64>,
+    /// The cloud's standard deviation of every global coordinate (componentwise moves).
+    global_sd: Vec<f64>,
 }
 
 fn proposals<C>(ps: &[Particle<C>], n_units: usize) -> Proposals {
@@ -258,7 +355,20 @@ fn proposals<C>(ps: &[Particle<C>], n_units: usize) -> Proposals {
         .map(|b| cloud_cholesky(&ps.iter().map(|p| p.x[b].as_slice()).collect::<Vec<_>>()))
         .collect();
     let global = cloud_cholesky(&ps.iter().map(|p| p.g.as_slice()).collect::<Vec<_>>());
-    Proposals { unit, global }
+    let ng = ps[0].g.len();
+    let global_sd = (0..ng)
+        .map(|i| {
+            (0..=i)
+                .map(|k| global[i * ng + k].powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
+        .collect();
+    Proposals {
+        unit,
+        global,
+        global_sd,
+    }
 }
 
 #[derive(Default, Clone, Copy)]
@@ -271,35 +381,29 @@ struct SweepStats {
     n_global: f64,
     acc_nc: f64,
     n_nc: f64,
+    acc_comp: f64,
+    n_comp: f64,
     evals: u64,
-}
-
-struct Scales {
-    unit: f64,
-    unit_z: f64,
-    global: f64,
-    nc: f64,
 }
 
 /// Metropolis step of unit b to `xn` (symmetric proposal) with uniform `u`: returns
 /// (1 if accepted else 0, model evaluations made).
 fn unit_move<T: Target>(
-    t: &T,
+    tp: &Tempered<'_, T>,
     p: &mut Particle<T::Cache>,
     ctx: &T::Ctx,
     b: usize,
     xn: Vec<f64>,
     u: f64,
-    beta: f64,
 ) -> (f64, u64) {
-    let tempered = |ll: f64| if beta == 0.0 { 0.0 } else { beta * ll };
+    let t = tp.t;
     let lp_new = t.log_prior_unit(ctx, b, &xn);
-    if !lp_new.is_finite() {
+    if !lp_new.is_finite() && matches!(tp.start, Start::Prior) {
         return (0.0, 0);
     }
     let (c, ll) = eval_unit(t, &p.aux, ctx, b, &xn);
     let lp_old = t.log_prior_unit(ctx, b, &p.x[b]);
-    let log_r = lp_new + tempered(ll) - lp_old - tempered(p.ll[b]);
+    let log_r = tp.unit(b, &xn, lp_new, ll) - tp.unit(b, &p.x[b], lp_old, p.ll[b]);
     if ll > f64::NEG_INFINITY && u.ln() < log_r {
         p.x[b] = xn;
         p.cache[b] = c;
@@ -311,21 +415,19 @@ fn unit_move<T: Target>(
 }
 
 /// One Metropolis-within-Gibbs sweep of one particle at β.
-#[allow(clippy::too_many_arguments)]
 fn sweep<T: Target>(
-    t: &T,
+    tp: &Tempered<'_, T>,
     p: &mut Particle<T::Cache>,
-    beta: f64,
     prop: &Proposals,
     sc: &Scales,
     opts: &SmcOptions,
     rng: &mut ChaCha8Rng,
 ) -> SweepStats {
+    let t = tp.t;
     let mut st = SweepStats::default();
     let d = t.unit_dim();
     let ng = t.n_global();
     let mut ctx = t.ctx(&p.g);
-    let tempered = |ll: f64| if beta == 0.0 { 0.0 } else { beta * ll };
     // Unit moves, g fixed.
     for b in 0..t.n_units() {
         let eps = normal_vec(rng, d);
@@ -337,7 +439,7 @@ fn sweep<T: Target>(
             .collect();
         let u: f64 = rng.random();
         st.n_unit += 1.0;
-        let (acc, evals) = unit_move(t, p, &ctx, b, xn, u, beta);
+        let (acc, evals) = unit_move(tp, p, &ctx, b, xn, u);
         st.acc_unit += acc;
         st.evals += evals;
         // The same unit in its standardised coordinates z = (diag σ L)⁻¹ (x − μ): the
@@ -356,12 +458,12 @@ fn sweep<T: Target>(
         let xn = t.from_standard(&ctx, b, &zn);
         let u: f64 = rng.random();
         st.n_unit_z += 1.0;
-        let (acc, evals) = unit_move(t, p, &ctx, b, xn, u, beta);
+        let (acc, evals) = unit_move(tp, p, &ctx, b, xn, u);
         st.acc_unit_z += acc;
         st.evals += evals;
     }
     // Centred moves of g: no model evaluation.
-    let mut lpg = t.log_prior_global(&p.g);
+    let mut lg = tp.global(&p.g);
     for _ in 0..opts.global_moves {
         let eps = normal_vec(rng, ng);
         let step = lower_mul(&prop.global, ng, &eps);
@@ -372,54 +474,98 @@ fn sweep<T: Target>(
                 .collect();
         let u: f64 = rng.random();
         st.n_global += 1.0;
-        let lpg_new = t.log_prior_global(&gn);
-        if !lpg_new.is_finite() {
+        if !t.log_prior_global(&gn).is_finite() {
             continue;
         }
+        let lg_new = tp.global(&gn);
         let ctx_new = t.ctx(&gn);
-        let mut log_r = lpg_new - lpg;
+        let mut log_r = lg_new - lg;
         let mut ll_new = Vec::with_capacity(t.n_units());
         for b in 0..t.n_units() {
-            log_r += t.log_prior_unit(&ctx_new, b, &p.x[b]) - t.log_prior_unit(&ctx, b, &p.x[b]);
             let l = match &p.cache[b] {
                 Some(c) => t.log_lik(&ctx_new, b, &p.x[b], c),
                 None => f64::NEG_INFINITY,
             };
-            log_r += tempered(l) - tempered(p.ll[b]);
+            let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
+            log_r += tp.unit(b, &p.x[b], t.log_prior_unit(&ctx_new, b, &p.x[b]), l)
+                - tp.unit(b, &p.x[b], t.log_prior_unit(&ctx, b, &p.x[b]), p.ll[b]);
             ll_new.push(l);
         }
         if log_r.is_finite() && u.ln() < log_r {
             p.g = gn;
             ctx = ctx_new;
             p.ll = ll_new;
-            lpg = lpg_new;
+            lg = lg_new;
             st.acc_global += 1.0;
         }
     }
-    // Non-centred moves of g: units follow through their standardised values.
+    // Componentwise centred moves of g, one coordinate at a time (no model evaluation):
+    // a joint random walk in g is throttled by its worst-scaled coordinate, and the error
+    // scales of rarely informative modes have skewed, heavy-tailed posteriors that it
+    // barely moves.
+    for k in 0..ng {
+        let e: f64 = StandardNormal.sample(rng);
+        let mut gn = p.g.clone();
+        gn[k] += sc.comp * prop.global_sd[k] * e;
+        let u: f64 = rng.random();
+        st.n_comp += 1.0;
+        if !t.log_prior_global(&gn).is_finite() {
+            continue;
+        }
+        let lg_new = tp.global(&gn);
+        let ctx_new = t.ctx(&gn);
+        let mut log_r = lg_new - lg;
+        let mut ll_new = Vec::with_capacity(t.n_units());
+        for b in 0..t.n_units() {
+            let l = match &p.cache[b] {
+                Some(c) => t.log_lik(&ctx_new, b, &p.x[b], c),
+                None => f64::NEG_INFINITY,
+            };
+            let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
+            log_r += tp.unit(b, &p.x[b], t.log_prior_unit(&ctx_new, b, &p.x[b]), l)
+                - tp.unit(b, &p.x[b], t.log_prior_unit(&ctx, b, &p.x[b]), p.ll[b]);
+            ll_new.push(l);
+        }
+        if log_r.is_finite() && u.ln() < log_r {
+            p.g = gn;
+            ctx = ctx_new;
+            p.ll = ll_new;
+            lg = lg_new;
+            st.acc_comp += 1.0;
+        }
+    }
+    // Non-centred moves of g: units follow through their standardised values. In (g, z)
+    // coordinates the density gains the Jacobian |∂x/∂z| = det(diag σ L), and
+    // log p(x | g) + log |∂x/∂z| = log N(z; 0, I) is unchanged when z is, so a unit
+    // contributes [U_b(new) − U_b(old)] + [log p(x_b | g) − log p(x_b' | g')].
     for _ in 0..if t.n_units() > 0 { opts.noncentred } else { 0 } {
         let eps = normal_vec(rng, ng);
         let step = lower_mul(&prop.global, ng, &eps);
         let gn: Vec<f64> = p.g.iter().zip(&step).map(|(a, s)| a + sc.nc * s).collect();
         let u: f64 = rng.random();
         st.n_nc += 1.0;
-        let lpg_new = t.log_prior_global(&gn);
-        if lpg_new.is_finite() {
+        if t.log_prior_global(&gn).is_finite() {
+            let lg_new = tp.global(&gn);
             let ctx_new = t.ctx(&gn);
-            let mut log_r = lpg_new - lpg;
+            let mut log_r = lg_new - lg;
             let mut moved = Vec::with_capacity(t.n_units());
             for b in 0..t.n_units() {
                 let z = t.to_standard(&ctx, b, &p.x[b]);
                 let xn = t.from_standard(&ctx_new, b, &z);
                 let (c, l) = eval_unit(t, &p.aux, &ctx_new, b, &xn);
                 st.evals += 1;
-                log_r += tempered(l) - tempered(p.ll[b]);
+                let (lp_old, lp_new) = (
+                    t.log_prior_unit(&ctx, b, &p.x[b]),
+                    t.log_prior_unit(&ctx_new, b, &xn),
+                );
+                log_r += tp.unit(b, &xn, lp_new, l) - tp.unit(b, &p.x[b], lp_old, p.ll[b]) + lp_old
+                    - lp_new;
                 moved.push((xn, c, l));
             }
             if log_r.is_finite() && u.ln() < log_r {
                 p.g = gn;
                 ctx = ctx_new;
-                lpg = lpg_new;
+                lg = lg_new;
                 for (b, (xn, c, l)) in moved.into_iter().enumerate() {
                     p.x[b] = xn;
                     p.cache[b] = c;
@@ -440,13 +586,15 @@ fn flat<C>(p: &Particle<C>) -> Vec<f64> {
     v
 }
 
-/// Mean over coordinates of the correlation across particles between `start` and the
-/// particles' current values (coordinates constant in either are left out).
-fn mean_correlation<C: Sync + Send>(start: &[Vec<f64>], ps: &[Particle<C>]) -> f64 {
+/// Largest, over coordinates, correlation across particles between `start` and the
+/// particles' current values (coordinates constant in either are left out). The largest, not
+/// the mean: a few slowly mixing coordinates (heavy-tailed error scales, say) would hide in
+/// a mean over dozens of well-mixed ones.
+fn max_correlation<C: Sync + Send>(start: &[Vec<f64>], ps: &[Particle<C>]) -> f64 {
     let now: Vec<Vec<f64>> = ps.iter().map(flat).collect();
     let n = start.len() as f64;
     let dim = start[0].len();
-    let mut sum = 0.0;
+    let mut sum = f64::NEG_INFINITY;
     let mut cnt = 0.0;
     for k in 0..dim {
         let (ma, mb) = (
@@ -461,33 +609,41 @@ fn mean_correlation<C: Sync + Send>(start: &[Vec<f64>], ps: &[Particle<C>]) -> f
             sbb += db * db;
         }
         if saa > 0.0 && sbb > 0.0 {
-            sum += sab / (saa * sbb).sqrt();
+            sum = f64::max(sum, sab / (saa * sbb).sqrt());
             cnt += 1.0;
         }
     }
     if cnt > 0.0 {
-        sum / cnt
+        sum
     } else {
         0.0
     }
 }
 
+/// Mean over groups of the within-group ESS fraction of log weights.
+fn group_ess_fraction(lw: &[f64], groups: usize) -> f64 {
+    let k = lw.len() / groups;
+    (0..groups)
+        .map(|g| ess(&lw[g * k..(g + 1) * k]) / k as f64)
+        .sum::<f64>()
+        / groups as f64
+}
+
 /// Bisection for the next temperature increment: the largest Δ ≤ 1 − β whose incremental
-/// weights keep ESS ≥ target · N.
-fn next_increment(ll: &[f64], beta: f64, target: f64) -> f64 {
-    let n = ll.len() as f64;
-    let ess_at = |delta: f64| -> f64 {
+/// weights keep the (mean within-group) ESS ≥ target · N.
+fn next_increment(ll: &[f64], beta: f64, target: f64, groups: usize) -> f64 {
+    let frac_at = |delta: f64| -> f64 {
         let lw: Vec<f64> = ll.iter().map(|l| delta * l).collect();
-        ess(&lw)
+        group_ess_fraction(&lw, groups)
     };
     let max = 1.0 - beta;
-    if ess_at(max) >= target * n {
+    if frac_at(max) >= target {
         return max;
     }
     let (mut lo, mut hi) = (0.0, max);
     for _ in 0..100 {
         let mid = 0.5 * (lo + hi);
-        if ess_at(mid) >= target * n {
+        if frac_at(mid) >= target {
             lo = mid;
         } else {
             hi = mid;
@@ -507,10 +663,11 @@ pub fn run<T: Target>(
     run_index: usize,
     observe: &(dyn Fn(&StageInfo) + Sync),
 ) -> Result<RunResult<T::Cache>, SmcError> {
-    run_with_aux(t, opts, seed, run_index, &[], observe)
+    run_with(t, opts, seed, run_index, &Start::Prior, &[], observe)
 }
 
-/// [`run`] where particle i carries `aux[i % aux.len()]` (fixed values the model reads and
+/// [`run`] where particle i carries `aux[i % aux.len()]` (with groups: group g carries
+/// `aux[g % aux.len()]`) (fixed values the model reads and
 /// no move changes: e.g. step-1 posterior draws); `aux` empty = no auxiliary values. The
 /// initial distribution is then aux × prior, and the log evidence is that of the data given
 /// the aux distribution.
@@ -522,6 +679,20 @@ pub fn run_with_aux<T: Target>(
     aux: &[std::sync::Arc<Vec<f64>>],
     observe: &(dyn Fn(&StageInfo) + Sync),
 ) -> Result<RunResult<T::Cache>, SmcError> {
+    run_with(t, opts, seed, run_index, &Start::Prior, aux, observe)
+}
+
+/// One run from `start` (the prior or a reference q), with auxiliary values as in
+/// [`run_with_aux`].
+pub fn run_with<T: Target>(
+    t: &T,
+    opts: &SmcOptions,
+    seed: u64,
+    run_index: usize,
+    start: &Start,
+    aux: &[std::sync::Arc<Vec<f64>>],
+    observe: &(dyn Fn(&StageInfo) + Sync),
+) -> Result<RunResult<T::Cache>, SmcError> {
     let n = opts.n_particles;
     let r = run_index as u64;
     let empty = std::sync::Arc::new(Vec::new());
@@ -529,10 +700,16 @@ pub fn run_with_aux<T: Target>(
         .into_par_iter()
         .map(|i| {
             let mut rng = rng_for(&[seed, r, 0, u64::MAX, i as u64]);
-            let (g, x) = t.sample_prior(&mut rng);
+            let (g, x) = match start {
+                Start::Prior => t.sample_prior(&mut rng),
+                Start::Reference(q) => q.sample(&mut rng),
+            };
             let ctx = t.ctx(&g);
             let aux = if aux.is_empty() {
                 empty.clone()
+            } else if opts.groups > 1 {
+                // One auxiliary value per group.
+                aux[(i / (n / opts.groups).max(1)) % aux.len()].clone()
             } else {
                 aux[i % aux.len()].clone()
             };
@@ -550,78 +727,90 @@ pub fn run_with_aux<T: Target>(
             }
         })
         .collect();
-    run_from(t, opts, seed, run_index, particles, 0.0, observe)
+    run_from(t, opts, seed, run_index, start, particles, 0.0, observe)
 }
 
-/// Continue tempering from `particles` (equally weighted, distributed as π_β at `beta0`).
-pub fn run_from<T: Target>(
-    t: &T,
+/// Per-run adaptive state carried from stage to stage.
+struct Scales {
+    unit: f64,
+    unit_z: f64,
+    global: f64,
+    nc: f64,
+    comp: f64,
+}
+
+impl Scales {
+    fn new<T: Target>(t: &T) -> Scales {
+        let d = t.unit_dim().max(1) as f64;
+        let g = (t.n_global().max(1) as f64).sqrt();
+        Scales {
+            unit: 2.38 / d.sqrt(),
+            unit_z: 2.38 / d.sqrt(),
+            global: 2.38 / g,
+            nc: 2.38 / g,
+            comp: 2.4,
+        }
+    }
+}
+
+/// Weight by `lw`, resample, mutate at `beta`: one stage. `mutate_if_unique_below`: the
+/// mutation is skipped when at least this fraction of the particles stayed distinct through
+/// resampling (1.0 or more: always mutate).
+#[allow(clippy::too_many_arguments)]
+fn stage_step<T: Target>(
+    tp: &Tempered<'_, T>,
     opts: &SmcOptions,
     seed: u64,
     run_index: usize,
-    mut particles: Vec<Particle<T::Cache>>,
-    beta0: f64,
-    observe: &(dyn Fn(&StageInfo) + Sync),
-) -> Result<RunResult<T::Cache>, SmcError> {
+    stage: usize,
+    particles: &mut Vec<Particle<T::Cache>>,
+    lw: &[f64],
+    scales: &mut Scales,
+    mutate_if_unique_below: f64,
+) -> StageInfo {
+    let t = tp.t;
     let n = particles.len();
     let r = run_index as u64;
-    if particles.iter().all(|p| p.log_lik() == f64::NEG_INFINITY) {
-        return Err(SmcError::NoFiniteLikelihood(n));
+    let groups = opts.groups.max(1);
+    let k = n / groups;
+    // Per group: log mean weight (the group's evidence increment), then resampling inside
+    // the group.
+    let group_inc: Vec<f64> = (0..groups)
+        .map(|g| log_mean_exp(&lw[g * k..(g + 1) * k]))
+        .collect();
+    let inc = log_mean_exp(lw);
+    let ess_inc = group_ess_fraction(lw, groups) * n as f64;
+    let mut idx = Vec::with_capacity(n);
+    for g in 0..groups {
+        let w = super::stats::normalize(&lw[g * k..(g + 1) * k]);
+        let u: f64 = rng_for(&[seed, r, stage as u64, u64::MAX - 1, g as u64]).random();
+        idx.extend(
+            resample::systematic(&w, k, u)
+                .into_iter()
+                .map(|i| g * k + i),
+        );
     }
-    let d = t.unit_dim().max(1) as f64;
-    let mut beta = beta0;
-    let mut log_z = 0.0;
-    let mut stages = Vec::new();
-    let mut scales = Scales {
-        unit: 2.38 / d.sqrt(),
-        unit_z: 2.38 / d.sqrt(),
-        global: 2.38 / (t.n_global().max(1) as f64).sqrt(),
-        nc: 2.38 / (t.n_global().max(1) as f64).sqrt(),
+    let unique = {
+        let mut v = idx.clone();
+        v.dedup();
+        v.len()
     };
-    let mut stage = 0usize;
-    while beta < 1.0 {
-        stage += 1;
-        if stage > opts.max_stages {
-            return Err(SmcError::TooManyStages {
-                stages: opts.max_stages,
-                beta,
-            });
-        }
-        let ll: Vec<f64> = particles.iter().map(|p| p.log_lik()).collect();
-        let delta = next_increment(&ll, beta, opts.target_ess);
-        let lw: Vec<f64> = ll.iter().map(|l| delta * l).collect();
-        let inc = log_mean_exp(&lw);
-        let ess_inc = ess(&lw);
-        log_z += inc;
-        beta = if 1.0 - (beta + delta) < 1e-12 {
-            1.0
-        } else {
-            beta + delta
-        };
-        // Resample.
-        let w = super::stats::normalize(&lw);
-        let u: f64 = rng_for(&[seed, r, stage as u64, u64::MAX - 1]).random();
-        let idx = resample::systematic(&w, n, u);
-        let unique = {
-            let mut v = idx.clone();
-            v.dedup();
-            v.len()
-        };
-        particles = idx.iter().map(|&i| particles[i].clone()).collect();
-        // Mutate.
-        let prop = proposals(&particles, t.n_units());
+    *particles = idx.iter().map(|&i| particles[i].clone()).collect();
+    let mut rho = 0.0;
+    let (mut acc_u, mut acc_g, mut acc_n) = (0.0, 0.0, 0.0);
+    let mut sweeps = 0;
+    let mut evals = 0u64;
+    if (unique as f64) < mutate_if_unique_below * n as f64 {
+        let prop = proposals(particles, t.n_units());
         let start: Vec<Vec<f64>> = particles.iter().map(flat).collect();
-        let mut rho = 1.0;
-        let (mut acc_u, mut acc_g, mut acc_n) = (0.0, 0.0, 0.0);
-        let mut sweeps = 0;
-        let mut evals = 0u64;
+        rho = 1.0;
         while sweeps < opts.max_sweeps {
             let stats: Vec<SweepStats> = particles
                 .par_iter_mut()
                 .enumerate()
                 .map(|(i, p)| {
                     let mut rng = rng_for(&[seed, r, stage as u64, sweeps as u64, i as u64]);
-                    sweep(t, p, beta, &prop, &scales, opts, &mut rng)
+                    sweep(tp, p, &prop, scales, opts, &mut rng)
                 })
                 .collect();
             sweeps += 1;
@@ -635,6 +824,8 @@ pub fn run_from<T: Target>(
                 tot.n_global += s.n_global;
                 tot.acc_nc += s.acc_nc;
                 tot.n_nc += s.n_nc;
+                tot.acc_comp += s.acc_comp;
+                tot.n_comp += s.n_comp;
                 tot.evals += s.evals;
             }
             evals += tot.evals;
@@ -657,32 +848,162 @@ pub fn run_from<T: Target>(
             adapt(&mut scales.unit_z, rate(tot.acc_unit_z, tot.n_unit_z));
             adapt(&mut scales.global, ag);
             adapt(&mut scales.nc, an);
-            rho = mean_correlation(&start, &particles);
+            // One-dimensional moves: the optimal acceptance is 0.44 (Gelman et al.).
+            let ac = rate(tot.acc_comp, tot.n_comp);
+            if ac.is_finite() {
+                scales.comp = (scales.comp * (ac - 0.44).exp()).clamp(1e-3, 20.0);
+            }
+            rho = max_correlation(&start, particles);
             if sweeps >= opts.min_sweeps && rho <= opts.decorrelation_target {
                 break;
             }
         }
-        let k = sweeps as f64;
-        let info = StageInfo {
-            run: run_index,
-            stage,
-            beta,
-            ess: ess_inc,
-            log_evidence_increment: inc,
-            acceptance_unit: acc_u / k,
-            acceptance_global: acc_g / k,
-            acceptance_noncentred: acc_n / k,
-            sweeps,
-            decorrelation: rho,
-            unique_after_resampling: unique,
-            model_evals: evals,
+    }
+    let k = (sweeps as f64).max(1.0);
+    StageInfo {
+        run: run_index,
+        stage,
+        beta: tp.beta,
+        ess: ess_inc,
+        log_evidence_increment: inc,
+        group_log_evidence_increments: if groups > 1 { group_inc } else { vec![] },
+        acceptance_unit: if sweeps > 0 { acc_u / k } else { f64::NAN },
+        acceptance_global: if sweeps > 0 { acc_g / k } else { f64::NAN },
+        acceptance_noncentred: if sweeps > 0 { acc_n / k } else { f64::NAN },
+        sweeps,
+        decorrelation: rho,
+        unique_after_resampling: unique,
+        model_evals: evals,
+        kind: "temper",
+    }
+}
+
+/// Continue tempering from `particles` (equally weighted, distributed as π_β at `beta0`,
+/// with π_β as `start` defines it).
+#[allow(clippy::too_many_arguments)]
+pub fn run_from<T: Target>(
+    t: &T,
+    opts: &SmcOptions,
+    seed: u64,
+    run_index: usize,
+    start: &Start,
+    mut particles: Vec<Particle<T::Cache>>,
+    beta0: f64,
+    observe: &(dyn Fn(&StageInfo) + Sync),
+) -> Result<RunResult<T::Cache>, SmcError> {
+    let n = particles.len();
+    if particles.iter().all(|p| p.log_lik() == f64::NEG_INFINITY) {
+        return Err(SmcError::NoFiniteLikelihood(n));
+    }
+    let groups = opts.groups.max(1);
+    if n % groups != 0 {
+        return Err(SmcError::Groups { n, groups });
+    }
+    let mut beta = beta0;
+    let mut log_z = 0.0;
+    let mut group_log_z = vec![0.0; groups];
+    let mut stages = Vec::new();
+    let mut scales = Scales::new(t);
+    let mut stage = 0usize;
+    while beta < 1.0 {
+        stage += 1;
+        if stage > opts.max_stages {
+            return Err(SmcError::TooManyStages {
+                stages: opts.max_stages,
+                beta,
+            });
+        }
+        let ratio: Vec<f64> = {
+            let tp = Tempered { t, start, beta };
+            particles.par_iter().map(|p| tp.log_ratio(p)).collect()
         };
+        let delta = next_increment(&ratio, beta, opts.target_ess, groups);
+        let lw: Vec<f64> = ratio.iter().map(|l| delta * l).collect();
+        beta = if 1.0 - (beta + delta) < 1e-12 {
+            1.0
+        } else {
+            beta + delta
+        };
+        let tp = Tempered { t, start, beta };
+        let info = stage_step(
+            &tp,
+            opts,
+            seed,
+            run_index,
+            stage,
+            &mut particles,
+            &lw,
+            &mut scales,
+            f64::INFINITY,
+        );
+        if groups > 1 {
+            for (z, i) in group_log_z
+                .iter_mut()
+                .zip(&info.group_log_evidence_increments)
+            {
+                *z += i;
+            }
+            log_z = log_mean_exp(&group_log_z);
+        } else {
+            log_z += info.log_evidence_increment;
+        }
         observe(&info);
         stages.push(info);
     }
     Ok(RunResult {
+        group_log_evidence: if groups > 1 { group_log_z } else { vec![] },
         particles,
         log_evidence: log_z,
         stages,
     })
+}
+
+/// A correction stage at β = 1: weight the particles of `res` by `lw` (e.g. log L_new −
+/// log L_old when the particles' model outputs were replaced by a more exact model's),
+/// resample (within groups), and mutate under `t` only when fewer than
+/// `mutate_if_unique_below` · N particles stayed distinct. The particles' caches and
+/// log-likelihoods must already be `t`'s. The run's log evidence is corrected and the stage
+/// appended to its stages; the stage is returned too.
+pub fn correct<T: Target>(
+    t: &T,
+    opts: &SmcOptions,
+    seed: u64,
+    run_index: usize,
+    res: &mut RunResult<T::Cache>,
+    lw: &[f64],
+    mutate_if_unique_below: f64,
+) -> StageInfo {
+    let tp = Tempered {
+        t,
+        start: &Start::Prior,
+        beta: 1.0,
+    };
+    let mut scales = Scales::new(t);
+    let stage = res.stages.len() + 1;
+    let mut info = stage_step(
+        &tp,
+        opts,
+        seed,
+        run_index,
+        stage,
+        &mut res.particles,
+        lw,
+        &mut scales,
+        mutate_if_unique_below,
+    );
+    info.kind = "correct";
+    if res.group_log_evidence.is_empty() {
+        res.log_evidence += info.log_evidence_increment;
+    } else {
+        for (z, i) in res
+            .group_log_evidence
+            .iter_mut()
+            .zip(&info.group_log_evidence_increments)
+        {
+            *z += i;
+        }
+        res.log_evidence = log_mean_exp(&res.group_log_evidence);
+    }
+    res.stages.push(info.clone());
+    info
 }

@@ -4,8 +4,9 @@
 //!
 //! - Step 1 (boards, free-free): a unit is a board, x = relative deviations of the updated
 //!   parameters from the board file's nominal values (p = p₀ (1 + x)).
-//! - Step 2 (joints, bolted) is to come: a unit will be a bolted measurement, with the
-//!   board's parameters in the particle's auxiliary values (`smc::run_with_aux`).
+//! - Step 2 (joints, bolted): a unit is a bolted measurement, x = (ln K / K₀) of its joint
+//!   stiffness; the board's parameters come from a step-1 posterior draw held in the
+//!   particle's auxiliary values (`smc::run_with`; groups make it the modular posterior).
 //!
 //! Global vector: [population (see [`PopulationPrior`]) | ln ε per mode | ln δ per mode];
 //! the error blocks are absent when fixed. ln ε and ln δ are normal (log-normal scales): a
@@ -125,6 +126,14 @@ pub enum Compose {
         updated: Vec<usize>,
         reference: Vec<f64>,
     },
+    /// Step 2: p[board_params[k]] = aux[unit_board[b] · board_params.len() + k] (the step-1
+    /// draw of unit b's board, absolute values) and p[k_idx] = k_ref · exp(x₀).
+    Joints {
+        board_params: Vec<usize>,
+        unit_board: Vec<usize>,
+        k_idx: usize,
+        k_ref: f64,
+    },
 }
 
 /// One hierarchical modal target.
@@ -145,9 +154,8 @@ pub struct Ctx {
 }
 
 impl ModalTarget {
-    /// The ROM parameter vector of unit b. `aux` and `b` are read by no variant yet: step 2
-    /// will take the board's parameters from them.
-    pub fn values(&self, _aux: &[f64], _b: usize, x: &[f64]) -> Vec<f64> {
+    /// The ROM parameter vector of unit b given the particle's auxiliary values.
+    pub fn values(&self, aux: &[f64], b: usize, x: &[f64]) -> Vec<f64> {
         let map = &self.predictor.rom.map;
         let mut v = map.nominal.clone();
         match &self.compose {
@@ -155,6 +163,19 @@ impl ModalTarget {
                 for (k, &i) in updated.iter().enumerate() {
                     v[i] = reference[k] * (1.0 + x[k]);
                 }
+            }
+            Compose::Joints {
+                board_params,
+                unit_board,
+                k_idx,
+                k_ref,
+            } => {
+                let d1 = board_params.len();
+                let o = unit_board[b] * d1;
+                for (k, &i) in board_params.iter().enumerate() {
+                    v[i] = aux[o + k];
+                }
+                v[*k_idx] = k_ref * x[0].exp();
             }
         }
         v

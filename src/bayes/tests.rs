@@ -151,11 +151,46 @@ fn smc_matches_the_closed_form_hierarchical_posterior_and_evidence() {
         n_particles: 1000,
         ..SmcOptions::default()
     };
-    let runs = 8;
-    let results: Vec<_> = (0..runs)
+    let results: Vec<_> = (0..8)
         .map(|r| smc::run(&t, &opts, 42, r, &|_| {}).expect("run"))
         .collect();
-    let exact_log_z: f64 = (0..2).map(|k| exact(&t, k).2).sum();
+    assert_matches_exact(&t, &results);
+}
+
+/// The same from the Laplace reference of `bayes::reference` instead of the prior: still
+/// exact (q is normalised), in fewer stages.
+#[test]
+fn smc_from_the_laplace_reference_matches_the_closed_form_in_fewer_stages() {
+    let t = problem();
+    let opts = SmcOptions {
+        n_particles: 1000,
+        ..SmcOptions::default()
+    };
+    let (q, info) = super::reference::laplace_reference(
+        &t,
+        &[],
+        &super::reference::ReferenceOptions::default(),
+        5,
+    )
+    .expect("reference");
+    assert!(info.converged.iter().all(|c| *c), "{info:?}");
+    let start = smc::Start::Reference(std::sync::Arc::new(q));
+    let results: Vec<_> = (0..8)
+        .map(|r| smc::run_with(&t, &opts, 42, r, &start, &[], &|_| {}).expect("run"))
+        .collect();
+    let from_prior = smc::run(&t, &opts, 42, 0, &|_| {})
+        .expect("run")
+        .stages
+        .len();
+    let from_q = results[0].stages.len();
+    eprintln!("stages: from the prior {from_prior}, from the reference {from_q}");
+    assert!(from_q < from_prior, "{from_q} vs {from_prior}");
+    assert_matches_exact(&t, &results);
+}
+
+fn assert_matches_exact(t: &LinearGaussian, results: &[smc::RunResult<Vec<f64>>]) {
+    let runs = results.len();
+    let exact_log_z: f64 = (0..2).map(|k| exact(t, k).2).sum();
     let zs: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
     let zm = zs.iter().sum::<f64>() / runs as f64;
     let zsd = (zs.iter().map(|z| (z - zm).powi(2)).sum::<f64>() / (runs - 1) as f64).sqrt();
@@ -167,7 +202,7 @@ fn smc_matches_the_closed_form_hierarchical_posterior_and_evidence() {
     eprintln!("log Z: {zm:.4} ± {zse:.4} (sd across runs {zsd:.4}), exact {exact_log_z:.4}");
     assert!(zsd < 0.3, "log Z spread across runs {zsd}");
     for k in 0..2 {
-        let (mean, var, _) = exact(&t, k);
+        let (mean, var, _) = exact(t, k);
         for i in 0..mean.len() {
             let get = |p: &smc::Particle<Vec<f64>>| if i == 0 { p.g[k] } else { p.x[i - 1][k] };
             let per_run: Vec<(f64, f64)> = results

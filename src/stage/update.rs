@@ -27,6 +27,34 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 pub const MANIFEST_BOARDS: &str = "update_boards.manifest.json";
+pub const MANIFEST_JOINTS: &str = "update_joints.manifest.json";
+
+pub const JOINTS: TableSpec = TableSpec {
+    name: "joints",
+    doc: "Step-2 posterior draws of every bolted measurement's joint stiffness, one row per particle and measurement. The modular (cut) posterior: every particle carries one step-1 draw of the boards (population.parquet's boards_run/boards_draw), and the bolted data updated only the joint parameters.",
+    open: false,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
+        c("draw", Col::Int32, false, "", "Particle index within the run."),
+        c("measurement_id", Col::Utf8, false, "", "Bolted measurement."),
+        c("board_id", Col::Utf8, false, "", "Board of the measurement."),
+        c("k_con_n_per_m", Col::Float64, false, "N/m", "Total joint contact stiffness of the measurement's fixing."),
+    ],
+};
+
+pub const POPULATION_JOINTS: TableSpec = TableSpec {
+    name: "population_joints",
+    doc: "Step-2 (joints) population draws, one row per particle, written as population.parquet in the step-2 directory: the step-1 draw the particle carries, the population of ln k_con (natural log of N/m) and the bolted modes' prediction errors `eps_<label>`, `delta_<label>` (when inferred).",
+    open: true,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
+        c("draw", Col::Int32, false, "", "Particle index within the run (ArviZ draw)."),
+        c("boards_run", Col::Int32, false, "", "run of the step-1 draw (boards.parquet) this particle carries."),
+        c("boards_draw", Col::Int32, false, "", "draw of the step-1 draw this particle carries."),
+        c("mu_ln_k_con", Col::Float64, false, "ln(N/m)", "Population mean of ln k_con_n_per_m."),
+        c("sigma_ln_k_con", Col::Float64, false, "ln(N/m)", "Population standard deviation of ln k_con_n_per_m."),
+    ],
+};
 
 pub const POPULATION: TableSpec = TableSpec {
     name: "population",
@@ -100,7 +128,7 @@ pub const STAGES: TableSpec = TableSpec {
         c(
             "acceptance_unit",
             Col::Float64,
-            false,
+            true,
             "",
             "Acceptance rate of the per-unit moves.",
         ),
@@ -131,7 +159,14 @@ pub const STAGES: TableSpec = TableSpec {
             Col::Float64,
             false,
             "",
-            "ROM evaluations of the stage.",
+            "Model evaluations of the stage (ROM or verified surrogate).",
+        ),
+        c(
+            "kind",
+            Col::Utf8,
+            false,
+            "",
+            "`temper`: a tempering stage; `correct`: the final correction from the surrogates to the ROM at β = 1 (weights L_ROM / L_surrogate, resampling, and mutation under the ROM only when resampling left fewer than 98 % of the particles distinct).",
         ),
     ],
 };
@@ -195,6 +230,10 @@ pub struct UpdateOptions {
     /// Cap on the ROM's basis (None: the physics core's default). A smaller basis is faster
     /// and less accurate; the ROM accuracy test states the error of the default.
     pub rom_max_basis: Option<usize>,
+    /// Start tempering from the prior (else from the Laplace-type reference).
+    pub from_prior: bool,
+    /// Local surrogates of the units' modal terms, corrected to the ROM at the end.
+    pub surrogate: bool,
 }
 
 impl UpdateOptions {
@@ -461,6 +500,7 @@ fn shape_obs(
         pt_u,
         gram,
         n_points: n,
+        ln_n: (n as f64).ln(),
     }))
 }
 
@@ -489,10 +529,7 @@ fn unit_data(
             continue;
         };
         let w = 2.0 * std::f64::consts::PI * p.freq_hz;
-        d.freq.push(FreqObs {
-            mode: m,
-            lambda_hat: w * w,
-        });
+        d.freq.push(FreqObs::new(m, w * w));
         meta.push(ObsMeta {
             measurement_id: p.measurement_id.clone(),
             board_id: p.board_id.clone(),
@@ -738,8 +775,8 @@ fn write_stages(
         Arc::new(Float64Array::from_iter_values(
             st.iter().map(|s| s.log_evidence_increment),
         )),
-        Arc::new(Float64Array::from_iter_values(
-            st.iter().map(|s| s.acceptance_unit),
+        Arc::new(Float64Array::from_iter(
+            st.iter().map(|s| nan_null(s.acceptance_unit)),
         )),
         Arc::new(Float64Array::from_iter(
             st.iter().map(|s| nan_null(s.acceptance_global)),
@@ -756,6 +793,7 @@ fn write_stages(
         Arc::new(Float64Array::from_iter_values(
             st.iter().map(|s| s.model_evals as f64),
         )),
+        Arc::new(StringArray::from_iter_values(st.iter().map(|s| s.kind))),
     ];
     write_table(path, &STAGES, cols, &[], prov)
 }
@@ -835,13 +873,131 @@ fn evidence_json(log_z: &[f64], posterior: &str) -> serde_json::Value {
 // Running the sampler.
 
 /// Independent runs of one target, with a progress bar over the tempering path.
+/// What the acceleration did (reference, surrogates, correction), for the report.
+#[derive(Default, serde::Serialize)]
+struct Acceleration {
+    start: &'static str,
+    reference_model_evals: u64,
+    reference_g_acceptance: f64,
+    reference_units_converged: Vec<bool>,
+    surrogate_units: usize,
+    surrogate_refused: Vec<String>,
+    surrogate_degree: Vec<Option<usize>>,
+    surrogate_max_abs_dlog_lik: Vec<Option<f64>>,
+    surrogate_rom_evals: u64,
+    /// Proposals outside a surrogate's box (rejected: the posterior is restricted to the
+    /// boxes, 10 reference sd wide).
+    surrogate_proposals_outside_box: u64,
+    /// Fraction of the final particles' units beyond 60 % of their box's half-width.
+    surrogate_edge_fraction: f64,
+    /// Per run: ESS of the correction weights L_ROM / L_surrogate, in particles.
+    correction_ess: Vec<f64>,
+    /// Per run: largest |log L_ROM − log L_surrogate| over the particles.
+    correction_max_abs_dlog_lik: Vec<f64>,
+    /// Per run: mutation sweeps of the correction stage (0 when resampling kept ≥ 98 %).
+    correction_sweeps: Vec<usize>,
+    /// Posterior sd / reference sd per global coordinate (first run): how well the
+    /// reference fitted (1 = exactly; the reference is inflated, so ~0.8 is expected).
+    reference_sd_ratio_global: Vec<f64>,
+    /// The same per unit coordinate, unit by unit.
+    reference_sd_ratio_units: Vec<Vec<f64>>,
+}
+
+type Results = Vec<smc::RunResult<crate::bayes::modal::Terms>>;
+
+/// `aux`: per run, the auxiliary values its particles carry (step 2: step-1 draws; with
+/// `opts.smc.groups` > 1 group g carries aux[g]); empty for step 1.
 fn run_smc(
     target: &ModalTarget,
     opts: &UpdateOptions,
     what: &str,
     aux: &[Vec<Arc<Vec<f64>>>],
     verbose: bool,
-) -> anyhow::Result<Vec<smc::RunResult<crate::bayes::modal::Terms>>> {
+) -> anyhow::Result<(Results, Acceleration)> {
+    use crate::bayes::reference::{laplace_reference, ReferenceOptions};
+    use crate::bayes::surrogate::{fit_unit, SurrogateOptions, SurrogateTarget};
+    use rand::SeedableRng;
+    use rayon::prelude::*;
+    let mut acc = Acceleration {
+        start: if opts.from_prior {
+            "prior"
+        } else {
+            "reference"
+        },
+        ..Default::default()
+    };
+    let start = if opts.from_prior {
+        smc::Start::Prior
+    } else {
+        // Units are located with the mean auxiliary values (step 2: the step-1 posterior
+        // mean); the tempering corrects for the spread of the draws.
+        let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
+        let aux_mean: Vec<f64> = match all_aux.first() {
+            None => vec![],
+            Some(a0) => (0..a0.len())
+                .map(|k| all_aux.iter().map(|a| a[k]).sum::<f64>() / all_aux.len() as f64)
+                .collect(),
+        };
+        let (q, info) =
+            laplace_reference(target, &aux_mean, &ReferenceOptions::default(), opts.seed)
+                .map_err(|e| anyhow!("{what}: building the reference: {e}"))?;
+        acc.reference_model_evals = info.model_evals;
+        acc.reference_g_acceptance = info.g_acceptance;
+        acc.reference_units_converged = info.converged;
+        smc::Start::Reference(Arc::new(q))
+    };
+    let nu = smc::Target::n_units(target);
+    let surrogates: Vec<Option<Arc<crate::bayes::surrogate::UnitSurrogate>>> =
+        match (&start, opts.surrogate) {
+            (smc::Start::Reference(q), true) => {
+                let ctx = smc::Target::ctx(target, &q.global.mean);
+                let so = SurrogateOptions::default();
+                let fits: Vec<_> = (0..nu)
+                    .into_par_iter()
+                    .map(|b| {
+                        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(smc::stream_key(&[
+                            opts.seed, 0x5A, b as u64,
+                        ]));
+                        let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
+                        let samples: Vec<Vec<f64>> = (0..400)
+                            .map(|i| {
+                                let a: &[f64] = if all_aux.is_empty() {
+                                    &[]
+                                } else {
+                                    all_aux[(i * 7919) % all_aux.len()]
+                                };
+                                target.values(a, b, &q.units[b].sample(&mut rng))
+                            })
+                            .collect();
+                        fit_unit(target, b, &samples, &ctx.eps, &ctx.delta, &so, opts.seed)
+                    })
+                    .collect();
+                fits.into_iter()
+                    .enumerate()
+                    .map(|(b, f)| match f {
+                        Ok(s) => {
+                            acc.surrogate_units += 1;
+                            acc.surrogate_degree.push(Some(s.degree));
+                            acc.surrogate_max_abs_dlog_lik.push(Some(s.max_abs_dll));
+                            acc.surrogate_rom_evals += s.rom_evals;
+                            Some(Arc::new(s))
+                        }
+                        Err(e) => {
+                            acc.surrogate_refused.push(format!("unit {b}: {e}"));
+                            acc.surrogate_degree.push(None);
+                            acc.surrogate_max_abs_dlog_lik.push(None);
+                            None
+                        }
+                    })
+                    .collect()
+            }
+            _ => vec![None; nu],
+        };
+    let sur = SurrogateTarget {
+        inner: target,
+        surrogates,
+        outside_box: Default::default(),
+    };
     let pb = crate::stage::progress_bar((opts.runs * 1000) as u64, what);
     let mut out = vec![];
     for r in 0..opts.runs {
@@ -849,8 +1005,8 @@ fn run_smc(
         let observe = |s: &StageInfo| {
             if verbose {
                 eprintln!(
-                    "{what} run {} stage {:3} beta {:.3e} ess {:6.0} acc unit/global/nc {:.2}/{:.2}/{:.2} sweeps {:2} rho {:.2} unique {:5} evals {}",
-                    r + 1, s.stage, s.beta, s.ess, s.acceptance_unit, s.acceptance_global,
+                    "{what} run {} stage {:3} {} beta {:.3e} ess {:6.0} acc unit/global/nc {:.2}/{:.2}/{:.2} sweeps {:2} rho {:.2} unique {:5} evals {}",
+                    r + 1, s.stage, s.kind, s.beta, s.ess, s.acceptance_unit, s.acceptance_global,
                     s.acceptance_noncentred, s.sweeps, s.decorrelation, s.unique_after_resampling, s.model_evals
                 );
             }
@@ -867,12 +1023,97 @@ fn run_smc(
         } else {
             &aux[r % aux.len()]
         };
-        let res = smc::run_with_aux(target, &opts.smc, opts.seed, r, a, &observe)
+        let mut res = smc::run_with(&sur, &opts.smc, opts.seed, r, &start, a, &observe)
             .map_err(|e| anyhow!("{what}, run {}: {e}", r + 1))?;
+        if sur.surrogates.iter().any(|s| s.is_some()) {
+            // Correction to the ROM: every particle's units re-evaluated by the ROM and
+            // weighted by L_ROM / L_surrogate.
+            let lw: Vec<f64> = res
+                .particles
+                .par_iter_mut()
+                .map(|p| {
+                    let ctx = smc::Target::ctx(target, &p.g);
+                    let mut lw = 0.0;
+                    for b in 0..nu {
+                        if sur.surrogates[b].is_none() {
+                            continue;
+                        }
+                        let c = smc::Target::model(target, &p.aux, b, &p.x[b]);
+                        let l = match &c {
+                            Some(c) => smc::Target::log_lik(target, &ctx, b, &p.x[b], c),
+                            None => f64::NEG_INFINITY,
+                        };
+                        let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
+                        lw += l - p.ll[b];
+                        p.cache[b] = c;
+                        p.ll[b] = l;
+                    }
+                    lw
+                })
+                .collect();
+            let max_dll = lw.iter().map(|v| v.abs()).fold(0.0, f64::max);
+            let info = smc::correct(target, &opts.smc, opts.seed, r, &mut res, &lw, 0.98);
+            let rom_evals = (res.particles.len() * acc.surrogate_units) as u64;
+            if let Some(last) = res.stages.last_mut() {
+                last.model_evals += rom_evals;
+            }
+            observe(&info);
+            acc.correction_ess.push(info.ess);
+            acc.correction_max_abs_dlog_lik.push(max_dll);
+            acc.correction_sweeps.push(info.sweeps);
+        }
+        if let (0, smc::Start::Reference(q)) = (r, &start) {
+            let sd = |vals: Vec<f64>| -> f64 {
+                let n = vals.len() as f64;
+                let m = vals.iter().sum::<f64>() / n;
+                (vals.iter().map(|v| (v - m).powi(2)).sum::<f64>() / n).sqrt()
+            };
+            let qs = q.global.sd();
+            acc.reference_sd_ratio_global = (0..qs.len())
+                .map(|k| sd(res.particles.iter().map(|p| p.g[k]).collect()) / qs[k])
+                .collect();
+            acc.reference_sd_ratio_units = (0..nu)
+                .map(|b| {
+                    let qs = q.units[b].sd();
+                    (0..qs.len())
+                        .map(|k| sd(res.particles.iter().map(|p| p.x[b][k]).collect()) / qs[k])
+                        .collect()
+                })
+                .collect();
+            if verbose {
+                eprintln!(
+                    "{what}: posterior sd / reference sd, global {:.2?}",
+                    acc.reference_sd_ratio_global
+                );
+                eprintln!(
+                    "{what}: posterior sd / reference sd, units {:.2?}",
+                    acc.reference_sd_ratio_units
+                );
+            }
+        }
         out.push(res);
     }
     pb.finish_and_clear();
-    Ok(out)
+    acc.surrogate_proposals_outside_box =
+        sur.outside_box.load(std::sync::atomic::Ordering::Relaxed);
+    // The final particles must sit well inside the boxes (the posterior is restricted to
+    // them): the fraction beyond 60 % of the half-width, i.e. 6 reference sd.
+    let mut n_edge = 0usize;
+    let mut n_all = 0usize;
+    for res in &out {
+        for p in &res.particles {
+            for (b, s) in sur.surrogates.iter().enumerate() {
+                if let Some(s) = s {
+                    n_all += 1;
+                    if s.box_position(&target.values(&p.aux, b, &p.x[b])) > 0.6 {
+                        n_edge += 1;
+                    }
+                }
+            }
+        }
+    }
+    acc.surrogate_edge_fraction = n_edge as f64 / n_all.max(1) as f64;
+    Ok((out, acc))
 }
 
 /// The ROM-box rule: the fraction of posterior draws, per unit parameter, outside the box
@@ -1275,8 +1516,15 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             units,
         };
         let t0 = std::time::Instant::now();
-        let results = run_smc(&target, opts, "boards", &[], verbose)?;
+        let (results, acceleration) = run_smc(&target, opts, "boards", &[], verbose)?;
         let sampler_seconds = t0.elapsed().as_secs_f64();
+        if acceleration.surrogate_edge_fraction > 1e-3 {
+            findings.push(Finding::new(
+                Severity::Warning,
+                "update.surrogate_box_edge",
+                format!("{:.2} % of the final particles lie beyond 6 reference sd of their unit's surrogate box: the posterior may be restricted by the box", 100.0 * acceleration.surrogate_edge_fraction),
+            ));
+        }
         let violations = box_violations(
             &results,
             &unit_names,
@@ -1356,6 +1604,495 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             &labels.labels,
             verbose,
             "update boards",
+            &acceleration,
+        )
+    })
+}
+
+/// Step-1 posterior draws read back from boards.parquet.
+struct Step1 {
+    /// Boards in the order of `values` blocks.
+    board_ids: Vec<String>,
+    /// The updated parameters (ROM names), in column order.
+    params: Vec<String>,
+    /// Per (run, draw): every board's parameter values, board-major.
+    draws: Vec<((i32, i32), Vec<f64>)>,
+}
+
+fn read_step1(path: &Path) -> anyhow::Result<Step1> {
+    let batches = tables::read_parquet(path)?;
+    let Some(first) = batches.first() else {
+        bail!("{}: no rows: the step-1 posterior is empty", path.display());
+    };
+    let params: Vec<String> = first
+        .schema()
+        .fields()
+        .iter()
+        .filter(|f| f.data_type() == &DataType::Float64 && f.name() != "mass_g")
+        .map(|f| f.name().clone())
+        .collect();
+    if params.is_empty() {
+        bail!(
+            "{}: no parameter columns (expected e.g. e_x_pa, mass_scale)",
+            path.display()
+        );
+    }
+    let mut by: BTreeMap<(i32, i32), BTreeMap<String, Vec<f64>>> = BTreeMap::new();
+    let mut board_ids: BTreeSet<String> = BTreeSet::new();
+    for b in &batches {
+        let c = Cols { batch: b, path };
+        let (run, draw, bid) = (c.i32("run")?, c.i32("draw")?, c.str("board_id")?);
+        let cols: Vec<&Float64Array> = params.iter().map(|p| c.f64(p)).collect::<Result<_, _>>()?;
+        for i in 0..b.num_rows() {
+            board_ids.insert(bid.value(i).to_string());
+            by.entry((run.value(i), draw.value(i))).or_default().insert(
+                bid.value(i).to_string(),
+                cols.iter().map(|a| a.value(i)).collect(),
+            );
+        }
+    }
+    let board_ids: Vec<String> = board_ids.into_iter().collect();
+    let mut draws = vec![];
+    for (k, m) in by {
+        let mut v = Vec::with_capacity(board_ids.len() * params.len());
+        for bid in &board_ids {
+            let Some(x) = m.get(bid) else {
+                bail!(
+                    "{}: draw (run {}, draw {}) has no row for board {bid}",
+                    path.display(),
+                    k.0,
+                    k.1
+                );
+            };
+            v.extend(x);
+        }
+        draws.push((k, v));
+    }
+    Ok(Step1 {
+        board_ids,
+        params,
+        draws,
+    })
+}
+
+/// The joint stiffness that best fits the bolted frequencies at the boards' posterior mean,
+/// by golden-section search on ln K over ±`span` around the nominal with the full FE model:
+/// the ROM is built around it (its box is ±20 % and the nominal joint can be off by far
+/// more). Returns K in N/m.
+fn fit_joint_centre(
+    board: &Board,
+    labels: &Labels,
+    rows: &[&PairRow],
+    board_mean: &BTreeMap<String, f64>,
+    k_nominal: f64,
+    span: f64,
+) -> anyhow::Result<f64> {
+    let n_modes = labels.model_mode.iter().max().map_or(1, |m| m + 3);
+    // Median measured frequency per label.
+    let med: Vec<Option<f64>> = labels
+        .labels
+        .iter()
+        .map(|l| {
+            let mut f: Vec<f64> = rows
+                .iter()
+                .filter(|p| &p.label == l)
+                .map(|p| p.freq_hz)
+                .collect();
+            f.sort_by(f64::total_cmp);
+            (!f.is_empty()).then(|| f[f.len() / 2])
+        })
+        .collect();
+    let cost = |lnk: f64| -> anyhow::Result<f64> {
+        let mut b = board.clone();
+        b.joint.k_con_n_per_m = lnk.exp();
+        let model = FeModel::build(&b, Setup::bolted(), &b.mesh)?;
+        let mut p = model.nominal_params();
+        for (name, v) in board_mean {
+            if let Ok(i) = p.position(name) {
+                p.values[i] = *v;
+            }
+        }
+        let m = model.modes(&p, n_modes)?;
+        let mut c = 0.0;
+        for (k, &mm) in labels.model_mode.iter().enumerate() {
+            if let (Some(f), Some(fm)) = (med[k], m.freq_hz.get(mm)) {
+                c += ((fm - f) / f).powi(2);
+            }
+        }
+        Ok(c)
+    };
+    let (mut a, mut b) = (k_nominal.ln() - span, k_nominal.ln() + span);
+    let r = (5f64.sqrt() - 1.0) / 2.0;
+    let (mut x1, mut x2) = (b - r * (b - a), a + r * (b - a));
+    let (mut f1, mut f2) = (cost(x1)?, cost(x2)?);
+    for _ in 0..14 {
+        if f1 < f2 {
+            b = x2;
+            x2 = x1;
+            f2 = f1;
+            x1 = b - r * (b - a);
+            f1 = cost(x1)?;
+        } else {
+            a = x1;
+            x1 = x2;
+            f1 = f2;
+            x2 = a + r * (b - a);
+            f2 = cost(x2)?;
+        }
+    }
+    Ok((0.5 * (a + b)).exp())
+}
+
+/// Step 2: joints, bolted, the modular posterior over the step-1 draws.
+pub fn run_joints(
+    opts: &UpdateOptions,
+    boards_dir: &Path,
+    verbose: bool,
+) -> anyhow::Result<StageOutcome> {
+    let extract_dir = opts.extract_dir();
+    let pairs_path = opts.pair_dir.join("pairs.parquet");
+    let presence_path = opts.pair_dir.join("presence.parquet");
+    let modes_path = extract_dir.join("modes.parquet");
+    let step1_path = boards_dir.join("boards.parquet");
+    let mut inputs = vec![
+        pairs_path.clone(),
+        presence_path.clone(),
+        modes_path.clone(),
+        step1_path.clone(),
+    ];
+    if let Some(b) = &opts.board {
+        inputs.push(b.clone());
+    }
+    let (board, board_text) = load_board(opts.board.as_deref())?;
+    let mut config = serde_json::to_value(opts)?;
+    config["board_blake3"] = blake3::hash(board_text.as_bytes())
+        .to_hex()
+        .to_string()
+        .into();
+    config["step"] = "joints".into();
+    config["posterior"] = "cut".into();
+    let spec = StageSpec {
+        stage: "update_joints".into(),
+        inputs,
+        input_base: PathBuf::new(),
+        config,
+        seed: Some(opts.seed),
+        manifest_path: opts.out.join(MANIFEST_JOINTS),
+    };
+    crate::stage::run(spec, opts.force, |prep| {
+        let mut findings = Findings::default();
+        let step1 = read_step1(&step1_path)?;
+        let pairs = read_pairs(&pairs_path)?;
+        let presence = read_presence(&presence_path, "bolted")?;
+        let labels = select_labels(&pairs, "bolted", &opts.modes, &presence, &mut findings)?;
+        let nominal_board = FeModel::build(&board, Setup::bolted(), &board.mesh)?;
+        let nominal = nominal_board.nominal_params();
+        let k_idx = nominal.position(names::K_CON)?;
+        let k_ref = nominal.values[k_idx];
+        let mut board_params = vec![];
+        for p in &step1.params {
+            board_params.push(nominal.position(p).map_err(|_| {
+                anyhow!(
+                    "{}: step-1 parameter {p:?} is not a parameter of the bolted model ({:?})",
+                    step1_path.display(),
+                    nominal.names
+                )
+            })?);
+        }
+        // The boards' posterior means (for the joint's centre).
+        let d1 = step1.params.len();
+        let nd = step1.draws.len() as f64;
+        let mut board_mean: BTreeMap<String, f64> = BTreeMap::new();
+        for (k, p) in step1.params.iter().enumerate() {
+            let m = step1
+                .draws
+                .iter()
+                .map(|(_, v)| {
+                    (0..step1.board_ids.len())
+                        .map(|b| v[b * d1 + k])
+                        .sum::<f64>()
+                })
+                .sum::<f64>()
+                / (nd * step1.board_ids.len() as f64);
+            board_mean.insert(p.clone(), m);
+        }
+        let bolted_rows: Vec<&PairRow> = pairs.iter().filter(|p| p.setup == "bolted").collect();
+        let k_centre = fit_joint_centre(
+            &board,
+            &labels,
+            &bolted_rows,
+            &board_mean,
+            k_ref,
+            opts.prior_width.max(1.0) * 3.0,
+        )?;
+        let mut centred = board.clone();
+        centred.joint.k_con_n_per_m = k_centre;
+        let model = FeModel::build(&centred, Setup::bolted(), &centred.mesh)?;
+        let all = all_labels(&pairs, "bolted", 40);
+        let need = labels
+            .model_mode
+            .iter()
+            .chain(&all.model_mode)
+            .copied()
+            .max()
+            .unwrap_or(0)
+            + 1;
+        let rom = rom_for(&model, need, opts)?;
+        let nominal_mass_g = model.total_mass_kg(&model.nominal_params())? * 1e3;
+        let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?;
+        let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?;
+        let wanted: BTreeSet<(String, i32)> = bolted_rows
+            .iter()
+            .map(|p| (p.measurement_id.clone(), p.mode))
+            .collect();
+        let shapes = read_shapes(&modes_path, &wanted)?;
+        let use_shapes = opts.delta.is_some();
+        let measurement_ids: BTreeSet<String> = bolted_rows
+            .iter()
+            .map(|p| p.measurement_id.clone())
+            .collect();
+        let mut units = vec![];
+        let mut units_all = vec![];
+        let mut unit_names = vec![];
+        let mut unit_boards = vec![];
+        let mut unit_board_idx = vec![];
+        for m in &measurement_ids {
+            let rows: Vec<&PairRow> = bolted_rows
+                .iter()
+                .copied()
+                .filter(|p| &p.measurement_id == m)
+                .collect();
+            let bid = rows[0].board_id.clone();
+            let Some(bi) = step1.board_ids.iter().position(|b| *b == bid) else {
+                findings.push(
+                    Finding::new(
+                        Severity::Warning,
+                        "update.no_step1_posterior",
+                        format!("bolted measurement of board {bid}, which has no step-1 posterior in {}; left out of step 2", step1_path.display()),
+                    )
+                    .measurement(m.clone()),
+                );
+                continue;
+            };
+            let sh = use_shapes.then_some((&model, &rom, &shapes));
+            let (data, _) = unit_data(&rows, &labels.labels, sh, &mut findings)?;
+            let mut residual_findings = Findings::default();
+            let (data_all, meta_all) = unit_data(
+                &rows,
+                &all.labels,
+                Some((&model, &rom, &shapes)),
+                &mut residual_findings,
+            )?;
+            for f in residual_findings.0 {
+                if !findings.0.contains(&f) {
+                    findings.push(f);
+                }
+            }
+            if data.freq.is_empty() {
+                findings.push(
+                    Finding::new(
+                        Severity::Warning,
+                        "update.measurement_no_modes",
+                        format!("bolted measurement of board {bid} has no paired mode to update; left out of step 2"),
+                    )
+                    .measurement(m.clone()),
+                );
+                continue;
+            }
+            units.push(data);
+            units_all.push((data_all, meta_all));
+            unit_names.push(m.clone());
+            unit_boards.push(bid);
+            unit_board_idx.push(bi);
+        }
+        if units.is_empty() {
+            bail!("no bolted measurement has data for step 2 (no paired bolted mode of a board with a step-1 posterior)");
+        }
+        let target = ModalTarget {
+            predictor,
+            compose: Compose::Joints {
+                board_params: board_params.clone(),
+                unit_board: unit_board_idx.clone(),
+                k_idx,
+                k_ref,
+            },
+            prior: PopulationPrior {
+                mu_mean: vec![0.0],
+                mu_sd: vec![opts.prior_width],
+                sigma_scale: vec![opts.sigma_scale],
+                lkj_eta: opts.lkj_eta,
+            },
+            errors: ErrorModel {
+                n_modes: labels.labels.len(),
+                eps: opts.eps,
+                delta: opts.delta,
+            },
+            units,
+        };
+        // The cut posterior: groups of `group` particles, each carrying one step-1 draw; every
+        // run takes its own evenly spaced subset of the step-1 draws.
+        let group = 10usize;
+        let groups = (opts.smc.n_particles / group).max(1);
+        let mut sopts = opts.clone();
+        sopts.smc.n_particles = groups * group;
+        sopts.smc.groups = groups;
+        let mut aux_index: Vec<Vec<usize>> = vec![];
+        let aux: Vec<Vec<Arc<Vec<f64>>>> = (0..opts.runs)
+            .map(|r| {
+                let idx: Vec<usize> = (0..groups)
+                    .map(|g| {
+                        ((g * opts.runs + r) * step1.draws.len() / (groups * opts.runs))
+                            % step1.draws.len()
+                    })
+                    .collect();
+                let a = idx
+                    .iter()
+                    .map(|&i| Arc::new(step1.draws[i].1.clone()))
+                    .collect();
+                aux_index.push(idx);
+                a
+            })
+            .collect();
+        let t0 = std::time::Instant::now();
+        let (results, acceleration) = run_smc(&target, &sopts, "joints", &aux, verbose)?;
+        let sampler_seconds = t0.elapsed().as_secs_f64();
+        if acceleration.surrogate_edge_fraction > 1e-3 {
+            findings.push(Finding::new(
+                Severity::Warning,
+                "update.surrogate_box_edge",
+                format!("{:.2} % of the final particles lie beyond 6 reference sd of their unit's surrogate box: the posterior may be restricted by the box", 100.0 * acceleration.surrogate_edge_fraction),
+            ));
+        }
+        let lo = (k_centre * (1.0 - opts.rom_box) / k_ref).ln();
+        let hi = (k_centre * (1.0 + opts.rom_box) / k_ref).ln();
+        let violations = box_violations(
+            &results,
+            &unit_names,
+            &[names::K_CON.to_string()],
+            |_, x| x >= lo && x <= hi,
+            opts.box_tolerance,
+        );
+        if !violations.is_empty() {
+            bail!(
+                "the joint posterior presses against the ROM's ±{:.0} % box around k_con_n_per_m = {k_centre:.4e} N/m (fitted to the bolted modes at the boards' posterior mean):\n  {}\nThe joints differ more between measurements than one ROM covers; a per-measurement ROM is not built yet.",
+                100.0 * opts.rom_box,
+                violations.join("\n  ")
+            );
+        }
+        let prov = provenance("update_joints", &prep.fingerprint);
+        let mut outputs = vec![];
+        // population.parquet (step 2).
+        let mut pcols: Vec<(String, String)> = vec![
+            ("mu_ln_k_con".into(), "ln(N/m)".into()),
+            ("sigma_ln_k_con".into(), "ln(N/m)".into()),
+        ];
+        let infer_eps = matches!(target.errors.eps, ErrorPrior::Inferred { .. });
+        let infer_delta = matches!(target.errors.delta, Some(ErrorPrior::Inferred { .. }));
+        if infer_eps {
+            pcols.extend(
+                labels
+                    .labels
+                    .iter()
+                    .map(|l| (format!("eps_{l}"), String::new())),
+            );
+        }
+        if infer_delta {
+            pcols.extend(
+                labels
+                    .labels
+                    .iter()
+                    .map(|l| (format!("delta_{l}"), String::new())),
+            );
+        }
+        let mut pop = DrawTable::new(&pcols);
+        let mut jt = DrawTable::new(&[(names::K_CON.to_string(), "N/m".to_string())]);
+        let (mut b_run, mut b_draw) = (vec![], vec![]);
+        let mut joint_boards = vec![];
+        for (r, i, p) in particles_of(&results) {
+            let ctx = smc::Target::ctx(&target, &p.g);
+            let mut row = vec![k_ref.ln() + ctx.pop.mu[0], ctx.pop.sigma[0]];
+            if infer_eps {
+                row.extend(&ctx.eps);
+            }
+            if infer_delta {
+                row.extend(&ctx.delta);
+            }
+            pop.push(r, i, None, &row);
+            let g = i / group;
+            let (kr, kd) = step1.draws
+                [aux_index[r % aux_index.len()][g % aux_index[r % aux_index.len()].len()]]
+            .0;
+            b_run.push(kr);
+            b_draw.push(kd);
+            for (b, name) in unit_names.iter().enumerate() {
+                jt.push(r, i, Some(name), &[k_ref * p.x[b][0].exp()]);
+                joint_boards.push(unit_boards[b].clone());
+            }
+        }
+        let mut summary = pop.summarize(opts.runs, true);
+        summary.extend(jt.summarize(opts.runs, false));
+        let p = opts.out.join("population.parquet");
+        let cols: Vec<ArrayRef> = vec![
+            Arc::new(Int32Array::from(pop.run.clone())),
+            Arc::new(Int32Array::from(pop.draw.clone())),
+            Arc::new(Int32Array::from(b_run)),
+            Arc::new(Int32Array::from(b_draw)),
+            Arc::new(Float64Array::from(pop.cols[0].2.clone())),
+            Arc::new(Float64Array::from(pop.cols[1].2.clone())),
+        ];
+        write_table(&p, &POPULATION_JOINTS, cols, &pop.cols[2..], &prov)?;
+        outputs.push(p);
+        let p = opts.out.join("joints.parquet");
+        let cols: Vec<ArrayRef> = vec![
+            Arc::new(Int32Array::from(jt.run.clone())),
+            Arc::new(Int32Array::from(jt.draw.clone())),
+            Arc::new(StringArray::from_iter_values(
+                jt.key.iter().map(|k| k.as_deref().unwrap_or("")),
+            )),
+            Arc::new(StringArray::from_iter_values(joint_boards.iter())),
+            Arc::new(Float64Array::from(jt.cols[0].2.clone())),
+        ];
+        write_table(&p, &JOINTS, cols, &[], &prov)?;
+        outputs.push(p);
+        let p = opts.out.join("summary.parquet");
+        write_summary(&p, &summary, &prov)?;
+        outputs.push(p);
+        let stages: Vec<StageInfo> = results.iter().flat_map(|r| r.stages.clone()).collect();
+        let p = opts.out.join("stages.parquet");
+        write_stages(&p, &stages, &prov)?;
+        outputs.push(p);
+        let res = residuals(
+            &target,
+            &all_pred,
+            &all.labels,
+            &labels.labels,
+            &units_all,
+            &results,
+            "bolted",
+            opts.residual_draws,
+        );
+        let p = opts.out.join("residuals.parquet");
+        write_residuals(&p, &res, &prov)?;
+        outputs.push(p);
+        let log_z: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
+        let mut ev = evidence_json(&log_z, "joints (step 2), modular (cut) posterior");
+        ev["note_cut"] = "log p(bolted data | step-1 posterior): the mean over the carried step-1 draws of each draw's evidence".into();
+        ev["k_con_rom_centre_n_per_m"] = k_centre.into();
+        let p = opts.out.join("evidence.json");
+        crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
+        outputs.push(p);
+        finish(
+            &sopts,
+            findings,
+            outputs,
+            &results,
+            &summary,
+            ev,
+            sampler_seconds,
+            &labels.labels,
+            verbose,
+            "update joints",
+            &acceleration,
         )
     })
 }
@@ -1372,6 +2109,7 @@ fn finish(
     labels: &[String],
     verbose: bool,
     what: &str,
+    acceleration: &Acceleration,
 ) -> anyhow::Result<StageResult> {
     for f in findings.iter() {
         if verbose || f.severity >= Severity::Warning {
@@ -1396,6 +2134,7 @@ fn finish(
         "max_r_hat": max_rhat,
         "min_ess": min_ess,
         "evidence": ev,
+        "acceleration": acceleration,
         "findings": findings.0,
     });
     let p = opts.out.join("update_report.json");
