@@ -19,4 +19,6 @@ pub mod stats;
 pub mod target;
 
 #[cfg(test)]
+mod sbc_tests;
+#[cfg(test)]
 mod tests;
