@@ -8,3 +8,4 @@ mod lab;
 mod layout;
 mod nightly;
 mod stages;
+mod update;

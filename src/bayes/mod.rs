@@ -21,4 +21,6 @@ pub mod surrogate;
 pub mod target;
 
 #[cfg(test)]
+mod sbc_tests;
+#[cfg(test)]
 mod tests;

@@ -1,0 +1,348 @@
+//! `hbmu update boards` on bad or incomplete inputs: each case gives a clear finding or
+//! error, and the rest of the campaign goes through.
+//!
+//! Every test writes a small virtual-lab campaign (3 boards × 2 free-free measurements, no
+//! bolted ones, a coarse truth mesh), runs `ingest → extract → pair`, corrupts one input and
+//! runs step 1 at a small size: the built-in board on a 16 × 10 mesh as the model, a ROM of at
+//! most 12 vectors, 2 modes (torsion-1, bending-x-1) without shape terms, e_x_pa, g_xy_pa and
+//! mass_scale updated, 60 particles × 1 run. The findings are checked in `update_report.json`, the draws in the Parquet outputs.
+
+use crate::common::*;
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+/// What the two modes and the balance identify (e_y_pa would be left to its prior, whose
+/// tails reach beyond the ROM's box and stop the stage).
+const PARAMS: &str = "e_x_pa,g_xy_pa,mass_scale";
+
+const SCENARIO: &str = r#"
+name = "small"
+description = "three boards, two free-free measurements each, no bolted ones"
+seed = 7
+
+[campaign]
+n_boards = 3
+free_per_board = 2
+bolted = []
+
+[truth]
+mesh_nx = 24
+mesh_ny = 15
+n_free_modes = 8
+"#;
+
+/// A work directory with a simulated campaign in `campaign/`.
+struct Work {
+    dir: tempfile::TempDir,
+}
+
+impl Work {
+    fn new() -> Work {
+        let dir = tempfile::tempdir().unwrap();
+        let w = Work { dir };
+        std::fs::write(w.p("small.toml"), SCENARIO).unwrap();
+        let o = hbmu(&[
+            "lab",
+            "simulate",
+            &w.s("small.toml"),
+            "--out",
+            &w.s("campaign"),
+            "--truth",
+            &w.s("truth.json"),
+        ]);
+        assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+        // The model: the built-in board on a coarse mesh (fast ROM).
+        w.write_board("coarse.toml", 1.0);
+        w
+    }
+    fn p(&self, name: &str) -> PathBuf {
+        self.dir.path().join(name)
+    }
+    fn s(&self, name: &str) -> String {
+        self.p(name).to_str().unwrap().to_string()
+    }
+    /// The built-in board file on a 16 × 10 mesh, with e_x_pa times `e_x_factor`.
+    fn write_board(&self, name: &str, e_x_factor: f64) {
+        let text = std::fs::read_to_string(repo().join("data/boards/default.toml")).unwrap();
+        let mut out = vec![];
+        let mut in_mesh = false;
+        for line in text.lines() {
+            let t = line.trim_start();
+            if t.starts_with('[') {
+                in_mesh = t == "[mesh]";
+            }
+            if in_mesh && t.starts_with("nx") {
+                out.push("nx = 16".to_string());
+            } else if in_mesh && t.starts_with("ny") {
+                out.push("ny = 10".to_string());
+            } else if t.starts_with("e_x_pa") {
+                let v: f64 = t.split('=').nth(1).unwrap().trim().parse().unwrap();
+                out.push(format!("e_x_pa = {:e}", v * e_x_factor));
+            } else {
+                out.push(line.to_string());
+            }
+        }
+        assert!(out.iter().any(|l| l == "nx = 16"), "mesh section not found");
+        std::fs::write(self.p(name), out.join("\n") + "\n").unwrap();
+    }
+    /// ingest → extract → pair on `campaign/`.
+    fn chain(&self) {
+        for args in [
+            [
+                "ingest".into(),
+                self.s("campaign"),
+                "--out".into(),
+                self.s("ingest"),
+            ],
+            [
+                "extract".into(),
+                self.s("ingest"),
+                "--out".into(),
+                self.s("extract"),
+            ],
+            [
+                "pair".into(),
+                self.s("extract"),
+                "--out".into(),
+                self.s("pair"),
+            ],
+        ] {
+            let args: [String; 4] = args;
+            let o = hbmu(&args.iter().map(|s| s.as_str()).collect::<Vec<_>>());
+            assert_eq!(o.status.code(), Some(0), "{args:?}: {}", stderr(&o));
+        }
+    }
+    /// `update boards` at the small size with `params` updated, plus extra arguments.
+    fn update(&self, out: &str, board: &str, params: &str, extra: &[&str]) -> Output {
+        let mut args: Vec<String> = vec![
+            "update".into(),
+            "boards".into(),
+            self.s("ingest"),
+            self.s("pair"),
+            "--out".into(),
+            self.s(out),
+            "--model".into(),
+            self.s(board),
+        ];
+        for a in [
+            "--particles",
+            "60",
+            "--runs",
+            "1",
+            "--rom-basis",
+            "12",
+            "--no-shapes",
+            "--modes",
+            "torsion-1,bending-x-1",
+            "--params",
+            params,
+        ] {
+            args.push(a.into());
+        }
+        args.extend(extra.iter().map(|s| s.to_string()));
+        hbmu(&args.iter().map(|s| s.as_str()).collect::<Vec<_>>())
+    }
+    fn findings(&self, out: &str) -> Vec<serde_json::Value> {
+        let r: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(self.p(out).join("update_report.json")).unwrap())
+                .unwrap();
+        r["findings"].as_array().unwrap().clone()
+    }
+}
+
+fn with_code<'a>(fs: &'a [serde_json::Value], code: &str) -> Vec<&'a serde_json::Value> {
+    fs.iter().filter(|f| f["code"] == code).collect()
+}
+
+/// (board_id, column) → values of boards.parquet.
+fn board_draws(path: &Path, board: &str, col: &str) -> Vec<f64> {
+    let mut out = vec![];
+    for b in hbmu::io::tables::read_parquet(path).unwrap() {
+        let c = hbmu::io::tables::Cols {
+            batch: &b,
+            path: Path::new("boards.parquet"),
+        };
+        let (id, v) = (c.str("board_id").unwrap(), c.f64(col).unwrap());
+        for i in 0..b.num_rows() {
+            if id.value(i) == board {
+                out.push(v.value(i));
+            }
+        }
+    }
+    out
+}
+
+fn sd(v: &[f64]) -> f64 {
+    let m = v.iter().sum::<f64>() / v.len() as f64;
+    (v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
+}
+
+/// A board that was weighed but never measured on the vibrometer has no paired mode: with
+/// `mass_scale` updated its mass alone informs it (warning `update.board_no_modes`), without
+/// it the board has no data and is left out (warning `update.board_no_data`); the other
+/// boards are updated either way.
+#[test]
+fn a_board_without_paired_modes_is_reported_and_the_rest_goes_through() {
+    let w = Work::new();
+    let csv = w.p("campaign/campaign.csv");
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let kept: Vec<&str> = text.lines().filter(|l| !l.contains(",PCB-03,")).collect();
+    assert_eq!(kept.len(), text.lines().count() - 2, "PCB-03's two rows");
+    std::fs::write(&csv, kept.join("\n") + "\n").unwrap();
+    w.chain();
+
+    let o = w.update("u_mass", "coarse.toml", PARAMS, &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let fs = w.findings("u_mass");
+    let f = with_code(&fs, "update.board_no_modes");
+    assert_eq!(f.len(), 1, "{fs:?}");
+    assert!(f[0]["message"].as_str().unwrap().contains("PCB-03"));
+    assert_eq!(f[0]["severity"], "warning");
+    let m3 = board_draws(&w.p("u_mass/boards.parquet"), "PCB-03", "mass_g");
+    assert_eq!(m3.len(), 60, "PCB-03 is updated from its mass");
+    assert!(!board_draws(&w.p("u_mass/boards.parquet"), "PCB-01", "e_x_pa").is_empty());
+
+    let o = w.update("u_nomass", "coarse.toml", "e_x_pa,g_xy_pa", &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let fs = w.findings("u_nomass");
+    let f = with_code(&fs, "update.board_no_data");
+    assert_eq!(f.len(), 1, "{fs:?}");
+    assert!(f[0]["message"].as_str().unwrap().contains("PCB-03"));
+    let b = w.p("u_nomass/boards.parquet");
+    assert!(board_draws(&b, "PCB-03", "e_x_pa").is_empty(), "left out");
+    assert_eq!(board_draws(&b, "PCB-01", "e_x_pa").len(), 60);
+    assert_eq!(board_draws(&b, "PCB-02", "e_x_pa").len(), 60);
+}
+
+/// A board never weighed (its balance readings removed): warning `update.not_weighed`
+/// naming it; it is still updated from its modes, and its mass is known only through the
+/// population, so its posterior mass is wider than that of the weighed boards.
+#[test]
+fn a_board_never_weighed_is_reported_and_its_mass_comes_from_the_population() {
+    let w = Work::new();
+    let mut removed = 0;
+    for e in std::fs::read_dir(w.p("campaign/scale")).unwrap() {
+        let p = e.unwrap().path();
+        let text = std::fs::read_to_string(&p).unwrap();
+        let kept: Vec<&str> = text.lines().filter(|l| !l.contains(" PCB-02 ")).collect();
+        removed += text.lines().count() - kept.len();
+        std::fs::write(&p, kept.join("\n") + "\n").unwrap();
+    }
+    assert!(removed > 0);
+    w.chain();
+    let o = w.update("u", "coarse.toml", PARAMS, &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let fs = w.findings("u");
+    let f = with_code(&fs, "update.not_weighed");
+    assert_eq!(f.len(), 1, "{fs:?}");
+    assert!(f[0]["message"].as_str().unwrap().contains("PCB-02"));
+    let b = w.p("u/boards.parquet");
+    let sd2 = sd(&board_draws(&b, "PCB-02", "mass_g"));
+    for other in ["PCB-01", "PCB-03"] {
+        let s = sd(&board_draws(&b, other, "mass_g"));
+        assert!(
+            sd2 > 3.0 * s,
+            "unweighed PCB-02's mass sd {sd2} g vs weighed {other}'s {s} g"
+        );
+    }
+}
+
+/// A mode missing in one measurement (its pair removed from pairs.parquet): finding
+/// `update.mode_missing` for that board; the measurement's other modes are still used and
+/// the missing one contributes no residual row.
+#[test]
+fn a_mode_missing_in_some_measurements_is_reported_and_the_rest_used() {
+    use arrow::array::{Array, BooleanArray};
+    let w = Work::new();
+    w.chain();
+    let pairs = w.p("pair/pairs.parquet");
+    let batches = hbmu::io::tables::read_parquet(&pairs).unwrap();
+    assert_eq!(batches.len(), 1);
+    let b = &batches[0];
+    let c = hbmu::io::tables::Cols {
+        batch: b,
+        path: Path::new("pairs.parquet"),
+    };
+    let (mid, label) = (c.str("measurement_id").unwrap(), c.str("label").unwrap());
+    let keep: BooleanArray = (0..b.num_rows())
+        .map(|i| {
+            Some(!(mid.value(i) == "M003" && !label.is_null(i) && label.value(i) == "torsion-1"))
+        })
+        .collect();
+    assert_eq!(keep.false_count(), 1, "M003 has one torsion-1 pair");
+    let kept = arrow::compute::filter_record_batch(b, &keep).unwrap();
+    hbmu::io::tables::write_parquet(&pairs, &kept).unwrap();
+
+    let o = w.update("u", "coarse.toml", PARAMS, &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let fs = w.findings("u");
+    let f = with_code(&fs, "update.mode_missing");
+    assert_eq!(f.len(), 1, "{fs:?}");
+    let msg = f[0]["message"].as_str().unwrap();
+    assert!(
+        msg.contains("PCB-02") && msg.contains("torsion-1") && msg.contains("1 of 2"),
+        "{msg}"
+    );
+    // Residuals: M003 keeps bending-x-1, has no torsion-1; M004 has both.
+    let mut rows = vec![];
+    for b in hbmu::io::tables::read_parquet(&w.p("u/residuals.parquet")).unwrap() {
+        let c = hbmu::io::tables::Cols {
+            batch: &b,
+            path: Path::new("residuals.parquet"),
+        };
+        let (m, l) = (c.str("measurement_id").unwrap(), c.str("label").unwrap());
+        for i in 0..b.num_rows() {
+            rows.push((m.value(i).to_string(), l.value(i).to_string()));
+        }
+    }
+    let has = |m: &str, l: &str| rows.iter().any(|r| r.0 == m && r.1 == l);
+    assert!(has("M003", "bending-x-1") && !has("M003", "torsion-1"));
+    assert!(has("M004", "bending-x-1") && has("M004", "torsion-1"));
+}
+
+/// A board file whose nominal e_x_pa is 30 % low: the posterior of e_x_pa lies outside the
+/// ROM's ±20 % box around the nominal, and the stage stops with a message that names the
+/// parameter and the boards, and writes no posterior.
+#[test]
+fn a_posterior_outside_the_rom_box_stops_the_stage_naming_the_parameter() {
+    let w = Work::new();
+    w.chain();
+    w.write_board("low_ex.toml", 0.7);
+    let o = w.update("u", "low_ex.toml", PARAMS, &[]);
+    let err = stderr(&o);
+    assert_ne!(o.status.code(), Some(0), "{err}");
+    assert!(err.contains("ROM's ±20 % box"), "{err}");
+    for b in ["PCB-01", "PCB-02", "PCB-03"] {
+        assert!(err.contains(&format!("{b}: e_x_pa:")), "{err}");
+    }
+    assert!(!err.contains(": g_xy_pa:"), "only e_x_pa is off: {err}");
+    assert!(!w.p("u/boards.parquet").exists());
+    assert!(!w.p("u/population.parquet").exists());
+}
+
+/// Unknown `--params`: an error naming the parameter and listing the known ones, before
+/// any sampling. An unknown `--modes` label: a warning, the known labels are updated.
+#[test]
+fn unknown_params_are_an_error_and_unknown_modes_a_warning() {
+    let w = Work::new();
+    w.chain();
+    let o = w.update("u", "coarse.toml", "e_x_pa,stiffness_pa", &[]);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("\"stiffness_pa\" is not a parameter of the model") && err.contains("g_xy_pa"),
+        "{err}"
+    );
+    assert!(!w.p("u/boards.parquet").exists());
+
+    // An unknown mode label among --modes: a warning naming it, the others are updated.
+    let o = w.update("u2", "coarse.toml", PARAMS, &["--modes", "plate-9-9"]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let fs = w.findings("u2");
+    let f = with_code(&fs, "update.label_unpaired");
+    assert_eq!(f.len(), 1, "{fs:?}");
+    assert!(f[0]["message"].as_str().unwrap().contains("plate-9-9"));
+    let r: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(w.p("u2/update_report.json")).unwrap()).unwrap();
+    assert_eq!(r["labels"], serde_json::json!(["torsion-1", "bending-x-1"]));
+}
