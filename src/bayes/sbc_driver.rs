@@ -84,12 +84,7 @@ pub fn build_target(p: &Problem) -> ModalTarget {
     let d = p.params.len();
     let unit = UnitData {
         freq: (0..p.measurements)
-            .flat_map(|_| {
-                (0..p.modes.len()).map(|m| FreqObs {
-                    mode: m,
-                    lambda_hat: f64::NAN,
-                })
-            })
+            .flat_map(|_| (0..p.modes.len()).map(|m| FreqObs::new(m, f64::NAN)))
             .collect(),
         ..UnitData::default()
     };
@@ -160,7 +155,7 @@ pub fn simulate_data(
                     break w;
                 }
             };
-            f.lambda_hat = pred.lambda[f.mode] / w;
+            *f = FreqObs::new(f.mode, pred.lambda[f.mode] / w);
         }
     }
     Some(units)
