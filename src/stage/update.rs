@@ -2030,7 +2030,15 @@ pub fn run_joints(
             }
         }
         let mut summary = pop.summarize(opts.runs, true);
-        summary.extend(jt.summarize(opts.runs, false));
+        let mut js = jt.summarize(opts.runs, false);
+        for row in &mut js {
+            row.board_id = row
+                .measurement_id
+                .as_ref()
+                .and_then(|m| unit_names.iter().position(|u| u == m))
+                .map(|b| unit_boards[b].clone());
+        }
+        summary.extend(js);
         let p = opts.out.join("population.parquet");
         let cols: Vec<ArrayRef> = vec![
             Arc::new(Int32Array::from(pop.run.clone())),

@@ -5,7 +5,9 @@ convergence diagnostics.
 Usage: arviz_check.py DRAWS.parquet SUMMARY.parquet
 
 DRAWS.parquet: columns `run` (int; one run = one chain), `draw` (int), optional `board_id`
-and `measurement_id` (strings, may be null), and one float column per parameter. When
+and `measurement_id` (strings, may be null), optional integer index columns `boards_run`,
+`boards_draw` (the step-1 draw a step-2 particle carries; not parameters), and one float
+column per parameter. When
 `board_id`/`measurement_id` exist, each distinct (board_id, measurement_id) value is a
 separate quantity per parameter; rows of a group with no value for a parameter (NaN in every
 row of that group) are not compared for that parameter.
@@ -34,6 +36,8 @@ import numpy as np
 import pandas as pd
 
 GROUP_COLS = ("board_id", "measurement_id")
+# Integer index columns that are not parameters: the step-1 draw a step-2 particle carries.
+INDEX_COLS = ("boards_run", "boards_draw")
 STATS = ("mean", "sd", "q05", "q50", "q95", "r_hat", "ess_bulk", "ess_tail")
 
 
@@ -108,7 +112,7 @@ def main():
         if col not in summary.columns:
             fail_input(f"{summary_path}: missing column {col!r}")
     groups = [c for c in GROUP_COLS if c in draws.columns]
-    params = [c for c in draws.columns if c not in ("run", "draw") + GROUP_COLS]
+    params = [c for c in draws.columns if c not in ("run", "draw") + GROUP_COLS + INDEX_COLS]
     for p in params:
         if not pd.api.types.is_float_dtype(draws[p]):
             fail_input(f"{draws_path}: parameter column {p!r} is {draws[p].dtype}, expected float")
