@@ -26,6 +26,9 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::stage::update::SUMMARY,
         &crate::stage::update::STAGES,
         &crate::stage::update::RESIDUALS,
+        &crate::stage::propagate::PREDICTIONS,
+        &crate::stage::report::TABLE2,
+        &crate::stage::report::INTERVALS,
     ];
     for t in crate::io::tables::all_tables()
         .into_iter()

@@ -7,4 +7,5 @@ mod interop;
 mod lab;
 mod layout;
 mod nightly;
+mod report;
 mod stages;
