@@ -112,6 +112,16 @@ fn num(col: &str, v: f64, digits: usize) -> String {
     }
 }
 
+/// A numeric cell in scientific notation with `sig` significant digits.
+fn sci(col: &str, v: f64, sig: usize) -> String {
+    if v.is_finite() {
+        let d = sig.saturating_sub(1);
+        format!("<td class=\"n\" data-col=\"{col}\" data-value=\"{v}\">{v:.d$e}</td>")
+    } else {
+        format!("<td class=\"n\" data-col=\"{col}\" data-value=\"\">–</td>")
+    }
+}
+
 fn int(col: &str, v: usize) -> String {
     format!("<td class=\"n\" data-col=\"{col}\" data-value=\"{v}\">{v}</td>")
 }
@@ -454,11 +464,11 @@ pub fn render(d: &ReportData) -> Rendered {
                 "<tr>{}{}{}{}{}{}{}{}{}{}</tr>",
                 txt("parameter", &r.parameter),
                 txt("unit", r.unit.as_deref().unwrap_or("")),
-                num("mean", r.mean, 6),
-                num("sd", r.sd, 6),
-                num("q05", r.q05, 6),
-                num("q50", r.q50, 6),
-                num("q95", r.q95, 6),
+                sci("mean", r.mean, 6),
+                sci("sd", r.sd, 3),
+                sci("q05", r.q05, 6),
+                sci("q50", r.q50, 6),
+                sci("q95", r.q95, 6),
                 num("r_hat", r.r_hat, 4),
                 num("ess_bulk", r.ess_bulk, 0),
                 num("ess_tail", r.ess_tail, 0),

@@ -178,6 +178,9 @@ pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Tab
         g.1.push(p.freq_obs_hz);
     }
     let mut out = vec![];
+    // Free-free first, then bolted; labels in order within a setup.
+    let mut newb: Vec<_> = newb.into_iter().collect();
+    newb.sort_by(|a, b| (a.0 .0 != "free", &a.0 .1).cmp(&(b.0 .0 != "free", &b.0 .1)));
     for ((setup, label), (model, obs)) in newb {
         let ms: Vec<&Measured> = measured
             .iter()

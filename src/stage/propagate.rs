@@ -27,7 +27,7 @@ pub const MANIFEST: &str = "propagate.manifest.json";
 
 pub const PREDICTIONS: TableSpec = TableSpec {
     name: "predictions",
-    doc: "Monte Carlo predictions of eigenfrequencies from the updated posterior, one row per draw, scope, board, setup and mode label. scope `new_board`: a board not yet measured (parameters drawn from the population, bolted with a new joint); `board`: a measured board (its posterior draw; bolted: with a new joint drawn from the joint population). freq_hz is the model's frequency; freq_obs_hz a predicted measurement of it (the label's relative eigenvalue error added; a validation mode borrows the error of an updated mode, see eps_pooled). Evaluations at inadmissible parameters or where a label cannot be tracked give no row (counted in propagate_report.json).",
+    doc: "Monte Carlo predictions of eigenfrequencies from the updated posterior, one row per draw, scope, board, setup and mode label. scope `new_board`: a board not yet measured (parameters drawn from the population, bolted with a new joint); `board`: a measured board (its posterior draw; bolted: with a new joint drawn from the joint population). freq_hz is the model's frequency; freq_obs_hz a predicted measurement of it (the label's relative eigenvalue error added; a validation mode draws its error from the updated modes' log-normal, see eps_pooled). Evaluations at inadmissible parameters or where a label cannot be tracked give no row (counted in propagate_report.json).",
     open: false,
     columns: &[
         c("draw", Col::Int32, false, "", "Propagation draw (each draw has its own random stream of the seed)."),
@@ -37,7 +37,7 @@ pub const PREDICTIONS: TableSpec = TableSpec {
         c("label", Col::Utf8, false, "", "Mode label (from pair)."),
         c("freq_hz", Col::Float64, false, "Hz", "Model eigenfrequency at the drawn parameters."),
         c("freq_obs_hz", Col::Float64, false, "Hz", "Predicted measurement: eigenvalue with the relative prediction error ε z, z ~ N(0,1)."),
-        c("eps_pooled", Col::Bool, false, "", "True when the label was not updated and borrowed ε from an updated label of the same setup (picked uniformly per row)."),
+        c("eps_pooled", Col::Bool, false, "", "True when the label was not updated: its ε is drawn per row from the log-normal fitted to ln ε of the setup's updated labels at that particle."),
     ],
 };
 

@@ -652,8 +652,9 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         }
         let title = format!(
             "Validation report: {}",
-            w.file_name()
-                .map(|n| n.to_string_lossy().to_string())
+            w.canonicalize()
+                .ok()
+                .and_then(|c| c.file_name().map(|n| n.to_string_lossy().to_string()))
                 .unwrap_or_else(|| "campaign".into())
         );
         let data = ReportData {

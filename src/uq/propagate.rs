@@ -15,9 +15,10 @@
 //! with the label's reduced vector at the ROM centre, as the updating does) and a predicted
 //! *measurement* f_obs: λ_obs = λ (1 + ε z), z ~ N(0, 1), the likelihood's relative eigenvalue
 //! error ε of that label at the same particle (Vanik–Beck–Au). A label that was not updated
-//! (a validation mode) has no inferred ε of its own: it takes the ε of one of the updated labels
-//! of the same setup, picked uniformly per evaluation (the modes' errors treated as
-//! exchangeable), and its rows say so (`eps_pooled`).
+//! (a validation mode) has no inferred ε of its own: the modes' errors are treated as
+//! exchangeable draws from a log-normal population, whose parameters are the mean and sample
+//! standard deviation of ln ε over the updated labels of the same setup at that particle, and a
+//! new ε is drawn from it per evaluation ([`pooled_eps`]); its rows say so (`eps_pooled`).
 //!
 //! Parameters outside the admissible region (non-positive moduli, ν² E_y/E_x ≥ 1) or where a
 //! label cannot be tracked give no row; they are counted in [`Counts`], never dropped
@@ -407,16 +408,8 @@ fn evaluate(
     let updated: Vec<f64> = eps.iter().flatten().copied().collect();
     // The random numbers are drawn whether or not the evaluation succeeds, so one failed
     // evaluation does not shift the streams of the others.
-    let noise: Vec<(f64, usize)> = (0..eps.len())
-        .map(|_| {
-            let z: f64 = StandardNormal.sample(rng);
-            let pick = if updated.is_empty() {
-                0
-            } else {
-                rng.random_range(0..updated.len())
-            };
-            (z, pick)
-        })
+    let noise: Vec<(f64, f64)> = (0..eps.len())
+        .map(|_| (StandardNormal.sample(rng), StandardNormal.sample(rng)))
         .collect();
     let Some(lambda) = model.eigenvalues(&v) else {
         counts.inadmissible_or_untracked += 1;
@@ -424,11 +417,10 @@ fn evaluate(
     };
     let (draw, scope, board, setup) = head;
     for (l, lam) in lambda.iter().enumerate() {
-        let (z, pick) = noise[l];
+        let (z, z_eps) = noise[l];
         let (e, pooled) = match eps[l] {
             Some(e) => (e, false),
-            None if !updated.is_empty() => (updated[pick], true),
-            None => (0.0, true),
+            None => (pooled_eps(&updated, z_eps), true),
         };
         let to_hz = |x: f64| x.max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
         out.push(Prediction {
@@ -443,6 +435,27 @@ fn evaluate(
         });
     }
     inside
+}
+
+/// ε of a label that was not updated: exp(m + s z), m and s the mean and sample standard
+/// deviation (n − 1; 0 for one label) of ln ε over the updated labels; 0 without any.
+pub fn pooled_eps(updated: &[f64], z: f64) -> f64 {
+    let logs: Vec<f64> = updated
+        .iter()
+        .filter(|e| **e > 0.0)
+        .map(|e| e.ln())
+        .collect();
+    if logs.is_empty() {
+        return 0.0;
+    }
+    let n = logs.len() as f64;
+    let m = logs.iter().sum::<f64>() / n;
+    let s = if logs.len() > 1 {
+        (logs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
+    } else {
+        0.0
+    };
+    (m + s * z).exp()
 }
 
 fn one_draw(
@@ -671,6 +684,17 @@ mod tests {
                 .all(|p| p.eps_pooled == (label == 1));
             assert!(pooled);
         }
+    }
+
+    #[test]
+    fn pooled_eps_is_the_log_normal_of_the_updated_modes() {
+        // ln 0.01 and ln 0.04: mean ln 0.02, sample sd |ln 4| / √2.
+        let e = [0.01, 0.04];
+        assert!((pooled_eps(&e, 0.0) - 0.02).abs() < 1e-15);
+        let s = 4f64.ln() / 2f64.sqrt();
+        assert!((pooled_eps(&e, 1.5) - 0.02 * (1.5 * s).exp()).abs() < 1e-15);
+        assert!((pooled_eps(&[0.03], 2.0) - 0.03).abs() < 1e-15);
+        assert_eq!(pooled_eps(&[], 1.0), 0.0);
     }
 
     #[test]
