@@ -236,7 +236,15 @@ pub fn density_svg(
             .y_desc("density")
             .x_labels(6)
             .y_labels(5)
-            .y_label_formatter(&|v| format!("{v:.2e}"))
+            .y_label_formatter(&|v| {
+                if *v == 0.0 {
+                    "0".to_string()
+                } else if v.abs() >= 0.01 && v.abs() < 1000.0 {
+                    format!("{v:.3}")
+                } else {
+                    format!("{v:.1e}")
+                }
+            })
             .label_style(("sans-serif", 13))
             .axis_desc_style(("sans-serif", 14))
             .disable_mesh()

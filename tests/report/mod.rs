@@ -79,6 +79,70 @@ window.addEventListener('load', function () {
 });
 </script>"#;
 
+/// The small campaign run once through the DAG for every test here: (guard, work dir).
+fn small_work() -> &'static Path {
+    static WORK: std::sync::OnceLock<(tempfile::TempDir, PathBuf)> = std::sync::OnceLock::new();
+    let (_, w) = WORK.get_or_init(|| {
+        let t = tempfile::tempdir().unwrap();
+        let w = t.path().join("small");
+        run_small_pipeline(&w);
+        (t, w)
+    });
+    w
+}
+
+#[test]
+fn propagate_and_report_give_the_same_bytes_whatever_the_threads_and_the_directory() {
+    let work = small_work();
+    let t = tempfile::tempdir().unwrap();
+    // Propagation at 1 thread into another directory: the pipeline's predictions (2 threads
+    // or as many as the machine has), byte for byte.
+    let other = t.path().join("p1");
+    let o = crate::common::hbmu(&[
+        "--threads",
+        "1",
+        "propagate",
+        work.join("update_boards").to_str().unwrap(),
+        "--draws",
+        "400",
+        "--out",
+        other.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", crate::common::stderr(&o));
+    for f in ["predictions.parquet", "propagate_report.json"] {
+        assert_eq!(
+            std::fs::read(other.join(f)).unwrap(),
+            std::fs::read(work.join("propagate").join(f)).unwrap(),
+            "{f} differs between thread counts"
+        );
+    }
+    // The work directory copied elsewhere (same name): the same report.
+    let copy = t.path().join("elsewhere").join("small");
+    crate::common::copy_dir(work, &copy);
+    std::fs::remove_dir_all(copy.join("report")).unwrap();
+    let o = crate::common::hbmu(&[
+        "report",
+        copy.to_str().unwrap(),
+        "--out",
+        copy.join("report").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", crate::common::stderr(&o));
+    for f in [
+        "report.html",
+        "summary.md",
+        "table2.parquet",
+        "table2.csv",
+        "intervals.parquet",
+        "intervals.csv",
+    ] {
+        assert_eq!(
+            std::fs::read(copy.join("report").join(f)).unwrap(),
+            std::fs::read(work.join("report").join(f)).unwrap(),
+            "{f} differs between work directories"
+        );
+    }
+}
+
 fn run_small_pipeline(work: &Path) {
     let o = Command::new("make")
         .arg("-C")
@@ -187,9 +251,7 @@ fn report_opens_in_chromium_without_errors_and_its_tables_equal_the_parquet() {
         eprintln!("SKIP report in browser: Chromium not found (Debian: apt-get install chromium; set HBMU_REQUIRE_BROWSER=1 to fail instead)");
         return;
     };
-    let t = tempfile::tempdir().unwrap();
-    let work = t.path().join("small");
-    run_small_pipeline(&work);
+    let work = small_work();
     let dir = work.join("report");
     let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
     // No external resource: the only URLs allowed are the SVG/XLink namespace names.
