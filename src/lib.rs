@@ -15,3 +15,4 @@ pub mod report;
 pub mod schemas;
 pub mod simd;
 pub mod stage;
+pub mod uq;

@@ -105,6 +105,45 @@ enum Command {
         #[command(subcommand)]
         command: UpdateCommand,
     },
+    /// Monte Carlo propagation of the updated posterior: predicted eigenfrequencies of a new
+    /// board and of every measured board, free-free, and bolted with a new joint when a step-2
+    /// posterior is given (predictions.parquet).
+    Propagate {
+        /// Output directory of `hbmu update boards`, and optionally of `hbmu update joints`.
+        #[arg(required = true)]
+        update_dirs: Vec<PathBuf>,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Propagation draws (cost is linear in draws).
+        #[arg(long, default_value_t = 4000)]
+        draws: usize,
+        #[arg(long, default_value_t = 20261122)]
+        seed: u64,
+        /// Output directory of `hbmu pair` (default: `pair` beside the step-1 directory).
+        #[arg(long)]
+        pair: Option<PathBuf>,
+        /// Directory with rom_free.npz and rom_bolted.npz (default: `fe` beside the step-1 directory).
+        #[arg(long)]
+        fe: Option<PathBuf>,
+        /// Half-width of the ROMs' verified box, relative (as built by `fe rom --box-rel`).
+        #[arg(long, default_value_t = 0.2)]
+        rom_box: f64,
+        #[arg(long)]
+        force: bool,
+    },
+    /// The validation report of a work directory: a self-contained HTML page (inline SVG
+    /// figures), its tables as Parquet and CSV, and a Markdown summary.
+    Report {
+        /// Work directory of one campaign (ingest/, extract/, pair/, fe/, update_boards/,
+        /// [update_joints/], propagate/).
+        work_dir: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long)]
+        force: bool,
+    },
     /// Write the JSON schemas of every Parquet table and MCAP channel into a directory
     /// (the repository keeps them under schemas/).
     Schemas {
@@ -562,6 +601,45 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             let opts = common.options(vec![], prior_width, sigma_scale);
             let o = stage::update::run_joints(&opts, &boards, cli.verbose)?;
             Ok(report("update joints", &opts.out, &o))
+        }
+        Command::Propagate {
+            update_dirs,
+            out,
+            draws,
+            seed,
+            pair,
+            fe,
+            rom_box,
+            force,
+        } => {
+            let opts = stage::propagate::PropagateOptions {
+                update_dirs,
+                pair_dir: pair,
+                fe_dir: fe,
+                out,
+                force,
+                draws,
+                seed,
+                rom_box,
+            };
+            let o = stage::propagate::run(&opts, cli.verbose)?;
+            Ok(report("propagate", &opts.out, &o))
+        }
+        Command::Report {
+            work_dir,
+            out,
+            force,
+        } => {
+            let opts = stage::report::ReportOptions {
+                work_dir,
+                out,
+                force,
+            };
+            let o = stage::report::run(&opts, cli.verbose)?;
+            if o.exit_code() == exit::OK || o.exit_code() == exit::QUARANTINED {
+                println!("{}", opts.out.join(stage::report::HTML).display());
+            }
+            Ok(report("report", &opts.out, &o))
         }
         Command::Schemas { out } => {
             hbmu::schemas::write_all(&out)?;

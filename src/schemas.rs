@@ -28,6 +28,9 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::stage::update::RESIDUALS,
         &crate::stage::update::JOINTS,
         &crate::stage::update::POPULATION_JOINTS,
+        &crate::stage::propagate::PREDICTIONS,
+        &crate::stage::report::TABLE2,
+        &crate::stage::report::INTERVALS,
     ];
     for t in crate::io::tables::all_tables()
         .into_iter()

@@ -7,5 +7,6 @@ mod interop;
 mod lab;
 mod layout;
 mod nightly;
+mod report;
 mod stages;
 mod update;

@@ -81,4 +81,4 @@ pub enum FemError {
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

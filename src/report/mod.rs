@@ -1,4 +1,8 @@
-//! Report rendering: plots (SVG strings) and, later, validation tables. Pure: the stages write
-//! the files.
+//! Report rendering, pure: plots (SVG strings), the validation tables (`validation`: predicted
+//! intervals, their coverage, the Table-2 analog) and the HTML page and Markdown summary
+//! (`html`). The stages read the artifacts and write the files.
 
+pub mod figures;
+pub mod html;
 pub mod plots;
+pub mod validation;

@@ -10,6 +10,8 @@ pub mod fe;
 pub mod ingest;
 pub mod lab;
 pub mod pair;
+pub mod propagate;
+pub mod report;
 pub mod update;
 
 use crate::io::manifest::{self, Manifest, Prepared, RunInfo, StageSpec};

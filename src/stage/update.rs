@@ -1588,6 +1588,9 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         let p = opts.out.join("residuals.parquet");
         write_residuals(&p, &res, &prov)?;
         outputs.push(p);
+        let p = opts.out.join("rom.npz");
+        crate::io::atomic::write_bytes(&p, &target.predictor.rom.to_npz_bytes())?;
+        outputs.push(p);
         let log_z: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
         let ev = evidence_json(&log_z, "boards (step 1)");
         let p = opts.out.join("evidence.json");
@@ -2081,6 +2084,9 @@ pub fn run_joints(
         );
         let p = opts.out.join("residuals.parquet");
         write_residuals(&p, &res, &prov)?;
+        outputs.push(p);
+        let p = opts.out.join("rom.npz");
+        crate::io::atomic::write_bytes(&p, &target.predictor.rom.to_npz_bytes())?;
         outputs.push(p);
         let log_z: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
         let mut ev = evidence_json(&log_z, "joints (step 2), modular (cut) posterior");

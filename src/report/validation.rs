@@ -1,0 +1,316 @@
+//! Validation tables from predictions and measurements, pure: predicted intervals per board,
+//! setup and mode (the Figure-6 analog's boxes), their coverage of the measurements, and the
+//! Table-2 analog (measured vs simulated mean and standard deviation per mode).
+//!
+//! Quantiles are numpy's default (linear interpolation between order statistics, "type 7"
+//! of Hyndman & Fan 1996), so a reader recomputing them with `numpy.quantile` gets the same
+//! numbers. Sample standard deviations divide by n − 1.
+
+use std::collections::BTreeMap;
+
+/// One predicted frequency (a row of predictions.parquet).
+#[derive(Clone, Debug)]
+pub struct Pred {
+    /// `new_board` or `board`.
+    pub scope: String,
+    /// None for a new board.
+    pub board_id: Option<String>,
+    pub setup: String,
+    pub label: String,
+    pub freq_hz: f64,
+    pub freq_obs_hz: f64,
+}
+
+/// One measured frequency of a paired mode.
+#[derive(Clone, Debug)]
+pub struct Measured {
+    pub measurement_id: String,
+    pub board_id: String,
+    pub setup: String,
+    pub label: String,
+    pub freq_hz: f64,
+    pub used_for_updating: bool,
+}
+
+/// Key of an interval: (scope, board, setup, label).
+pub type Key = (String, Option<String>, String, String);
+
+/// The predicted distribution of one (scope, board, setup, label) and its measurements.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Interval {
+    pub scope: String,
+    pub board_id: Option<String>,
+    pub setup: String,
+    pub label: String,
+    pub used_for_updating: bool,
+    /// Predictions behind the interval.
+    pub n_draws: usize,
+    /// Mean and sd of the model frequency.
+    pub model_mean_hz: f64,
+    pub model_sd_hz: f64,
+    /// Quantiles of the predicted measurement (freq_obs_hz).
+    pub q05_hz: f64,
+    pub q25_hz: f64,
+    pub q50_hz: f64,
+    pub q75_hz: f64,
+    pub q95_hz: f64,
+    /// Measurements compared (all boards' for a new board) and how many lie in [q05, q95].
+    pub n_measured: usize,
+    pub n_inside_90: usize,
+}
+
+/// Quantile `p` of sorted data, numpy's default linear interpolation.
+pub fn quantile_sorted(x: &[f64], p: f64) -> f64 {
+    if x.is_empty() {
+        return f64::NAN;
+    }
+    let h = (x.len() - 1) as f64 * p;
+    let lo = h.floor() as usize;
+    let hi = (lo + 1).min(x.len() - 1);
+    x[lo] + (h - lo as f64) * (x[hi] - x[lo])
+}
+
+/// Mean and sample standard deviation (n − 1; NaN below two values).
+pub fn mean_sd(x: &[f64]) -> (f64, f64) {
+    let n = x.len() as f64;
+    if x.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    let m = x.iter().sum::<f64>() / n;
+    if x.len() < 2 {
+        return (m, f64::NAN);
+    }
+    let v = x.iter().map(|v| (v - m).powi(2)).sum::<f64>() / (n - 1.0);
+    (m, v.sqrt())
+}
+
+/// Intervals of every (scope, board, setup, label) of the predictions, sorted by key, with
+/// the coverage of the measurements: a board's own measurements for scope `board`, every
+/// board's measurements of that setup and label for a new board.
+pub fn intervals(preds: &[Pred], measured: &[Measured]) -> Vec<Interval> {
+    let mut groups: BTreeMap<Key, (Vec<f64>, Vec<f64>)> = BTreeMap::new();
+    for p in preds {
+        let g = groups
+            .entry((
+                p.scope.clone(),
+                p.board_id.clone(),
+                p.setup.clone(),
+                p.label.clone(),
+            ))
+            .or_default();
+        g.0.push(p.freq_hz);
+        g.1.push(p.freq_obs_hz);
+    }
+    let used: BTreeMap<(String, String), bool> = measured
+        .iter()
+        .map(|m| ((m.setup.clone(), m.label.clone()), m.used_for_updating))
+        .collect();
+    groups
+        .into_iter()
+        .map(|((scope, board_id, setup, label), (model, mut obs))| {
+            obs.sort_by(f64::total_cmp);
+            let q = |p| quantile_sorted(&obs, p);
+            let (q05, q95) = (q(0.05), q(0.95));
+            let meas: Vec<f64> = measured
+                .iter()
+                .filter(|m| {
+                    m.setup == setup
+                        && m.label == label
+                        && board_id.as_ref().is_none_or(|b| *b == m.board_id)
+                })
+                .map(|m| m.freq_hz)
+                .collect();
+            let (mm, ms) = mean_sd(&model);
+            Interval {
+                used_for_updating: used
+                    .get(&(setup.clone(), label.clone()))
+                    .copied()
+                    .unwrap_or(false),
+                n_draws: obs.len(),
+                model_mean_hz: mm,
+                model_sd_hz: ms,
+                q05_hz: q05,
+                q25_hz: q(0.25),
+                q50_hz: q(0.5),
+                q75_hz: q(0.75),
+                q95_hz: q95,
+                n_measured: meas.len(),
+                n_inside_90: meas.iter().filter(|f| **f >= q05 && **f <= q95).count(),
+                scope,
+                board_id,
+                setup,
+                label,
+            }
+        })
+        .collect()
+}
+
+/// One row of the Table-2 analog.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Table2Row {
+    pub setup: String,
+    pub label: String,
+    pub used_for_updating: bool,
+    pub n_measured: usize,
+    pub measured_mean_hz: f64,
+    pub measured_sd_hz: f64,
+    /// New board: model mean and sd, and the sd of a predicted measurement.
+    pub simulated_mean_hz: f64,
+    pub simulated_sd_hz: f64,
+    pub predictive_sd_hz: f64,
+    /// (simulated − measured) / measured, %.
+    pub mean_error_pct: f64,
+    /// (predictive sd − measured sd) / measured sd, %.
+    pub sd_error_pct: f64,
+    /// Fraction of the measurements inside their own board's 90 % interval.
+    pub board_coverage_90: f64,
+    /// Fraction of the measurements inside the new board's 90 % interval.
+    pub new_board_coverage_90: f64,
+}
+
+/// The Table-2 analog per setup and label with predictions for a new board: measured mean
+/// and sd over every measurement of every board against the new-board prediction.
+pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Table2Row> {
+    let mut newb: BTreeMap<(String, String), (Vec<f64>, Vec<f64>)> = BTreeMap::new();
+    for p in preds.iter().filter(|p| p.scope == "new_board") {
+        let g = newb.entry((p.setup.clone(), p.label.clone())).or_default();
+        g.0.push(p.freq_hz);
+        g.1.push(p.freq_obs_hz);
+    }
+    let mut out = vec![];
+    // Free-free first, then bolted; labels in order within a setup.
+    let mut newb: Vec<_> = newb.into_iter().collect();
+    newb.sort_by(|a, b| (a.0 .0 != "free", &a.0 .1).cmp(&(b.0 .0 != "free", &b.0 .1)));
+    for ((setup, label), (model, obs)) in newb {
+        let ms: Vec<&Measured> = measured
+            .iter()
+            .filter(|m| m.setup == setup && m.label == label)
+            .collect();
+        let f: Vec<f64> = ms.iter().map(|m| m.freq_hz).collect();
+        let (mm, msd) = mean_sd(&f);
+        let (sm, ssd) = mean_sd(&model);
+        let (_, psd) = mean_sd(&obs);
+        let board_iv = |b: &str| {
+            iv.iter().find(|i| {
+                i.scope == "board"
+                    && i.board_id.as_deref() == Some(b)
+                    && i.setup == setup
+                    && i.label == label
+            })
+        };
+        let inside_board = ms
+            .iter()
+            .filter(|m| {
+                board_iv(&m.board_id)
+                    .is_some_and(|i| m.freq_hz >= i.q05_hz && m.freq_hz <= i.q95_hz)
+            })
+            .count();
+        let nb = iv
+            .iter()
+            .find(|i| i.scope == "new_board" && i.setup == setup && i.label == label);
+        let n = ms.len().max(1) as f64;
+        out.push(Table2Row {
+            used_for_updating: ms.first().is_some_and(|m| m.used_for_updating),
+            n_measured: ms.len(),
+            measured_mean_hz: mm,
+            measured_sd_hz: msd,
+            simulated_mean_hz: sm,
+            simulated_sd_hz: ssd,
+            predictive_sd_hz: psd,
+            mean_error_pct: 100.0 * (sm - mm) / mm,
+            sd_error_pct: 100.0 * (psd - msd) / msd,
+            board_coverage_90: if ms.is_empty() {
+                f64::NAN
+            } else {
+                inside_board as f64 / n
+            },
+            new_board_coverage_90: match nb {
+                Some(i) if !ms.is_empty() => i.n_inside_90 as f64 / n,
+                _ => f64::NAN,
+            },
+            setup,
+            label,
+        });
+    }
+    out
+}
+
+/// Coverage over a set of intervals: (measurements inside, measurements).
+pub fn coverage<'a>(iv: impl IntoIterator<Item = &'a Interval>) -> (usize, usize) {
+    iv.into_iter()
+        .fold((0, 0), |(a, b), i| (a + i.n_inside_90, b + i.n_measured))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles_match_numpy_linear() {
+        // numpy.quantile([1, 2, 3, 4], [0.05, 0.25, 0.5, 0.75, 0.95])
+        //   = [1.15, 1.75, 2.5, 3.25, 3.85]
+        let x = [1.0, 2.0, 3.0, 4.0];
+        let want = [1.15, 1.75, 2.5, 3.25, 3.85];
+        for (p, w) in [0.05, 0.25, 0.5, 0.75, 0.95].iter().zip(want) {
+            assert!((quantile_sorted(&x, *p) - w).abs() < 1e-12, "{p}");
+        }
+        assert_eq!(quantile_sorted(&[7.0], 0.3), 7.0);
+        let (m, s) = mean_sd(&[2.0, 4.0, 4.0, 4.0, 5.0, 5.0, 7.0, 9.0]);
+        assert_eq!(m, 5.0);
+        assert!((s - (32.0f64 / 7.0).sqrt()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn coverage_counts_own_board_and_all_boards_for_a_new_board() {
+        let mut preds = vec![];
+        for k in 0..101 {
+            for (scope, b) in [
+                ("board", Some("A")),
+                ("board", Some("B")),
+                ("new_board", None),
+            ] {
+                let centre = match b {
+                    Some("A") => 100.0,
+                    Some("B") => 110.0,
+                    _ => 105.0,
+                };
+                let spread = if b.is_none() { 10.0 } else { 1.0 };
+                let f = centre + spread * (k as f64 - 50.0) / 50.0;
+                preds.push(Pred {
+                    scope: scope.into(),
+                    board_id: b.map(str::to_string),
+                    setup: "free".into(),
+                    label: "m1".into(),
+                    freq_hz: f,
+                    freq_obs_hz: f,
+                });
+            }
+        }
+        let m = |b: &str, f: f64| Measured {
+            measurement_id: format!("{b}{f}"),
+            board_id: b.into(),
+            setup: "free".into(),
+            label: "m1".into(),
+            freq_hz: f,
+            used_for_updating: false,
+        };
+        // Board A: 90 % interval [99.1, 100.9]; B: [109.1, 110.9]; new: [96, 114].
+        let meas = vec![m("A", 100.0), m("A", 101.5), m("B", 110.5), m("B", 120.0)];
+        let iv = intervals(&preds, &meas);
+        assert_eq!(iv.len(), 3);
+        let a = iv
+            .iter()
+            .find(|i| i.board_id.as_deref() == Some("A"))
+            .unwrap();
+        assert!((a.q05_hz - 99.1).abs() < 1e-9 && (a.q95_hz - 100.9).abs() < 1e-9);
+        assert_eq!((a.n_inside_90, a.n_measured), (1, 2));
+        let nb = iv.iter().find(|i| i.scope == "new_board").unwrap();
+        assert_eq!((nb.n_inside_90, nb.n_measured), (3, 4));
+        let t = table2(&preds, &meas, &iv);
+        assert_eq!(t.len(), 1);
+        assert!((t[0].board_coverage_90 - 0.5).abs() < 1e-12);
+        assert!((t[0].new_board_coverage_90 - 0.75).abs() < 1e-12);
+        assert!((t[0].measured_mean_hz - 108.0).abs() < 1e-12);
+        assert!((t[0].simulated_mean_hz - 105.0).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,736 @@
+//! Stage `report`: the validation report of one work directory.
+//!
+//! Reads `propagate/` (predictions), `update_boards/` and, when present, `update_joints/`
+//! (posteriors, summaries, tempering paths, evidence, residuals = the measurements compared),
+//! `ingest/ingest_report.json` (findings), the stabilization and MAC plots of `extract/plots`
+//! and `pair/plots`, and every stage manifest (provenance). Writes `report.html` (self-contained,
+//! inline SVG), `summary.md`, the tables `table2` and `intervals` as Parquet and CSV, and copies
+//! of the plots under `plots/` so the directory can be sent as it is. The rendering is pure
+//! (`report::html`); this file only reads and writes.
+
+use crate::io::manifest::StageSpec;
+use crate::io::tables::{self, c, Col, Cols, TableSpec};
+use crate::report::html::{self, FindingRow, Provenance, ReportData, StepData, SummaryRow};
+use crate::report::validation::{self, Interval, Measured, Pred, Table2Row};
+use crate::stage::{exit, StageOutcome, StageResult};
+use anyhow::{anyhow, bail, Context};
+use arrow::array::{Array, ArrayRef, Float64Array, Int32Array, StringArray};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+pub const MANIFEST: &str = "report.manifest.json";
+pub const HTML: &str = "report.html";
+
+pub const TABLE2: TableSpec = TableSpec {
+    name: "table2",
+    doc: "The Table-2 analog of the validation report: per setup and mode, the measured mean and standard deviation over every measurement of every board against the prediction for a new board (model mean and sd, predictive sd with the prediction error), their relative errors, and the coverage of the predicted 90 % intervals. Null where undefined (fewer than two measurements).",
+    open: false,
+    columns: &[
+        c("setup", Col::Utf8, false, "", "`free` or `bolted`."),
+        c("label", Col::Utf8, false, "", "Mode label."),
+        c("role", Col::Utf8, false, "", "`updating` or `validation` (not used for updating)."),
+        c("n_measured", Col::Int32, false, "", "Measurements of the mode (all boards)."),
+        c("measured_mean_hz", Col::Float64, true, "Hz", "Mean of the measured frequencies."),
+        c("measured_sd_hz", Col::Float64, true, "Hz", "Sample standard deviation of the measured frequencies."),
+        c("simulated_mean_hz", Col::Float64, true, "Hz", "Mean model frequency of a new board."),
+        c("simulated_sd_hz", Col::Float64, true, "Hz", "Standard deviation of the model frequency of a new board."),
+        c("predictive_sd_hz", Col::Float64, true, "Hz", "Standard deviation of a predicted measurement of a new board."),
+        c("mean_error_pct", Col::Float64, true, "%", "(simulated mean - measured mean) / measured mean."),
+        c("sd_error_pct", Col::Float64, true, "%", "(predictive sd - measured sd) / measured sd."),
+        c("board_coverage_90", Col::Float64, true, "", "Fraction of the measurements inside their own board's predicted 90 % interval."),
+        c("new_board_coverage_90", Col::Float64, true, "", "Fraction of the measurements inside the new board's predicted 90 % interval."),
+    ],
+};
+
+pub const INTERVALS: TableSpec = TableSpec {
+    name: "intervals",
+    doc: "Predicted distributions of the validation report (the Figure-6 analog's boxes): per scope (`board`, `new_board`), board, setup and mode, the model frequency's mean and sd and the quantiles of a predicted measurement (numpy's default linear interpolation), with the measurements compared (the board's own; every board's for a new board) and how many lie in [q05, q95].",
+    open: false,
+    columns: &[
+        c("scope", Col::Utf8, false, "", "`board` or `new_board`."),
+        c("board_id", Col::Utf8, true, "", "Board; null for a new board."),
+        c("setup", Col::Utf8, false, "", "`free` or `bolted`."),
+        c("label", Col::Utf8, false, "", "Mode label."),
+        c("role", Col::Utf8, false, "", "`updating` or `validation`."),
+        c("n_draws", Col::Int32, false, "", "Predictions behind the interval."),
+        c("model_mean_hz", Col::Float64, true, "Hz", "Mean model frequency."),
+        c("model_sd_hz", Col::Float64, true, "Hz", "Standard deviation of the model frequency."),
+        c("q05_hz", Col::Float64, true, "Hz", "5 % quantile of a predicted measurement."),
+        c("q25_hz", Col::Float64, true, "Hz", "25 % quantile."),
+        c("q50_hz", Col::Float64, true, "Hz", "Median."),
+        c("q75_hz", Col::Float64, true, "Hz", "75 % quantile."),
+        c("q95_hz", Col::Float64, true, "Hz", "95 % quantile."),
+        c("n_measured", Col::Int32, false, "", "Measurements compared."),
+        c("n_inside_90", Col::Int32, false, "", "Measurements inside [q05, q95]."),
+    ],
+};
+
+/// Options of `hbmu report`.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ReportOptions {
+    #[serde(skip)]
+    pub work_dir: PathBuf,
+    #[serde(skip)]
+    pub out: PathBuf,
+    #[serde(skip)]
+    pub force: bool,
+}
+
+fn read_preds(path: &Path) -> anyhow::Result<Vec<Pred>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (sc, bid, st, l, f, fo) = (
+            c.str("scope")?,
+            c.str("board_id")?,
+            c.str("setup")?,
+            c.str("label")?,
+            c.f64("freq_hz")?,
+            c.f64("freq_obs_hz")?,
+        );
+        for i in 0..b.num_rows() {
+            out.push(Pred {
+                scope: sc.value(i).into(),
+                board_id: (!bid.is_null(i)).then(|| bid.value(i).to_string()),
+                setup: st.value(i).into(),
+                label: l.value(i).into(),
+                freq_hz: f.value(i),
+                freq_obs_hz: fo.value(i),
+            });
+        }
+    }
+    Ok(out)
+}
+
+fn read_measured(path: &Path) -> anyhow::Result<Vec<Measured>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (m, bid, st, l, f, u) = (
+            c.str("measurement_id")?,
+            c.str("board_id")?,
+            c.str("setup")?,
+            c.str("label")?,
+            c.f64("freq_hz")?,
+            c.bool("used_for_updating")?,
+        );
+        for i in 0..b.num_rows() {
+            out.push(Measured {
+                measurement_id: m.value(i).into(),
+                board_id: bid.value(i).into(),
+                setup: st.value(i).into(),
+                label: l.value(i).into(),
+                freq_hz: f.value(i),
+                used_for_updating: u.value(i),
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// Float columns of a draws table except the given keys, in file order.
+fn float_columns(path: &Path, skip: &[&str]) -> anyhow::Result<Vec<(String, Vec<f64>)>> {
+    let mut cols: Vec<(String, Vec<f64>)> = vec![];
+    for b in tables::read_parquet(path)? {
+        for (k, f) in b.schema().fields().iter().enumerate() {
+            if skip.contains(&f.name().as_str())
+                || f.data_type() != &arrow::datatypes::DataType::Float64
+            {
+                continue;
+            }
+            let a = b
+                .column(k)
+                .as_any()
+                .downcast_ref::<Float64Array>()
+                .expect("float64 checked");
+            match cols.iter_mut().find(|(n, _)| n == f.name()) {
+                Some((_, v)) => v.extend(a.iter().map(|x| x.unwrap_or(f64::NAN))),
+                None => cols.push((
+                    f.name().clone(),
+                    a.iter().map(|x| x.unwrap_or(f64::NAN)).collect(),
+                )),
+            }
+        }
+    }
+    Ok(cols)
+}
+
+/// Per-unit draws of a boards/joints table: (parameter, unit, draws), units sorted.
+fn unit_draws(
+    path: &Path,
+    key: &str,
+    skip: &[&str],
+) -> anyhow::Result<Vec<(String, String, Vec<f64>)>> {
+    let mut by: BTreeMap<(String, String), Vec<f64>> = BTreeMap::new();
+    let mut order: Vec<String> = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let k = c.str(key)?;
+        for (j, f) in b.schema().fields().iter().enumerate() {
+            if skip.contains(&f.name().as_str())
+                || f.data_type() != &arrow::datatypes::DataType::Float64
+            {
+                continue;
+            }
+            if !order.contains(f.name()) {
+                order.push(f.name().clone());
+            }
+            let a = b
+                .column(j)
+                .as_any()
+                .downcast_ref::<Float64Array>()
+                .expect("float64 checked");
+            for i in 0..b.num_rows() {
+                by.entry((f.name().clone(), k.value(i).to_string()))
+                    .or_default()
+                    .push(a.value(i));
+            }
+        }
+    }
+    let mut out = vec![];
+    for p in &order {
+        for ((q, u), v) in &by {
+            if q == p {
+                out.push((p.clone(), u.clone(), v.clone()));
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn read_summary(path: &Path) -> anyhow::Result<Vec<SummaryRow>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (p, bid, mid) = (
+            c.str("parameter")?,
+            c.str("board_id")?,
+            c.str("measurement_id")?,
+        );
+        let f: Vec<&Float64Array> = [
+            "mean", "sd", "q05", "q50", "q95", "r_hat", "ess_bulk", "ess_tail",
+        ]
+        .iter()
+        .map(|n| c.f64(n))
+        .collect::<Result<_, _>>()?;
+        for i in 0..b.num_rows() {
+            let unit = if !bid.is_null(i) {
+                Some(bid.value(i).to_string())
+            } else if !mid.is_null(i) {
+                Some(mid.value(i).to_string())
+            } else {
+                None
+            };
+            let g = |k: usize| {
+                if f[k].is_null(i) {
+                    f64::NAN
+                } else {
+                    f[k].value(i)
+                }
+            };
+            out.push(SummaryRow {
+                parameter: p.value(i).into(),
+                unit,
+                mean: g(0),
+                sd: g(1),
+                q05: g(2),
+                q50: g(3),
+                q95: g(4),
+                r_hat: g(5),
+                ess_bulk: g(6),
+                ess_tail: g(7),
+            });
+        }
+    }
+    Ok(out)
+}
+
+fn read_stages(path: &Path) -> anyhow::Result<Vec<Vec<(f64, f64, f64)>>> {
+    let mut runs: BTreeMap<i32, Vec<(f64, f64, f64)>> = BTreeMap::new();
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (r, s, beta, ess) = (
+            c.i32("run")?,
+            c.i32("stage")?,
+            c.f64("beta")?,
+            c.f64("ess")?,
+        );
+        for i in 0..b.num_rows() {
+            runs.entry(r.value(i)).or_default().push((
+                s.value(i) as f64,
+                beta.value(i),
+                ess.value(i),
+            ));
+        }
+    }
+    Ok(runs.into_values().collect())
+}
+
+fn read_json(path: &Path) -> anyhow::Result<serde_json::Value> {
+    let b = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    serde_json::from_slice(&b).with_context(|| format!("{}: not valid JSON", path.display()))
+}
+
+fn findings_of(stage: &str, v: &serde_json::Value, out: &mut Vec<FindingRow>) {
+    for f in v
+        .get("findings")
+        .and_then(|f| f.as_array())
+        .into_iter()
+        .flatten()
+    {
+        let sev = f.get("severity").and_then(|s| s.as_str()).unwrap_or("");
+        if !matches!(sev, "warning" | "error") {
+            continue;
+        }
+        let s = |k: &str| f.get(k).and_then(|x| x.as_str()).unwrap_or("").to_string();
+        let mut w = vec![];
+        for k in ["file", "measurement_id", "record"] {
+            if !s(k).is_empty() {
+                w.push(s(k));
+            }
+        }
+        if let Some(l) = f.get("line").and_then(|l| l.as_u64()) {
+            w.push(format!("line {l}"));
+        }
+        out.push(FindingRow {
+            stage: stage.into(),
+            severity: sev.into(),
+            code: s("code"),
+            where_: w.join(", "),
+            message: s("message"),
+        });
+    }
+}
+
+fn step_data(dir: &Path, name: &str, units: &str, key: &str) -> anyhow::Result<StepData> {
+    Ok(StepData {
+        name: name.into(),
+        population: float_columns(&dir.join("population.parquet"), &[])?,
+        units: unit_draws(&dir.join(units), key, &["mass_g"])?,
+        summary: read_summary(&dir.join("summary.parquet"))?,
+        stages: read_stages(&dir.join("stages.parquet"))?,
+        evidence: read_json(&dir.join("evidence.json"))?,
+    })
+}
+
+fn svgs(dir: &Path) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map(|r| {
+            r.filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.extension().is_some_and(|x| x == "svg"))
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+fn opt_f64(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
+}
+
+fn write_table2(
+    out: &Path,
+    rows: &[Table2Row],
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<Vec<PathBuf>> {
+    let f = |g: fn(&Table2Row) -> f64| -> ArrayRef {
+        Arc::new(Float64Array::from_iter(rows.iter().map(|r| opt_f64(g(r)))))
+    };
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.setup.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.label.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(rows.iter().map(|r| {
+            if r.used_for_updating {
+                "updating"
+            } else {
+                "validation"
+            }
+        }))),
+        Arc::new(Int32Array::from_iter_values(
+            rows.iter().map(|r| r.n_measured as i32),
+        )),
+        f(|r| r.measured_mean_hz),
+        f(|r| r.measured_sd_hz),
+        f(|r| r.simulated_mean_hz),
+        f(|r| r.simulated_sd_hz),
+        f(|r| r.predictive_sd_hz),
+        f(|r| r.mean_error_pct),
+        f(|r| r.sd_error_pct),
+        f(|r| r.board_coverage_90),
+        f(|r| r.new_board_coverage_90),
+    ];
+    write_both(out, &TABLE2, cols, prov)
+}
+
+fn write_intervals(
+    out: &Path,
+    rows: &[Interval],
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<Vec<PathBuf>> {
+    let f = |g: fn(&Interval) -> f64| -> ArrayRef {
+        Arc::new(Float64Array::from_iter(rows.iter().map(|r| opt_f64(g(r)))))
+    };
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.scope.as_str()),
+        )),
+        Arc::new(StringArray::from_iter(
+            rows.iter().map(|r| r.board_id.as_deref()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.setup.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.label.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(rows.iter().map(|r| {
+            if r.used_for_updating {
+                "updating"
+            } else {
+                "validation"
+            }
+        }))),
+        Arc::new(Int32Array::from_iter_values(
+            rows.iter().map(|r| r.n_draws as i32),
+        )),
+        f(|r| r.model_mean_hz),
+        f(|r| r.model_sd_hz),
+        f(|r| r.q05_hz),
+        f(|r| r.q25_hz),
+        f(|r| r.q50_hz),
+        f(|r| r.q75_hz),
+        f(|r| r.q95_hz),
+        Arc::new(Int32Array::from_iter_values(
+            rows.iter().map(|r| r.n_measured as i32),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            rows.iter().map(|r| r.n_inside_90 as i32),
+        )),
+    ];
+    write_both(out, &INTERVALS, cols, prov)
+}
+
+/// The table as Parquet and as CSV (numbers in Rust's shortest round-trip form, empty = null).
+fn write_both(
+    out: &Path,
+    spec: &TableSpec,
+    cols: Vec<ArrayRef>,
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<Vec<PathBuf>> {
+    let schema = spec.schema(&[], &tables::table_metadata(spec, prov));
+    let batch = tables::batch(schema, cols)?;
+    let pq = out.join(format!("{}.parquet", spec.name));
+    tables::write_parquet(&pq, &batch)?;
+    let mut w = csv::Writer::from_writer(vec![]);
+    w.write_record(spec.columns.iter().map(|c| c.name))?;
+    for i in 0..batch.num_rows() {
+        let rec: Vec<String> = batch
+            .columns()
+            .iter()
+            .map(|a| {
+                if a.is_null(i) {
+                    return String::new();
+                }
+                if let Some(s) = a.as_any().downcast_ref::<StringArray>() {
+                    s.value(i).to_string()
+                } else if let Some(x) = a.as_any().downcast_ref::<Float64Array>() {
+                    x.value(i).to_string()
+                } else if let Some(x) = a.as_any().downcast_ref::<Int32Array>() {
+                    x.value(i).to_string()
+                } else {
+                    String::new()
+                }
+            })
+            .collect();
+        w.write_record(&rec)?;
+    }
+    let bytes = w.into_inner().map_err(|e| anyhow!("csv: {e}"))?;
+    let csvp = out.join(format!("{}.csv", spec.name));
+    crate::io::atomic::write_bytes(&csvp, &bytes)?;
+    Ok(vec![pq, csvp])
+}
+
+/// Run `hbmu report`.
+pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
+    let w = &opts.work_dir;
+    let step1 = w.join("update_boards");
+    let step2 = w.join("update_joints");
+    let prop = w.join("propagate");
+    if !prop.join("predictions.parquet").is_file() {
+        bail!(
+            "{}: no predictions.parquet; run `hbmu propagate {} --out {}` first",
+            prop.display(),
+            step1.display(),
+            prop.display()
+        );
+    }
+    if !step1.join("boards.parquet").is_file() {
+        bail!(
+            "{}: no step-1 posterior (boards.parquet); run `hbmu update boards` first",
+            step1.display()
+        );
+    }
+    let has2 = step2.join("joints.parquet").is_file();
+    let mut inputs = vec![
+        prop.join("predictions.parquet"),
+        prop.join("propagate_report.json"),
+    ];
+    let step_files = [
+        "population.parquet",
+        "summary.parquet",
+        "stages.parquet",
+        "residuals.parquet",
+        "evidence.json",
+        "update_report.json",
+    ];
+    inputs.extend(step_files.iter().map(|f| step1.join(f)));
+    inputs.push(step1.join("boards.parquet"));
+    if has2 {
+        // update_report.json is optional in step 2 (not part of its output contract).
+        inputs.extend(
+            step_files
+                .iter()
+                .map(|f| step2.join(f))
+                .filter(|p| !p.ends_with("update_report.json") || p.is_file()),
+        );
+        inputs.push(step2.join("joints.parquet"));
+    }
+    let ingest_report = w.join("ingest").join("ingest_report.json");
+    if ingest_report.is_file() {
+        inputs.push(ingest_report.clone());
+    }
+    let plots: Vec<(&str, PathBuf)> = svgs(&w.join("extract").join("plots"))
+        .into_iter()
+        .map(|p| ("extract", p))
+        .chain(
+            svgs(&w.join("pair").join("plots"))
+                .into_iter()
+                .map(|p| ("pair", p)),
+        )
+        .collect();
+    inputs.extend(plots.iter().map(|(_, p)| p.clone()));
+    // Manifests of every stage (provenance): their outputs' hashes only, no times.
+    let mut manifests = vec![];
+    for d in [
+        "ingest",
+        "extract",
+        "pair",
+        "fe",
+        "update_boards",
+        "update_joints",
+        "propagate",
+    ] {
+        let mut v: Vec<PathBuf> = std::fs::read_dir(w.join(d))
+            .map(|r| {
+                r.filter_map(|e| e.ok().map(|e| e.path()))
+                    .filter(|p| p.to_string_lossy().ends_with(".manifest.json"))
+                    .collect()
+            })
+            .unwrap_or_default();
+        v.sort();
+        manifests.extend(v);
+    }
+    let spec = StageSpec {
+        stage: "report".into(),
+        inputs,
+        input_base: w.clone(),
+        config: serde_json::json!({ "step2": has2 }),
+        seed: None,
+        manifest_path: opts.out.join(MANIFEST),
+    };
+    crate::stage::run(spec, opts.force, |prep| {
+        let preds = read_preds(&prop.join("predictions.parquet"))?;
+        let mut measured = read_measured(&step1.join("residuals.parquet"))?;
+        let mut step2_data = None;
+        let mut step2_absent = None;
+        if has2 {
+            measured.extend(read_measured(&step2.join("residuals.parquet"))?);
+            step2_data = Some(step_data(
+                &step2,
+                "joints (step 2)",
+                "joints.parquet",
+                "measurement_id",
+            )?);
+        } else {
+            step2_absent = Some(
+                "the work directory has no step-2 posterior (update_joints/joints.parquet): the joints were not updated, so there are no bolted predictions, no bolted Table-2 rows or boxes, and no joint posterior in this report."
+            .to_string(),
+            );
+        }
+        let iv = validation::intervals(&preds, &measured);
+        let t2 = validation::table2(&preds, &measured, &iv);
+        let mut meas_map: BTreeMap<(String, String, String), Vec<f64>> = BTreeMap::new();
+        for m in &measured {
+            meas_map
+                .entry((m.board_id.clone(), m.setup.clone(), m.label.clone()))
+                .or_default()
+                .push(m.freq_hz);
+        }
+        let mut findings = vec![];
+        let (mut n_meas, mut quarantined, mut counts) = (0, vec![], BTreeMap::new());
+        if ingest_report.is_file() {
+            let v = read_json(&ingest_report)?;
+            n_meas = v.get("measurements").and_then(|x| x.as_u64()).unwrap_or(0) as usize;
+            for q in v
+                .get("quarantined")
+                .and_then(|x| x.as_array())
+                .into_iter()
+                .flatten()
+            {
+                let s = |k: &str| q.get(k).and_then(|x| x.as_str()).unwrap_or("").to_string();
+                let id = if q.is_string() {
+                    q.as_str().unwrap_or("").to_string()
+                } else {
+                    s("measurement_id")
+                };
+                quarantined.push((id, s("reason")));
+            }
+            if let Some(o) = v.get("counts").and_then(|x| x.as_object()) {
+                for (k, c) in o {
+                    counts.insert(k.clone(), c.as_u64().unwrap_or(0));
+                }
+            }
+            findings_of("ingest", &v, &mut findings);
+        }
+        findings_of(
+            "update boards",
+            &read_json(&step1.join("update_report.json"))?,
+            &mut findings,
+        );
+        if has2 && step2.join("update_report.json").is_file() {
+            findings_of(
+                "update joints",
+                &read_json(&step2.join("update_report.json"))?,
+                &mut findings,
+            );
+        }
+        let prop_report = read_json(&prop.join("propagate_report.json"))?;
+        findings_of("propagate", &prop_report, &mut findings);
+        let mut provenance = vec![];
+        for m in &manifests {
+            let Some(man) = crate::io::manifest::read_manifest(m) else {
+                continue;
+            };
+            provenance.push(Provenance {
+                stage: man.stage.clone(),
+                manifest: crate::io::manifest::rel_path(m, w),
+                tool_version: man.tool_version.clone(),
+                fingerprint: man.fingerprint.clone(),
+                outputs: man
+                    .outputs
+                    .iter()
+                    .map(|o| (o.path.clone(), o.blake3.clone()))
+                    .collect(),
+            });
+        }
+        // Copies of the plots, linked from the page.
+        let mut outputs = vec![];
+        let mut links = vec![];
+        for (kind, p) in &plots {
+            let name = p
+                .file_name()
+                .map(|n| n.to_string_lossy().to_string())
+                .unwrap_or_default();
+            let rel = format!("plots/{kind}/{name}");
+            let dst = opts.out.join(&rel);
+            crate::io::atomic::write_bytes(
+                &dst,
+                &std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?,
+            )?;
+            outputs.push(dst);
+            let (mid, what) = match name.strip_suffix(".svg").and_then(|s| s.rsplit_once('_')) {
+                Some((m, k)) => (m.to_string(), k.to_string()),
+                None => (name.clone(), kind.to_string()),
+            };
+            links.push((mid, what, rel));
+        }
+        let title = format!(
+            "Validation report: {}",
+            w.canonicalize()
+                .ok()
+                .and_then(|c| c.file_name().map(|n| n.to_string_lossy().to_string()))
+                .unwrap_or_else(|| "campaign".into())
+        );
+        let data = ReportData {
+            title,
+            tool_version: crate::io::manifest::TOOL_VERSION.into(),
+            step1: step_data(&step1, "boards (step 1)", "boards.parquet", "board_id")?,
+            step2: step2_data,
+            step2_absent,
+            table2: t2.clone(),
+            intervals: iv.clone(),
+            measured: meas_map,
+            propagate: prop_report,
+            plot_links: links,
+            ingest_measurements: n_meas,
+            quarantined,
+            ingest_counts: counts,
+            findings,
+            provenance,
+            inputs: prep
+                .inputs
+                .iter()
+                .filter(|f| !f.path.ends_with(".svg"))
+                .map(|f| (f.path.clone(), f.blake3.clone()))
+                .collect(),
+        };
+        let r = html::render(&data);
+        let prov = BTreeMap::from([
+            ("hbmu.stage".to_string(), "report".to_string()),
+            ("hbmu.fingerprint".to_string(), prep.fingerprint.clone()),
+            (
+                "hbmu.version".to_string(),
+                crate::io::manifest::TOOL_VERSION.to_string(),
+            ),
+            ("hbmu.campaign".to_string(), String::new()),
+        ]);
+        outputs.extend(write_table2(&opts.out, &t2, &prov)?);
+        outputs.extend(write_intervals(&opts.out, &iv, &prov)?);
+        let p = opts.out.join(HTML);
+        crate::io::atomic::write_bytes(&p, r.html.as_bytes())?;
+        outputs.push(p);
+        let p = opts.out.join("summary.md");
+        crate::io::atomic::write_bytes(&p, r.markdown.as_bytes())?;
+        outputs.push(p);
+        let cov = |scope: &str, upd: Option<bool>| {
+            validation::coverage(iv.iter().filter(|i| {
+                i.scope == scope
+                    && i.setup == "free"
+                    && upd.is_none_or(|u| i.used_for_updating == u)
+            }))
+        };
+        let (vk, vn) = cov("board", Some(false));
+        let (nk, nn) = cov("new_board", None);
+        eprintln!(
+            "report: {} figures; free-free coverage of the 90 % intervals: validation modes {vk}/{vn}, new board {nk}/{nn}{}",
+            r.figures,
+            if has2 { "" } else { "; no step-2 posterior: no bolted predictions" }
+        );
+        if verbose {
+            for f in &data.findings {
+                eprintln!("{} {} {}: {}", f.stage, f.severity, f.code, f.message);
+            }
+        }
+        let mut s = BTreeMap::new();
+        s.insert("figures".into(), serde_json::json!(r.figures));
+        s.insert(
+            "validation_coverage_free".into(),
+            serde_json::json!([vk, vn]),
+        );
+        s.insert(
+            "new_board_coverage_free".into(),
+            serde_json::json!([nk, nn]),
+        );
+        Ok(StageResult {
+            outputs,
+            exit_code: exit::OK,
+            summary: s,
+        })
+    })
+}

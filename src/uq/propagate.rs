@@ -1,0 +1,750 @@
+//! Monte Carlo propagation of the hierarchical posterior to predicted eigenfrequencies.
+//!
+//! Per propagation draw d (its own ChaCha8 stream `d` of the seed, so the result does not
+//! depend on the thread count or on the order in which draws run):
+//! 1. a step-1 particle i is picked uniformly (the SMC's final particles carry equal weights);
+//! 2. **new board, free-free**: θ = μ + diag(σ) L z, z ~ N(0, I), L Lᵀ = Ω (the population's
+//!    correlation), μ, σ, Ω of particle i;
+//! 3. **each measured board, free-free**: θ_b of particle i;
+//! 4. with a step-2 posterior: a step-2 particle j is picked uniformly; it carries the step-1
+//!    draw (cut posterior) whose boards and population are used; a **new joint** ln k ~
+//!    N(μ_lnK, σ_lnK) of particle j is drawn, and every measured board and a new board (drawn
+//!    as in 2, from the carried step-1 population) are evaluated bolted with it.
+//!
+//! Every evaluation gives the model frequency f of every label (modes tracked by their overlap
+//! with the label's reduced vector at the ROM centre, as the updating does) and a predicted
+//! *measurement* f_obs: λ_obs = λ (1 + ε z), z ~ N(0, 1), the likelihood's relative eigenvalue
+//! error ε of that label at the same particle (Vanik–Beck–Au). A label that was not updated
+//! (a validation mode) has no inferred ε of its own: the modes' errors are treated as
+//! exchangeable draws from a log-normal population, whose parameters are the mean and sample
+//! standard deviation of ln ε over the updated labels of the same setup at that particle, and a
+//! new ε is drawn from it per evaluation ([`pooled_eps`]); its rows say so (`eps_pooled`).
+//!
+//! Parameters outside the admissible region (non-positive moduli, ν² E_y/E_x ≥ 1) or where a
+//! label cannot be tracked give no row; they are counted in [`Counts`], never dropped
+//! silently. Draws outside the ROM's verified box are evaluated and counted.
+
+use crate::fem::params::names;
+use crate::fem::rom::Rom;
+use crate::fem::FemError;
+use faer::{Mat, Side};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use rayon::prelude::*;
+
+/// A ROM with the labels it predicts: each label's reference reduced vector at the centre.
+#[derive(Clone, Debug)]
+pub struct LabelModel {
+    pub rom: Rom,
+    /// Labels, in the order of `refs`.
+    pub labels: Vec<String>,
+    /// Unit reference vectors of the labels at the ROM centre.
+    refs: Vec<Vec<f64>>,
+    /// Modes computed per evaluation (the highest reference plus a margin for swaps).
+    n_track: usize,
+    /// Half-width of the ROM's verified box, relative to its centre.
+    pub box_rel: f64,
+}
+
+impl LabelModel {
+    /// `modes[l]`: the 0-based ROM mode at the centre that label `labels[l]` pairs with.
+    pub fn new(
+        rom: Rom,
+        labels: Vec<String>,
+        modes: &[usize],
+        box_rel: f64,
+    ) -> Result<LabelModel, FemError> {
+        if labels.len() != modes.len() {
+            return Err(FemError::Request(format!(
+                "expected one model mode per label, found {} labels and {} modes",
+                labels.len(),
+                modes.len()
+            )));
+        }
+        if let Some(m) = modes.iter().find(|m| **m >= rom.n_modes) {
+            return Err(FemError::Request(format!(
+                "model mode {} is beyond the ROM's {} modes",
+                m + 1,
+                rom.n_modes
+            )));
+        }
+        let n_track = (modes.iter().copied().max().unwrap_or(0) + 3).min(rom.n_modes);
+        let c = rom.map.coefficients_unchecked(&rom.map.nominal);
+        let centre = rom.eval_lowest(&c.k, &c.m, n_track)?;
+        let refs = modes
+            .iter()
+            .map(|&j| {
+                let v = &centre.vectors[j];
+                let n = v.iter().map(|a| a * a).sum::<f64>().sqrt();
+                v.iter().map(|a| a / n).collect()
+            })
+            .collect();
+        Ok(LabelModel {
+            rom,
+            labels,
+            refs,
+            n_track,
+            box_rel,
+        })
+    }
+
+    /// Eigenvalues λ = ω² (rad²/s²) of every label at the full parameter vector `values`;
+    /// `None` where the parameters are inadmissible or a label cannot be tracked (best
+    /// overlap below 1/√2).
+    pub fn eigenvalues(&self, values: &[f64]) -> Option<Vec<f64>> {
+        let map = &self.rom.map;
+        for (n, v) in map.names.iter().zip(values) {
+            let ok = v.is_finite() && (n == names::NU_XY || *v > 0.0);
+            if !ok {
+                return None;
+            }
+        }
+        let [ix, iy, _, inu] = map.core_idx;
+        if values[inu] * values[inu] * values[iy] / values[ix] >= 1.0 {
+            return None;
+        }
+        let c = map.coefficients_unchecked(values);
+        let modes = self.rom.eval_lowest(&c.k, &c.m, self.n_track).ok()?;
+        let mut pairs = Vec::with_capacity(self.refs.len() * modes.vectors.len());
+        for (m, r) in self.refs.iter().enumerate() {
+            for (j, y) in modes.vectors.iter().enumerate() {
+                let ny = y.iter().map(|a| a * a).sum::<f64>().sqrt();
+                let o = y.iter().zip(r).map(|(a, b)| a * b).sum::<f64>().abs() / ny;
+                pairs.push((o, m, j));
+            }
+        }
+        // Greedy by overlap, ties broken by (label, mode) order: deterministic.
+        pairs.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        let mut out = vec![f64::NAN; self.refs.len()];
+        let mut taken = vec![false; modes.vectors.len()];
+        for (o, m, j) in pairs {
+            if !out[m].is_nan() || taken[j] {
+                continue;
+            }
+            if o < std::f64::consts::FRAC_1_SQRT_2 {
+                return None;
+            }
+            taken[j] = true;
+            out[m] = modes.eigenvalues[j];
+        }
+        Some(out)
+    }
+
+    /// True when every parameter lies inside the ROM's box around its centre.
+    pub fn inside_box(&self, values: &[f64]) -> bool {
+        self.rom
+            .map
+            .nominal
+            .iter()
+            .zip(values)
+            .all(|(c, v)| *c == 0.0 || ((v - c) / c).abs() <= self.box_rel * (1.0 + 1e-12))
+    }
+}
+
+/// Population hyperparameters of one particle, in physical units of the parameters.
+#[derive(Clone, Debug)]
+pub struct Population {
+    pub mu: Vec<f64>,
+    pub sigma: Vec<f64>,
+    /// Correlation matrix Ω, d × d row-major.
+    pub corr: Vec<f64>,
+}
+
+/// One step-1 particle.
+#[derive(Clone, Debug)]
+pub struct Step1Particle {
+    pub population: Population,
+    /// Per measured board (order of [`Posterior::board_ids`]), the updated parameters.
+    pub boards: Vec<Vec<f64>>,
+    /// Relative eigenvalue error ε per free label (order of the free [`LabelModel`]'s
+    /// labels); `None` where the label was not updated.
+    pub eps: Vec<Option<f64>>,
+}
+
+/// One step-2 particle: the carried step-1 particle and the joint population.
+#[derive(Clone, Debug)]
+pub struct Step2Particle {
+    /// Index into [`Posterior::step1`].
+    pub step1: usize,
+    pub mu_ln_k: f64,
+    pub sigma_ln_k: f64,
+    /// ε per bolted label (order of the bolted [`LabelModel`]'s labels).
+    pub eps: Vec<Option<f64>>,
+}
+
+/// The posterior to propagate.
+#[derive(Clone, Debug)]
+pub struct Posterior {
+    /// Updated parameter names (ROM parameter names), order of the particle vectors.
+    pub params: Vec<String>,
+    pub board_ids: Vec<String>,
+    pub step1: Vec<Step1Particle>,
+    /// Step 2 (bolted), when given.
+    pub step2: Option<Vec<Step2Particle>>,
+}
+
+/// Which population the prediction is for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Scope {
+    NewBoard,
+    Board,
+}
+
+impl Scope {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Scope::NewBoard => "new_board",
+            Scope::Board => "board",
+        }
+    }
+}
+
+/// `free` or `bolted`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum SetupKind {
+    Free,
+    Bolted,
+}
+
+impl SetupKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            SetupKind::Free => "free",
+            SetupKind::Bolted => "bolted",
+        }
+    }
+}
+
+/// One predicted frequency.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Prediction {
+    pub draw: u32,
+    pub scope: Scope,
+    /// Index into [`Posterior::board_ids`]; `None` for a new board.
+    pub board: Option<usize>,
+    pub setup: SetupKind,
+    /// Index into the setup's labels.
+    pub label: usize,
+    /// Model frequency, Hz.
+    pub freq_hz: f64,
+    /// Predicted measurement (model and prediction error), Hz.
+    pub freq_obs_hz: f64,
+    /// The label's ε was borrowed from an updated label (validation mode).
+    pub eps_pooled: bool,
+}
+
+/// Evaluations that gave no prediction, and draws outside the ROM box, per setup and scope.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Counts {
+    pub evaluations: u64,
+    pub inadmissible_or_untracked: u64,
+    pub outside_rom_box: u64,
+    /// New-board draws (free) outside the box, of `new_board_free` draws.
+    pub new_board_outside_box: u64,
+}
+
+impl Counts {
+    fn add(&mut self, o: &Counts) {
+        self.evaluations += o.evaluations;
+        self.inadmissible_or_untracked += o.inadmissible_or_untracked;
+        self.outside_rom_box += o.outside_rom_box;
+        self.new_board_outside_box += o.new_board_outside_box;
+    }
+}
+
+/// The forward models of the setups.
+pub struct Models<'a> {
+    pub free: &'a LabelModel,
+    /// Positions of the posterior's parameters in the free ROM's parameter vector.
+    pub free_idx: Vec<usize>,
+    /// The bolted model, the posterior's parameters' positions in it, and k_con's position.
+    pub bolted: Option<(&'a LabelModel, Vec<usize>, usize)>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum PropagateError {
+    #[error("propagation: {0}")]
+    Input(String),
+}
+
+/// Draws, per draw, the predictions of every scope and setup (see the module doc).
+pub fn propagate(
+    post: &Posterior,
+    models: &Models,
+    draws: usize,
+    seed: u64,
+) -> Result<(Vec<Prediction>, Counts), PropagateError> {
+    let d = post.params.len();
+    if post.step1.is_empty() {
+        return Err(PropagateError::Input(
+            "the step-1 posterior has no particle".into(),
+        ));
+    }
+    for (i, p) in post.step1.iter().enumerate() {
+        if p.population.mu.len() != d
+            || p.population.sigma.len() != d
+            || p.population.corr.len() != d * d
+            || p.boards.len() != post.board_ids.len()
+            || p.boards.iter().any(|b| b.len() != d)
+            || p.eps.len() != models.free.labels.len()
+        {
+            return Err(PropagateError::Input(format!(
+                "step-1 particle {i}: expected {d} parameters, {} boards and {} labels",
+                post.board_ids.len(),
+                models.free.labels.len()
+            )));
+        }
+    }
+    // Cholesky factors of every particle's Ω, once.
+    let chol: Vec<Vec<f64>> = post
+        .step1
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            cholesky(&p.population.corr, d).ok_or_else(|| {
+                PropagateError::Input(format!(
+                "step-1 particle {i}: the population correlation matrix is not positive definite"
+            ))
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    let step2 = match (&post.step2, &models.bolted) {
+        (Some(s), Some((bm, _, _))) => {
+            if s.is_empty() {
+                return Err(PropagateError::Input(
+                    "the step-2 posterior has no particle".into(),
+                ));
+            }
+            for (j, p) in s.iter().enumerate() {
+                if p.step1 >= post.step1.len() || p.eps.len() != bm.labels.len() {
+                    return Err(PropagateError::Input(format!(
+                        "step-2 particle {j}: carries step-1 particle {} of {} and {} of {} bolted labels' errors",
+                        p.step1,
+                        post.step1.len(),
+                        p.eps.len(),
+                        bm.labels.len()
+                    )));
+                }
+            }
+            Some(s)
+        }
+        (Some(_), None) => {
+            return Err(PropagateError::Input(
+                "a step-2 posterior was given without a bolted model".into(),
+            ))
+        }
+        _ => None,
+    };
+    let per_draw: Vec<(Vec<Prediction>, Counts)> = (0..draws)
+        .into_par_iter()
+        .map(|k| {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            rng.set_stream(k as u64);
+            one_draw(
+                post,
+                models,
+                &chol,
+                step2.map(|v| v.as_slice()),
+                k as u32,
+                &mut rng,
+            )
+        })
+        .collect();
+    let mut out = Vec::new();
+    let mut counts = Counts::default();
+    for (p, c) in per_draw {
+        out.extend(p);
+        counts.add(&c);
+    }
+    Ok((out, counts))
+}
+
+/// Lower Cholesky factor of a symmetric d × d matrix (row-major), `None` if not SPD.
+fn cholesky(a: &[f64], d: usize) -> Option<Vec<f64>> {
+    let m = Mat::from_fn(d, d, |i, j| a[i * d + j]);
+    let llt = m.llt(Side::Lower).ok()?;
+    let l = llt.L();
+    crate::simd::clear_upper_vector_state();
+    Some((0..d * d).map(|k| l[(k / d, k % d)]).collect())
+}
+
+fn new_board(pop: &Population, l: &[f64], rng: &mut ChaCha8Rng) -> Vec<f64> {
+    let d = pop.mu.len();
+    let z: Vec<f64> = (0..d).map(|_| StandardNormal.sample(rng)).collect();
+    (0..d)
+        .map(|i| {
+            let lz: f64 = (0..=i).map(|j| l[i * d + j] * z[j]).sum();
+            pop.mu[i] + pop.sigma[i] * lz
+        })
+        .collect()
+}
+
+#[allow(clippy::too_many_arguments)]
+fn evaluate(
+    model: &LabelModel,
+    nominal_values: &[f64],
+    idx: &[usize],
+    theta: &[f64],
+    k_con: Option<(usize, f64)>,
+    eps: &[Option<f64>],
+    head: (u32, Scope, Option<usize>, SetupKind),
+    rng: &mut ChaCha8Rng,
+    out: &mut Vec<Prediction>,
+    counts: &mut Counts,
+) -> bool {
+    let mut v = nominal_values.to_vec();
+    for (i, t) in idx.iter().zip(theta) {
+        v[*i] = *t;
+    }
+    if let Some((i, k)) = k_con {
+        v[i] = k;
+    }
+    counts.evaluations += 1;
+    let inside = model.inside_box(&v);
+    if !inside {
+        counts.outside_rom_box += 1;
+    }
+    let updated: Vec<f64> = eps.iter().flatten().copied().collect();
+    // The random numbers are drawn whether or not the evaluation succeeds, so one failed
+    // evaluation does not shift the streams of the others.
+    let noise: Vec<(f64, f64)> = (0..eps.len())
+        .map(|_| (StandardNormal.sample(rng), StandardNormal.sample(rng)))
+        .collect();
+    let Some(lambda) = model.eigenvalues(&v) else {
+        counts.inadmissible_or_untracked += 1;
+        return inside;
+    };
+    let (draw, scope, board, setup) = head;
+    for (l, lam) in lambda.iter().enumerate() {
+        let (z, z_eps) = noise[l];
+        let (e, pooled) = match eps[l] {
+            Some(e) => (e, false),
+            None => (pooled_eps(&updated, z_eps), true),
+        };
+        let to_hz = |x: f64| x.max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
+        out.push(Prediction {
+            draw,
+            scope,
+            board,
+            setup,
+            label: l,
+            freq_hz: to_hz(*lam),
+            freq_obs_hz: to_hz(lam * (1.0 + e * z)),
+            eps_pooled: pooled,
+        });
+    }
+    inside
+}
+
+/// ε of a label that was not updated: exp(m + s z), m and s the mean and sample standard
+/// deviation (n − 1; 0 for one label) of ln ε over the updated labels; 0 without any.
+pub fn pooled_eps(updated: &[f64], z: f64) -> f64 {
+    let logs: Vec<f64> = updated
+        .iter()
+        .filter(|e| **e > 0.0)
+        .map(|e| e.ln())
+        .collect();
+    if logs.is_empty() {
+        return 0.0;
+    }
+    let n = logs.len() as f64;
+    let m = logs.iter().sum::<f64>() / n;
+    let s = if logs.len() > 1 {
+        (logs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
+    } else {
+        0.0
+    };
+    (m + s * z).exp()
+}
+
+fn one_draw(
+    post: &Posterior,
+    models: &Models,
+    chol: &[Vec<f64>],
+    step2: Option<&[Step2Particle]>,
+    draw: u32,
+    rng: &mut ChaCha8Rng,
+) -> (Vec<Prediction>, Counts) {
+    let mut out = Vec::new();
+    let mut counts = Counts::default();
+    let free = models.free;
+    let free_nominal = free.rom.map.nominal.clone();
+    let i = rng.random_range(0..post.step1.len());
+    let p = &post.step1[i];
+    let theta = new_board(&p.population, &chol[i], rng);
+    let inside = evaluate(
+        free,
+        &free_nominal,
+        &models.free_idx,
+        &theta,
+        None,
+        &p.eps,
+        (draw, Scope::NewBoard, None, SetupKind::Free),
+        rng,
+        &mut out,
+        &mut counts,
+    );
+    if !inside {
+        counts.new_board_outside_box += 1;
+    }
+    for (b, th) in p.boards.iter().enumerate() {
+        evaluate(
+            free,
+            &free_nominal,
+            &models.free_idx,
+            th,
+            None,
+            &p.eps,
+            (draw, Scope::Board, Some(b), SetupKind::Free),
+            rng,
+            &mut out,
+            &mut counts,
+        );
+    }
+    if let (Some(s2), Some((bm, bidx, kidx))) = (step2, &models.bolted) {
+        let j = rng.random_range(0..s2.len());
+        let q = &s2[j];
+        let p1 = &post.step1[q.step1];
+        let bolted_nominal = bm.rom.map.nominal.clone();
+        let joint = |rng: &mut ChaCha8Rng| -> f64 {
+            let z: f64 = StandardNormal.sample(rng);
+            (q.mu_ln_k + q.sigma_ln_k * z).exp()
+        };
+        let k = joint(rng);
+        let theta = new_board(&p1.population, &chol[q.step1], rng);
+        evaluate(
+            bm,
+            &bolted_nominal,
+            bidx,
+            &theta,
+            Some((*kidx, k)),
+            &q.eps,
+            (draw, Scope::NewBoard, None, SetupKind::Bolted),
+            rng,
+            &mut out,
+            &mut counts,
+        );
+        for (b, th) in p1.boards.iter().enumerate() {
+            let k = joint(rng);
+            evaluate(
+                bm,
+                &bolted_nominal,
+                bidx,
+                th,
+                Some((*kidx, k)),
+                &q.eps,
+                (draw, Scope::Board, Some(b), SetupKind::Bolted),
+                rng,
+                &mut out,
+                &mut counts,
+            );
+        }
+    }
+    (out, counts)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fem::model::Setup;
+    use crate::fem::rom::RomOptions;
+    use crate::fem::tests::helpers::{build, plain_board};
+
+    /// A small free plate ROM (coarse mesh, few snapshots: the test checks the propagation,
+    /// not the ROM) and its first two labels.
+    fn model() -> LabelModel {
+        let board = plain_board(0.2, 0.15, 1.6e-3, 24e9, 20e9, 8e9, 0.15, 1900.0);
+        let fe = build(&board, Setup::Free, 8, 6);
+        let rom = Rom::build(
+            &fe,
+            &RomOptions {
+                n_modes: 4,
+                n_random: 4,
+                derivative_snapshots: false,
+                ..RomOptions::default()
+            },
+        )
+        .unwrap();
+        LabelModel::new(rom, vec!["m1".into(), "m2".into()], &[0, 1], 0.2).unwrap()
+    }
+
+    fn posterior(eps: Vec<Option<f64>>) -> Posterior {
+        // One updated parameter: mass_scale ~ N(1, 0.05²) in the population; one board at 1.1.
+        Posterior {
+            params: vec![names::MASS_SCALE.into()],
+            board_ids: vec!["B1".into()],
+            step1: vec![Step1Particle {
+                population: Population {
+                    mu: vec![1.0],
+                    sigma: vec![0.05],
+                    corr: vec![1.0],
+                },
+                boards: vec![vec![1.1]],
+                eps,
+            }],
+            step2: None,
+        }
+    }
+
+    #[test]
+    fn new_board_quantiles_follow_the_mass_scaling_law() {
+        // With only the mass scaled, λ(m) = λ₀ / m exactly (M(p) = m M₀, K fixed), so
+        // f = f₀ / √m with m ~ N(1, 0.05²): P(f ≤ f₀/√(1 + 0.05 z_p)) = 1 − p.
+        let lm = model();
+        let idx = vec![lm
+            .rom
+            .map
+            .names
+            .iter()
+            .position(|n| n == names::MASS_SCALE)
+            .unwrap()];
+        let f0: Vec<f64> = lm
+            .eigenvalues(&lm.rom.map.nominal)
+            .unwrap()
+            .iter()
+            .map(|l| l.sqrt() / (2.0 * std::f64::consts::PI))
+            .collect();
+        let models = Models {
+            free: &lm,
+            free_idx: idx,
+            bolted: None,
+        };
+        let n = 4000;
+        let (preds, counts) = propagate(&posterior(vec![None, None]), &models, n, 7).unwrap();
+        assert_eq!(counts.evaluations, 2 * n as u64);
+        assert_eq!(counts.inadmissible_or_untracked, 0);
+        let newb: Vec<f64> = preds
+            .iter()
+            .filter(|p| p.scope == Scope::NewBoard && p.label == 0)
+            .map(|p| p.freq_hz)
+            .collect();
+        assert_eq!(newb.len(), n);
+        // Standard normal quantiles z_p (published values).
+        for (p, z) in [
+            (0.05, -1.644_853_6),
+            (0.25, -0.674_489_75),
+            (0.5, 0.0),
+            (0.95, 1.644_853_6),
+        ] {
+            let f_p = f0[0] / (1.0f64 + 0.05 * z).sqrt();
+            let frac = newb.iter().filter(|f| **f <= f_p).count() as f64 / n as f64;
+            let se = (p * (1.0 - p) / n as f64).sqrt();
+            assert!((frac - (1.0 - p)).abs() < 4.0 * se, "p {p}: {frac}");
+        }
+        // The measured board: f = f₀/√1.1 in every draw (no prediction error given).
+        for p in preds.iter().filter(|p| p.scope == Scope::Board) {
+            let want = f0[p.label] / 1.1f64.sqrt();
+            assert!(
+                (p.freq_hz - want).abs() < 1e-9 * want,
+                "{} vs {want}",
+                p.freq_hz
+            );
+            assert_eq!(p.freq_obs_hz, p.freq_hz);
+        }
+    }
+
+    #[test]
+    fn prediction_error_is_relative_on_the_eigenvalue_and_pooled_for_validation_modes() {
+        let lm = model();
+        let idx = vec![lm
+            .rom
+            .map
+            .names
+            .iter()
+            .position(|n| n == names::MASS_SCALE)
+            .unwrap()];
+        let models = Models {
+            free: &lm,
+            free_idx: idx,
+            bolted: None,
+        };
+        let n = 4000;
+        let (preds, _) = propagate(&posterior(vec![Some(0.02), None]), &models, n, 11).unwrap();
+        for label in [0, 1] {
+            // (f_obs/f)² − 1 = ε z: mean 0, sd ε = 0.02 (label 1 borrows label 0's ε).
+            let r: Vec<f64> = preds
+                .iter()
+                .filter(|p| p.scope == Scope::Board && p.label == label)
+                .map(|p| (p.freq_obs_hz / p.freq_hz).powi(2) - 1.0)
+                .collect();
+            let (m, s) = crate::report::validation::mean_sd(&r);
+            assert!(
+                m.abs() < 4.0 * 0.02 / (n as f64).sqrt(),
+                "label {label}: mean {m}"
+            );
+            // sd of a sample sd ≈ σ / √(2n).
+            assert!(
+                (s - 0.02).abs() < 4.0 * 0.02 / (2.0 * n as f64).sqrt(),
+                "label {label}: sd {s}"
+            );
+            let pooled = preds
+                .iter()
+                .filter(|p| p.label == label)
+                .all(|p| p.eps_pooled == (label == 1));
+            assert!(pooled);
+        }
+    }
+
+    #[test]
+    fn pooled_eps_is_the_log_normal_of_the_updated_modes() {
+        // ln 0.01 and ln 0.04: mean ln 0.02, sample sd |ln 4| / √2.
+        let e = [0.01, 0.04];
+        assert!((pooled_eps(&e, 0.0) - 0.02).abs() < 1e-15);
+        let s = 4f64.ln() / 2f64.sqrt();
+        assert!((pooled_eps(&e, 1.5) - 0.02 * (1.5 * s).exp()).abs() < 1e-15);
+        assert!((pooled_eps(&[0.03], 2.0) - 0.03).abs() < 1e-15);
+        assert_eq!(pooled_eps(&[], 1.0), 0.0);
+    }
+
+    #[test]
+    fn same_seed_same_predictions_whatever_the_thread_count() {
+        let lm = model();
+        let idx = vec![lm
+            .rom
+            .map
+            .names
+            .iter()
+            .position(|n| n == names::MASS_SCALE)
+            .unwrap()];
+        let models = Models {
+            free: &lm,
+            free_idx: idx,
+            bolted: None,
+        };
+        let post = posterior(vec![Some(0.01), None]);
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| propagate(&post, &models, 300, 5).unwrap())
+        };
+        let (a, ca) = run(1);
+        let (b, cb) = run(3);
+        assert_eq!(a, b);
+        assert_eq!(ca, cb);
+        let (c, _) = propagate(&post, &models, 300, 6).unwrap();
+        assert_ne!(a, c, "another seed gives other draws");
+    }
+
+    #[test]
+    fn bad_posteriors_are_refused_with_what_was_expected() {
+        let lm = model();
+        let models = Models {
+            free: &lm,
+            free_idx: vec![0],
+            bolted: None,
+        };
+        let mut post = posterior(vec![None]);
+        let e = propagate(&post, &models, 10, 1).unwrap_err().to_string();
+        assert!(
+            e.contains("expected 1 parameters, 1 boards and 2 labels"),
+            "{e}"
+        );
+        post.step1[0].eps = vec![None, None];
+        post.step1[0].population.corr = vec![-1.0];
+        let e = propagate(&post, &models, 10, 1).unwrap_err().to_string();
+        assert!(e.contains("not positive definite"), "{e}");
+    }
+}

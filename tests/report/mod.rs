@@ -1,0 +1,396 @@
+//! The validation report in a real browser: headless Chromium opens `report.html` of a small
+//! virtual campaign run through the whole DAG (lab → … → update boards → propagate → report),
+//! with no console errors; every figure renders with a non-empty box; the screenshot is kept
+//! under `target/test-artifacts/`; the numbers in the page's tables equal the Parquet tables
+//! they come from. Without Chromium the test prints SKIP, unless `HBMU_REQUIRE_BROWSER=1`
+//! (set by CI), in which case it fails.
+
+use crate::common::repo;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn chromium() -> Option<String> {
+    for c in ["chromium", "chromium-browser", "google-chrome"] {
+        if Command::new(c)
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success())
+        {
+            return Some(c.to_string());
+        }
+    }
+    None
+}
+
+fn browser(bin: &str, args: &[&str]) -> Output {
+    Command::new(bin)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--no-first-run",
+            "--disable-extensions",
+            "--enable-logging=stderr",
+            "--v=0",
+        ])
+        .args(args)
+        .output()
+        .expect("run chromium")
+}
+
+/// A checker injected at the start of a copy of the page: records errors (script and resource
+/// load, console.error), then, once loaded, measures every figure and image and serialises the
+/// tables' cells into `<pre id="hbmu-check">` for `--dump-dom`.
+const CHECKER: &str = r#"<script>
+window.__errs = [];
+window.addEventListener('error', function (e) {
+  window.__errs.push(String(e.message || (e.target && (e.target.src || e.target.href)) || 'error'));
+}, true);
+(function () { var ce = console.error; console.error = function () { window.__errs.push(Array.prototype.join.call(arguments, ' ')); ce.apply(console, arguments); }; })();
+window.addEventListener('load', function () {
+  var figs = document.querySelectorAll('figure.plot');
+  var empty = [];
+  figs.forEach(function (f, i) {
+    var s = f.querySelector('svg');
+    var r = s ? s.getBoundingClientRect() : null;
+    var b = s ? s.getBBox() : null;
+    var drawn = s ? s.querySelectorAll('line,polyline,rect,circle,path,polygon,text').length : 0;
+    if (!s || r.width < 50 || r.height < 50 || b.width <= 0 || b.height <= 0 || drawn < 5) empty.push(i + 1);
+  });
+  var imgs = document.querySelectorAll('img');
+  imgs.forEach(function (im, i) { if (!im.complete || im.naturalWidth === 0) empty.push('img' + i); });
+  var tables = {};
+  document.querySelectorAll('table[data-table]').forEach(function (t) {
+    var name = t.getAttribute('data-table');
+    var rows = [];
+    t.querySelectorAll('tr').forEach(function (tr) {
+      var cells = tr.querySelectorAll('td[data-col]');
+      if (!cells.length) return;
+      var row = {};
+      cells.forEach(function (c) { row[c.getAttribute('data-col')] = [c.getAttribute('data-value'), c.textContent]; });
+      rows.push(row);
+    });
+    (tables[name] = tables[name] || []).push(rows);
+  });
+  var pre = document.createElement('pre');
+  pre.id = 'hbmu-check';
+  pre.textContent = JSON.stringify({ errors: window.__errs, figures: figs.length, empty: empty, tables: tables });
+  document.body.appendChild(pre);
+});
+</script>"#;
+
+/// The small campaign run once through the DAG for every test here: (guard, work dir).
+fn small_work() -> &'static Path {
+    static WORK: std::sync::OnceLock<(tempfile::TempDir, PathBuf)> = std::sync::OnceLock::new();
+    let (_, w) = WORK.get_or_init(|| {
+        let t = tempfile::tempdir().unwrap();
+        let w = t.path().join("small");
+        run_small_pipeline(&w);
+        (t, w)
+    });
+    w
+}
+
+#[test]
+fn propagate_and_report_give_the_same_bytes_whatever_the_threads_and_the_directory() {
+    let work = small_work();
+    let t = tempfile::tempdir().unwrap();
+    // Propagation at 1 thread into another directory: the pipeline's predictions (2 threads
+    // or as many as the machine has), byte for byte.
+    let other = t.path().join("p1");
+    let o = crate::common::hbmu(&[
+        "--threads",
+        "1",
+        "propagate",
+        work.join("update_boards").to_str().unwrap(),
+        "--draws",
+        "400",
+        "--out",
+        other.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", crate::common::stderr(&o));
+    for f in ["predictions.parquet", "propagate_report.json"] {
+        assert_eq!(
+            std::fs::read(other.join(f)).unwrap(),
+            std::fs::read(work.join("propagate").join(f)).unwrap(),
+            "{f} differs between thread counts"
+        );
+    }
+    // The work directory copied elsewhere (same name): the same report.
+    let copy = t.path().join("elsewhere").join("small");
+    crate::common::copy_dir(work, &copy);
+    std::fs::remove_dir_all(copy.join("report")).unwrap();
+    let o = crate::common::hbmu(&[
+        "report",
+        copy.to_str().unwrap(),
+        "--out",
+        copy.join("report").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", crate::common::stderr(&o));
+    for f in [
+        "report.html",
+        "summary.md",
+        "table2.parquet",
+        "table2.csv",
+        "intervals.parquet",
+        "intervals.csv",
+    ] {
+        assert_eq!(
+            std::fs::read(copy.join("report").join(f)).unwrap(),
+            std::fs::read(work.join("report").join(f)).unwrap(),
+            "{f} differs between work directories"
+        );
+    }
+}
+
+fn run_small_pipeline(work: &Path) {
+    let o = Command::new("make")
+        .arg("-C")
+        .arg(repo().join("pipelines"))
+        .args([
+            "--no-print-directory",
+            "all",
+            "update-boards",
+            "propagate",
+            "report",
+        ])
+        .arg(format!(
+            "SCENARIO={}",
+            repo().join("tests/nightly/small.toml").display()
+        ))
+        .arg(format!("WORK={}", work.display()))
+        .arg(format!("HBMU={}", env!("CARGO_BIN_EXE_hbmu")))
+        .args([
+            "CARGO=true",
+            "UPDATE_PARTICLES=100",
+            "UPDATE_RUNS=2",
+            "PROPAGATE_DRAWS=400",
+        ])
+        .env("CI", "1")
+        .env("HBMU_CACHE", "")
+        .output()
+        .expect("run make");
+    assert!(
+        o.status.success(),
+        "pipeline failed:\n{}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+/// Parquet column `col` of a table as strings the way the page writes `data-value`.
+fn parquet_values(path: &Path, col: &str) -> Vec<String> {
+    use arrow::array::{Array, Float64Array, Int32Array, StringArray};
+    let mut out = vec![];
+    for b in hbmu::io::tables::read_parquet(path).unwrap() {
+        let a = b
+            .column_by_name(col)
+            .unwrap_or_else(|| panic!("{col} in {}", path.display()));
+        for i in 0..b.num_rows() {
+            out.push(if a.is_null(i) {
+                String::new()
+            } else if let Some(x) = a.as_any().downcast_ref::<Float64Array>() {
+                x.value(i).to_string()
+            } else if let Some(x) = a.as_any().downcast_ref::<Int32Array>() {
+                x.value(i).to_string()
+            } else if let Some(x) = a.as_any().downcast_ref::<StringArray>() {
+                x.value(i).to_string()
+            } else {
+                panic!("unexpected type of {col}")
+            });
+        }
+    }
+    out
+}
+
+fn compare_table(check: &serde_json::Value, name: &str, parquet: &Path, columns: &[(&str, &str)]) {
+    let rows = check["tables"][name][0]
+        .as_array()
+        .unwrap_or_else(|| panic!("table {name} in the page"));
+    assert!(!rows.is_empty(), "table {name} is empty");
+    for (html_col, pq_col) in columns {
+        let want = parquet_values(parquet, pq_col);
+        assert_eq!(
+            rows.len(),
+            want.len(),
+            "{name}: rows in the page vs {}",
+            parquet.display()
+        );
+        for (k, (r, w)) in rows.iter().zip(&want).enumerate() {
+            let cell = &r[*html_col];
+            let v = cell[0].as_str().unwrap_or_default();
+            assert_eq!(
+                v, w,
+                "{name} row {k} column {html_col}: page {v:?} vs parquet {w:?}"
+            );
+            // The text shown is the value rounded: within half a unit of its last digit
+            // (fixed or scientific notation), plus the rounding of the comparison itself.
+            let text = cell[1].as_str().unwrap_or_default();
+            if let (Ok(x), Ok(t)) = (v.parse::<f64>(), text.parse::<f64>()) {
+                let (mantissa, exp) = match text.split_once('e') {
+                    Some((m, e)) => (m, e.parse::<i32>().unwrap()),
+                    None => (text, 0),
+                };
+                let digits = mantissa.split('.').nth(1).map_or(0, |d| d.len()) as i32;
+                let tol = 0.5 * 10f64.powi(exp - digits) + 8.0 * f64::EPSILON * x.abs();
+                assert!(
+                    (x - t).abs() <= tol,
+                    "{name} row {k} column {html_col}: shows {text} for {x}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn report_opens_in_chromium_without_errors_and_its_tables_equal_the_parquet() {
+    let Some(bin) = chromium() else {
+        if std::env::var("HBMU_REQUIRE_BROWSER").as_deref() == Ok("1") {
+            panic!("Chromium is required (HBMU_REQUIRE_BROWSER=1) but none of chromium, chromium-browser, google-chrome runs");
+        }
+        eprintln!("SKIP report in browser: Chromium not found (Debian: apt-get install chromium; set HBMU_REQUIRE_BROWSER=1 to fail instead)");
+        return;
+    };
+    let work = small_work();
+    let dir = work.join("report");
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    // No external resource: the only URLs allowed are the SVG/XLink namespace names.
+    let stripped = html
+        .replace("http://www.w3.org/2000/svg", "")
+        .replace("http://www.w3.org/1999/xlink", "");
+    assert!(
+        !stripped.contains("http://")
+            && !stripped.contains("https://")
+            && !stripped.contains("<script")
+            && !stripped.contains("<img"),
+        "the page must not reach the network or run a script"
+    );
+    // The unmodified page: a screenshot, and no console message at all (it has no script, so
+    // any console line is the browser complaining about the page).
+    let artifacts = repo().join("target/test-artifacts");
+    std::fs::create_dir_all(&artifacts).unwrap();
+    let shot = artifacts.join("report-screenshot.png");
+    let _ = std::fs::remove_file(&shot);
+    let url = format!("file://{}", dir.join("report.html").display());
+    let o = browser(
+        &bin,
+        &[
+            &format!("--screenshot={}", shot.display()),
+            "--window-size=1200,2400",
+            "--hide-scrollbars",
+            &url,
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    let console: Vec<&str> = err.lines().filter(|l| l.contains("CONSOLE")).collect();
+    assert!(console.is_empty(), "console messages: {console:?}");
+    let png =
+        std::fs::read(&shot).unwrap_or_else(|_| panic!("no screenshot; chromium said:\n{err}"));
+    assert!(
+        png.starts_with(b"\x89PNG") && png.len() > 10_000,
+        "screenshot of {} bytes",
+        png.len()
+    );
+    // The checked copy.
+    let checked = dir.join("check.html");
+    let injected = html.replacen("<head>", &format!("<head>\n{CHECKER}"), 1);
+    std::fs::write(&checked, injected).unwrap();
+    let o = browser(
+        &bin,
+        &[
+            "--dump-dom",
+            "--virtual-time-budget=10000",
+            &format!("file://{}", checked.display()),
+        ],
+    );
+    let dom = String::from_utf8_lossy(&o.stdout);
+    let start = dom.find("<pre id=\"hbmu-check\">").unwrap_or_else(|| {
+        panic!(
+            "no check output; stderr:\n{}",
+            String::from_utf8_lossy(&o.stderr)
+        )
+    });
+    let rest = &dom[start + "<pre id=\"hbmu-check\">".len()..];
+    let json = &rest[..rest.find("</pre>").unwrap()];
+    let json = json
+        .replace("&lt;", "<")
+        .replace("&gt;", ">")
+        .replace("&quot;", "\"")
+        .replace("&amp;", "&");
+    let check: serde_json::Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(check["errors"], serde_json::json!([]), "errors in the page");
+    assert_eq!(
+        check["empty"],
+        serde_json::json!([]),
+        "figures or images that did not render"
+    );
+    let n_fig = check["figures"].as_u64().unwrap();
+    assert_eq!(
+        n_fig as usize,
+        html.matches("<figure class=\"plot\"").count()
+    );
+    assert!(n_fig >= 6, "only {n_fig} figures");
+    let t2 = [
+        ("setup", "setup"),
+        ("label", "label"),
+        ("n_measured", "n_measured"),
+        ("measured_mean_hz", "measured_mean_hz"),
+        ("measured_sd_hz", "measured_sd_hz"),
+        ("simulated_mean_hz", "simulated_mean_hz"),
+        ("simulated_sd_hz", "simulated_sd_hz"),
+        ("predictive_sd_hz", "predictive_sd_hz"),
+        ("mean_error_pct", "mean_error_pct"),
+        ("sd_error_pct", "sd_error_pct"),
+        ("board_coverage_90", "board_coverage_90"),
+        ("new_board_coverage_90", "new_board_coverage_90"),
+    ];
+    compare_table(&check, "table2", &dir.join("table2.parquet"), &t2);
+    let iv = [
+        ("scope", "scope"),
+        ("setup", "setup"),
+        ("label", "label"),
+        ("n_draws", "n_draws"),
+        ("model_mean_hz", "model_mean_hz"),
+        ("model_sd_hz", "model_sd_hz"),
+        ("q05_hz", "q05_hz"),
+        ("q25_hz", "q25_hz"),
+        ("q50_hz", "q50_hz"),
+        ("q75_hz", "q75_hz"),
+        ("q95_hz", "q95_hz"),
+        ("n_measured", "n_measured"),
+        ("n_inside_90", "n_inside_90"),
+    ];
+    compare_table(&check, "intervals", &dir.join("intervals.parquet"), &iv);
+    // The posterior summary shown equals summary.parquet.
+    let summary: Vec<(&str, &str)> = [
+        "parameter",
+        "mean",
+        "sd",
+        "q05",
+        "q50",
+        "q95",
+        "r_hat",
+        "ess_bulk",
+        "ess_tail",
+    ]
+    .iter()
+    .map(|c| (*c, *c))
+    .collect();
+    compare_table(
+        &check,
+        "summary",
+        &work.join("update_boards/summary.parquet"),
+        &summary,
+    );
+    // The CSV twin has the same numbers.
+    let csv = std::fs::read_to_string(dir.join("table2.csv")).unwrap();
+    let means = parquet_values(&dir.join("table2.parquet"), "measured_mean_hz");
+    for m in means.iter().filter(|m| !m.is_empty()) {
+        assert!(csv.contains(m.as_str()), "table2.csv lacks {m}");
+    }
+    eprintln!(
+        "report in chromium: {n_fig} figures, screenshot {}",
+        shot.display()
+    );
+    let _: PathBuf = shot;
+}
