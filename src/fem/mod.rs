@@ -24,6 +24,7 @@
 
 pub mod board;
 pub mod convergence;
+pub mod copper;
 pub mod dense;
 pub mod eigen;
 pub mod geometry;
