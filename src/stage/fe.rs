@@ -301,8 +301,27 @@ pub fn run_modes(
                     nx: model0.mesh.nx,
                     ny: model0.mesh.ny,
                 };
-                let check =
-                    fem::convergence::mesh_check(&board, &model0.setup, &mesh, &p, n_check)?;
+                // The check solves a mesh twice as fine: beyond the choice's limit it is
+                // skipped (said on stderr, `null` in the metadata) rather than exhaust memory.
+                let check = if 4 * mesh.nx * mesh.ny > fem::convergence::MAX_CHOICE_ELEMENTS {
+                    eprintln!(
+                        "note: mesh {}x{} not checked: the check's mesh {}x{} exceeds {} elements",
+                        mesh.nx,
+                        mesh.ny,
+                        2 * mesh.nx,
+                        2 * mesh.ny,
+                        fem::convergence::MAX_CHOICE_ELEMENTS
+                    );
+                    None
+                } else {
+                    Some(fem::convergence::mesh_check(
+                        &board,
+                        &model0.setup,
+                        &mesh,
+                        &p,
+                        n_check,
+                    )?)
+                };
                 (model0, check, None)
             }
             None => {
@@ -329,14 +348,17 @@ pub fn run_modes(
                     ..opts.clone()
                 };
                 let (model, _) = build_model(&board, &o)?;
-                (model, choice.chosen.clone(), Some(choice))
+                (model, Some(choice.chosen.clone()), Some(choice))
             }
         };
         let (nodes, pts) = report_points(&model.board, points_from)?;
         let modes = model.modes(&p, n_modes)?;
         let w = model.w_at(&modes, &pts)?;
         let n = modes.freq_hz.len();
-        if choice.is_none() && check.max_rel_error > mesh_tol {
+        let coarse = check
+            .as_ref()
+            .filter(|c| choice.is_none() && c.max_rel_error > mesh_tol);
+        if let Some(check) = coarse {
             eprintln!(
                 "warning: mesh {}x{} is coarser than needed: estimated discretization error of the first {} frequencies up to {:.3} % (tolerance {:.3} %; Richardson with {}x{}); pass a finer --mesh, or none to have it chosen",
                 check.mesh[0],
@@ -387,7 +409,7 @@ pub fn run_modes(
         );
         summary.insert(
             "discretization_rel_error".into(),
-            serde_json::to_value(&check.rel_error)?,
+            serde_json::to_value(check.as_ref().map(|c| &c.rel_error))?,
         );
         Ok(StageResult {
             outputs: vec![out.to_path_buf()],

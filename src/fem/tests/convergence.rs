@@ -38,6 +38,8 @@ fn realistic_board_free_free_converges_at_its_default_mesh() {
             .map(|j| format!("{:+.4}", 100.0 * (f[k][j] / rich[j] - 1.0)))
             .collect();
         eprintln!("free {nx} × {ny}: % vs Richardson {}", e.join(" "));
+        let hz: Vec<String> = f[k].iter().map(|v| format!("{v:.3}")).collect();
+        eprintln!("free {nx} × {ny}: Hz {}", hz.join(" "));
     }
     for (k, &(nx, ny)) in MESHES.iter().enumerate() {
         for j in 0..8 {
@@ -71,6 +73,8 @@ fn realistic_board_bolted_is_mesh_independent_at_fixed_k_con() {
             .map(|j| format!("{:+.4}", 100.0 * (f[k][j] / f[3][j] - 1.0)))
             .collect();
         eprintln!("bolted {nx} × {ny}: % vs 160 × 100 {}", e.join(" "));
+        let hz: Vec<String> = f[k].iter().map(|v| format!("{v:.3}")).collect();
+        eprintln!("bolted {nx} × {ny}: Hz {}", hz.join(" "));
     }
     for (k, &(nx, ny)) in MESHES.iter().enumerate().skip(1) {
         for j in 0..7 {
