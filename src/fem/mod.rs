@@ -38,6 +38,11 @@ pub mod rom;
 pub mod sensitivity;
 mod sparse;
 
+/// Revision of the discretization: changes whenever the same board, options and seed
+/// give different model numbers (it keys the shared cache of model artifacts, which
+/// otherwise would serve a ROM built by an older model).
+pub const MODEL_REVISION: &str = "3: copper integrated per convex piece";
+
 pub use board::{Board, MeshOptions};
 pub use joints::{JointFeature, JointModel};
 pub use model::{FeModel, Modes, Setup, ShapeOperator};

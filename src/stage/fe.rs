@@ -216,6 +216,8 @@ fn cache_key(prep: &Prepared) -> String {
     h.update(b"\0");
     h.update(crate::io::manifest::TOOL_VERSION.as_bytes());
     h.update(b"\0");
+    h.update(fem::MODEL_REVISION.as_bytes());
+    h.update(b"\0");
     h.update(prep.config_blake3.as_bytes());
     h.update(b"\0");
     h.update(format!("{:?}", prep.spec.seed).as_bytes());
