@@ -235,4 +235,46 @@ mod tests {
             );
         }
     }
+
+    /// The chosen mesh is the first rung whose estimate is below the tolerance, every
+    /// coarser rung tried was above it, and its true error (against 48 × 48) is within
+    /// twice the tolerance.
+    #[test]
+    fn choose_mesh_takes_the_coarsest_rung_below_the_tolerance() {
+        let (a, h, e, nu, rho) = (0.2, 2e-3, 70e9, 0.3, 2700.0);
+        let mut board =
+            crate::fem::tests::helpers::plain_board(a, a, h, e, e, e / (2.0 * (1.0 + nu)), nu, rho);
+        board.holes.push(crate::fem::board::Hole {
+            x_m: 0.5 * a,
+            y_m: 0.5 * a,
+            diameter_m: 0.3 * a,
+        });
+        board.mesh = MeshOptions { nx: 12, ny: 12 };
+        let ladder: Vec<[usize; 2]> = mesh_ladder(&board.mesh)
+            .take(6)
+            .map(|m| [m.nx, m.ny])
+            .collect();
+        assert_eq!(
+            ladder,
+            vec![[4, 4], [6, 6], [8, 8], [12, 12], [17, 17], [24, 24]]
+        );
+        let truth_model =
+            FeModel::build(&board, Setup::Free, &MeshOptions { nx: 48, ny: 48 }).unwrap();
+        let p = truth_model.nominal_params();
+        let truth = truth_model.modes(&p, 5).unwrap().freq_hz;
+        let tol = 2e-4;
+        let c = choose_mesh(&board, &Setup::Free, &p, 5, tol, 5000).unwrap();
+        assert!(c.met && c.chosen.max_rel_error < tol, "{:?}", c.tried);
+        let n = c.tried.len();
+        assert!(c.tried[..n - 1].iter().all(|t| t.1 >= tol), "{:?}", c.tried);
+        assert_eq!(c.tried[n - 1].0, c.chosen.mesh);
+        for j in 0..5 {
+            let err = (c.chosen.freq_hz[j] / truth[j] - 1.0).abs();
+            assert!(
+                err < 2.0 * tol,
+                "mode {j}: true error {err:.2e} on {:?}",
+                c.chosen.mesh
+            );
+        }
+    }
 }
