@@ -379,6 +379,11 @@ enum FeCommand {
         /// Number of elastic modes.
         #[arg(long, default_value_t = 10)]
         n_modes: usize,
+        /// Discretization tolerance: without --mesh, the coarsest mesh whose estimated
+        /// relative error (Richardson) of the first 8 frequencies is below it is chosen;
+        /// with --mesh, a warning when the estimate exceeds it.
+        #[arg(long, default_value_t = hbmu::fem::convergence::DEFAULT_MESH_TOL)]
+        mesh_tol: f64,
         /// Report shapes at the scan points of this measurement (needs --ingest).
         #[arg(long, requires = "ingest")]
         measurement: Option<String>,
@@ -458,6 +463,7 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             FeCommand::Modes {
                 model,
                 n_modes,
+                mesh_tol,
                 measurement,
                 ingest,
                 out,
@@ -469,9 +475,15 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                     }),
                     _ => None,
                 };
+                if !(mesh_tol > 0.0 && mesh_tol < 1.0) {
+                    anyhow::bail!(
+                        "--mesh-tol: expected a relative error in (0, 1), found {mesh_tol}"
+                    );
+                }
                 let o = stage::fe::run_modes(
                     &model.options(),
                     n_modes,
+                    mesh_tol,
                     from.as_ref(),
                     &out,
                     model.force,

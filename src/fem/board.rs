@@ -8,7 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::geometry::{polygon_rect_area, Rect};
+use super::geometry::{polygon_rect_area, signed_area, triangulate, Rect};
 use super::FemError;
 
 /// The TOML text of the default board (`data/boards/default.toml`), compiled in so the
@@ -91,6 +91,44 @@ pub struct CopperLayer {
     /// of copper where it lies; the result is capped to [0, 1].
     #[serde(default)]
     pub cutouts: Vec<Region>,
+    /// Raster copper-density maps (e.g. exported from ECAD), combined with the
+    /// coverage regions by the maximum (cut-outs still subtract).
+    #[serde(default)]
+    pub density_maps: Vec<DensityMap>,
+}
+
+/// A raster copper-density map: a grid of cells over `[x0, x1] × [y0, y1]`, each with
+/// the fraction of its area that is copper, constant over the cell.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DensityMap {
+    /// CSV file, relative to the board file: one line per row of cells from `y0_m`
+    /// upward (first line lowest), one comma-separated fraction in [0, 1] per cell
+    /// from `x0_m` rightward; lines starting with `#` are comments.
+    pub file: String,
+    /// Extent: lower x, m.
+    pub x0_m: f64,
+    /// Lower y, m.
+    pub y0_m: f64,
+    /// Upper x, m.
+    pub x1_m: f64,
+    /// Upper y, m.
+    pub y1_m: f64,
+    /// The grid, read from `file` by `io::board` (not part of the TOML).
+    #[serde(skip)]
+    pub grid: Option<Grid>,
+}
+
+/// Values of a raster, row-major from the lowest row: `values[j * nx + i]` is cell
+/// (i, j), i along x.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Grid {
+    /// Cells along x.
+    pub nx: usize,
+    /// Cells along y.
+    pub ny: usize,
+    /// Fractions in [0, 1].
+    pub values: Vec<f64>,
 }
 
 fn one() -> f64 {
@@ -184,6 +222,18 @@ impl Region {
                         vertices_m.len()
                     )));
                 }
+                // A simple polygon is covered exactly by its ear-clipped triangles; a
+                // self-intersecting one is not.
+                let area = signed_area(vertices_m).abs();
+                let tri: f64 = triangulate(vertices_m)
+                    .iter()
+                    .map(|t| signed_area(t).abs())
+                    .sum();
+                if !(area > 0.0 && (tri - area).abs() <= 1e-9 * area) {
+                    return Err(FemError::BoardInvalid(format!(
+                        "{what}: expected a simple (not self-intersecting) polygon of positive area, found area {area:e} m² whose triangulation covers {tri:e} m²"
+                    )));
+                }
             }
         }
         Ok(())
@@ -265,11 +315,17 @@ pub struct ScanGrid {
 }
 
 impl Board {
-    /// Parse and validate a board from TOML text.
+    /// Parse and validate a board from TOML text. A board with density maps needs
+    /// their files: read it with `io::board_files::read_board` instead.
     pub fn from_toml_str(text: &str) -> Result<Board, FemError> {
-        let b: Board = toml::from_str(text).map_err(|e| FemError::BoardParse(e.to_string()))?;
+        let b = Board::from_toml_str_unvalidated(text)?;
         b.validate()?;
         Ok(b)
+    }
+
+    /// Parse a board from TOML text without validating it (density maps not read).
+    pub fn from_toml_str_unvalidated(text: &str) -> Result<Board, FemError> {
+        toml::from_str(text).map_err(|e| FemError::BoardParse(e.to_string()))
     }
 
     /// The compiled-in default board (paper-like, about 13 g).
@@ -317,6 +373,33 @@ impl Board {
             }
             for (k, r) in l.cutouts.iter().enumerate() {
                 r.check(&format!("copper[{i}].cutouts[{k}]"))?;
+            }
+            for (k, d) in l.density_maps.iter().enumerate() {
+                let what = format!("copper[{i}].density_maps[{k}] ({})", d.file);
+                if !(d.x0_m < d.x1_m && d.y0_m < d.y1_m) {
+                    return Err(FemError::BoardInvalid(format!(
+                        "{what}: expected x0_m < x1_m and y0_m < y1_m, found [{}, {}] × [{}, {}]",
+                        d.x0_m, d.x1_m, d.y0_m, d.y1_m
+                    )));
+                }
+                let Some(g) = &d.grid else {
+                    return Err(FemError::BoardInvalid(format!(
+                        "{what}: expected its grid read from the file (load the board with its files, e.g. `hbmu fe --board FILE`), found none"
+                    )));
+                };
+                if g.nx == 0 || g.ny == 0 || g.values.len() != g.nx * g.ny {
+                    return Err(FemError::BoardInvalid(format!(
+                        "{what}: expected a non-empty {} × {} grid, found {} values",
+                        g.nx,
+                        g.ny,
+                        g.values.len()
+                    )));
+                }
+                if let Some(v) = g.values.iter().find(|v| !(0.0..=1.0).contains(*v)) {
+                    return Err(FemError::BoardInvalid(format!(
+                        "{what}: expected fractions in [0, 1], found {v}"
+                    )));
+                }
             }
             if !(l.nu > -1.0 && l.nu < 0.5) {
                 return Err(FemError::BoardInvalid(format!(
@@ -388,33 +471,11 @@ impl Board {
         pts
     }
 
-    /// Fraction of copper layer `layer` covering the rectangle `[x0,x1]×[y0,y1]`.
-    /// The rectangle is split into 4 × 4 sub-cells; in each, every region's exact
-    /// clipped area (times its fraction) is taken, overlapping regions give the
-    /// maximum, cut-outs subtract the maximum of theirs, and the result is capped to
-    /// [0, 1]. Where regions do not share a sub-cell this is the exact area fraction,
-    /// and it is continuous in the geometry (no sampling steps).
+    /// Fraction of copper layer `layer` covering the rectangle `[x0,x1]×[y0,y1]`:
+    /// the exact area-weighted mean of the pointwise coverage (regions take the
+    /// maximum where they overlap, cut-outs subtract the maximum of theirs, capped to
+    /// [0, 1]; see [`super::copper`]).
     pub fn coverage_fraction(&self, layer: usize, x0: f64, y0: f64, x1: f64, y1: f64) -> f64 {
-        const S: usize = 4;
-        let l = &self.copper[layer];
-        let mut sum = 0.0;
-        for j in 0..S {
-            for i in 0..S {
-                let r = Rect {
-                    x0: x0 + (x1 - x0) * i as f64 / S as f64,
-                    x1: x0 + (x1 - x0) * (i + 1) as f64 / S as f64,
-                    y0: y0 + (y1 - y0) * j as f64 / S as f64,
-                    y1: y0 + (y1 - y0) * (j + 1) as f64 / S as f64,
-                };
-                let a = r.area();
-                let frac = |rs: &[Region]| {
-                    rs.iter()
-                        .map(|g| g.fraction() * g.area_in(&r) / a)
-                        .fold(0.0, f64::max)
-                };
-                sum += (frac(&l.coverage) - frac(&l.cutouts)).clamp(0.0, 1.0);
-            }
-        }
-        sum / (S * S) as f64
+        super::copper::CopperMap::new(self).mean_coverage(layer, &Rect { x0, y0, x1, y1 })
     }
 }

@@ -2,18 +2,34 @@
 //! mesh and on one twice as fine in each direction, and Richardson extrapolation
 //! f_R = f_{h/2} + (f_{h/2} − f_h)/(2ᵖ − 1), error estimate |f_h − f_R| / f_R.
 //!
-//! The order assumed is p = 2, not the BFS element's O(h⁴): holes are exact cut cells
-//! and joints exact annulus layers, but copper is homogenised per element by its
-//! coverage fraction, and where copper edges cross elements the frequencies converge
-//! more slowly and irregularly (measured on `data/boards/realistic.toml`). With p = 2
-//! the estimate is 1.25 × the true error where the convergence is O(h⁴) and less
-//! optimistic where it is not; it is an estimate, not a bound.
+//! The order assumed is p = 2, not the BFS element's O(h⁴): holes are exact cut cells,
+//! joints exact annulus layers and copper is integrated exactly per piece, but a copper
+//! edge is a jump in the bending stiffness, across which the exact curvature has a kink
+//! no element captures unless its edges follow it; the frequencies then converge at a
+//! lower, board-dependent rate (on `data/boards/realistic.toml`, between ~1 and ~2.5
+//! over 40 × 25 … 160 × 100). With p = 2 the estimate is 1.25 × the true error where the
+//! convergence is O(h⁴) and optimistic where the order is below 2; it is an estimate,
+//! not a bound, hence the default tolerance of `fe modes` well below the target.
 
 use super::model::{FeModel, Setup};
 use super::{Board, FemError, MeshOptions, Params};
 
 /// The convergence target of `hbmu fe modes`: 0.05 % on the first modes.
 pub const TARGET_REL_ERROR: f64 = 5e-4;
+
+/// Largest mesh (elements, of the finer mesh of a pair) `hbmu fe modes` tries when
+/// choosing the mesh: ~180 × 110 on an 8:5 board, ~80 k DOFs (measured: 170 × 106 bolted,
+/// 2.7 GB peak for the whole `fe modes` run).
+pub const MAX_CHOICE_ELEMENTS: usize = 20_000;
+
+/// Default tolerance of the mesh choice of `hbmu fe modes`: 0.02 %, well below the
+/// ~0.1 % scatter of measured frequencies and below the 0.05 % target, with
+/// room for the estimate's optimism on coarse meshes (on the default board the 14 × 9
+/// estimate was 0.036 % against a true 0.047 %).
+pub const DEFAULT_MESH_TOL: f64 = 2e-4;
+
+/// Convergence order assumed by the Richardson estimate (see the module doc).
+const ORDER: i32 = 2;
 
 /// Outcome of [`mesh_check`].
 #[derive(Clone, Debug, serde::Serialize)]
@@ -34,6 +50,44 @@ pub struct MeshCheck {
     pub max_rel_error: f64,
 }
 
+fn solve(
+    board: &Board,
+    setup: &Setup,
+    p: &Params,
+    m: &MeshOptions,
+    n_modes: usize,
+) -> Result<Vec<f64>, FemError> {
+    let model = FeModel::build(board, setup.clone(), m)?;
+    let mut q = model.nominal_params();
+    for (name, v) in p.names.iter().zip(&p.values) {
+        q.set(name, *v)?;
+    }
+    Ok(model.modes(&q, n_modes)?.freq_hz)
+}
+
+fn richardson(mesh: &MeshOptions, f_h: Vec<f64>, f_f: Vec<f64>) -> MeshCheck {
+    let rich: Vec<f64> = f_h
+        .iter()
+        .zip(&f_f)
+        .map(|(a, b)| b + (b - a) / (2f64.powi(ORDER) - 1.0))
+        .collect();
+    let rel_error: Vec<f64> = f_h
+        .iter()
+        .zip(&rich)
+        .map(|(a, r)| (a - r).abs() / r)
+        .collect();
+    let max_rel_error = rel_error.iter().copied().fold(0.0, f64::max);
+    MeshCheck {
+        mesh: [mesh.nx, mesh.ny],
+        finer_mesh: [2 * mesh.nx, 2 * mesh.ny],
+        freq_hz: f_h,
+        freq_finer_hz: f_f,
+        freq_richardson_hz: rich,
+        rel_error,
+        max_rel_error,
+    }
+}
+
 /// Estimate the discretization error of the first `n_modes` frequencies of `board` in
 /// `setup` on `mesh`, at the parameter values of `p` (matched by name on the finer
 /// model, whose parameter list is the same).
@@ -44,40 +98,112 @@ pub fn mesh_check(
     p: &Params,
     n_modes: usize,
 ) -> Result<MeshCheck, FemError> {
-    let solve = |m: &MeshOptions| -> Result<Vec<f64>, FemError> {
-        let model = FeModel::build(board, setup.clone(), m)?;
-        let mut q = model.nominal_params();
-        for (name, v) in p.names.iter().zip(&p.values) {
-            q.set(name, *v)?;
-        }
-        Ok(model.modes(&q, n_modes)?.freq_hz)
-    };
     let finer = MeshOptions {
         nx: 2 * mesh.nx,
         ny: 2 * mesh.ny,
     };
-    let f_h = solve(mesh)?;
-    let f_f = solve(&finer)?;
-    let rich: Vec<f64> = f_h
-        .iter()
-        .zip(&f_f)
-        .map(|(a, b)| b + (b - a) / 3.0)
-        .collect();
-    let rel_error: Vec<f64> = f_h
-        .iter()
-        .zip(&rich)
-        .map(|(a, r)| (a - r).abs() / r)
-        .collect();
-    let max_rel_error = rel_error.iter().copied().fold(0.0, f64::max);
-    Ok(MeshCheck {
-        mesh: [mesh.nx, mesh.ny],
-        finer_mesh: [finer.nx, finer.ny],
-        freq_hz: f_h,
-        freq_finer_hz: f_f,
-        freq_richardson_hz: rich,
-        rel_error,
-        max_rel_error,
-    })
+    let f_h = solve(board, setup, p, mesh, n_modes)?;
+    let f_f = solve(board, setup, p, &finer, n_modes)?;
+    Ok(richardson(mesh, f_h, f_f))
+}
+
+/// Outcome of [`choose_mesh`].
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct MeshChoice {
+    /// The tolerance on the estimated relative error of every frequency checked.
+    pub tolerance: f64,
+    /// Whether a mesh of the ladder met it (else the finest one tried is chosen).
+    pub met: bool,
+    /// The chosen mesh's check.
+    pub chosen: MeshCheck,
+    /// Estimated largest relative error of each mesh tried, coarse to fine.
+    pub tried: Vec<([usize; 2], f64)>,
+}
+
+/// The ladder of candidate meshes: the board's mesh scaled by 2^((k − 4)/2), k = 0, 1,
+/// … (k = 4 is the board's mesh; each rung √2 finer than the previous, so keeping the
+/// board mesh's element shape), from the first rung with at least 4 elements each way.
+pub fn mesh_ladder(board_mesh: &MeshOptions) -> impl Iterator<Item = MeshOptions> {
+    // From the board's mesh up, even rungs are the board mesh doubled and odd rungs
+    // the √2-scaled mesh doubled, so a pair's finer mesh is a later rung, solved once.
+    let (nx0, ny0) = (board_mesh.nx as f64, board_mesh.ny as f64);
+    let scaled = move |c: f64| MeshOptions {
+        nx: (nx0 * c).round().max(1.0) as usize,
+        ny: (ny0 * c).round().max(1.0) as usize,
+    };
+    let odd = scaled(std::f64::consts::SQRT_2);
+    (0..24usize)
+        .map(move |k| {
+            if k < 4 {
+                scaled(2f64.powf((k as f64 - 4.0) / 2.0))
+            } else {
+                let j = (k - 4) / 2;
+                let m = if k % 2 == 0 { scaled(1.0) } else { odd.clone() };
+                MeshOptions {
+                    nx: m.nx << j,
+                    ny: m.ny << j,
+                }
+            }
+        })
+        .skip_while(|m| m.nx < 4 || m.ny < 4)
+}
+
+/// Choose the coarsest mesh of [`mesh_ladder`] whose estimated discretization error
+/// (Richardson from it and the mesh twice as fine, first `n_modes` frequencies) is
+/// below `tolerance`, trying pairs whose finer mesh has at most `max_elements`
+/// elements. Every mesh is solved once (the finer mesh of a pair is solved again by
+/// no later pair).
+pub fn choose_mesh(
+    board: &Board,
+    setup: &Setup,
+    p: &Params,
+    n_modes: usize,
+    tolerance: f64,
+    max_elements: usize,
+) -> Result<MeshChoice, FemError> {
+    let mut solved: Vec<((usize, usize), Vec<f64>)> = Vec::new();
+    let mut get = |m: &MeshOptions| -> Result<Vec<f64>, FemError> {
+        if let Some((_, f)) = solved.iter().find(|(k, _)| *k == (m.nx, m.ny)) {
+            return Ok(f.clone());
+        }
+        let f = solve(board, setup, p, m, n_modes)?;
+        solved.push(((m.nx, m.ny), f.clone()));
+        Ok(f)
+    };
+    let mut tried = Vec::new();
+    let mut last: Option<MeshCheck> = None;
+    for m in mesh_ladder(&board.mesh) {
+        let finer = MeshOptions {
+            nx: 2 * m.nx,
+            ny: 2 * m.ny,
+        };
+        if finer.nx * finer.ny > max_elements {
+            break;
+        }
+        let c = richardson(&m, get(&m)?, get(&finer)?);
+        tried.push((c.mesh, c.max_rel_error));
+        if c.max_rel_error < tolerance {
+            return Ok(MeshChoice {
+                tolerance,
+                met: true,
+                chosen: c,
+                tried,
+            });
+        }
+        last = Some(c);
+    }
+    match last {
+        Some(chosen) => Ok(MeshChoice {
+            tolerance,
+            met: false,
+            chosen,
+            tried,
+        }),
+        None => Err(FemError::Mesh(format!(
+            "mesh choice: expected a pair of meshes from the ladder of {}x{} within {max_elements} elements, found none",
+            board.mesh.nx, board.mesh.ny
+        ))),
+    }
 }
 
 #[cfg(test)]
@@ -107,6 +233,48 @@ mod tests {
                 c.rel_error[j] > 0.5 * true_err && c.rel_error[j] < 2.0 * true_err,
                 "mode {j}: estimate {:.2e}, true {true_err:.2e}",
                 c.rel_error[j]
+            );
+        }
+    }
+
+    /// The chosen mesh is the first rung whose estimate is below the tolerance, every
+    /// coarser rung tried was above it, and its true error (against 48 × 48) is within
+    /// twice the tolerance.
+    #[test]
+    fn choose_mesh_takes_the_coarsest_rung_below_the_tolerance() {
+        let (a, h, e, nu, rho) = (0.2, 2e-3, 70e9, 0.3, 2700.0);
+        let mut board =
+            crate::fem::tests::helpers::plain_board(a, a, h, e, e, e / (2.0 * (1.0 + nu)), nu, rho);
+        board.holes.push(crate::fem::board::Hole {
+            x_m: 0.5 * a,
+            y_m: 0.5 * a,
+            diameter_m: 0.3 * a,
+        });
+        board.mesh = MeshOptions { nx: 12, ny: 12 };
+        let ladder: Vec<[usize; 2]> = mesh_ladder(&board.mesh)
+            .take(6)
+            .map(|m| [m.nx, m.ny])
+            .collect();
+        assert_eq!(
+            ladder,
+            vec![[4, 4], [6, 6], [8, 8], [12, 12], [17, 17], [24, 24]]
+        );
+        let truth_model =
+            FeModel::build(&board, Setup::Free, &MeshOptions { nx: 48, ny: 48 }).unwrap();
+        let p = truth_model.nominal_params();
+        let truth = truth_model.modes(&p, 5).unwrap().freq_hz;
+        let tol = 2e-4;
+        let c = choose_mesh(&board, &Setup::Free, &p, 5, tol, 5000).unwrap();
+        assert!(c.met && c.chosen.max_rel_error < tol, "{:?}", c.tried);
+        let n = c.tried.len();
+        assert!(c.tried[..n - 1].iter().all(|t| t.1 >= tol), "{:?}", c.tried);
+        assert_eq!(c.tried[n - 1].0, c.chosen.mesh);
+        for j in 0..5 {
+            let err = (c.chosen.freq_hz[j] / truth[j] - 1.0).abs();
+            assert!(
+                err < 2.0 * tol,
+                "mode {j}: true error {err:.2e} on {:?}",
+                c.chosen.mesh
             );
         }
     }

@@ -38,6 +38,9 @@ impl Rect {
     }
 }
 
+/// A polygon, vertices `[x_m, y_m]`.
+pub type Polygon = Vec<[f64; 2]>;
+
 /// A quadrature point `(x_m, y_m, weight_m2)`.
 pub type QPoint = (f64, f64, f64);
 
@@ -76,21 +79,34 @@ fn gauss_legendre(n: usize) -> (Vec<f64>, Vec<f64>) {
     (x, w)
 }
 
-/// Interval of ρ ≥ 0 for which c + ρ d lies in `r` (slab method), if any.
-fn ray_interval(cx: f64, cy: f64, dx: f64, dy: f64, r: &Rect) -> Option<(f64, f64)> {
+/// Interval of ρ ≥ 0 for which c + ρ d lies in the convex counter-clockwise polygon
+/// `poly` (intersection of its edges' half-planes), if any.
+fn ray_interval(cx: f64, cy: f64, dx: f64, dy: f64, poly: &[[f64; 2]]) -> Option<(f64, f64)> {
     let (mut lo, mut hi) = (0.0f64, f64::INFINITY);
-    for (c, d, a, b) in [(cx, dx, r.x0, r.x1), (cy, dy, r.y0, r.y1)] {
-        if d.abs() < 1e-300 {
-            if c < a || c > b {
+    let n = poly.len();
+    for i in 0..n {
+        let (p, q) = (poly[i], poly[(i + 1) % n]);
+        // Inside: cross(q − p, x − p) ≥ 0, i.e. nx·x ≤ nx·p with the outward normal
+        // n = (ey, −ex) of edge e = q − p.
+        let (nx, ny) = (q[1] - p[1], p[0] - q[0]);
+        let rhs = nx * (p[0] - cx) + ny * (p[1] - cy);
+        let nd = nx * dx + ny * dy;
+        if nd.abs() < 1e-300 {
+            if rhs < 0.0 {
                 return None;
             }
+        } else if nd > 0.0 {
+            hi = hi.min(rhs / nd);
         } else {
-            let (t0, t1) = ((a - c) / d, (b - c) / d);
-            lo = lo.max(t0.min(t1));
-            hi = hi.min(t0.max(t1));
+            lo = lo.max(rhs / nd);
         }
     }
     (hi > lo).then_some((lo, hi))
+}
+
+/// The rectangle as a counter-clockwise polygon.
+pub fn rect_polygon(r: &Rect) -> Vec<[f64; 2]> {
+    vec![[r.x0, r.y0], [r.x1, r.y0], [r.x1, r.y1], [r.x0, r.y1]]
 }
 
 /// Quadrature points covering `rect` ∩ {ρ_in ≤ |p − c| ≤ ρ_out} (an annulus, or a disc
@@ -102,54 +118,78 @@ pub fn annulus_rect_quadrature(
     r_out: f64,
     rect: &Rect,
 ) -> Vec<QPoint> {
+    annulus_convex_quadrature(cx, cy, r_in, r_out, &rect_polygon(rect))
+}
+
+/// Quadrature points covering the convex counter-clockwise polygon `poly` ∩
+/// {ρ_in ≤ |p − c| ≤ ρ_out}. Empty when they do not meet.
+pub fn annulus_convex_quadrature(
+    cx: f64,
+    cy: f64,
+    r_in: f64,
+    r_out: f64,
+    poly: &[[f64; 2]],
+) -> Vec<QPoint> {
     let mut out = Vec::new();
-    // Quick rejection: nearest point of the rectangle farther than r_out, or the
-    // farthest corner inside r_in.
-    let nx = cx.clamp(rect.x0, rect.x1) - cx;
-    let ny = cy.clamp(rect.y0, rect.y1) - cy;
-    if nx.hypot(ny) >= r_out {
+    let n = poly.len();
+    if n < 3 {
         return out;
     }
-    let fx = (rect.x0 - cx).abs().max((rect.x1 - cx).abs());
-    let fy = (rect.y0 - cy).abs().max((rect.y1 - cy).abs());
-    if fx.hypot(fy) <= r_in {
+    // Quick rejection: nearest point of the polygon farther than r_out (centre
+    // outside and every edge farther), or the farthest vertex inside r_in.
+    let inside_c = ray_interval(cx, cy, 1.0, 0.0, poly).is_some_and(|(lo, _)| lo <= 0.0);
+    let edge_dist = |p: [f64; 2], q: [f64; 2]| {
+        let (ex, ey) = (q[0] - p[0], q[1] - p[1]);
+        let l2 = ex * ex + ey * ey;
+        let u = if l2 > 0.0 {
+            (((cx - p[0]) * ex + (cy - p[1]) * ey) / l2).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        (p[0] + u * ex - cx).hypot(p[1] + u * ey - cy)
+    };
+    let near = (0..n)
+        .map(|i| edge_dist(poly[i], poly[(i + 1) % n]))
+        .fold(f64::INFINITY, f64::min);
+    if !inside_c && near >= r_out {
         return out;
     }
-    // Breakpoints: corner angles and circle/edge crossings of both radii.
+    let far = poly
+        .iter()
+        .map(|p| (p[0] - cx).hypot(p[1] - cy))
+        .fold(0.0, f64::max);
+    if far <= r_in {
+        return out;
+    }
+    // Breakpoints: vertex angles and circle/edge crossings of both radii.
     let mut brk: Vec<f64> = vec![-std::f64::consts::PI, std::f64::consts::PI];
-    for (x, y) in [
-        (rect.x0, rect.y0),
-        (rect.x1, rect.y0),
-        (rect.x1, rect.y1),
-        (rect.x0, rect.y1),
-    ] {
-        if (x - cx).hypot(y - cy) > 0.0 {
-            brk.push((y - cy).atan2(x - cx));
+    for p in poly {
+        if (p[0] - cx).hypot(p[1] - cy) > 0.0 {
+            brk.push((p[1] - cy).atan2(p[0] - cx));
         }
     }
     for rad in [r_in, r_out] {
         if rad <= 0.0 {
             continue;
         }
-        for x in [rect.x0, rect.x1] {
-            let d = rad * rad - (x - cx).powi(2);
-            if d >= 0.0 {
-                for s in [-1.0, 1.0] {
-                    let y = cy + s * d.sqrt();
-                    if y >= rect.y0 && y <= rect.y1 {
-                        brk.push((y - cy).atan2(x - cx));
-                    }
-                }
+        for i in 0..n {
+            let (p, q) = (poly[i], poly[(i + 1) % n]);
+            let (ex, ey) = (q[0] - p[0], q[1] - p[1]);
+            let (fx, fy) = (p[0] - cx, p[1] - cy);
+            // |f + u e|² = R²: a u² + 2 b u + c = 0.
+            let (qa, qb, qc) = (
+                ex * ex + ey * ey,
+                fx * ex + fy * ey,
+                fx * fx + fy * fy - rad * rad,
+            );
+            let disc = qb * qb - qa * qc;
+            if qa <= 0.0 || disc < 0.0 {
+                continue;
             }
-        }
-        for y in [rect.y0, rect.y1] {
-            let d = rad * rad - (y - cy).powi(2);
-            if d >= 0.0 {
-                for s in [-1.0, 1.0] {
-                    let x = cx + s * d.sqrt();
-                    if x >= rect.x0 && x <= rect.x1 {
-                        brk.push((y - cy).atan2(x - cx));
-                    }
+            for s in [-1.0, 1.0] {
+                let u = (-qb + s * disc.sqrt()) / qa;
+                if (0.0..=1.0).contains(&u) {
+                    brk.push((fy + u * ey).atan2(fx + u * ex));
                 }
             }
         }
@@ -176,9 +216,9 @@ pub fn annulus_rect_quadrature(
         if tb - ta < 1e-15 {
             continue;
         }
-        // Skip pieces the rectangle does not cover (test the mid-angle).
+        // Skip pieces the polygon does not cover (test the mid-angle).
         let tm = 0.5 * (ta + tb);
-        if ray_interval(cx, cy, tm.cos(), tm.sin(), rect)
+        if ray_interval(cx, cy, tm.cos(), tm.sin(), poly)
             .map(|(lo, hi)| lo.max(r_in) >= hi.min(r_out))
             .unwrap_or(true)
         {
@@ -187,7 +227,7 @@ pub fn annulus_rect_quadrature(
         for (t, wtt) in gt.iter().zip(&wt) {
             let th = ta + (tb - ta) * t;
             let (dx, dy) = (th.cos(), th.sin());
-            let Some((lo, hi)) = ray_interval(cx, cy, dx, dy, rect) else {
+            let Some((lo, hi)) = ray_interval(cx, cy, dx, dy, poly) else {
                 continue;
             };
             let (lo, hi) = (lo.max(r_in), hi.min(r_out));
@@ -202,6 +242,193 @@ pub fn annulus_rect_quadrature(
         }
     }
     out
+}
+
+/// Gauss points per edge of the Green quadrature below.
+const N_EDGE: usize = 7;
+/// Gauss points along x from the reference line of the Green quadrature.
+const N_X: usize = 4;
+
+/// Quadrature points covering a simple polygon (vertices m, counter-clockwise), exact
+/// for polynomials of degree ≤ 7 in x and ≤ 6 in y jointly with total degree along
+/// an edge ≤ 13 (the BFS mass integrand has degree 6 in each of x and y): by Green's
+/// theorem ∬ f dA = ∮ F dy with F(x, y) = ∫_{x_ref}^x f(s, y) ds, x_ref the polygon's
+/// least x; each edge gets `N_EDGE` Gauss points and each F a `N_X`-point rule in s.
+/// All points lie in the polygon's bounding box; weights may be negative (a
+/// non-convex polygon, or the far side of a convex one), their sum is the area.
+/// Sommariva & Vianello, "Product Gauss cubature over polygons based on Green's
+/// integration formula", BIT 47 (2007).
+pub fn polygon_quadrature(poly: &[[f64; 2]]) -> Vec<QPoint> {
+    let n = poly.len();
+    let mut out = Vec::with_capacity(n * N_EDGE * N_X);
+    if n < 3 {
+        return out;
+    }
+    // An axis-aligned rectangle (raster cells, most pieces): the tensor rule, exact
+    // to degree 2 N_X − 1 = 7 in each of x and y, with a third of the points.
+    if n == 4 {
+        let xs = [poly[0][0], poly[1][0], poly[2][0], poly[3][0]];
+        let ys = [poly[0][1], poly[1][1], poly[2][1], poly[3][1]];
+        let axis = (xs[0] == xs[3] && xs[1] == xs[2] && ys[0] == ys[1] && ys[2] == ys[3])
+            || (xs[0] == xs[1] && xs[2] == xs[3] && ys[1] == ys[2] && ys[0] == ys[3]);
+        if axis {
+            let (x0, x1) = (
+                xs.iter().copied().fold(f64::INFINITY, f64::min),
+                xs.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+            );
+            let (y0, y1) = (
+                ys.iter().copied().fold(f64::INFINITY, f64::min),
+                ys.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+            );
+            let (g, w) = gauss_legendre(N_X);
+            for (sy, wy) in g.iter().zip(&w) {
+                for (sx, wx) in g.iter().zip(&w) {
+                    out.push((
+                        x0 + sx * (x1 - x0),
+                        y0 + sy * (y1 - y0),
+                        wx * wy * (x1 - x0) * (y1 - y0),
+                    ));
+                }
+            }
+            return out;
+        }
+    }
+    let x_ref = poly.iter().map(|p| p[0]).fold(f64::INFINITY, f64::min);
+    let (gt, wt) = gauss_legendre(N_EDGE);
+    let (gs, ws) = gauss_legendre(N_X);
+    for i in 0..n {
+        let (p, q) = (poly[i], poly[(i + 1) % n]);
+        let dy = q[1] - p[1];
+        if dy == 0.0 {
+            continue;
+        }
+        for (t, wtt) in gt.iter().zip(&wt) {
+            let x = p[0] + t * (q[0] - p[0]);
+            let y = p[1] + t * dy;
+            let len = x - x_ref;
+            if len == 0.0 {
+                continue;
+            }
+            for (s, wss) in gs.iter().zip(&ws) {
+                out.push((x_ref + s * len, y, wtt * dy * wss * len));
+            }
+        }
+    }
+    out
+}
+
+/// Signed area of a polygon (positive when counter-clockwise), m².
+pub fn signed_area(poly: &[[f64; 2]]) -> f64 {
+    let n = poly.len();
+    0.5 * (0..n)
+        .map(|i| {
+            let (a, b) = (poly[i], poly[(i + 1) % n]);
+            a[0] * b[1] - b[0] * a[1]
+        })
+        .sum::<f64>()
+}
+
+/// Split the convex polygon `p` by the line through `a`, `b`: returns the parts on
+/// the left (cross(b − a, x − a) ≥ 0) and on the right, either possibly empty.
+fn split_by_line(p: &[[f64; 2]], a: [f64; 2], b: [f64; 2]) -> (Vec<[f64; 2]>, Vec<[f64; 2]>) {
+    let side = |x: [f64; 2]| (b[0] - a[0]) * (x[1] - a[1]) - (b[1] - a[1]) * (x[0] - a[0]);
+    let (mut left, mut right) = (Vec::new(), Vec::new());
+    let n = p.len();
+    for i in 0..n {
+        let (u, v) = (p[i], p[(i + 1) % n]);
+        let (su, sv) = (side(u), side(v));
+        if su >= 0.0 {
+            left.push(u);
+        }
+        if su <= 0.0 {
+            right.push(u);
+        }
+        if (su > 0.0 && sv < 0.0) || (su < 0.0 && sv > 0.0) {
+            let t = su / (su - sv);
+            let x = [u[0] + t * (v[0] - u[0]), u[1] + t * (v[1] - u[1])];
+            left.push(x);
+            right.push(x);
+        }
+    }
+    (left, right)
+}
+
+/// Split the convex counter-clockwise polygon `p` by the convex counter-clockwise
+/// polygon `t`: returns `p ∩ t` (if of area above `min_area`) and convex pieces
+/// covering `p \ t` (each of area above `min_area`; slivers below it are dropped).
+pub fn split_convex(
+    p: &[[f64; 2]],
+    t: &[[f64; 2]],
+    min_area: f64,
+) -> (Option<Polygon>, Vec<Polygon>) {
+    let mut outside = Vec::new();
+    let mut rest = p.to_vec();
+    let n = t.len();
+    for i in 0..n {
+        let (left, right) = split_by_line(&rest, t[i], t[(i + 1) % n]);
+        if right.len() >= 3 && signed_area(&right) > min_area {
+            outside.push(right);
+        }
+        rest = left;
+        if rest.len() < 3 || signed_area(&rest) <= min_area {
+            return (None, vec![p.to_vec()]);
+        }
+    }
+    (Some(rest), outside)
+}
+
+/// Triangles (counter-clockwise) covering a simple polygon (either orientation), by
+/// ear clipping. Board polygons have a few to a few hundred vertices, for which the
+/// O(n²) clipping is instantaneous; written by hand because it is 40 lines and the
+/// triangulation crates bring hole and float-type generality the board does not need.
+/// Collinear and repeated vertices are removed first.
+pub fn triangulate(poly: &[[f64; 2]]) -> Vec<[[f64; 2]; 3]> {
+    let mut v: Vec<[f64; 2]> = poly.to_vec();
+    if signed_area(&v) < 0.0 {
+        v.reverse();
+    }
+    let cross = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| {
+        (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+    };
+    let scale = v
+        .iter()
+        .flat_map(|p| p.iter())
+        .fold(0.0f64, |m, x| m.max(x.abs()))
+        .max(1e-300);
+    let eps = 1e-14 * scale * scale;
+    let mut tris = Vec::new();
+    let mut guard = 0;
+    while v.len() >= 3 && guard < 10_000 {
+        guard += 1;
+        let n = v.len();
+        // Drop degenerate (collinear / repeated) vertices.
+        if let Some(i) =
+            (0..n).find(|&i| cross(v[(i + n - 1) % n], v[i], v[(i + 1) % n]).abs() <= eps)
+        {
+            v.remove(i);
+            continue;
+        }
+        let ear = (0..n).find(|&i| {
+            let (a, b, c) = (v[(i + n - 1) % n], v[i], v[(i + 1) % n]);
+            cross(a, b, c) > 0.0
+                && (0..n).all(|j| {
+                    if j == i || j == (i + 1) % n || j == (i + n - 1) % n {
+                        return true;
+                    }
+                    let p = v[j];
+                    !(cross(a, b, p) >= 0.0 && cross(b, c, p) >= 0.0 && cross(c, a, p) >= 0.0)
+                })
+        });
+        match ear {
+            Some(i) => {
+                tris.push([v[(i + n - 1) % n], v[i], v[(i + 1) % n]]);
+                v.remove(i);
+            }
+            // Not simple (self-intersecting): give up on the rest rather than loop.
+            None => break,
+        }
+    }
+    tris
 }
 
 /// Area of `rect` ∩ annulus, m² (by the quadrature above).
@@ -372,5 +599,104 @@ mod tests {
             polygon_rect_area(&[[2.0, 2.0], [3.0, 2.0], [3.0, 3.0]], &r),
             0.0
         );
+    }
+
+    /// ∬ over the triangle (0,0), (1,0), (0,1) of x^p y^q = p! q! / (p + q + 2)!.
+    fn tri_moment(p: u32, q: u32) -> f64 {
+        let f = |n: u32| (1..=n).map(f64::from).product::<f64>();
+        f(p) * f(q) / f(p + q + 2)
+    }
+
+    #[test]
+    fn green_quadrature_is_exact_for_the_bfs_degrees() {
+        // Unit triangle and an L-shaped (non-convex) hexagon, clockwise given reversed.
+        let tri = [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]];
+        let q = polygon_quadrature(&tri);
+        for p in 0..=6 {
+            for r in 0..=6 {
+                let s: f64 = q.iter().map(|(x, y, w)| w * x.powi(p) * y.powi(r)).sum();
+                let e = tri_moment(p as u32, r as u32);
+                assert!(rel(s, e) < 1e-12, "x^{p} y^{r}: {s} vs {e}");
+            }
+        }
+        // L = [0,2]×[0,1] ∪ [0,1]×[1,2]; ∬ x² y³ = ∫₀² x² dx ∫₀¹ y³ + ∫₀¹ x² ∫₁² y³.
+        let l = [
+            [0.0, 0.0],
+            [2.0, 0.0],
+            [2.0, 1.0],
+            [1.0, 1.0],
+            [1.0, 2.0],
+            [0.0, 2.0],
+        ];
+        let q = polygon_quadrature(&l);
+        let s: f64 = q.iter().map(|(x, y, w)| w * x * x * y.powi(3)).sum();
+        let e = 8.0 / 3.0 * 0.25 + 1.0 / 3.0 * 15.0 / 4.0;
+        assert!(rel(s, e) < 1e-12, "{s} vs {e}");
+        // Every point lies in the bounding box.
+        assert!(q
+            .iter()
+            .all(|p| (0.0..=2.0).contains(&p.0) && (0.0..=2.0).contains(&p.1)));
+    }
+
+    #[test]
+    fn convex_split_partitions_and_triangulation_covers() {
+        let sq = rect_polygon(&Rect {
+            x0: 0.0,
+            y0: 0.0,
+            x1: 1.0,
+            y1: 1.0,
+        });
+        let t = [[0.5, -1.0], [2.0, 0.5], [0.5, 2.0]];
+        let (inside, outside) = split_convex(&sq, &t, 0.0);
+        let ai = signed_area(&inside.unwrap());
+        let ao: f64 = outside.iter().map(|p| signed_area(p)).sum();
+        assert!(rel(ai + ao, 1.0) < 1e-14);
+        // Inside: the triangle's other two edges miss the square, so x ≥ 0.5 is all.
+        assert!(rel(ai, 0.5) < 1e-14, "{ai}");
+        assert!(outside.iter().all(|p| signed_area(p) > 0.0));
+        // No overlap: (None, whole).
+        let (i2, o2) = split_convex(&sq, &[[2.0, 2.0], [3.0, 2.0], [3.0, 3.0]], 0.0);
+        assert!(i2.is_none() && o2.len() == 1);
+        // Triangulation of the L (clockwise input, one collinear vertex added).
+        let l = [
+            [0.0, 0.0],
+            [0.0, 2.0],
+            [1.0, 2.0],
+            [1.0, 1.0],
+            [2.0, 1.0],
+            [2.0, 0.0],
+            [1.0, 0.0],
+        ];
+        let tris = triangulate(&l);
+        let a: f64 = tris.iter().map(|t| signed_area(t)).sum();
+        assert!(rel(a, 3.0) < 1e-14 && tris.iter().all(|t| signed_area(t) > 0.0));
+    }
+
+    #[test]
+    fn disc_in_a_triangle_and_a_segment_cut_by_a_slanted_edge() {
+        let tri = [[0.0, 0.0], [4.0, 0.0], [0.0, 4.0]];
+        let a = annulus_rect_area(
+            0.0,
+            0.0,
+            0.0,
+            1.0,
+            &Rect {
+                x0: -9.0,
+                y0: -9.0,
+                x1: 9.0,
+                y1: 9.0,
+            },
+        );
+        assert!(rel(a, PI) < 1e-12);
+        let q = annulus_convex_quadrature(1.0, 1.0, 0.0, 0.5, &tri);
+        let a: f64 = q.iter().map(|p| p.2).sum();
+        assert!(rel(a, PI * 0.25) < 1e-12, "{a}");
+        // Disc centred at distance d below the hypotenuse x + y = 4: segment area.
+        let (r, d) = (1.0f64, 0.3f64);
+        let c = 2.0 - d / 2f64.sqrt();
+        let q = annulus_convex_quadrature(c, c, 0.0, r, &tri);
+        let a: f64 = q.iter().map(|p| p.2).sum();
+        let seg = r * r * (d / r).acos() - d * (r * r - d * d).sqrt();
+        assert!(rel(a, PI - seg) < 1e-12, "{a} vs {}", PI - seg);
     }
 }

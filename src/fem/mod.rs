@@ -24,6 +24,7 @@
 
 pub mod board;
 pub mod convergence;
+pub mod copper;
 pub mod dense;
 pub mod eigen;
 pub mod geometry;
@@ -36,6 +37,11 @@ pub mod plate;
 pub mod rom;
 pub mod sensitivity;
 mod sparse;
+
+/// Revision of the discretization: changes whenever the same board, options and seed
+/// give different model numbers (it keys the shared cache of model artifacts, which
+/// otherwise would serve a ROM built by an older model).
+pub const MODEL_REVISION: &str = "3: copper integrated per convex piece";
 
 pub use board::{Board, MeshOptions};
 pub use joints::{JointFeature, JointModel};

@@ -27,8 +27,11 @@ use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, LltRef, Symbol
 use faer::{Conj, Mat, MatMut, Par, Side};
 
 use super::board::{Board, MeshOptions, Side as LayerSide};
+use super::copper::CopperMap;
 use super::eigen::{self, EigenOptions};
-use super::geometry::{annulus_rect_quadrature, QPoint, Rect};
+use super::geometry::{
+    annulus_convex_quadrature, annulus_rect_quadrature, polygon_quadrature, QPoint, Rect,
+};
 use super::joints::{joint_terms, JointModel, Patch, Which};
 use super::laminate::{
     chebyshev_nodes, coupling_correction, coupling_kernel, isotropic_q, lagrange_basis,
@@ -156,6 +159,58 @@ fn cut_cell_matrices(
         }
     }
     m
+}
+
+/// A piece of an element with constant copper: the coverage of each layer, and its
+/// unit matrices over the piece's material part (`None`: the whole element's).
+struct Cell {
+    coverage: Vec<f64>,
+    matrices: Option<ElementMatrices>,
+}
+
+/// Laminate quantities of one copper state (see `FeModel::build`).
+struct Stack {
+    a: Comp4,
+    b: Comp4,
+    d_cu: Comp4,
+    rho_h_cu: f64,
+    s: f64,
+    t: f64,
+}
+
+/// Quadrature of the part of the convex piece `poly` outside every hole: directly
+/// (rays from the centre outward) when one hole meets it, else the piece minus the
+/// holes' parts.
+fn piece_material_quadrature(poly: &[[f64; 2]], holes: &[super::board::Hole]) -> Vec<QPoint> {
+    let mut voids: Vec<(usize, Vec<QPoint>)> = Vec::new();
+    for (hi, h) in holes.iter().enumerate() {
+        let q = annulus_convex_quadrature(h.x_m, h.y_m, 0.0, 0.5 * h.diameter_m, poly);
+        if !q.is_empty() {
+            voids.push((hi, q));
+        }
+    }
+    match voids.len() {
+        0 => polygon_quadrature(poly),
+        1 => {
+            let h = &holes[voids[0].0];
+            let far = poly
+                .iter()
+                .map(|p| (p[0] - h.x_m).hypot(p[1] - h.y_m))
+                .fold(0.0, f64::max)
+                * 1.01;
+            annulus_convex_quadrature(h.x_m, h.y_m, 0.5 * h.diameter_m, far, poly)
+        }
+        _ => {
+            let mut pts = polygon_quadrature(poly);
+            pts.extend(
+                voids
+                    .into_iter()
+                    .flat_map(|v| v.1)
+                    .map(|(x, y, w)| (x, y, -w)),
+            );
+            pts
+        }
+    }
 }
 
 fn element_rect(ex: usize, ey: usize, a: f64, b: f64) -> Rect {
@@ -414,8 +469,8 @@ impl FeModel {
                     .all(|l| l.e_pa == l0.e_pa && l.nu == l0.nu)
             })
             .map(|l0| (l0.e_pa, isotropic_q(l0.e_pa, l0.nu)));
-        // (element, s, t) of every element with B ≠ 0, for the exact expansion.
-        let mut coupled: Vec<(usize, usize, f64, f64)> = Vec::new();
+        // Elements with B ≠ 0 somewhere, for the exact expansion.
+        let mut coupled: Vec<(usize, usize)> = Vec::new();
         let add = |t: &mut Vec<(usize, usize, f64)>,
                    em: &ElementMatrices,
                    dofs: &[usize; 16],
@@ -426,6 +481,98 @@ impl FeModel {
                     t.push((dofs[r], dofs[cc], v));
                 }
             }
+        };
+        // Copper is integrated exactly: each element is split into convex pieces of
+        // constant coverage (see `fem::copper`), each piece integrated over its
+        // material part (holes cut out) by the polygon / polar cut-cell quadrature.
+        let copper = CopperMap::new(board);
+        let cells_of = |ex: usize, ey: usize| -> Vec<Cell> {
+            let rect = element_rect(ex, ey, a, b);
+            let mut pieces = copper.pieces(&rect);
+            if pieces.len() == 1 {
+                let coverage = pieces.pop().map(|p| p.coverage).unwrap_or_default();
+                return vec![Cell {
+                    coverage,
+                    matrices: None,
+                }];
+            }
+            pieces
+                .into_iter()
+                .map(|p| {
+                    let mut m = ElementMatrices {
+                        k: [[[0.0; 16]; 16]; 4],
+                        m: [[0.0; 16]; 16],
+                    };
+                    let pts = if cut_points[ey * nx + ex].is_some() {
+                        piece_material_quadrature(&p.polygon, &board.holes)
+                    } else {
+                        polygon_quadrature(&p.polygon)
+                    };
+                    m.add_points(&pts, rect.x0, rect.y0, a, b, 1.0);
+                    Cell {
+                        coverage: p.coverage,
+                        matrices: Some(m),
+                    }
+                })
+                .collect()
+        };
+        // Per copper state: D_cu, ρh of copper, A and B of the stack, and the two
+        // copper variables s, t of the coupling expansion.
+        let stack = |cov: &[f64]| -> Stack {
+            let mut st = Stack {
+                a: q_core.map(|q| q * a_core),
+                b: [0.0; 4],
+                d_cu: [0.0; 4],
+                rho_h_cu: 0.0,
+                s: 0.0,
+                t: 0.0,
+            };
+            for (l, frac) in board.copper.iter().zip(cov) {
+                if *frac == 0.0 {
+                    continue;
+                }
+                let (z1, z2) = match l.side {
+                    LayerSide::Top => (h / 2.0, h / 2.0 + l.thickness_m),
+                    LayerSide::Bottom => (-h / 2.0 - l.thickness_m, -h / 2.0),
+                };
+                let (fa, fb, fd) = layer_factors(z1, z2);
+                let q = isotropic_q(l.e_pa, l.nu);
+                for k in 0..4 {
+                    st.a[k] += frac * q[k] * fa;
+                    st.b[k] += frac * q[k] * fb;
+                    st.d_cu[k] += frac * q[k] * fd;
+                }
+                st.rho_h_cu += frac * l.density_kg_per_m3 * l.thickness_m;
+                st.s += frac * fa;
+                st.t += frac * fb;
+            }
+            st
+        };
+        let push16 = |t: &mut Vec<(usize, usize, f64)>, dofs: &[usize; 16], m: &[[f64; 16]; 16]| {
+            for r in 0..16 {
+                for cc in 0..16 {
+                    t.push((dofs[r], dofs[cc], m[r][cc]));
+                }
+            }
+        };
+        // Σ over cells of Σ_k comp_k(cell) K_cell[k].
+        let combine = |cells: &[Cell], eme: &ElementMatrices, f: &dyn Fn(&Cell) -> Comp4| {
+            let mut out = [[0.0; 16]; 16];
+            for cell in cells {
+                let m = cell.matrices.as_ref().unwrap_or(eme);
+                let comp = f(cell);
+                for k in 0..4 {
+                    if comp[k] == 0.0 {
+                        continue;
+                    }
+                    for r in 0..16 {
+                        for cc in 0..16 {
+                            out[r][cc] += comp[k] * m.k[k][r][cc];
+                        }
+                    }
+                }
+            }
+            out
         };
         for ey in 0..ny {
             for ex in 0..nx {
@@ -451,51 +598,42 @@ impl FeModel {
                     unit[k] = q_core[k] * d_core;
                     add(&mut t_core[k], eme, &dofs, unit);
                 }
-                // Copper and stack integrals.
-                let mut a_st = q_core.map(|q| q * a_core);
-                let mut b_st = [0.0; 4];
-                let mut d_cu = [0.0; 4];
-                let mut rho_h = c.density_kg_per_m3 * h;
-                let (mut s_cu, mut t_cu_m2) = (0.0, 0.0);
-                for (li, l) in board.copper.iter().enumerate() {
-                    let frac = board.coverage_fraction(li, x0, y0, x0 + a, y0 + b);
-                    if frac == 0.0 {
-                        continue;
-                    }
-                    let (z1, z2) = match l.side {
-                        LayerSide::Top => (h / 2.0, h / 2.0 + l.thickness_m),
-                        LayerSide::Bottom => (-h / 2.0 - l.thickness_m, -h / 2.0),
-                    };
-                    let (fa, fb, fd) = layer_factors(z1, z2);
-                    let q = isotropic_q(l.e_pa, l.nu);
-                    for k in 0..4 {
-                        a_st[k] += frac * q[k] * fa;
-                        b_st[k] += frac * q[k] * fb;
-                        d_cu[k] += frac * q[k] * fd;
-                    }
-                    rho_h += frac * l.density_kg_per_m3 * l.thickness_m;
-                    s_cu += frac * fa;
-                    t_cu_m2 += frac * fb;
-                }
+                let cells = cells_of(ex, ey);
                 if has_cu {
-                    add(&mut t_cu, eme, &dofs, d_cu);
+                    let k_cu = combine(&cells, eme, &|c| stack(&c.coverage).d_cu);
+                    push16(&mut t_cu, &dofs, &k_cu);
                 }
                 if uniform_cu.is_some() {
-                    if t_cu_m2 != 0.0 {
-                        coupled.push((ex, ey, s_cu, t_cu_m2));
+                    if cells.iter().any(|c| stack(&c.coverage).t != 0.0) {
+                        coupled.push((ex, ey));
                     }
                 } else {
-                    let corr = coupling_correction(a_st, b_st);
-                    if corr.iter().any(|v| *v != 0.0) {
+                    let corr = combine(&cells, eme, &|c| {
+                        let st = stack(&c.coverage);
+                        coupling_correction(st.a, st.b)
+                    });
+                    if corr.iter().flatten().any(|v| *v != 0.0) {
                         any_corr = true;
-                        add(&mut t_corr, eme, &dofs, corr);
+                        push16(&mut t_corr, &dofs, &corr);
+                    }
+                }
+                let mut mass = [[0.0; 16]; 16];
+                let rho_core_h = c.density_kg_per_m3 * h;
+                for cell in &cells {
+                    let mm = &cell.matrices.as_ref().unwrap_or(eme).m;
+                    let rho = stack(&cell.coverage).rho_h_cu;
+                    for r in 0..16 {
+                        for cc in 0..16 {
+                            mass[r][cc] += rho * mm[r][cc];
+                        }
                     }
                 }
                 for r in 0..16 {
                     for cc in 0..16 {
-                        t_mass.push((dofs[r], dofs[cc], rho_h * eme.m[r][cc]));
+                        mass[r][cc] += rho_core_h * eme.m[r][cc];
                     }
                 }
+                push16(&mut t_mass, &dofs, &mass);
             }
         }
         let core_names = ["core_q11", "core_q22", "core_q12", "core_q66"];
@@ -623,7 +761,7 @@ impl FeModel {
                         .map(|g| if g != 0.0 { g } else { 1.0 })
                 })
                 .collect();
-            for &(ex, ey, s_e, t_e) in &coupled {
+            for &(ex, ey) in &coupled {
                 let (x0, y0) = (ex as f64 * a, ey as f64 * b);
                 let cut;
                 let eme = match &cut_points[ey * nx + ex] {
@@ -639,13 +777,20 @@ impl FeModel {
                 let idx: Vec<usize> = (0..256)
                     .map(|q| pattern.index(dofs[q / 16], dofs[q % 16]))
                     .collect();
-                let l = lagrange_basis(&nodes, s_e);
-                for (k, lk) in l.iter().enumerate() {
-                    for comp in 0..4 {
-                        let w = -t_e * t_e * lk * scales[k][comp];
-                        let v = &mut vals[4 * k + comp];
-                        for (q, &iq) in idx.iter().enumerate() {
-                            v[iq] += w * eme.k[comp][q / 16][q % 16];
+                for cell in cells_of(ex, ey) {
+                    let st = stack(&cell.coverage);
+                    if st.t == 0.0 {
+                        continue;
+                    }
+                    let m = cell.matrices.as_ref().unwrap_or(eme);
+                    let l = lagrange_basis(&nodes, st.s);
+                    for (k, lk) in l.iter().enumerate() {
+                        for comp in 0..4 {
+                            let w = -st.t * st.t * lk * scales[k][comp];
+                            let v = &mut vals[4 * k + comp];
+                            for (q, &iq) in idx.iter().enumerate() {
+                                v[iq] += w * m.k[comp][q / 16][q % 16];
+                            }
                         }
                     }
                 }

@@ -4,6 +4,7 @@
 
 pub mod atomic;
 pub mod balance_log;
+pub mod board_files;
 pub mod cache;
 pub mod campaign_dir;
 pub mod ingest_outputs;

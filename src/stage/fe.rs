@@ -57,14 +57,11 @@ pub struct ModelOptions {
 fn load_board(path: Option<&Path>) -> anyhow::Result<(Board, String, Vec<PathBuf>)> {
     match path {
         Some(p) => {
-            let text = std::fs::read_to_string(p)
+            // The board and its density maps; all of them are inputs (fingerprinted).
+            let (b, files) = crate::io::board_files::read_board(p)?;
+            let text = std::fs::read(p)
                 .with_context(|| format!("cannot read board file {}", p.display()))?;
-            let b = Board::from_toml_str(&text).with_context(|| format!("{}", p.display()))?;
-            Ok((
-                b,
-                blake3::hash(text.as_bytes()).to_hex().to_string(),
-                vec![p.to_path_buf()],
-            ))
+            Ok((b, blake3::hash(&text).to_hex().to_string(), files))
         }
         None => Ok((
             Board::default_board(),
@@ -219,6 +216,8 @@ fn cache_key(prep: &Prepared) -> String {
     h.update(b"\0");
     h.update(crate::io::manifest::TOOL_VERSION.as_bytes());
     h.update(b"\0");
+    h.update(fem::MODEL_REVISION.as_bytes());
+    h.update(b"\0");
     h.update(prep.config_blake3.as_bytes());
     h.update(b"\0");
     h.update(format!("{:?}", prep.spec.seed).as_bytes());
@@ -261,6 +260,7 @@ fn through_cache(
 pub fn run_modes(
     opts: &ModelOptions,
     n_modes: usize,
+    mesh_tol: f64,
     points_from: Option<&PointsFrom>,
     out: &Path,
     force: bool,
@@ -277,6 +277,7 @@ pub fn run_modes(
         inputs,
         serde_json::json!({
             "n_modes": n_modes,
+            "mesh_tol": mesh_tol,
             "points_from_measurement": points_from.map(|f| &f.measurement_id),
         }),
         out,
@@ -290,26 +291,83 @@ pub fn run_modes(
         ..spec
     };
     crate::stage::run(spec, force, |prep| {
-        let (model, p) = build_model(&board, opts)?;
+        // The mesh: the user's (`--mesh`), checked by Richardson from it and one twice
+        // as fine on the first (up to) 8 modes with a warning above the tolerance; or,
+        // by default, the coarsest mesh of the board mesh's ladder whose estimate is
+        // below the tolerance (`fem::convergence::choose_mesh`).
+        let (model0, p) = build_model(&board, opts)?;
+        let n_check = n_modes.min(8);
+        let (model, check, choice) = match opts.mesh {
+            Some(_) => {
+                let mesh = fem::MeshOptions {
+                    nx: model0.mesh.nx,
+                    ny: model0.mesh.ny,
+                };
+                // The check solves a mesh twice as fine: beyond the choice's limit it is
+                // skipped (said on stderr, `null` in the metadata) rather than exhaust memory.
+                let check = if 4 * mesh.nx * mesh.ny > fem::convergence::MAX_CHOICE_ELEMENTS {
+                    eprintln!(
+                        "note: mesh {}x{} not checked: the check's mesh {}x{} exceeds {} elements",
+                        mesh.nx,
+                        mesh.ny,
+                        2 * mesh.nx,
+                        2 * mesh.ny,
+                        fem::convergence::MAX_CHOICE_ELEMENTS
+                    );
+                    None
+                } else {
+                    Some(fem::convergence::mesh_check(
+                        &board,
+                        &model0.setup,
+                        &mesh,
+                        &p,
+                        n_check,
+                    )?)
+                };
+                (model0, check, None)
+            }
+            None => {
+                let choice = fem::convergence::choose_mesh(
+                    &board,
+                    &model0.setup,
+                    &p,
+                    n_check,
+                    mesh_tol,
+                    fem::convergence::MAX_CHOICE_ELEMENTS,
+                )?;
+                if !choice.met {
+                    eprintln!(
+                        "warning: no mesh up to {} elements meets the discretization tolerance {:.3} %; using {}x{} (estimate {:.3} %)",
+                        fem::convergence::MAX_CHOICE_ELEMENTS,
+                        100.0 * mesh_tol,
+                        choice.chosen.mesh[0],
+                        choice.chosen.mesh[1],
+                        100.0 * choice.chosen.max_rel_error
+                    );
+                }
+                let o = ModelOptions {
+                    mesh: Some((choice.chosen.mesh[0], choice.chosen.mesh[1])),
+                    ..opts.clone()
+                };
+                let (model, _) = build_model(&board, &o)?;
+                (model, Some(choice.chosen.clone()), Some(choice))
+            }
+        };
         let (nodes, pts) = report_points(&model.board, points_from)?;
         let modes = model.modes(&p, n_modes)?;
         let w = model.w_at(&modes, &pts)?;
         let n = modes.freq_hz.len();
-        // Discretization check: Richardson from this mesh and one twice as fine, on the
-        // first (up to) 8 modes; a warning when the estimate exceeds the 0.05 % target.
-        let mesh = fem::MeshOptions {
-            nx: model.mesh.nx,
-            ny: model.mesh.ny,
-        };
-        let check = fem::convergence::mesh_check(&board, &model.setup, &mesh, &p, n.min(8))?;
-        if check.max_rel_error > fem::convergence::TARGET_REL_ERROR {
+        let coarse = check
+            .as_ref()
+            .filter(|c| choice.is_none() && c.max_rel_error > mesh_tol);
+        if let Some(check) = coarse {
             eprintln!(
-                "warning: mesh {}x{} is coarser than needed: estimated discretization error of the first {} frequencies up to {:.3} % (target {:.2} %; Richardson with {}x{}); pass a finer --mesh",
-                mesh.nx,
-                mesh.ny,
+                "warning: mesh {}x{} is coarser than needed: estimated discretization error of the first {} frequencies up to {:.3} % (tolerance {:.3} %; Richardson with {}x{}); pass a finer --mesh, or none to have it chosen",
+                check.mesh[0],
+                check.mesh[1],
                 check.rel_error.len(),
                 100.0 * check.max_rel_error,
-                100.0 * fem::convergence::TARGET_REL_ERROR,
+                100.0 * mesh_tol,
                 check.finer_mesh[0],
                 check.finer_mesh[1]
             );
@@ -318,6 +376,16 @@ pub fn run_modes(
         prov.insert(
             "hbmu.fe.discretization".to_string(),
             serde_json::to_string(&check)?,
+        );
+        prov.insert(
+            "hbmu.fe.mesh".to_string(),
+            serde_json::to_string(&serde_json::json!({
+                "nx": model.mesh.nx,
+                "ny": model.mesh.ny,
+                "how": if choice.is_some() { "chosen" } else { "given" },
+                "tolerance": mesh_tol,
+                "choice": choice,
+            }))?,
         );
         write(
             out,
@@ -338,8 +406,12 @@ pub fn run_modes(
         summary.insert("n_rigid_dropped".into(), modes.n_rigid_dropped.into());
         summary.insert("n_dof".into(), model.n_dof.into());
         summary.insert(
+            "mesh".into(),
+            serde_json::json!([model.mesh.nx, model.mesh.ny]),
+        );
+        summary.insert(
             "discretization_rel_error".into(),
-            serde_json::to_value(&check.rel_error)?,
+            serde_json::to_value(check.as_ref().map(|c| &c.rel_error))?,
         );
         Ok(StageResult {
             outputs: vec![out.to_path_buf()],

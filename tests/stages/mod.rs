@@ -145,3 +145,82 @@ fn fe_modes_sensitivity_and_rom_through_the_cli() {
     let o = hbmu(&["fe", "rom", "--out", &p("rom.npz")]);
     assert!(stderr(&o).contains("up to date"), "{}", stderr(&o));
 }
+
+/// `fe modes` chooses the mesh (recorded in the metadata), keeps a given one, and reads
+/// a board whose copper is a raster density map; a missing map file is named.
+#[test]
+fn fe_modes_chooses_the_mesh_and_reads_density_maps() {
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
+    let meta = |f: &str| -> serde_json::Value {
+        let file = std::fs::File::open(t.path().join(f)).unwrap();
+        let r = parquet::file::reader::SerializedFileReader::new(file).unwrap();
+        use parquet::file::reader::FileReader;
+        let kv = r
+            .metadata()
+            .file_metadata()
+            .key_value_metadata()
+            .unwrap()
+            .clone();
+        let v = kv.iter().find(|k| k.key == "hbmu.fe.mesh").unwrap();
+        serde_json::from_str(v.value.as_ref().unwrap()).unwrap()
+    };
+    // A board: the default with its top copper as a 16 × 10 raster of 0.5.
+    let mut toml = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("data/boards/default.toml"),
+    )
+    .unwrap();
+    toml = toml.replacen(
+        "coverage = [\n  { kind = \"rect\", x0_m = 0.003",
+        "density_maps = [{ file = \"top.csv\", x0_m = 0.0, y0_m = 0.0, x1_m = 0.08, y1_m = 0.05 }]\ncoverage = [\n  { kind = \"rect\", x0_m = 0.003",
+        1,
+    );
+    assert!(toml.contains("top.csv"));
+    std::fs::write(t.path().join("board.toml"), &toml).unwrap();
+    let o = hbmu(&[
+        "fe",
+        "modes",
+        "--board",
+        &p("board.toml"),
+        "--out",
+        &p("x.parquet"),
+    ]);
+    assert_ne!(o.status.code(), Some(0));
+    assert!(stderr(&o).contains("top.csv"), "{}", stderr(&o));
+    let row = vec!["0.5"; 16].join(",");
+    let csv = format!("# top copper\n{}\n", vec![row; 10].join("\n"));
+    std::fs::write(t.path().join("top.csv"), csv).unwrap();
+    let o = hbmu(&[
+        "fe",
+        "modes",
+        "--board",
+        &p("board.toml"),
+        "--mesh-tol",
+        "5e-4",
+        "--out",
+        &p("m.parquet"),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let m = meta("m.parquet");
+    assert_eq!(m["how"], "chosen");
+    let chosen = &m["choice"]["chosen"];
+    assert!(chosen["max_rel_error"].as_f64().unwrap() < 5e-4, "{m}");
+    assert_eq!(m["nx"], chosen["mesh"][0]);
+    let o = hbmu(&[
+        "fe",
+        "modes",
+        "--board",
+        &p("board.toml"),
+        "--mesh",
+        "20",
+        "13",
+        "--out",
+        &p("g.parquet"),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let m = meta("g.parquet");
+    assert_eq!(
+        (m["how"].as_str(), m["nx"].as_u64()),
+        (Some("given"), Some(20))
+    );
+}

@@ -63,9 +63,10 @@ fn coverage_fraction_of_known_regions() {
     let mut b = Board::default_board();
     // Layer 0 covers y in [3, 22] mm: a cell inside is fully covered, one straddling
     // y = 22 mm by half, one in the gap not at all.
-    assert_eq!(b.coverage_fraction(0, 0.010, 0.010, 0.012, 0.012), 1.0);
-    assert_eq!(b.coverage_fraction(0, 0.010, 0.021, 0.012, 0.023), 0.5);
-    assert_eq!(b.coverage_fraction(0, 0.010, 0.023, 0.012, 0.025), 0.0);
+    let near = |f: f64, e: f64| assert!((f - e).abs() < 1e-12, "{f} vs {e}");
+    near(b.coverage_fraction(0, 0.010, 0.010, 0.012, 0.012), 1.0);
+    near(b.coverage_fraction(0, 0.010, 0.021, 0.012, 0.023), 0.5);
+    near(b.coverage_fraction(0, 0.010, 0.023, 0.012, 0.025), 0.0);
     // Polygon (triangle) covers exactly half of its bounding square.
     b.copper[0].coverage = vec![crate::fem::board::Region::Polygon {
         vertices_m: vec![[0.0, 0.0], [0.01, 0.0], [0.0, 0.01]],
@@ -171,4 +172,66 @@ fn results_do_not_depend_on_faer_parallelism() {
     assert_eq!(seq.0, par.0);
     assert_eq!(seq.1, par.1);
     assert!(seq.2 == par.2, "ROM bytes differ with the thread count");
+}
+
+/// A raster density map integrates exactly like the same pattern drawn as regions:
+/// cells of 5 mm across 2 mm elements (edges mid-element), a 0.45 block and a solid
+/// block overlapping it (max), with a cut-out crossing both.
+#[test]
+fn density_map_equals_the_same_pattern_as_regions() {
+    use crate::fem::board::{DensityMap, Grid, Region};
+    let mut regions = Board::default_board();
+    let (nx, ny) = (16usize, 10usize);
+    let mut values = vec![0.0; nx * ny];
+    for j in 1..7 {
+        for i in 2..10 {
+            values[j * nx + i] = 0.45;
+        }
+    }
+    for j in 3..5 {
+        for i in 8..13 {
+            values[j * nx + i] = 1.0;
+        }
+    }
+    let rect = |x0, y0, x1, y1, fraction| Region::Rect {
+        x0_m: x0,
+        y0_m: y0,
+        x1_m: x1,
+        y1_m: y1,
+        fraction,
+    };
+    let cut = vec![rect(0.021, 0.011, 0.047, 0.019, 1.0)];
+    regions.copper[0].coverage = vec![
+        rect(0.010, 0.005, 0.050, 0.035, 0.45),
+        rect(0.040, 0.015, 0.065, 0.025, 1.0),
+    ];
+    regions.copper[0].cutouts = cut.clone();
+    let mut raster = regions.clone();
+    raster.copper[0].coverage = vec![];
+    raster.copper[0].density_maps = vec![DensityMap {
+        file: "top.csv".into(),
+        x0_m: 0.0,
+        y0_m: 0.0,
+        x1_m: 0.080,
+        y1_m: 0.050,
+        grid: Some(Grid { nx, ny, values }),
+    }];
+    raster.validate().unwrap();
+    let f = |b: &Board| {
+        let m = FeModel::build(b, Setup::Free, &b.mesh).unwrap();
+        m.modes(&m.nominal_params(), 6).unwrap().freq_hz
+    };
+    let (a, r) = (f(&regions), f(&raster));
+    for j in 0..6 {
+        assert!(
+            (a[j] / r[j] - 1.0).abs() < 1e-10,
+            "mode {j}: {} vs {}",
+            a[j],
+            r[j]
+        );
+    }
+    // Without its grid (TOML read alone) the board is refused, naming the map.
+    raster.copper[0].density_maps[0].grid = None;
+    let e = raster.validate().unwrap_err().to_string();
+    assert!(e.contains("density_maps[0] (top.csv)"), "{e}");
 }
