@@ -25,11 +25,17 @@
 //!      the two parametrisations is the interweaving strategy of Yu & Meng (2011): the centred
 //!      move mixes well when the data pin the units, the non-centred one when they do not.
 //!
+//!    - one componentwise pass over g (one coordinate at a time, no model evaluation).
+//!
 //!    Proposal scales adapt between sweeps toward `target_acceptance`; sweeps continue until
-//!    the particles have forgotten where resampling put them: the mean over coordinates of
-//!    the correlation, across particles, between each coordinate after resampling and now
-//!    falls to `decorrelation_target` (a jump-distance rule: ρ = 1 − E[(x_t − x_0)²]/(2 Var x)
-//!    for a stationary cloud), between `min_sweeps` and `max_sweeps`.
+//!    the particles have forgotten where resampling put them: the largest, over coordinates,
+//!    correlation across particles between a coordinate after resampling and now falls to
+//!    `decorrelation_target` (a jump-distance rule: ρ = 1 − E[(x_t − x_0)²]/(2 Var x) for a
+//!    stationary cloud), between `min_sweeps` and `max_sweeps`.
+//! 5. Tempering may start from a normalised reference q instead of the prior ([`Start`]):
+//!    π_β ∝ q^{1−β} (p L)^β; particles may form groups normalised on their own (modular
+//!    posteriors, `SmcOptions::groups`); [`correct`] adds a weighting stage at β = 1 (from a
+//!    surrogate model to the exact one).
 //!
 //! Randomness: every draw comes from a ChaCha8 stream keyed by (seed, run, stage, sweep,
 //! particle), and all reductions over particles run in particle order after the parallel
@@ -414,6 +420,46 @@ fn unit_move<T: Target>(
     }
 }
 
+/// A centred move of g to `gn` with every unit fixed (their cached model outputs reused: no
+/// model evaluation): accepted with uniform `u`, updating the particle, its context and its
+/// global density term. Returns whether it was accepted.
+fn centred_g_move<T: Target>(
+    tp: &Tempered<'_, T>,
+    p: &mut Particle<T::Cache>,
+    ctx: &mut T::Ctx,
+    lg: &mut f64,
+    gn: Vec<f64>,
+    u: f64,
+) -> bool {
+    let t = tp.t;
+    if !t.log_prior_global(&gn).is_finite() {
+        return false;
+    }
+    let lg_new = tp.global(&gn);
+    let ctx_new = t.ctx(&gn);
+    let mut log_r = lg_new - *lg;
+    let mut ll_new = Vec::with_capacity(t.n_units());
+    for b in 0..t.n_units() {
+        let l = match &p.cache[b] {
+            Some(c) => t.log_lik(&ctx_new, b, &p.x[b], c),
+            None => f64::NEG_INFINITY,
+        };
+        let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
+        log_r += tp.unit(b, &p.x[b], t.log_prior_unit(&ctx_new, b, &p.x[b]), l)
+            - tp.unit(b, &p.x[b], t.log_prior_unit(ctx, b, &p.x[b]), p.ll[b]);
+        ll_new.push(l);
+    }
+    if log_r.is_finite() && u.ln() < log_r {
+        p.g = gn;
+        *ctx = ctx_new;
+        p.ll = ll_new;
+        *lg = lg_new;
+        true
+    } else {
+        false
+    }
+}
+
 /// One Metropolis-within-Gibbs sweep of one particle at β.
 fn sweep<T: Target>(
     tp: &Tempered<'_, T>,
@@ -474,28 +520,7 @@ fn sweep<T: Target>(
                 .collect();
         let u: f64 = rng.random();
         st.n_global += 1.0;
-        if !t.log_prior_global(&gn).is_finite() {
-            continue;
-        }
-        let lg_new = tp.global(&gn);
-        let ctx_new = t.ctx(&gn);
-        let mut log_r = lg_new - lg;
-        let mut ll_new = Vec::with_capacity(t.n_units());
-        for b in 0..t.n_units() {
-            let l = match &p.cache[b] {
-                Some(c) => t.log_lik(&ctx_new, b, &p.x[b], c),
-                None => f64::NEG_INFINITY,
-            };
-            let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
-            log_r += tp.unit(b, &p.x[b], t.log_prior_unit(&ctx_new, b, &p.x[b]), l)
-                - tp.unit(b, &p.x[b], t.log_prior_unit(&ctx, b, &p.x[b]), p.ll[b]);
-            ll_new.push(l);
-        }
-        if log_r.is_finite() && u.ln() < log_r {
-            p.g = gn;
-            ctx = ctx_new;
-            p.ll = ll_new;
-            lg = lg_new;
+        if centred_g_move(tp, p, &mut ctx, &mut lg, gn, u) {
             st.acc_global += 1.0;
         }
     }
@@ -509,28 +534,7 @@ fn sweep<T: Target>(
         gn[k] += sc.comp * prop.global_sd[k] * e;
         let u: f64 = rng.random();
         st.n_comp += 1.0;
-        if !t.log_prior_global(&gn).is_finite() {
-            continue;
-        }
-        let lg_new = tp.global(&gn);
-        let ctx_new = t.ctx(&gn);
-        let mut log_r = lg_new - lg;
-        let mut ll_new = Vec::with_capacity(t.n_units());
-        for b in 0..t.n_units() {
-            let l = match &p.cache[b] {
-                Some(c) => t.log_lik(&ctx_new, b, &p.x[b], c),
-                None => f64::NEG_INFINITY,
-            };
-            let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
-            log_r += tp.unit(b, &p.x[b], t.log_prior_unit(&ctx_new, b, &p.x[b]), l)
-                - tp.unit(b, &p.x[b], t.log_prior_unit(&ctx, b, &p.x[b]), p.ll[b]);
-            ll_new.push(l);
-        }
-        if log_r.is_finite() && u.ln() < log_r {
-            p.g = gn;
-            ctx = ctx_new;
-            p.ll = ll_new;
-            lg = lg_new;
+        if centred_g_move(tp, p, &mut ctx, &mut lg, gn, u) {
             st.acc_comp += 1.0;
         }
     }
