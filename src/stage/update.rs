@@ -1340,19 +1340,16 @@ fn rom_for(model: &FeModel, n_modes_needed: usize, opts: &UpdateOptions) -> anyh
     Ok(Rom::build(model, &ro)?)
 }
 
-/// Step 1: boards, free-free.
-pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
-    let extract_dir = opts.extract_dir();
-    let pairs_path = opts.pair_dir.join("pairs.parquet");
-    let presence_path = opts.pair_dir.join("presence.parquet");
-    let modes_path = extract_dir.join("modes.parquet");
-    let masses_path = opts.ingest_dir.join("masses.parquet");
-    let mut inputs = vec![
-        pairs_path.clone(),
-        presence_path.clone(),
-        modes_path.clone(),
-        masses_path.clone(),
-    ];
+/// The board and the stage spec shared by both steps: inputs named by content (they come from
+/// several stage directories, so no path may reach the fingerprint), the options, the board
+/// file's hash and the step's own config entries.
+fn step_spec(
+    opts: &UpdateOptions,
+    stage: &str,
+    mut inputs: Vec<PathBuf>,
+    extra_config: &[(&str, &str)],
+    manifest: &str,
+) -> anyhow::Result<(Board, StageSpec)> {
     if let Some(b) = &opts.board {
         inputs.push(b.clone());
     }
@@ -1362,17 +1359,79 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         .to_hex()
         .to_string()
         .into();
-    config["step"] = "boards".into();
+    for (k, v) in extra_config {
+        config[*k] = (*v).into();
+    }
     let spec = StageSpec {
-        stage: "update_boards".into(),
+        stage: stage.into(),
         inputs,
-        // Inputs from several stage directories: named by their content alone (no path
-        // may reach a fingerprint, see `StageSpec::input_base`).
         input_base: PathBuf::new(),
         config,
         seed: Some(opts.seed),
-        manifest_path: opts.out.join(MANIFEST_BOARDS),
+        manifest_path: opts.out.join(manifest),
     };
+    Ok((board, spec))
+}
+
+/// A unit's data for the updated labels and, for the residuals, for every paired label with
+/// shapes; the residual data's findings are reported too, once each.
+#[allow(clippy::type_complexity)]
+fn unit_and_residual_data(
+    rows: &[&PairRow],
+    labels: &Labels,
+    all: &Labels,
+    use_shapes: bool,
+    (model, rom, shapes): (&FeModel, &Rom, &ShapeMap),
+    findings: &mut Findings,
+) -> anyhow::Result<(UnitData, (UnitData, Vec<ObsMeta>))> {
+    let sh = use_shapes.then_some((model, rom, shapes));
+    let (data, _) = unit_data(rows, &labels.labels, sh, findings)?;
+    let mut residual_findings = Findings::default();
+    let all_data = unit_data(
+        rows,
+        &all.labels,
+        Some((model, rom, shapes)),
+        &mut residual_findings,
+    )?;
+    for f in residual_findings.0 {
+        if !findings.0.contains(&f) {
+            findings.push(f);
+        }
+    }
+    Ok((data, all_data))
+}
+
+/// The finding when the final particles crowd a surrogate box's edge.
+fn check_surrogate_edges(acc: &Acceleration, findings: &mut Findings) {
+    if acc.surrogate_edge_fraction > 1e-3 {
+        findings.push(Finding::new(
+            Severity::Warning,
+            "update.surrogate_box_edge",
+            format!("{:.2} % of the final particles lie beyond 6 reference sd of their unit's surrogate box: the posterior may be restricted by the box", 100.0 * acc.surrogate_edge_fraction),
+        ));
+    }
+}
+
+/// Step 1: boards, free-free.
+pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
+    let extract_dir = opts.extract_dir();
+    let pairs_path = opts.pair_dir.join("pairs.parquet");
+    let presence_path = opts.pair_dir.join("presence.parquet");
+    let modes_path = extract_dir.join("modes.parquet");
+    let masses_path = opts.ingest_dir.join("masses.parquet");
+    let inputs = vec![
+        pairs_path.clone(),
+        presence_path.clone(),
+        modes_path.clone(),
+        masses_path.clone(),
+    ];
+    let (board, spec) = step_spec(
+        opts,
+        "update_boards",
+        inputs,
+        &[("step", "boards")],
+        MANIFEST_BOARDS,
+    )?;
     crate::stage::run(spec, opts.force, |prep| {
         let mut findings = Findings::default();
         let pairs = read_pairs(&pairs_path)?;
@@ -1433,22 +1492,14 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 .iter()
                 .filter(|p| p.setup == "free" && &p.board_id == b)
                 .collect();
-            let sh = use_shapes.then_some((&model, &rom, &shapes));
-            let (mut data, _) = unit_data(&rows, &labels.labels, sh, &mut findings)?;
-            // The residuals' data (every paired label, shapes always): its findings are
-            // reported too, once each (the updated labels' ones were reported above).
-            let mut residual_findings = Findings::default();
-            let (data_all, meta_all) = unit_data(
+            let (mut data, (data_all, meta_all)) = unit_and_residual_data(
                 &rows,
-                &all.labels,
-                Some((&model, &rom, &shapes)),
-                &mut residual_findings,
+                &labels,
+                &all,
+                use_shapes,
+                (&model, &rom, &shapes),
+                &mut findings,
             )?;
-            for f in residual_findings.0 {
-                if !findings.0.contains(&f) {
-                    findings.push(f);
-                }
-            }
             data.mass = match masses.get(b) {
                 Some(m) if mass_updated => mass_obs(m, b, &mut findings),
                 Some(_) => None,
@@ -1518,13 +1569,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         let t0 = std::time::Instant::now();
         let (results, acceleration) = run_smc(&target, opts, "boards", &[], verbose)?;
         let sampler_seconds = t0.elapsed().as_secs_f64();
-        if acceleration.surrogate_edge_fraction > 1e-3 {
-            findings.push(Finding::new(
-                Severity::Warning,
-                "update.surrogate_box_edge",
-                format!("{:.2} % of the final particles lie beyond 6 reference sd of their unit's surrogate box: the posterior may be restricted by the box", 100.0 * acceleration.surrogate_edge_fraction),
-            ));
-        }
+        check_surrogate_edges(&acceleration, &mut findings);
         let violations = box_violations(
             &results,
             &unit_names,
@@ -1757,31 +1802,19 @@ pub fn run_joints(
     let presence_path = opts.pair_dir.join("presence.parquet");
     let modes_path = extract_dir.join("modes.parquet");
     let step1_path = boards_dir.join("boards.parquet");
-    let mut inputs = vec![
+    let inputs = vec![
         pairs_path.clone(),
         presence_path.clone(),
         modes_path.clone(),
         step1_path.clone(),
     ];
-    if let Some(b) = &opts.board {
-        inputs.push(b.clone());
-    }
-    let (board, board_text) = load_board(opts.board.as_deref())?;
-    let mut config = serde_json::to_value(opts)?;
-    config["board_blake3"] = blake3::hash(board_text.as_bytes())
-        .to_hex()
-        .to_string()
-        .into();
-    config["step"] = "joints".into();
-    config["posterior"] = "cut".into();
-    let spec = StageSpec {
-        stage: "update_joints".into(),
+    let (board, spec) = step_spec(
+        opts,
+        "update_joints",
         inputs,
-        input_base: PathBuf::new(),
-        config,
-        seed: Some(opts.seed),
-        manifest_path: opts.out.join(MANIFEST_JOINTS),
-    };
+        &[("step", "joints"), ("posterior", "cut")],
+        MANIFEST_JOINTS,
+    )?;
     crate::stage::run(spec, opts.force, |prep| {
         let mut findings = Findings::default();
         let step1 = read_step1(&step1_path)?;
@@ -1877,20 +1910,14 @@ pub fn run_joints(
                 );
                 continue;
             };
-            let sh = use_shapes.then_some((&model, &rom, &shapes));
-            let (data, _) = unit_data(&rows, &labels.labels, sh, &mut findings)?;
-            let mut residual_findings = Findings::default();
-            let (data_all, meta_all) = unit_data(
+            let (data, (data_all, meta_all)) = unit_and_residual_data(
                 &rows,
-                &all.labels,
-                Some((&model, &rom, &shapes)),
-                &mut residual_findings,
+                &labels,
+                &all,
+                use_shapes,
+                (&model, &rom, &shapes),
+                &mut findings,
             )?;
-            for f in residual_findings.0 {
-                if !findings.0.contains(&f) {
-                    findings.push(f);
-                }
-            }
             if data.freq.is_empty() {
                 findings.push(
                     Finding::new(
@@ -1959,13 +1986,7 @@ pub fn run_joints(
         let t0 = std::time::Instant::now();
         let (results, acceleration) = run_smc(&target, &sopts, "joints", &aux, verbose)?;
         let sampler_seconds = t0.elapsed().as_secs_f64();
-        if acceleration.surrogate_edge_fraction > 1e-3 {
-            findings.push(Finding::new(
-                Severity::Warning,
-                "update.surrogate_box_edge",
-                format!("{:.2} % of the final particles lie beyond 6 reference sd of their unit's surrogate box: the posterior may be restricted by the box", 100.0 * acceleration.surrogate_edge_fraction),
-            ));
-        }
+        check_surrogate_edges(&acceleration, &mut findings);
         let lo = (k_centre * (1.0 - opts.rom_box) / k_ref).ln();
         let hi = (k_centre * (1.0 + opts.rom_box) / k_ref).ln();
         let violations = box_violations(
