@@ -6,6 +6,7 @@
 
 pub mod bayes;
 pub mod campaign;
+pub mod diagnose;
 pub mod fem;
 pub mod findings;
 pub mod io;

@@ -5,6 +5,7 @@
 //! stage body (which writes its outputs atomically) and writes the manifest last. Exit codes
 //! are decided here and turned into a process exit code only in `main`.
 
+pub mod diagnose;
 pub mod extract;
 pub mod fe;
 pub mod ingest;

@@ -1,0 +1,1 @@
+//! Locate: posterior-predictive checks of the updated model against the recordings.

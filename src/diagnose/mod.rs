@@ -1,0 +1,6 @@
+//! Diagnosis of model inadequacy, pure: locate the mismatch between the updated model and
+//! the recordings ([`locate`]), screen a library of physical mechanisms by how well their
+//! sensitivity pattern explains it, select by refitting (Bayes factors from the SMC and
+//! held-out error), and explain.
+
+pub mod locate;
