@@ -284,6 +284,14 @@ enum UpdateCommand {
         /// Half-normal scale of the population sd of ln k_con.
         #[arg(long, default_value_t = 0.5)]
         sigma_scale: f64,
+        /// Refit with a joint mechanism of the diagnosis's library added to the joint model
+        /// (joint_rotation, joint_mass, fixture_compliance, joint_stiffness_per_joint).
+        #[arg(long, value_enum)]
+        enrich: Option<hbmu::diagnose::library::Mechanism>,
+        /// The joint (1-based, hole order of the board file) of
+        /// `--enrich joint_stiffness_per_joint`.
+        #[arg(long)]
+        enrich_joint: Option<usize>,
     },
 }
 
@@ -338,6 +346,8 @@ impl UpdateArgs {
             rom_max_basis: self.rom_basis,
             from_prior: self.from_prior,
             surrogate: !self.no_surrogate,
+            enrich: None,
+            enrich_joint: None,
         }
     }
 }
@@ -608,9 +618,13 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                     boards,
                     prior_width,
                     sigma_scale,
+                    enrich,
+                    enrich_joint,
                 },
         } => {
-            let opts = common.options(vec![], prior_width, sigma_scale);
+            let mut opts = common.options(vec![], prior_width, sigma_scale);
+            opts.enrich = enrich;
+            opts.enrich_joint = enrich_joint;
             let o = stage::update::run_joints(&opts, &boards, cli.verbose)?;
             Ok(report("update joints", &opts.out, &o))
         }

@@ -24,7 +24,7 @@ use super::smc::Target;
 use super::stats::normal_lpdf;
 
 /// How one family of prediction-error scales is treated.
-#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+#[derive(Clone, Copy, Debug, Serialize, serde::Deserialize, PartialEq)]
 #[serde(rename_all = "snake_case", tag = "kind")]
 pub enum ErrorPrior {
     /// Inferred per mode with a log-normal prior: ln value ~ N(ln median, log_sd²).
@@ -127,12 +127,16 @@ pub enum Compose {
         reference: Vec<f64>,
     },
     /// Step 2: p[board_params[k]] = aux[unit_board[b] · board_params.len() + k] (the step-1
-    /// draw of unit b's board, absolute values) and p[k_idx] = k_ref · exp(x₀).
+    /// draw of unit b's board, absolute values) and, log-linearly in the unit's coordinates,
+    /// p_i = ref_i · exp(Σ_k a_ik x_k) for every (i, ref_i) of `reference`, with
+    /// `coords[k]` = the (i, a_ik) of coordinate k. The baseline has one coordinate,
+    /// ln(k_con / k_ref); the diagnosis's enrichments add more
+    /// ([`crate::diagnose::library`]).
     Joints {
         board_params: Vec<usize>,
         unit_board: Vec<usize>,
-        k_idx: usize,
-        k_ref: f64,
+        coords: Vec<Vec<(usize, f64)>>,
+        reference: Vec<(usize, f64)>,
     },
 }
 
@@ -167,15 +171,22 @@ impl ModalTarget {
             Compose::Joints {
                 board_params,
                 unit_board,
-                k_idx,
-                k_ref,
+                coords,
+                reference,
             } => {
                 let d1 = board_params.len();
                 let o = unit_board[b] * d1;
                 for (k, &i) in board_params.iter().enumerate() {
                     v[i] = aux[o + k];
                 }
-                v[*k_idx] = k_ref * x[0].exp();
+                for &(i, r) in reference {
+                    v[i] = r;
+                }
+                for (k, acts) in coords.iter().enumerate() {
+                    for &(i, a) in acts {
+                        v[i] *= (a * x[k]).exp();
+                    }
+                }
             }
         }
         v

@@ -3,4 +3,6 @@
 //! sensitivity pattern explains it, select by refitting (Bayes factors from the SMC and
 //! held-out error), and explain.
 
+pub mod library;
 pub mod locate;
+pub mod select;

@@ -50,7 +50,17 @@ pub struct RomOptions {
     pub seed: u64,
     /// Add the centre's mode-shape derivatives p ∂φ/∂p as snapshots.
     pub derivative_snapshots: bool,
+    /// Parameters whose box is wide and logarithmic instead of ±`box_rel`: (name, w), the
+    /// box being nominal · e^{±w}. Such an axis gets snapshots at `LOG_AXIS_POINTS` evenly
+    /// spaced points in ln p besides the centre, and the Latin-hypercube points spread over
+    /// it in ln p. Used for parameters known only to orders of magnitude (the diagnosis's
+    /// enrichments, e.g. a joint's rotational stiffness).
+    #[serde(default)]
+    pub log_axes: Vec<(String, f64)>,
 }
+
+/// Snapshots along each logarithmic axis (besides the centre).
+pub const LOG_AXIS_POINTS: usize = 8;
 
 impl Default for RomOptions {
     fn default() -> Self {
@@ -63,6 +73,7 @@ impl Default for RomOptions {
             max_basis: 64,
             seed: 20_240_613,
             derivative_snapshots: true,
+            log_axes: Vec::new(),
         }
     }
 }
@@ -146,7 +157,24 @@ fn lhs_points(n: usize, dim: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<f64>> {
 /// `n` Latin-hypercube points in the ±`box_rel` box around the nominal parameters of
 /// `map` (parameters with nominal 0 stay 0). Deterministic in `seed`.
 pub fn latin_hypercube_params(map: &ParamMap, n: usize, box_rel: f64, seed: u64) -> Vec<Params> {
+    latin_hypercube_params_log(map, n, box_rel, &[], seed)
+}
+
+/// As [`latin_hypercube_params`], with the parameters of `log_axes` spread over
+/// nominal · e^{±w} in ln p (see [`RomOptions::log_axes`]).
+pub fn latin_hypercube_params_log(
+    map: &ParamMap,
+    n: usize,
+    box_rel: f64,
+    log_axes: &[(String, f64)],
+    seed: u64,
+) -> Vec<Params> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let log_w: Vec<Option<f64>> = map
+        .names
+        .iter()
+        .map(|nm| log_axes.iter().find(|(a, _)| a == nm).map(|(_, w)| *w))
+        .collect();
     lhs_points(n, map.names.len(), &mut rng)
         .into_iter()
         .map(|u| Params {
@@ -155,7 +183,11 @@ pub fn latin_hypercube_params(map: &ParamMap, n: usize, box_rel: f64, seed: u64)
                 .nominal
                 .iter()
                 .zip(&u)
-                .map(|(v, t)| v * (1.0 + box_rel * t))
+                .zip(&log_w)
+                .map(|((v, t), w)| match w {
+                    Some(w) => v * (w * t).exp(),
+                    None => v * (1.0 + box_rel * t),
+                })
                 .collect(),
         })
         .collect()
@@ -173,20 +205,43 @@ impl Rom {
         let n = model.n_dof;
         let nominal = model.nominal_params();
         let np = nominal.values.len();
+        for (name, w) in &opts.log_axes {
+            nominal.position(name)?;
+            if !(w.is_finite() && *w > 0.0) {
+                return Err(FemError::Request(format!(
+                    "ROM options: log axis {name:?} needs a positive finite half-width, found {w}"
+                )));
+            }
+        }
         let mut points = vec![nominal.clone()];
         for k in 0..np {
-            for s in [-1.0, 1.0] {
+            let log_w = opts
+                .log_axes
+                .iter()
+                .find(|(a, _)| *a == nominal.names[k])
+                .map(|(_, w)| *w);
+            let factors: Vec<f64> = match log_w {
+                Some(w) => (0..LOG_AXIS_POINTS)
+                    .map(|i| {
+                        let t = -1.0 + 2.0 * i as f64 / (LOG_AXIS_POINTS - 1) as f64;
+                        (w * t).exp()
+                    })
+                    .collect(),
+                None => vec![1.0 - opts.box_rel, 1.0 + opts.box_rel],
+            };
+            for f in factors {
                 let mut p = nominal.clone();
-                p.values[k] *= 1.0 + s * opts.box_rel;
+                p.values[k] *= f;
                 if p.values[k] != nominal.values[k] {
                     points.push(p);
                 }
             }
         }
-        points.extend(latin_hypercube_params(
+        points.extend(latin_hypercube_params_log(
             &model.map,
             opts.n_random,
             opts.box_rel,
+            &opts.log_axes,
             opts.seed,
         ));
 

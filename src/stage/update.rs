@@ -13,6 +13,7 @@ use crate::bayes::modal::{FreqObs, MassObs, ModalPredictor, ShapeObs, UnitData};
 use crate::bayes::population::PopulationPrior;
 use crate::bayes::smc::{self, Particle, SmcOptions, StageInfo};
 use crate::bayes::target::{Compose, ErrorModel, ErrorPrior, ModalTarget};
+use crate::diagnose::library::{joint_enrichment, JointContext, Mechanism};
 use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Rom, RomOptions, Setup};
 use crate::findings::{Finding, Findings, Severity};
@@ -31,8 +32,8 @@ pub const MANIFEST_JOINTS: &str = "update_joints.manifest.json";
 
 pub const JOINTS: TableSpec = TableSpec {
     name: "joints",
-    doc: "Step-2 posterior draws of every bolted measurement's joint stiffness, one row per particle and measurement. The modular (cut) posterior: every particle carries one step-1 draw of the boards (population.parquet's boards_run/boards_draw), and the bolted data updated only the joint parameters.",
-    open: false,
+    doc: "Step-2 posterior draws of every bolted measurement's joint stiffness, one row per particle and measurement. The modular (cut) posterior: every particle carries one step-1 draw of the boards (population.parquet's boards_run/boards_draw), and the bolted data updated only the joint parameters. A refit with an enrichment (`--enrich`, the diagnosis's candidates) adds one column per extra coordinate, named with its unit (e.g. k_rot_nm_per_rad, joint_mass_kg, m_fix_kg, f_fix_hz, k_ratio_<j>); with `joint_stiffness_per_joint` k_con_n_per_m is the stiffness of the other joints.",
+    open: true,
     columns: &[
         c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
         c("draw", Col::Int32, false, "", "Particle index within the run."),
@@ -44,7 +45,7 @@ pub const JOINTS: TableSpec = TableSpec {
 
 pub const POPULATION_JOINTS: TableSpec = TableSpec {
     name: "population_joints",
-    doc: "Step-2 (joints) population draws, one row per particle, written as population.parquet in the step-2 directory: the step-1 draw the particle carries, the population of ln k_con (natural log of N/m) and the bolted modes' prediction errors `eps_<label>`, `delta_<label>` (when inferred).",
+    doc: "Step-2 (joints) population draws, one row per particle, written as population.parquet in the step-2 directory: the step-1 draw the particle carries, the population of ln k_con (natural log of N/m), with an enrichment (`--enrich`) `mu_<coord>`/`sigma_<coord>` of every extra coordinate (natural logs of the parameter in its unit, e.g. mu_ln_k_rot), and the bolted modes' prediction errors `eps_<label>`, `delta_<label>` (when inferred).",
     open: true,
     columns: &[
         c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
@@ -192,7 +193,7 @@ pub const RESIDUALS: TableSpec = TableSpec {
 };
 
 /// Options shared by both steps.
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct UpdateOptions {
     #[serde(skip)]
     pub ingest_dir: PathBuf,
@@ -234,6 +235,12 @@ pub struct UpdateOptions {
     pub from_prior: bool,
     /// Local surrogates of the units' modal terms, corrected to the ROM at the end.
     pub surrogate: bool,
+    /// Step 2: refit with a joint enrichment of the diagnosis's library (`None`: the baseline).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub enrich: Option<Mechanism>,
+    /// Step 2 with `joint_stiffness_per_joint`: the joint (1-based).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub enrich_joint: Option<usize>,
 }
 
 impl UpdateOptions {
@@ -1130,9 +1137,11 @@ fn box_violations(
         for (k, pn) in param_names.iter().enumerate() {
             let mut n = 0usize;
             let mut bad = 0usize;
+            let mut xs = vec![];
             for r in results {
                 for p in &r.particles {
                     n += 1;
+                    xs.push(p.x[b][k]);
                     if !inside(k, p.x[b][k]) {
                         bad += 1;
                     }
@@ -1140,9 +1149,11 @@ fn box_violations(
             }
             let frac = bad as f64 / n.max(1) as f64;
             if frac > tolerance {
+                xs.sort_by(f64::total_cmp);
                 out.push(format!(
-                    "{unit}: {pn}: {:.1} % of the posterior lies outside the ROM's box",
-                    100.0 * frac
+                    "{unit}: {pn}: {:.1} % of the posterior lies outside the ROM's box (posterior median {:.3})",
+                    100.0 * frac,
+                    xs[xs.len() / 2]
                 ));
             }
         }
@@ -1329,12 +1340,28 @@ fn all_labels(pairs: &[PairRow], setup: &str, n_modes: usize) -> Labels {
     }
 }
 
-fn rom_for(model: &FeModel, n_modes_needed: usize, opts: &UpdateOptions) -> anyhow::Result<Rom> {
+fn rom_for(
+    model: &FeModel,
+    n_modes_needed: usize,
+    log_axes: &[(String, f64)],
+    opts: &UpdateOptions,
+) -> anyhow::Result<Rom> {
     let d = RomOptions::default();
+    // A logarithmic axis needs more basis vectors: over e^{±3} of a joint's rotational
+    // stiffness the bolted ROM's worst frequency error is 1.3e-4 with 64 vectors and 3.0e-5
+    // with 80 (`rom_with_a_logarithmic_axis_matches_the_full_model_along_it`), so a cap
+    // chosen for the ±20 % box is raised to 64 + 8 per such axis.
+    let cap = opts.rom_max_basis.unwrap_or(d.max_basis);
+    let max_basis = if log_axes.is_empty() {
+        cap
+    } else {
+        cap.max(d.max_basis) + 8 * log_axes.len()
+    };
     let ro = RomOptions {
         n_modes: n_modes_needed.max(d.n_modes),
         box_rel: opts.rom_box,
-        max_basis: opts.rom_max_basis.unwrap_or(d.max_basis),
+        max_basis,
+        log_axes: log_axes.to_vec(),
         ..d
     };
     Ok(Rom::build(model, &ro)?)
@@ -1464,7 +1491,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             .max()
             .unwrap_or(0)
             + 1;
-        let rom = rom_for(&model, need, opts)?;
+        let rom = rom_for(&model, need, &[], opts)?;
         let nominal_mass_g = model.total_mass_kg(&nominal)? * 1e3;
         let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?;
         let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?;
@@ -1723,19 +1750,84 @@ fn read_step1(path: &Path) -> anyhow::Result<Step1> {
     })
 }
 
-/// The joint stiffness that best fits the bolted frequencies at the boards' posterior mean,
-/// by golden-section search on ln K over ±`span` around the nominal with the full FE model:
-/// the ROM is built around it (its box is ±20 % and the nominal joint can be off by far
-/// more). Returns K in N/m.
+/// Points at which mode shapes of different joint models are compared: a 13 × 9 grid inset
+/// by 4 % of the outline, without the points inside a hole's clamped disc.
+fn match_points(board: &Board) -> Vec<[f64; 2]> {
+    let (lx, ly) = (board.length_x_m, board.width_y_m);
+    let r_clamp = 0.5 * board.joint.clamp_diameter_m;
+    let mut out = vec![];
+    for j in 0..9 {
+        for i in 0..13 {
+            let x = lx * (0.04 + 0.92 * i as f64 / 12.0);
+            let y = ly * (0.04 + 0.92 * j as f64 / 8.0);
+            if board
+                .holes
+                .iter()
+                .all(|h| (x - h.x_m).hypot(y - h.y_m) > r_clamp.max(0.5 * h.diameter_m) * 1.05)
+            {
+                out.push([x, y]);
+            }
+        }
+    }
+    out
+}
+
+/// The modes of `model` at `p` matched to the reference shapes (columns of `w_ref`, w at
+/// `points`) by MAC, greedily from the best pair: per reference, the 0-based mode and its
+/// frequency. A joint enrichment can add modes (the fixture's) and reorder them, so labels
+/// are carried over by shape, never by position.
+fn match_modes(
+    model: &FeModel,
+    p: &crate::fem::Params,
+    n_modes: usize,
+    w_ref: &faer::Mat<f64>,
+    points: &[[f64; 2]],
+) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
+    let m = model.modes(p, n_modes)?;
+    let w = model.w_at(&m, points)?;
+    let nr = w_ref.ncols();
+    let mut pairs = vec![];
+    for a in 0..nr {
+        for b in 0..w.ncols() {
+            let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+            for i in 0..points.len() {
+                ab += w_ref[(i, a)] * w[(i, b)];
+                aa += w_ref[(i, a)] * w_ref[(i, a)];
+                bb += w[(i, b)] * w[(i, b)];
+            }
+            pairs.push((ab * ab / (aa * bb).max(f64::MIN_POSITIVE), a, b));
+        }
+    }
+    pairs.sort_by(|x, y| y.0.total_cmp(&x.0));
+    let mut idx = vec![usize::MAX; nr];
+    let mut taken = vec![false; w.ncols()];
+    for (_, a, b) in pairs {
+        if idx[a] == usize::MAX && !taken[b] {
+            idx[a] = b;
+            taken[b] = true;
+        }
+    }
+    let f = idx.iter().map(|&b| m.freq_hz[b]).collect();
+    Ok((idx, f))
+}
+
+/// The centre of a step-2 model's ROM: the unit coordinates that best fit the median
+/// bolted frequency of every label at the boards' posterior mean (`p_base`, reference
+/// values of the joint parameters), by Levenberg–Marquardt within ±`spans[k]`, with the
+/// full FE model. The ROM
+/// is built around it: its box is ±20 % and the nominal joint can be off by far more.
+/// Only the ROM's centre depends on the data; the priors do not.
+#[allow(clippy::too_many_arguments)]
 fn fit_joint_centre(
-    board: &Board,
+    model: &FeModel,
+    p_base: &crate::fem::Params,
+    coords: &[Vec<(usize, f64)>],
+    spans: &[f64],
     labels: &Labels,
     rows: &[&PairRow],
-    board_mean: &BTreeMap<String, f64>,
-    k_nominal: f64,
-    span: f64,
-) -> anyhow::Result<f64> {
-    let n_modes = labels.model_mode.iter().max().map_or(1, |m| m + 3);
+    (w_ref, points): (&faer::Mat<f64>, &[[f64; 2]]),
+    n_modes: usize,
+) -> anyhow::Result<Vec<f64>> {
     // Median measured frequency per label.
     let med: Vec<Option<f64>> = labels
         .labels
@@ -1750,45 +1842,91 @@ fn fit_joint_centre(
             (!f.is_empty()).then(|| f[f.len() / 2])
         })
         .collect();
-    let cost = |lnk: f64| -> anyhow::Result<f64> {
-        let mut b = board.clone();
-        b.joint.k_con_n_per_m = lnk.exp();
-        let model = FeModel::build(&b, Setup::bolted(), &b.mesh)?;
-        let mut p = model.nominal_params();
-        for (name, v) in board_mean {
-            if let Ok(i) = p.position(name) {
-                p.values[i] = *v;
+    // Relative residuals of the labels with a measured median.
+    let resid = |x: &[f64]| -> anyhow::Result<Vec<f64>> {
+        let mut p = p_base.clone();
+        for (k, acts) in coords.iter().enumerate() {
+            for &(i, a) in acts {
+                p.values[i] *= (a * x[k]).exp();
             }
         }
-        let m = model.modes(&p, n_modes)?;
-        let mut c = 0.0;
-        for (k, &mm) in labels.model_mode.iter().enumerate() {
-            if let (Some(f), Some(fm)) = (med[k], m.freq_hz.get(mm)) {
-                c += ((fm - f) / f).powi(2);
-            }
-        }
-        Ok(c)
+        let (_, f) = match_modes(model, &p, n_modes, w_ref, points)?;
+        Ok(med
+            .iter()
+            .zip(&f)
+            .filter_map(|(m, fm)| m.map(|m| (fm - m) / m))
+            .collect())
     };
-    let (mut a, mut b) = (k_nominal.ln() - span, k_nominal.ln() + span);
-    let r = (5f64.sqrt() - 1.0) / 2.0;
-    let (mut x1, mut x2) = (b - r * (b - a), a + r * (b - a));
-    let (mut f1, mut f2) = (cost(x1)?, cost(x2)?);
-    for _ in 0..14 {
-        if f1 < f2 {
-            b = x2;
-            x2 = x1;
-            f2 = f1;
-            x1 = b - r * (b - a);
-            f1 = cost(x1)?;
-        } else {
-            a = x1;
-            x1 = x2;
-            f1 = f2;
-            x2 = a + r * (b - a);
-            f2 = cost(x2)?;
+    // Levenberg–Marquardt on ln-coordinates with forward-difference Jacobians (d ≤ 3, a few
+    // dozen FE solves), kept inside ±spans: a joint's stiffnesses trade off against each
+    // other (k_con against k_rot), a ridge a one-coordinate-at-a-time search crawls along.
+    let d = coords.len();
+    let sq = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
+    let mut x = vec![0.0; d];
+    let mut r0 = resid(&x)?;
+    let mut c0 = sq(&r0);
+    let mut mu = 1e-3;
+    let h = 1e-3;
+    for _ in 0..12 {
+        let mut jac = vec![vec![0.0; r0.len()]; d];
+        for k in 0..d {
+            let mut y = x.clone();
+            y[k] += h;
+            let r = resid(&y)?;
+            for (i, v) in r.iter().enumerate() {
+                jac[k][i] = (v - r0[i]) / h;
+            }
+        }
+        let mut improved = false;
+        for _ in 0..8 {
+            // (JᵀJ + μ diag(JᵀJ)) δ = −Jᵀ r, d × d by Gaussian elimination.
+            let mut a = vec![vec![0.0; d + 1]; d];
+            for k in 0..d {
+                for l in 0..d {
+                    a[k][l] = jac[k].iter().zip(&jac[l]).map(|(u, v)| u * v).sum();
+                }
+                a[k][k] *= 1.0 + mu;
+                a[k][k] += 1e-12;
+                a[k][d] = -jac[k].iter().zip(&r0).map(|(u, v)| u * v).sum::<f64>();
+            }
+            for c in 0..d {
+                let piv = (c..d)
+                    .max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))
+                    .unwrap_or(c);
+                a.swap(c, piv);
+                for i in c + 1..d {
+                    let f = a[i][c] / a[c][c];
+                    let (top, rest) = a.split_at_mut(i);
+                    for (x, y) in rest[0][c..].iter_mut().zip(&top[c][c..]) {
+                        *x -= f * y;
+                    }
+                }
+            }
+            let mut delta = vec![0.0; d];
+            for c in (0..d).rev() {
+                let s: f64 = (c + 1..d).map(|j| a[c][j] * delta[j]).sum();
+                delta[c] = (a[c][d] - s) / a[c][c];
+            }
+            let y: Vec<f64> = (0..d)
+                .map(|k| (x[k] + delta[k]).clamp(-spans[k], spans[k]))
+                .collect();
+            let r = resid(&y)?;
+            let c = sq(&r);
+            if c < c0 {
+                x = y;
+                r0 = r;
+                c0 = c;
+                mu = (mu * 0.3).max(1e-6);
+                improved = true;
+                break;
+            }
+            mu *= 10.0;
+        }
+        if !improved || c0 < 1e-14 {
+            break;
         }
     }
-    Ok((0.5 * (a + b)).exp())
+    Ok(x)
 }
 
 /// Step 2: joints, bolted, the modular posterior over the step-1 draws.
@@ -1821,10 +1959,21 @@ pub fn run_joints(
         let pairs = read_pairs(&pairs_path)?;
         let presence = read_presence(&presence_path, "bolted")?;
         let labels = select_labels(&pairs, "bolted", &opts.modes, &presence, &mut findings)?;
-        let nominal_board = FeModel::build(&board, Setup::bolted(), &board.mesh)?;
-        let nominal = nominal_board.nominal_params();
-        let k_idx = nominal.position(names::K_CON)?;
-        let k_ref = nominal.values[k_idx];
+        let bolted_rows: Vec<&PairRow> = pairs.iter().filter(|p| p.setup == "bolted").collect();
+        let band_top_hz = bolted_rows.iter().map(|p| p.freq_hz).fold(0.0, f64::max);
+        let enr = joint_enrichment(
+            &board,
+            opts.enrich,
+            opts.enrich_joint,
+            JointContext {
+                band_top_hz,
+                k_con_prior_sd: opts.prior_width,
+            },
+        )
+        .map_err(|e| anyhow!("update joints --enrich: {e}"))?;
+        let mut model =
+            FeModel::build(&board, Setup::Bolted(enr.joint_model.clone()), &board.mesh)?;
+        let nominal = model.nominal_params();
         let mut board_params = vec![];
         for p in &step1.params {
             board_params.push(nominal.position(p).map_err(|_| {
@@ -1835,6 +1984,21 @@ pub fn run_joints(
                 )
             })?);
         }
+        let reference: Vec<(usize, f64)> = enr
+            .reference
+            .iter()
+            .map(|(n, v)| Ok((nominal.position(n)?, *v)))
+            .collect::<Result<_, crate::fem::FemError>>()?;
+        let coords: Vec<Vec<(usize, f64)>> = enr
+            .coordinates
+            .iter()
+            .map(|c| {
+                c.acts_on
+                    .iter()
+                    .map(|(n, a)| Ok((nominal.position(n)?, *a)))
+                    .collect::<Result<Vec<_>, crate::fem::FemError>>()
+            })
+            .collect::<Result<_, _>>()?;
         // The boards' posterior means (for the joint's centre).
         let d1 = step1.params.len();
         let nd = step1.draws.len() as f64;
@@ -1852,19 +2016,95 @@ pub fn run_joints(
                 / (nd * step1.board_ids.len() as f64);
             board_mean.insert(p.clone(), m);
         }
-        let bolted_rows: Vec<&PairRow> = pairs.iter().filter(|p| p.setup == "bolted").collect();
-        let k_centre = fit_joint_centre(
-            &board,
+        let with_board_mean = |mut p: crate::fem::Params| {
+            for (name, v) in &board_mean {
+                if let Ok(i) = p.position(name) {
+                    p.values[i] = *v;
+                }
+            }
+            p
+        };
+        // Reference shapes: the paired model modes of the baseline at the boards' mean.
+        let points = match_points(&board);
+        let baseline = FeModel::build(&board, Setup::bolted(), &board.mesh)?;
+        let all = all_labels(&pairs, "bolted", 40);
+        let n_ref = labels
+            .model_mode
+            .iter()
+            .chain(&all.model_mode)
+            .copied()
+            .max()
+            .unwrap_or(0)
+            + 1;
+        let extra_modes = if enr.joint_model.has_fixture() { 3 } else { 2 };
+        let n_track = n_ref + extra_modes;
+        let base_modes = baseline.modes(&with_board_mean(baseline.nominal_params()), n_ref)?;
+        let w_all = baseline.w_at(&base_modes, &points)?;
+        let pick =
+            |idx: &[usize]| faer::Mat::from_fn(points.len(), idx.len(), |i, j| w_all[(i, idx[j])]);
+        let w_labels = pick(&labels.model_mode);
+        let mut p_base = with_board_mean(nominal.clone());
+        for &(i, v) in &reference {
+            p_base.values[i] = v;
+        }
+        let spans: Vec<f64> = enr
+            .coordinates
+            .iter()
+            .enumerate()
+            .map(|(k, c)| {
+                if k == 0 {
+                    opts.prior_width.max(1.0) * 3.0
+                } else {
+                    3.0 * c.prior_sd
+                }
+            })
+            .collect();
+        let t_centre = std::time::Instant::now();
+        let centre = fit_joint_centre(
+            &model,
+            &p_base,
+            &coords,
+            &spans,
             &labels,
             &bolted_rows,
-            &board_mean,
-            k_ref,
-            opts.prior_width.max(1.0) * 3.0,
+            (&w_labels, &points),
+            n_track,
         )?;
-        let mut centred = board.clone();
-        centred.joint.k_con_n_per_m = k_centre;
-        let model = FeModel::build(&centred, Setup::bolted(), &centred.mesh)?;
-        let all = all_labels(&pairs, "bolted", 40);
+        if verbose {
+            eprintln!(
+                "joints: ROM centre {:?} = {centre:.4?} (ln, relative to the priors' centres), fitted in {:.1} s",
+                enr.coordinates.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(),
+                t_centre.elapsed().as_secs_f64()
+            );
+        }
+        // The ROM's centre: the reference joint values moved to the fitted coordinates (the
+        // board parameters stay at the board file's nominal values).
+        let mut rom_centre = nominal.clone();
+        for &(i, v) in &reference {
+            rom_centre.values[i] = v;
+        }
+        for (k, acts) in coords.iter().enumerate() {
+            for &(i, a) in acts {
+                rom_centre.values[i] *= (a * centre[k]).exp();
+            }
+        }
+        model.map.nominal = rom_centre.values.clone();
+        let k_centre = rom_centre
+            .get(names::K_CON)
+            .or_else(|_| rom_centre.get(&names::k_con_joint(1)))?;
+        // Labels carried over to the (enriched) model's modes at the centre by shape.
+        let centre_p = with_board_mean(model.nominal_params());
+        let (label_modes, _) = match_modes(&model, &centre_p, n_track, &w_labels, &points)?;
+        let (all_modes, _) =
+            match_modes(&model, &centre_p, n_track, &pick(&all.model_mode), &points)?;
+        let labels = Labels {
+            labels: labels.labels.clone(),
+            model_mode: label_modes,
+        };
+        let all = Labels {
+            labels: all.labels.clone(),
+            model_mode: all_modes,
+        };
         let need = labels
             .model_mode
             .iter()
@@ -1873,7 +2113,33 @@ pub fn run_joints(
             .max()
             .unwrap_or(0)
             + 1;
-        let rom = rom_for(&model, need, opts)?;
+        // ROM box: ±rom_box, and along every parameter an extra coordinate moves, the sum of
+        // the ln half-widths of the coordinates acting on it.
+        let mut log_axes: Vec<(String, f64)> = vec![];
+        for (k, c) in enr.coordinates.iter().enumerate() {
+            if c.log_box.is_none() {
+                continue;
+            }
+            for &(i, _) in &coords[k] {
+                let w: f64 = enr
+                    .coordinates
+                    .iter()
+                    .zip(&coords)
+                    .filter(|(_, acts)| acts.iter().any(|(j, _)| *j == i))
+                    .map(|(cc, acts)| {
+                        let a = acts
+                            .iter()
+                            .find(|(j, _)| *j == i)
+                            .map_or(1.0, |(_, a)| a.abs());
+                        a * cc.log_box.unwrap_or((1.0 + opts.rom_box).ln())
+                    })
+                    .sum();
+                if !log_axes.iter().any(|(n, _)| *n == nominal.names[i]) {
+                    log_axes.push((nominal.names[i].clone(), w));
+                }
+            }
+        }
+        let rom = rom_for(&model, need, &log_axes, opts)?;
         let nominal_mass_g = model.total_mass_kg(&model.nominal_params())? * 1e3;
         let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?;
         let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?;
@@ -1943,13 +2209,13 @@ pub fn run_joints(
             compose: Compose::Joints {
                 board_params: board_params.clone(),
                 unit_board: unit_board_idx.clone(),
-                k_idx,
-                k_ref,
+                coords: coords.clone(),
+                reference: reference.clone(),
             },
             prior: PopulationPrior {
-                mu_mean: vec![0.0],
-                mu_sd: vec![opts.prior_width],
-                sigma_scale: vec![opts.sigma_scale],
+                mu_mean: vec![0.0; coords.len()],
+                mu_sd: enr.coordinates.iter().map(|c| c.prior_sd).collect(),
+                sigma_scale: vec![opts.sigma_scale; coords.len()],
                 lkj_eta: opts.lkj_eta,
             },
             errors: ErrorModel {
@@ -1987,29 +2253,51 @@ pub fn run_joints(
         let (results, acceleration) = run_smc(&target, &sopts, "joints", &aux, verbose)?;
         let sampler_seconds = t0.elapsed().as_secs_f64();
         check_surrogate_edges(&acceleration, &mut findings);
-        let lo = (k_centre * (1.0 - opts.rom_box) / k_ref).ln();
-        let hi = (k_centre * (1.0 + opts.rom_box) / k_ref).ln();
+        // The ROM's box per coordinate, around the fitted centre.
+        let coord_names: Vec<String> = enr.coordinates.iter().map(|c| c.name.clone()).collect();
+        let bounds: Vec<(f64, f64)> = enr
+            .coordinates
+            .iter()
+            .zip(&centre)
+            .map(|(c, &x0)| match c.log_box {
+                Some(w) => (x0 - w, x0 + w),
+                None => (
+                    x0 + (1.0 - opts.rom_box).ln(),
+                    x0 + (1.0 + opts.rom_box).ln(),
+                ),
+            })
+            .collect();
+        if verbose {
+            eprintln!("joints: ROM box per coordinate (ln) {bounds:.3?}");
+        }
         let violations = box_violations(
             &results,
             &unit_names,
-            &[names::K_CON.to_string()],
-            |_, x| x >= lo && x <= hi,
+            &coord_names,
+            |k, x| x >= bounds[k].0 && x <= bounds[k].1,
             opts.box_tolerance,
         );
         if !violations.is_empty() {
             bail!(
-                "the joint posterior presses against the ROM's ±{:.0} % box around k_con_n_per_m = {k_centre:.4e} N/m (fitted to the bolted modes at the boards' posterior mean):\n  {}\nThe joints differ more between measurements than one ROM covers; a per-measurement ROM is not built yet.",
+                "the joint posterior presses against the ROM's box (±{:.0} % around k_con_n_per_m = {k_centre:.4e} N/m, fitted to the bolted modes at the boards' posterior mean{}):\n  {}\nThe joints differ more between measurements than one ROM covers; a per-measurement ROM is not built yet.",
                 100.0 * opts.rom_box,
+                if coords.len() > 1 { ", and the enrichment's logarithmic axes" } else { "" },
                 violations.join("\n  ")
             );
         }
         let prov = provenance("update_joints", &prep.fingerprint);
         let mut outputs = vec![];
         // population.parquet (step 2).
-        let mut pcols: Vec<(String, String)> = vec![
-            ("mu_ln_k_con".into(), "ln(N/m)".into()),
-            ("sigma_ln_k_con".into(), "ln(N/m)".into()),
-        ];
+        let mut pcols: Vec<(String, String)> = vec![];
+        for c in &enr.coordinates {
+            let u = if c.report_unit.is_empty() {
+                String::new()
+            } else {
+                format!("ln({})", c.report_unit)
+            };
+            pcols.push((format!("mu_{}", c.name), u.clone()));
+            pcols.push((format!("sigma_{}", c.name), u));
+        }
         let infer_eps = matches!(target.errors.eps, ErrorPrior::Inferred { .. });
         let infer_delta = matches!(target.errors.delta, Some(ErrorPrior::Inferred { .. }));
         if infer_eps {
@@ -2029,12 +2317,21 @@ pub fn run_joints(
             );
         }
         let mut pop = DrawTable::new(&pcols);
-        let mut jt = DrawTable::new(&[(names::K_CON.to_string(), "N/m".to_string())]);
+        let jcols: Vec<(String, String)> = enr
+            .coordinates
+            .iter()
+            .map(|c| (c.report_param.clone(), c.report_unit.clone()))
+            .collect();
+        let mut jt = DrawTable::new(&jcols);
         let (mut b_run, mut b_draw) = (vec![], vec![]);
         let mut joint_boards = vec![];
         for (r, i, p) in particles_of(&results) {
             let ctx = smc::Target::ctx(&target, &p.g);
-            let mut row = vec![k_ref.ln() + ctx.pop.mu[0], ctx.pop.sigma[0]];
+            let mut row = vec![];
+            for (k, c) in enr.coordinates.iter().enumerate() {
+                row.push(c.report_ref.ln() + ctx.pop.mu[k]);
+                row.push(ctx.pop.sigma[k]);
+            }
             if infer_eps {
                 row.extend(&ctx.eps);
             }
@@ -2049,7 +2346,13 @@ pub fn run_joints(
             b_run.push(kr);
             b_draw.push(kd);
             for (b, name) in unit_names.iter().enumerate() {
-                jt.push(r, i, Some(name), &[k_ref * p.x[b][0].exp()]);
+                let v: Vec<f64> = enr
+                    .coordinates
+                    .iter()
+                    .zip(&p.x[b])
+                    .map(|(c, x)| c.report_ref * x.exp())
+                    .collect();
+                jt.push(r, i, Some(name), &v);
                 joint_boards.push(unit_boards[b].clone());
             }
         }
@@ -2084,7 +2387,7 @@ pub fn run_joints(
             Arc::new(StringArray::from_iter_values(joint_boards.iter())),
             Arc::new(Float64Array::from(jt.cols[0].2.clone())),
         ];
-        write_table(&p, &JOINTS, cols, &[], &prov)?;
+        write_table(&p, &JOINTS, cols, &jt.cols[1..], &prov)?;
         outputs.push(p);
         let p = opts.out.join("summary.parquet");
         write_summary(&p, &summary, &prov)?;
@@ -2113,6 +2416,8 @@ pub fn run_joints(
         let mut ev = evidence_json(&log_z, "joints (step 2), modular (cut) posterior");
         ev["note_cut"] = "log p(bolted data | step-1 posterior): the mean over the carried step-1 draws of each draw's evidence".into();
         ev["k_con_rom_centre_n_per_m"] = k_centre.into();
+        ev["enrichment"] = serde_json::to_value(&enr)?;
+        ev["rom_centre_coordinates"] = serde_json::to_value(&centre)?;
         let p = opts.out.join("evidence.json");
         crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
         outputs.push(p);

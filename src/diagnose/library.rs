@@ -1,0 +1,338 @@
+//! The library of physical mechanisms the diagnosis can propose: each is an enrichment of
+//! the model with few parameters, physical priors and a plain-language description.
+//!
+//! A joint mechanism enriches step 2 (the bolted joints): the joint model gains features
+//! ([`JointFeature`]) and every bolted measurement (a step-2 unit) gains coordinates.
+//! A unit's coordinates act on the ROM's parameters log-linearly:
+//! p_i = ref_i · exp(Σ_k a_ik x_k), so a coordinate can move several parameters (one
+//! joint stiffness for all joints) and a parameter can follow several coordinates (the
+//! fixture's spring k = m (2π f)² follows ln m and ln f). Coordinate 0 is always
+//! ln(k_con / k_con,nominal), the baseline's, so the baseline is the enrichment with no
+//! extra coordinate and every refit nests it.
+//!
+//! Priors are physical, never fitted to the data being diagnosed (the Bayes factors would
+//! otherwise be biased towards the enrichment):
+//! - `joint_rotation`: the rotational stiffness a uniform contact layer of the joint's own
+//!   nominal stiffness would have over the clamped annulus, k_rot = k_con (r_o² + r_i²)/4
+//!   (∫ r² cos²θ dA / A over the annulus), with a log-sd of 1.5: the contact pressure is far
+//!   from uniform (a clamped patch is stiffer at the rim), so only the order of magnitude is
+//!   known;
+//! - `joint_mass`: the bolt's mass from the board file (bolt, nut and washers), log-sd 1;
+//! - `fixture_compliance`: fixture mass 0.1 kg with a log-sd of 1.5 (5 g to 2 kg at 2 sd),
+//!   and its own resonance at the top of the measured band with a log-sd of 1;
+//! - `joint_stiffness_per_joint`: the stiffness ratio of one joint to the others, centred on
+//!   1 with a log-sd of 0.7 (a loose bolt halves it, a missing washer doubles it).
+
+use serde::Serialize;
+
+use crate::fem::joints::{JointFeature, JointModel};
+use crate::fem::params::names;
+use crate::fem::Board;
+
+/// The mechanism ids of the diagnosis (the list, in findings as `mechanism`).
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    PartialEq,
+    Eq,
+    PartialOrd,
+    Ord,
+    Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "snake_case")]
+#[value(rename_all = "snake_case")]
+pub enum Mechanism {
+    JointRotation,
+    JointStiffnessPerJoint,
+    JointMass,
+    FixtureCompliance,
+    TemperatureStiffness,
+    AddedMass,
+    LocalStiffnessLoss,
+    Prestress,
+}
+
+impl Mechanism {
+    pub const ALL: [Mechanism; 8] = [
+        Mechanism::JointRotation,
+        Mechanism::JointStiffnessPerJoint,
+        Mechanism::JointMass,
+        Mechanism::FixtureCompliance,
+        Mechanism::TemperatureStiffness,
+        Mechanism::AddedMass,
+        Mechanism::LocalStiffnessLoss,
+        Mechanism::Prestress,
+    ];
+
+    /// The id as written in `diagnosis.json`.
+    pub fn id(self) -> &'static str {
+        match self {
+            Mechanism::JointRotation => "joint_rotation",
+            Mechanism::JointStiffnessPerJoint => "joint_stiffness_per_joint",
+            Mechanism::JointMass => "joint_mass",
+            Mechanism::FixtureCompliance => "fixture_compliance",
+            Mechanism::TemperatureStiffness => "temperature_stiffness",
+            Mechanism::AddedMass => "added_mass",
+            Mechanism::LocalStiffnessLoss => "local_stiffness_loss",
+            Mechanism::Prestress => "prestress",
+        }
+    }
+
+    /// The physics in plain words.
+    pub fn description(self) -> &'static str {
+        match self {
+            Mechanism::JointRotation => "the bolted joints restrain the board's rotation (they transmit bending moment), not only its out-of-plane motion",
+            Mechanism::JointStiffnessPerJoint => "one joint is weaker or stiffer than the others (a loose bolt, a missing washer)",
+            Mechanism::JointMass => "the joints add mass (bolt, nut, washers moving with the board)",
+            Mechanism::FixtureCompliance => "the shaker fixture is not rigid: a mass on a spring between the armature and the bolts",
+            Mechanism::TemperatureStiffness => "the FR-4 stiffness changes with the lab temperature",
+            Mechanism::AddedMass => "a localized mass on the board that the model lacks (a component, glue, a connector)",
+            Mechanism::LocalStiffnessLoss => "the board is locally less stiff than modelled (damage, a cut-out, delamination)",
+            Mechanism::Prestress => "in-plane prestress from the clamping force",
+        }
+    }
+}
+
+/// One coordinate of a step-2 unit: its name, the ROM parameters it moves with their
+/// exponents, and its prior N(0, prior_sd²) on the population mean (relative to the
+/// reference values).
+#[derive(Clone, Debug, Serialize)]
+pub struct Coordinate {
+    /// e.g. `ln_k_rot` (population columns are `mu_<name>`, `sigma_<name>`).
+    pub name: String,
+    /// The parameter the coordinate is reported as (unit in its name): report_ref · e^x.
+    pub report_param: String,
+    pub report_ref: f64,
+    /// Unit of `report_param`.
+    pub report_unit: String,
+    /// (ROM parameter name, exponent a_ik).
+    pub acts_on: Vec<(String, f64)>,
+    /// Prior sd of the population mean, in ln units.
+    pub prior_sd: f64,
+    /// Half-width in ln units of the ROM's box along the parameters it moves beyond the
+    /// baseline's ±20 % (`None`: the baseline box).
+    pub log_box: Option<f64>,
+}
+
+/// A step-2 enrichment: the joint model, the reference values of the parameters the
+/// coordinates move (the prior centres), and the coordinates. `joint` = the joint
+/// (1-based) of `joint_stiffness_per_joint`.
+#[derive(Clone, Debug, Serialize)]
+pub struct JointEnrichment {
+    pub mechanism: Option<Mechanism>,
+    pub joint: Option<usize>,
+    pub joint_model: JointModel,
+    /// (ROM parameter name, reference value) for every parameter a coordinate moves.
+    pub reference: Vec<(String, f64)>,
+    pub coordinates: Vec<Coordinate>,
+}
+
+/// What the enrichment needs to know of the campaign: the highest paired bolted frequency
+/// (the fixture's prior resonance sits at the top of the band).
+#[derive(Clone, Copy, Debug)]
+pub struct JointContext {
+    pub band_top_hz: f64,
+    /// Prior sd of the baseline's ln k_con population mean.
+    pub k_con_prior_sd: f64,
+}
+
+fn k_con_coordinate(acts_on: Vec<(String, f64)>, k0: f64, prior_sd: f64) -> Coordinate {
+    Coordinate {
+        name: "ln_k_con".into(),
+        report_param: names::K_CON.into(),
+        report_ref: k0,
+        report_unit: "N/m".into(),
+        acts_on,
+        prior_sd,
+        log_box: None,
+    }
+}
+
+/// The step-2 model of `mechanism` (`None`: the baseline). Errors name what the board
+/// lacks (e.g. no holes for a per-joint model).
+pub fn joint_enrichment(
+    board: &Board,
+    mechanism: Option<Mechanism>,
+    joint: Option<usize>,
+    ctx: JointContext,
+) -> Result<JointEnrichment, String> {
+    let k0 = board.joint.k_con_n_per_m;
+    let mut reference = vec![(names::K_CON.to_string(), k0)];
+    let mut coords = vec![k_con_coordinate(
+        vec![(names::K_CON.into(), 1.0)],
+        k0,
+        ctx.k_con_prior_sd,
+    )];
+    let mut features = vec![JointFeature::Translational];
+    match mechanism {
+        None => {}
+        Some(Mechanism::JointRotation) => {
+            let r_o = 0.5 * board.joint.clamp_diameter_m;
+            let r_i = board
+                .holes
+                .first()
+                .map(|h| 0.5 * h.diameter_m)
+                .unwrap_or(0.0)
+                .min(r_o);
+            let k_rot = k0 * (r_o * r_o + r_i * r_i) / 4.0;
+            features.push(JointFeature::RotationalRestraint {
+                k_rot_nm_per_rad: k_rot,
+            });
+            reference.push((names::K_ROT.into(), k_rot));
+            coords.push(Coordinate {
+                name: "ln_k_rot".into(),
+                report_param: names::K_ROT.into(),
+                report_ref: k_rot,
+                report_unit: "N·m/rad".into(),
+                acts_on: vec![(names::K_ROT.into(), 1.0)],
+                prior_sd: 1.5,
+                log_box: Some(4.5),
+            });
+        }
+        Some(Mechanism::JointMass) => {
+            let m = if board.joint.bolt_mass_kg > 0.0 {
+                board.joint.bolt_mass_kg
+            } else {
+                1e-3
+            };
+            features.push(JointFeature::JointMass { mass_kg: m });
+            reference.push((names::JOINT_MASS.into(), m));
+            coords.push(Coordinate {
+                name: "ln_joint_mass".into(),
+                report_param: names::JOINT_MASS.into(),
+                report_ref: m,
+                report_unit: "kg".into(),
+                acts_on: vec![(names::JOINT_MASS.into(), 1.0)],
+                prior_sd: 1.0,
+                log_box: Some(3.0),
+            });
+        }
+        Some(Mechanism::FixtureCompliance) => {
+            let m = 0.1;
+            let w = 2.0 * std::f64::consts::PI * ctx.band_top_hz;
+            let k = m * w * w;
+            features.push(JointFeature::CompliantFixture {
+                k_fix_n_per_m: k,
+                m_fix_kg: m,
+            });
+            reference.push((names::M_FIX.into(), m));
+            reference.push((names::K_FIX.into(), k));
+            coords.push(Coordinate {
+                name: "ln_m_fix".into(),
+                report_param: names::M_FIX.into(),
+                report_ref: m,
+                report_unit: "kg".into(),
+                acts_on: vec![(names::M_FIX.into(), 1.0), (names::K_FIX.into(), 1.0)],
+                prior_sd: 1.5,
+                log_box: Some(4.5),
+            });
+            coords.push(Coordinate {
+                name: "ln_f_fix".into(),
+                report_param: "f_fix_hz".into(),
+                report_ref: ctx.band_top_hz,
+                report_unit: "Hz".into(),
+                acts_on: vec![(names::K_FIX.into(), 2.0)],
+                prior_sd: 1.0,
+                log_box: Some(3.0),
+            });
+        }
+        Some(Mechanism::JointStiffnessPerJoint) => {
+            let n = board.holes.len();
+            let j = joint.ok_or("joint_stiffness_per_joint needs the joint (1-based)")?;
+            if j == 0 || j > n {
+                return Err(format!(
+                    "joint_stiffness_per_joint: expected a joint in 1..={n}, found {j}"
+                ));
+            }
+            features = vec![JointFeature::PerJointTranslational];
+            reference = (1..=n).map(|i| (names::k_con_joint(i), k0)).collect();
+            coords = vec![k_con_coordinate(
+                (1..=n).map(|i| (names::k_con_joint(i), 1.0)).collect(),
+                k0,
+                ctx.k_con_prior_sd,
+            )];
+            coords.push(Coordinate {
+                name: format!("ln_k_ratio_{j}"),
+                report_param: format!("k_ratio_{j}"),
+                report_ref: 1.0,
+                report_unit: String::new(),
+                acts_on: vec![(names::k_con_joint(j), 1.0)],
+                prior_sd: 0.7,
+                log_box: Some(2.1),
+            });
+        }
+        Some(m) => {
+            return Err(format!(
+                "{} is not a joint mechanism: it has no step-2 refit",
+                m.id()
+            ))
+        }
+    }
+    if mechanism.is_some() {
+        // The joint stiffness trades off against the enrichment (k_con against k_rot, a
+        // loose joint against the others) along ridges the posterior follows: its ROM axis
+        // is logarithmic too.
+        coords[0].log_box = Some(1.0);
+    }
+    Ok(JointEnrichment {
+        mechanism,
+        joint,
+        joint_model: JointModel { features },
+        reference,
+        coordinates: coords,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn board() -> Board {
+        crate::fem::Board::from_toml_str(include_str!("../../data/boards/default.toml")).unwrap()
+    }
+
+    #[test]
+    fn baseline_is_one_k_con_coordinate_and_enrichments_nest_it() {
+        let b = board();
+        let ctx = JointContext {
+            band_top_hz: 3000.0,
+            k_con_prior_sd: 1.0,
+        };
+        let base = joint_enrichment(&b, None, None, ctx).unwrap();
+        assert_eq!(base.coordinates.len(), 1);
+        assert_eq!(base.joint_model, JointModel::baseline());
+        for m in [
+            Mechanism::JointRotation,
+            Mechanism::JointMass,
+            Mechanism::FixtureCompliance,
+        ] {
+            let e = joint_enrichment(&b, Some(m), None, ctx).unwrap();
+            assert_eq!(e.coordinates[0].name, "ln_k_con");
+            assert!(e.coordinates.len() > 1);
+            e.joint_model.validate().unwrap();
+        }
+        let e =
+            joint_enrichment(&b, Some(Mechanism::JointStiffnessPerJoint), Some(2), ctx).unwrap();
+        assert_eq!(e.coordinates[0].acts_on.len(), b.holes.len());
+        assert!(
+            joint_enrichment(&b, Some(Mechanism::JointStiffnessPerJoint), Some(9), ctx).is_err()
+        );
+        assert!(joint_enrichment(&b, Some(Mechanism::AddedMass), None, ctx).is_err());
+    }
+
+    #[test]
+    fn fixture_reference_resonance_is_the_band_top() {
+        let b = board();
+        let ctx = JointContext {
+            band_top_hz: 2500.0,
+            k_con_prior_sd: 1.0,
+        };
+        let e = joint_enrichment(&b, Some(Mechanism::FixtureCompliance), None, ctx).unwrap();
+        let get = |n: &str| e.reference.iter().find(|(a, _)| a == n).unwrap().1;
+        let f = (get(names::K_FIX) / get(names::M_FIX)).sqrt() / (2.0 * std::f64::consts::PI);
+        assert!((f - 2500.0).abs() < 1e-9);
+    }
+}
