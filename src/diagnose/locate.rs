@@ -413,8 +413,10 @@ pub struct LocatedCovariate {
 #[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
 pub struct Located {
     pub options: LocateOptions,
-    /// Anything located at all (modes, measurements, covariates, recurring unpaired modes or
-    /// model modes never seen).
+    /// Anything located at all: modes, measurements, covariates or recurring unpaired modes.
+    /// Model modes never seen do not count: a mode with a nodal line at the excitation point
+    /// or at the band edge is never seen in a campaign the model fits (both the paper-like
+    /// null and the demo campaigns have two such bolted modes).
     pub any: bool,
     /// Setups with a located mode or outlier measurement.
     pub setups: Vec<String>,
@@ -478,7 +480,7 @@ pub fn chi2_sf(x: f64, k: f64) -> f64 {
 /// |z| of the standard normal with two-sided tail probability p (capped at 38 where p
 /// underflows).
 fn normal_abs_z(p: f64) -> f64 {
-    if !(p > 0.0) {
+    if p.is_nan() || p <= 0.0 {
         return 38.0;
     }
     let n = Normal::new(0.0, 1.0).expect("standard normal");
@@ -548,7 +550,7 @@ fn mad_sd(x: &[f64]) -> f64 {
 
 /// The minimum-effect test of [`ModeCheck::p_value`].
 pub fn min_effect_p(mean: f64, se: f64, df: f64, tolerance: f64) -> f64 {
-    if !(se > 0.0) {
+    if se.is_nan() || se <= 0.0 {
         return if mean.abs() > tolerance { 0.0 } else { 1.0 };
     }
     let a = mean.abs();
@@ -770,8 +772,7 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
         any: !(modes.is_empty()
             && measurements.is_empty()
             && covariates.is_empty()
-            && unpaired.is_empty()
-            && never_seen.is_empty()),
+            && unpaired.is_empty()),
         setups,
         modes,
         measurements,
@@ -1055,7 +1056,7 @@ fn studentized_checks(
             }
             let m = s1 / n;
             let var = ((s2 - n * m * m) / (n - 1.0)).max(0.0);
-            if !(var > 0.0) {
+            if var.is_nan() || var <= 0.0 {
                 continue;
             }
             let d = x - m;

@@ -461,7 +461,7 @@ fn one_outlier_measurement_and_a_loose_bolt_minority_are_found() {
         _ => 0.0,
     };
     let shift = move |s: &str, l: &str, j: usize, _: f64| match s {
-        "bolted" if j % 3 == 0 => pattern(l),
+        "bolted" if j.is_multiple_of(3) => pattern(l),
         "free" if j == 4 && l == "torsion-1" => 1.5e-3,
         _ => 0.0,
     };
@@ -469,7 +469,7 @@ fn one_outlier_measurement_and_a_loose_bolt_minority_are_found() {
     for seed in 0..5 {
         let loc = locate(&synth.draw(seed, &shift), &LocateOptions::default());
         let loose: Vec<String> = (0..30)
-            .filter(|j| j % 3 == 0)
+            .filter(|j: &usize| j.is_multiple_of(3))
             .map(|j| format!("M{:03}", 31 + j))
             .collect();
         let found: BTreeSet<&str> = loc.measurements.iter().map(String::as_str).collect();
@@ -531,7 +531,7 @@ fn a_fixture_resonance_is_a_recurring_unpaired_cluster() {
     for (i, m) in bolted.iter().enumerate() {
         // A resonance near 1630 Hz (±0.5 %) in 26 of 30 bolted measurements, and scattered
         // spurious modes elsewhere.
-        if i % 8 != 0 {
+        if !i.is_multiple_of(8) {
             inp.identified.push(IdentifiedMode {
                 measurement_id: m.clone(),
                 setup: "bolted".into(),
@@ -577,6 +577,11 @@ fn a_fixture_resonance_is_a_recurring_unpaired_cluster() {
     assert_eq!(loc.never_seen[0].label, "plate-4-1");
     assert_eq!(loc.never_seen[0].median_model_freq_hz, Some(4800.0));
     assert!(loc.any);
+    // A never-seen model mode alone is not a located misfit.
+    inp.identified.retain(|m| m.mode < 98);
+    let loc = locate(&inp, &LocateOptions::default());
+    assert_eq!(loc.never_seen.len(), 1);
+    assert!(!loc.any, "{:?}", loc.unpaired_clusters);
 }
 
 #[test]
