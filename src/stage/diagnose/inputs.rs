@@ -483,6 +483,67 @@ mod tests {
         }
     }
 
+    /// A copy of the demo's tables without step 2 (None when the demo has not run).
+    fn demo_copy_without_step_2() -> Option<tempfile::TempDir> {
+        let demo = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/work/paper");
+        let files = [
+            "ingest/measurements.parquet",
+            "extract/modes.parquet",
+            "pair/pairs.parquet",
+            "update_boards/residuals.parquet",
+            "update_boards/population.parquet",
+        ];
+        if !files.iter().all(|f| demo.join(f).is_file()) {
+            eprintln!("skipped: no demo work directory at {}", demo.display());
+            return None;
+        }
+        let tmp = tempfile::tempdir().unwrap();
+        for f in files {
+            let to = tmp.path().join(f);
+            std::fs::create_dir_all(to.parent().unwrap()).unwrap();
+            std::fs::copy(demo.join(f), to).unwrap();
+        }
+        Some(tmp)
+    }
+
+    #[test]
+    fn a_missing_step_is_a_finding_and_a_bad_table_an_error_naming_file_and_column() {
+        let Some(tmp) = demo_copy_without_step_2() else {
+            return;
+        };
+        let (inp, findings) = read_inputs(tmp.path()).unwrap();
+        assert!(
+            findings.iter().any(|f| f.code == "diagnose.no_step"
+                && f.file.as_deref() == Some("update_joints/residuals.parquet")),
+            "{findings:?}"
+        );
+        assert!(inp.residuals.iter().all(|r| r.setup == "free"));
+        assert!(inp.eps.iter().all(|e| e.setup == "free") && !inp.eps.is_empty());
+        // No population table: a finding, ε not checked.
+        std::fs::remove_file(tmp.path().join("update_boards/population.parquet")).unwrap();
+        let (inp, findings) = read_inputs(tmp.path()).unwrap();
+        assert!(inp.eps.is_empty());
+        assert!(findings.iter().any(|f| f.code == "diagnose.no_population"));
+        // A table without the expected columns: the error names the file and the column.
+        std::fs::copy(
+            tmp.path().join("pair/pairs.parquet"),
+            tmp.path().join("update_boards/residuals.parquet"),
+        )
+        .unwrap();
+        let e = format!("{:#}", read_inputs(tmp.path()).unwrap_err());
+        assert!(
+            e.contains("update_boards/residuals.parquet") && e.contains("model_freq_hz_mean"),
+            "{e}"
+        );
+        // No residuals of any step: an error saying what to run.
+        std::fs::remove_file(tmp.path().join("update_boards/residuals.parquet")).unwrap();
+        let e = format!("{:#}", read_inputs(tmp.path()).unwrap_err());
+        assert!(
+            e.contains("no residuals") && e.contains("hbmu update boards"),
+            "{e}"
+        );
+    }
+
     #[test]
     fn a_missing_work_directory_names_the_file() {
         let e = read_inputs(Path::new("/nonexistent/work")).unwrap_err();
