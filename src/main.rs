@@ -132,6 +132,31 @@ enum Command {
         #[arg(long)]
         force: bool,
     },
+    /// Diagnose model inadequacy in a work directory: locate the misfit (posterior-predictive
+    /// checks per setup, mode, measurement and sheet covariate; unpaired modes), screen the
+    /// mechanism library, refit the screened joint mechanisms (each under OUT/refits/<id>, a
+    /// hashed stage of its own) and compare them with the step-2 posterior by log Bayes
+    /// factor and held-out error. Writes diagnosis.json and diagnosis.parquet.
+    Diagnose {
+        /// Work directory of one campaign (ingest/, extract/, pair/, update_boards/,
+        /// [update_joints/]).
+        work_dir: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Board file the work directory was updated with (default: the built-in board).
+        #[arg(long)]
+        model: Option<PathBuf>,
+        /// Refit at most this many screened candidates (0: locate and screen only).
+        #[arg(long, default_value_t = 3)]
+        max_refits: usize,
+        /// Run only this candidate's refit (e.g. joint_rotation, joint_stiffness_per_joint_2)
+        /// and stop: refits are independent, a cluster runs them side by side.
+        #[arg(long)]
+        only: Option<String>,
+        #[arg(long)]
+        force: bool,
+    },
     /// The validation report of a work directory: a self-contained HTML page (inline SVG
     /// figures), its tables as Parquet and CSV, and a Markdown summary.
     Report {
@@ -627,6 +652,27 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             opts.enrich_joint = enrich_joint;
             let o = stage::update::run_joints(&opts, &boards, cli.verbose)?;
             Ok(report("update joints", &opts.out, &o))
+        }
+        Command::Diagnose {
+            work_dir,
+            out,
+            model,
+            max_refits,
+            only,
+            force,
+        } => {
+            let opts = stage::diagnose::DiagnoseOptions {
+                work_dir,
+                out,
+                board: model,
+                force,
+                only,
+                locate: Default::default(),
+                select: Default::default(),
+                max_refits,
+            };
+            let o = stage::diagnose::run(&opts, cli.verbose)?;
+            Ok(report("diagnose", &opts.out, &o))
         }
         Command::Propagate {
             update_dirs,

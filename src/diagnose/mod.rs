@@ -5,4 +5,5 @@
 
 pub mod library;
 pub mod locate;
+pub mod screen;
 pub mod select;

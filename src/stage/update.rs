@@ -378,7 +378,7 @@ fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
     Ok(out)
 }
 
-fn load_board(path: Option<&Path>) -> anyhow::Result<(Board, String)> {
+pub(crate) fn load_board(path: Option<&Path>) -> anyhow::Result<(Board, String)> {
     let text = match path {
         Some(p) => std::fs::read_to_string(p)
             .with_context(|| format!("cannot read board file {}", p.display()))?,

@@ -1,4 +1,560 @@
-//! `hbmu diagnose`: reads a work directory's posterior tables, locates the misfit,
-//! screens and refits candidate mechanisms, writes the diagnosis.
+//! `hbmu diagnose WORK_DIR --out DIR`: reads a work directory's posterior tables, locates
+//! the misfit ([`crate::diagnose::locate`]), screens the mechanism library against the
+//! located signature ([`crate::diagnose::screen`]), refits the screened joint mechanisms with
+//! `update joints --enrich` (each refit its own hashed stage under `DIR/refits/<id>`, so a
+//! cluster can run them side by side: `--only <id>` runs one and stops), compares them with
+//! the work directory's step 2 by log evidence and held-out error
+//! ([`crate::diagnose::select`]), and writes `diagnosis.json` and `diagnosis.parquet`.
+//!
+//! The refits run with exactly the options the work directory's step 2 ran with (read from
+//! its manifest), so the Bayes factors compare like with like.
 
 pub mod inputs;
+
+use crate::diagnose::library::Mechanism;
+use crate::diagnose::locate::{self, LocateOptions, Located};
+use crate::diagnose::screen::{self, Candidate};
+use crate::diagnose::select::{
+    self, Compared, Estimate, Refit, SelectOptions, SetupError, Verdict,
+};
+use crate::findings::{Finding, Findings, Severity};
+use crate::io::manifest::StageSpec;
+use crate::io::tables::{self, c, Col, Cols, TableSpec};
+use crate::stage::update::UpdateOptions;
+use crate::stage::{exit, StageOutcome, StageResult};
+use anyhow::{anyhow, Context};
+use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+pub const MANIFEST: &str = "diagnose.manifest.json";
+pub const JSON: &str = "diagnosis.json";
+
+pub const DIAGNOSIS: TableSpec = TableSpec {
+    name: "diagnosis",
+    doc: "The diagnosis's candidates, one row per screened mechanism (and joint), strongest first: the screening score, the refit's log Bayes factor over the work directory's step 2 with its standard error, whether it is favoured, the held-out bolted mean absolute frequency error before and after, the parameter estimate (population median and 90 % interval) and the sentence. diagnosis.json holds the verdict, the located evidence and the same findings.",
+    open: false,
+    columns: &[
+        c("rank", Col::Int32, false, "", "Order in the diagnosis (1 = strongest)."),
+        c("mechanism", Col::Utf8, false, "", "Mechanism id (joint_rotation, joint_stiffness_per_joint, joint_mass, fixture_compliance, temperature_stiffness, added_mass, local_stiffness_loss, prestress)."),
+        c("joint", Col::Int32, true, "", "Joint (1-based, hole order of the board file) of a per-joint candidate."),
+        c("covariate", Col::Utf8, true, "", "Sheet column the candidate follows, if any."),
+        c("screen_reason", Col::Utf8, false, "", "Why the screening kept the candidate."),
+        c("refitted", Col::Bool, false, "", "A refit with the mechanism was run."),
+        c("log_bayes_factor", Col::Float64, true, "", "ln p(data | candidate) − ln p(data | baseline), from the SMC runs; null without a refit or when it failed."),
+        c("log_bayes_factor_se", Col::Float64, true, "", "Standard error of the log Bayes factor (independent runs)."),
+        c("favoured", Col::Bool, false, "", "Passes the decision rule (see diagnosis.json: options)."),
+        c("held_out_bolted_error_before_percent", Col::Float64, true, "%", "Mean |f̂ − f|/f̂ of the bolted modes not used for updating, baseline."),
+        c("held_out_bolted_error_after_percent", Col::Float64, true, "%", "The same with the candidate."),
+        c("parameter", Col::Utf8, true, "", "The candidate's parameter (unit in its name)."),
+        c("estimate_median", Col::Float64, true, "", "Population median of the parameter (its unit)."),
+        c("estimate_q05", Col::Float64, true, "", "5 % quantile."),
+        c("estimate_q95", Col::Float64, true, "", "95 % quantile."),
+        c("failed", Col::Utf8, true, "", "Why the refit gave no posterior."),
+        c("sentence", Col::Utf8, false, "", "The finding in words."),
+    ],
+};
+
+/// Options of `hbmu diagnose`.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct DiagnoseOptions {
+    #[serde(skip)]
+    pub work_dir: PathBuf,
+    #[serde(skip)]
+    pub out: PathBuf,
+    #[serde(skip)]
+    pub board: Option<PathBuf>,
+    #[serde(skip)]
+    pub force: bool,
+    /// Run only this candidate's refit (its id, e.g. `joint_rotation` or
+    /// `joint_stiffness_per_joint_2`) and stop: the cluster fan-out.
+    #[serde(skip)]
+    pub only: Option<String>,
+    pub locate: LocateOptions,
+    pub select: SelectOptions,
+    /// Refit at most this many screened candidates (0: locate and screen only).
+    pub max_refits: usize,
+}
+
+fn read_json(path: &Path) -> anyhow::Result<serde_json::Value> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("{}: cannot read", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", path.display()))
+}
+
+/// The options the work directory's step 2 ran with (its manifest's config).
+fn step2_options(work: &Path) -> anyhow::Result<UpdateOptions> {
+    let p = work
+        .join("update_joints")
+        .join(crate::stage::update::MANIFEST_JOINTS);
+    let m = read_json(&p)?;
+    let cfg = m
+        .get("config")
+        .cloned()
+        .ok_or_else(|| anyhow!("{}: no `config`: not a stage manifest", p.display()))?;
+    serde_json::from_value(cfg).with_context(|| {
+        format!(
+            "{}: config is not the options of `update joints` (written by another version?)",
+            p.display()
+        )
+    })
+}
+
+/// Mean absolute relative error per setup of the held-out (`used == false`) or updated modes
+/// in a residuals table.
+fn setup_errors(path: &Path, used: bool) -> anyhow::Result<Vec<SetupError>> {
+    let mut acc: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (setup, rel, u) = (
+            c.str("setup")?,
+            c.f64("rel_residual")?,
+            c.bool("used_for_updating")?,
+        );
+        for i in 0..b.num_rows() {
+            if u.value(i) == used && rel.value(i).is_finite() {
+                let e = acc.entry(setup.value(i).to_string()).or_default();
+                e.0 += rel.value(i).abs();
+                e.1 += 1;
+            }
+        }
+    }
+    Ok(acc
+        .into_iter()
+        .map(|(setup, (s, n))| SetupError {
+            setup,
+            mean_abs_error_percent: 100.0 * s / n.max(1) as f64,
+            n,
+        })
+        .collect())
+}
+
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    // numpy's default (linear) quantile.
+    let h = (sorted.len() - 1) as f64 * q;
+    let (lo, hi) = (h.floor() as usize, h.ceil() as usize);
+    sorted[lo] + (h - lo as f64) * (sorted[hi] - sorted[lo])
+}
+
+/// A refit directory (or the baseline's step 2) as a [`Refit`].
+fn summarize_refit(
+    dir: &Path,
+    rel_dir: &str,
+    mechanism: Option<Mechanism>,
+    joint: Option<usize>,
+) -> anyhow::Result<Refit> {
+    let ev = read_json(&dir.join("evidence.json"))?;
+    let log_evidence_runs: Vec<f64> = ev["log_evidence_runs"]
+        .as_array()
+        .ok_or_else(|| {
+            anyhow!(
+                "{}: no log_evidence_runs",
+                dir.join("evidence.json").display()
+            )
+        })?
+        .iter()
+        .filter_map(|v| v.as_f64())
+        .collect();
+    let res = dir.join("residuals.parquet");
+    let mut estimates = vec![];
+    if mechanism.is_some() {
+        // Extra coordinates (beyond ln k_con): population medians report_ref · e^μ.
+        let coords = ev["enrichment"]["coordinates"]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
+        let pop = dir.join("population.parquet");
+        let batches = tables::read_parquet(&pop)?;
+        for cdef in coords.iter().skip(1) {
+            let name = cdef["name"].as_str().unwrap_or_default();
+            let param = cdef["report_param"].as_str().unwrap_or_default();
+            let rref = cdef["report_ref"].as_f64().unwrap_or(f64::NAN);
+            let col = format!("mu_{name}");
+            let mut v = vec![];
+            for b in &batches {
+                let c = Cols {
+                    batch: b,
+                    path: &pop,
+                };
+                let a = c.f64(&col)?;
+                // The column holds ln(report_ref) + μ.
+                v.extend((0..b.num_rows()).map(|i| a.value(i).exp()));
+            }
+            let _ = rref;
+            v.sort_by(f64::total_cmp);
+            if !v.is_empty() {
+                estimates.push(Estimate {
+                    parameter: param.to_string(),
+                    scope: "population median".into(),
+                    median: quantile(&v, 0.5),
+                    q05: quantile(&v, 0.05),
+                    q95: quantile(&v, 0.95),
+                });
+            }
+        }
+    }
+    Ok(Refit {
+        mechanism,
+        joint,
+        dir: rel_dir.to_string(),
+        log_evidence_runs,
+        held_out: setup_errors(&res, false)?,
+        updated: setup_errors(&res, true)?,
+        estimates,
+        failed: None,
+    })
+}
+
+/// The options of one candidate's refit: the step-2 options with the enrichment.
+fn refit_options(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate) -> UpdateOptions {
+    let mut o = base.clone();
+    o.ingest_dir = opts.work_dir.join("ingest");
+    o.pair_dir = opts.work_dir.join("pair");
+    o.extract_dir = Some(opts.work_dir.join("extract"));
+    o.board = opts.board.clone();
+    o.out = opts.out.join(format!("refits/{}", cand.id()));
+    o.force = opts.force;
+    o.enrich = Some(cand.mechanism);
+    o.enrich_joint = cand.joint;
+    o
+}
+
+/// Run (or find up to date) one candidate's refit.
+fn refit(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate, verbose: bool) -> Refit {
+    let rel = format!("refits/{}", cand.id());
+    let o = refit_options(opts, base, cand);
+    let out = o.out.clone();
+    let boards = opts.work_dir.join("update_boards");
+    let r = crate::stage::update::run_joints(&o, &boards, verbose)
+        .and_then(|_| summarize_refit(&out, &rel, Some(cand.mechanism), cand.joint));
+    match r {
+        Ok(r) => r,
+        Err(e) => Refit {
+            mechanism: Some(cand.mechanism),
+            joint: cand.joint,
+            dir: rel,
+            log_evidence_runs: vec![],
+            held_out: vec![],
+            updated: vec![],
+            estimates: vec![],
+            failed: Some(format!("{e:#}").replace('\n', " ")),
+        },
+    }
+}
+
+/// The diagnosis stage.
+pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
+    let w = &opts.work_dir;
+    let mut inputs = vec![
+        w.join("ingest/measurements.parquet"),
+        w.join("extract/modes.parquet"),
+        w.join("pair/pairs.parquet"),
+        w.join("update_boards/residuals.parquet"),
+        w.join("update_boards/population.parquet"),
+    ];
+    let step2 = w.join("update_joints/evidence.json").is_file();
+    if step2 {
+        for f in ["residuals.parquet", "population.parquet", "evidence.json"] {
+            inputs.push(w.join("update_joints").join(f));
+        }
+    }
+    if let Some(b) = &opts.board {
+        inputs.push(b.clone());
+    }
+    let base = if step2 { Some(step2_options(w)?) } else { None };
+    let mut config = serde_json::to_value(opts)?;
+    config["step2_options"] = serde_json::to_value(&base)?;
+    let spec = StageSpec {
+        stage: "diagnose".into(),
+        inputs,
+        input_base: w.clone(),
+        config,
+        seed: base.as_ref().map(|b| b.seed),
+        manifest_path: opts.out.join(MANIFEST),
+    };
+    // The cluster fan-out: one refit, no diagnosis.
+    if let Some(only) = &opts.only {
+        let base = base.ok_or_else(|| {
+            anyhow!(
+                "{}: no step 2 (update_joints): nothing to refit",
+                w.display()
+            )
+        })?;
+        let (input, _) = inputs::read_inputs(w)?;
+        let located = locate::locate(&input, &opts.locate);
+        let (board, _) = crate::stage::update::load_board(opts.board.as_deref())?;
+        let cands = screen::screen(&located, &board);
+        let cand = cands.iter().find(|c| c.id() == *only).ok_or_else(|| {
+            anyhow!(
+                "--only {only}: not a screened candidate of this work directory (screened: {})",
+                cands.iter().map(|c| c.id()).collect::<Vec<_>>().join(", ")
+            )
+        })?;
+        let o = refit_options(opts, &base, cand);
+        return crate::stage::update::run_joints(&o, &w.join("update_boards"), verbose);
+    }
+    crate::stage::run(spec, opts.force, |_prep| {
+        let mut findings = Findings::default();
+        let (input, in_findings) = inputs::read_inputs(w)?;
+        findings.0.extend(in_findings.0);
+        let located = locate::locate(&input, &opts.locate);
+        let (board, _) = crate::stage::update::load_board(opts.board.as_deref())?;
+        let candidates = screen::screen(&located, &board);
+        let mut refits: Vec<Refit> = vec![];
+        let baseline = if step2 {
+            Some(summarize_refit(
+                &w.join("update_joints"),
+                "../update_joints",
+                None,
+                None,
+            )?)
+        } else {
+            None
+        };
+        if let (Some(base), Some(_)) = (&base, &baseline) {
+            for cand in candidates
+                .iter()
+                .filter(|c| c.refittable())
+                .take(opts.max_refits)
+            {
+                let t0 = std::time::Instant::now();
+                let r = refit(opts, base, cand, verbose);
+                eprintln!(
+                    "diagnose: refit {} in {:.1} s{}",
+                    cand.id(),
+                    t0.elapsed().as_secs_f64(),
+                    r.failed
+                        .as_ref()
+                        .map(|e| format!(": failed: {e}"))
+                        .unwrap_or_default()
+                );
+                refits.push(r);
+            }
+        }
+        let compared: Vec<Compared> = match &baseline {
+            Some(b) => select::compare(b, &refits, &opts.select),
+            None => vec![],
+        };
+        let verdict = select::verdict(located.any, &compared);
+        write_outputs(
+            opts,
+            &located,
+            &candidates,
+            &compared,
+            verdict,
+            findings,
+            verbose,
+        )
+    })
+}
+
+fn write_outputs(
+    opts: &DiagnoseOptions,
+    located: &Located,
+    candidates: &[Candidate],
+    compared: &[Compared],
+    verdict: Verdict,
+    mut findings: Findings,
+    verbose: bool,
+) -> anyhow::Result<StageResult> {
+    // Rows: refitted candidates in the order of `compare`, then the screened ones not refitted.
+    struct Row {
+        cand: Candidate,
+        cmp: Option<Compared>,
+    }
+    let mut rows: Vec<Row> = vec![];
+    for c in compared {
+        if let Some(cand) = candidates
+            .iter()
+            .find(|k| Some(k.mechanism) == c.refit.mechanism && k.joint == c.refit.joint)
+        {
+            rows.push(Row {
+                cand: cand.clone(),
+                cmp: Some(c.clone()),
+            });
+        }
+    }
+    for k in candidates {
+        if !rows.iter().any(|r| r.cand.id() == k.id()) {
+            rows.push(Row {
+                cand: k.clone(),
+                cmp: None,
+            });
+        }
+    }
+    let sentence = |r: &Row| match &r.cmp {
+        Some(c) => select::sentence(c),
+        None => format!(
+            "{} (screened: {}; not refitted{})",
+            r.cand.mechanism.description(),
+            r.cand.reason,
+            if r.cand.refittable() {
+                ""
+            } else {
+                ": this mechanism has no refit yet"
+            }
+        ),
+    };
+    let findings_json: Vec<serde_json::Value> = rows
+        .iter()
+        .filter(|r| r.cmp.as_ref().is_some_and(|c| c.favoured))
+        .map(|r| {
+            let c = r.cmp.as_ref().expect("filtered");
+            serde_json::json!({
+                "mechanism": r.cand.mechanism.id(),
+                "location": r.cand.location_json(),
+                "covariate": r.cand.covariate,
+                "estimates": c.refit.estimates,
+                "log_bayes_factor": c.log_bayes_factor,
+                "log_bayes_factor_se": c.log_bayes_factor_se,
+                "held_out_error_before_after_percent": c.held_out_before_after.iter().map(|(s, b, a)| serde_json::json!({"setup": s, "before": b, "after": a})).collect::<Vec<_>>(),
+                "refit_dir": c.refit.dir,
+                "sentence": select::sentence(c),
+            })
+        })
+        .collect();
+    let remaining = match verdict {
+        Verdict::NoMissingPhysics => "none: no setup, mode, measurement or covariate misfits beyond the tolerance".to_string(),
+        Verdict::MechanismFound => "see the best candidate's refit residuals (refits/<id>/residuals.parquet); the located evidence below is the baseline's".to_string(),
+        Verdict::UnexplainedMisfit => format!(
+            "located but not explained by any refitted mechanism: setups {:?}, modes {:?}, measurements {:?}, covariates {:?}",
+            located.setups,
+            located.modes.iter().map(|m| format!("{}/{}", m.setup, m.label)).collect::<Vec<_>>(),
+            located.measurements,
+            located.covariates.iter().map(|c| format!("{}/{}", c.setup, c.covariate)).collect::<Vec<_>>()
+        ),
+    };
+    if verdict != Verdict::NoMissingPhysics {
+        findings.push(Finding::new(
+            Severity::Warning,
+            match verdict {
+                Verdict::MechanismFound => "diagnose.mechanism_found",
+                _ => "diagnose.unexplained_misfit",
+            },
+            rows.first()
+                .map(sentence)
+                .unwrap_or_else(|| remaining.clone()),
+        ));
+    }
+    let json = serde_json::json!({
+        "verdict": verdict,
+        "located": {
+            "any": located.any,
+            "setups": located.setups,
+            "modes": located.modes,
+            "measurements": located.measurements,
+            "covariates": located.covariates,
+            "unpaired_clusters": located.unpaired_clusters,
+            "never_seen": located.never_seen,
+            "board_regions": serde_json::Value::Array(vec![]),
+            "board_regions_note": "not located yet: the shape-residual error localisation is not built",
+        },
+        "findings": findings_json,
+        "candidates": rows.iter().map(|r| serde_json::json!({
+            "id": r.cand.id(),
+            "mechanism": r.cand.mechanism.id(),
+            "screen_reason": r.cand.reason,
+            "refit": r.cmp,
+            "sentence": sentence(r),
+        })).collect::<Vec<_>>(),
+        "remaining_discrepancy": remaining,
+        "options": {"locate": opts.locate, "select": opts.select, "max_refits": opts.max_refits},
+        "checks": located,
+        "stage_findings": findings.0,
+    });
+    std::fs::create_dir_all(&opts.out)?;
+    let mut outputs = vec![];
+    let p = opts.out.join(JSON);
+    crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&json)?.as_bytes())?;
+    outputs.push(p);
+    // diagnosis.parquet
+    let f = |g: &dyn Fn(&Row) -> Option<f64>| -> ArrayRef {
+        Arc::new(Float64Array::from(rows.iter().map(g).collect::<Vec<_>>()))
+    };
+    let held = |r: &Row, after: bool| {
+        r.cmp.as_ref().and_then(|c| {
+            c.held_out_before_after
+                .iter()
+                .find(|(s, _, _)| s == "bolted")
+                .map(|(_, b, a)| if after { *a } else { *b })
+        })
+    };
+    let est = |r: &Row| {
+        r.cmp
+            .as_ref()
+            .and_then(|c| c.refit.estimates.first().cloned())
+    };
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(Int32Array::from_iter_values(
+            (1..=rows.len() as i32).collect::<Vec<_>>(),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.cand.mechanism.id()),
+        )),
+        Arc::new(Int32Array::from(
+            rows.iter()
+                .map(|r| r.cand.joint.map(|j| j as i32))
+                .collect::<Vec<_>>(),
+        )),
+        Arc::new(StringArray::from(
+            rows.iter()
+                .map(|r| r.cand.covariate.clone())
+                .collect::<Vec<_>>(),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.cand.reason.clone()),
+        )),
+        Arc::new(BooleanArray::from(
+            rows.iter().map(|r| r.cmp.is_some()).collect::<Vec<_>>(),
+        )),
+        f(&|r| r.cmp.as_ref().and_then(|c| c.log_bayes_factor)),
+        f(&|r| r.cmp.as_ref().and_then(|c| c.log_bayes_factor_se)),
+        Arc::new(BooleanArray::from(
+            rows.iter()
+                .map(|r| r.cmp.as_ref().is_some_and(|c| c.favoured))
+                .collect::<Vec<_>>(),
+        )),
+        f(&|r| held(r, false)),
+        f(&|r| held(r, true)),
+        Arc::new(StringArray::from(
+            rows.iter()
+                .map(|r| est(r).map(|e| e.parameter))
+                .collect::<Vec<_>>(),
+        )),
+        f(&|r| est(r).map(|e| e.median)),
+        f(&|r| est(r).map(|e| e.q05)),
+        f(&|r| est(r).map(|e| e.q95)),
+        Arc::new(StringArray::from(
+            rows.iter()
+                .map(|r| r.cmp.as_ref().and_then(|c| c.refit.failed.clone()))
+                .collect::<Vec<_>>(),
+        )),
+        Arc::new(StringArray::from_iter_values(rows.iter().map(sentence))),
+    ];
+    let mut md = BTreeMap::new();
+    md.insert("hbmu.verdict".to_string(), serde_json::to_string(&verdict)?);
+    let schema = DIAGNOSIS.schema(&[], &tables::table_metadata(&DIAGNOSIS, &md));
+    let p = opts.out.join("diagnosis.parquet");
+    tables::write_parquet(&p, &tables::batch(schema, cols)?)?;
+    outputs.push(p);
+    for fd in findings.iter() {
+        if verbose || fd.severity >= Severity::Warning {
+            eprintln!("{fd}");
+        }
+    }
+    eprintln!(
+        "diagnose: verdict {}; {} candidates screened, {} refitted; {}",
+        serde_json::to_string(&verdict)?.trim_matches('"'),
+        candidates.len(),
+        compared.len(),
+        findings.summary()
+    );
+    let mut s = BTreeMap::new();
+    s.insert("verdict".into(), serde_json::to_value(verdict)?);
+    Ok(StageResult {
+        outputs,
+        exit_code: exit::OK,
+        summary: s,
+    })
+}

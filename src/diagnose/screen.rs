@@ -1,0 +1,197 @@
+//! Screen: which mechanisms of the library could explain the located signature, in which
+//! order, so the expensive refits run on a few. Pure over [`Located`] and the board.
+//!
+//! The rules follow where each mechanism acts (its sensitivity pattern at the level the
+//! locate step resolves):
+//! - only the bolted setup misfits (free-free clean) → the joint mechanisms: they change
+//!   nothing in free-free. A recurring unpaired bolted mode (an extra resonance in every
+//!   bolted measurement) puts `fixture_compliance` first: only it adds a mode. Outlier
+//!   measurements without a mode-level shift put `joint_stiffness_per_joint` (one candidate
+//!   per joint) first: it acts on some measurements only. Otherwise the order is
+//!   `joint_rotation` (changes the bending pattern of all modes), `joint_mass`,
+//!   `fixture_compliance`, then the per-joint candidates when outliers were found too;
+//! - a numeric covariate trend → `temperature_stiffness` when the column is a temperature
+//!   (its name or unit says so), with the covariate named;
+//! - free-free modes misfit without a covariate → `added_mass` and `local_stiffness_loss`
+//!   (they act in both setups).
+//!
+//! Only the joint mechanisms have a refit (`update joints --enrich`); the others are listed
+//! with their screening reason and no Bayes factor.
+
+use serde::Serialize;
+
+use super::library::Mechanism;
+use super::locate::Located;
+use crate::fem::Board;
+
+/// One screened candidate.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct Candidate {
+    pub mechanism: Mechanism,
+    /// 1-based joint of a per-joint candidate.
+    pub joint: Option<usize>,
+    /// The joint's centre, m (per-joint candidates).
+    pub joint_xy_m: Option<[f64; 2]>,
+    pub covariate: Option<String>,
+    /// Why it was kept, in words.
+    pub reason: String,
+}
+
+impl Candidate {
+    /// The id of its refit directory and of `diagnose --only`.
+    pub fn id(&self) -> String {
+        match self.joint {
+            Some(j) => format!("{}_{j}", self.mechanism.id()),
+            None => self.mechanism.id().to_string(),
+        }
+    }
+
+    /// Whether a refit exists for it.
+    pub fn refittable(&self) -> bool {
+        matches!(
+            self.mechanism,
+            Mechanism::JointRotation
+                | Mechanism::JointMass
+                | Mechanism::FixtureCompliance
+                | Mechanism::JointStiffnessPerJoint
+        )
+    }
+
+    /// `location` of diagnosis.json.
+    pub fn location_json(&self) -> serde_json::Value {
+        match (self.joint, self.joint_xy_m) {
+            (Some(j), Some([x, y])) => serde_json::json!({"joint": j, "x_m": x, "y_m": y}),
+            _ => serde_json::Value::Null,
+        }
+    }
+}
+
+fn is_temperature(name: &str, unit: &str) -> bool {
+    let n = name.to_ascii_lowercase();
+    n.contains("temp")
+        || unit.contains('°')
+        || unit.eq_ignore_ascii_case("K")
+        || unit.eq_ignore_ascii_case("degC")
+}
+
+/// The candidates for `located`, most plausible first; empty when nothing was located.
+pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
+    let mut out = vec![];
+    if !located.any {
+        return out;
+    }
+    let setup_modes = |s: &str| located.modes.iter().filter(|m| m.setup == s).count();
+    let bolted_modes = setup_modes("bolted");
+    let free_modes = setup_modes("free");
+    let bolted_outliers: Vec<&String> = located
+        .measurements
+        .iter()
+        .filter(|m| {
+            located
+                .measurement_checks
+                .iter()
+                .any(|c| &c.measurement_id == *m && c.setup == "bolted")
+        })
+        .collect();
+    let recurring_bolted = located
+        .unpaired_clusters
+        .iter()
+        .filter(|c| c.setup == "bolted" && c.recurring)
+        .map(|c| c.median_freq_hz)
+        .collect::<Vec<_>>();
+    let cand = |m: Mechanism, reason: String| Candidate {
+        mechanism: m,
+        joint: None,
+        joint_xy_m: None,
+        covariate: None,
+        reason,
+    };
+    // Covariates first: a trend with a sheet column is the most specific signature.
+    for c in &located.covariates {
+        if c.slope_rel_per_unit.is_some() && is_temperature(&c.covariate, &c.unit) {
+            let mut k = cand(
+                Mechanism::TemperatureStiffness,
+                format!(
+                    "{} frequencies follow the sheet's {} (slope {:+.2e} per {}, q = {:.1e})",
+                    c.setup,
+                    c.covariate,
+                    c.slope_rel_per_unit.unwrap_or(f64::NAN),
+                    if c.unit.is_empty() { "unit" } else { &c.unit },
+                    c.q_value
+                ),
+            );
+            k.covariate = Some(c.covariate.clone());
+            if !out.iter().any(|o: &Candidate| o.mechanism == k.mechanism) {
+                out.push(k);
+            }
+        }
+    }
+    let bolted_only =
+        (bolted_modes > 0 || !bolted_outliers.is_empty() || !recurring_bolted.is_empty())
+            && free_modes == 0;
+    let per_joint = |why: &str| -> Vec<Candidate> {
+        board
+            .holes
+            .iter()
+            .enumerate()
+            .map(|(j, h)| Candidate {
+                mechanism: Mechanism::JointStiffnessPerJoint,
+                joint: Some(j + 1),
+                joint_xy_m: Some([h.x_m, h.y_m]),
+                covariate: None,
+                reason: why.to_string(),
+            })
+            .collect()
+    };
+    if bolted_only || bolted_modes > 0 || !bolted_outliers.is_empty() {
+        let why_modes = format!(
+            "{bolted_modes} bolted mode(s) misfit{}",
+            if free_modes == 0 {
+                " while free-free fits"
+            } else {
+                ""
+            }
+        );
+        let why_out = format!(
+            "{} bolted measurement(s) are outliers: {}",
+            bolted_outliers.len(),
+            bolted_outliers
+                .iter()
+                .map(|s| s.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        let mut joint_cands = vec![];
+        if !recurring_bolted.is_empty() {
+            joint_cands.push(cand(
+                Mechanism::FixtureCompliance,
+                format!(
+                    "an unpaired mode recurs in the bolted measurements near {:.0} Hz",
+                    recurring_bolted[0]
+                ),
+            ));
+        }
+        if !bolted_outliers.is_empty() && bolted_modes == 0 {
+            joint_cands.extend(per_joint(&why_out));
+        }
+        joint_cands.push(cand(Mechanism::JointRotation, why_modes.clone()));
+        joint_cands.push(cand(Mechanism::JointMass, why_modes.clone()));
+        if recurring_bolted.is_empty() {
+            joint_cands.push(cand(Mechanism::FixtureCompliance, why_modes.clone()));
+        }
+        if !bolted_outliers.is_empty() && bolted_modes > 0 {
+            joint_cands.extend(per_joint(&why_out));
+        }
+        out.extend(joint_cands);
+    }
+    if free_modes > 0
+        && !out
+            .iter()
+            .any(|c| c.mechanism == Mechanism::TemperatureStiffness)
+    {
+        let why = format!("{free_modes} free-free mode(s) misfit without a covariate trend");
+        out.push(cand(Mechanism::AddedMass, why.clone()));
+        out.push(cand(Mechanism::LocalStiffnessLoss, why));
+    }
+    out
+}
