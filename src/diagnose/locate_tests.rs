@@ -442,9 +442,41 @@ fn a_temperature_trend_is_found_with_its_slope() {
             assert_eq!(t.per_label.len(), n_labels);
             assert!(t.per_label.iter().all(|l| l.slope_rel_per_unit < 0.0));
         }
+        let t = loc
+            .covariate_tests
+            .iter()
+            .find(|t| t.setup == "free" && t.covariate == "temperature_c")
+            .unwrap();
+        assert!(t.effect_rel > 5e-3, "{}", t.effect_rel);
         // The operator is not confused with temperature (independent here).
         assert!(!loc.covariates.iter().any(|c| c.covariate == "operator"));
     }
+}
+
+#[test]
+fn a_covariate_effect_below_the_tolerance_is_not_located() {
+    // 5e-6 per K in free-free (scatter 1e-5 to 5e-5): detectable, but ~1e-4 over the swing.
+    let synth = Synth::paper();
+    let shift = |s: &str, _: &str, _: usize, t: f64| {
+        if s == "free" {
+            5e-6 * (t - 23.0) * 3.0
+        } else {
+            0.0
+        }
+    };
+    let loc = locate(&synth.draw(21, &shift), &LocateOptions::default());
+    let t = loc
+        .covariate_tests
+        .iter()
+        .find(|t| t.setup == "free" && t.covariate == "temperature_c")
+        .unwrap();
+    assert!(
+        t.q_value < 0.01,
+        "statistically significant: q = {}",
+        t.q_value
+    );
+    assert!(t.effect_rel < 5e-4 && !t.significant, "{t:?}");
+    assert!(loc.covariates.is_empty());
 }
 
 #[test]
