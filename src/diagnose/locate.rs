@@ -318,6 +318,12 @@ pub struct CovariateTest {
     pub p_value: f64,
     /// BH over all (setup, covariate).
     pub q_value: f64,
+    /// Size of the effect in relative frequency: numeric, |slope| × the covariate's observed
+    /// range; categorical, the spread (max − min) of the level means.
+    pub effect_rel: f64,
+    /// q ≤ fdr and `effect_rel` > tolerance_rel: statistically and practically significant
+    /// (on free-free scatter of 1e-5 a slope of 6e-6 per K is "significant" at q = 0.003 but
+    /// moves frequencies by 6e-5 over a 9 K swing: nothing worth explaining).
     pub significant: bool,
     /// Categorical: raw mean per level.
     pub levels: Vec<LevelMean>,
@@ -423,6 +429,11 @@ pub struct Located {
     pub modes: Vec<LocatedMode>,
     /// Outlier measurement ids.
     pub measurements: Vec<String>,
+    /// Outlier measurement ids once the located numeric covariates are taken out (each
+    /// label's board-blocked slope times the covariate's deviation from its board or setup
+    /// mean, whichever fits better; see `adjust_for_covariates`): a
+    /// temperature drift makes the measurements at the extremes outliers, a loose bolt stays.
+    pub measurements_after_covariates: Vec<String>,
     pub covariates: Vec<LocatedCovariate>,
     /// Recurring clusters of unpaired identified modes.
     pub unpaired_clusters: Vec<UnpairedCluster>,
@@ -690,6 +701,14 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
     let mode_checks = mode_checks(&rows, &eps_med, reference_eps, opts);
     let (measurement_checks, signature_measurements) = measurement_checks(&rows, opts);
     let (covariate_tests, skipped_covariates) = covariate_tests(input, &rows, opts);
+    let adjusted = adjust_for_covariates(input, &rows, &covariate_tests);
+    let adjusted_refs: Vec<&ResidualObs> = adjusted.iter().collect();
+    let measurements_after_covariates: Vec<String> = self::measurement_checks(&adjusted_refs, opts)
+        .0
+        .into_iter()
+        .filter(|m| m.outlier)
+        .map(|m| m.measurement_id)
+        .collect();
     let all_unpaired_clusters = unpaired_clusters(input, opts);
     let model_modes = model_mode_presence(input);
 
@@ -776,6 +795,7 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
         setups,
         modes,
         measurements,
+        measurements_after_covariates,
         covariates,
         unpaired_clusters: unpaired,
         never_seen,
@@ -1233,6 +1253,18 @@ fn covariate_tests(
                     })
                     .collect()
             };
+            let effect_rel = match lm.slope.filter(|_| numeric) {
+                Some((b, _)) => {
+                    let lo = xnum.iter().copied().fold(f64::INFINITY, f64::min);
+                    let hi = xnum.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                    b.abs() * (hi - lo)
+                }
+                None => {
+                    let m: Vec<f64> = levels.iter().map(|l| l.mean_rel_residual).collect();
+                    m.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+                        - m.iter().copied().fold(f64::INFINITY, f64::min)
+                }
+            };
             let per_label = if numeric {
                 label_slopes(rows, setup, &scales, input, &sel, &xnum, blocked_by_board)
             } else {
@@ -1252,6 +1284,7 @@ fn covariate_tests(
                 df2: lm.df2,
                 p_value: lm.p,
                 q_value: f64::NAN,
+                effect_rel,
                 significant: false,
                 levels,
                 per_label,
@@ -1261,9 +1294,93 @@ fn covariate_tests(
     let q = benjamini_hochberg(&tests.iter().map(|t| t.p_value).collect::<Vec<_>>());
     for (t, q) in tests.iter_mut().zip(q) {
         t.q_value = q;
-        t.significant = q <= opts.fdr;
+        t.significant = q <= opts.fdr && t.effect_rel > opts.tolerance_rel;
     }
     (tests, skipped)
+}
+
+/// The residual rows with the located numeric covariates' per-label slopes taken out.
+fn adjust_for_covariates(
+    input: &LocateInput,
+    rows: &[&ResidualObs],
+    tests: &[CovariateTest],
+) -> Vec<ResidualObs> {
+    let mut out: Vec<ResidualObs> = rows.iter().map(|r| (*r).clone()).collect();
+    let index: BTreeMap<&str, usize> = input
+        .measurements
+        .iter()
+        .enumerate()
+        .map(|(i, m)| (m.measurement_id.as_str(), i))
+        .collect();
+    for t in tests
+        .iter()
+        .filter(|t| t.significant && t.kind == "numeric")
+    {
+        let Some(CovariateValues::Numeric(v)) = input
+            .covariates
+            .iter()
+            .find(|c| c.name == t.covariate)
+            .map(|c| &c.values)
+        else {
+            continue;
+        };
+        let slopes: BTreeMap<&str, f64> = t
+            .per_label
+            .iter()
+            .map(|l| (l.label.as_str(), l.slope_rel_per_unit))
+            .collect();
+        // Centre the covariate on the board's mean (the board's parameters absorbed its mean
+        // effect, as in a step that updates the boards) or on the setup's (they did not, as
+        // for boards carried into a later step): whichever leaves the smaller sum of squares
+        // of the label-centred residuals.
+        let adjusted = |by_board: bool| -> Vec<ResidualObs> {
+            let key = |m_board: &'_ str| {
+                if by_board {
+                    m_board.to_string()
+                } else {
+                    String::new()
+                }
+            };
+            let mut centres: BTreeMap<String, (f64, f64)> = BTreeMap::new();
+            for (m, x) in input.measurements.iter().zip(v) {
+                if let Some(x) = x.filter(|x| m.setup == t.setup && x.is_finite()) {
+                    let e = centres.entry(key(&m.board_id)).or_insert((0.0, 0.0));
+                    e.0 += x;
+                    e.1 += 1.0;
+                }
+            }
+            let mut o = out.clone();
+            for r in o.iter_mut().filter(|r| r.setup == t.setup) {
+                let x = index
+                    .get(r.measurement_id.as_str())
+                    .and_then(|&i| v.get(i).copied().flatten());
+                if let (Some(x), Some(b), Some(c)) = (
+                    x,
+                    slopes.get(r.label.as_str()),
+                    centres.get(&key(&r.board_id)),
+                ) {
+                    r.rel_residual -= b * (x - c.0 / c.1);
+                }
+            }
+            o
+        };
+        let ss = |rows: &[ResidualObs]| -> f64 {
+            let mut by: BTreeMap<&str, Vec<f64>> = BTreeMap::new();
+            for r in rows.iter().filter(|r| r.setup == t.setup) {
+                by.entry(r.label.as_str()).or_default().push(r.rel_residual);
+            }
+            by.values()
+                .map(|v| {
+                    let m = mean(v);
+                    v.iter().map(|x| (x - m).powi(2)).sum::<f64>()
+                })
+                .sum()
+        };
+        let a = adjusted(true);
+        let b = adjusted(false);
+        out = if ss(&a) <= ss(&b) { a } else { b };
+    }
+    out
 }
 
 /// Indicator columns of all levels but the first.

@@ -442,9 +442,48 @@ fn a_temperature_trend_is_found_with_its_slope() {
             assert_eq!(t.per_label.len(), n_labels);
             assert!(t.per_label.iter().all(|l| l.slope_rel_per_unit < 0.0));
         }
+        let t = loc
+            .covariate_tests
+            .iter()
+            .find(|t| t.setup == "free" && t.covariate == "temperature_c")
+            .unwrap();
+        assert!(t.effect_rel > 5e-3, "{}", t.effect_rel);
+        // Taken out, the temperature leaves (almost) no outlier behind.
+        assert!(
+            loc.measurements_after_covariates.len() <= 1,
+            "{:?} (before: {})",
+            loc.measurements_after_covariates,
+            loc.measurements.len()
+        );
         // The operator is not confused with temperature (independent here).
         assert!(!loc.covariates.iter().any(|c| c.covariate == "operator"));
     }
+}
+
+#[test]
+fn a_covariate_effect_below_the_tolerance_is_not_located() {
+    // 5e-6 per K in free-free (scatter 1e-5 to 5e-5): detectable, but ~1e-4 over the swing.
+    let synth = Synth::paper();
+    let shift = |s: &str, _: &str, _: usize, t: f64| {
+        if s == "free" {
+            5e-6 * (t - 23.0) * 3.0
+        } else {
+            0.0
+        }
+    };
+    let loc = locate(&synth.draw(21, &shift), &LocateOptions::default());
+    let t = loc
+        .covariate_tests
+        .iter()
+        .find(|t| t.setup == "free" && t.covariate == "temperature_c")
+        .unwrap();
+    assert!(
+        t.q_value < 0.01,
+        "statistically significant: q = {}",
+        t.q_value
+    );
+    assert!(t.effect_rel < 5e-4 && !t.significant, "{t:?}");
+    assert!(loc.covariates.is_empty());
 }
 
 #[test]
@@ -479,6 +518,8 @@ fn one_outlier_measurement_and_a_loose_bolt_minority_are_found() {
             "seed {seed}: {hits} of 10 loose-bolt measurements"
         );
         assert!(found.contains("M005"), "seed {seed}: the free outlier");
+        // No covariate is located here, so the adjusted list is the same.
+        assert_eq!(loc.measurements_after_covariates, loc.measurements);
         false_hits += found.len() - hits - 1;
     }
     // BH at 0.01 with 11 true outliers of 60: about 0.1 false ones expected per seed.
@@ -649,6 +690,11 @@ fn summary_text(loc: &Located) -> String {
         );
     }
     let _ = writeln!(s, "outlier measurements: {:?}", loc.measurements);
+    let _ = writeln!(
+        s,
+        "outliers after covariates: {:?}",
+        loc.measurements_after_covariates
+    );
     let mut top: Vec<&MeasurementCheck> = loc.measurement_checks.iter().collect();
     top.sort_by(|a, b| {
         a.p_value

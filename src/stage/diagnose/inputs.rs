@@ -79,6 +79,17 @@ pub fn read_inputs(work_dir: &Path) -> anyhow::Result<(LocateInput, Findings)> {
             continue;
         }
         let rows = read_residuals(&res)?;
+        if rows.is_empty() {
+            findings.push(
+                Finding::new(
+                    Severity::Warning,
+                    "diagnose.empty_residuals",
+                    "residuals.parquet has no rows: the step's setup is not checked",
+                )
+                .file(format!("{step}/residuals.parquet")),
+            );
+            continue;
+        }
         let setups: BTreeSet<String> = rows.iter().map(|r| r.setup.clone()).collect();
         let unknown: BTreeSet<&str> = rows
             .iter()
