@@ -2,7 +2,7 @@
 //!
 //! `schemas/tables/<table>.json` documents each Parquet table (from [`crate::io::tables`]),
 //! `schemas/mcap/<schema>.json` each MCAP channel's message schema (from
-//! [`crate::io::mcap_writer`]). `hbmu schemas --out schemas` regenerates them; a test fails when
+//! [`crate::io::mcap_writer`]), `schemas/diagnosis.schema.json` the diagnosis document. `hbmu schemas --out schemas` regenerates them; a test fails when
 //! the checked-in files differ from what the code writes.
 
 use std::collections::BTreeMap;
@@ -31,6 +31,7 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::stage::propagate::PREDICTIONS,
         &crate::stage::report::TABLE2,
         &crate::stage::report::INTERVALS,
+        &crate::stage::diagnose::DIAGNOSIS,
     ];
     for t in crate::io::tables::all_tables()
         .into_iter()
@@ -38,6 +39,13 @@ pub fn generate() -> BTreeMap<String, String> {
     {
         out.insert(format!("tables/{}.json", t.name), pretty(&t.json_schema()));
     }
+    out.insert(
+        "diagnosis.schema.json".into(),
+        pretty(
+            &serde_json::to_value(schemars::schema_for!(crate::stage::diagnose::DiagnosisDoc))
+                .expect("schema serialises"),
+        ),
+    );
     for (_topic, name, schema) in crate::io::mcap_writer::channel_schemas() {
         let mut v = schema;
         if let Some(o) = v.as_object_mut() {

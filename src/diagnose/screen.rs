@@ -25,7 +25,7 @@ use super::locate::Located;
 use crate::fem::Board;
 
 /// One screened candidate.
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, PartialEq, schemars::JsonSchema)]
 pub struct Candidate {
     pub mechanism: Mechanism,
     /// 1-based joint of a per-joint candidate.

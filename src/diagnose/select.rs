@@ -15,7 +15,7 @@ use serde::Serialize;
 use super::library::Mechanism;
 
 /// Mean absolute relative frequency error of one setup's modes.
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, PartialEq, schemars::JsonSchema)]
 pub struct SetupError {
     pub setup: String,
     /// Mean |f̂ − f| / f̂ over the observations, in percent.
@@ -24,7 +24,7 @@ pub struct SetupError {
 }
 
 /// A parameter estimate: posterior median and 90 % interval.
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, PartialEq, schemars::JsonSchema)]
 pub struct Estimate {
     /// Parameter with its unit in the name, e.g. `k_rot_nm_per_rad`.
     pub parameter: String,
@@ -36,7 +36,7 @@ pub struct Estimate {
 }
 
 /// One refit's summary (the baseline's too).
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct Refit {
     pub mechanism: Option<Mechanism>,
     /// The joint (1-based) of a per-joint candidate.
@@ -76,7 +76,7 @@ impl Refit {
     }
 }
 
-#[derive(Clone, Copy, Debug, Serialize)]
+#[derive(Clone, Copy, Debug, Serialize, schemars::JsonSchema)]
 pub struct SelectOptions {
     pub min_log_bf: f64,
     pub min_z: f64,
@@ -92,7 +92,7 @@ impl Default for SelectOptions {
 }
 
 /// A candidate compared with the baseline.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct Compared {
     pub refit: Refit,
     pub log_bayes_factor: Option<f64>,
@@ -155,7 +155,7 @@ pub fn compare(baseline: &Refit, candidates: &[Refit], opts: &SelectOptions) -> 
 }
 
 /// The verdict of `diagnosis.json`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Verdict {
     NoMissingPhysics,

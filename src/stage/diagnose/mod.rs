@@ -56,8 +56,85 @@ pub const DIAGNOSIS: TableSpec = TableSpec {
     ],
 };
 
+/// One favoured finding of `diagnosis.json`.
+#[derive(Debug, Clone, serde::Serialize, schemars::JsonSchema)]
+pub struct FindingDoc {
+    /// Mechanism id.
+    pub mechanism: Mechanism,
+    /// The joint (and its centre) a per-joint finding is about; null otherwise.
+    pub location: Option<JointLocation>,
+    /// The sheet column the finding follows, if any.
+    pub covariate: Option<String>,
+    /// Parameter estimates: population median with its 90 % interval.
+    pub estimates: Vec<Estimate>,
+    pub log_bayes_factor: Option<f64>,
+    pub log_bayes_factor_se: Option<f64>,
+    /// Held-out mean absolute frequency error before and after, per setup, percent.
+    pub held_out_error: Vec<HeldOut>,
+    /// The refit's directory, relative to the diagnosis directory.
+    pub refit_dir: String,
+    pub sentence: String,
+}
+
+#[derive(Debug, Clone, serde::Serialize, schemars::JsonSchema)]
+pub struct JointLocation {
+    /// 1-based, hole order of the board file.
+    pub joint: usize,
+    pub x_m: f64,
+    pub y_m: f64,
+}
+
+#[derive(Debug, Clone, serde::Serialize, schemars::JsonSchema)]
+pub struct HeldOut {
+    pub setup: String,
+    pub before_percent: f64,
+    pub after_percent: f64,
+}
+
+/// One screened candidate of `diagnosis.json`, with its refit when it had one.
+#[derive(Debug, Clone, serde::Serialize, schemars::JsonSchema)]
+pub struct CandidateDoc {
+    pub id: String,
+    pub candidate: Candidate,
+    pub refit: Option<Compared>,
+    pub sentence: String,
+}
+
+/// `diagnosis.json`.
+#[derive(Debug, Clone, serde::Serialize, schemars::JsonSchema)]
+pub struct DiagnosisDoc {
+    pub verdict: Verdict,
+    /// What locate found (the summary; `checks` has the tests behind it).
+    pub located: LocatedSummary,
+    /// Favoured mechanisms, strongest first.
+    pub findings: Vec<FindingDoc>,
+    /// Every screened candidate, refitted ones first in order of their Bayes factor.
+    pub candidates: Vec<CandidateDoc>,
+    pub remaining_discrepancy: String,
+    pub options: DiagnoseOptions,
+    pub checks: Located,
+    /// Problems met on the way (missing tables, quarantined measurements, the verdict).
+    pub stage_findings: Vec<Finding>,
+}
+
+/// The located evidence in short.
+#[derive(Debug, Clone, serde::Serialize, schemars::JsonSchema)]
+pub struct LocatedSummary {
+    pub any: bool,
+    pub setups: Vec<String>,
+    pub modes: Vec<crate::diagnose::locate::LocatedMode>,
+    pub measurements: Vec<String>,
+    pub covariates: Vec<crate::diagnose::locate::LocatedCovariate>,
+    pub unpaired_clusters: Vec<crate::diagnose::locate::UnpairedCluster>,
+    pub never_seen: Vec<crate::diagnose::locate::ModelModePresence>,
+    /// Board regions (error localisation from mode-shape residuals): not built yet, always
+    /// empty; `board_regions_note` says so.
+    pub board_regions: Vec<String>,
+    pub board_regions_note: String,
+}
+
 /// Options of `hbmu diagnose`.
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, serde::Serialize, schemars::JsonSchema)]
 pub struct DiagnoseOptions {
     #[serde(skip)]
     pub work_dir: PathBuf,
@@ -396,21 +473,31 @@ fn write_outputs(
             }
         ),
     };
-    let findings_json: Vec<serde_json::Value> = rows
+    let findings_doc: Vec<FindingDoc> = rows
         .iter()
-        .filter(|r| r.cmp.as_ref().is_some_and(|c| c.favoured))
-        .map(|r| {
-            let c = r.cmp.as_ref().expect("filtered");
-            serde_json::json!({
-                "mechanism": r.cand.mechanism.id(),
-                "location": r.cand.location_json(),
-                "covariate": r.cand.covariate,
-                "estimates": c.refit.estimates,
-                "log_bayes_factor": c.log_bayes_factor,
-                "log_bayes_factor_se": c.log_bayes_factor_se,
-                "held_out_error_before_after_percent": c.held_out_before_after.iter().map(|(s, b, a)| serde_json::json!({"setup": s, "before": b, "after": a})).collect::<Vec<_>>(),
-                "refit_dir": c.refit.dir,
-                "sentence": select::sentence(c),
+        .filter_map(|r| {
+            let c = r.cmp.as_ref().filter(|c| c.favoured)?;
+            Some(FindingDoc {
+                mechanism: r.cand.mechanism,
+                location: match (r.cand.joint, r.cand.joint_xy_m) {
+                    (Some(joint), Some([x_m, y_m])) => Some(JointLocation { joint, x_m, y_m }),
+                    _ => None,
+                },
+                covariate: r.cand.covariate.clone(),
+                estimates: c.refit.estimates.clone(),
+                log_bayes_factor: c.log_bayes_factor,
+                log_bayes_factor_se: c.log_bayes_factor_se,
+                held_out_error: c
+                    .held_out_before_after
+                    .iter()
+                    .map(|(setup, b, a)| HeldOut {
+                        setup: setup.clone(),
+                        before_percent: *b,
+                        after_percent: *a,
+                    })
+                    .collect(),
+                refit_dir: c.refit.dir.clone(),
+                sentence: select::sentence(c),
             })
         })
         .collect();
@@ -437,36 +524,40 @@ fn write_outputs(
                 .unwrap_or_else(|| remaining.clone()),
         ));
     }
-    let json = serde_json::json!({
-        "verdict": verdict,
-        "located": {
-            "any": located.any,
-            "setups": located.setups,
-            "modes": located.modes,
-            "measurements": located.measurements,
-            "covariates": located.covariates,
-            "unpaired_clusters": located.unpaired_clusters,
-            "never_seen": located.never_seen,
-            "board_regions": serde_json::Value::Array(vec![]),
-            "board_regions_note": "not located yet: the shape-residual error localisation is not built",
+    let doc = DiagnosisDoc {
+        verdict,
+        located: LocatedSummary {
+            any: located.any,
+            setups: located.setups.clone(),
+            modes: located.modes.clone(),
+            measurements: located.measurements.clone(),
+            covariates: located.covariates.clone(),
+            unpaired_clusters: located.unpaired_clusters.clone(),
+            never_seen: located.never_seen.clone(),
+            board_regions: vec![],
+            board_regions_note:
+                "not located: the error localisation from mode-shape residuals is not built yet"
+                    .into(),
         },
-        "findings": findings_json,
-        "candidates": rows.iter().map(|r| serde_json::json!({
-            "id": r.cand.id(),
-            "mechanism": r.cand.mechanism.id(),
-            "screen_reason": r.cand.reason,
-            "refit": r.cmp,
-            "sentence": sentence(r),
-        })).collect::<Vec<_>>(),
-        "remaining_discrepancy": remaining,
-        "options": {"locate": opts.locate, "select": opts.select, "max_refits": opts.max_refits},
-        "checks": located,
-        "stage_findings": findings.0,
-    });
+        findings: findings_doc,
+        candidates: rows
+            .iter()
+            .map(|r| CandidateDoc {
+                id: r.cand.id(),
+                candidate: r.cand.clone(),
+                refit: r.cmp.clone(),
+                sentence: sentence(r),
+            })
+            .collect(),
+        remaining_discrepancy: remaining,
+        options: opts.clone(),
+        checks: located.clone(),
+        stage_findings: findings.0.clone(),
+    };
     std::fs::create_dir_all(&opts.out)?;
     let mut outputs = vec![];
     let p = opts.out.join(JSON);
-    crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&json)?.as_bytes())?;
+    crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     outputs.push(p);
     // diagnosis.parquet
     let f = |g: &dyn Fn(&Row) -> Option<f64>| -> ArrayRef {
