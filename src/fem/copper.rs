@@ -126,7 +126,7 @@ impl CopperMap {
             .iter()
             .enumerate()
             .flat_map(|(layer, l)| {
-                l.density_maps.iter().filter_map(move |d| {
+                let maps = l.density_maps.iter().filter_map(move |d| {
                     d.grid.as_ref().map(|g| Raster {
                         layer,
                         extent: Rect {
@@ -137,7 +137,18 @@ impl CopperMap {
                         },
                         grid: g.clone(),
                     })
-                })
+                });
+                let gerber = l.gerber_map.iter().map(move |m| Raster {
+                    layer,
+                    extent: Rect {
+                        x0: m.x0_m,
+                        y0: m.y0_m,
+                        x1: m.x1_m,
+                        y1: m.y1_m,
+                    },
+                    grid: m.grid.clone(),
+                });
+                maps.chain(gerber)
             })
             .collect();
         CopperMap {
