@@ -402,7 +402,9 @@ pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
     };
     let mut apertures: HashMap<u32, ApertureShape> = HashMap::new();
     let mut current: Option<u32> = None;
-    let mut interp: Option<Interp> = None;
+    // The 2021 specification asks for G01/G02/G03 before the first D01; older files (and
+    // writers such as gerbonara 1.5) rely on the former default, linear.
+    let mut interp = Interp::Linear;
     let mut multi = true;
     let mut dark = true;
     let mut xf = Xform {
@@ -523,7 +525,7 @@ pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
                 }
                 current = Some(*code);
             }
-            Cmd::Interp(m) => interp = Some(*m),
+            Cmd::Interp(m) => interp = *m,
             Cmd::Quadrant { multi: m } => multi = *m,
             Cmd::Region(on) => {
                 if *on {
@@ -631,9 +633,7 @@ pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
                         pt = Some(to);
                     }
                     1 => {
-                        let Some(mode) = interp else {
-                            return Err(err(s, "expected an interpolation mode (G01/G02/G03) before the first D01, found none".into()));
-                        };
+                        let mode = interp;
                         let Some(p) = from else {
                             return Err(err(s, "expected a current point (D02 or a previous operation) before D01, found none".into()));
                         };

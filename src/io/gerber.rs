@@ -7,7 +7,7 @@
 //! `D10*X0Y0D03*`) loses commands without an error, a line it cannot classify at all is
 //! dropped silently, its parsed commands carry no line number (so errors found while
 //! executing them, e.g. an undefined aperture, could not name the line), and it rejects
-//! files of the writer we test against (gerbonara 1.6 writes `P,1.5X6.0` and `G01**`).
+//! files of the writer we test against (gerbonara 1.5 writes `P,1.5X6.0` and `G01**`).
 //! This reader covers what copper and profile layers use: FS, MO, AD (C, R, O, P), LP,
 //! LM, LR, LS, SR, G01/G02/G03, G74/G75, G36/G37, D01/D02/D03, Dnn, M02, comments and
 //! attributes (ignored), and the common deprecated codes (G54, G70/G71, G90, IPPOS, …).
@@ -30,7 +30,7 @@ struct Word {
 }
 
 /// Split the text into words (terminated by `*`), grouping the words of `%…%` blocks.
-/// Tolerates a missing `*` after a lone G-code at the end of a line (gerbonara 1.6
+/// Tolerates a missing `*` after a lone G-code at the end of a line (gerbonara 1.5
 /// writes `G75` so) and empty words (`G01**`).
 fn words(text: &str, name: &str) -> anyhow::Result<Vec<Word>> {
     let mut out = Vec::new();
