@@ -62,7 +62,8 @@ pub struct GerberOptions {
     /// file (default: the Gerber origin).
     #[serde(default)]
     pub origin_m: Option<[f64; 2]>,
-    /// Cell size of the copper-coverage raster made from each Gerber layer, m.
+    /// Largest sub-cell size on which each element integrates a Gerber layer's
+    /// coverage, m (the element is cut into equal sub-cells no larger than this).
     #[serde(default = "default_gerber_resolution_m")]
     pub resolution_m: f64,
 }
@@ -122,28 +123,24 @@ pub struct CopperLayer {
     /// coverage regions by the maximum (cut-outs still subtract).
     #[serde(default)]
     pub density_maps: Vec<DensityMap>,
-    /// Gerber RS-274X file of this layer (relative to the board file), rasterized to a
-    /// coverage map over the board (see `[gerber]`) and combined like a density map.
+    /// Gerber RS-274X file of this layer (relative to the board file), integrated on a
+    /// sub-grid of each element (see `[gerber]`) and combined like a density map.
     #[serde(default)]
     pub gerber: Option<String>,
-    /// The coverage raster made from `gerber` by `io::board_files` (not part of the TOML).
+    /// The image read from `gerber` by `io::board_files`, in the board frame (not part
+    /// of the TOML).
     #[serde(skip)]
-    pub gerber_map: Option<RasterMap>,
+    pub gerber_image: Option<std::sync::Arc<GerberLayerImage>>,
 }
 
-/// A coverage raster with its extent in the board frame.
+/// A Gerber layer's image in the board frame, with the raster cell its coverage is
+/// integrated on inside each element.
 #[derive(Clone, Debug, PartialEq)]
-pub struct RasterMap {
-    /// Lower x, m.
-    pub x0_m: f64,
-    /// Lower y, m.
-    pub y0_m: f64,
-    /// Upper x, m.
-    pub x1_m: f64,
-    /// Upper y, m.
-    pub y1_m: f64,
-    /// Cell fractions.
-    pub grid: Grid,
+pub struct GerberLayerImage {
+    /// Dark and clear features, m, board frame.
+    pub image: super::gerber::Image,
+    /// Largest sub-cell size inside an element, m (`[gerber] resolution_m`).
+    pub resolution_m: f64,
 }
 
 /// A raster copper-density map: a grid of cells over `[x0, x1] × [y0, y1]`, each with
@@ -450,23 +447,10 @@ impl Board {
                     )));
                 }
             }
-            if let Some(f) = &l.gerber {
-                match &l.gerber_map {
-                    None => {
-                        return Err(FemError::BoardInvalid(format!(
-                            "copper[{i}].gerber ({f}): expected its raster read from the file (load the board with its files, e.g. `hbmu fe --board FILE`), found none"
-                        )))
-                    }
-                    Some(m) if m.grid.values.len() != m.grid.nx * m.grid.ny || m.grid.values.is_empty() => {
-                        return Err(FemError::BoardInvalid(format!(
-                            "copper[{i}].gerber ({f}): expected a non-empty raster, found {} values for {} × {} cells",
-                            m.grid.values.len(),
-                            m.grid.nx,
-                            m.grid.ny
-                        )))
-                    }
-                    _ => {}
-                }
+            if let (Some(f), None) = (&l.gerber, &l.gerber_image) {
+                return Err(FemError::BoardInvalid(format!(
+                    "copper[{i}].gerber ({f}): expected its image read from the file (load the board with its files, e.g. `hbmu fe --board FILE`), found none"
+                )));
             }
             if !(l.nu > -1.0 && l.nu < 0.5) {
                 return Err(FemError::BoardInvalid(format!(

@@ -13,7 +13,9 @@
 //! image is an exact set of x-intervals (dark features add their intervals in file order,
 //! clear ones remove theirs, as the Gerber image model prescribes), whose length inside
 //! each cell is accumulated exactly. The coverage is thus exact along x and midpoint-rule
-//! integrated along y (exact for every straight edge between vertices).
+//! integrated along y, the sub-rows being cut at every horizontal edge (so axis-aligned
+//! shapes are exact; a sloped edge errs only where a vertex or a cell edge falls inside a
+//! sub-row, second order in the sub-row height).
 
 use super::board::Grid;
 use super::geometry::Rect;
@@ -190,6 +192,28 @@ pub struct Image {
     /// Bounding box of the drawn centre-lines (D01 paths and region contours), the
     /// board edge when the file is a profile (outline) layer; `None` if nothing drawn.
     pub path_bbox: Option<Rect>,
+}
+
+impl Image {
+    /// Shift every feature (and the path box) by (dx, dy), m.
+    pub fn translate(&mut self, dx: f64, dy: f64) {
+        let sh = |r: &mut Rect| {
+            r.x0 += dx;
+            r.x1 += dx;
+            r.y0 += dy;
+            r.y1 += dy;
+        };
+        for f in &mut self.features {
+            for p in f.contours.iter_mut().flatten() {
+                p[0] += dx;
+                p[1] += dy;
+            }
+            sh(&mut f.bbox);
+        }
+        if let Some(b) = &mut self.path_bbox {
+            sh(b);
+        }
+    }
 }
 
 fn bbox_of(contours: &[Vec<[f64; 2]>]) -> Rect {
@@ -814,7 +838,8 @@ fn feature_intervals(f: &Feature, y: f64, xs: &mut Vec<f64>) -> Intervals {
 }
 
 /// Coverage fraction of each cell of the `nx × ny` grid over `extent` (rows from the
-/// lowest, `values[j * nx + i]`), exact along x, [`SUB_ROWS`]-point midpoint rule in y.
+/// lowest, `values[j * nx + i]`), exact along x, midpoint rule in y over [`SUB_ROWS`]
+/// sub-rows per cell cut further at every horizontal edge (exact for axis-aligned shapes).
 pub fn rasterize(img: &Image, extent: &Rect, nx: usize, ny: usize) -> Grid {
     let dx = (extent.x1 - extent.x0) / nx as f64;
     let dy = (extent.y1 - extent.y0) / ny as f64;
@@ -833,10 +858,32 @@ pub fn rasterize(img: &Image, extent: &Rect, nx: usize, ny: usize) -> Grid {
     }
     let mut values = vec![0.0; nx * ny];
     let mut xs = Vec::new();
-    let w = 1.0 / (SUB_ROWS as f64 * dx);
+    let mut cuts: Vec<f64> = Vec::new();
     for (j, feats) in rows.iter().enumerate() {
-        for s in 0..SUB_ROWS {
-            let y = extent.y0 + (j as f64 + (s as f64 + 0.5) / SUB_ROWS as f64) * dy;
+        // Slabs: the SUB_ROWS equal sub-rows, further cut at every horizontal edge inside
+        // the row, so that a horizontal edge never falls inside a slab (the midpoint rule
+        // is then exact on every slab between vertices of sloped edges).
+        let (ya, yb) = (extent.y0 + j as f64 * dy, extent.y0 + (j + 1) as f64 * dy);
+        cuts.clear();
+        cuts.extend((0..=SUB_ROWS).map(|s| ya + s as f64 * dy / SUB_ROWS as f64));
+        for &k in feats {
+            for c in &img.features[k as usize].contours {
+                for (q, p) in c.iter().zip(c.iter().cycle().skip(1)) {
+                    if q[1] == p[1] && q[1] > ya && q[1] < yb {
+                        cuts.push(q[1]);
+                    }
+                }
+            }
+        }
+        cuts.sort_by(|a, b| a.total_cmp(b));
+        cuts.dedup();
+        for slab in cuts.windows(2) {
+            let h = slab[1] - slab[0];
+            if h <= 0.0 {
+                continue;
+            }
+            let y = 0.5 * (slab[0] + slab[1]);
+            let w = h / (dy * dx);
             let mut set: Intervals = Vec::new();
             for &k in feats {
                 let f = &img.features[k as usize];

@@ -2,8 +2,7 @@
 //! layer's raster density maps (CSV grids) and Gerber files, and the Gerber board
 //! outline (paths relative to the board file).
 
-use crate::fem::board::{Board, Grid, RasterMap};
-use crate::fem::geometry::Rect;
+use crate::fem::board::{Board, GerberLayerImage, Grid};
 use anyhow::{bail, Context};
 use std::path::{Path, PathBuf};
 
@@ -142,27 +141,16 @@ fn read_gerber_layers(
             opts.resolution_m
         );
     }
-    let nx = ((b.length_x_m / opts.resolution_m).round() as usize).max(1);
-    let ny = ((b.width_y_m / opts.resolution_m).round() as usize).max(1);
-    let extent = Rect {
-        x0: origin[0],
-        y0: origin[1],
-        x1: origin[0] + b.length_x_m,
-        y1: origin[1] + b.width_y_m,
-    };
     for l in &mut b.copper {
         let Some(g) = &l.gerber else { continue };
         let f = dir.join(g);
         // The error names the Gerber file, line and command.
-        let img = crate::io::gerber::read_gerber(&f)?;
-        let grid = crate::fem::gerber::rasterize(&img, &extent, nx, ny);
-        l.gerber_map = Some(RasterMap {
-            x0_m: 0.0,
-            y0_m: 0.0,
-            x1_m: b.length_x_m,
-            y1_m: b.width_y_m,
-            grid,
-        });
+        let mut image = crate::io::gerber::read_gerber(&f)?;
+        image.translate(-origin[0], -origin[1]);
+        l.gerber_image = Some(std::sync::Arc::new(GerberLayerImage {
+            image,
+            resolution_m: opts.resolution_m,
+        }));
         files.push(f);
     }
     Ok(())

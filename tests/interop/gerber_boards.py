@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+Image.MAX_IMAGE_PIXELS = None  # our own renderings, not untrusted input
+
 from gerbonara import GerberFile
 from gerbonara.apertures import (
     CircleAperture,
