@@ -227,21 +227,47 @@ impl CopperMap {
                     let i1 = (((hi - o) / d).ceil().max(0.0) as usize).min(n);
                     i0..i1
                 };
-                for j in range(rect.y0, rect.y1, e.y0, dy, grid.ny) {
-                    for i in range(rect.x0, rect.x1, e.x0, dx, grid.nx) {
+                // Cells of equal value are merged into rectangles first (runs along x, then
+                // equal runs in consecutive rows): the same field, far fewer pieces.
+                let cell_rect = |i0: usize, i1: usize, j0: usize, j1: usize| Rect {
+                    x0: e.x0 + i0 as f64 * dx,
+                    y0: e.y0 + j0 as f64 * dy,
+                    x1: e.x0 + i1 as f64 * dx,
+                    y1: e.y0 + j1 as f64 * dy,
+                };
+                let xr = range(rect.x0, rect.x1, e.x0, dx, grid.nx);
+                let yr = range(rect.y0, rect.y1, e.y0, dy, grid.ny);
+                // Open runs: (i0, i1, value, first row).
+                let mut open: Vec<(usize, usize, f64, usize)> = Vec::new();
+                let mut done: Vec<(Rect, f64)> = Vec::new();
+                for j in yr.clone() {
+                    let mut next = Vec::new();
+                    let mut i = xr.start;
+                    while i < xr.end {
                         let v = grid.values[j * grid.nx + i];
-                        if v <= 0.0 {
-                            continue;
+                        let mut k = i + 1;
+                        while k < xr.end && grid.values[j * grid.nx + k] == v {
+                            k += 1;
                         }
-                        let cell = Rect {
-                            x0: e.x0 + i as f64 * dx,
-                            y0: e.y0 + j as f64 * dy,
-                            x1: e.x0 + (i + 1) as f64 * dx,
-                            y1: e.y0 + (j + 1) as f64 * dy,
-                        };
-                        if overlaps(&cell) {
-                            pieces = apply(pieces, layer, false, v, &rect_polygon(&cell));
+                        if v > 0.0 {
+                            match open.iter().position(|o| o.0 == i && o.1 == k && o.2 == v) {
+                                Some(p) => next.push(open.swap_remove(p)),
+                                None => next.push((i, k, v, j)),
+                            }
                         }
+                        i = k;
+                    }
+                    for o in open.drain(..) {
+                        done.push((cell_rect(o.0, o.1, o.3, j), o.2));
+                    }
+                    open = next;
+                }
+                for o in open {
+                    done.push((cell_rect(o.0, o.1, o.3, yr.end), o.2));
+                }
+                for (cell, v) in done {
+                    if overlaps(&cell) {
+                        pieces = apply(pieces, layer, false, v, &rect_polygon(&cell));
                     }
                 }
                 pieces
