@@ -39,6 +39,33 @@ pub struct Board {
     pub mesh: MeshOptions,
     /// Default scan grid on which the CLI reports mode shapes.
     pub scan_grid: ScanGrid,
+    /// Gerber import options (board outline, frame, raster resolution), for copper
+    /// layers that name a Gerber file.
+    #[serde(default)]
+    pub gerber: Option<GerberOptions>,
+}
+
+fn default_gerber_resolution_m() -> f64 {
+    1e-4
+}
+
+/// How Gerber files map onto the board (`[gerber]` in the TOML).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GerberOptions {
+    /// Board profile (outline) Gerber file, relative to the board file. The bounding box
+    /// of its drawn centre-lines is the board edge: its lower-left corner is the board
+    /// origin, and its size must equal `length_x_m × width_y_m` (within 0.1 mm).
+    #[serde(default)]
+    pub outline: Option<String>,
+    /// Gerber coordinates of the board's lower-left corner, m, when there is no outline
+    /// file (default: the Gerber origin).
+    #[serde(default)]
+    pub origin_m: Option<[f64; 2]>,
+    /// Largest sub-cell size on which each element integrates a Gerber layer's
+    /// coverage, m (the element is cut into equal sub-cells no larger than this).
+    #[serde(default = "default_gerber_resolution_m")]
+    pub resolution_m: f64,
 }
 
 /// Orthotropic FR-4 core, principal axes along x and y.
@@ -86,6 +113,7 @@ pub struct CopperLayer {
     /// Density, kg/m³.
     pub density_kg_per_m3: f64,
     /// Covered regions, each with its coverage fraction (overlaps take the maximum).
+    #[serde(default)]
     pub coverage: Vec<Region>,
     /// Subtractive regions (plane cut-outs, anti-pads), each removing its `fraction`
     /// of copper where it lies; the result is capped to [0, 1].
@@ -95,6 +123,24 @@ pub struct CopperLayer {
     /// coverage regions by the maximum (cut-outs still subtract).
     #[serde(default)]
     pub density_maps: Vec<DensityMap>,
+    /// Gerber RS-274X file of this layer (relative to the board file), integrated on a
+    /// sub-grid of each element (see `[gerber]`) and combined like a density map.
+    #[serde(default)]
+    pub gerber: Option<String>,
+    /// The image read from `gerber` by `io::board_files`, in the board frame (not part
+    /// of the TOML).
+    #[serde(skip)]
+    pub gerber_image: Option<std::sync::Arc<GerberLayerImage>>,
+}
+
+/// A Gerber layer's image in the board frame, with the raster cell its coverage is
+/// integrated on inside each element.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GerberLayerImage {
+    /// Dark and clear features, m, board frame.
+    pub image: super::gerber::Image,
+    /// Largest sub-cell size inside an element, m (`[gerber] resolution_m`).
+    pub resolution_m: f64,
 }
 
 /// A raster copper-density map: a grid of cells over `[x0, x1] × [y0, y1]`, each with
@@ -401,6 +447,11 @@ impl Board {
                     )));
                 }
             }
+            if let (Some(f), None) = (&l.gerber, &l.gerber_image) {
+                return Err(FemError::BoardInvalid(format!(
+                    "copper[{i}].gerber ({f}): expected its image read from the file (load the board with its files, e.g. `hbmu fe --board FILE`), found none"
+                )));
+            }
             if !(l.nu > -1.0 && l.nu < 0.5) {
                 return Err(FemError::BoardInvalid(format!(
                     "copper[{i}].nu: expected -1 < ν < 0.5, found {}",
@@ -425,6 +476,9 @@ impl Board {
                     )));
                 }
             }
+        }
+        if let Some(g) = &self.gerber {
+            pos("gerber.resolution_m", g.resolution_m)?;
         }
         pos("joint.clamp_diameter_m", self.joint.clamp_diameter_m)?;
         pos("joint.k_con_n_per_m", self.joint.k_con_n_per_m)?;

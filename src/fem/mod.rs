@@ -28,6 +28,7 @@ pub mod copper;
 pub mod dense;
 pub mod eigen;
 pub mod geometry;
+pub mod gerber;
 pub mod joints;
 pub mod laminate;
 pub mod model;

@@ -1,7 +1,8 @@
-//! Reading a board description with the files it names: the TOML itself and each
-//! copper layer's raster density maps (CSV grids, paths relative to the board file).
+//! Reading a board description with the files it names: the TOML itself, each copper
+//! layer's raster density maps (CSV grids) and Gerber files, and the Gerber board
+//! outline (paths relative to the board file).
 
-use crate::fem::board::{Board, Grid};
+use crate::fem::board::{Board, GerberLayerImage, Grid};
 use anyhow::{bail, Context};
 use std::path::{Path, PathBuf};
 
@@ -77,9 +78,82 @@ pub fn read_board(path: &Path) -> anyhow::Result<(Board, Vec<PathBuf>)> {
             files.push(f);
         }
     }
+    read_gerber_layers(&mut b, path, dir, &mut files)?;
     b.validate()
         .with_context(|| format!("{}", path.display()))?;
     Ok((b, files))
+}
+
+/// Largest difference between the outline's size and the board's, m.
+const OUTLINE_TOL_M: f64 = 1e-4;
+
+/// Rasterize each copper layer's Gerber file over the board (frame from the outline
+/// file or `origin_m`).
+fn read_gerber_layers(
+    b: &mut Board,
+    path: &Path,
+    dir: &Path,
+    files: &mut Vec<PathBuf>,
+) -> anyhow::Result<()> {
+    let any_layer = b.copper.iter().any(|l| l.gerber.is_some());
+    let Some(opts) = b.gerber.clone() else {
+        if any_layer {
+            // Defaults: Gerber origin at the board corner, 0.1 mm raster.
+            b.gerber = Some(crate::fem::board::GerberOptions {
+                outline: None,
+                origin_m: None,
+                resolution_m: 1e-4,
+            });
+            return read_gerber_layers(b, path, dir, files);
+        }
+        return Ok(());
+    };
+    let mut origin = opts.origin_m.unwrap_or([0.0, 0.0]);
+    if let Some(o) = &opts.outline {
+        if opts.origin_m.is_some() {
+            bail!("{}: gerber: expected either `outline` or `origin_m`, found both (the outline sets the origin)", path.display());
+        }
+        let f = dir.join(o);
+        let img = crate::io::gerber::read_gerber(&f)?;
+        let Some(bb) = img.path_bbox else {
+            bail!(
+                "{}: expected the board outline drawn (D01 strokes or regions), found nothing drawn",
+                f.display()
+            );
+        };
+        let (lx, ly) = (bb.x1 - bb.x0, bb.y1 - bb.y0);
+        if (lx - b.length_x_m).abs() > OUTLINE_TOL_M || (ly - b.width_y_m).abs() > OUTLINE_TOL_M {
+            bail!(
+                "{}: expected a board outline of {} × {} m (length_x_m × width_y_m of {}), found {lx:.6} × {ly:.6} m",
+                f.display(),
+                b.length_x_m,
+                b.width_y_m,
+                path.display()
+            );
+        }
+        origin = [bb.x0, bb.y0];
+        files.push(f);
+    }
+    if !(opts.resolution_m.is_finite() && opts.resolution_m > 0.0) {
+        bail!(
+            "{}: gerber.resolution_m: expected a finite positive number, found {}",
+            path.display(),
+            opts.resolution_m
+        );
+    }
+    for l in &mut b.copper {
+        let Some(g) = &l.gerber else { continue };
+        let f = dir.join(g);
+        // The error names the Gerber file, line and command.
+        let mut image = crate::io::gerber::read_gerber(&f)?;
+        image.translate(-origin[0], -origin[1]);
+        l.gerber_image = Some(std::sync::Arc::new(GerberLayerImage {
+            image,
+            resolution_m: opts.resolution_m,
+        }));
+        files.push(f);
+    }
+    Ok(())
 }
 
 #[cfg(test)]

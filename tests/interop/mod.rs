@@ -44,3 +44,5 @@ fn pandas_and_mcap_read_ingest_outputs() {
     assert_eq!(v["mcap"]["/sheet"]["messages"], 9);
     assert_eq!(v["mcap_metadata"][0], "campaign");
 }
+
+mod gerber;

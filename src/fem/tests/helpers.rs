@@ -40,6 +40,7 @@ pub fn plain_board(lx: f64, ly: f64, h: f64, ex: f64, ey: f64, g: f64, nu: f64, 
             ny: 3,
             margin_m: 0.0,
         },
+        gerber: None,
     }
 }
 
