@@ -401,3 +401,75 @@ fn report_opens_in_chromium_without_errors_and_its_tables_equal_the_parquet() {
     );
     let _: PathBuf = shot;
 }
+
+/// `hbmu diagnose` on the small campaign: the document names a verdict consistent with the
+/// located evidence, nothing is favoured without a refit, its table has one row
+/// per screened candidate, and the same work directory elsewhere gives the same bytes.
+#[test]
+fn diagnose_writes_a_verdict_and_the_same_bytes_in_another_directory() {
+    let work = small_work();
+    let t = tempfile::tempdir().unwrap();
+    let run = |w: &Path, out: &Path| {
+        let o = crate::common::hbmu(&[
+            "diagnose",
+            w.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--max-refits",
+            "0",
+        ]);
+        assert!(o.status.success(), "{}", crate::common::stderr(&o));
+    };
+    let out = t.path().join("d1");
+    run(work, &out);
+    let doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("diagnosis.json")).unwrap()).unwrap();
+    let verdict = doc["verdict"].as_str().unwrap();
+    assert!(
+        [
+            "no_missing_physics",
+            "mechanism_found",
+            "unexplained_misfit"
+        ]
+        .contains(&verdict),
+        "{verdict}"
+    );
+    // Without a misfit located the verdict is the null one, and the other way round.
+    let any = doc["located"]["any"].as_bool().unwrap();
+    assert_eq!(any, verdict != "no_missing_physics", "{doc:#}");
+    // No refit (--max-refits 0): nothing favoured, every candidate unrefitted; when step 2
+    // did not run, that is reported, not fatal.
+    assert!(doc["findings"].as_array().unwrap().is_empty());
+    assert!(doc["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .all(|c| c["refit"].is_null()));
+    if !work.join("update_joints/evidence.json").is_file() {
+        let msgs = doc["stage_findings"].to_string();
+        assert!(msgs.contains("update_joints"), "{msgs}");
+    }
+    let batches = {
+        let f = std::fs::File::open(out.join("diagnosis.parquet")).unwrap();
+        parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(f)
+            .unwrap()
+            .build()
+            .unwrap()
+            .collect::<Result<Vec<_>, _>>()
+            .unwrap()
+    };
+    let rows: usize = batches.iter().map(|b| b.num_rows()).sum();
+    assert_eq!(rows, doc["candidates"].as_array().unwrap().len());
+    // The work directory copied elsewhere: the same bytes.
+    let copy = t.path().join("elsewhere").join("small");
+    crate::common::copy_dir(work, &copy);
+    let out2 = t.path().join("d2");
+    run(&copy, &out2);
+    for f in ["diagnosis.json", "diagnosis.parquet"] {
+        assert_eq!(
+            std::fs::read(out.join(f)).unwrap(),
+            std::fs::read(out2.join(f)).unwrap(),
+            "{f} differs between directories"
+        );
+    }
+}

@@ -234,6 +234,23 @@ fn summarize_refit(
         .filter_map(|v| v.as_f64())
         .collect();
     let res = dir.join("residuals.parquet");
+    // A refit whose posterior presses against its surrogates' boxes has an evidence of a
+    // restricted posterior: not comparable, so not a Bayes factor.
+    let mut failed = None;
+    if mechanism.is_some() {
+        let rep = read_json(&dir.join("update_report.json"))?;
+        if let Some(f) = rep["findings"].as_array().and_then(|fs| {
+            fs.iter()
+                .find(|f| f["code"].as_str() == Some("update.surrogate_box_edge"))
+        }) {
+            failed = Some(format!(
+                "evidence not comparable: {}",
+                f["message"]
+                    .as_str()
+                    .unwrap_or("posterior restricted by the surrogate boxes")
+            ));
+        }
+    }
     let mut estimates = vec![];
     if mechanism.is_some() {
         // Extra coordinates (beyond ln k_con): population medians report_ref · e^μ.
@@ -279,7 +296,7 @@ fn summarize_refit(
         held_out: setup_errors(&res, false)?,
         updated: setup_errors(&res, true)?,
         estimates,
-        failed: None,
+        failed,
     })
 }
 
@@ -463,7 +480,7 @@ fn write_outputs(
     let sentence = |r: &Row| match &r.cmp {
         Some(c) => select::sentence(c),
         None => format!(
-            "{} (screened: {}; not refitted{})",
+            "Candidate: {} (screened: {}; not refitted{})",
             r.cand.mechanism.description(),
             r.cand.reason,
             if r.cand.refittable() {
