@@ -1317,6 +1317,18 @@ fn residuals(
         .collect()
 }
 
+/// Model modes a ROM must carry for the updated labels and every paired label.
+fn modes_needed(labels: &Labels, all: &Labels) -> usize {
+    labels
+        .model_mode
+        .iter()
+        .chain(&all.model_mode)
+        .copied()
+        .max()
+        .unwrap_or(0)
+        + 1
+}
+
 /// Labels of every accepted pair of a setup, with their model mode (0-based), in model order.
 fn all_labels(pairs: &[PairRow], setup: &str, n_modes: usize) -> Labels {
     let mut by: BTreeMap<String, BTreeMap<i32, usize>> = BTreeMap::new();
@@ -1483,14 +1495,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             );
         }
         let all = all_labels(&pairs, "free", 40);
-        let need = labels
-            .model_mode
-            .iter()
-            .chain(&all.model_mode)
-            .copied()
-            .max()
-            .unwrap_or(0)
-            + 1;
+        let need = modes_needed(&labels, &all);
         let rom = rom_for(&model, need, &[], opts)?;
         let nominal_mass_g = model.total_mass_kg(&nominal)? * 1e3;
         let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?;
@@ -2028,14 +2033,7 @@ pub fn run_joints(
         let points = match_points(&board);
         let baseline = FeModel::build(&board, Setup::bolted(), &board.mesh)?;
         let all = all_labels(&pairs, "bolted", 40);
-        let n_ref = labels
-            .model_mode
-            .iter()
-            .chain(&all.model_mode)
-            .copied()
-            .max()
-            .unwrap_or(0)
-            + 1;
+        let n_ref = modes_needed(&labels, &all);
         let extra_modes = if enr.joint_model.has_fixture() { 3 } else { 2 };
         let n_track = n_ref + extra_modes;
         let base_modes = baseline.modes(&with_board_mean(baseline.nominal_params()), n_ref)?;
@@ -2105,14 +2103,7 @@ pub fn run_joints(
             labels: all.labels.clone(),
             model_mode: all_modes,
         };
-        let need = labels
-            .model_mode
-            .iter()
-            .chain(&all.model_mode)
-            .copied()
-            .max()
-            .unwrap_or(0)
-            + 1;
+        let need = modes_needed(&labels, &all);
         // ROM box: ±rom_box, and along every parameter an extra coordinate moves, the sum of
         // the ln half-widths of the coordinates acting on it.
         let mut log_axes: Vec<(String, f64)> = vec![];
