@@ -163,6 +163,18 @@ impl ModalPredictor {
     /// The updated modes at `values`; `None` where the parameters are inadmissible or a
     /// label cannot be tracked.
     pub fn predict(&self, values: &[f64]) -> Option<Prediction> {
+        self.assign(values, false).map(|(p, _)| p)
+    }
+
+    /// As [`Self::predict`], but a label that cannot be tracked does not void the others:
+    /// per label whether it was tracked (a lost label has λ = NaN and its reference vector).
+    /// For reporting (posterior-predictive residuals of every paired label), never for the
+    /// likelihood.
+    pub fn predict_tracked(&self, values: &[f64]) -> Option<(Prediction, Vec<bool>)> {
+        self.assign(values, true)
+    }
+
+    fn assign(&self, values: &[f64], allow_lost: bool) -> Option<(Prediction, Vec<bool>)> {
         let map = &self.rom.map;
         for (n, v) in map.names.iter().zip(values) {
             let ok = if n == crate::fem::params::names::NU_XY {
@@ -196,22 +208,41 @@ impl ModalPredictor {
         }
         pairs.sort_by(|a, b| b.0.total_cmp(&a.0));
         let mut done = vec![false; nm];
+        let mut tracked = vec![false; nm];
         for (o, m, j) in pairs {
             if done[m] || taken[j] {
                 continue;
             }
             if o < std::f64::consts::FRAC_1_SQRT_2 {
+                if allow_lost {
+                    // Every later pair of this label overlaps less: it is lost.
+                    done[m] = true;
+                    continue;
+                }
                 return None;
             }
             done[m] = true;
             taken[j] = true;
+            tracked[m] = true;
             out_l[m] = modes.eigenvalues[j];
             out_v[m] = modes.vectors[j].clone();
         }
-        Some(Prediction {
-            lambda: out_l,
-            vectors: out_v,
-        })
+        for m in 0..nm {
+            if !tracked[m] {
+                if !allow_lost {
+                    return None;
+                }
+                out_l[m] = f64::NAN;
+                out_v[m] = self.refs[m].clone();
+            }
+        }
+        Some((
+            Prediction {
+                lambda: out_l,
+                vectors: out_v,
+            },
+            tracked,
+        ))
     }
 
     /// The likelihood's inputs for `data` from a prediction.
@@ -363,5 +394,47 @@ mod tests {
         let mut v2 = v.clone();
         v2[i] *= 1.1;
         assert!((pred.mass_g(&v2) / pred.mass_g(&v) - 1.1).abs() < 1e-12);
+    }
+
+    /// A label whose reference no model mode resembles voids the likelihood's prediction,
+    /// while the reporting prediction keeps every other label, with the same eigenvalues.
+    #[test]
+    fn a_lost_label_voids_predict_but_not_the_other_labels_of_predict_tracked() {
+        let board = Board::default_board();
+        let model = FeModel::build(&board, Setup::Free, &board.mesh).expect("model");
+        let rom = crate::fem::Rom::build(
+            &model,
+            &RomOptions {
+                max_basis: 30,
+                ..RomOptions::default()
+            },
+        )
+        .expect("rom");
+        let good = ModalPredictor::new(rom.clone(), &[0, 1, 2], 12.7).expect("predictor");
+        let mut lost = good.clone();
+        // A reference orthogonal to every tracked mode at the centre (Gram–Schmidt of a
+        // fixed vector against their reduced vectors, orthonormal since M_r = I there).
+        let c = rom.map.coefficients_unchecked(&rom.map.nominal);
+        let centre = rom.eval_lowest(&c.k, &c.m, good.n_track).expect("centre");
+        let r = rom.dim();
+        let mut x: Vec<f64> = (0..r).map(|i| ((3 * i + 1) as f64).sin()).collect();
+        for _ in 0..2 {
+            for y in &centre.vectors {
+                let yy: f64 = y.iter().map(|a| a * a).sum();
+                let xy: f64 = x.iter().zip(y).map(|(a, b)| a * b).sum();
+                x.iter_mut().zip(y).for_each(|(a, b)| *a -= xy / yy * b);
+            }
+        }
+        let xn = x.iter().map(|a| a * a).sum::<f64>().sqrt();
+        lost.refs[1] = x.iter().map(|a| a / xn).collect();
+        let v = rom.map.nominal.clone();
+        assert!(lost.predict(&v).is_none());
+        let (p, tracked) = lost.predict_tracked(&v).expect("admissible parameters");
+        assert_eq!(tracked, vec![true, false, true]);
+        assert!(p.lambda[1].is_nan());
+        let q = good.predict(&v).expect("tracked");
+        assert_eq!(p.lambda[0], q.lambda[0]);
+        assert_eq!(p.lambda[2], q.lambda[2]);
+        assert_eq!(good.predict_tracked(&v).expect("all").1, vec![true; 3]);
     }
 }

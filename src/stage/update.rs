@@ -1253,13 +1253,14 @@ fn residuals(
     results: &[smc::RunResult<crate::bayes::modal::Terms>],
     setup: &str,
     draws_per_run: usize,
-) -> Vec<Residual> {
+) -> (Vec<Residual>, Vec<Lost>) {
     use rayon::prelude::*;
     let upd_idx: Vec<Option<usize>> = all_labels
         .iter()
         .map(|l| updated.iter().position(|u| u == l))
         .collect();
-    units_all
+    type Row = Result<(Residual, Option<Lost>), Lost>;
+    let out: Vec<Row> = units_all
         .par_iter()
         .enumerate()
         .flat_map_iter(|(b, (data, meta))| {
@@ -1268,53 +1269,151 @@ fn residuals(
             let mut s2 = vec![0.0; nf];
             let mut se = vec![0.0; nf];
             let mut mac = vec![0.0; data.shapes.len()];
-            let mut n = 0.0;
+            let mut nmac = vec![0.0; data.shapes.len()];
+            let mut nk = vec![0.0; nf];
+            let mut n_all = 0.0;
             for r in results {
                 let step = (r.particles.len() / draws_per_run.max(1)).max(1);
                 for p in r.particles.iter().step_by(step) {
                     let v = target.values(&p.aux, b, &p.x[b]);
-                    let Some(pred) = all_pred.predict(&v) else {
+                    n_all += 1.0;
+                    // A label lost at this draw (its mode not trackable) leaves the others.
+                    let Some((pred, tracked)) = all_pred.predict_tracked(&v) else {
                         continue;
                     };
                     let t = all_pred.terms(&pred, data, &v);
                     let ctx = smc::Target::ctx(target, &p.g);
                     for (k, f) in data.freq.iter().enumerate() {
+                        if !tracked[f.mode] {
+                            continue;
+                        }
                         let fm = t.lambda[f.mode].max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
                         s1[k] += fm;
                         s2[k] += fm * fm;
+                        nk[k] += 1.0;
                         if let Some(u) = upd_idx[f.mode] {
                             let e = ctx.eps[u] * fm / 2.0;
                             se[k] += e * e;
                         }
                     }
                     for (k, omm) in t.one_minus_mac.iter().enumerate() {
-                        mac[k] += 1.0 - omm;
+                        if tracked[data.shapes[k].mode] {
+                            mac[k] += 1.0 - omm;
+                            nmac[k] += 1.0;
+                        }
                     }
-                    n += 1.0;
                 }
             }
             meta.iter()
                 .enumerate()
-                .filter(|_| n > 0.0)
                 .map(|(k, m)| {
+                    let label = all_labels[m.label].clone();
+                    let n = nk[k];
+                    if n == 0.0 {
+                        return Err(Lost {
+                            measurement_id: m.measurement_id.clone(),
+                            label,
+                            share_tracked: 0.0,
+                        });
+                    }
                     let mean = s1[k] / n;
                     let var = (s2[k] / n - mean * mean).max(0.0);
-                    Residual {
-                        measurement_id: m.measurement_id.clone(),
-                        board_id: m.board_id.clone(),
-                        setup: setup.to_string(),
-                        label: all_labels[m.label].clone(),
-                        freq_hz: m.freq_hz,
-                        mean,
-                        sd: var.sqrt(),
-                        pred_sd: (var + se[k] / n).sqrt().max(1e-12),
-                        mac: m.shape.map(|i| mac[i] / n),
-                        used: upd_idx[m.label].is_some(),
-                    }
+                    Ok((
+                        Residual {
+                            measurement_id: m.measurement_id.clone(),
+                            board_id: m.board_id.clone(),
+                            setup: setup.to_string(),
+                            label: label.clone(),
+                            freq_hz: m.freq_hz,
+                            mean,
+                            sd: var.sqrt(),
+                            pred_sd: (var + se[k] / n).sqrt().max(1e-12),
+                            mac: m
+                                .shape
+                                .and_then(|i| (nmac[i] > 0.0).then(|| mac[i] / nmac[i])),
+                            used: upd_idx[m.label].is_some(),
+                        },
+                        (n < 0.9 * n_all).then(|| Lost {
+                            measurement_id: m.measurement_id.clone(),
+                            label,
+                            share_tracked: n / n_all,
+                        }),
+                    ))
                 })
                 .collect::<Vec<_>>()
         })
-        .collect()
+        .collect();
+    let mut rows = vec![];
+    let mut lost = vec![];
+    for r in out {
+        match r {
+            Ok((row, partial)) => {
+                rows.push(row);
+                lost.extend(partial);
+            }
+            Err(l) => lost.push(l),
+        }
+    }
+    (rows, lost)
+}
+
+/// A residual row whose label could not be tracked at every posterior draw (the row is left
+/// out when it never was).
+struct Lost {
+    measurement_id: String,
+    label: String,
+    share_tracked: f64,
+}
+
+/// The finding for rows of the residual table left out or averaged over fewer draws because
+/// their label's mode could not be tracked (its overlap with the reference mode fell below
+/// 1/√2): nothing is dropped silently.
+fn lost_finding(lost: &[Lost], findings: &mut Findings) {
+    if lost.is_empty() {
+        return;
+    }
+    let dropped: Vec<String> = lost
+        .iter()
+        .filter(|l| l.share_tracked == 0.0)
+        .map(|l| format!("{} {}", l.measurement_id, l.label))
+        .collect();
+    let partial: Vec<String> = lost
+        .iter()
+        .filter(|l| l.share_tracked > 0.0)
+        .map(|l| {
+            format!(
+                "{} {} ({:.0} %)",
+                l.measurement_id,
+                l.label,
+                100.0 * l.share_tracked
+            )
+        })
+        .collect();
+    let show = |v: &[String]| {
+        let mut s = v.iter().take(8).cloned().collect::<Vec<_>>().join(", ");
+        if v.len() > 8 {
+            s.push_str(&format!(", … ({} in all)", v.len()));
+        }
+        s
+    };
+    let mut msg = String::from("posterior-predictive residuals: some modes could not be tracked at every posterior draw (overlap with the label's reference mode below 1/√2)");
+    if !dropped.is_empty() {
+        msg.push_str(&format!(
+            "; left out of residuals.parquet, never tracked: {}",
+            show(&dropped)
+        ));
+    }
+    if !partial.is_empty() {
+        msg.push_str(&format!(
+            "; averaged over the draws where tracked: {}",
+            show(&partial)
+        ));
+    }
+    findings.push(Finding::new(
+        Severity::Warning,
+        "update.residual_label_lost",
+        msg,
+    ));
 }
 
 /// Model modes a ROM must carry for the updated labels and every paired label.
@@ -1652,7 +1751,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         let p = opts.out.join("stages.parquet");
         write_stages(&p, &stages, &prov)?;
         outputs.push(p);
-        let res = residuals(
+        let (res, lost) = residuals(
             &target,
             &all_pred,
             &all.labels,
@@ -1662,6 +1761,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             "free",
             opts.residual_draws,
         );
+        lost_finding(&lost, &mut findings);
         let p = opts.out.join("residuals.parquet");
         write_residuals(&p, &res, &prov)?;
         outputs.push(p);
@@ -2387,7 +2487,7 @@ pub fn run_joints(
         let p = opts.out.join("stages.parquet");
         write_stages(&p, &stages, &prov)?;
         outputs.push(p);
-        let res = residuals(
+        let (res, lost) = residuals(
             &target,
             &all_pred,
             &all.labels,
@@ -2397,6 +2497,7 @@ pub fn run_joints(
             "bolted",
             opts.residual_draws,
         );
+        lost_finding(&lost, &mut findings);
         let p = opts.out.join("residuals.parquet");
         write_residuals(&p, &res, &prov)?;
         outputs.push(p);
