@@ -307,11 +307,8 @@ mod tests {
     use super::*;
     use crate::fem::{Board, FeModel, RomOptions, Setup};
 
-    /// The shape term's MAC, formed in reduced coordinates from Pᵀu and PᵀP, equals the MAC
-    /// of the shapes expanded to the points; the eigenvalue is the ROM's; the modes are
-    /// tracked to their labels by overlap even when the labels are given out of order.
-    #[test]
-    fn reduced_mac_and_tracking_match_the_expanded_rom() {
+    /// The default board free-free, its FE model and a 30-vector ROM.
+    fn free_rom() -> (Board, FeModel, crate::fem::Rom) {
         let board = Board::default_board();
         let model = FeModel::build(&board, Setup::Free, &board.mesh).expect("model");
         let rom = crate::fem::Rom::build(
@@ -322,6 +319,15 @@ mod tests {
             },
         )
         .expect("rom");
+        (board, model, rom)
+    }
+
+    /// The shape term's MAC, formed in reduced coordinates from Pᵀu and PᵀP, equals the MAC
+    /// of the shapes expanded to the points; the eigenvalue is the ROM's; the modes are
+    /// tracked to their labels by overlap even when the labels are given out of order.
+    #[test]
+    fn reduced_mac_and_tracking_match_the_expanded_rom() {
+        let (board, model, rom) = free_rom();
         let pts = board.scan_points_m();
         let op = rom.shape_operator(&model, &pts).expect("operator");
         let mut p = rom.nominal_params();
@@ -400,16 +406,7 @@ mod tests {
     /// while the reporting prediction keeps every other label, with the same eigenvalues.
     #[test]
     fn a_lost_label_voids_predict_but_not_the_other_labels_of_predict_tracked() {
-        let board = Board::default_board();
-        let model = FeModel::build(&board, Setup::Free, &board.mesh).expect("model");
-        let rom = crate::fem::Rom::build(
-            &model,
-            &RomOptions {
-                max_basis: 30,
-                ..RomOptions::default()
-            },
-        )
-        .expect("rom");
+        let (_, _, rom) = free_rom();
         let good = ModalPredictor::new(rom.clone(), &[0, 1, 2], 12.7).expect("predictor");
         let mut lost = good.clone();
         // A reference orthogonal to every tracked mode at the centre (Gram–Schmidt of a

@@ -263,7 +263,6 @@ fn summarize_refit(
         for cdef in coords.iter().skip(1) {
             let name = cdef["name"].as_str().unwrap_or_default();
             let param = cdef["report_param"].as_str().unwrap_or_default();
-            let rref = cdef["report_ref"].as_f64().unwrap_or(f64::NAN);
             let col = format!("mu_{name}");
             let mut v = vec![];
             for b in &batches {
@@ -275,7 +274,6 @@ fn summarize_refit(
                 // The column holds ln(report_ref) + μ.
                 v.extend((0..b.num_rows()).map(|i| a.value(i).exp()));
             }
-            let _ = rref;
             v.sort_by(f64::total_cmp);
             if !v.is_empty() {
                 estimates.push(Estimate {
