@@ -52,28 +52,41 @@ pub fn constrained_eigenvalues(
     nev: usize,
     shift: f64,
 ) -> Vec<f64> {
-    let p = model.nominal_params();
     let n = model.n_dof;
     let mut keep = vec![true; n];
     for &d in fixed {
         keep[d] = false;
     }
-    let mut map = vec![usize::MAX; n];
+    let mut map = vec![None; n];
     let mut m = 0;
     for i in 0..n {
         if keep[i] {
-            map[i] = m;
+            map[i] = Some(m);
             m += 1;
         }
     }
+    reduced_eigenvalues(model, &model.nominal_params(), &map, m, nev, shift)
+}
+
+/// Lowest `nev` eigenvalues (rad²/s²) of the model at `p` on the subspace u = T v,
+/// where T has one entry 1 per kept DOF: DOF i is `v[map[i]]`, or 0 when `map[i]` is
+/// `None` (several DOFs may share a reduced index: they are tied equal). The pencil is
+/// (Tᵀ K T, Tᵀ M T) on `m` reduced DOFs, assembled from the model's triplets.
+pub fn reduced_eigenvalues(
+    model: &FeModel,
+    p: &crate::fem::Params,
+    map: &[Option<usize>],
+    m: usize,
+    nev: usize,
+    shift: f64,
+) -> Vec<f64> {
     let red = |t: Vec<(usize, usize, f64)>| -> Vec<(usize, usize, f64)> {
         t.into_iter()
-            .filter(|(r, c, _)| keep[*r] && keep[*c])
-            .map(|(r, c, v)| (map[r], map[c], v))
+            .filter_map(|(r, c, v)| Some((map[r]?, map[c]?, v)))
             .collect()
     };
-    let kt = red(model.stiffness_triplets(&p).unwrap());
-    let mt = red(model.mass_triplets(&p).unwrap());
+    let kt = red(model.stiffness_triplets(p).unwrap());
+    let mt = red(model.mass_triplets(p).unwrap());
     let pat = Pattern::from_entries(m, kt.iter().chain(&mt).map(|&(r, c, _)| (r, c)));
     let mut kv = vec![0.0; pat.row_idx.len()];
     let mut mv = vec![0.0; pat.row_idx.len()];
