@@ -74,6 +74,24 @@ pub enum ApertureShape {
         /// Optional round hole, diameter m.
         hole_m: Option<f64>,
     },
+    /// An aperture macro instance, evaluated ([`macro_primitive`]).
+    Macro {
+        /// The macro's name.
+        name: String,
+        /// Its primitives in order.
+        primitives: Vec<MacroPrimitive>,
+    },
+}
+
+/// One primitive of an evaluated aperture macro (`%AM…%` instantiated by `%AD…%`): its
+/// contours (even–odd) in the macro's frame, m, and its exposure. Exposure off erases
+/// what the macro's earlier primitives drew, within the aperture only.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MacroPrimitive {
+    /// Exposure on (adds to the aperture) or off (erases from it).
+    pub exposure: bool,
+    /// Closed contours, m.
+    pub contours: Vec<Vec<[f64; 2]>>,
 }
 
 /// Interpolation mode (G01/G02/G03).
@@ -180,6 +198,11 @@ pub struct Feature {
     pub dark: bool,
     /// Closed contours (last vertex joins the first), m.
     pub contours: Vec<Vec<[f64; 2]>>,
+    /// Empty: all contours form one even–odd shape. Otherwise (a macro flash) the
+    /// contours in consecutive groups `(count, exposure)`, combined in order: a group
+    /// with exposure on adds its shape, one with exposure off erases it, within the
+    /// feature only.
+    pub parts: Vec<(usize, bool)>,
     /// Bounding box.
     pub bbox: Rect,
 }
@@ -377,6 +400,13 @@ fn aperture_contours(a: &ApertureShape, xf: &Xform) -> Vec<Vec<[f64; 2]>> {
                 .collect();
             (pts, hole_m)
         }
+        ApertureShape::Macro { primitives, .. } => {
+            return primitives
+                .iter()
+                .flat_map(|p| p.contours.iter())
+                .map(|c| c.iter().map(|p| xf.apply(*p)).collect())
+                .collect();
+        }
     };
     let mut out = vec![outline];
     if let Some(h) = hole {
@@ -417,6 +447,204 @@ fn arc_points(p: [f64; 2], q: [f64; 2], c: [f64; 2], cw: bool) -> Vec<[f64; 2]> 
         .collect()
 }
 
+/// Rotate `p` by `deg` degrees counter-clockwise about the origin.
+fn rot(p: [f64; 2], deg: f64) -> [f64; 2] {
+    let (s, c) = deg.to_radians().sin_cos();
+    [c * p[0] - s * p[1], s * p[0] + c * p[1]]
+}
+
+/// The part of the annulus `r_in ≤ |p| ≤ r_out` in the first quadrant beyond the two
+/// gap strips |x| < g, |y| < g (one quarter of a thermal primitive), counter-clockwise.
+fn thermal_quarter(r_out: f64, r_in: f64, g: f64) -> Vec<[f64; 2]> {
+    let a0 = (g / r_out).asin();
+    let sweep = std::f64::consts::FRAC_PI_2 - 2.0 * a0;
+    let n = arc_segments(r_out, sweep);
+    let mut out: Vec<[f64; 2]> = (0..=n)
+        .map(|k| {
+            let a = a0 + sweep * k as f64 / n as f64;
+            [r_out * a.cos(), r_out * a.sin()]
+        })
+        .collect();
+    if r_in > g {
+        let b0 = (g / r_in).asin();
+        let sw = std::f64::consts::FRAC_PI_2 - 2.0 * b0;
+        let m = arc_segments(r_in, sw);
+        out.extend((0..=m).map(|k| {
+            let a = std::f64::consts::FRAC_PI_2 - b0 - sw * k as f64 / m as f64;
+            [r_in * a.cos(), r_in * a.sin()]
+        }));
+    } else {
+        out.push([g, g]);
+    }
+    out
+}
+
+/// Evaluate one aperture-macro primitive of the standard set (Gerber 2021 §4.5.1):
+/// `code` and its parameters `p` as written (file units; `unit_m` metres per unit,
+/// angles in degrees), to its contours in the macro frame, m. `None` for a comment
+/// (code 0). The error says what was expected.
+///
+/// 1 circle (exposure, diameter, centre x, y[, rotation]); 20 vector line (exposure,
+/// width, start x, y, end x, y, rotation); 21 centre line (exposure, width, height,
+/// centre x, y, rotation); 4 outline (exposure, n, n + 1 points with the last equal to
+/// the first, rotation); 5 polygon (exposure, n = 3…12, centre x, y, diameter,
+/// rotation); 7 thermal (centre x, y, outer and inner diameters, gap, rotation; always
+/// exposed). Rotations turn the primitive about the macro origin.
+pub fn macro_primitive(
+    code: u32,
+    p: &[f64],
+    unit_m: f64,
+) -> Result<Option<MacroPrimitive>, String> {
+    let need = |lo: usize, hi: usize, what: &str| -> Result<(), String> {
+        if p.len() < lo || p.len() > hi {
+            Err(format!(
+                "expected {} parameters for primitive {code} ({what}), found {}",
+                if lo == hi {
+                    lo.to_string()
+                } else {
+                    format!("{lo} to {hi}")
+                },
+                p.len()
+            ))
+        } else {
+            Ok(())
+        }
+    };
+    let exposure = |v: f64| -> Result<bool, String> {
+        if v == 1.0 {
+            Ok(true)
+        } else if v == 0.0 {
+            Ok(false)
+        } else {
+            Err(format!("expected exposure 0 (off) or 1 (on), found {v}"))
+        }
+    };
+    let u = unit_m;
+    let finish = |on: bool, contours: Vec<Vec<[f64; 2]>>, deg: f64| {
+        Some(MacroPrimitive {
+            exposure: on,
+            contours: contours
+                .into_iter()
+                .map(|c| c.into_iter().map(|q| rot(q, deg)).collect())
+                .collect(),
+        })
+    };
+    match code {
+        0 => Ok(None),
+        1 => {
+            need(4, 5, "circle: exposure, diameter, centre x, y[, rotation]")?;
+            if !(p[1] >= 0.0) {
+                return Err(format!("expected a non-negative circle diameter, found {}", p[1]));
+            }
+            let c = disc([p[2] * u, p[3] * u], 0.5 * p[1] * u);
+            Ok(finish(exposure(p[0])?, vec![c], p.get(4).copied().unwrap_or(0.0)))
+        }
+        20 => {
+            need(7, 7, "vector line: exposure, width, start x, y, end x, y, rotation")?;
+            let (w, s, e) = (p[1] * u, [p[2] * u, p[3] * u], [p[4] * u, p[5] * u]);
+            if !(w >= 0.0) {
+                return Err(format!("expected a non-negative line width, found {}", p[1]));
+            }
+            let len = (e[0] - s[0]).hypot(e[1] - s[1]);
+            let c = if len > 0.0 && w > 0.0 {
+                let n = [-(e[1] - s[1]) / len * 0.5 * w, (e[0] - s[0]) / len * 0.5 * w];
+                vec![vec![
+                    [s[0] - n[0], s[1] - n[1]],
+                    [e[0] - n[0], e[1] - n[1]],
+                    [e[0] + n[0], e[1] + n[1]],
+                    [s[0] + n[0], s[1] + n[1]],
+                ]]
+            } else {
+                Vec::new()
+            };
+            Ok(finish(exposure(p[0])?, c, p[6]))
+        }
+        21 => {
+            need(6, 6, "centre line: exposure, width, height, centre x, y, rotation")?;
+            let (w, h, cx, cy) = (0.5 * p[1] * u, 0.5 * p[2] * u, p[3] * u, p[4] * u);
+            if !(w >= 0.0 && h >= 0.0) {
+                return Err(format!(
+                    "expected a non-negative width and height, found {} and {}",
+                    p[1], p[2]
+                ));
+            }
+            let c = vec![vec![
+                [cx - w, cy - h],
+                [cx + w, cy - h],
+                [cx + w, cy + h],
+                [cx - w, cy + h],
+            ]];
+            Ok(finish(exposure(p[0])?, c, p[5]))
+        }
+        4 => {
+            if p.len() < 2 {
+                return Err(format!(
+                    "expected exposure and vertex count for primitive 4 (outline), found {} parameters",
+                    p.len()
+                ));
+            }
+            let n = p[1];
+            if !(n >= 3.0 && n.fract() == 0.0) {
+                return Err(format!("expected a whole vertex count ≥ 3 for the outline, found {n}"));
+            }
+            let n = n as usize;
+            need(2 * n + 5, 2 * n + 5, "outline: exposure, n, n + 1 points, rotation")?;
+            let pts: Vec<[f64; 2]> = (0..=n).map(|k| [p[2 + 2 * k] * u, p[3 + 2 * k] * u]).collect();
+            let (a, b) = (pts[0], pts[n]);
+            if (a[0] - b[0]).hypot(a[1] - b[1]) > 1e-9 {
+                return Err(format!(
+                    "expected the outline's last point equal to its first, found ({}, {}) and ({}, {})",
+                    p[2], p[3], p[2 + 2 * n], p[3 + 2 * n]
+                ));
+            }
+            Ok(finish(exposure(p[0])?, vec![pts[..n].to_vec()], p[2 * n + 4]))
+        }
+        5 => {
+            need(6, 6, "polygon: exposure, n, centre x, y, diameter, rotation")?;
+            let n = p[1];
+            if !((3.0..=12.0).contains(&n) && n.fract() == 0.0) {
+                return Err(format!("expected 3 to 12 polygon vertices, found {n}"));
+            }
+            if !(p[4] >= 0.0) {
+                return Err(format!("expected a non-negative polygon diameter, found {}", p[4]));
+            }
+            let (c, r) = ([p[2] * u, p[3] * u], 0.5 * p[4] * u);
+            let pts = (0..n as usize)
+                .map(|k| {
+                    let a = 2.0 * std::f64::consts::PI * k as f64 / n;
+                    [c[0] + r * a.cos(), c[1] + r * a.sin()]
+                })
+                .collect();
+            Ok(finish(exposure(p[0])?, vec![pts], p[5]))
+        }
+        7 => {
+            need(6, 6, "thermal: centre x, y, outer diameter, inner diameter, gap, rotation")?;
+            let (c, ro, ri, g) = ([p[0] * u, p[1] * u], 0.5 * p[2] * u, 0.5 * p[3] * u, 0.5 * p[4] * u);
+            if !(ri >= 0.0 && ro > ri && g >= 0.0 && g * std::f64::consts::SQRT_2 < ro) {
+                return Err(format!(
+                    "expected outer diameter > inner diameter ≥ 0 and 0 ≤ gap < outer diameter / √2, found {}, {}, {}",
+                    p[2], p[3], p[4]
+                ));
+            }
+            let q = thermal_quarter(ro, ri, g);
+            let contours = (0..4)
+                .map(|k| {
+                    q.iter()
+                        .map(|&v| {
+                            let w = rot(v, 90.0 * k as f64);
+                            [w[0] + c[0], w[1] + c[1]]
+                        })
+                        .collect()
+                })
+                .collect();
+            Ok(finish(true, contours, p[5]))
+        }
+        _ => Err(format!(
+            "expected a macro primitive code 0 (comment), 1 (circle), 20 (vector line), 21 (centre line), 4 (outline), 5 (polygon) or 7 (thermal), found {code}"
+        )),
+    }
+}
+
 /// Execute Gerber statements into an image.
 pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
     use std::collections::HashMap;
@@ -445,10 +673,19 @@ pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
     let mut ended = false;
 
     fn push(img: &mut Image, dark: bool, contours: Vec<Vec<[f64; 2]>>) {
+        push_parts(img, dark, contours, Vec::new());
+    }
+    fn push_parts(
+        img: &mut Image,
+        dark: bool,
+        contours: Vec<Vec<[f64; 2]>>,
+        parts: Vec<(usize, bool)>,
+    ) {
         let bbox = bbox_of(&contours);
         img.features.push(Feature {
             dark,
             contours,
+            parts,
             bbox,
         });
     }
@@ -492,7 +729,7 @@ pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
                             .iter()
                             .map(|c| c.iter().map(|p| [p[0] + ox, p[1] + oy]).collect())
                             .collect();
-                        push(img, f.dark, contours);
+                        push_parts(img, f.dark, contours, f.parts.clone());
                     }
                 }
             }
@@ -524,6 +761,10 @@ pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
                         !(*d_m > 0.0 && (3..=12).contains(n))
                             || hole_m.is_some_and(|h| !(h >= 0.0 && h < *d_m))
                     }
+                    ApertureShape::Macro { primitives, .. } => primitives
+                        .iter()
+                        .flat_map(|p| p.contours.iter().flatten())
+                        .any(|v| !(v[0].is_finite() && v[1].is_finite())),
                 };
                 if bad {
                     return Err(err(
@@ -645,7 +886,8 @@ pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
                                     .into(),
                             ));
                         };
-                        let c = aperture_contours(&apertures[&code], &xf)
+                        let ap = &apertures[&code];
+                        let c = aperture_contours(ap, &xf)
                             .into_iter()
                             .map(|c| {
                                 c.into_iter()
@@ -653,7 +895,14 @@ pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
                                     .collect()
                             })
                             .collect();
-                        push(&mut img, dark, c);
+                        let parts = match ap {
+                            ApertureShape::Macro { primitives, .. } => primitives
+                                .iter()
+                                .map(|p| (p.contours.len(), p.exposure))
+                                .collect(),
+                            _ => Vec::new(),
+                        };
+                        push_parts(&mut img, dark, c, parts);
                         pt = Some(to);
                     }
                     1 => {
@@ -818,10 +1067,33 @@ fn subtract(a: &Intervals, b: &Intervals) -> Intervals {
     out
 }
 
-/// The x-intervals of a feature on the horizontal line y (even–odd over its contours).
+/// The x-intervals of a feature on the horizontal line y: even–odd over its contours,
+/// or, for a macro flash, its primitives combined in order.
 fn feature_intervals(f: &Feature, y: f64, xs: &mut Vec<f64>) -> Intervals {
+    if f.parts.is_empty() {
+        return contour_intervals(&f.contours, y, xs);
+    }
+    let mut acc: Intervals = Vec::new();
+    let mut k = 0;
+    for &(n, on) in &f.parts {
+        let iv = contour_intervals(&f.contours[k..k + n], y, xs);
+        k += n;
+        if iv.is_empty() {
+            continue;
+        }
+        acc = if on {
+            union(&acc, &iv)
+        } else {
+            subtract(&acc, &iv)
+        };
+    }
+    acc
+}
+
+/// The x-intervals of `contours` on the horizontal line y, even–odd.
+fn contour_intervals(contours: &[Vec<[f64; 2]>], y: f64, xs: &mut Vec<f64>) -> Intervals {
     xs.clear();
-    for c in &f.contours {
+    for c in contours {
         let n = c.len();
         for k in 0..n {
             let (a, b) = (c[k], c[(k + 1) % n]);
@@ -1101,5 +1373,77 @@ mod tests {
             e.contains("line 7") && e.contains("D11") && e.contains("undefined"),
             "{e}"
         );
+    }
+
+    /// Area of a primitive's contours (even–odd, from the shoelace of each contour; the
+    /// primitives' contours do not overlap).
+    fn prim_area(p: &MacroPrimitive) -> f64 {
+        p.contours
+            .iter()
+            .map(|c| {
+                let n = c.len();
+                0.5 * (0..n)
+                    .map(|k| c[k][0] * c[(k + 1) % n][1] - c[(k + 1) % n][0] * c[k][1])
+                    .sum::<f64>()
+            })
+            .map(f64::abs)
+            .sum()
+    }
+
+    /// Every macro primitive against its closed-form area (mm units, so m² × 1e6), and
+    /// rotation about the macro origin (not the primitive's centre).
+    #[test]
+    fn macro_primitives_have_their_closed_form_areas_and_rotate_about_the_origin() {
+        let pi = std::f64::consts::PI;
+        let a = |code: u32, p: &[f64]| {
+            prim_area(&macro_primitive(code, p, 1e-3).unwrap().unwrap()) * 1e6
+        };
+        let close = |got: f64, want: f64| {
+            assert!((got / want - 1.0).abs() < 1e-6, "{got} vs {want}");
+        };
+        close(a(1, &[1.0, 1.5, 3.0, 4.0]), pi * 0.75 * 0.75);
+        close(a(20, &[1.0, 0.3, 0.0, 0.0, 3.0, 4.0, 17.0]), 0.3 * 5.0);
+        close(a(21, &[1.0, 2.0, 0.5, 1.0, 1.0, 30.0]), 1.0);
+        close(
+            a(4, &[1.0, 3.0, 0.0, 0.0, 2.0, 0.0, 0.0, 1.0, 0.0, 0.0, 45.0]),
+            1.0,
+        );
+        let r: f64 = 0.8;
+        close(
+            a(5, &[1.0, 6.0, 1.0, 1.0, 2.0 * r, 10.0]),
+            3.0 * r * r * (pi / 3.0).sin(),
+        );
+        // Thermal: the annulus minus the cross of gap width 0.3 (four rectangles of
+        // 0.15 × the ring, less the overlap square counted in none since ri > g).
+        let (ro, ri, g) = (1.0f64, 0.6f64, 0.15f64);
+        let strip = |r: f64| 2.0 * (g * (r * r - g * g).sqrt() + r * r * (g / r).asin());
+        let cross_in_ring = 2.0 * (strip(ro) - strip(ri)) - 0.0;
+        // Two strips through the centre overlap in the central square |x|, |y| ≤ g,
+        // which lies inside the inner disc (g√2 < ri), so it adds nothing to the ring.
+        // Its arcs are chords of sagitta ≤ FLATTEN_TOL_M (not area-corrected like
+        // `disc`): ~1e-4 of the area at these sizes, well below the 1 % coverage bound.
+        let th = a(7, &[0.0, 0.0, 2.0 * ro, 2.0 * ri, 2.0 * g, 0.0]);
+        let want = pi * (ro * ro - ri * ri) - cross_in_ring;
+        assert!(th <= want && th / want > 1.0 - 3e-4, "{th} vs {want}");
+        // Rotation about the origin: a circle at (2, 0) mm rotated 90° sits at (0, 2).
+        let p = macro_primitive(1, &[1.0, 0.5, 2.0, 0.0, 90.0], 1e-3)
+            .unwrap()
+            .unwrap();
+        let n = p.contours[0].len() as f64;
+        let (cx, cy) = p.contours[0]
+            .iter()
+            .fold((0.0, 0.0), |s, v| (s.0 + v[0] / n, s.1 + v[1] / n));
+        assert!(
+            cx.abs() < 1e-12 && (cy - 2e-3).abs() < 1e-12,
+            "({cx}, {cy})"
+        );
+        // Exposure off, comments.
+        assert!(
+            !macro_primitive(1, &[0.0, 1.0, 0.0, 0.0], 1e-3)
+                .unwrap()
+                .unwrap()
+                .exposure
+        );
+        assert!(macro_primitive(0, &[], 1e-3).unwrap().is_none());
     }
 }

@@ -8,13 +8,16 @@
 //! dropped silently, its parsed commands carry no line number (so errors found while
 //! executing them, e.g. an undefined aperture, could not name the line), and it rejects
 //! files of the writer we test against (gerbonara 1.5 writes `P,1.5X6.0` and `G01**`).
-//! This reader covers what copper and profile layers use: FS, MO, AD (C, R, O, P), LP,
-//! LM, LR, LS, SR, G01/G02/G03, G74/G75, G36/G37, D01/D02/D03, Dnn, M02, comments and
-//! attributes (ignored), and the common deprecated codes (G54, G70/G71, G90, IPPOS, …).
-//! Aperture macros (AM), block apertures (AB), incremental coordinates and image
+//! This reader covers what copper and profile layers use: FS (absolute or incremental),
+//! MO, AD (C, R, O, P and aperture macros), AM (primitives 0, 1, 4, 5, 7, 20, 21 with
+//! variables, assignments and arithmetic), LP, LM, LR, LS, SR, G01/G02/G03, G74/G75,
+//! G36/G37, D01/D02/D03, Dnn, M02, comments and attributes (ignored), and the common
+//! deprecated codes (G54, G70/G71, G90/G91, IPPOS, …). Block apertures (AB) and image
 //! transforms other than the identity are refused with an error naming the line.
 
-use crate::fem::gerber::{render, ApertureShape, Cmd, Image, Interp, SrcPos, Stmt};
+use crate::fem::gerber::{
+    macro_primitive, render, ApertureShape, Cmd, Image, Interp, MacroPrimitive, SrcPos, Stmt,
+};
 use anyhow::{bail, Context};
 use std::path::Path;
 
@@ -136,6 +139,172 @@ fn parse_decimal(s: &str) -> Option<f64> {
     v.is_finite().then_some(v)
 }
 
+/// Evaluate an aperture-macro arithmetic expression (Gerber 2021 §4.5.4): decimals,
+/// variables `$n`, unary `+`/`-`, binary `+`, `-`, `x` (times), `/`, parentheses.
+fn eval_expr(s: &str, vars: &std::collections::HashMap<usize, f64>) -> Result<f64, String> {
+    struct P<'a> {
+        b: &'a [u8],
+        k: usize,
+        vars: &'a std::collections::HashMap<usize, f64>,
+    }
+    impl P<'_> {
+        fn peek(&mut self) -> Option<u8> {
+            while self.k < self.b.len() && self.b[self.k].is_ascii_whitespace() {
+                self.k += 1;
+            }
+            self.b.get(self.k).copied()
+        }
+        fn expr(&mut self) -> Result<f64, String> {
+            let mut v = self.term()?;
+            while let Some(c @ (b'+' | b'-')) = self.peek() {
+                self.k += 1;
+                let t = self.term()?;
+                v = if c == b'+' { v + t } else { v - t };
+            }
+            Ok(v)
+        }
+        fn term(&mut self) -> Result<f64, String> {
+            let mut v = self.factor()?;
+            while let Some(c @ (b'x' | b'X' | b'/')) = self.peek() {
+                self.k += 1;
+                let f = self.factor()?;
+                v = if c == b'/' { v / f } else { v * f };
+            }
+            Ok(v)
+        }
+        fn factor(&mut self) -> Result<f64, String> {
+            match self.peek() {
+                Some(b'+') => {
+                    self.k += 1;
+                    self.factor()
+                }
+                Some(b'-') => {
+                    self.k += 1;
+                    Ok(-self.factor()?)
+                }
+                Some(b'(') => {
+                    self.k += 1;
+                    let v = self.expr()?;
+                    if self.peek() != Some(b')') {
+                        return Err("expected `)`".into());
+                    }
+                    self.k += 1;
+                    Ok(v)
+                }
+                Some(b'$') => {
+                    self.k += 1;
+                    let s = self.k;
+                    while self.k < self.b.len() && self.b[self.k].is_ascii_digit() {
+                        self.k += 1;
+                    }
+                    let n: usize = std::str::from_utf8(&self.b[s..self.k])
+                        .ok()
+                        .and_then(|t| t.parse().ok())
+                        .ok_or("expected a variable number after `$`")?;
+                    self.vars.get(&n).copied().ok_or_else(|| {
+                        format!("expected ${n} defined (by the AD parameters or an assignment), found it undefined")
+                    })
+                }
+                Some(c) if c.is_ascii_digit() || c == b'.' => {
+                    let s = self.k;
+                    while self.k < self.b.len()
+                        && (self.b[self.k].is_ascii_digit() || self.b[self.k] == b'.')
+                    {
+                        self.k += 1;
+                    }
+                    let t = std::str::from_utf8(&self.b[s..self.k]).unwrap_or("");
+                    parse_decimal(t).ok_or_else(|| format!("expected a decimal, found {t:?}"))
+                }
+                Some(c) => Err(format!(
+                    "expected a number, `$n` or `(`, found `{}`",
+                    c as char
+                )),
+                None => Err("expected a number, `$n` or `(`, found the end".into()),
+            }
+        }
+    }
+    let mut p = P {
+        b: s.as_bytes(),
+        k: 0,
+        vars,
+    };
+    let v = p.expr()?;
+    if p.peek().is_some() {
+        return Err(format!(
+            "expected an operator or the end of {s:?}, found `{}`",
+            &s[p.k..]
+        ));
+    }
+    if !v.is_finite() {
+        return Err(format!("expected a finite value of {s:?}, found {v}"));
+    }
+    Ok(v)
+}
+
+/// Instantiate the aperture macro `body` (its words after `%AMname*`) with the AD
+/// parameters `params` (file units): each primitive evaluated to contours, m.
+fn instantiate_macro(
+    name: &str,
+    macro_name: &str,
+    body: &[SrcPos],
+    params: &[f64],
+    unit_m: f64,
+    ad: &SrcPos,
+) -> anyhow::Result<Vec<MacroPrimitive>> {
+    let mut vars: std::collections::HashMap<usize, f64> = params
+        .iter()
+        .enumerate()
+        .map(|(k, v)| (k + 1, *v))
+        .collect();
+    let mut out = Vec::new();
+    for w in body {
+        let e = |m: String| {
+            perr(
+                name,
+                w,
+                format!("macro {macro_name} (instantiated at line {}): {m}", ad.line),
+            )
+        };
+        let t = w.command.trim();
+        if let Some(rest) = t.strip_prefix('$') {
+            let Some((var, expr)) = rest.split_once('=') else {
+                return Err(e("expected a variable assignment `$n=expression`".into()));
+            };
+            let n: usize = var
+                .trim()
+                .parse()
+                .map_err(|_| e(format!("expected a variable number, found {var:?}")))?;
+            let v = eval_expr(expr, &vars).map_err(e)?;
+            vars.insert(n, v);
+            continue;
+        }
+        // A comment primitive: `0` then free text.
+        if t == "0" || t.starts_with("0 ") {
+            continue;
+        }
+        let mut fields = t.split(',');
+        let code_s = fields.next().unwrap_or("").trim();
+        let code: u32 = code_s
+            .parse()
+            .map_err(|_| e(format!("expected a primitive code, found {code_s:?}")))?;
+        let vals: Vec<f64> = fields
+            .map(|f| eval_expr(f, &vars))
+            .collect::<Result<_, _>>()
+            .map_err(e)?;
+        if let Some(p) = macro_primitive(code, &vals, unit_m).map_err(e)? {
+            out.push(p);
+        }
+    }
+    if out.is_empty() {
+        return Err(perr(
+            name,
+            ad,
+            format!("expected macro {macro_name} to hold at least one primitive, found none"),
+        ));
+    }
+    Ok(out)
+}
+
 /// Parse Gerber text into statements (coordinates and sizes in metres). `name` is used
 /// in error messages (the file).
 pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
@@ -144,8 +313,13 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
     let mut format: Option<(Format, Format)> = None;
     let mut unit_m: Option<f64> = None;
     let mut last_d: Option<u8> = None;
-    let mut macros: Vec<String> = Vec::new();
+    // Aperture macros: name and the words of its body.
+    let mut macros: Vec<(String, Vec<SrcPos>)> = Vec::new();
     let mut in_macro = false;
+    // Incremental coordinates (FS…I… or G91) and the current point they add to, m
+    // (the origin before the first operation).
+    let mut incremental = false;
+    let mut cur = [0.0f64; 2];
     for w in ws {
         let pos = w.pos.clone();
         let c = pos.command.as_str();
@@ -163,6 +337,9 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
                     .get(0..2)
                     .is_some_and(|p| p.chars().all(|ch| ch.is_ascii_uppercase()))
             {
+                if let Some(m) = macros.last_mut() {
+                    m.1.push(pos.clone());
+                }
                 continue;
             }
             in_macro = false;
@@ -183,9 +360,10 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
                     if !ok {
                         return Err(perr(name, &pos, "expected the format `FS` L|T A X<int><dec> Y<int><dec>, e.g. FSLAX46Y46"));
                     }
-                    if b[1] != b'A' {
-                        return Err(perr(name, &pos, "expected absolute coordinates (FSLA…); incremental (FSLI…) are not supported"));
+                    if b[1] != b'A' && b[1] != b'I' {
+                        return Err(perr(name, &pos, "expected absolute (FSLA…) or incremental (FSLI…) coordinates"));
                     }
+                    incremental = b[1] == b'I';
                     let d = |k: usize| (b[k] as char).to_digit(10).map(|v| v as usize);
                     let (Some(xi), Some(xd), Some(yi), Some(yd)) = (d(3), d(4), d(6), d(7)) else {
                         return Err(perr(name, &pos, "expected digit counts after X and Y, e.g. FSLAX46Y46"));
@@ -253,15 +431,22 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
                                 hole_m: m(3),
                             }
                         }
-                        t if macros.iter().any(|n| n == t) => {
-                            return Err(perr(name, &pos, format!("aperture macro {t} (AM) is not supported yet; expected a standard aperture C, R, O or P")))
+                        t if macros.iter().any(|(n, _)| n == t) => {
+                            let body = &macros.iter().rev().find(|(n, _)| n == t).unwrap_or_else(|| unreachable!()).1;
+                            ApertureShape::Macro {
+                                name: t.to_string(),
+                                primitives: instantiate_macro(name, t, body, &ps, u, &pos)?,
+                            }
                         }
                         t => return Err(perr(name, &pos, format!("expected an aperture template C, R, O or P (or a macro defined by AM), found {t:?}"))),
                     };
                     push(&mut out, Cmd::ApertureDef { code, shape });
                 }
                 "AM" => {
-                    macros.push(rest.to_string());
+                    if rest.is_empty() || macros.iter().any(|(n, _)| n == rest) {
+                        return Err(perr(name, &pos, format!("expected a new macro name after AM, found {rest:?}")));
+                    }
+                    macros.push((rest.to_string(), Vec::new()));
                     in_macro = true;
                 }
                 "LP" => match rest {
@@ -387,10 +572,11 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
                 75 => push(&mut out, Cmd::Quadrant { multi: true }),
                 36 => push(&mut out, Cmd::Region(true)),
                 37 => push(&mut out, Cmd::Region(false)),
-                54 | 55 | 90 => {}
+                54 | 55 => {}
+                90 => incremental = false,
+                91 => incremental = true,
                 70 => unit_m = Some(25.4e-3),
                 71 => unit_m = Some(1e-3),
-                91 => return Err(perr(name, &pos, "incremental coordinates (G91) are not supported; expected absolute (G90)")),
                 _ => return Err(perr(name, &pos, format!("expected a supported G code (01, 02, 03, 04, 36, 37, 74, 75), found G{g:02}"))),
             }
         }
@@ -481,10 +667,17 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
             };
             Ok(Some(if neg { -v } else { v } * scale * u))
         };
+        let (mut x, mut y) = (coord(0, fx)?, coord(1, fy)?);
+        if incremental {
+            // Both coordinates become absolute: a missing one is an increment of 0.
+            x = Some(cur[0] + x.unwrap_or(0.0));
+            y = Some(cur[1] + y.unwrap_or(0.0));
+        }
+        cur = [x.unwrap_or(cur[0]), y.unwrap_or(cur[1])];
         let cmd = Cmd::Op {
             d: op,
-            x: coord(0, fx)?,
-            y: coord(1, fy)?,
+            x,
+            y,
             i: coord(2, fx)?,
             j: coord(3, fy)?,
         };
@@ -566,6 +759,153 @@ mod tests {
             (format!("{HEAD}%ADD10C,0.5*%\nD10*\nXY0D03*\nM02*\n"), ":5: `XY0D03`", "number after `X`"),
             (format!("{HEAD}%ADD10C,0.5*%\n"), "c.gbr", "M02"),
             ("%MOMM*%\n%ADD10C,0.5*%\nD10*\nX0Y0D03*\nM02*\n".to_string(), ":4: `X0Y0D03`", "%FS"),
+        ];
+        for (text, at, what) in cases {
+            let e = read_gerber_str(&text, "c.gbr").unwrap_err().to_string();
+            assert!(
+                e.starts_with("c.gbr") && e.contains(at) && e.contains(what),
+                "{e}\nexpected {at} … {what}"
+            );
+        }
+    }
+
+    /// Total copper area of an image over `e`, m² (raster cells 10 µm).
+    fn area(img: &Image, e: &Rect) -> f64 {
+        let (nx, ny) = (
+            ((e.x1 - e.x0) / 1e-5).round() as usize,
+            ((e.y1 - e.y0) / 1e-5).round() as usize,
+        );
+        let g = rasterize(img, e, nx, ny);
+        g.values.iter().sum::<f64>() * (e.x1 - e.x0) * (e.y1 - e.y0) / (nx * ny) as f64
+    }
+
+    /// A macro with variables, an assignment, arithmetic, several primitives and an
+    /// exposure-off primitive, flashed over a dark region: the macro's image is a 2 mm
+    /// disc with a 1 mm disc erased, plus a 3 × 0.4 mm bar (rotated 90°, crossing the
+    /// erased disc and so filling part of it again); the erased disc does not clear the
+    /// region beneath (exposure acts within the aperture), while a clear flash of the
+    /// same macro clears exactly its image.
+    #[test]
+    fn aperture_macros_evaluate_variables_and_exposure_within_the_aperture() {
+        let mac = "%AMDONUT*\n0 a ring and a bar*\n$3=$1x0.5*\n1,1,$1,0,0*\n1,0,$3,0,0*\n21,1,(1+2),$2,0,0,90*%\n";
+        let t = format!("{HEAD}{mac}%ADD10DONUT,2.0X0.4*%\nD10*\nX0Y0D03*\nM02*\n");
+        let img = read_gerber_str(&t, "m.gbr").unwrap();
+        let e = Rect {
+            x0: -2e-3,
+            y0: -2e-3,
+            x1: 2e-3,
+            y1: 2e-3,
+        };
+        let pi = std::f64::consts::PI;
+        // Ring π(1² − 0.5²) mm², plus the bar (0.4 × 3 mm along y) outside the outer
+        // disc (2 × 0.4 × (1.5 − ~1) mm) and inside the hole (0.4 × ~1 mm): the bar's
+        // area minus its overlap with the ring, computed from segment areas.
+        let seg = |r: f64, h: f64| {
+            // Area of the disc of radius r within |x| ≤ h.
+            2.0 * (h * (r * r - h * h).sqrt() + r * r * (h / r).asin())
+        };
+        let ring_in_bar = seg(1.0, 0.2) - seg(0.5, 0.2);
+        let exact_mm2 = pi * (1.0 - 0.25) + 0.4 * 3.0 - ring_in_bar;
+        let got = area(&img, &e) * 1e6;
+        assert!(
+            (got / exact_mm2 - 1.0).abs() < 2e-3,
+            "{got} vs {exact_mm2} mm²"
+        );
+        // Over a dark 3 × 3 mm square the erased disc stays dark.
+        let t = format!("{HEAD}{mac}%ADD10DONUT,2.0X0.4*%\nG36*\nX-1500000Y-1500000D02*\nG01*\nX1500000Y-1500000D01*\nX1500000Y1500000D01*\nX-1500000Y1500000D01*\nX-1500000Y-1500000D01*\nG37*\nD10*\nX0Y0D03*\nM02*\n");
+        let img = read_gerber_str(&t, "m.gbr").unwrap();
+        let got = area(&img, &e) * 1e6;
+        let exact = 9.0 + 2.0 * 0.4 * 0.5 * 0.0 + 0.0;
+        // Square 9 mm² plus the bar's two ends beyond it (|y| ≤ 1.5 = the square's
+        // edge, so none): exactly the square.
+        assert!((got / exact - 1.0).abs() < 1e-3, "{got} vs {exact} mm²");
+        // A clear flash of the macro over the square removes exactly the macro's image.
+        let t = t.replace("D10*\nX0Y0D03*", "%LPC*%\nD10*\nX0Y0D03*");
+        let img = read_gerber_str(&t, "m.gbr").unwrap();
+        let got = area(&img, &e) * 1e6;
+        assert!(
+            (got / (9.0 - exact_mm2) - 1.0).abs() < 2e-3,
+            "{got} vs {} mm²",
+            9.0 - exact_mm2
+        );
+    }
+
+    /// Incremental coordinates (FS…I…, and G91): each coordinate adds to the current
+    /// point, a missing one adds 0; G90 returns to absolute.
+    #[test]
+    fn incremental_coordinates_add_to_the_current_point() {
+        let t = "%FSLIX24Y24*%\n%MOMM*%\n%ADD10C,0.1*%\nD10*\nX010000Y020000D02*\nX005000D03*\nY-010000D03*\nG90*\nX000000Y000000D03*\nG91*\nX001000Y001000D03*\nM02*\n";
+        let s = parse_gerber(t, "i.gbr").unwrap();
+        let pts: Vec<(f64, f64)> = s
+            .iter()
+            .filter_map(|s| match s.cmd {
+                Cmd::Op { x, y, .. } => Some((x.unwrap() * 1e3, y.unwrap() * 1e3)),
+                _ => None,
+            })
+            .collect();
+        let want = [(1.0, 2.0), (1.5, 2.0), (1.5, 1.0), (0.0, 0.0), (0.1, 0.1)];
+        assert_eq!(pts.len(), want.len());
+        for (g, w) in pts.iter().zip(&want) {
+            assert!(
+                (g.0 - w.0).abs() < 1e-9 && (g.1 - w.1).abs() < 1e-9,
+                "{pts:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn malformed_macros_name_file_line_and_command() {
+        let cases = [
+            // Unknown primitive code, on the body's line.
+            (
+                format!("{HEAD}%AMX1*\n9,1,1,0,0*%\n%ADD10X1*%\nM02*\n"),
+                ":4: `9,1,1,0,0`",
+                "primitive code",
+            ),
+            // Wrong parameter count of a circle.
+            (
+                format!("{HEAD}%AMX1*\n1,1,1*%\n%ADD10X1*%\nM02*\n"),
+                ":4: `1,1,1`",
+                "4 to 5 parameters",
+            ),
+            // A variable the AD does not give.
+            (
+                format!("{HEAD}%AMX1*\n1,1,$2,0,0*%\n%ADD10X1,1.0*%\nM02*\n"),
+                ":4: `1,1,$2,0,0`",
+                "$2",
+            ),
+            // A bad expression.
+            (
+                format!("{HEAD}%AMX1*\n1,1,(1+2,0,0*%\n%ADD10X1*%\nM02*\n"),
+                ":4: `1,1,(1+2,0,0`",
+                "`)`",
+            ),
+            // An open outline.
+            (
+                format!("{HEAD}%AMX1*\n4,1,3,0,0,1,0,1,1,0,1,0*%\n%ADD10X1*%\nM02*\n"),
+                ":4: `4,1,3,0,0,1,0,1,1,0,1,0`",
+                "last point",
+            ),
+            // Exposure neither 0 nor 1.
+            (
+                format!("{HEAD}%AMX1*\n1,2,1,0,0*%\n%ADD10X1*%\nM02*\n"),
+                ":4: `1,2,1,0,0`",
+                "exposure",
+            ),
+            // A macro redefined.
+            (
+                format!("{HEAD}%AMX1*\n1,1,1,0,0*%\n%AMX1*\n1,1,1,0,0*%\nM02*\n"),
+                ":5: `AMX1`",
+                "new macro name",
+            ),
+            // A macro flashed in a draw.
+            (
+                format!(
+                    "{HEAD}%AMX1*\n1,1,1,0,0*%\n%ADD10X1*%\nD10*\nX0Y0D02*\nX1000000Y0D01*\nM02*\n"
+                ),
+                ":8: `X1000000Y0D01`",
+                "circular aperture",
+            ),
         ];
         for (text, at, what) in cases {
             let e = read_gerber_str(&text, "c.gbr").unwrap_err().to_string();

@@ -1,6 +1,7 @@
 //! Gerber import against third-party tools: boards written by gerbonara (a Gerber writer)
 //! are read by hbmu and their per-element copper coverage is compared with pygerber's
-//! raster rendering of the same files (`gerber_boards.py`); malformed files get errors
+//! raster rendering of the same files (`gerber_boards.py`; the top layer includes pads
+//! flashed with aperture macros); malformed files get errors
 //! naming the file, line and command.
 
 use crate::common::*;
@@ -108,6 +109,7 @@ fn gerbonara_boards_match_pygerber_coverage_per_element() {
             let (dx, dy) = (board.length_x_m / nx as f64, board.width_y_m / ny as f64);
             let (mut worst, mut sum, mut covered) = (0.0f64, 0.0, 0usize);
             let mut at = (0, 0);
+            let mut worst_macro = 0.0f64;
             for j in 0..ny {
                 for i in 0..nx {
                     let r = Rect {
@@ -119,6 +121,17 @@ fn gerbonara_boards_match_pygerber_coverage_per_element() {
                     let got = map.mean_coverage(layer, &r);
                     let w = want[j * nx + i].as_f64().unwrap();
                     let d = (got - w).abs();
+                    // The top layer's row of macro pads (centres y = 6.2 mm, x = 19 …
+                    // 56.4 mm, at most 1.1 mm from the centre).
+                    let in_macro_row = layer == 0
+                        && r.y1 > 5.0e-3
+                        && r.y0 < 7.4e-3
+                        && r.x1 > 17.8e-3
+                        && r.x0 < 57.6e-3;
+                    if in_macro_row && nx == 80 {
+                        worst_macro = worst_macro.max(d);
+                        continue;
+                    }
                     if d > worst {
                         worst = d;
                         at = (i, j);
@@ -139,6 +152,17 @@ fn gerbonara_boards_match_pygerber_coverage_per_element() {
                 worst <= tol,
                 "{name} {nx}x{ny}: coverage differs from pygerber's by {worst} at element {at:?}"
             );
+            // pygerber 2.4.3 places a macro flash on its own pixel-snapped sub-image: on
+            // the 1 mm grid its rounded-rectangle pad comes out shifted by ~2 pixels
+            // (10 µm) in y against an exact evaluation of the macro as written (element
+            // (25, 5): pygerber 0.2436, exact 0.2320 from point sampling of the written
+            // primitives, hbmu 0.2320), with the pad's total area right (1.5228 mm² both).
+            // So those elements are held to 1.5 % (measured 1.16 %); on the coarser grids
+            // the macro row is inside the 1 % bound with everything else.
+            if nx == 80 && layer == 0 {
+                eprintln!("gerber top 80x50 macro-pad row: max |hbmu − pygerber| {worst_macro:.4}");
+                assert!(worst_macro <= 0.015, "macro row: {worst_macro}");
+            }
         }
     }
 }

@@ -11,7 +11,9 @@ DPMM pixels per mm; plus the board corner in Gerber coordinates (mm).
 
 The boards hold what real copper layers hold: hatched pours (diagonal and orthogonal hatch
 lines), pads flashed with circle (with a hole), rectangle, obround and polygon apertures,
-traces and arcs (G02/G03, a full circle), regions, and a ground plane with clear-polarity
+pads flashed with aperture macros (gerbonara writes rotated rectangles, obrounds and
+rounded rectangles as macros of vector-line (20) and circle (1) primitives, a trapezoid as an
+outline (4), and holes as exposure-off circles), traces and arcs (G02/G03, a full circle), regions, and a ground plane with clear-polarity
 (LPC) cut-outs, anti-pads and slots, with dark pads drawn again inside a cut-out. (Regions
 with arc edges are not in the comparison: pygerber 2.4's raster backend bends region arcs
 the wrong way; src/fem/gerber.rs tests them against closed-form areas.) The board's corner sits at (100, 60) mm in Gerber coordinates.
@@ -34,7 +36,9 @@ from PIL import Image
 Image.MAX_IMAGE_PIXELS = None  # our own renderings, not untrusted input
 
 from gerbonara import GerberFile
+from gerbonara.aperture_macros.parse import GenericMacros
 from gerbonara.apertures import (
+    ApertureMacroInstance,
     CircleAperture,
     ObroundAperture,
     PolygonAperture,
@@ -104,6 +108,18 @@ def top_layer():
     ]
     for k in range(16):
         g.objects.append(Flash(*P(19.0 + 2.6 * k, 3.4), aps[k % 4], unit=MM))
+    # A second row of pads, flashed with aperture macros (AM): rotated apertures and
+    # gerbonara's generic rounded rectangle and trapezoid macros.
+    r = math.radians
+    macros = [
+        RectangleAperture(1.5, 0.6, unit=MM).rotated(r(30)),
+        ObroundAperture(2.0, 1.0, unit=MM).rotated(r(60)),
+        ApertureMacroInstance(GenericMacros.rounded_rect, (1.6, 1.0, 0.3, 0, 0, r(15)), unit=MM),
+        ApertureMacroInstance(GenericMacros.isosceles_trapezoid, (1.6, 1.0, 0.8, 0, 0, r(25)), unit=MM),
+        RectangleAperture(1.5, 0.8, hole_dia=0.4, unit=MM).rotated(r(40)),
+    ]
+    for k in range(12):
+        g.objects.append(Flash(*P(19.0 + 3.4 * k, 6.2), macros[k % 5], unit=MM))
     # Traces: straight, diagonal, dog-leg, and arcs.
     t3 = CircleAperture(0.3, unit=MM)
     t2 = CircleAperture(0.2, unit=MM)
