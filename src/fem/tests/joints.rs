@@ -326,7 +326,7 @@ fn joint_totals_are_exact_on_every_mesh() {
 /// annulus covers thin slivers of some elements, on which the Gram matrix of the
 /// bicubics is so ill-conditioned (smallest eigenvalue below 1e-16 of the largest)
 /// that in double precision the layer never restrains those directions: measured, the
-/// gap falls to ~8 % at K_con = 1e17 N/m and stays there up to 1e20. So this checks
+/// gap falls to 4.5–8 % (by mode) at K_con = 1e17 N/m and stays there up to 1e20. So this checks
 /// direction and bound on a real board; the limit value and its 1/K rate are checked
 /// on a mesh without slivers (`spring_layer_tends_to_the_clamped_patch_as_one_over_k`).
 #[test]
