@@ -23,6 +23,27 @@ fn cpu_s() -> f64 {
         .unwrap_or(f64::NAN)
 }
 
+/// Reset the process's peak resident set size (Linux: `5` to /proc/self/clear_refs), so
+/// that [`peak_rss_mb`] reports the peak of what runs after.
+fn reset_peak_rss() {
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+}
+
+/// Peak resident set size of the process since the last reset, MB (VmHWM), NaN if
+/// unavailable.
+fn peak_rss_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|v| v.parse::<f64>().ok())
+        })
+        .map(|kb| kb / 1024.0)
+        .unwrap_or(f64::NAN)
+}
+
 fn main() {
     faer::set_global_parallelism(faer::Par::Seq);
     let board = Board::default_board();
@@ -30,6 +51,7 @@ fn main() {
         let mut best_build = f64::INFINITY;
         let mut best_modes = f64::INFINITY;
         let mut n_dof = 0;
+        reset_peak_rss();
         for _ in 0..3 {
             let t0 = Instant::now();
             let model = FeModel::build(&board, setup.clone(), &board.mesh).expect("build");
@@ -42,27 +64,34 @@ fn main() {
             best_modes = best_modes.min((t2 - t1).as_secs_f64());
         }
         println!(
-            "full {label}: {n_dof} DOFs, assembly {:.1} ms, lowest 20 modes {:.1} ms (best of 3)",
+            "full {label}: {n_dof} DOFs, assembly {:.1} ms, lowest 20 modes {:.1} ms (best of 3), peak RSS {:.0} MB",
             best_build * 1e3,
-            best_modes * 1e3
+            best_modes * 1e3,
+            peak_rss_mb()
         );
     }
-    // Copper integrated per piece: assembly and 8 free modes of the realistic board
+    // Copper integrated per piece: assembly and 8 modes of the realistic board
     // (partial pours, traces, cut-outs: many cut elements), and the mesh choice of
     // `fe modes` (0.02 %) on the default board.
     let realistic = Board::from_toml_str(include_str!("../data/boards/realistic.toml"))
         .expect("realistic board");
-    for (nx, ny) in [(40, 25), (120, 75)] {
+    // 85 × 53 bolted: the mesh `fe modes` chooses for the bolted realistic board.
+    for (label, setup, nx, ny) in [
+        ("free", Setup::Free, 40, 25),
+        ("free", Setup::Free, 120, 75),
+        ("bolted", Setup::bolted(), 85, 53),
+    ] {
+        reset_peak_rss();
         let t0 = Instant::now();
-        let model =
-            FeModel::build(&realistic, Setup::Free, &MeshOptions { nx, ny }).expect("build");
+        let model = FeModel::build(&realistic, setup, &MeshOptions { nx, ny }).expect("build");
         let t1 = Instant::now();
         black_box(model.modes(&model.nominal_params(), 8).expect("modes"));
         println!(
-            "realistic free {nx}x{ny}: {} DOFs, assembly {:.0} ms, 8 modes {:.0} ms",
+            "realistic {label} {nx}x{ny}: {} DOFs, assembly {:.0} ms, 8 modes {:.0} ms, peak RSS {:.0} MB",
             model.n_dof,
             (t1 - t0).as_secs_f64() * 1e3,
-            t1.elapsed().as_secs_f64() * 1e3
+            t1.elapsed().as_secs_f64() * 1e3,
+            peak_rss_mb()
         );
     }
     // A raster density map of 0.2 mm cells (400 × 250, values varying cell to cell) as
@@ -153,6 +182,7 @@ fn main() {
     }
     for (label, setup, n_modes) in [("free", Setup::Free, 8), ("bolted", Setup::bolted(), 7)] {
         let model = FeModel::build(&board, setup, &board.mesh).expect("build");
+        reset_peak_rss();
         let t0 = Instant::now();
         let rom = Rom::build(
             &model,
@@ -163,6 +193,7 @@ fn main() {
         )
         .expect("rom");
         let t_build = t0.elapsed().as_secs_f64();
+        let rom_peak_mb = peak_rss_mb();
         let pts = board.scan_points_m();
         let sop = rom.shape_operator(&model, &pts).expect("shape operator");
         let sample = latin_hypercube_params(&model.map, 1000, 0.2, 7);
@@ -224,8 +255,9 @@ fn main() {
             + 4.0 * r * r * k
             + 2.0 * pts.len() as f64 * r * n_modes as f64;
         println!(
-            "ROM {label}: build {:.1} s, r = {}, {} scan points, {:.0} evaluations/s on one core ({:.1} µs each, ≈ {:.0} kflop each → {:.2} Gflop/s)",
+            "ROM {label}: build {:.1} s (peak RSS {:.0} MB), r = {}, {} scan points, {:.0} evaluations/s on one core ({:.1} µs each, ≈ {:.0} kflop each → {:.2} Gflop/s)",
             t_build,
+            rom_peak_mb,
             rom.dim(),
             pts.len(),
             per_s,
