@@ -11,7 +11,8 @@
 //!
 //! Construction ([`laplace_reference`]), for a target whose units are informed by their own
 //! data:
-//! 1. g⁰ = the coordinate-wise median of prior draws; x_b⁰ likewise.
+//! 1. g⁰ = the coordinate-wise median of prior draws; x_b⁰ likewise, or a start point the
+//!    caller knows (`ReferenceOptions::start`), with g⁰'s population location moved to it.
 //! 2. Per unit b (in parallel): Newton's method on f_b(x) = log p(x | g) + log L_b(x, g) with
 //!    a finite-difference gradient and Hessian (the model is a black box), Levenberg-damped,
 //!    with backtracking. The Hessian at the optimum gives the unit's precision.
@@ -113,6 +114,12 @@ pub struct ReferenceOptions {
     pub rounds: usize,
     /// Random-walk Metropolis steps of g per round (after as many for adaptation).
     pub g_steps: usize,
+    /// Where every unit's search starts (and g's population location with it), instead of
+    /// the prior's centre: a point the caller already knows fits the data, e.g. from a fit of
+    /// the mean data. A posterior with several modes (one mechanism trading against another)
+    /// is then approached from the best one, not from whichever the prior centre falls near.
+    #[serde(default)]
+    pub start: Option<Vec<f64>>,
 }
 
 impl Default for ReferenceOptions {
@@ -122,6 +129,7 @@ impl Default for ReferenceOptions {
             newton_iterations: 30,
             rounds: 3,
             g_steps: 20000,
+            start: None,
         }
     }
 }
@@ -383,6 +391,53 @@ fn newton_mode(
     (x, prec, converged)
 }
 
+/// L Lᵀ of a lower-triangular row-major d × d factor.
+fn lower_times_upper(l: &[f64], d: usize) -> Vec<f64> {
+    let mut out = vec![0.0; d * d];
+    for i in 0..d {
+        for j in 0..d {
+            out[i * d + j] = (0..d).map(|k| l[i * d + k] * l[j * d + k]).sum();
+        }
+    }
+    out
+}
+
+/// log ∫ N(x; m, L Lᵀ) exp(−½ (x − x̂)ᵀ H (x − x̂) + gᵀ (x − x̂)) dx, in the prior's whitened
+/// coordinates x = m + L z (stable as L → 0): with u = m − x̂, B = I + Lᵀ H L and
+/// c = Lᵀ (g − H u), it is −½ uᵀ H u + gᵀ u − ½ log |B| + ½ cᵀ B⁻¹ c. H positive
+/// semi-definite; H = 0 and g = 0 give 0.
+fn log_marginal_quadratic(m: &[f64], l: &[f64], x_hat: &[f64], h: &[f64], g: &[f64]) -> f64 {
+    let d = m.len();
+    let u: Vec<f64> = m.iter().zip(x_hat).map(|(a, b)| a - b).collect();
+    let hu: Vec<f64> = (0..d)
+        .map(|i| (0..d).map(|j| h[i * d + j] * u[j]).sum())
+        .collect();
+    let uhu: f64 = u.iter().zip(&hu).map(|(a, b)| a * b).sum();
+    let gu: f64 = g.iter().zip(&u).map(|(a, b)| a * b).sum();
+    // Lᵀ H L and Lᵀ (g − H u).
+    let hl: Vec<f64> = (0..d * d)
+        .map(|k| {
+            let (i, j) = (k / d, k % d);
+            (0..d).map(|q| h[i * d + q] * l[q * d + j]).sum()
+        })
+        .collect();
+    let mut bm = vec![0.0; d * d];
+    for i in 0..d {
+        for j in 0..d {
+            bm[i * d + j] = (0..d).map(|q| l[q * d + i] * hl[q * d + j]).sum::<f64>()
+                + if i == j { 1.0 } else { 0.0 };
+        }
+    }
+    let w: Vec<f64> = g.iter().zip(&hu).map(|(a, b)| a - b).collect();
+    let c: Vec<f64> = (0..d)
+        .map(|i| (0..d).map(|q| l[q * d + i] * w[q]).sum())
+        .collect();
+    let (lb, _) = cholesky_jittered(&bm, d);
+    let log_det_b: f64 = (0..d).map(|i| 2.0 * lb[i * d + i].ln()).sum();
+    let y = lower_solve(&lb, d, &c);
+    -0.5 * uhu + gu - 0.5 * log_det_b + 0.5 * y.iter().map(|v| v * v).sum::<f64>()
+}
+
 /// Coordinate-wise median of vectors.
 fn median_of(vs: &[Vec<f64>]) -> Vec<f64> {
     let d = vs[0].len();
@@ -415,9 +470,15 @@ pub fn laplace_reference<T: Target>(
         .collect();
     let gs: Vec<Vec<f64>> = draws.iter().map(|(g, _)| g.clone()).collect();
     let mut g = median_of(&gs);
-    let mut xs: Vec<Vec<f64>> = (0..nu)
-        .map(|b| median_of(&draws.iter().map(|(_, x)| x[b].clone()).collect::<Vec<_>>()))
-        .collect();
+    let mut xs: Vec<Vec<f64>> = match &opts.start {
+        Some(x0) if x0.len() == d => {
+            t.centre_global_at(&mut g, x0);
+            vec![x0.clone(); nu]
+        }
+        _ => (0..nu)
+            .map(|b| median_of(&draws.iter().map(|(_, x)| x[b].clone()).collect::<Vec<_>>()))
+            .collect(),
+    };
     // Initial finite-difference steps: a hundredth of the prior spread of each coordinate.
     let h0: Vec<Vec<f64>> = (0..nu)
         .map(|b| {
@@ -471,6 +532,25 @@ pub fn laplace_reference<T: Target>(
                 return Err(ReferenceError::Undefined(b));
             }
         }
+        // Each unit's likelihood as a quadratic around x̂_b (curvature H_b = its precision less
+        // the prior's at this round's g, gradient = minus the prior's), so that g sees
+        // ∫ p(x_b | g) L_b(x_b) dx_b, not p(x̂_b | g) L_b(x̂_b): with point estimates, units the
+        // data leave unidentified (all at the prior's centre) would pull σ to zero, a funnel
+        // the reference would then sit in. Where p(x_b | g) is not a normal, the point form.
+        let round_ctx = t.ctx(&g);
+        let quad: Vec<Option<(Vec<f64>, Vec<f64>)>> = (0..nu)
+            .map(|b| {
+                let (m, l) = t.unit_prior_normal(&round_ctx, b)?;
+                let p = spd_inverse(&lower_times_upper(&l, d), d);
+                let h: Vec<f64> = precs[b].iter().zip(&p).map(|(a, q)| a - q).collect();
+                let h = make_positive(&h, d, 0.0);
+                let r: Vec<f64> = xs[b].iter().zip(&m).map(|(x, m)| x - m).collect();
+                let grad: Vec<f64> = (0..d)
+                    .map(|i| (0..d).map(|j| p[i * d + j] * r[j]).sum())
+                    .collect();
+                Some((h, grad))
+            })
+            .collect();
         let log_g = |g: &[f64]| -> f64 {
             let lp = t.log_prior_global(g);
             if !lp.is_finite() {
@@ -479,7 +559,12 @@ pub fn laplace_reference<T: Target>(
             let ctx = t.ctx(g);
             let mut s = lp;
             for b in 0..nu {
-                s += t.log_prior_unit(&ctx, b, &xs[b]);
+                match (&quad[b], t.unit_prior_normal(&ctx, b)) {
+                    (Some((h, grad)), Some((m, l))) => {
+                        s += log_marginal_quadratic(&m, &l, &xs[b], h, grad);
+                    }
+                    _ => s += t.log_prior_unit(&ctx, b, &xs[b]),
+                }
                 if let Some(c) = &caches[b] {
                     s += t.log_lik(&ctx, b, &xs[b], c);
                 }
@@ -594,4 +679,48 @@ fn rwm(
         }
     }
     (kept, acc / steps.max(1) as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The closed form against a brute-force 2-D quadrature of the same integral.
+    #[test]
+    fn marginal_of_a_quadratic_likelihood_matches_quadrature() {
+        let m = [0.3, -0.2];
+        // Σ = L Lᵀ with a correlation; H singular along one direction (an unidentified
+        // parameter), g non-zero.
+        let l = [0.5, 0.0, 0.2, 0.3];
+        let h = [4.0, 2.0, 2.0, 1.0];
+        let g = [0.7, -0.4];
+        let x_hat = [0.1, 0.25];
+        let closed = log_marginal_quadratic(&m, &l, &x_hat, &h, &g);
+        let s = lower_times_upper(&l, 2);
+        let p = spd_inverse(&s, 2);
+        let det_s = s[0] * s[3] - s[1] * s[2];
+        let (n, lo, hi) = (1200, -6.0, 6.0);
+        let dx = (hi - lo) / n as f64;
+        let mut sum = 0.0;
+        for i in 0..n {
+            for j in 0..n {
+                let x = [lo + (i as f64 + 0.5) * dx, lo + (j as f64 + 0.5) * dx];
+                let r = [x[0] - m[0], x[1] - m[1]];
+                let y = [x[0] - x_hat[0], x[1] - x_hat[1]];
+                let q_prior =
+                    r[0] * (p[0] * r[0] + p[1] * r[1]) + r[1] * (p[2] * r[0] + p[3] * r[1]);
+                let q_lik = y[0] * (h[0] * y[0] + h[1] * y[1]) + y[1] * (h[2] * y[0] + h[3] * y[1]);
+                let lpdf = -0.5 * q_prior - (2.0 * std::f64::consts::PI).ln() - 0.5 * det_s.ln();
+                sum += (lpdf - 0.5 * q_lik + g[0] * y[0] + g[1] * y[1]).exp() * dx * dx;
+            }
+        }
+        assert!(
+            (closed - sum.ln()).abs() < 1e-6,
+            "closed form {closed}, quadrature {}",
+            sum.ln()
+        );
+        // A flat likelihood carries no information: the integral of the prior is 1.
+        let zero = log_marginal_quadratic(&m, &l, &x_hat, &[0.0; 4], &[0.0; 2]);
+        assert!(zero.abs() < 1e-14);
+    }
 }

@@ -81,6 +81,14 @@ pub trait Target: Sync {
     /// Inverse of [`Target::to_standard`].
     #[allow(clippy::wrong_self_convention)] // x from z, the model's own map: not a constructor.
     fn from_standard(&self, ctx: &Self::Ctx, b: usize, z: &[f64]) -> Vec<f64>;
+    /// Move g's location of the units' population to the unit point x (a search that knows
+    /// where the units are starts its g there); by default g is left as it is.
+    fn centre_global_at(&self, _g: &mut [f64], _x: &[f64]) {}
+    /// p(x_b | g) as a normal (mean, lower Cholesky factor of its covariance, row-major),
+    /// where it is one; None (the default) otherwise.
+    fn unit_prior_normal(&self, _ctx: &Self::Ctx, _b: usize) -> Option<(Vec<f64>, Vec<f64>)> {
+        None
+    }
 }
 
 /// Tuning of the sampler.

@@ -333,19 +333,20 @@ pub fn fit_unit(
 }
 
 /// The modal target with per-unit surrogates: a unit's model is its surrogate inside the
-/// surrogate's box and undefined outside it (the ROM for units without a surrogate).
+/// surrogate's box and the ROM outside it (and for units without a surrogate).
 ///
-/// The sampler's target is thereby restricted to the boxes. They are `half_width_sd` = 10
-/// standard deviations of the (already inflated) reference wide, where a Gaussian-like
-/// posterior has no appreciable mass (< 1e-20); the stage checks that the final particles
-/// stay well inside (`edge_fraction`) and says so when they do not. Falling back to the ROM
-/// outside instead would spend most ROM evaluations on proposals of the early, wide stages
-/// that are rejected anyway.
+/// The boxes are `half_width_sd` = 10 standard deviations of the (already inflated)
+/// reference wide, where a Gaussian-like posterior has no appreciable mass (< 1e-20). A
+/// posterior that is not Gaussian-like (a parameter the data bound only on one side, a
+/// population scale the reference underestimates) reaches beyond them; there the ROM answers,
+/// so the boxes never restrict the posterior: they only decide where evaluations are cheap.
+/// `outside_box` counts the ROM evaluations that cost, and the stage reports the fraction of
+/// final particles beyond the boxes.
 pub struct SurrogateTarget<'a> {
     pub inner: &'a ModalTarget,
     pub surrogates: Vec<Option<Arc<UnitSurrogate>>>,
-    /// Proposals that fell outside a unit's box (a count for the report; it does not
-    /// influence any result).
+    /// Proposals that fell outside a unit's box and went to the ROM (a count for the report;
+    /// it does not influence any result).
     pub outside_box: std::sync::atomic::AtomicU64,
 }
 
@@ -381,7 +382,6 @@ impl Target for SurrogateTarget<'_> {
             }
             self.outside_box
                 .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            return None;
         }
         self.inner.model(aux, b, x)
     }

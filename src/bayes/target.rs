@@ -234,6 +234,13 @@ impl Target for ModalTarget {
     fn log_prior_unit(&self, ctx: &Ctx, _b: usize, x: &[f64]) -> f64 {
         ctx.pop.log_density(x)
     }
+    fn unit_prior_normal(&self, ctx: &Ctx, _b: usize) -> Option<(Vec<f64>, Vec<f64>)> {
+        Some((ctx.pop.mu.clone(), ctx.pop.l_cov.clone()))
+    }
+    fn centre_global_at(&self, g: &mut [f64], x: &[f64]) {
+        // g starts with μ, in the units' own coordinates (population.rs).
+        g[..x.len()].copy_from_slice(x);
+    }
     fn model(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Terms> {
         let v = self.values(aux, b, x);
         let pred = self.predictor.predict(&v)?;

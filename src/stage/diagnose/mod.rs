@@ -23,6 +23,9 @@ use crate::io::tables::{self, c, Col, Cols, TableSpec};
 use crate::stage::update::UpdateOptions;
 use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::{anyhow, Context};
+
+/// Largest R-hat across a refit's runs for its evidence to count.
+const MAX_R_HAT: f64 = 1.05;
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -234,20 +237,14 @@ fn summarize_refit(
         .filter_map(|v| v.as_f64())
         .collect();
     let res = dir.join("residuals.parquet");
-    // A refit whose posterior presses against its surrogates' boxes has an evidence of a
-    // restricted posterior: not comparable, so not a Bayes factor.
+    // A refit whose independent runs disagree (rank-normalised split R-hat across runs above
+    // 1.05) has not sampled its posterior: its evidence gives no Bayes factor.
     let mut failed = None;
     if mechanism.is_some() {
         let rep = read_json(&dir.join("update_report.json"))?;
-        if let Some(f) = rep["findings"].as_array().and_then(|fs| {
-            fs.iter()
-                .find(|f| f["code"].as_str() == Some("update.surrogate_box_edge"))
-        }) {
+        if let Some(r) = rep["max_r_hat"].as_f64().filter(|r| *r > MAX_R_HAT) {
             failed = Some(format!(
-                "evidence not comparable: {}",
-                f["message"]
-                    .as_str()
-                    .unwrap_or("posterior restricted by the surrogate boxes")
+                "sampler not converged: max R-hat across runs {r:.3} > {MAX_R_HAT}, so its evidence gives no Bayes factor"
             ));
         }
     }
