@@ -37,6 +37,12 @@ pub struct Board {
     pub joint: JointData,
     /// Default mesh density.
     pub mesh: MeshOptions,
+    /// Mesh of the bolted setups, where one differs from `mesh` (`[mesh_bolted]`): the
+    /// deformation around a small, stiff clamp varies over a few millimetres, so bolted
+    /// modes need a finer mesh than free-free ones for the same discretization error (see
+    /// `hbmu fe modes`, which estimates it per setup). Absent: `mesh`.
+    #[serde(default)]
+    pub mesh_bolted: Option<MeshOptions>,
     /// Default scan grid on which the CLI reports mode shapes.
     pub scan_grid: ScanGrid,
     /// Gerber import options (board outline, frame, raster resolution), for copper
@@ -361,6 +367,14 @@ pub struct ScanGrid {
 }
 
 impl Board {
+    /// The mesh of a setup: `mesh_bolted` for bolted setups where the board has one.
+    pub fn mesh_for(&self, setup: &crate::fem::model::Setup) -> &MeshOptions {
+        match (setup, &self.mesh_bolted) {
+            (crate::fem::model::Setup::Bolted(_), Some(m)) => m,
+            _ => &self.mesh,
+        }
+    }
+
     /// Parse and validate a board from TOML text. A board with density maps needs
     /// their files: read it with `io::board_files::read_board` instead.
     pub fn from_toml_str(text: &str) -> Result<Board, FemError> {
@@ -488,11 +502,16 @@ impl Board {
                 self.joint.bolt_mass_kg
             )));
         }
-        if self.mesh.nx == 0 || self.mesh.ny == 0 {
-            return Err(FemError::BoardInvalid(format!(
-                "mesh: expected nx, ny >= 1, found {} × {}",
-                self.mesh.nx, self.mesh.ny
-            )));
+        for (what, m) in [
+            ("mesh", Some(&self.mesh)),
+            ("mesh_bolted", self.mesh_bolted.as_ref()),
+        ] {
+            if let Some(m) = m.filter(|m| m.nx == 0 || m.ny == 0) {
+                return Err(FemError::BoardInvalid(format!(
+                    "{what}: expected nx, ny >= 1, found {} × {}",
+                    m.nx, m.ny
+                )));
+            }
         }
         if self.scan_grid.nx == 0 || self.scan_grid.ny == 0 {
             return Err(FemError::BoardInvalid(format!(

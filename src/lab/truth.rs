@@ -301,6 +301,26 @@ pub fn joint_model(s: &Scenario, with_effects: bool) -> JointModel {
     JointModel { features }
 }
 
+/// The truth's bolted mesh: the scenario's truth mesh, or, where the board's bolted mesh is
+/// finer than its default mesh, that bolted mesh refined by the same factor as the truth mesh
+/// refines the default one (the truth stays finer than the updating model in every setup).
+pub fn truth_bolted_mesh(s: &Scenario, board: &Board) -> MeshOptions {
+    match &board.mesh_bolted {
+        Some(mb) => {
+            let fx = s.truth.mesh_nx as f64 / board.mesh.nx as f64;
+            let fy = s.truth.mesh_ny as f64 / board.mesh.ny as f64;
+            MeshOptions {
+                nx: s.truth.mesh_nx.max((mb.nx as f64 * fx).round() as usize),
+                ny: s.truth.mesh_ny.max((mb.ny as f64 * fy).round() as usize),
+            }
+        }
+        None => MeshOptions {
+            nx: s.truth.mesh_nx,
+            ny: s.truth.mesh_ny,
+        },
+    }
+}
+
 impl Models {
     /// Build the truth models of `s` for `board`.
     pub fn build(s: &Scenario, board: &Board) -> Result<Models, LabError> {
@@ -308,15 +328,17 @@ impl Models {
             nx: s.truth.mesh_nx,
             ny: s.truth.mesh_ny,
         };
+        let bolted_mesh = truth_bolted_mesh(s, board);
         let e = &s.effects;
         let free_plain = FeModel::build(board, Setup::Free, &mesh)?;
-        let bolted_plain = FeModel::build(board, Setup::Bolted(joint_model(s, false)), &mesh)?;
+        let bolted_plain =
+            FeModel::build(board, Setup::Bolted(joint_model(s, false)), &bolted_mesh)?;
         let (free, free_cf, bolted, bolted_cf) = {
             let model_changes_bolted = e.rotational_restraint.is_some()
                 || e.compliant_fixture.is_some()
                 || e.lumped_mass.is_some();
             let mut bolted = if e.rotational_restraint.is_some() || e.compliant_fixture.is_some() {
-                FeModel::build(board, Setup::Bolted(joint_model(s, true)), &mesh)?
+                FeModel::build(board, Setup::Bolted(joint_model(s, true)), &bolted_mesh)?
             } else {
                 bolted_plain.clone()
             };
@@ -880,6 +902,8 @@ pub struct Truth {
 pub struct ModelMisfit {
     /// Updating model assumed: the board's default mesh, baseline joint (one K_con).
     pub updating_mesh: [usize; 2],
+    /// The updating model's bolted mesh (the board's `mesh_bolted`, else its mesh).
+    pub updating_mesh_bolted: [usize; 2],
     /// Relative misfit of the bolted in-band frequencies, updating vs truth, %.
     pub bolted_misfit_percent: Vec<f64>,
     /// Relative misfit of the free-free in-band frequencies, updating vs truth, %.
@@ -896,7 +920,7 @@ pub fn model_misfit(s: &Scenario, board: &Board, models: &Models) -> Result<Mode
         pt.set(&names::k_con_joint(j + 1), k_bar)?;
     }
     let truth = plain.modes(&pt, s.truth.n_bolted_modes)?;
-    let upd = FeModel::build(board, Setup::bolted(), &board.mesh)?;
+    let upd = FeModel::build(board, Setup::bolted(), board.mesh_for(&Setup::bolted()))?;
     let mut p = upd.nominal_params();
     p.set(names::K_CON, k_bar)?;
     let fu = upd.modes(&p, s.truth.n_bolted_modes)?.freq_hz;
@@ -918,6 +942,10 @@ pub fn model_misfit(s: &Scenario, board: &Board, models: &Models) -> Result<Mode
         .collect();
     Ok(ModelMisfit {
         updating_mesh: [board.mesh.nx, board.mesh.ny],
+        updating_mesh_bolted: {
+            let m = board.mesh_for(&Setup::bolted());
+            [m.nx, m.ny]
+        },
         bolted_misfit_percent,
         free_misfit_percent,
     })
@@ -960,13 +988,17 @@ pub fn assemble(
         seed: plan.seed,
         board_name: board.name.clone(),
         truth_model: format!(
-            "board on a {}x{} BFS mesh (updating default {}x{}), holes as cut cells; \
+            "board on a {}x{} BFS mesh, bolted {}x{} (updating {}x{}, bolted {}x{}), holes as cut cells; \
              bolted: one contact stiffness per joint (K_con of the measurement scattered by {:.1} % per joint) \
              as a spring layer over each clamped annulus, {:.2} g of each bolt spread over the annulus; copper pattern as in the board file",
             s.truth.mesh_nx,
             s.truth.mesh_ny,
+            truth_bolted_mesh(s, board).nx,
+            truth_bolted_mesh(s, board).ny,
             board.mesh.nx,
             board.mesh.ny,
+            board.mesh_for(&Setup::bolted()).nx,
+            board.mesh_for(&Setup::bolted()).ny,
             100.0 * s.truth.per_joint_k_rel_std,
             1e3 * s.truth.joint_mass_kg
         ),

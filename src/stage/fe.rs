@@ -75,7 +75,7 @@ fn load_board(path: Option<&Path>) -> anyhow::Result<(Board, String, Vec<PathBuf
 
 /// Build the model and the parameter point from the options.
 pub fn build_model(board: &Board, opts: &ModelOptions) -> anyhow::Result<(FeModel, Params)> {
-    let mut mesh = board.mesh.clone();
+    let mut mesh = board.mesh_for(&opts.setup.to_setup()).clone();
     if let Some((nx, ny)) = opts.mesh {
         mesh.nx = nx;
         mesh.ny = ny;

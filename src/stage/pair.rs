@@ -157,7 +157,8 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
         let mut models: BTreeMap<String, (FeModel, crate::fem::Modes)> = BTreeMap::new();
         for setup in [SetupArg::Free, SetupArg::Bolted] {
             if ms.iter().any(|m| m.setup == setup.as_str()) {
-                let model = FeModel::build(&board, setup.to_setup(), &board.mesh)?;
+                let fe_setup = setup.to_setup();
+                let model = FeModel::build(&board, fe_setup.clone(), board.mesh_for(&fe_setup))?;
                 let p = model.nominal_params();
                 let modes = model.modes(&p, opts.n_model_modes)?;
                 models.insert(setup.as_str().into(), (model, modes));

@@ -2083,8 +2083,11 @@ pub fn run_joints(
             },
         )
         .map_err(|e| anyhow!("update joints --enrich: {e}"))?;
-        let mut model =
-            FeModel::build(&board, Setup::Bolted(enr.joint_model.clone()), &board.mesh)?;
+        let mut model = FeModel::build(
+            &board,
+            Setup::Bolted(enr.joint_model.clone()),
+            board.mesh_for(&Setup::bolted()),
+        )?;
         let nominal = model.nominal_params();
         let mut board_params = vec![];
         for p in &step1.params {
@@ -2138,7 +2141,7 @@ pub fn run_joints(
         };
         // Reference shapes: the paired model modes of the baseline at the boards' mean.
         let points = match_points(&board);
-        let baseline = FeModel::build(&board, Setup::bolted(), &board.mesh)?;
+        let baseline = FeModel::build(&board, Setup::bolted(), board.mesh_for(&Setup::bolted()))?;
         let all = all_labels(&pairs, "bolted", 40);
         let n_ref = modes_needed(&labels, &all);
         let extra_modes = if enr.joint_model.has_fixture() { 3 } else { 2 };

@@ -111,7 +111,7 @@ fn schema_lists_exactly_the_board_fields() {
         k
     };
     assert_eq!(keys(&schema["properties"]), keys(&board));
-    for sub in ["core", "joint", "mesh", "scan_grid"] {
+    for sub in ["core", "joint", "mesh", "mesh_bolted", "scan_grid"] {
         assert_eq!(
             keys(&schema["properties"][sub]["properties"]),
             keys(&board[sub]),

@@ -35,6 +35,7 @@ pub fn plain_board(lx: f64, ly: f64, h: f64, ex: f64, ey: f64, g: f64, nu: f64, 
             bolt_mass_kg: 0.0,
         },
         mesh: MeshOptions { nx: 8, ny: 8 },
+        mesh_bolted: None,
         scan_grid: ScanGrid {
             nx: 3,
             ny: 3,
