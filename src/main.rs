@@ -14,7 +14,7 @@ use std::process::ExitCode;
 ///
 /// Exit codes: 0 success, 1 error, 2 usage error, 3 success with quarantined measurements.
 #[derive(Parser)]
-#[command(name = "hbmu", version, about, long_about)]
+#[command(name = "hbmu", version = hbmu::io::manifest::TOOL_VERSION, about, long_about)]
 struct Cli {
     /// Print every finding (not just the summary) and progress details on stderr.
     #[arg(short, long, global = true)]

@@ -32,10 +32,12 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::stage::report::TABLE2,
         &crate::stage::report::INTERVALS,
         &crate::stage::diagnose::DIAGNOSIS,
+        &crate::stage::diagnose::MODES,
     ];
     for t in crate::io::tables::all_tables()
         .into_iter()
         .chain(stage_tables)
+        .chain(crate::report::diagnosis::SPECS)
     {
         out.insert(format!("tables/{}.json", t.name), pretty(&t.json_schema()));
     }

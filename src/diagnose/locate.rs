@@ -246,6 +246,28 @@ pub struct MeasurementResidual {
     /// · √(1 + 1/n)), c = `centred_rel_residual`; |z| is stochastically below |t(n − 1)|
     /// whenever the measurement is within δ of the others.
     pub z: f64,
+    /// Degrees of freedom of `z`'s t distribution (the other clean measurements − 1).
+    pub df: f64,
+}
+
+/// An outlier measurement whose deviation sits in one mode alone: that mode is far from
+/// the other measurements while the rest of the measurement agrees with them (their χ² has
+/// p > `fdr`). Every mechanism of the library acts on the structure and moves each mode
+/// whose energy lies where it acts, so it shifts several modes of a measurement together;
+/// a lone pole that slipped (a biased fit, a neighbouring spurious pole) moves one. Reported
+/// as a data-quality finding, not as a located misfit.
+#[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
+pub struct IdentificationOutlier {
+    pub measurement_id: String,
+    pub board_id: String,
+    pub setup: String,
+    pub label: String,
+    /// The mode's relative residual minus the mean of the other clean measurements.
+    pub centred_rel_residual: f64,
+    /// Its predictive t beyond the tolerance (see [`MeasurementResidual::z`]).
+    pub z: f64,
+    /// χ² p of the measurement's other modes.
+    pub p_value_other_modes: f64,
 }
 
 /// Joint outlier check of one measurement over its modes.
@@ -270,6 +292,9 @@ pub struct MeasurementCheck {
     /// BH over all measurements.
     pub q_value: Option<f64>,
     pub outlier: bool,
+    /// An outlier whose deviation is one mode's alone (see [`IdentificationOutlier`]): the
+    /// label; such a measurement is not among [`Located::measurements`].
+    pub single_mode: Option<String>,
     /// Left out of the clean centre and scale by the robust first pass.
     pub left_out_of_scale: bool,
     pub residuals: Vec<MeasurementResidual>,
@@ -427,8 +452,12 @@ pub struct Located {
     /// Setups with a located mode or outlier measurement.
     pub setups: Vec<String>,
     pub modes: Vec<LocatedMode>,
-    /// Outlier measurement ids.
+    /// Outlier measurement ids (several modes off, or one mode with too few others to
+    /// tell; single-mode outliers are in `identification_outliers`).
     pub measurements: Vec<String>,
+    /// Outlier measurements whose deviation is one mode's alone: likely an identification
+    /// slip, listed for the engineer to check, not counted as misfit.
+    pub identification_outliers: Vec<IdentificationOutlier>,
     /// Outlier measurement ids once the located numeric covariates are taken out (each
     /// label's board-blocked slope times the covariate's deviation from its board or setup
     /// mean, whichever fits better; see `adjust_for_covariates`): a
@@ -706,7 +735,7 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
     let measurements_after_covariates: Vec<String> = self::measurement_checks(&adjusted_refs, opts)
         .0
         .into_iter()
-        .filter(|m| m.outlier)
+        .filter(|m| m.outlier && m.single_mode.is_none())
         .map(|m| m.measurement_id)
         .collect();
     let all_unpaired_clusters = unpaired_clusters(input, opts);
@@ -736,8 +765,25 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
         .collect();
     let measurements: Vec<String> = measurement_checks
         .iter()
-        .filter(|m| m.outlier)
+        .filter(|m| m.outlier && m.single_mode.is_none())
         .map(|m| m.measurement_id.clone())
+        .collect();
+    let identification_outliers: Vec<IdentificationOutlier> = measurement_checks
+        .iter()
+        .filter(|m| m.outlier)
+        .filter_map(|m| {
+            let (i, p) = single_mode(&m.residuals, opts.fdr)?;
+            let r = &m.residuals[i];
+            Some(IdentificationOutlier {
+                measurement_id: m.measurement_id.clone(),
+                board_id: m.board_id.clone(),
+                setup: m.setup.clone(),
+                label: r.label.clone(),
+                centred_rel_residual: r.centred_rel_residual,
+                z: r.z,
+                p_value_other_modes: p,
+            })
+        })
         .collect();
     let setups: Vec<String> = modes
         .iter()
@@ -745,7 +791,7 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
         .chain(
             measurement_checks
                 .iter()
-                .filter(|m| m.outlier)
+                .filter(|m| m.outlier && m.single_mode.is_none())
                 .map(|m| m.setup.clone()),
         )
         .collect::<BTreeSet<_>>()
@@ -795,6 +841,7 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
         setups,
         modes,
         measurements,
+        identification_outliers,
         measurements_after_covariates,
         covariates,
         unpaired_clusters: unpaired,
@@ -818,6 +865,19 @@ fn sign_share(x: &[f64], m: f64) -> f64 {
     }
     let s = m.signum();
     x.iter().filter(|v| v.signum() == s && **v != 0.0).count() as f64 / x.len() as f64
+}
+
+/// The mode checks ([`ModeCheck`]) of a residual table alone: the same per-(setup, label)
+/// mean relative residual (mean of the board means with enough boards), scatter and
+/// minimum-effect test as [`locate`] computes, without the ε comparison (no ε draws). The
+/// diagnosis uses it for a refit's residuals, so that a mode's misfit before and after a
+/// candidate come from one computation.
+pub fn mode_means(residuals: &[ResidualObs], opts: &LocateOptions) -> Vec<ModeCheck> {
+    let rows: Vec<&ResidualObs> = residuals
+        .iter()
+        .filter(|r| r.rel_residual.is_finite() && r.std_residual.is_finite())
+        .collect();
+    mode_checks(&rows, &BTreeMap::new(), None, opts)
 }
 
 fn mode_checks(
@@ -1027,8 +1087,32 @@ fn measurement_checks(
     for (m, q) in checks.iter_mut().zip(q) {
         m.q_value = q;
         m.outlier = q.is_some_and(|q| q <= opts.fdr);
+        if m.outlier {
+            m.single_mode =
+                single_mode(&m.residuals, opts.fdr).map(|(i, _)| m.residuals[i].label.clone());
+        }
     }
     (checks, sig)
+}
+
+/// The one mode that makes a measurement an outlier, with the χ² p of its other modes: the
+/// mode with the largest |z| when at least two others are tested and they pass (p > `alpha`).
+fn single_mode(res: &[MeasurementResidual], alpha: f64) -> Option<(usize, f64)> {
+    if res.len() < 3 {
+        return None;
+    }
+    let (imax, _) = res
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.z.abs().total_cmp(&b.1.z.abs()))?;
+    let rest: Vec<(f64, f64)> = res
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| *i != imax)
+        .map(|(_, r)| (r.z, r.df))
+        .collect();
+    let p = chi2_sf(chi2_of(&rest), rest.len() as f64);
+    (p > alpha).then_some((imax, p))
 }
 
 type ByMeasurement<'a> = BTreeMap<(String, String, String), Vec<&'a ResidualObs>>;
@@ -1087,6 +1171,7 @@ fn studentized_checks(
                 rel_residual: x,
                 centred_rel_residual: x - m,
                 z,
+                df: n - 1.0,
             });
         }
         let k = res.len();
@@ -1100,6 +1185,7 @@ fn studentized_checks(
             p_value: (k > 0).then(|| chi2_sf(chi2, k as f64)),
             q_value: None,
             outlier: false,
+            single_mode: None,
             left_out_of_scale: out,
             residuals: res,
         });

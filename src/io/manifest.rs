@@ -17,8 +17,11 @@ use std::fs::File;
 use std::io::{self, Read};
 use std::path::{Path, PathBuf};
 
-/// Version string recorded in manifests; part of the fingerprint.
-pub const TOOL_VERSION: &str = env!("CARGO_PKG_VERSION");
+/// Version string recorded in manifests, Parquet metadata and model-cache keys; part of the
+/// fingerprint. The package version with the source revision as build metadata
+/// (`0.1.0+src.<16 hex>`, see build.rs): a changed source reruns every stage and never
+/// reuses a cached model artifact built by other code.
+pub const TOOL_VERSION: &str = concat!(env!("CARGO_PKG_VERSION"), "+src.", env!("HBMU_SOURCE_ID"));
 
 /// One hashed file, with its path relative to a base directory where possible.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -237,4 +240,19 @@ pub fn finish(
 /// Current UTC time as RFC 3339, for the manifest's run info only.
 pub fn now_utc() -> String {
     chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tool_version_carries_the_source_revision() {
+        let (pkg, rev) = TOOL_VERSION
+            .split_once("+src.")
+            .expect("version has +src.<id>");
+        assert_eq!(pkg, env!("CARGO_PKG_VERSION"));
+        assert_eq!(rev.len(), 16, "{TOOL_VERSION}");
+        assert!(rev.bytes().all(|b| b.is_ascii_hexdigit()), "{TOOL_VERSION}");
+    }
 }

@@ -337,8 +337,8 @@ pub fn describe(s: &Scenario, ms: &[MeasurementTruth]) -> Vec<EffectTruth> {
 pub fn summary(effects: &[EffectTruth]) -> String {
     let on: Vec<&EffectTruth> = effects.iter().filter(|e| e.enabled).collect();
     if on.is_empty() {
-        return "Null scenario: no concealed effect. Beyond the truth model's finer mesh, per-joint \
-                stiffness scatter and bolt mass (small, below the measurement scatter), a correct \
+        return "Null scenario: no concealed effect. Beyond the truth model's finer mesh and per-joint \
+                stiffness scatter (small, below the measurement scatter), a correct \
                 diagnosis finds no missing physics: residuals are at the noise level and show no \
                 trend with setup, temperature, board region or measurement."
             .into();

@@ -9,8 +9,9 @@
 //! - per measurement: the lab temperature T_k = T̄ + A sin(2π k / P) + N(0, σ_T²) [°C].
 //!
 //! Truth models (richer than the updating model): the board on a finer mesh than its
-//! default, bolted through per-joint contact springs on the clamped patches with the
-//! riding share of the bolt mass, plus the features of the switched-on effects. For each
+//! default, bolted through per-joint contact springs on the clamped patches (with the
+//! riding share of the bolt mass when the scenario's `[truth] joint_mass_kg` gives one;
+//! default none), plus the features of the switched-on effects. For each
 //! measurement the modes are computed twice when an effect touches its setup: with the
 //! effects and without them (the counterfactual, paired by MAC on the scan grid), so the
 //! truth file states by how much each effect moved each mode.
@@ -897,7 +898,7 @@ pub struct Truth {
 /// baseline joint) at the population mean: board nominal parameters, the same K_con
 /// K̄ in both (K_con is the joint's physical total stiffness on any mesh, so no mapping
 /// between meshes is needed), no concealed effect. The rest is what makes the truth
-/// richer: its finer mesh, its per-joint stiffnesses and the bolt mass on the patches.
+/// richer: its finer mesh, its per-joint stiffnesses and any bolt mass on the patches.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ModelMisfit {
     /// Updating model assumed: the board's default mesh, baseline joint (one K_con).

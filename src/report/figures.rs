@@ -1,6 +1,7 @@
 //! SVG figures of the validation report (pure, into `String`s), with plotters' SVG backend
 //! like [`super::plots`]: the Figure-6 analog (predicted boxes with measurements overlaid),
-//! posterior densities, the correlation matrix and the tempering path.
+//! posterior densities, the correlation matrix, the tempering path and the diagnosis's
+//! before/after misfit per mode.
 
 use super::plots::PlotError;
 use plotters::prelude::*;
@@ -414,6 +415,133 @@ pub fn tempering_svg(title: &str, runs: &[Vec<(f64, f64)>]) -> Result<String, Pl
             .border_style(BLACK.mix(0.3))
             .label_font(("sans-serif", 12))
             .position(SeriesLabelPosition::LowerRight)
+            .draw()
+            .map_err(perr(P))?;
+        root.present().map_err(perr(P))?;
+    }
+    Ok(out)
+}
+
+/// One mode of the before/after figure: its mean relative residual (percent) in the baseline
+/// and after the refit (`None`: no refit).
+#[derive(Clone, Debug)]
+pub struct BeforeAfter {
+    pub label: String,
+    pub before_pct: f64,
+    pub after_pct: Option<f64>,
+    /// Located as misfitting in the baseline (drawn with a darker outline).
+    pub located: bool,
+}
+
+/// Per mode, the baseline's mean relative residual against the refit's, as side-by-side bars
+/// from zero (the model's mean prediction), in percent; `after_name` names the refit in the
+/// legend.
+pub fn before_after_svg(
+    title: &str,
+    items: &[BeforeAfter],
+    after_name: Option<&str>,
+) -> Result<String, PlotError> {
+    const P: &str = "before_after";
+    let vals = items
+        .iter()
+        .flat_map(|i| std::iter::once(i.before_pct).chain(i.after_pct))
+        .filter(|v| v.is_finite());
+    let (mut lo, mut hi) = vals.fold((0.0f64, 0.0f64), |(a, b), v| (a.min(v), b.max(v)));
+    if hi - lo <= 0.0 {
+        lo = -0.1;
+        hi = 0.1;
+    }
+    let pad = 0.1 * (hi - lo);
+    let (lo, hi) = (lo - pad, hi + pad);
+    let n = items.len().max(1);
+    let mut out = String::new();
+    {
+        let w = (160 + 110 * n as u32).max(560);
+        let root = SVGBackend::with_string(&mut out, (w, 420)).into_drawing_area();
+        root.fill(&WHITE).map_err(perr(P))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 18))
+            .margin(12)
+            .x_label_area_size(70)
+            .y_label_area_size(80)
+            .build_cartesian_2d(0.0..n as f64, lo..hi)
+            .map_err(perr(P))?;
+        let labels: Vec<String> = items
+            .iter()
+            .map(|i| {
+                if i.located {
+                    format!("{} *", i.label)
+                } else {
+                    i.label.clone()
+                }
+            })
+            .collect();
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .x_labels(n * 2 + 1)
+            .x_label_formatter(&|x| {
+                let k = (x - 0.5).round();
+                if (x - 0.5 - k).abs() < 1e-6 && k >= 0.0 && (k as usize) < labels.len() {
+                    labels[k as usize].clone()
+                } else {
+                    String::new()
+                }
+            })
+            .x_label_style(("sans-serif", 13))
+            .y_label_style(("sans-serif", 13))
+            .y_desc("mean (f_measured − f_model) / f_model [%]")
+            .x_desc("mode (* located as misfitting)")
+            .axis_desc_style(("sans-serif", 14))
+            .draw()
+            .map_err(perr(P))?;
+        chart
+            .draw_series(LineSeries::new(
+                vec![(0.0, 0.0), (n as f64, 0.0)],
+                BLACK.stroke_width(1),
+            ))
+            .map_err(perr(P))?;
+        let (cb, ca) = (colour(1), colour(0));
+        let bar = |x0: f64, x1: f64, v: f64, c: RGBColor, located: bool| {
+            let outline = if located { BLACK } else { c };
+            [
+                Rectangle::new([(x0, 0.0), (x1, v)], c.filled()),
+                Rectangle::new([(x0, 0.0), (x1, v)], outline.stroke_width(1)),
+            ]
+        };
+        let (mut need_b, mut need_a) = (true, true);
+        for (k, it) in items.iter().enumerate() {
+            let x = k as f64 + 0.5;
+            if it.before_pct.is_finite() {
+                let s = chart
+                    .draw_series(bar(x - 0.32, x, it.before_pct, cb, it.located))
+                    .map_err(perr(P))?;
+                if need_b {
+                    need_b = false;
+                    s.label("baseline").legend(move |(x, y)| {
+                        Rectangle::new([(x, y - 5), (x + 14, y + 5)], cb.filled())
+                    });
+                }
+            }
+            if let Some(a) = it.after_pct.filter(|a| a.is_finite()) {
+                let s = chart
+                    .draw_series(bar(x, x + 0.32, a, ca, it.located))
+                    .map_err(perr(P))?;
+                if need_a {
+                    need_a = false;
+                    s.label(format!("after: {}", after_name.unwrap_or("refit")))
+                        .legend(move |(x, y)| {
+                            Rectangle::new([(x, y - 5), (x + 14, y + 5)], ca.filled())
+                        });
+                }
+            }
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK.mix(0.3))
+            .label_font(("sans-serif", 12))
+            .position(SeriesLabelPosition::UpperRight)
             .draw()
             .map_err(perr(P))?;
         root.present().map_err(perr(P))?;

@@ -86,6 +86,8 @@ pub struct ReportData {
     pub provenance: Vec<Provenance>,
     /// Inputs of the report itself: (path, blake3).
     pub inputs: Vec<(String, String)>,
+    /// The diagnose stage's output (`diagnose/diagnosis.json`), when it ran.
+    pub diagnosis: Option<super::diagnosis::DiagnosisData>,
 }
 
 /// What [`render`] produces.
@@ -189,6 +191,7 @@ table{border-collapse:collapse;margin:.8em 0;font-size:.9em;display:block;overfl
 th,td{border:1px solid #ccc;padding:.25em .5em;white-space:nowrap}th{background:#f0f0f0}td.n{text-align:right;font-variant-numeric:tabular-nums}
 figure.plot{margin:1em 0}figure.plot svg{max-width:100%;height:auto;display:block}figcaption{font-size:.9em;color:#444}
 .bad{color:#a00;font-weight:600}.ok{color:#060}code{background:#f4f4f4;padding:0 .2em}
+.verdict{border:2px solid #888;border-radius:4px;padding:.2em 1em;background:#fafafa;font-size:1.05em}
 .grid{display:flex;flex-wrap:wrap;gap:1em}.grid figure{flex:1 1 480px}
 nav ul{columns:2}@media print{nav{display:none}figure{break-inside:avoid}}";
 
@@ -258,6 +261,9 @@ pub fn render(d: &ReportData) -> Rendered {
         let _ = writeln!(md, "\n**Bolted predictions absent:** {why}");
     }
     let _ = writeln!(md);
+
+    // --- Diagnosis.
+    diagnosis_section(&mut pg, &mut md, d.diagnosis.as_ref());
 
     // --- Table 2 analog.
     pg.section(
@@ -631,6 +637,162 @@ pub fn render(d: &ReportData) -> Rendered {
         markdown: md,
         figures: pg.figures,
     }
+}
+
+/// One table of the diagnosis section; "none" in one line when it has no rows.
+fn diagnosis_table(pg: &mut Page, title: &str, t: &super::diagnosis::Table) {
+    use super::diagnosis::Cell;
+    if t.rows.is_empty() {
+        pg.p(&format!("<strong>{}:</strong> none.", esc(title)));
+        return;
+    }
+    pg.p(&format!("<strong>{}</strong>", esc(title)));
+    let mut h = format!("<table data-table=\"{}\"><tr>", t.spec.name);
+    for c in t.headers {
+        let _ = write!(h, "<th>{}</th>", esc(c));
+    }
+    h.push_str("</tr>\n");
+    for r in &t.rows {
+        h.push_str("<tr>");
+        for ((cell, col), digits) in r.iter().zip(t.spec.columns).zip(t.digits) {
+            let name = col.name;
+            h.push_str(&match cell {
+                Cell::Str(Some(v)) if v.len() > 60 => format!(
+                    "<td data-col=\"{name}\" data-value=\"{0}\" style=\"white-space:normal;min-width:20em\">{0}</td>",
+                    esc(v)
+                ),
+                Cell::Str(v) => txt(name, v.as_deref().unwrap_or("")),
+                Cell::F64(v) => num(name, v.unwrap_or(f64::NAN), *digits),
+                Cell::Int(Some(v)) => {
+                    format!("<td class=\"n\" data-col=\"{name}\" data-value=\"{v}\">{v}</td>")
+                }
+                Cell::Int(None) => format!("<td class=\"n\" data-col=\"{name}\" data-value=\"\">–</td>"),
+                Cell::Bool(b) => txt(name, if *b { "yes" } else { "no" }),
+            });
+        }
+        h.push_str("</tr>\n");
+    }
+    h.push_str("</table>");
+    pg.body.push_str(&h);
+}
+
+/// The diagnosis: verdict first, then the located evidence, the candidates and the misfit per
+/// mode before and after the best refit.
+fn diagnosis_section(pg: &mut Page, md: &mut String, d: Option<&super::diagnosis::DiagnosisData>) {
+    use super::diagnosis::{self, Cell};
+    pg.section("diagnosis", "Diagnosis");
+    let Some(d) = d else {
+        pg.p("The diagnose stage has not run (no <code>diagnose/diagnosis.json</code>): no verdict on missing physics.");
+        let _ = writeln!(md, "**Diagnosis:** the diagnose stage has not run.\n");
+        return;
+    };
+    let doc = &d.doc;
+    let statement = diagnosis::verdict_statement(doc);
+    let class = if doc.verdict == "no_missing_physics" {
+        "ok"
+    } else {
+        "bad"
+    };
+    let _ = writeln!(
+        pg.body,
+        "<div class=\"verdict\" data-verdict=\"{0}\"><p><strong>Verdict: <span class=\"{class}\">{0}</span></strong></p><p>{1}</p></div>",
+        esc(&doc.verdict),
+        esc(&statement)
+    );
+    let _ = writeln!(
+        md,
+        "**Diagnosis — verdict `{}`:** {statement}\n",
+        doc.verdict
+    );
+    if doc.verdict == "unexplained_misfit" {
+        pg.p(&format!(
+            "<strong>Remaining discrepancy:</strong> {}",
+            esc(&doc.remaining_discrepancy)
+        ));
+        let _ = writeln!(md, "Remaining discrepancy: {}\n", doc.remaining_discrepancy);
+    }
+    pg.p(&format!(
+        "Located evidence (the baseline's posterior-predictive checks): setups {}. Full detail: <code>diagnose/diagnosis.json</code>; refits under <code>diagnose/refits/</code>.",
+        if doc.located.setups.is_empty() {
+            "none".to_string()
+        } else {
+            esc(&doc.located.setups.join(", "))
+        }
+    ));
+    let tables = diagnosis::tables(d);
+    let titles = [
+        "Misfitting modes",
+        "Outlier measurements",
+        "Significant covariates",
+        "Recurring unpaired-mode clusters",
+        "Model modes never seen",
+        "Candidate mechanisms",
+        "Misfit per mode, before and after the best refit",
+    ];
+    for (t, title) in tables.iter().zip(titles) {
+        if t.spec.name == diagnosis::BEFORE_AFTER.name {
+            break;
+        }
+        diagnosis_table(pg, title, t);
+    }
+    let Some(ba) = tables.last() else {
+        return;
+    };
+    if d.modes.is_none() {
+        pg.p("<strong>Before/after per mode:</strong> not available: <code>diagnose/diagnosis_modes.parquet</code> is missing (written by a diagnose stage of an older version; rerun it).");
+        return;
+    }
+    let best = diagnosis::best_refit(d);
+    let one_setup = ba.rows.windows(2).all(|w| w[0][0] == w[1][0]);
+    let items: Vec<figures::BeforeAfter> = ba
+        .rows
+        .iter()
+        .map(|r| {
+            let g = |k: usize| match &r[k] {
+                Cell::F64(v) => *v,
+                _ => None,
+            };
+            let st = |k: usize| match &r[k] {
+                Cell::Str(Some(v)) => v.clone(),
+                _ => String::new(),
+            };
+            figures::BeforeAfter {
+                label: if one_setup {
+                    st(1)
+                } else {
+                    format!("{} {}", st(0), st(1))
+                },
+                before_pct: g(5).unwrap_or(f64::NAN),
+                after_pct: g(8),
+                located: matches!(r[3], Cell::Bool(true)),
+            }
+        })
+        .collect();
+    if items.is_empty() {
+        pg.p("<strong>Misfit per mode, before and after:</strong> none (no located mode and no refit).");
+        return;
+    }
+    let caption = match &best {
+        Some(id) => format!(
+            "Mean relative residual per mode (every mode of the setups the refit covers), baseline against the refit <code>{}</code>; bars from zero, the model's mean prediction. Values in the table below and in <code>diagnosis_before_after.csv</code>.",
+            esc(id)
+        ),
+        None => "Mean relative residual of the located modes in the baseline (no refit gave a posterior). Values in the table below.".to_string(),
+    };
+    pg.figure(
+        figures::before_after_svg(
+            &match (one_setup, ba.rows.first().map(|r| &r[0])) {
+                (true, Some(Cell::Str(Some(st)))) => {
+                    format!("Misfit per mode before and after, {st}")
+                }
+                _ => "Misfit per mode before and after".to_string(),
+            },
+            &items,
+            best.as_deref(),
+        ),
+        &caption,
+    );
+    diagnosis_table(pg, titles[6], ba);
 }
 
 fn posterior_section(pg: &mut Page, step: &StepData) {

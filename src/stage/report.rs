@@ -3,24 +3,29 @@
 //! Reads `propagate/` (predictions), `update_boards/` and, when present, `update_joints/`
 //! (posteriors, summaries, tempering paths, evidence, residuals = the measurements compared),
 //! `ingest/ingest_report.json` (findings), the stabilization and MAC plots of `extract/plots`
-//! and `pair/plots`, and every stage manifest (provenance). Writes `report.html` (self-contained,
+//! and `pair/plots`, `diagnose/diagnosis.json` and `diagnose/diagnosis_modes.parquet` when the
+//! diagnose stage ran (the Diagnosis section, whose tables also go out as Parquet and CSV), and
+//! every stage manifest (provenance). Writes `report.html` (self-contained,
 //! inline SVG), `summary.md`, the tables `table2` and `intervals` as Parquet and CSV, and copies
 //! of the plots under `plots/` so the directory can be sent as it is. The rendering is pure
 //! (`report::html`); this file only reads and writes.
 
 use crate::io::manifest::StageSpec;
 use crate::io::tables::{self, c, Col, Cols, TableSpec};
+use crate::report::diagnosis::{self, Cell, DiagnosisData, DiagnosisView, ModeMisfit};
 use crate::report::html::{self, FindingRow, Provenance, ReportData, StepData, SummaryRow};
 use crate::report::validation::{self, Interval, Measured, Pred, Table2Row};
 use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::{anyhow, bail, Context};
-use arrow::array::{Array, ArrayRef, Float64Array, Int32Array, StringArray};
+use arrow::array::{Array, ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 pub const MANIFEST: &str = "report.manifest.json";
 pub const HTML: &str = "report.html";
+/// The diagnose stage's per-mode misfits (see `stage::diagnose::MODES`).
+const DIAGNOSIS_MODES_FILE: &str = "diagnosis_modes.parquet";
 
 pub const TABLE2: TableSpec = TableSpec {
     name: "table2",
@@ -416,6 +421,87 @@ fn write_intervals(
     write_both(out, &INTERVALS, cols, prov)
 }
 
+/// `diagnosis.json` and, when there, `diagnosis_modes.parquet` of the diagnose stage.
+fn read_diagnosis(json: &Path, modes: &Path) -> anyhow::Result<DiagnosisData> {
+    let b = std::fs::read(json).with_context(|| format!("cannot read {}", json.display()))?;
+    let doc: DiagnosisView = serde_json::from_slice(&b).with_context(|| {
+        format!(
+            "{}: not a diagnosis document (expected the fields of schemas/diagnosis.schema.json)",
+            json.display()
+        )
+    })?;
+    let modes = if modes.is_file() {
+        let mut out = vec![];
+        for b in tables::read_parquet(modes)? {
+            let c = Cols {
+                batch: &b,
+                path: modes,
+            };
+            let (m, st, l, u, n, r, loc) = (
+                c.str("model")?,
+                c.str("setup")?,
+                c.str("label")?,
+                c.bool("used_for_updating")?,
+                c.i32("n")?,
+                c.f64("mean_rel_residual")?,
+                c.bool("located")?,
+            );
+            for i in 0..b.num_rows() {
+                out.push(ModeMisfit {
+                    model: m.value(i).into(),
+                    setup: st.value(i).into(),
+                    label: l.value(i).into(),
+                    used_for_updating: u.value(i),
+                    n: n.value(i).max(0) as usize,
+                    mean_rel_residual: (!r.is_null(i)).then(|| r.value(i)),
+                    located: loc.value(i),
+                });
+            }
+        }
+        Some(out)
+    } else {
+        None
+    };
+    Ok(DiagnosisData { doc, modes })
+}
+
+/// One table of the diagnosis section as Parquet and CSV.
+fn write_section_table(
+    out: &Path,
+    t: &diagnosis::Table,
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<Vec<PathBuf>> {
+    let mut cols: Vec<ArrayRef> = vec![];
+    for (k, col) in t.spec.columns.iter().enumerate() {
+        let cells = t.rows.iter().map(|r| &r[k]);
+        let a: ArrayRef = match col.ty {
+            Col::Utf8 => Arc::new(StringArray::from_iter(cells.map(|c| match c {
+                Cell::Str(v) => v.clone(),
+                _ => None,
+            }))),
+            Col::Float64 => Arc::new(Float64Array::from_iter(cells.map(|c| match c {
+                Cell::F64(v) => *v,
+                _ => None,
+            }))),
+            Col::Int32 => Arc::new(Int32Array::from_iter(cells.map(|c| match c {
+                Cell::Int(v) => v.map(|x| x as i32),
+                _ => None,
+            }))),
+            Col::Bool => Arc::new(BooleanArray::from_iter(cells.map(|c| match c {
+                Cell::Bool(b) => Some(*b),
+                _ => None,
+            }))),
+            other => bail!(
+                "{}: column {} of type {other:?} not supported",
+                t.spec.name,
+                col.name
+            ),
+        };
+        cols.push(a);
+    }
+    write_both(out, t.spec, cols, prov)
+}
+
 /// The table as Parquet and as CSV (numbers in Rust's shortest round-trip form, empty = null).
 fn write_both(
     out: &Path,
@@ -442,6 +528,8 @@ fn write_both(
                 } else if let Some(x) = a.as_any().downcast_ref::<Float64Array>() {
                     x.value(i).to_string()
                 } else if let Some(x) = a.as_any().downcast_ref::<Int32Array>() {
+                    x.value(i).to_string()
+                } else if let Some(x) = a.as_any().downcast_ref::<BooleanArray>() {
                     x.value(i).to_string()
                 } else {
                     String::new()
@@ -505,6 +593,16 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
     if ingest_report.is_file() {
         inputs.push(ingest_report.clone());
     }
+    // The diagnosis, when the diagnose stage ran: its document and per-mode misfits.
+    let diag_json = w.join("diagnose").join(crate::stage::diagnose::JSON);
+    let diag_modes = w.join("diagnose").join(DIAGNOSIS_MODES_FILE);
+    let has_diag = diag_json.is_file();
+    if has_diag {
+        inputs.push(diag_json.clone());
+        if diag_modes.is_file() {
+            inputs.push(diag_modes.clone());
+        }
+    }
     let plots: Vec<(&str, PathBuf)> = svgs(&w.join("extract").join("plots"))
         .into_iter()
         .map(|p| ("extract", p))
@@ -525,6 +623,7 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         "update_boards",
         "update_joints",
         "propagate",
+        "diagnose",
     ] {
         let mut v: Vec<PathBuf> = std::fs::read_dir(w.join(d))
             .map(|r| {
@@ -540,7 +639,7 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         stage: "report".into(),
         inputs,
         input_base: w.clone(),
-        config: serde_json::json!({ "step2": has2 }),
+        config: serde_json::json!({ "step2": has2, "diagnosis": has_diag }),
         seed: None,
         manifest_path: opts.out.join(MANIFEST),
     };
@@ -650,6 +749,11 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
             };
             links.push((mid, what, rel));
         }
+        let diagnosis = if has_diag {
+            Some(read_diagnosis(&diag_json, &diag_modes)?)
+        } else {
+            None
+        };
         let title = format!(
             "Validation report: {}",
             w.canonicalize()
@@ -679,6 +783,7 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
                 .filter(|f| !f.path.ends_with(".svg"))
                 .map(|f| (f.path.clone(), f.blake3.clone()))
                 .collect(),
+            diagnosis,
         };
         let r = html::render(&data);
         let prov = BTreeMap::from([
@@ -692,6 +797,11 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         ]);
         outputs.extend(write_table2(&opts.out, &t2, &prov)?);
         outputs.extend(write_intervals(&opts.out, &iv, &prov)?);
+        if let Some(d) = &data.diagnosis {
+            for t in diagnosis::tables(d) {
+                outputs.extend(write_section_table(&opts.out, &t, &prov)?);
+            }
+        }
         let p = opts.out.join(HTML);
         crate::io::atomic::write_bytes(&p, r.html.as_bytes())?;
         outputs.push(p);

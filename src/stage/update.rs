@@ -652,6 +652,68 @@ impl DrawTable {
     }
 }
 
+/// Largest split R-hat across runs that counts as agreement (Vehtari et al. 2021 advise 1.01
+/// for a final analysis; at the pipeline's few runs of a few hundred particles, 1.05 is the
+/// level below which the runs' differences are within their Monte Carlo error).
+pub const MAX_R_HAT: f64 = 1.05;
+/// Smallest bulk or tail ESS (over all runs) below which quantiles are unreliable.
+pub const MIN_ESS: f64 = 100.0;
+
+/// A warning when the independent runs disagree (R-hat above [`MAX_R_HAT`]) or the effective
+/// sample size is small (below [`MIN_ESS`]), naming the worst parameters: the posterior
+/// and the evidence's error bar are then not to be trusted as they stand (more particles or
+/// runs; a multimodal posterior, e.g. of a model that misses physics, needs more of both).
+fn convergence_finding(summary: &[SummaryRow], runs: usize) -> Option<Finding> {
+    let name = |r: &SummaryRow| {
+        let mut n = r.parameter.clone();
+        if let Some(m) = r.measurement_id.as_ref().or(r.board_id.as_ref()) {
+            n.push_str(&format!(" [{m}]"));
+        }
+        n
+    };
+    let mut bad_r: Vec<&SummaryRow> = summary
+        .iter()
+        .filter(|r| runs >= 2 && r.s.r_hat > MAX_R_HAT)
+        .collect();
+    bad_r.sort_by(|a, b| b.s.r_hat.total_cmp(&a.s.r_hat));
+    let ess = |r: &SummaryRow| r.s.ess_bulk.min(r.s.ess_tail);
+    let mut bad_e: Vec<&SummaryRow> = summary.iter().filter(|r| ess(r) < MIN_ESS).collect();
+    bad_e.sort_by(|a, b| ess(a).total_cmp(&ess(b)));
+    if bad_r.is_empty() && bad_e.is_empty() {
+        return None;
+    }
+    let list = |v: &[&SummaryRow], f: &dyn Fn(&SummaryRow) -> String| {
+        let mut s: Vec<String> = v.iter().take(4).map(|r| f(r)).collect();
+        if v.len() > 4 {
+            s.push(format!("{} more", v.len() - 4));
+        }
+        s.join(", ")
+    };
+    let mut parts = vec![];
+    if !bad_r.is_empty() {
+        parts.push(format!(
+            "{} parameter(s) with R-hat above {MAX_R_HAT} ({}): the independent runs disagree",
+            bad_r.len(),
+            list(&bad_r, &|r| format!("{} {:.3}", name(r), r.s.r_hat))
+        ));
+    }
+    if !bad_e.is_empty() {
+        parts.push(format!(
+            "{} parameter(s) with bulk or tail ESS below {MIN_ESS:.0} ({})",
+            bad_e.len(),
+            list(&bad_e, &|r| format!("{} {:.0}", name(r), ess(r)))
+        ));
+    }
+    Some(Finding::new(
+        Severity::Warning,
+        "update.not_converged",
+        format!(
+            "{}; the posterior and the evidence's error bar are not reliable as they stand: rerun with more particles or runs (a posterior with several modes, as a model missing physics can have, needs both)",
+            parts.join("; ")
+        ),
+    ))
+}
+
 struct SummaryRow {
     parameter: String,
     board_id: Option<String>,
@@ -2554,6 +2616,10 @@ fn finish(
     what: &str,
     acceleration: &Acceleration,
 ) -> anyhow::Result<StageResult> {
+    let mut findings = findings;
+    if let Some(f) = convergence_finding(summary, results.len()) {
+        findings.push(f);
+    }
     for f in findings.iter() {
         if verbose || f.severity >= Severity::Warning {
             eprintln!("{f}");
@@ -2605,4 +2671,50 @@ fn finish(
         exit_code: exit::OK,
         summary: s,
     })
+}
+
+#[cfg(test)]
+mod convergence_tests {
+    use super::*;
+    use crate::bayes::diagnostics::summarize;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+    use rand_distr::{Distribution, Normal};
+
+    fn row(name: &str, chains: &[Vec<f64>]) -> SummaryRow {
+        SummaryRow {
+            parameter: name.into(),
+            board_id: None,
+            measurement_id: Some("M001".into()),
+            s: summarize(chains),
+        }
+    }
+
+    fn chains(seed: u64, shifts: &[f64], n: usize) -> Vec<Vec<f64>> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let d = Normal::new(0.0, 1.0).unwrap();
+        shifts
+            .iter()
+            .map(|s| (0..n).map(|_| s + d.sample(&mut rng)).collect())
+            .collect()
+    }
+
+    #[test]
+    fn agreeing_runs_raise_nothing_and_disagreeing_runs_are_named() {
+        let good = row("k_con_n_per_m", &chains(1, &[0.0, 0.0], 400));
+        assert!(good.s.r_hat < MAX_R_HAT && good.s.ess_bulk > MIN_ESS);
+        assert!(convergence_finding(&[good], 2).is_none());
+        // Two runs in different modes (two sd apart): R-hat far above 1.05.
+        let good = row("mu_ln_k_con", &chains(2, &[0.0, 0.0], 400));
+        let bad = row("eps_plate-0-0", &chains(3, &[0.0, 2.0], 400));
+        assert!(bad.s.r_hat > 1.3, "{}", bad.s.r_hat);
+        let f = convergence_finding(&[good, bad], 2).expect("a warning");
+        assert_eq!(f.code, "update.not_converged");
+        assert!(f.message.contains("eps_plate-0-0 [M001]"), "{}", f.message);
+        assert!(!f.message.contains("mu_ln_k_con"), "{}", f.message);
+        // Too few effective draws: 2 runs of 30.
+        let short = row("sigma_ln_k_con", &chains(4, &[0.0, 0.0], 30));
+        let f = convergence_finding(&[short], 2).expect("a warning");
+        assert!(f.message.contains("ESS below 100"), "{}", f.message);
+    }
 }

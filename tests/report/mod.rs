@@ -272,6 +272,12 @@ fn report_opens_in_chromium_without_errors_and_its_tables_equal_the_parquet() {
             && !stripped.contains("<img"),
         "the page must not reach the network or run a script"
     );
+    // The DAG up to report only: the diagnosis section says in one line that diagnose has not
+    // run (src/report/diagnosis.rs tests the section's tables against their sources).
+    assert!(
+        html.contains("<h2 id=\"diagnosis\">") && html.contains("The diagnose stage has not run"),
+        "no diagnosis section"
+    );
     // The unmodified page: a screenshot, and no console message at all (it has no script, so
     // any console line is the browser complaining about the page).
     let artifacts = repo().join("target/test-artifacts");

@@ -396,7 +396,7 @@ fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairObs>> {
     Ok(out)
 }
 
-fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
+pub(crate) fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
     let mut out = vec![];
     for b in tables::read_parquet(path)? {
         let c = Cols { batch: &b, path };

@@ -4,7 +4,8 @@
 //! `update joints --enrich` (each refit its own hashed stage under `DIR/refits/<id>`, so a
 //! cluster can run them side by side: `--only <id>` runs one and stops), compares them with
 //! the work directory's step 2 by log evidence and held-out error
-//! ([`crate::diagnose::select`]), and writes `diagnosis.json` and `diagnosis.parquet`.
+//! ([`crate::diagnose::select`]), and writes `diagnosis.json`, `diagnosis.parquet` and
+//! `diagnosis_modes.parquet` (each mode's misfit before and after every refit).
 //!
 //! The refits run with exactly the options the work directory's step 2 ran with (read from
 //! its manifest), so the Bayes factors compare like with like.
@@ -12,7 +13,7 @@
 pub mod inputs;
 
 use crate::diagnose::library::Mechanism;
-use crate::diagnose::locate::{self, LocateOptions, Located};
+use crate::diagnose::locate::{self, LocateOptions, Located, ModeCheck};
 use crate::diagnose::screen::{self, Candidate};
 use crate::diagnose::select::{
     self, Compared, Estimate, Refit, SelectOptions, SetupError, Verdict,
@@ -24,8 +25,9 @@ use crate::stage::update::UpdateOptions;
 use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::{anyhow, Context};
 
-/// Largest R-hat across a refit's runs for its evidence to count.
-const MAX_R_HAT: f64 = 1.05;
+/// Largest R-hat across a refit's runs for its evidence to count (the updating's own
+/// convergence level).
+use crate::stage::update::MAX_R_HAT;
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -56,6 +58,23 @@ pub const DIAGNOSIS: TableSpec = TableSpec {
         c("estimate_q95", Col::Float64, true, "", "95 % quantile."),
         c("failed", Col::Utf8, true, "", "Why the refit gave no posterior."),
         c("sentence", Col::Utf8, false, "", "The finding in words."),
+    ],
+};
+
+pub const MODES: TableSpec = TableSpec {
+    name: "diagnosis_modes",
+    doc: "Each mode's misfit before and after the candidates: per model (`baseline` = the work directory's update steps, or a refitted candidate's id) and (setup, label), the mean relative residual r = (f_measured − f̄_model)/f̄_model over the measurements (the mean of the board means with at least `min_boards_for_board_test` boards, as locate's mode check) with its standard error. The baseline rows are locate's mode checks; a refit's rows the same computation over refits/<id>/residuals.parquet (its setups only). Failed refits have no rows.",
+    open: false,
+    columns: &[
+        c("model", Col::Utf8, false, "", "`baseline` or the refitted candidate's id (its directory under refits/)."),
+        c("setup", Col::Utf8, false, "", "Setup."),
+        c("label", Col::Utf8, false, "", "Mode label."),
+        c("used_for_updating", Col::Bool, false, "", "The label was used for updating (false: a validation mode)."),
+        c("n", Col::Int32, false, "", "Residual rows (measurements) of the mode."),
+        c("n_boards", Col::Int32, false, "", "Boards among them."),
+        c("mean_rel_residual", Col::Float64, true, "", "Mean relative residual (dimensionless; null when undefined)."),
+        c("se_rel_residual", Col::Float64, true, "", "Its standard error (null with one unit)."),
+        c("located", Col::Bool, false, "", "The baseline's mode check located this (setup, label) as misfitting."),
     ],
 };
 
@@ -127,6 +146,9 @@ pub struct LocatedSummary {
     pub setups: Vec<String>,
     pub modes: Vec<crate::diagnose::locate::LocatedMode>,
     pub measurements: Vec<String>,
+    /// Outlier measurements whose deviation is one mode's alone (likely identification
+    /// slips; not counted as misfit).
+    pub identification_outliers: Vec<crate::diagnose::locate::IdentificationOutlier>,
     pub covariates: Vec<crate::diagnose::locate::LocatedCovariate>,
     pub unpaired_clusters: Vec<crate::diagnose::locate::UnpairedCluster>,
     pub never_seen: Vec<crate::diagnose::locate::ModelModePresence>,
@@ -536,6 +558,23 @@ fn write_outputs(
                 .unwrap_or_else(|| remaining.clone()),
         ));
     }
+    for o in &located.identification_outliers {
+        findings.push(Finding::new(
+            Severity::Warning,
+            "diagnose.identification_outlier",
+            format!(
+                "{} ({}, {}): mode {} is {:+.3} % off the other measurements (t {:.1} beyond the {:.2} % tolerance) while its other modes agree with them (p {:.2}); a slip of the modal fit is likelier than missing physics, which moves several modes together. Check its stabilization diagram; not counted as misfit",
+                o.measurement_id,
+                o.board_id,
+                o.setup,
+                o.label,
+                100.0 * o.centred_rel_residual,
+                o.z,
+                100.0 * located.options.tolerance_rel,
+                o.p_value_other_modes
+            ),
+        ));
+    }
     let doc = DiagnosisDoc {
         verdict,
         located: LocatedSummary {
@@ -543,6 +582,7 @@ fn write_outputs(
             setups: located.setups.clone(),
             modes: located.modes.clone(),
             measurements: located.measurements.clone(),
+            identification_outliers: located.identification_outliers.clone(),
             covariates: located.covariates.clone(),
             unpaired_clusters: located.unpaired_clusters.clone(),
             never_seen: located.never_seen.clone(),
@@ -639,6 +679,76 @@ fn write_outputs(
     md.insert("hbmu.verdict".to_string(), serde_json::to_string(&verdict)?);
     let schema = DIAGNOSIS.schema(&[], &tables::table_metadata(&DIAGNOSIS, &md));
     let p = opts.out.join("diagnosis.parquet");
+    tables::write_parquet(&p, &tables::batch(schema, cols)?)?;
+    outputs.push(p);
+    // diagnosis_modes.parquet: each mode's misfit, baseline and every refit that gave one.
+    let mut mode_rows: Vec<(String, ModeCheck)> = located
+        .mode_checks
+        .iter()
+        .map(|m| ("baseline".to_string(), m.clone()))
+        .collect();
+    for r in &rows {
+        let Some(c) = r.cmp.as_ref().filter(|c| c.refit.failed.is_none()) else {
+            continue;
+        };
+        let res = opts.out.join(&c.refit.dir).join("residuals.parquet");
+        let obs = inputs::read_residuals(&res)?;
+        mode_rows.extend(
+            locate::mode_means(&obs, &opts.locate)
+                .into_iter()
+                .map(|m| (r.cand.id(), m)),
+        );
+    }
+    let is_located = |m: &ModeCheck| {
+        located
+            .modes
+            .iter()
+            .any(|l| l.setup == m.setup && l.label == m.label)
+    };
+    let fin = |v: f64| v.is_finite().then_some(v);
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(StringArray::from_iter_values(
+            mode_rows.iter().map(|(k, _)| k.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            mode_rows.iter().map(|(_, m)| m.setup.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            mode_rows.iter().map(|(_, m)| m.label.as_str()),
+        )),
+        Arc::new(BooleanArray::from(
+            mode_rows
+                .iter()
+                .map(|(_, m)| m.used_for_updating)
+                .collect::<Vec<_>>(),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            mode_rows.iter().map(|(_, m)| m.n as i32),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            mode_rows.iter().map(|(_, m)| m.n_boards as i32),
+        )),
+        Arc::new(Float64Array::from(
+            mode_rows
+                .iter()
+                .map(|(_, m)| fin(m.mean_rel_residual))
+                .collect::<Vec<_>>(),
+        )),
+        Arc::new(Float64Array::from(
+            mode_rows
+                .iter()
+                .map(|(_, m)| fin(m.se_rel_residual))
+                .collect::<Vec<_>>(),
+        )),
+        Arc::new(BooleanArray::from(
+            mode_rows
+                .iter()
+                .map(|(_, m)| is_located(m))
+                .collect::<Vec<_>>(),
+        )),
+    ];
+    let schema = MODES.schema(&[], &tables::table_metadata(&MODES, &BTreeMap::new()));
+    let p = opts.out.join("diagnosis_modes.parquet");
     tables::write_parquet(&p, &tables::batch(schema, cols)?)?;
     outputs.push(p);
     for fd in findings.iter() {
