@@ -27,6 +27,12 @@
 //!
 //!    - one componentwise pass over g (one coordinate at a time, no model evaluation).
 //!
+//!    A move whose proposal lands where the model is expensive (the target offers a cheap
+//!    stand-in there, [`Target::screen`]) is a delayed-acceptance move (Christen & Fox 2005):
+//!    a first accept/reject with the stand-in, and the model is evaluated only for proposals
+//!    that pass it, accepted with the ratio of the model's to the stand-in's acceptance
+//!    ratio. The kernel keeps π_β invariant whatever the stand-in's error.
+//!
 //!    Proposal scales adapt between sweeps toward `target_acceptance`; sweeps continue until
 //!    the particles have forgotten where resampling put them: the largest, over coordinates,
 //!    correlation across particles between a coordinate after resampling and now falls to
@@ -87,6 +93,14 @@ pub trait Target: Sync {
     /// p(x_b | g) as a normal (mean, lower Cholesky factor of its covariance, row-major),
     /// where it is one; None (the default) otherwise.
     fn unit_prior_normal(&self, _ctx: &Self::Ctx, _b: usize) -> Option<(Vec<f64>, Vec<f64>)> {
+        None
+    }
+    /// A cheap stand-in for [`Target::model`] where `model` is expensive at x (e.g. a
+    /// surrogate extrapolated beyond its box, where `model` falls back to the ROM), for the
+    /// first stage of a delayed-acceptance move; None (the default) where `model` is cheap
+    /// or there is no stand-in. It must be a fixed function of (aux, b, x): the moves stay
+    /// exact whatever its error (Christen & Fox 2005), its error only costs acceptance.
+    fn screen(&self, _aux: &[f64], _b: usize, _x: &[f64]) -> Option<Self::Cache> {
         None
     }
 }
@@ -188,6 +202,8 @@ pub struct StageInfo {
     pub unique_after_resampling: usize,
     /// Model evaluations of this stage (all particles).
     pub model_evals: u64,
+    /// Proposals rejected by a delayed-acceptance screen, without a model evaluation.
+    pub screened_out: u64,
     /// `temper` (a tempering stage) or `correct` (a correction stage at β = 1, [`correct`]).
     pub kind: &'static str,
 }
@@ -324,8 +340,12 @@ fn eval_unit<T: Target>(
     }
 }
 
-/// Weighted mean and lower Cholesky factor of the covariance of vectors (equal weights).
-fn cloud_cholesky(vs: &[&[f64]]) -> Vec<f64> {
+/// Lower Cholesky factor of the covariance of vectors (equal weights). With `groups` > 1 the
+/// vectors form that many equal groups of consecutive vectors and the covariance is the
+/// pooled within-group one: in a modular posterior each group targets the second step given
+/// its own carried first-step draw, so the spread between groups (set by the carried draws,
+/// which no move changes) is not a scale any move should take.
+fn cloud_cholesky(vs: &[&[f64]], groups: usize) -> Vec<f64> {
     let d = vs[0].len();
     let n = vs.len() as f64;
     let mut mean = vec![0.0; d];
@@ -334,12 +354,15 @@ fn cloud_cholesky(vs: &[&[f64]]) -> Vec<f64> {
             mean[k] += v[k] / n;
         }
     }
+    let centres = group_means(vs, groups, &mean);
+    let k_per = vs.len() / centres.len();
     let mut cov = vec![0.0; d * d];
-    for v in vs {
+    for (idx, v) in vs.iter().enumerate() {
+        let c = &centres[idx / k_per];
         for i in 0..d {
-            let a = v[i] - mean[i];
+            let a = v[i] - c[i];
             for j in 0..=i {
-                cov[i * d + j] += a * (v[j] - mean[j]) / n;
+                cov[i * d + j] += a * (v[j] - c[j]) / n;
             }
         }
     }
@@ -356,7 +379,26 @@ fn cloud_cholesky(vs: &[&[f64]]) -> Vec<f64> {
     cholesky_jittered(&cov, d).0
 }
 
-/// Proposal factors for one stage: one per unit, one for g.
+/// The mean of each of `groups` equal groups of consecutive vectors; with one group (or a
+/// count that does not divide them) the overall `mean`.
+fn group_means(vs: &[&[f64]], groups: usize, mean: &[f64]) -> Vec<Vec<f64>> {
+    if groups <= 1 || !vs.len().is_multiple_of(groups) {
+        return vec![mean.to_vec()];
+    }
+    let k = vs.len() / groups;
+    vs.chunks(k)
+        .map(|c| {
+            let mut m = vec![0.0; mean.len()];
+            for v in c {
+                for (a, b) in m.iter_mut().zip(v.iter()) {
+                    *a += b / k as f64;
+                }
+            }
+            m
+        })
+        .collect()
+}
+
 struct Proposals {
     unit: Vec<Vec<f64>>,
     global: Vec<f64>,
@@ -364,11 +406,19 @@ struct Proposals {
     global_sd: Vec<f64>,
 }
 
-fn proposals<C>(ps: &[Particle<C>], n_units: usize) -> Proposals {
+fn proposals<C>(ps: &[Particle<C>], n_units: usize, groups: usize) -> Proposals {
     let unit = (0..n_units)
-        .map(|b| cloud_cholesky(&ps.iter().map(|p| p.x[b].as_slice()).collect::<Vec<_>>()))
+        .map(|b| {
+            cloud_cholesky(
+                &ps.iter().map(|p| p.x[b].as_slice()).collect::<Vec<_>>(),
+                groups,
+            )
+        })
         .collect();
-    let global = cloud_cholesky(&ps.iter().map(|p| p.g.as_slice()).collect::<Vec<_>>());
+    let global = cloud_cholesky(
+        &ps.iter().map(|p| p.g.as_slice()).collect::<Vec<_>>(),
+        groups,
+    );
     let ng = ps[0].g.len();
     let global_sd = (0..ng)
         .map(|i| {
@@ -398,34 +448,99 @@ struct SweepStats {
     acc_comp: f64,
     n_comp: f64,
     evals: u64,
+    /// Proposals rejected by a delayed-acceptance screen (no model evaluation).
+    screened_out: u64,
 }
 
-/// Metropolis step of unit b to `xn` (symmetric proposal) with uniform `u`: returns
-/// (1 if accepted else 0, model evaluations made).
+/// log L_b of the screen's stand-in at x, or None where the target has none (the model is
+/// cheap there).
+fn screen_ll<T: Target>(t: &T, aux: &[f64], ctx: &T::Ctx, b: usize, x: &[f64]) -> Option<f64> {
+    t.screen(aux, b, x).map(|c| {
+        let l = t.log_lik(ctx, b, x, &c);
+        if l.is_nan() {
+            f64::NEG_INFINITY
+        } else {
+            l
+        }
+    })
+}
+
+/// The outcome of one move: accepted (0 or 1), model evaluations made, proposals screened
+/// out.
+#[derive(Default, Clone, Copy)]
+struct MoveOutcome {
+    accepted: f64,
+    evals: u64,
+    screened_out: u64,
+}
+
+/// Metropolis step of unit b to `xn` (symmetric proposal). Where the target has a stand-in
+/// (its screen) at `xn` or at the current value, a delayed-acceptance step: the stand-in
+/// density π̃ is the screen where there is one and the model elsewhere (one fixed function
+/// of the state, as the method needs); its ratio r̃ first, then the model at `xn` only if that
+/// passed, accepted with probability min(1, r / r̃). Elsewhere plain Metropolis (r̃ = r).
 fn unit_move<T: Target>(
     tp: &Tempered<'_, T>,
     p: &mut Particle<T::Cache>,
     ctx: &T::Ctx,
     b: usize,
     xn: Vec<f64>,
-    u: f64,
-) -> (f64, u64) {
+    rng: &mut ChaCha8Rng,
+) -> MoveOutcome {
     let t = tp.t;
+    let u: f64 = rng.random();
     let lp_new = t.log_prior_unit(ctx, b, &xn);
     if !lp_new.is_finite() && matches!(tp.start, Start::Prior) {
-        return (0.0, 0);
+        return MoveOutcome::default();
     }
-    let (c, ll) = eval_unit(t, &p.aux, ctx, b, &xn);
     let lp_old = t.log_prior_unit(ctx, b, &p.x[b]);
-    let log_r = tp.unit(b, &xn, lp_new, ll) - tp.unit(b, &p.x[b], lp_old, p.ll[b]);
-    if ll > f64::NEG_INFINITY && u.ln() < log_r {
+    let old = tp.unit(b, &p.x[b], lp_old, p.ll[b]);
+    let (s_new, s_old) = (
+        screen_ll(t, &p.aux, ctx, b, &xn),
+        screen_ll(t, &p.aux, ctx, b, &p.x[b]),
+    );
+    let mut out = MoveOutcome::default();
+    let mut evaluated = None;
+    let mut log_r1 = None;
+    if s_new.is_some() || s_old.is_some() {
+        let f_new = match s_new {
+            Some(l) => l,
+            None => {
+                let e = eval_unit(t, &p.aux, ctx, b, &xn);
+                out.evals += 1;
+                let l = e.1;
+                evaluated = Some(e);
+                l
+            }
+        };
+        let r1 =
+            tp.unit(b, &xn, lp_new, f_new) - tp.unit(b, &p.x[b], lp_old, s_old.unwrap_or(p.ll[b]));
+        if !(f_new > f64::NEG_INFINITY && u.ln() < r1) {
+            out.screened_out = u64::from(s_new.is_some());
+            return out;
+        }
+        log_r1 = Some(r1);
+    }
+    let (c, ll) = match evaluated {
+        Some(e) => e,
+        None => {
+            out.evals += 1;
+            eval_unit(t, &p.aux, ctx, b, &xn)
+        }
+    };
+    let log_r = tp.unit(b, &xn, lp_new, ll) - old;
+    // Plain: the one uniform, min(1, r). Delayed: a second uniform, min(1, r / r̃).
+    let (u2, log_r2) = match log_r1 {
+        None => (u, log_r),
+        Some(r1) => (rng.random::<f64>(), log_r - r1),
+    };
+    if ll > f64::NEG_INFINITY && u2.ln() < log_r2 {
         p.x[b] = xn;
         p.cache[b] = c;
         p.ll[b] = ll;
-        (1.0, 1)
-    } else {
-        (0.0, 1)
+        out.accepted = 1.0;
     }
+    out
 }
 
 /// A centred move of g to `gn` with every unit fixed (their cached model outputs reused: no
@@ -491,11 +606,11 @@ fn sweep<T: Target>(
             .zip(&step)
             .map(|(a, s)| a + sc.unit * s)
             .collect();
-        let u: f64 = rng.random();
         st.n_unit += 1.0;
-        let (acc, evals) = unit_move(tp, p, &ctx, b, xn, u);
-        st.acc_unit += acc;
-        st.evals += evals;
+        let m = unit_move(tp, p, &ctx, b, xn, rng);
+        st.acc_unit += m.accepted;
+        st.evals += m.evals;
+        st.screened_out += m.screened_out;
         // The same unit in its standardised coordinates z = (diag σ L)⁻¹ (x − μ): the
         // proposal follows the particle's own population scale, which is the right one
         // while the data are weak (low β); the move above, scaled by the cloud, is the right
@@ -510,11 +625,11 @@ fn sweep<T: Target>(
             })
             .collect();
         let xn = t.from_standard(&ctx, b, &zn);
-        let u: f64 = rng.random();
         st.n_unit_z += 1.0;
-        let (acc, evals) = unit_move(tp, p, &ctx, b, xn, u);
-        st.acc_unit_z += acc;
-        st.evals += evals;
+        let m = unit_move(tp, p, &ctx, b, xn, rng);
+        st.acc_unit_z += m.accepted;
+        st.evals += m.evals;
+        st.screened_out += m.screened_out;
     }
     // Centred moves of g: no model evaluation.
     let mut lg = tp.global(&p.g);
@@ -559,26 +674,69 @@ fn sweep<T: Target>(
         if t.log_prior_global(&gn).is_finite() {
             let lg_new = tp.global(&gn);
             let ctx_new = t.ctx(&gn);
+            // Delayed acceptance where the target has a stand-in (its screen) at some unit's
+            // new or current value (see `unit_move`): the first stage takes the stand-in
+            // density π̃ for those units, and the model is evaluated at their new values only
+            // if it passes. Units without one enter both stages with the model.
             let mut log_r = lg_new - lg;
+            let mut log_r1 = lg_new - lg;
             let mut moved = Vec::with_capacity(t.n_units());
+            let mut deferred = vec![];
             for b in 0..t.n_units() {
                 let z = t.to_standard(&ctx, b, &p.x[b]);
                 let xn = t.from_standard(&ctx_new, b, &z);
-                let (c, l) = eval_unit(t, &p.aux, &ctx_new, b, &xn);
-                st.evals += 1;
                 let (lp_old, lp_new) = (
                     t.log_prior_unit(&ctx, b, &p.x[b]),
                     t.log_prior_unit(&ctx_new, b, &xn),
                 );
-                log_r += tp.unit(b, &xn, lp_new, l) - tp.unit(b, &p.x[b], lp_old, p.ll[b]) + lp_old
-                    - lp_new;
-                moved.push((xn, c, l));
+                let old = tp.unit(b, &p.x[b], lp_old, p.ll[b]);
+                let (s_new, s_old) = (
+                    screen_ll(t, &p.aux, &ctx_new, b, &xn),
+                    screen_ll(t, &p.aux, &ctx, b, &p.x[b]),
+                );
+                let (c, l) = if s_new.is_none() {
+                    st.evals += 1;
+                    eval_unit(t, &p.aux, &ctx_new, b, &xn)
+                } else {
+                    (None, f64::NEG_INFINITY)
+                };
+                if s_new.is_some() || s_old.is_some() {
+                    log_r1 += tp.unit(b, &xn, lp_new, s_new.unwrap_or(l))
+                        - tp.unit(b, &p.x[b], lp_old, s_old.unwrap_or(p.ll[b]))
+                        + lp_old
+                        - lp_new;
+                    deferred.push(b);
+                } else {
+                    let d = tp.unit(b, &xn, lp_new, l) - old + lp_old - lp_new;
+                    log_r += d;
+                    log_r1 += d;
+                }
+                moved.push((xn, c, l, lp_old, lp_new, old, s_new.is_some()));
+            }
+            let mut u = u;
+            if !deferred.is_empty() {
+                if !(log_r1.is_finite() && u.ln() < log_r1) {
+                    st.screened_out += 1;
+                    continue;
+                }
+                for &b in &deferred {
+                    let m = &mut moved[b];
+                    if m.6 {
+                        let (c, l) = eval_unit(t, &p.aux, &ctx_new, b, &m.0);
+                        st.evals += 1;
+                        m.1 = c;
+                        m.2 = l;
+                    }
+                    log_r += tp.unit(b, &m.0, m.4, m.2) - m.5 + m.3 - m.4;
+                }
+                log_r -= log_r1;
+                u = rng.random();
             }
             if log_r.is_finite() && u.ln() < log_r {
                 p.g = gn;
                 ctx = ctx_new;
                 lg = lg_new;
-                for (b, (xn, c, l)) in moved.into_iter().enumerate() {
+                for (b, (xn, c, l, ..)) in moved.into_iter().enumerate() {
                     p.x[b] = xn;
                     p.cache[b] = c;
                     p.ll[b] = l;
@@ -601,24 +759,40 @@ fn flat<C>(p: &Particle<C>) -> Vec<f64> {
 /// Largest, over coordinates, correlation across particles between `start` and the
 /// particles' current values (coordinates constant in either are left out). The largest, not
 /// the mean: a few slowly mixing coordinates (heavy-tailed error scales, say) would hide in
-/// a mean over dozens of well-mixed ones.
-fn max_correlation<C: Sync + Send>(start: &[Vec<f64>], ps: &[Particle<C>]) -> f64 {
+/// a mean over dozens of well-mixed ones. With `groups` > 1 the correlation is the pooled
+/// within-group one: resampling copies particles inside their group, and what the moves must
+/// forget is where in its group a particle was put; the differences between groups come from
+/// their carried draws, which stay (measured across groups, the rule could never be met and
+/// every stage would run `max_sweeps`).
+fn max_correlation<C: Sync + Send>(start: &[Vec<f64>], ps: &[Particle<C>], groups: usize) -> f64 {
     let now: Vec<Vec<f64>> = ps.iter().map(flat).collect();
-    let n = start.len() as f64;
+    let n = start.len();
     let dim = start[0].len();
+    let groups = if groups > 1 && n.is_multiple_of(groups) {
+        groups
+    } else {
+        1
+    };
+    let k_per = n / groups;
     let mut sum = f64::NEG_INFINITY;
     let mut cnt = 0.0;
     for k in 0..dim {
-        let (ma, mb) = (
-            start.iter().map(|v| v[k]).sum::<f64>() / n,
-            now.iter().map(|v| v[k]).sum::<f64>() / n,
-        );
         let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
-        for (a, b) in start.iter().zip(&now) {
-            let (da, db) = (a[k] - ma, b[k] - mb);
-            sab += da * db;
-            saa += da * da;
-            sbb += db * db;
+        for g in 0..groups {
+            let (a_g, b_g) = (
+                &start[g * k_per..(g + 1) * k_per],
+                &now[g * k_per..(g + 1) * k_per],
+            );
+            let (ma, mb) = (
+                a_g.iter().map(|v| v[k]).sum::<f64>() / k_per as f64,
+                b_g.iter().map(|v| v[k]).sum::<f64>() / k_per as f64,
+            );
+            for (a, b) in a_g.iter().zip(b_g) {
+                let (da, db) = (a[k] - ma, b[k] - mb);
+                sab += da * db;
+                saa += da * da;
+                sbb += db * db;
+            }
         }
         if saa > 0.0 && sbb > 0.0 {
             sum = f64::max(sum, sab / (saa * sbb).sqrt());
@@ -812,8 +986,9 @@ fn stage_step<T: Target>(
     let (mut acc_u, mut acc_g, mut acc_n) = (0.0, 0.0, 0.0);
     let mut sweeps = 0;
     let mut evals = 0u64;
+    let mut screened_out = 0u64;
     if (unique as f64) < mutate_if_unique_below * n as f64 {
-        let prop = proposals(particles, t.n_units());
+        let prop = proposals(particles, t.n_units(), groups);
         let start: Vec<Vec<f64>> = particles.iter().map(flat).collect();
         rho = 1.0;
         while sweeps < opts.max_sweeps {
@@ -839,8 +1014,10 @@ fn stage_step<T: Target>(
                 tot.acc_comp += s.acc_comp;
                 tot.n_comp += s.n_comp;
                 tot.evals += s.evals;
+                tot.screened_out += s.screened_out;
             }
             evals += tot.evals;
+            screened_out += tot.screened_out;
             let rate = |a: f64, m: f64| if m > 0.0 { a / m } else { f64::NAN };
             let (au, ag, an) = (
                 rate(tot.acc_unit, tot.n_unit),
@@ -865,7 +1042,7 @@ fn stage_step<T: Target>(
             if ac.is_finite() {
                 scales.comp = (scales.comp * (ac - 0.44).exp()).clamp(1e-3, 20.0);
             }
-            rho = max_correlation(&start, particles);
+            rho = max_correlation(&start, particles, groups);
             if sweeps >= opts.min_sweeps && rho <= opts.decorrelation_target {
                 break;
             }
@@ -886,6 +1063,7 @@ fn stage_step<T: Target>(
         decorrelation: rho,
         unique_after_resampling: unique,
         model_evals: evals,
+        screened_out,
         kind: "temper",
     }
 }

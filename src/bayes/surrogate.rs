@@ -126,21 +126,41 @@ impl UnitSurrogate {
     /// The terms at v, None outside the box.
     pub fn terms(&self, v: &[f64]) -> Option<Terms> {
         let u = self.coords(v)?;
-        let phi = self.basis(&u);
+        Some(self.terms_at(&u))
+    }
+    /// The polynomial at v wherever v is: inside the box the verified surrogate, beyond it an
+    /// extrapolation with no error bound. Only a stand-in for a delayed-acceptance screen
+    /// ([`Target::screen`]), never a model value.
+    pub fn extrapolate(&self, v: &[f64]) -> Terms {
+        let d = self.inputs.len();
+        let w: Vec<f64> = self
+            .inputs
+            .iter()
+            .zip(&self.centre)
+            .map(|(&i, c)| v[i] - c)
+            .collect();
+        let u: Vec<f64> = lower_solve(&self.chol, d, &w)
+            .iter()
+            .map(|x| x / self.half_width)
+            .collect();
+        self.terms_at(&u)
+    }
+    fn terms_at(&self, u: &[f64]) -> Terms {
+        let phi = self.basis(u);
         let n_out = self.n_out();
         let mut out = vec![0.0; n_out];
         for (t, ph) in phi.iter().enumerate() {
             let row = &self.coef[t * n_out..(t + 1) * n_out];
             out.iter_mut().zip(row).for_each(|(o, c)| *o += ph * c);
         }
-        Some(Terms {
+        Terms {
             lambda: out[..self.n_modes].iter().map(|v| v.exp()).collect(),
             one_minus_mac: out[self.n_modes..self.n_modes + self.n_shapes]
                 .iter()
                 .map(|v| v.max(0.0))
                 .collect(),
             mass_g: out[n_out - 1],
-        })
+        }
     }
 }
 
@@ -387,6 +407,17 @@ impl Target for SurrogateTarget<'_> {
     }
     fn log_lik(&self, ctx: &Self::Ctx, b: usize, x: &[f64], c: &Terms) -> f64 {
         self.inner.log_lik(ctx, b, x, c)
+    }
+    /// Beyond a unit's box, where `model` is the ROM: the surrogate's polynomial extrapolated
+    /// (inside the box it is the model itself, so π̃ is that polynomial everywhere). Proposals
+    /// it rejects cost no ROM evaluation; the ROM still decides the rest.
+    fn screen(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Terms> {
+        let s = self.surrogates.get(b)?.as_ref()?;
+        let v = self.inner.values(aux, b, x);
+        if s.box_position(&v) <= 1.0 {
+            return None;
+        }
+        Some(s.extrapolate(&v))
     }
     fn to_standard(&self, ctx: &Self::Ctx, b: usize, x: &[f64]) -> Vec<f64> {
         self.inner.to_standard(ctx, b, x)

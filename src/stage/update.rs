@@ -163,6 +163,13 @@ pub const STAGES: TableSpec = TableSpec {
             "Model evaluations of the stage (ROM or verified surrogate).",
         ),
         c(
+            "screened_out",
+            Col::Float64,
+            false,
+            "",
+            "Proposals the delayed-acceptance screen rejected without a model evaluation (where a surrogate's extrapolation stood in for the ROM beyond the surrogate's box).",
+        ),
+        c(
             "kind",
             Col::Utf8,
             false,
@@ -861,6 +868,9 @@ fn write_stages(
         )),
         Arc::new(Float64Array::from_iter_values(
             st.iter().map(|s| s.model_evals as f64),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            st.iter().map(|s| s.screened_out as f64),
         )),
         Arc::new(StringArray::from_iter_values(st.iter().map(|s| s.kind))),
     ];
