@@ -80,8 +80,8 @@ impl UnitSurrogate {
     fn n_out(&self) -> usize {
         self.n_modes + self.n_shapes + 1
     }
-    /// Whitened box coordinates of the ROM parameter vector, None outside the box.
-    fn coords(&self, v: &[f64]) -> Option<Vec<f64>> {
+    /// Whitened box coordinates u of the ROM parameter vector (|u_k| ≤ 1 inside the box).
+    fn whiten(&self, v: &[f64]) -> Vec<f64> {
         let d = self.inputs.len();
         let w: Vec<f64> = self
             .inputs
@@ -89,8 +89,14 @@ impl UnitSurrogate {
             .zip(&self.centre)
             .map(|(&i, c)| v[i] - c)
             .collect();
-        let u = lower_solve(&self.chol, d, &w);
-        let u: Vec<f64> = u.iter().map(|x| x / self.half_width).collect();
+        lower_solve(&self.chol, d, &w)
+            .iter()
+            .map(|x| x / self.half_width)
+            .collect()
+    }
+    /// Whitened box coordinates of the ROM parameter vector, None outside the box.
+    fn coords(&self, v: &[f64]) -> Option<Vec<f64>> {
+        let u = self.whiten(v);
         u.iter().all(|x| x.abs() <= 1.0).then_some(u)
     }
     fn basis(&self, u: &[f64]) -> Vec<f64> {
@@ -111,17 +117,7 @@ impl UnitSurrogate {
     }
     /// The largest |u_k| of v in box units (1 = the box's edge).
     pub fn box_position(&self, v: &[f64]) -> f64 {
-        let d = self.inputs.len();
-        let w: Vec<f64> = self
-            .inputs
-            .iter()
-            .zip(&self.centre)
-            .map(|(&i, c)| v[i] - c)
-            .collect();
-        lower_solve(&self.chol, d, &w)
-            .iter()
-            .map(|x| (x / self.half_width).abs())
-            .fold(0.0, f64::max)
+        self.whiten(v).iter().map(|x| x.abs()).fold(0.0, f64::max)
     }
     /// The terms at v, None outside the box.
     pub fn terms(&self, v: &[f64]) -> Option<Terms> {
@@ -132,18 +128,7 @@ impl UnitSurrogate {
     /// extrapolation with no error bound. Only a stand-in for a delayed-acceptance screen
     /// ([`Target::screen`]), never a model value.
     pub fn extrapolate(&self, v: &[f64]) -> Terms {
-        let d = self.inputs.len();
-        let w: Vec<f64> = self
-            .inputs
-            .iter()
-            .zip(&self.centre)
-            .map(|(&i, c)| v[i] - c)
-            .collect();
-        let u: Vec<f64> = lower_solve(&self.chol, d, &w)
-            .iter()
-            .map(|x| x / self.half_width)
-            .collect();
-        self.terms_at(&u)
+        self.terms_at(&self.whiten(v))
     }
     fn terms_at(&self, u: &[f64]) -> Terms {
         let phi = self.basis(u);

@@ -88,14 +88,7 @@ pub fn boxes_svg(title: &str, items: &[BoxItem]) -> Result<String, PlotError> {
             .configure_mesh()
             .disable_x_mesh()
             .x_labels(n * 2 + 1)
-            .x_label_formatter(&|x| {
-                let k = (x - 0.5).round();
-                if (x - 0.5 - k).abs() < 1e-6 && k >= 0.0 && (k as usize) < labels.len() {
-                    labels[k as usize].clone()
-                } else {
-                    String::new()
-                }
-            })
+            .x_label_formatter(&|x| pick(&labels, *x, false))
             .x_label_style(("sans-serif", 13))
             .y_label_style(("sans-serif", 13))
             .y_desc("f / predicted median − 1 [%]")
@@ -480,14 +473,7 @@ pub fn before_after_svg(
             .configure_mesh()
             .disable_x_mesh()
             .x_labels(n * 2 + 1)
-            .x_label_formatter(&|x| {
-                let k = (x - 0.5).round();
-                if (x - 0.5 - k).abs() < 1e-6 && k >= 0.0 && (k as usize) < labels.len() {
-                    labels[k as usize].clone()
-                } else {
-                    String::new()
-                }
-            })
+            .x_label_formatter(&|x| pick(&labels, *x, false))
             .x_label_style(("sans-serif", 13))
             .y_label_style(("sans-serif", 13))
             .y_desc("mean (f_measured − f_model) / f_model [%]")
