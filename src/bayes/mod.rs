@@ -23,4 +23,6 @@ pub mod target;
 #[cfg(test)]
 mod sbc_tests;
 #[cfg(test)]
+mod surrogate_tests;
+#[cfg(test)]
 mod tests;

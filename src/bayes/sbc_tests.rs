@@ -26,7 +26,7 @@ use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
 #[path = "sbc_driver.rs"]
-mod driver;
+pub(super) mod driver;
 
 use driver::*;
 

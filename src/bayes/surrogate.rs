@@ -55,10 +55,14 @@ fn multi_indices(d: usize, p: usize) -> Vec<Vec<u8>> {
 }
 
 /// One unit's surrogate over the ROM parameters `inputs`, in whitened coordinates
-/// u = L⁻¹ (w − centre) / half_width with the box |u_k| ≤ 1.
+/// u = L⁻¹ (w − centre) / half_width with the box |u_k| ≤ 1, where w_k = ln v_k for an
+/// input that is positive at every sample (`log_input`) and v_k otherwise.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct UnitSurrogate {
     pub inputs: Vec<usize>,
+    /// Per input: the box is in ln v (a stiffness the sampler moves on a log axis over
+    /// orders of magnitude: a box in v would reach zero or below, where no model exists).
+    pub log_input: Vec<bool>,
     pub centre: Vec<f64>,
     chol: Vec<f64>,
     pub half_width: f64,
@@ -86,8 +90,9 @@ impl UnitSurrogate {
         let w: Vec<f64> = self
             .inputs
             .iter()
+            .zip(&self.log_input)
             .zip(&self.centre)
-            .map(|(&i, c)| v[i] - c)
+            .map(|((&i, &lg), c)| to_box_axis(v[i], lg) - c)
             .collect();
         lower_solve(&self.chol, d, &w)
             .iter()
@@ -149,6 +154,17 @@ impl UnitSurrogate {
     }
 }
 
+/// An input's coordinate on the box's axis: ln v (NaN where v ≤ 0: outside every box) or v.
+fn to_box_axis(v: f64, log: bool) -> f64 {
+    if !log {
+        v
+    } else if v > 0.0 {
+        v.ln()
+    } else {
+        f64::NAN
+    }
+}
+
 fn outputs(t: &Terms) -> Vec<f64> {
     let mut o: Vec<f64> = t.lambda.iter().map(|v| v.ln()).collect();
     o.extend(&t.one_minus_mac);
@@ -161,6 +177,10 @@ fn outputs(t: &Terms) -> Vec<f64> {
 pub struct SurrogateOptions {
     /// Box half-width in standard deviations of the samples it is fitted around.
     pub half_width_sd: f64,
+    /// Where the ROM cannot follow the updated modes everywhere in the box, or no degree
+    /// passes the verification, the box is halved, down to this half-width (then the unit
+    /// keeps the ROM).
+    pub min_half_width_sd: f64,
     /// Degrees tried in order until the verification passes.
     pub degrees: Vec<usize>,
     /// Fitting points per polynomial term.
@@ -175,7 +195,8 @@ impl Default for SurrogateOptions {
     fn default() -> Self {
         SurrogateOptions {
             half_width_sd: 10.0,
-            degrees: vec![2, 3, 4],
+            min_half_width_sd: 2.5,
+            degrees: vec![2, 3, 4, 5, 6],
             oversampling: 2.0,
             n_verify: 60,
             tolerance_dll: 0.05,
@@ -205,143 +226,171 @@ pub fn fit_unit(
     let data: &UnitData = &target.units[b];
     let nv = samples[0].len();
     let n = samples.len() as f64;
-    let mean: Vec<f64> = (0..nv)
+    let raw_mean: Vec<f64> = (0..nv)
         .map(|k| samples.iter().map(|s| s[k]).sum::<f64>() / n)
         .collect();
     let inputs: Vec<usize> = (0..nv)
         .filter(|&k| {
             let var = samples
                 .iter()
-                .map(|s| (s[k] - mean[k]).powi(2))
+                .map(|s| (s[k] - raw_mean[k]).powi(2))
                 .sum::<f64>()
                 / n;
-            var > 1e-24 * (1.0 + mean[k] * mean[k])
+            var > 1e-24 * (1.0 + raw_mean[k] * raw_mean[k])
         })
         .collect();
     let d = inputs.len();
     if d == 0 {
         return Err("no parameter varies".into());
     }
-    let centre: Vec<f64> = inputs.iter().map(|&k| mean[k]).collect();
+    let log_input: Vec<bool> = inputs
+        .iter()
+        .map(|&k| samples.iter().all(|s| s[k] > 0.0))
+        .collect();
+    // The samples on the box's axes.
+    let w: Vec<Vec<f64>> = samples
+        .iter()
+        .map(|s| {
+            inputs
+                .iter()
+                .zip(&log_input)
+                .map(|(&k, &lg)| to_box_axis(s[k], lg))
+                .collect()
+        })
+        .collect();
+    let centre: Vec<f64> = (0..d)
+        .map(|k| w.iter().map(|s| s[k]).sum::<f64>() / n)
+        .collect();
     let mut cov = vec![0.0; d * d];
-    for s in samples {
-        for (i, &a) in inputs.iter().enumerate() {
-            for (j, &c) in inputs.iter().enumerate() {
-                cov[i * d + j] += (s[a] - mean[a]) * (s[c] - mean[c]) / n;
+    for s in &w {
+        for i in 0..d {
+            for j in 0..d {
+                cov[i * d + j] += (s[i] - centre[i]) * (s[j] - centre[j]) / n;
             }
         }
     }
     let chol = cholesky_jittered(&cov, d).0;
-    let base = mean.clone();
-    let point = |u: &[f64]| -> Vec<f64> {
-        let w = lower_mul(&chol, d, u);
-        let mut v = base.clone();
-        for (k, &i) in inputs.iter().enumerate() {
-            v[i] = centre[k] + opts.half_width_sd * w[k];
-        }
-        v
-    };
     let rom_terms = |v: &[f64]| -> Option<Terms> {
         let p = target.predictor.predict(v)?;
         Some(target.predictor.terms(&p, data, v))
     };
     let mut rng = ChaCha8Rng::seed_from_u64(stream_key(&[seed, 0x5u64, b as u64]));
     let mut evals = 0u64;
-    let mut last_err = String::new();
-    for &p in &opts.degrees {
-        let exps = multi_indices(d, p);
-        let nt = exps.len();
-        let n_fit = ((nt as f64) * opts.oversampling).ceil() as usize + 4;
-        let mut s = UnitSurrogate {
-            inputs: inputs.clone(),
-            centre: centre.clone(),
-            chol: chol.clone(),
-            half_width: opts.half_width_sd,
-            degree: p,
-            exps,
-            coef: vec![],
-            n_modes: target.predictor.refs.len(),
-            n_shapes: data.shapes.len(),
-            max_abs_dll: f64::NAN,
-            rom_evals: 0,
+    let mut errors = vec![];
+    let mut half_width = opts.half_width_sd;
+    while half_width >= opts.min_half_width_sd {
+        let point = |u: &[f64]| -> Vec<f64> {
+            let x = lower_mul(&chol, d, u);
+            let mut v = raw_mean.clone();
+            for (k, &i) in inputs.iter().enumerate() {
+                let a = centre[k] + half_width * x[k];
+                v[i] = if log_input[k] { a.exp() } else { a };
+            }
+            v
         };
-        let n_out = s.n_out();
-        // Fitting design: uniform in the whitened box, plus the centre.
-        let mut rows: Vec<Vec<f64>> = vec![];
-        let mut ys: Vec<Vec<f64>> = vec![];
-        for i in 0..n_fit {
-            let u: Vec<f64> = if i == 0 {
-                vec![0.0; d]
-            } else {
-                (0..d).map(|_| 2.0 * rng.random::<f64>() - 1.0).collect()
+        let mut last_err = String::new();
+        'degrees: for &p in &opts.degrees {
+            let exps = multi_indices(d, p);
+            let nt = exps.len();
+            let n_fit = ((nt as f64) * opts.oversampling).ceil() as usize + 4;
+            let mut s = UnitSurrogate {
+                inputs: inputs.clone(),
+                log_input: log_input.clone(),
+                centre: centre.clone(),
+                chol: chol.clone(),
+                half_width,
+                degree: p,
+                exps,
+                coef: vec![],
+                n_modes: target.predictor.refs.len(),
+                n_shapes: data.shapes.len(),
+                max_abs_dll: f64::NAN,
+                rom_evals: 0,
             };
-            let v = point(&u);
-            evals += 1;
-            let Some(t) = rom_terms(&v) else {
-                return Err("the ROM cannot track the updated modes everywhere in the box".into());
-            };
-            rows.push(s.basis(&u));
-            ys.push(outputs(&t));
-        }
-        // Least squares by the normal equations (Legendre basis on uniform points: well
-        // conditioned at these degrees).
-        let mut ata = vec![0.0; nt * nt];
-        let mut aty = vec![0.0; nt * n_out];
-        for (r, y) in rows.iter().zip(&ys) {
-            for i in 0..nt {
-                for j in 0..nt {
-                    ata[i * nt + j] += r[i] * r[j];
+            let n_out = s.n_out();
+            let untracked = "the ROM cannot track the updated modes everywhere in the box";
+            // Fitting design: uniform in the whitened box, plus the centre.
+            let mut rows: Vec<Vec<f64>> = vec![];
+            let mut ys: Vec<Vec<f64>> = vec![];
+            for i in 0..n_fit {
+                let u: Vec<f64> = if i == 0 {
+                    vec![0.0; d]
+                } else {
+                    (0..d).map(|_| 2.0 * rng.random::<f64>() - 1.0).collect()
+                };
+                let v = point(&u);
+                evals += 1;
+                let Some(t) = rom_terms(&v) else {
+                    last_err = untracked.into();
+                    break 'degrees;
+                };
+                rows.push(s.basis(&u));
+                ys.push(outputs(&t));
+            }
+            // Least squares by the normal equations (Legendre basis on uniform points: well
+            // conditioned at these degrees).
+            let mut ata = vec![0.0; nt * nt];
+            let mut aty = vec![0.0; nt * n_out];
+            for (r, y) in rows.iter().zip(&ys) {
+                for i in 0..nt {
+                    for j in 0..nt {
+                        ata[i * nt + j] += r[i] * r[j];
+                    }
+                    for o in 0..n_out {
+                        aty[i * n_out + o] += r[i] * y[o];
+                    }
                 }
-                for o in 0..n_out {
-                    aty[i * n_out + o] += r[i] * y[o];
+            }
+            let (l, _) = cholesky_jittered(&ata, nt);
+            let mut coef = vec![0.0; nt * n_out];
+            for o in 0..n_out {
+                let rhs: Vec<f64> = (0..nt).map(|i| aty[i * n_out + o]).collect();
+                let y = lower_solve(&l, nt, &rhs);
+                let mut x = vec![0.0; nt];
+                for i in (0..nt).rev() {
+                    let sum: f64 = (i + 1..nt).map(|k| l[k * nt + i] * x[k]).sum();
+                    x[i] = (y[i] - sum) / l[i * nt + i];
+                }
+                for i in 0..nt {
+                    coef[i * n_out + o] = x[i];
                 }
             }
-        }
-        let (l, _) = cholesky_jittered(&ata, nt);
-        let mut coef = vec![0.0; nt * n_out];
-        for o in 0..n_out {
-            let rhs: Vec<f64> = (0..nt).map(|i| aty[i * n_out + o]).collect();
-            let y = lower_solve(&l, nt, &rhs);
-            let mut x = vec![0.0; nt];
-            for i in (0..nt).rev() {
-                let sum: f64 = (i + 1..nt).map(|k| l[k * nt + i] * x[k]).sum();
-                x[i] = (y[i] - sum) / l[i * nt + i];
+            s.coef = coef;
+            // Verification on fresh points.
+            let mut worst = 0.0f64;
+            for _ in 0..opts.n_verify {
+                let u: Vec<f64> = (0..d).map(|_| 2.0 * rng.random::<f64>() - 1.0).collect();
+                let v = point(&u);
+                evals += 1;
+                let Some(tr) = rom_terms(&v) else {
+                    last_err = untracked.into();
+                    break 'degrees;
+                };
+                let ts = s.terms(&v).expect("inside the box by construction");
+                let dll = (modal::log_lik(data, &ts, eps, delta)
+                    - modal::log_lik(data, &tr, eps, delta))
+                .abs();
+                worst = worst.max(if dll.is_nan() { f64::INFINITY } else { dll });
             }
-            for i in 0..nt {
-                coef[i * n_out + o] = x[i];
+            s.max_abs_dll = worst;
+            s.rom_evals = evals;
+            if worst <= opts.tolerance_dll {
+                return Ok(s);
             }
+            last_err = format!("degree {p}: max |Δ log L| {worst:.3e} on the verification points");
         }
-        s.coef = coef;
-        // Verification on fresh points.
-        let mut worst = 0.0f64;
-        for _ in 0..opts.n_verify {
-            let u: Vec<f64> = (0..d).map(|_| 2.0 * rng.random::<f64>() - 1.0).collect();
-            let v = point(&u);
-            evals += 1;
-            let Some(tr) = rom_terms(&v) else {
-                return Err("the ROM cannot track the updated modes everywhere in the box".into());
-            };
-            let ts = s.terms(&v).expect("inside the box by construction");
-            let dll = (modal::log_lik(data, &ts, eps, delta)
-                - modal::log_lik(data, &tr, eps, delta))
-            .abs();
-            worst = worst.max(if dll.is_nan() { f64::INFINITY } else { dll });
-        }
-        s.max_abs_dll = worst;
-        s.rom_evals = evals;
-        if worst <= opts.tolerance_dll {
-            return Ok(s);
-        }
-        last_err = format!("degree {p}: max |Δ log L| {worst:.3e} on the verification points");
+        errors.push(format!("{half_width} sd: {last_err}"));
+        half_width *= 0.5;
     }
-    Err(last_err)
+    Err(errors.join("; "))
 }
 
 /// The modal target with per-unit surrogates: a unit's model is its surrogate inside the
 /// surrogate's box and the ROM outside it (and for units without a surrogate).
 ///
 /// The boxes are `half_width_sd` = 10 standard deviations of the (already inflated)
-/// reference wide, where a Gaussian-like posterior has no appreciable mass (< 1e-20). A
+/// reference wide, where a Gaussian-like posterior has no appreciable mass (< 1e-20), or
+/// narrower where the ROM or the polynomial does not hold that far (`min_half_width_sd`). A
 /// posterior that is not Gaussian-like (a parameter the data bound only on one side, a
 /// population scale the reference underestimates) reaches beyond them; there the ROM answers,
 /// so the boxes never restrict the posterior: they only decide where evaluations are cheap.

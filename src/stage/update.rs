@@ -962,9 +962,14 @@ struct Acceleration {
     surrogate_units: usize,
     surrogate_refused: Vec<String>,
     surrogate_degree: Vec<Option<usize>>,
+    /// Per unit: the surrogate box's half-width in reference sd (10, halved where the ROM or
+    /// the polynomial does not hold that far).
+    surrogate_half_width_sd: Vec<Option<f64>>,
+    /// Run 1: (posterior mean − reference mean) / reference sd of every global coordinate.
+    reference_offset_global: Vec<f64>,
     surrogate_max_abs_dlog_lik: Vec<Option<f64>>,
     surrogate_rom_evals: u64,
-    /// Proposals outside a surrogate's box (10 reference sd wide), evaluated by the ROM.
+    /// Proposals outside a surrogate's box (`surrogate_half_width_sd`), evaluated by the ROM.
     surrogate_proposals_outside_box: u64,
     /// Fraction of the final particles' units beyond their surrogate's box (ROM-evaluated).
     surrogate_edge_fraction: f64,
@@ -1063,6 +1068,7 @@ fn run_smc(
                         Ok(s) => {
                             acc.surrogate_units += 1;
                             acc.surrogate_degree.push(Some(s.degree));
+                            acc.surrogate_half_width_sd.push(Some(s.half_width));
                             acc.surrogate_max_abs_dlog_lik.push(Some(s.max_abs_dll));
                             acc.surrogate_rom_evals += s.rom_evals;
                             Some(Arc::new(s))
@@ -1070,6 +1076,7 @@ fn run_smc(
                         Err(e) => {
                             acc.surrogate_refused.push(format!("unit {b}: {e}"));
                             acc.surrogate_degree.push(None);
+                            acc.surrogate_half_width_sd.push(None);
                             acc.surrogate_max_abs_dlog_lik.push(None);
                             None
                         }
@@ -1165,7 +1172,16 @@ fn run_smc(
                         .collect()
                 })
                 .collect();
+            let mean = |vals: Vec<f64>| vals.iter().sum::<f64>() / vals.len().max(1) as f64;
+            let qm = &q.global.mean;
+            acc.reference_offset_global = (0..qs.len())
+                .map(|k| (mean(res.particles.iter().map(|p| p.g[k]).collect()) - qm[k]) / qs[k])
+                .collect();
             if verbose {
+                eprintln!(
+                    "{what}: (posterior mean - reference mean) / reference sd, global {:.2?}",
+                    acc.reference_offset_global
+                );
                 eprintln!(
                     "{what}: posterior sd / reference sd, global {:.2?}",
                     acc.reference_sd_ratio_global
@@ -1617,6 +1633,23 @@ fn unit_and_residual_data(
     Ok((data, all_data))
 }
 
+/// The surrogate boxes' half-widths in reference sd, e.g. `10` or `2.5–10`.
+fn half_widths(acc: &Acceleration) -> String {
+    let hw: Vec<f64> = acc
+        .surrogate_half_width_sd
+        .iter()
+        .flatten()
+        .copied()
+        .collect();
+    let lo = hw.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = hw.iter().copied().fold(0.0, f64::max);
+    if hw.is_empty() || lo == hi {
+        format!("{hi}")
+    } else {
+        format!("{lo}–{hi}")
+    }
+}
+
 /// The finding when final particles lie beyond their surrogate's box (a cost, not a bias:
 /// the ROM evaluates them).
 fn check_surrogate_edges(acc: &Acceleration, findings: &mut Findings) {
@@ -1624,7 +1657,7 @@ fn check_surrogate_edges(acc: &Acceleration, findings: &mut Findings) {
         findings.push(Finding::new(
             Severity::Info,
             "update.surrogate_box_edge",
-            format!("{:.2} % of the final particles lie beyond their unit's surrogate box (10 reference sd): the posterior is wider than the reference there, and the ROM evaluated them ({} proposals outside the boxes)", 100.0 * acc.surrogate_edge_fraction, acc.surrogate_proposals_outside_box),
+            format!("{:.2} % of the final particles lie beyond their unit's surrogate box ({} reference sd): the posterior is wider than the reference there, and the ROM evaluated them ({} proposals outside the boxes)", 100.0 * acc.surrogate_edge_fraction, half_widths(acc), acc.surrogate_proposals_outside_box),
         ));
     }
 }

@@ -1,0 +1,81 @@
+//! The unit surrogates against the ROM they stand in for, on the small step-1 problem of the
+//! simulation-based calibration (coarse mesh, 3 modes, e_x and g_xy): the verified box holds
+//! the polynomial to its tolerance on fresh points, the box is in ln of positive inputs, and
+//! a tolerance no polynomial meets halves the box down to its floor and then refuses.
+
+use super::modal;
+use super::sbc_tests::ci_problem;
+use super::sbc_tests::driver::{build_target, simulate_data};
+use super::smc::Target;
+use super::surrogate::{fit_unit, SurrogateOptions};
+use super::target::ModalTarget;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// The CI problem with data simulated from one prior draw, and 300 ROM parameter vectors of
+/// unit 0 around its true value (relative spread `spread` on each updated parameter).
+fn problem(spread: f64) -> (ModalTarget, Vec<Vec<f64>>, Vec<f64>) {
+    let mut t = build_target(&ci_problem());
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let (g, x) = t.sample_prior(&mut rng);
+    t.units = simulate_data(&t, &g, &x, &mut rng).expect("the ROM tracks the prior draw");
+    let eps = t.ctx(&g).eps;
+    let samples = (0..300)
+        .map(|_| {
+            let xi: Vec<f64> = x[0]
+                .iter()
+                .map(|v| v + spread * (2.0 * rng.random::<f64>() - 1.0))
+                .collect();
+            t.values(&[], 0, &xi)
+        })
+        .collect();
+    (t, samples, eps)
+}
+
+#[test]
+fn the_surrogate_holds_its_verified_tolerance_on_fresh_points_in_its_box() {
+    let (t, samples, eps) = problem(0.004);
+    let opts = SurrogateOptions::default();
+    let s = fit_unit(&t, 0, &samples, &eps, &[], &opts, 11).expect("a surrogate");
+    // Stiffnesses are positive: the box is in their logarithm.
+    assert_eq!(s.inputs.len(), 2);
+    assert!(s.log_input.iter().all(|&l| l));
+    assert!(s.max_abs_dll <= opts.tolerance_dll);
+    // Fresh points: perturb a sample towards the box's edge; wherever the surrogate claims
+    // the point (inside its box) its log-likelihood is the ROM's to within the tolerance
+    // (with a margin for points the 60 verification draws did not see).
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let (mut inside, mut worst) = (0, 0.0f64);
+    for k in 0..400 {
+        let mut v = samples[k % samples.len()].clone();
+        let f = 1.0 + 0.03 * (2.0 * rng.random::<f64>() - 1.0);
+        v[s.inputs[k % 2]] *= f;
+        let Some(ts) = s.terms(&v) else { continue };
+        inside += 1;
+        let p = t.predictor.predict(&v).expect("ROM");
+        let tr = t.predictor.terms(&p, &t.units[0], &v);
+        let dll = modal::log_lik(&t.units[0], &ts, &eps, &[])
+            - modal::log_lik(&t.units[0], &tr, &eps, &[]);
+        worst = worst.max(dll.abs());
+    }
+    assert!(inside > 200, "only {inside} of 400 points in the box");
+    assert!(
+        worst <= 3.0 * opts.tolerance_dll,
+        "max |Δ log L| {worst:.3e}"
+    );
+}
+
+#[test]
+fn a_tolerance_no_polynomial_meets_halves_the_box_to_its_floor_then_refuses() {
+    let (t, samples, eps) = problem(0.004);
+    let opts = SurrogateOptions {
+        degrees: vec![2],
+        tolerance_dll: 1e-14,
+        ..SurrogateOptions::default()
+    };
+    let e = fit_unit(&t, 0, &samples, &eps, &[], &opts, 11).expect_err("refused");
+    for hw in ["10 sd", "5 sd", "2.5 sd"] {
+        assert!(e.contains(hw), "{e}");
+    }
+    assert!(!e.contains("1.25 sd"), "{e}");
+}
