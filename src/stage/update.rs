@@ -965,8 +965,6 @@ struct Acceleration {
     /// Per unit: the surrogate box's half-width in reference sd (10, halved where the ROM or
     /// the polynomial does not hold that far).
     surrogate_half_width_sd: Vec<Option<f64>>,
-    /// Run 1: (posterior mean − reference mean) / reference sd of every global coordinate.
-    reference_offset_global: Vec<f64>,
     surrogate_max_abs_dlog_lik: Vec<Option<f64>>,
     surrogate_rom_evals: u64,
     /// Proposals outside a surrogate's box (`surrogate_half_width_sd`), evaluated by the ROM.
@@ -984,6 +982,9 @@ struct Acceleration {
     reference_sd_ratio_global: Vec<f64>,
     /// The same per unit coordinate, unit by unit.
     reference_sd_ratio_units: Vec<Vec<f64>>,
+    /// Run 1: (posterior mean − reference mean) / reference sd of every global coordinate
+    /// (same order as `reference_sd_ratio_global`).
+    reference_offset_global: Vec<f64>,
 }
 
 type Results = Vec<smc::RunResult<crate::bayes::modal::Terms>>;
