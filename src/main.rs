@@ -294,6 +294,13 @@ enum UpdateCommand {
         /// Half-normal scale of the population sds, relative.
         #[arg(long, default_value_t = 0.05)]
         sigma_scale: f64,
+        /// Refit with a board mechanism of the diagnosis's library: `temperature_stiffness`
+        /// (the FR-4 moduli follow a sheet column, `--enrich-covariate`).
+        #[arg(long, value_enum)]
+        enrich: Option<hbmu::diagnose::library::Mechanism>,
+        /// The numeric sheet column (measurements.parquet) of `--enrich temperature_stiffness`.
+        #[arg(long, default_value = "temperature_c")]
+        enrich_covariate: String,
     },
     /// Step 2: joint contact stiffness per bolted measurement and its population, from the
     /// bolted modes, carrying every step-1 draw (the modular, "cut", posterior).
@@ -373,6 +380,7 @@ impl UpdateArgs {
             surrogate: !self.no_surrogate,
             enrich: None,
             enrich_joint: None,
+            enrich_covariate: None,
         }
     }
 }
@@ -630,9 +638,15 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                     params,
                     prior_width,
                     sigma_scale,
+                    enrich,
+                    enrich_covariate,
                 },
         } => {
-            let opts = common.options(params, prior_width, sigma_scale);
+            let mut opts = common.options(params, prior_width, sigma_scale);
+            if enrich.is_some() {
+                opts.enrich = enrich;
+                opts.enrich_covariate = Some(enrich_covariate);
+            }
             let o = stage::update::run_boards(&opts, cli.verbose)?;
             Ok(report("update boards", &opts.out, &o))
         }

@@ -35,6 +35,8 @@ pub struct FreqObs {
     pub lambda_hat: f64,
     /// ln λ̂ (precomputed: the likelihood's hot path).
     pub ln_lambda_hat: f64,
+    /// The measurement's condition: index into [`UnitData::conditions`] (0 without any).
+    pub cond: usize,
 }
 
 impl FreqObs {
@@ -43,7 +45,42 @@ impl FreqObs {
             mode,
             lambda_hat,
             ln_lambda_hat: lambda_hat.ln(),
+            cond: 0,
         }
+    }
+}
+
+/// A covariate that scales some of the model's stiffness parameters per measurement:
+/// p(c) = p_ref (1 + β_b c) for the parameters it acts on (the FR-4 moduli against the
+/// sheet's temperature: the diagnosis's `temperature_stiffness`), c the measurement's
+/// covariate relative to `reference`, β_b the unit's coefficient (an extra unit coordinate
+/// with its population). The model is evaluated at every distinct condition of a unit
+/// ([`UnitData::conditions`]): exact, no sensitivity expansion (a free-free campaign's
+/// eigenvalues scatter by 2e-5–1e-4, below what a first-order expansion in β c keeps).
+#[derive(Clone, Debug)]
+pub struct CovariateEffect {
+    /// The coefficient's column name, unit in the name (e.g. `temperature_coefficient_per_k`).
+    pub name: String,
+    /// The sheet column the covariate comes from.
+    pub covariate: String,
+    /// The covariate's reference value (the mean over the measurements used).
+    pub reference: f64,
+    /// Indices of the scaled ROM parameters.
+    pub scaled: Vec<usize>,
+}
+
+impl CovariateEffect {
+    /// The ROM parameter vector of condition c for coefficient β; None where 1 + β c ≤ 0.
+    pub fn at(&self, values: &[f64], beta: f64, c: f64) -> Option<Vec<f64>> {
+        let f = 1.0 + beta * c;
+        if f.is_nan() || f <= 0.0 {
+            return None;
+        }
+        let mut v = values.to_vec();
+        for &i in &self.scaled {
+            v[i] *= f;
+        }
+        Some(v)
     }
 }
 
@@ -60,6 +97,8 @@ pub struct ShapeObs {
     pub n_points: usize,
     /// ln n (precomputed).
     pub ln_n: f64,
+    /// The measurement's condition (index into [`UnitData::conditions`]).
+    pub cond: usize,
 }
 
 /// A balance observation of a board's mass.
@@ -77,12 +116,16 @@ pub struct UnitData {
     /// Distinct Gram matrices PᵀP (r × r row-major) of the shape observations.
     pub grams: Vec<Vec<f64>>,
     pub mass: Option<MassObs>,
+    /// The covariate of each distinct condition of the unit's measurements, relative to the
+    /// effect's reference ([`CovariateEffect`]); empty without one (a single condition).
+    pub conditions: Vec<f64>,
 }
 
 /// The model's prediction for one unit at one parameter point.
 #[derive(Clone, Debug)]
 pub struct Terms {
-    /// λ_m of every updated mode.
+    /// λ_m of every updated mode, per condition (condition-major: λ of mode m in condition
+    /// k at k · n_modes + m; one condition without a covariate).
     pub lambda: Vec<f64>,
     /// 1 − MAC of every shape observation (same order as `UnitData::shapes`).
     pub one_minus_mac: Vec<f64>,
@@ -247,17 +290,24 @@ impl ModalPredictor {
 
     /// The likelihood's inputs for `data` from a prediction.
     pub fn terms(&self, pred: &Prediction, data: &UnitData, values: &[f64]) -> Terms {
+        self.terms_conditions(std::slice::from_ref(pred), data, values)
+    }
+
+    /// The likelihood's inputs for `data` from one prediction per condition
+    /// ([`UnitData::conditions`]; one without).
+    pub fn terms_conditions(&self, preds: &[Prediction], data: &UnitData, values: &[f64]) -> Terms {
         let r = self.rom.dim();
-        // yᵀ G y per (Gram, mode), formed on first use.
-        let nm = pred.vectors.len();
-        let mut yy = vec![f64::NAN; data.grams.len() * nm];
+        // yᵀ G y per (condition, Gram, mode), formed on first use.
+        let nm = preds[0].vectors.len();
+        let ng = data.grams.len();
+        let mut yy = vec![f64::NAN; preds.len() * ng * nm];
         let one_minus_mac = data
             .shapes
             .iter()
             .map(|s| {
-                let y = &pred.vectors[s.mode];
+                let y = &preds[s.cond].vectors[s.mode];
                 let uy: f64 = s.pt_u.iter().zip(y).map(|(a, b)| a * b).sum();
-                let slot = &mut yy[s.gram * nm + s.mode];
+                let slot = &mut yy[(s.cond * ng + s.gram) * nm + s.mode];
                 if slot.is_nan() {
                     let g = &data.grams[s.gram];
                     let mut q = 0.0;
@@ -271,7 +321,10 @@ impl ModalPredictor {
             })
             .collect();
         Terms {
-            lambda: pred.lambda.clone(),
+            lambda: preds
+                .iter()
+                .flat_map(|p| p.lambda.iter().copied())
+                .collect(),
             one_minus_mac,
             mass_g: self.mass_g(values),
         }
@@ -284,10 +337,12 @@ pub fn log_lik(data: &UnitData, t: &Terms, eps: &[f64], delta: &[f64]) -> f64 {
     // Logarithms per mode, not per observation (the sampler's hot path).
     let ln_eps: Vec<f64> = eps.iter().map(|e| e.ln()).collect();
     let ln_d2: Vec<f64> = delta.iter().map(|d| 2.0 * d.ln()).collect();
+    let nm = eps.len();
     let mut l = 0.0;
     for f in &data.freq {
         let sd = eps[f.mode] * f.lambda_hat;
-        let z = (f.lambda_hat - t.lambda[f.mode]) / sd;
+        let lambda = t.lambda[f.cond * nm + f.mode];
+        let z = (f.lambda_hat - lambda) / sd;
         l -= 0.5 * (LN_2PI + z * z) + ln_eps[f.mode] + f.ln_lambda_hat;
     }
     for (s, omm) in data.shapes.iter().zip(&t.one_minus_mac) {
@@ -375,6 +430,7 @@ mod tests {
                 gram: 0,
                 n_points: n,
                 ln_n: (n as f64).ln(),
+                cond: 0,
             });
         }
         let v = p.values.clone();

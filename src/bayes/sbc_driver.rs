@@ -103,6 +103,7 @@ pub fn build_target(p: &Problem) -> ModalTarget {
             delta: None,
         },
         units: vec![unit; p.boards],
+        covariate: None,
     }
 }
 

@@ -9,7 +9,11 @@
 //!   particle's auxiliary values (`smc::run_with`; groups make it the modular posterior).
 //!
 //! Global vector: [population (see [`PopulationPrior`]) | ln ε per mode | ln δ per mode];
-//! the error blocks are absent when fixed. ln ε and ln δ are normal (log-normal scales): a
+//! the error blocks are absent when fixed.
+//!
+//! With a [`CovariateEffect`] (step 1 only; the diagnosis's `temperature_stiffness`), a
+//! board's x has one more coordinate, its coefficient β_b (absolute, after the relative
+//! deviations), and the board's model is evaluated at every condition of its measurements. ln ε and ln δ are normal (log-normal scales): a
 //! weakly informative prior over orders of magnitude that, unlike a half-normal, puts no
 //! appreciable mass on absurdly small errors (a half-normal's ln-scale density decays only
 //! like ε as ε → 0, which made the first tempering stages do nothing but remove those).
@@ -18,7 +22,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::Serialize;
 
-use super::modal::{self, ModalPredictor, Terms, UnitData};
+use super::modal::{self, CovariateEffect, ModalPredictor, Terms, UnitData};
 use super::population::{Population, PopulationPrior};
 use super::smc::Target;
 use super::stats::normal_lpdf;
@@ -137,7 +141,22 @@ pub enum Compose {
         unit_board: Vec<usize>,
         coords: Vec<Vec<(usize, f64)>>,
         reference: Vec<(usize, f64)>,
+        /// A step-1 covariate effect carried into step 2 (`None`: none).
+        covariate: Option<JointsCovariate>,
     },
+}
+
+/// A step-1 [`CovariateEffect`] in step 2: every board's block of aux holds its parameters
+/// and, at `coef`, its coefficient β_b; unit b's ROM parameters `scaled` are multiplied by
+/// 1 + β_b c_b, c_b = `offsets[b]` the measurement's covariate relative to step 1's
+/// reference.
+#[derive(Clone, Debug)]
+pub struct JointsCovariate {
+    /// Length of one board's block of aux (parameters, then coefficients).
+    pub block: usize,
+    pub coef: usize,
+    pub scaled: Vec<usize>,
+    pub offsets: Vec<f64>,
 }
 
 /// One hierarchical modal target.
@@ -148,6 +167,8 @@ pub struct ModalTarget {
     pub prior: PopulationPrior,
     pub errors: ErrorModel,
     pub units: Vec<UnitData>,
+    /// A per-measurement covariate scaling stiffness (`None`: the baseline); step 1 only.
+    pub covariate: Option<CovariateEffect>,
 }
 
 /// Unpacked global vector.
@@ -173,11 +194,20 @@ impl ModalTarget {
                 unit_board,
                 coords,
                 reference,
+                covariate,
             } => {
-                let d1 = board_params.len();
+                let d1 = covariate.as_ref().map_or(board_params.len(), |c| c.block);
                 let o = unit_board[b] * d1;
                 for (k, &i) in board_params.iter().enumerate() {
                     v[i] = aux[o + k];
+                }
+                if let Some(c) = covariate {
+                    // A non-positive factor makes the stiffness non-positive: the ROM
+                    // rejects it (no model there).
+                    let f = 1.0 + aux[o + c.coef] * c.offsets[b];
+                    for &i in &c.scaled {
+                        v[i] *= f;
+                    }
                 }
                 for &(i, r) in reference {
                     v[i] = r;
@@ -190,6 +220,29 @@ impl ModalTarget {
             }
         }
         v
+    }
+}
+
+impl ModalTarget {
+    /// With a covariate effect, the ROM parameter vector of every condition of unit b
+    /// (None where the coefficient makes a stiffness non-positive); `None` without one.
+    pub fn condition_values(
+        &self,
+        b: usize,
+        v: &[f64],
+        x: &[f64],
+    ) -> Option<Vec<Option<Vec<f64>>>> {
+        let e = self.covariate.as_ref()?;
+        let Compose::Boards { updated, .. } = &self.compose else {
+            return None;
+        };
+        let beta = x[updated.len()];
+        let conds = &self.units[b].conditions;
+        Some(if conds.is_empty() {
+            vec![Some(v.to_vec())]
+        } else {
+            conds.iter().map(|&c| e.at(v, beta, c)).collect()
+        })
     }
 }
 
@@ -243,8 +296,20 @@ impl Target for ModalTarget {
     }
     fn model(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Terms> {
         let v = self.values(aux, b, x);
-        let pred = self.predictor.predict(&v)?;
-        Some(self.predictor.terms(&pred, &self.units[b], &v))
+        let data = &self.units[b];
+        match self.condition_values(b, &v, x) {
+            None => {
+                let pred = self.predictor.predict(&v)?;
+                Some(self.predictor.terms(&pred, data, &v))
+            }
+            Some(vs) => {
+                let preds = vs
+                    .iter()
+                    .map(|vk| self.predictor.predict(vk.as_ref()?))
+                    .collect::<Option<Vec<_>>>()?;
+                Some(self.predictor.terms_conditions(&preds, data, &v))
+            }
+        }
     }
     fn log_lik(&self, ctx: &Ctx, b: usize, _x: &[f64], c: &Terms) -> f64 {
         modal::log_lik(&self.units[b], c, &ctx.eps, &ctx.delta)
@@ -254,5 +319,157 @@ impl Target for ModalTarget {
     }
     fn from_standard(&self, ctx: &Ctx, _b: usize, z: &[f64]) -> Vec<f64> {
         ctx.pop.from_standard(z)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bayes::modal::{FreqObs, ModalPredictor};
+    use crate::fem::{Board, FeModel, RomOptions, Setup};
+
+    fn covariate_target() -> (ModalTarget, Vec<usize>) {
+        let board = Board::default_board();
+        let model = FeModel::build(&board, Setup::Free, &board.mesh).expect("model");
+        let rom = crate::fem::Rom::build(
+            &model,
+            &RomOptions {
+                max_basis: 30,
+                ..RomOptions::default()
+            },
+        )
+        .expect("rom");
+        let names = rom.map.names.clone();
+        let pos = |n: &str| names.iter().position(|m| m == n).expect("parameter");
+        let updated = vec![pos("e_x_pa"), pos("e_y_pa"), pos("g_xy_pa")];
+        let reference = updated.iter().map(|&i| rom.map.nominal[i]).collect();
+        let predictor = ModalPredictor::new(rom, &[0, 1, 2, 3], 12.7).expect("predictor");
+        let unit = UnitData {
+            conditions: vec![-2.0, 3.0],
+            ..UnitData::default()
+        };
+        let t = ModalTarget {
+            predictor,
+            compose: Compose::Boards {
+                updated: updated.clone(),
+                reference,
+            },
+            prior: PopulationPrior {
+                mu_mean: vec![0.0; 4],
+                mu_sd: vec![0.1, 0.1, 0.1, 0.005],
+                sigma_scale: vec![0.05, 0.05, 0.05, 0.001],
+                lkj_eta: 2.0,
+            },
+            errors: ErrorModel {
+                n_modes: 4,
+                eps: ErrorPrior::Fixed { value: 1e-4 },
+                delta: None,
+            },
+            units: vec![unit],
+            covariate: Some(CovariateEffect {
+                name: "temperature_coefficient_per_k".into(),
+                covariate: "temperature_c".into(),
+                reference: 23.0,
+                scaled: updated.clone(),
+            }),
+        };
+        (t, updated)
+    }
+
+    /// With a covariate effect, a board's terms hold one prediction per condition, each the
+    /// ROM's at the moduli scaled by 1 + β c (condition-major); the likelihood reads each
+    /// observation's own condition, so data made at β = −0.004 favour β = −0.004 over 0 and
+    /// over −0.003 decisively.
+    #[test]
+    fn covariate_conditions_are_the_rom_at_the_scaled_moduli() {
+        let (mut t, scaled) = covariate_target();
+        let x = [0.01, -0.02, 0.015, -0.004];
+        let terms = t.model(&[], 0, &x).expect("terms");
+        let v = t.values(&[], 0, &x);
+        let nm = 4;
+        assert_eq!(terms.lambda.len(), 2 * nm);
+        for (k, c) in [-2.0, 3.0].into_iter().enumerate() {
+            let mut vk = v.clone();
+            for &i in &scaled {
+                vk[i] *= 1.0 + x[3] * c;
+            }
+            let direct = t.predictor.predict(&vk).expect("direct");
+            for m in 0..nm {
+                assert_eq!(
+                    terms.lambda[k * nm + m],
+                    direct.lambda[m],
+                    "condition {k} mode {m}"
+                );
+            }
+        }
+        // β < 0: the warmer condition (c = 3) is the softer.
+        assert!(terms.lambda[nm] < terms.lambda[0]);
+        // Observations at both conditions, exact at β = −0.004.
+        t.units[0].freq = (0..2 * nm)
+            .map(|s| FreqObs {
+                cond: s / nm,
+                ..FreqObs::new(s % nm, terms.lambda[s])
+            })
+            .collect();
+        let ctx = t.ctx(&{
+            let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(1);
+            let mut g = t.prior.sample(&mut rng);
+            g.extend(t.errors.sample(&mut rng));
+            g
+        });
+        let ll = |beta: f64| {
+            let mut xb = x;
+            xb[3] = beta;
+            let c = t.model(&[], 0, &xb).expect("terms");
+            t.log_lik(&ctx, 0, &xb, &c)
+        };
+        let (at, zero, near) = (ll(-0.004), ll(0.0), ll(-0.003));
+        assert!(at - zero > 100.0 && at - near > 10.0, "{at} {zero} {near}");
+    }
+
+    /// Step 2 carries a board's coefficient in aux after its parameters and scales the
+    /// moduli of each bolted measurement by 1 + β_b c_b.
+    #[test]
+    fn joints_compose_scales_the_board_moduli_by_the_measurement_covariate() {
+        let (t, scaled) = covariate_target();
+        let nominal = t.predictor.rom.map.nominal.clone();
+        let board_params = scaled.clone();
+        let mut tj = t.clone();
+        tj.covariate = None;
+        tj.compose = Compose::Joints {
+            board_params: board_params.clone(),
+            unit_board: vec![1, 0],
+            coords: vec![],
+            reference: vec![],
+            covariate: Some(JointsCovariate {
+                block: 4,
+                coef: 3,
+                scaled: scaled.clone(),
+                offsets: vec![2.5, -1.0],
+            }),
+        };
+        // Two boards: [e_x, e_y, g_xy, β] each.
+        let aux: Vec<f64> = [1.0, 1.01]
+            .iter()
+            .zip([-0.004, -0.003])
+            .flat_map(|(f, beta)| {
+                board_params
+                    .iter()
+                    .map(|&i| nominal[i] * f)
+                    .chain(std::iter::once(beta))
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        // Unit 0 is on board 1 (β −0.003, c 2.5), unit 1 on board 0 (β −0.004, c −1).
+        for (b, (f, beta, c)) in [(1.01, -0.003, 2.5), (1.0, -0.004, -1.0)]
+            .into_iter()
+            .enumerate()
+        {
+            let v = tj.values(&aux, b, &[]);
+            for &i in &scaled {
+                let want = nominal[i] * f * (1.0 + beta * c);
+                assert!((v[i] / want - 1.0).abs() < 1e-14, "unit {b} parameter {i}");
+            }
+        }
     }
 }

@@ -22,6 +22,13 @@
 //!   and its own resonance at the top of the measured band with a log-sd of 1;
 //! - `joint_stiffness_per_joint`: the stiffness ratio of one joint to the others, centred on
 //!   1 with a log-sd of 0.7 (a loose bolt halves it, a missing washer doubles it).
+//!
+//! A board mechanism enriches step 1 (free-free): `temperature_stiffness` scales the FR-4
+//! moduli (E_x, E_y, G_xy) of every measurement by 1 + β (c − c_ref), c the sheet's
+//! covariate (temperature) and β one global coefficient ([`BoardEnrichment`]), prior
+//! N(0, (0.5 %/K)²): epoxy-glass laminates below their glass transition lose about 0.05–0.5 %
+//! of their moduli per kelvin, so the prior covers that range within about one sd either
+//! way without fixing the sign.
 
 use serde::Serialize;
 
@@ -129,6 +136,49 @@ pub struct JointEnrichment {
     /// (ROM parameter name, reference value) for every parameter a coordinate moves.
     pub reference: Vec<(String, f64)>,
     pub coordinates: Vec<Coordinate>,
+}
+
+/// A step-1 enrichment: a covariate c of every measurement scales `scaled` (ROM parameter
+/// names) by 1 + β (c − c_ref), β ~ N(prior_mean, prior_sd²).
+#[derive(Clone, Debug, Serialize)]
+pub struct BoardEnrichment {
+    pub mechanism: Mechanism,
+    /// The coefficient's name, unit in the name (population.parquet column).
+    pub coefficient: String,
+    pub scaled: Vec<String>,
+    pub prior_mean: f64,
+    pub prior_sd: f64,
+}
+
+/// The step-1 model of a board mechanism; errors name the mechanisms that have one.
+pub fn board_enrichment(mechanism: Mechanism) -> Result<BoardEnrichment, String> {
+    match mechanism {
+        Mechanism::TemperatureStiffness => Ok(BoardEnrichment {
+            mechanism,
+            coefficient: "temperature_coefficient_per_k".into(),
+            scaled: vec![names::E_X.into(), names::E_Y.into(), names::G_XY.into()],
+            prior_mean: 0.0,
+            prior_sd: 0.005,
+        }),
+        m => Err(format!(
+            "{} has no step-1 refit (board mechanisms: temperature_stiffness)",
+            m.id()
+        )),
+    }
+}
+
+/// Whether a column of boards.parquet is a board enrichment's coefficient (not a model
+/// parameter).
+pub fn is_board_coefficient(column: &str) -> bool {
+    Mechanism::ALL
+        .iter()
+        .filter_map(|m| board_enrichment(*m).ok())
+        .any(|e| e.coefficient == column)
+}
+
+/// Whether the mechanism's refit is a step-1 (board) refit rather than a step-2 one.
+pub fn is_board_mechanism(m: Mechanism) -> bool {
+    board_enrichment(m).is_ok()
 }
 
 /// What the enrichment needs to know of the campaign: the highest paired bolted frequency

@@ -15,8 +15,9 @@
 //! - free-free modes misfit without a covariate → `added_mass` and `local_stiffness_loss`
 //!   (they act in both setups).
 //!
-//! Only the joint mechanisms have a refit (`update joints --enrich`); the others are listed
-//! with their screening reason and no Bayes factor.
+//! The joint mechanisms have a step-2 refit (`update joints --enrich`),
+//! `temperature_stiffness` a step-1 one (`update boards --enrich`, on the named covariate);
+//! the others are listed with their screening reason and no Bayes factor.
 
 use serde::Serialize;
 
@@ -54,7 +55,7 @@ impl Candidate {
                 | Mechanism::JointMass
                 | Mechanism::FixtureCompliance
                 | Mechanism::JointStiffnessPerJoint
-        )
+        ) || (self.mechanism == Mechanism::TemperatureStiffness && self.covariate.is_some())
     }
 
     /// `location` of diagnosis.json.
@@ -83,8 +84,10 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
     let setup_modes = |s: &str| located.modes.iter().filter(|m| m.setup == s).count();
     let bolted_modes = setup_modes("bolted");
     let free_modes = setup_modes("free");
+    // Outliers that remain once the located covariates are taken out: a temperature drift
+    // makes the measurements at its extremes outliers, a loose bolt stays one.
     let bolted_outliers: Vec<&String> = located
-        .measurements
+        .measurements_after_covariates
         .iter()
         .filter(|m| {
             located
@@ -171,16 +174,16 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
                 ),
             ));
         }
-        if !bolted_outliers.is_empty() && bolted_modes == 0 {
+        // Outliers are the more specific signature: a mechanism acting on all measurements
+        // alike cannot make a few of them outliers, while one joint's looseness in some
+        // measurements also moves the modes' means a little.
+        if !bolted_outliers.is_empty() {
             joint_cands.extend(per_joint(&why_out));
         }
         joint_cands.push(cand(Mechanism::JointRotation, why_modes.clone()));
         joint_cands.push(cand(Mechanism::JointMass, why_modes.clone()));
         if recurring_bolted.is_empty() {
             joint_cands.push(cand(Mechanism::FixtureCompliance, why_modes.clone()));
-        }
-        if !bolted_outliers.is_empty() && bolted_modes > 0 {
-            joint_cands.extend(per_joint(&why_out));
         }
         out.extend(joint_cands);
     }

@@ -185,7 +185,10 @@ fn fmt_num(v: f64) -> String {
     } else if a >= 10.0 {
         format!("{v:.1}")
     } else {
-        format!("{v:.3}")
+        // Four significant digits below 10 (0.004024, not 0.004: an interval must not
+        // collapse to one number).
+        let decimals = (3 - a.log10().floor() as i32).max(0) as usize;
+        format!("{v:.decimals$}")
     }
 }
 
@@ -252,6 +255,16 @@ pub fn sentence(c: &Compared) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn numbers_keep_four_significant_digits_below_ten() {
+        assert_eq!(fmt_num(-0.004024), "-0.004024");
+        assert_eq!(fmt_num(1.5437), "1.544");
+        assert_eq!(fmt_num(0.05302), "0.05302");
+        assert_eq!(fmt_num(38.24), "38.2");
+        assert_eq!(fmt_num(1024.4), "1024");
+        assert_eq!(fmt_num(2.5e-5), "2.500e-5");
+    }
 
     fn refit(m: Option<Mechanism>, z: &[f64], held: f64) -> Refit {
         Refit {

@@ -9,11 +9,11 @@
 //! Outputs (flat Parquet, schemas in `schemas/tables/`): `population`, `boards`,
 //! `summary`, `stages`, `residuals`, and `evidence.json`, `update_report.json`.
 
-use crate::bayes::modal::{FreqObs, MassObs, ModalPredictor, ShapeObs, UnitData};
+use crate::bayes::modal::{CovariateEffect, FreqObs, MassObs, ModalPredictor, ShapeObs, UnitData};
 use crate::bayes::population::PopulationPrior;
 use crate::bayes::smc::{self, Particle, SmcOptions, StageInfo};
-use crate::bayes::target::{Compose, ErrorModel, ErrorPrior, ModalTarget};
-use crate::diagnose::library::{joint_enrichment, JointContext, Mechanism};
+use crate::bayes::target::{Compose, ErrorModel, ErrorPrior, JointsCovariate, ModalTarget};
+use crate::diagnose::library::{board_enrichment, joint_enrichment, JointContext, Mechanism};
 use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Rom, RomOptions, Setup};
 use crate::findings::{Finding, Findings, Severity};
@@ -248,6 +248,9 @@ pub struct UpdateOptions {
     /// Step 2 with `joint_stiffness_per_joint`: the joint (1-based).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub enrich_joint: Option<usize>,
+    /// Step 1 with `temperature_stiffness`: the numeric sheet column the FR-4 moduli follow.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub enrich_covariate: Option<String>,
 }
 
 impl UpdateOptions {
@@ -515,6 +518,7 @@ fn shape_obs(
         gram,
         n_points: n,
         ln_n: (n as f64).ln(),
+        cond: 0,
     }))
 }
 
@@ -1310,6 +1314,13 @@ fn population_columns<'a>(
     if infer_delta {
         cols.extend(labels.iter().map(|l| (format!("delta_{l}"), String::new())));
     }
+    // The covariate coefficient (absolute, the unit coordinate after the parameters).
+    if let Some(c) = &target.covariate {
+        let unit = format!("1/(unit of {})", c.covariate);
+        cols.push((format!("mu_{}", c.name), unit.clone()));
+        cols.push((format!("sigma_{}", c.name), unit));
+    }
+    let with_beta = target.covariate.is_some();
     let reference = reference.to_vec();
     let f = Box::new(move |g: &[f64]| -> Vec<f64> {
         let ctx = smc::Target::ctx(target, g);
@@ -1320,9 +1331,10 @@ fn population_columns<'a>(
             .collect();
         v.extend(reference.iter().zip(&ctx.pop.sigma).map(|(r, s)| r * s));
         let o = ctx.pop.correlation();
+        let dd = ctx.pop.mu.len();
         for i in 0..d {
             for j in i + 1..d {
-                v.push(o[i * d + j]);
+                v.push(o[i * dd + j]);
             }
         }
         if infer_eps {
@@ -1330,6 +1342,10 @@ fn population_columns<'a>(
         }
         if infer_delta {
             v.extend(&ctx.delta);
+        }
+        if with_beta {
+            v.push(ctx.pop.mu[d]);
+            v.push(ctx.pop.sigma[d]);
         }
         v
     });
@@ -1373,16 +1389,31 @@ fn residuals(
                     let v = target.values(&p.aux, b, &p.x[b]);
                     n_all += 1.0;
                     // A label lost at this draw (its mode not trackable) leaves the others.
-                    let Some((pred, tracked)) = all_pred.predict_tracked(&v) else {
+                    // With a covariate effect: one prediction per condition.
+                    let vs = target
+                        .condition_values(b, &v, &p.x[b])
+                        .unwrap_or_else(|| vec![Some(v.clone())]);
+                    let Some(tracked_preds) = vs
+                        .iter()
+                        .map(|vk| all_pred.predict_tracked(vk.as_ref()?))
+                        .collect::<Option<Vec<_>>>()
+                    else {
                         continue;
                     };
-                    let t = all_pred.terms(&pred, data, &v);
+                    let nm = all_labels.len();
+                    let tracked: Vec<bool> = tracked_preds
+                        .iter()
+                        .flat_map(|(_, t)| t.iter().copied())
+                        .collect();
+                    let preds: Vec<_> = tracked_preds.into_iter().map(|(p, _)| p).collect();
+                    let t = all_pred.terms_conditions(&preds, data, &v);
                     let ctx = smc::Target::ctx(target, &p.g);
                     for (k, f) in data.freq.iter().enumerate() {
-                        if !tracked[f.mode] {
+                        let slot = f.cond * nm + f.mode;
+                        if !tracked[slot] {
                             continue;
                         }
-                        let fm = t.lambda[f.mode].max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
+                        let fm = t.lambda[slot].max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
                         s1[k] += fm;
                         s2[k] += fm * fm;
                         nk[k] += 1.0;
@@ -1392,7 +1423,8 @@ fn residuals(
                         }
                     }
                     for (k, omm) in t.one_minus_mac.iter().enumerate() {
-                        if tracked[data.shapes[k].mode] {
+                        let sh = &data.shapes[k];
+                        if tracked[sh.cond * nm + sh.mode] {
                             mac[k] += 1.0 - omm;
                             nmac[k] += 1.0;
                         }
@@ -1615,23 +1647,48 @@ fn unit_and_residual_data(
     all: &Labels,
     use_shapes: bool,
     (model, rom, shapes): (&FeModel, &Rom, &ShapeMap),
+    covariate: Option<&BTreeMap<String, f64>>,
     findings: &mut Findings,
 ) -> anyhow::Result<(UnitData, (UnitData, Vec<ObsMeta>))> {
     let sh = use_shapes.then_some((model, rom, shapes));
-    let (data, _) = unit_data(rows, &labels.labels, sh, findings)?;
+    let (mut data, meta) = unit_data(rows, &labels.labels, sh, findings)?;
     let mut residual_findings = Findings::default();
-    let all_data = unit_data(
+    let mut all_data = unit_data(
         rows,
         &all.labels,
         Some((model, rom, shapes)),
         &mut residual_findings,
     )?;
+    if let Some(c) = covariate {
+        set_conditions(&mut data, &meta, c);
+        set_conditions(&mut all_data.0, &all_data.1, c);
+    }
     for f in residual_findings.0 {
         if !findings.0.contains(&f) {
             findings.push(f);
         }
     }
     Ok((data, all_data))
+}
+
+/// A unit's conditions: the distinct covariate offsets of its measurements (in order of
+/// first appearance), and each observation's condition.
+fn set_conditions(data: &mut UnitData, meta: &[ObsMeta], offsets: &BTreeMap<String, f64>) {
+    data.conditions.clear();
+    for (k, m) in meta.iter().enumerate() {
+        let c = offsets.get(&m.measurement_id).copied().unwrap_or(0.0);
+        let i = match data.conditions.iter().position(|x| *x == c) {
+            Some(i) => i,
+            None => {
+                data.conditions.push(c);
+                data.conditions.len() - 1
+            }
+        };
+        data.freq[k].cond = i;
+        if let Some(sh) = m.shape {
+            data.shapes[sh].cond = i;
+        }
+    }
 }
 
 /// The surrogate boxes' half-widths in reference sd, e.g. `10` or `2.5–10`.
@@ -1664,18 +1721,103 @@ fn check_surrogate_edges(acc: &Acceleration, findings: &mut Findings) {
 }
 
 /// Step 1: boards, free-free.
+/// The numeric column `column` of measurements.parquet for the measurements `used`, as
+/// offsets from their mean (returned too). A used measurement without a value is a warning
+/// and sits at the mean (offset 0), so the refit keeps the baseline's data.
+fn covariate_offsets(
+    path: &Path,
+    column: &str,
+    used: &BTreeSet<&str>,
+    findings: &mut Findings,
+) -> anyhow::Result<(BTreeMap<String, f64>, f64)> {
+    let mut values: BTreeMap<String, f64> = BTreeMap::new();
+    let mut missing = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let mid = c.str("measurement_id")?;
+        let col = b.column_by_name(column).ok_or_else(|| {
+            anyhow!(
+                "{}: no column {column:?} (the covariate of the enrichment); columns: {}",
+                path.display(),
+                b.schema()
+                    .fields()
+                    .iter()
+                    .map(|f| f.name().as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        })?;
+        let col = arrow::compute::cast(col, &DataType::Float64).with_context(|| {
+            format!(
+                "{}: column {column:?} is not numeric (expected a number per measurement)",
+                path.display()
+            )
+        })?;
+        let a = col
+            .as_any()
+            .downcast_ref::<Float64Array>()
+            .ok_or_else(|| anyhow!("{}: column {column:?}: expected float64", path.display()))?;
+        for i in 0..b.num_rows() {
+            let m = mid.value(i);
+            if !used.contains(m) {
+                continue;
+            }
+            if arrow::array::Array::is_valid(a, i) && a.value(i).is_finite() {
+                values.insert(m.to_string(), a.value(i));
+            } else {
+                missing.push(m.to_string());
+            }
+        }
+    }
+    for m in used {
+        if !values.contains_key(*m) && !missing.iter().any(|x| x == m) {
+            missing.push(m.to_string());
+        }
+    }
+    if values.is_empty() {
+        bail!(
+            "{}: column {column:?} has no value for any measurement used; nothing to refit against",
+            path.display()
+        );
+    }
+    if !missing.is_empty() {
+        findings.push(Finding::new(
+            Severity::Warning,
+            "update.covariate_missing",
+            format!(
+                "{} measurement(s) have no {column}: {}; taken at the mean of the others",
+                missing.len(),
+                missing.join(", ")
+            ),
+        ));
+    }
+    let mean = values.values().sum::<f64>() / values.len() as f64;
+    Ok((
+        values.into_iter().map(|(k, v)| (k, v - mean)).collect(),
+        mean,
+    ))
+}
+
 pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
     let extract_dir = opts.extract_dir();
     let pairs_path = opts.pair_dir.join("pairs.parquet");
     let presence_path = opts.pair_dir.join("presence.parquet");
     let modes_path = extract_dir.join("modes.parquet");
     let masses_path = opts.ingest_dir.join("masses.parquet");
-    let inputs = vec![
+    let measurements_path = opts.ingest_dir.join("measurements.parquet");
+    let enrichment = opts
+        .enrich
+        .map(|m| board_enrichment(m).map_err(|e| anyhow!("--enrich: {e}")))
+        .transpose()?;
+    let mut inputs = vec![
         pairs_path.clone(),
         presence_path.clone(),
         modes_path.clone(),
         masses_path.clone(),
     ];
+    if enrichment.is_some() {
+        inputs.push(measurements_path.clone());
+    }
     let (board, spec) = step_spec(
         opts,
         "update_boards",
@@ -1714,6 +1856,41 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?;
         // Units: every board with free-free pairs or a mass.
         let masses = read_masses(&masses_path)?;
+        // The enrichment's covariate per free-free measurement, as offsets from their mean.
+        let (cov_offsets, covariate) = match &enrichment {
+            Some(e) => {
+                let column = opts.enrich_covariate.clone().ok_or_else(|| {
+                    anyhow!("--enrich {}: needs the covariate column", e.mechanism.id())
+                })?;
+                let free: BTreeSet<&str> = pairs
+                    .iter()
+                    .filter(|p| p.setup == "free")
+                    .map(|p| p.measurement_id.as_str())
+                    .collect();
+                let (offsets, reference) =
+                    covariate_offsets(&measurements_path, &column, &free, &mut findings)?;
+                let scaled: Vec<usize> = e
+                    .scaled
+                    .iter()
+                    .map(|n| {
+                        rom.map.names.iter().position(|m| m == n).ok_or_else(|| {
+                            anyhow!(
+                                "--enrich {}: the model has no parameter {n:?}",
+                                e.mechanism.id()
+                            )
+                        })
+                    })
+                    .collect::<anyhow::Result<_>>()?;
+                let cov = CovariateEffect {
+                    name: e.coefficient.clone(),
+                    covariate: column,
+                    reference,
+                    scaled,
+                };
+                (Some(offsets), Some(cov))
+            }
+            None => (None, None),
+        };
         let wanted: BTreeSet<(String, i32)> = pairs
             .iter()
             .filter(|p| p.setup == "free")
@@ -1742,6 +1919,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 &all,
                 use_shapes,
                 (&model, &rom, &shapes),
+                cov_offsets.as_ref(),
                 &mut findings,
             )?;
             data.mass = match masses.get(b) {
@@ -1791,27 +1969,40 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             bail!("no board has data for step 1 (no paired free-free mode and no mass)");
         }
         let d = updated.len();
+        let mut prior = PopulationPrior {
+            mu_mean: vec![0.0; d],
+            mu_sd: vec![opts.prior_width; d],
+            sigma_scale: vec![opts.sigma_scale; d],
+            lkj_eta: opts.lkj_eta,
+        };
+        if let Some(e) = &enrichment {
+            // The board's coefficient: population mean ~ the mechanism's prior, and a
+            // board-to-board sd of a fifth of that prior's.
+            prior.mu_mean.push(e.prior_mean);
+            prior.mu_sd.push(e.prior_sd);
+            prior.sigma_scale.push(0.2 * e.prior_sd);
+        }
         let target = ModalTarget {
             predictor,
             compose: Compose::Boards {
                 updated: updated.clone(),
                 reference: reference.clone(),
             },
-            prior: PopulationPrior {
-                mu_mean: vec![0.0; d],
-                mu_sd: vec![opts.prior_width; d],
-                sigma_scale: vec![opts.sigma_scale; d],
-                lkj_eta: opts.lkj_eta,
-            },
+            prior,
             errors: ErrorModel {
                 n_modes: labels.labels.len(),
                 eps: opts.eps,
                 delta: opts.delta,
             },
             units,
+            covariate: covariate.clone(),
         };
         let t0 = std::time::Instant::now();
-        let (results, acceleration) = run_smc(&target, opts, "boards", &[], None, verbose)?;
+        // The surrogates model a unit's terms as a function of its ROM parameters alone; with
+        // a covariate the terms also follow the unit's coefficient, so the ROM runs directly.
+        let mut sopts = opts.clone();
+        sopts.surrogate &= target.covariate.is_none();
+        let (results, acceleration) = run_smc(&target, &sopts, "boards", &[], None, verbose)?;
         let sampler_seconds = t0.elapsed().as_secs_f64();
         check_surrogate_edges(&acceleration, &mut findings);
         let violations = box_violations(
@@ -1839,6 +2030,10 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             .map(|p| (p.clone(), String::new()))
             .collect();
         bcols.push(("mass_g".into(), "g".into()));
+        // A board enrichment's coefficient per board (step 2 carries it with the draw).
+        if let Some(c) = &covariate {
+            bcols.push((c.name.clone(), format!("1/(unit of {})", c.covariate)));
+        }
         let mut boards = DrawTable::new(&bcols);
         for (r, i, p) in particles_of(&results) {
             pop.push(r, i, None, &pop_of(&p.g));
@@ -1846,6 +2041,9 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 let v = target.values(&p.aux, b, &p.x[b]);
                 let mut row: Vec<f64> = updated.iter().map(|&k| v[k]).collect();
                 row.push(target.predictor.mass_g(&v));
+                if covariate.is_some() {
+                    row.push(p.x[b][d]);
+                }
                 boards.push(r, i, Some(name), &row);
             }
         }
@@ -1882,7 +2080,18 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         crate::io::atomic::write_bytes(&p, &target.predictor.rom.to_npz_bytes())?;
         outputs.push(p);
         let log_z: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
-        let ev = evidence_json(&log_z, "boards (step 1)");
+        let mut ev = evidence_json(&log_z, "boards (step 1)");
+        if let (Some(e), Some(c)) = (&enrichment, &covariate) {
+            ev["enrichment"] = serde_json::json!({
+                "mechanism": e.mechanism,
+                "coefficient": e.coefficient,
+                "scaled": e.scaled,
+                "covariate": c.covariate,
+                "covariate_reference": c.reference,
+                "prior_mean": e.prior_mean,
+                "prior_sd": e.prior_sd,
+            });
+        }
         let p = opts.out.join("evidence.json");
         crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
         outputs.push(p);
@@ -1908,8 +2117,18 @@ struct Step1 {
     board_ids: Vec<String>,
     /// The updated parameters (ROM names), in column order.
     params: Vec<String>,
-    /// Per (run, draw): every board's parameter values, board-major.
+    /// Coefficients of a board enrichment (e.g. `temperature_coefficient_per_k`), after the
+    /// parameters in every board's block.
+    coefs: Vec<String>,
+    /// Per (run, draw): every board's parameter and coefficient values, board-major.
     draws: Vec<((i32, i32), Vec<f64>)>,
+}
+
+impl Step1 {
+    /// Values per board in a draw: parameters, then coefficients.
+    fn block(&self) -> usize {
+        self.params.len() + self.coefs.len()
+    }
 }
 
 fn read_step1(path: &Path) -> anyhow::Result<Step1> {
@@ -1917,13 +2136,13 @@ fn read_step1(path: &Path) -> anyhow::Result<Step1> {
     let Some(first) = batches.first() else {
         bail!("{}: no rows: the step-1 posterior is empty", path.display());
     };
-    let params: Vec<String> = first
+    let (coefs, params): (Vec<String>, Vec<String>) = first
         .schema()
         .fields()
         .iter()
         .filter(|f| f.data_type() == &DataType::Float64 && f.name() != "mass_g")
         .map(|f| f.name().clone())
-        .collect();
+        .partition(|n| crate::diagnose::library::is_board_coefficient(n));
     if params.is_empty() {
         bail!(
             "{}: no parameter columns (expected e.g. e_x_pa, mass_scale)",
@@ -1935,7 +2154,11 @@ fn read_step1(path: &Path) -> anyhow::Result<Step1> {
     for b in &batches {
         let c = Cols { batch: b, path };
         let (run, draw, bid) = (c.i32("run")?, c.i32("draw")?, c.str("board_id")?);
-        let cols: Vec<&Float64Array> = params.iter().map(|p| c.f64(p)).collect::<Result<_, _>>()?;
+        let cols: Vec<&Float64Array> = params
+            .iter()
+            .chain(&coefs)
+            .map(|p| c.f64(p))
+            .collect::<Result<_, _>>()?;
         for i in 0..b.num_rows() {
             board_ids.insert(bid.value(i).to_string());
             by.entry((run.value(i), draw.value(i))).or_default().insert(
@@ -1964,6 +2187,7 @@ fn read_step1(path: &Path) -> anyhow::Result<Step1> {
     Ok(Step1 {
         board_ids,
         params,
+        coefs,
         draws,
     })
 }
@@ -2158,12 +2382,19 @@ pub fn run_joints(
     let presence_path = opts.pair_dir.join("presence.parquet");
     let modes_path = extract_dir.join("modes.parquet");
     let step1_path = boards_dir.join("boards.parquet");
-    let inputs = vec![
+    let mut inputs = vec![
         pairs_path.clone(),
         presence_path.clone(),
         modes_path.clone(),
         step1_path.clone(),
     ];
+    if opts
+        .enrich
+        .is_some_and(crate::diagnose::library::is_board_mechanism)
+    {
+        inputs.push(boards_dir.join("evidence.json"));
+        inputs.push(opts.ingest_dir.join("measurements.parquet"));
+    }
     let (board, spec) = step_spec(
         opts,
         "update_joints",
@@ -2179,9 +2410,13 @@ pub fn run_joints(
         let labels = select_labels(&pairs, "bolted", &opts.modes, &presence, &mut findings)?;
         let bolted_rows: Vec<&PairRow> = pairs.iter().filter(|p| p.setup == "bolted").collect();
         let band_top_hz = bolted_rows.iter().map(|p| p.freq_hz).fold(0.0, f64::max);
+        // A board mechanism (its step-1 refit is `boards_dir`) keeps the baseline joints.
+        let board_mech = opts
+            .enrich
+            .filter(|m| crate::diagnose::library::is_board_mechanism(*m));
         let enr = joint_enrichment(
             &board,
-            opts.enrich,
+            opts.enrich.filter(|_| board_mech.is_none()),
             opts.enrich_joint,
             JointContext {
                 band_top_hz,
@@ -2221,7 +2456,7 @@ pub fn run_joints(
             })
             .collect::<Result<_, _>>()?;
         // The boards' posterior means (for the joint's centre).
-        let d1 = step1.params.len();
+        let d1 = step1.block();
         let nd = step1.draws.len() as f64;
         let mut board_mean: BTreeMap<String, f64> = BTreeMap::new();
         for (k, p) in step1.params.iter().enumerate() {
@@ -2389,6 +2624,7 @@ pub fn run_joints(
                 &all,
                 use_shapes,
                 (&model, &rom, &shapes),
+                None,
                 &mut findings,
             )?;
             if data.freq.is_empty() {
@@ -2408,6 +2644,61 @@ pub fn run_joints(
             unit_boards.push(bid);
             unit_board_idx.push(bi);
         }
+        // The board mechanism's covariate per bolted measurement, relative to step 1's
+        // reference (its evidence.json), and where each board's coefficient sits in aux.
+        let joints_cov = match board_mech {
+            None => None,
+            Some(m) => {
+                let e = board_enrichment(m).map_err(|e| anyhow!("--enrich: {e}"))?;
+                let ev_path = boards_dir.join("evidence.json");
+                let ev: serde_json::Value = serde_json::from_slice(
+                    &std::fs::read(&ev_path)
+                        .with_context(|| format!("{}: cannot read", ev_path.display()))?,
+                )
+                .with_context(|| format!("{}: not JSON", ev_path.display()))?;
+                let reference = ev["enrichment"]["covariate_reference"].as_f64().ok_or_else(|| {
+                    anyhow!("{}: no enrichment.covariate_reference: --boards must be the step-1 refit of {}", ev_path.display(), m.id())
+                })?;
+                let column = ev["enrichment"]["covariate"]
+                    .as_str()
+                    .unwrap_or_default()
+                    .to_string();
+                let k = step1
+                    .coefs
+                    .iter()
+                    .position(|c| *c == e.coefficient)
+                    .ok_or_else(|| {
+                        anyhow!(
+                            "{}: no column {:?}: --boards must be the step-1 refit of {}",
+                            step1_path.display(),
+                            e.coefficient,
+                            m.id()
+                        )
+                    })?;
+                let used: BTreeSet<&str> = unit_names.iter().map(|s| s.as_str()).collect();
+                let (offsets, mean) = covariate_offsets(
+                    &opts.ingest_dir.join("measurements.parquet"),
+                    &column,
+                    &used,
+                    &mut findings,
+                )?;
+                let scaled = e
+                    .scaled
+                    .iter()
+                    .map(|n| nominal.position(n))
+                    .collect::<Result<Vec<_>, _>>()?;
+                Some(JointsCovariate {
+                    block: step1.block(),
+                    coef: step1.params.len() + k,
+                    scaled,
+                    // Offsets from step 1's reference, not from the bolted measurements' mean.
+                    offsets: unit_names
+                        .iter()
+                        .map(|u| offsets.get(u).copied().unwrap_or(0.0) + mean - reference)
+                        .collect(),
+                })
+            }
+        };
         if units.is_empty() {
             bail!("no bolted measurement has data for step 2 (no paired bolted mode of a board with a step-1 posterior)");
         }
@@ -2418,6 +2709,7 @@ pub fn run_joints(
                 unit_board: unit_board_idx.clone(),
                 coords: coords.clone(),
                 reference: reference.clone(),
+                covariate: joints_cov,
             },
             prior: PopulationPrior {
                 mu_mean: vec![0.0; coords.len()],
@@ -2431,6 +2723,7 @@ pub fn run_joints(
                 delta: opts.delta,
             },
             units,
+            covariate: None,
         };
         // The cut posterior: groups of `group` particles, each carrying one step-1 draw; every
         // run takes its own evenly spaced subset of the step-1 draws.
@@ -2626,6 +2919,14 @@ pub fn run_joints(
         ev["note_cut"] = "log p(bolted data | step-1 posterior): the mean over the carried step-1 draws of each draw's evidence".into();
         ev["k_con_rom_centre_n_per_m"] = k_centre.into();
         ev["enrichment"] = serde_json::to_value(&enr)?;
+        if let Some(m) = board_mech {
+            // The joints are the baseline's; the boards carry the mechanism (step 1's refit).
+            ev["board_mechanism"] = serde_json::to_value(m)?;
+            ev["boards_dir_evidence"] = serde_json::from_slice::<serde_json::Value>(
+                &std::fs::read(boards_dir.join("evidence.json"))?,
+            )?["enrichment"]
+                .clone();
+        }
         ev["rom_centre_coordinates"] = serde_json::to_value(&centre)?;
         let p = opts.out.join("evidence.json");
         crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;

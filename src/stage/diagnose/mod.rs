@@ -12,7 +12,7 @@
 
 pub mod inputs;
 
-use crate::diagnose::library::Mechanism;
+use crate::diagnose::library::{is_board_mechanism, Mechanism};
 use crate::diagnose::locate::{self, LocateOptions, Located, ModeCheck};
 use crate::diagnose::screen::{self, Candidate};
 use crate::diagnose::select::{
@@ -187,9 +187,16 @@ fn read_json(path: &Path) -> anyhow::Result<serde_json::Value> {
 
 /// The options the work directory's step 2 ran with (its manifest's config).
 fn step2_options(work: &Path) -> anyhow::Result<UpdateOptions> {
-    let p = work
-        .join("update_joints")
-        .join(crate::stage::update::MANIFEST_JOINTS);
+    step_options(work, "update_joints", crate::stage::update::MANIFEST_JOINTS)
+}
+
+/// The options the work directory's step 1 ran with.
+fn step1_options(work: &Path) -> anyhow::Result<UpdateOptions> {
+    step_options(work, "update_boards", crate::stage::update::MANIFEST_BOARDS)
+}
+
+fn step_options(work: &Path, dir: &str, manifest: &str) -> anyhow::Result<UpdateOptions> {
+    let p = work.join(dir).join(manifest);
     let m = read_json(&p)?;
     let cfg = m
         .get("config")
@@ -197,8 +204,9 @@ fn step2_options(work: &Path) -> anyhow::Result<UpdateOptions> {
         .ok_or_else(|| anyhow!("{}: no `config`: not a stage manifest", p.display()))?;
     serde_json::from_value(cfg).with_context(|| {
         format!(
-            "{}: config is not the options of `update joints` (written by another version?)",
-            p.display()
+            "{}: config is not the options of `update {}` (written by another version?)",
+            p.display(),
+            dir.trim_start_matches("update_")
         )
     })
 }
@@ -239,15 +247,10 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
     sorted[lo] + (h - lo as f64) * (sorted[hi] - sorted[lo])
 }
 
-/// A refit directory (or the baseline's step 2) as a [`Refit`].
-fn summarize_refit(
-    dir: &Path,
-    rel_dir: &str,
-    mechanism: Option<Mechanism>,
-    joint: Option<usize>,
-) -> anyhow::Result<Refit> {
+/// The log evidence of every run of an update directory (its evidence.json).
+fn evidence_runs(dir: &Path) -> anyhow::Result<Vec<f64>> {
     let ev = read_json(&dir.join("evidence.json"))?;
-    let log_evidence_runs: Vec<f64> = ev["log_evidence_runs"]
+    Ok(ev["log_evidence_runs"]
         .as_array()
         .ok_or_else(|| {
             anyhow!(
@@ -257,22 +260,129 @@ fn summarize_refit(
         })?
         .iter()
         .filter_map(|v| v.as_f64())
-        .collect();
-    let res = dir.join("residuals.parquet");
-    // A refit whose independent runs disagree (rank-normalised split R-hat across runs above
-    // 1.05) has not sampled its posterior: its evidence gives no Bayes factor.
+        .collect())
+}
+
+/// The population-level parameter (no board, no measurement) with the largest R-hat in a
+/// summary table, with that R-hat; None without such rows or R-hats (one run).
+fn population_r_hat(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
+    let mut worst: Option<(String, f64)> = None;
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (name, board, meas, r) = (
+            c.str("parameter")?,
+            c.str("board_id")?,
+            c.str("measurement_id")?,
+            c.f64("r_hat")?,
+        );
+        for i in 0..b.num_rows() {
+            use arrow::array::Array;
+            if board.is_valid(i) || meas.is_valid(i) || !r.value(i).is_finite() {
+                continue;
+            }
+            if worst.as_ref().is_none_or(|(_, w)| r.value(i) > *w) {
+                worst = Some((name.value(i).to_string(), r.value(i)));
+            }
+        }
+    }
+    Ok(worst)
+}
+
+/// A refit directory (or a baseline step) as a [`Refit`]. A board mechanism's refit has
+/// its step 1 in `dir/boards` and, where the campaign has a step 2, its step 2 in `dir`:
+/// its log evidence per run is then Z₂′ + (Z₁′ − Z₁), `step1_baseline` = the baseline's Z₁
+/// per run, so that it compares with the baseline's step 2 (Z₂) as a joint refit does (whose
+/// step 1 is the baseline's): every Bayes factor is over the same data, both steps.
+fn summarize_refit(
+    dir: &Path,
+    rel_dir: &str,
+    mechanism: Option<Mechanism>,
+    joint: Option<usize>,
+    step1_baseline: Option<&[f64]>,
+) -> anyhow::Result<Refit> {
+    let board_mech = mechanism.is_some_and(is_board_mechanism);
+    let dir1 = dir.join("boards");
+    let has2 = dir.join("evidence.json").is_file();
+    let main = if board_mech && !has2 { &dir1 } else { dir };
+    let mut log_evidence_runs = evidence_runs(main)?;
+    if board_mech && has2 {
+        let z1 = evidence_runs(&dir1)?;
+        let base = step1_baseline.unwrap_or(&[]);
+        if z1.is_empty() || base.is_empty() {
+            anyhow::bail!(
+                "{}: no step-1 evidence to combine with step 2",
+                dir1.display()
+            );
+        }
+        for (r, z) in log_evidence_runs.iter_mut().enumerate() {
+            *z += z1[r % z1.len()] - base[r % base.len()];
+        }
+    }
+    let res = main.join("residuals.parquet");
+    // A refit whose independent runs disagree on its population-level parameters (the
+    // mechanism's, the hyperparameters, the error scales: rank-normalised split R-hat across
+    // runs above 1.05) has not sampled its posterior: its evidence gives no Bayes factor.
+    // Per-unit parameters are not gated: in step 2 each run carries its own subset of the
+    // step-1 draws (the cut posterior), and a measurement's contact stiffness, tied to its
+    // board's draw, differs between runs by that subset's Monte Carlo error alone (R-hat up
+    // to 1.1 with 20 draws per run on a board the bolted data constrain strongly); that
+    // error is in the runs' evidences, and so in the Bayes factor's standard error.
     let mut failed = None;
     if mechanism.is_some() {
-        let rep = read_json(&dir.join("update_report.json"))?;
-        if let Some(r) = rep["max_r_hat"].as_f64().filter(|r| *r > MAX_R_HAT) {
-            failed = Some(format!(
-                "sampler not converged: max R-hat across runs {r:.3} > {MAX_R_HAT}, so its evidence gives no Bayes factor"
-            ));
+        let mut reps = vec![main.to_path_buf()];
+        if board_mech && has2 {
+            reps.push(dir1.clone());
+        }
+        for d in reps {
+            if let Some((name, r)) =
+                population_r_hat(&d.join("summary.parquet"))?.filter(|(_, r)| *r > MAX_R_HAT)
+            {
+                failed = Some(format!(
+                    "sampler not converged: R-hat across runs of {name} {r:.3} > {MAX_R_HAT} in {}, so its evidence gives no Bayes factor",
+                    d.display()
+                ));
+            }
         }
     }
     let mut estimates = vec![];
-    if mechanism.is_some() {
+    if mechanism.is_some_and(is_board_mechanism) {
+        // Its step-1 refit (`boards/`): the coefficient's population mean, as drawn.
+        let ev1 = read_json(&dir.join("boards/evidence.json"))?;
+        let coef = ev1["enrichment"]["coefficient"]
+            .as_str()
+            .unwrap_or_default();
+        let pop = dir.join("boards/population.parquet");
+        let col = format!("mu_{coef}");
+        let mut v = vec![];
+        for b in &tables::read_parquet(&pop)? {
+            let a = Cols {
+                batch: b,
+                path: &pop,
+            }
+            .f64(&col)?;
+            v.extend((0..b.num_rows()).map(|i| a.value(i)));
+        }
+        v.sort_by(f64::total_cmp);
+        if !v.is_empty() {
+            estimates.push(Estimate {
+                parameter: coef.to_string(),
+                scope: format!(
+                    "population mean, per unit of {} around {:.2}",
+                    ev1["enrichment"]["covariate"]
+                        .as_str()
+                        .unwrap_or("the covariate"),
+                    ev1["enrichment"]["covariate_reference"]
+                        .as_f64()
+                        .unwrap_or(f64::NAN)
+                ),
+                median: quantile(&v, 0.5),
+                q05: quantile(&v, 0.05),
+                q95: quantile(&v, 0.95),
+            });
+        }
+    } else if mechanism.is_some() {
         // Extra coordinates (beyond ln k_con): population medians report_ref · e^μ.
+        let ev = read_json(&dir.join("evidence.json"))?;
         let coords = ev["enrichment"]["coordinates"]
             .as_array()
             .cloned()
@@ -305,13 +415,21 @@ fn summarize_refit(
             }
         }
     }
+    let mut held_out = setup_errors(&res, false)?;
+    let mut updated = setup_errors(&res, true)?;
+    if board_mech && has2 {
+        // The free-free predictions of its step 1 too.
+        let res1 = dir1.join("residuals.parquet");
+        held_out.extend(setup_errors(&res1, false)?);
+        updated.extend(setup_errors(&res1, true)?);
+    }
     Ok(Refit {
         mechanism,
         joint,
         dir: rel_dir.to_string(),
         log_evidence_runs,
-        held_out: setup_errors(&res, false)?,
-        updated: setup_errors(&res, true)?,
+        held_out,
+        updated,
         estimates,
         failed,
     })
@@ -331,14 +449,55 @@ fn refit_options(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate)
     o
 }
 
+/// Run one candidate's refit: step 1 (`update boards --enrich`) for a board mechanism, on
+/// the step-1 options `base1`; step 2 (`update joints --enrich`) for a joint mechanism, on
+/// the step-2 options `base2`.
+fn run_refit(
+    opts: &DiagnoseOptions,
+    (base1, base2): (&UpdateOptions, Option<&UpdateOptions>),
+    cand: &Candidate,
+    verbose: bool,
+) -> anyhow::Result<StageOutcome> {
+    if is_board_mechanism(cand.mechanism) {
+        // Step 1 with the mechanism (refits/<id>/boards), then, where the campaign has a
+        // step 2, step 2 on top of it carrying the boards' coefficients (refits/<id>).
+        let mut o = refit_options(opts, base1, cand);
+        o.enrich_joint = None;
+        o.enrich_covariate = cand.covariate.clone();
+        let boards = o.out.join("boards");
+        o.out = boards.clone();
+        let r1 = crate::stage::update::run_boards(&o, verbose)?;
+        let Some(base) = base2 else {
+            return Ok(r1);
+        };
+        let mut o2 = refit_options(opts, base, cand);
+        o2.enrich_joint = None;
+        crate::stage::update::run_joints(&o2, &boards, verbose)
+    } else {
+        let base = base2.ok_or_else(|| {
+            anyhow!(
+                "{}: no step 2 (update_joints): a joint mechanism cannot be refitted",
+                opts.work_dir.display()
+            )
+        })?;
+        let o = refit_options(opts, base, cand);
+        crate::stage::update::run_joints(&o, &opts.work_dir.join("update_boards"), verbose)
+    }
+}
+
 /// Run (or find up to date) one candidate's refit.
-fn refit(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate, verbose: bool) -> Refit {
+fn refit(
+    opts: &DiagnoseOptions,
+    bases: (&UpdateOptions, Option<&UpdateOptions>),
+    cand: &Candidate,
+    verbose: bool,
+) -> Refit {
     let rel = format!("refits/{}", cand.id());
-    let o = refit_options(opts, base, cand);
-    let out = o.out.clone();
-    let boards = opts.work_dir.join("update_boards");
-    let r = crate::stage::update::run_joints(&o, &boards, verbose)
-        .and_then(|_| summarize_refit(&out, &rel, Some(cand.mechanism), cand.joint));
+    let out = opts.out.join(&rel);
+    let r = run_refit(opts, bases, cand, verbose).and_then(|_| {
+        let z1 = evidence_runs(&opts.work_dir.join("update_boards"))?;
+        summarize_refit(&out, &rel, Some(cand.mechanism), cand.joint, Some(&z1))
+    });
     match r {
         Ok(r) => r,
         Err(e) => Refit {
@@ -376,6 +535,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
     let base = if step2 { Some(step2_options(w)?) } else { None };
     let mut config = serde_json::to_value(opts)?;
     config["step2_options"] = serde_json::to_value(&base)?;
+    config["step1_options"] = serde_json::to_value(step1_options(w)?)?;
     let spec = StageSpec {
         stage: "diagnose".into(),
         inputs,
@@ -385,13 +545,8 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         manifest_path: opts.out.join(MANIFEST),
     };
     // The cluster fan-out: one refit, no diagnosis.
+    let base1 = step1_options(w)?;
     if let Some(only) = &opts.only {
-        let base = base.ok_or_else(|| {
-            anyhow!(
-                "{}: no step 2 (update_joints): nothing to refit",
-                w.display()
-            )
-        })?;
         let (input, _) = inputs::read_inputs(w)?;
         let located = locate::locate(&input, &opts.locate);
         let (board, _) = crate::stage::update::load_board(opts.board.as_deref())?;
@@ -402,8 +557,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                 cands.iter().map(|c| c.id()).collect::<Vec<_>>().join(", ")
             )
         })?;
-        let o = refit_options(opts, &base, cand);
-        return crate::stage::update::run_joints(&o, &w.join("update_boards"), verbose);
+        return run_refit(opts, (&base1, base.as_ref()), cand, verbose);
     }
     crate::stage::run(spec, opts.force, |_prep| {
         let mut findings = Findings::default();
@@ -413,24 +567,37 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         let (board, _) = crate::stage::update::load_board(opts.board.as_deref())?;
         let candidates = screen::screen(&located, &board);
         let mut refits: Vec<Refit> = vec![];
+        let baseline1 = summarize_refit(
+            &w.join("update_boards"),
+            "../update_boards",
+            None,
+            None,
+            None,
+        )?;
         let baseline = if step2 {
-            Some(summarize_refit(
+            // Step 2's baseline with step 1's free-free errors (a board mechanism changes both).
+            let mut b = summarize_refit(
                 &w.join("update_joints"),
                 "../update_joints",
                 None,
                 None,
-            )?)
+                None,
+            )?;
+            b.held_out.extend(baseline1.held_out.iter().cloned());
+            b.updated.extend(baseline1.updated.iter().cloned());
+            Some(b)
         } else {
             None
         };
-        if let (Some(base), Some(_)) = (&base, &baseline) {
+        {
+            // Joint mechanisms need step 2; board mechanisms only step 1.
             for cand in candidates
                 .iter()
-                .filter(|c| c.refittable())
+                .filter(|c| c.refittable() && (step2 || is_board_mechanism(c.mechanism)))
                 .take(opts.max_refits)
             {
                 let t0 = std::time::Instant::now();
-                let r = refit(opts, base, cand, verbose);
+                let r = refit(opts, (&base1, base.as_ref()), cand, verbose);
                 eprintln!(
                     "diagnose: refit {} in {:.1} s{}",
                     cand.id(),
@@ -443,10 +610,13 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                 refits.push(r);
             }
         }
-        let compared: Vec<Compared> = match &baseline {
-            Some(b) => select::compare(b, &refits, &opts.select),
-            None => vec![],
-        };
+        // Against the baseline over the same data: both steps where the campaign has a
+        // step 2 (summarize_refit), else step 1 (only board mechanisms are refitted then).
+        let compared = select::compare(
+            baseline.as_ref().unwrap_or(&baseline1),
+            &refits,
+            &opts.select,
+        );
         let verdict = select::verdict(located.any, &compared);
         write_outputs(
             opts,

@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# Blind discovery: each concealed-effect scenario of the virtual lab (data/lab/<name>.toml)
+# through the whole DAG up to `diagnose`, which is told nothing about the scenario. Afterwards,
+# and only then, this script reads the lab's truth.json (kept outside the campaign) and scores
+# the diagnosis against the issue's acceptance: the right mechanism first, its joint /
+# location (within 10 mm) / covariate, a 90 % interval that covers the true parameter, and a
+# held-out mean absolute frequency error at least 2x smaller.
+#
+# Usage: benches/diagnose_blind.sh [SCENARIO...]   (default: the five effect scenarios)
+# Env: REFITS (candidate refits per diagnosis, default 3). Work dirs: target/work/blind-<name>.
+set -euo pipefail
+root=$(cd "$(dirname "$0")/.." && pwd)
+scen=("$@")
+if [ ${#scen[@]} -eq 0 ]; then scen=(rotational loose_bolt temperature lumped_mass fixture); fi
+refits=${REFITS:-3}
+for s in "${scen[@]}"; do
+  work=$root/target/work/blind-$s
+  mkdir -p "$work"
+  cp "$root/data/lab/$s.toml" "$work/scenario.toml"
+  start=$(date +%s)
+  make -C "$root/pipelines" --no-print-directory all update-boards update-joints diagnose \
+    SCENARIO="$work/scenario.toml" WORK="$work" DIAGNOSE_REFITS="$refits" > "$work/make.log" 2>&1 || {
+    echo "$s: pipeline failed (see $work/make.log)"; tail -5 "$work/make.log"; continue; }
+  python3 "$root/benches/score_diagnosis.py" "$work" "$s" "$(( $(date +%s) - start ))"
+done

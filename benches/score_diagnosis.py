@@ -1,0 +1,88 @@
+#!/usr/bin/env python3
+"""Score a diagnosis against the virtual lab's truth (benches/diagnose_blind.sh).
+
+Usage: score_diagnosis.py WORK_DIR NAME SECONDS
+
+Reads WORK_DIR/diagnose/diagnosis.json and WORK_DIR/truth.json (the lab writes the truth next
+to the campaign, never into it; diagnose never reads it). Prints one block per scenario:
+verdict, the first finding, and per acceptance point PASS/FAIL with the numbers behind it.
+"""
+import json
+import sys
+
+# The lab's effect keys and the library's mechanism ids (the issue's list).
+MECHANISM = {
+    "rotational_restraint": "joint_rotation",
+    "loose_bolt": "joint_stiffness_per_joint",
+    "temperature": "temperature_stiffness",
+    "lumped_mass": "added_mass",
+    "compliant_fixture": "fixture_compliance",
+}
+# Which true parameter each mechanism's estimate is compared with: (estimate, truth key, scale).
+PARAMETER = {
+    "joint_rotation": [("k_rot_nm_per_rad", "k_rot_nm_per_rad", 1.0)],
+    "temperature_stiffness": [("temperature_coefficient_per_k", "coefficient_per_k", 1.0)],
+    "added_mass": [("mass_kg", "mass_kg", 1.0)],
+    "fixture_compliance": [("m_fix_kg", "m_fix_kg", 1.0)],
+    "joint_stiffness_per_joint": [("k_ratio", "stiffness_factor", 1.0)],
+}
+
+
+def main():
+    work, name, secs = sys.argv[1], sys.argv[2], sys.argv[3]
+    d = json.load(open(f"{work}/diagnose/diagnosis.json"))
+    t = json.load(open(f"{work}/truth.json"))
+    on = [e for e in t["effects"] if e["enabled"]]
+    print(f"== {name}: verdict {d['verdict']} in {secs} s")
+    loc = d["located"]
+    print("   located modes: " + ", ".join(
+        f"{m['setup']}/{m['label']} {100 * m['mean_rel_residual']:+.3f} %" for m in loc["modes"]))
+    print(f"   located measurements {len(loc['measurements'])}, covariates "
+          f"{[c['covariate'] for c in loc['covariates']]}, unpaired clusters {len(loc['unpaired_clusters'])}")
+    for c in d["candidates"]:
+        r = c.get("refit") or {}
+        lb = r.get("log_bayes_factor")
+        print(f"   candidate {c['id']}: " + (f"ln B {lb:.1f} ± {r.get('log_bayes_factor_se') or 0:.1f}" if lb is not None
+                                             else "not refitted" if not r else f"refit failed: {(r.get('refit') or {}).get('failed')}"))
+    if not on:
+        ok = d["verdict"] == "no_missing_physics"
+        print(f"   null: {'PASS' if ok else 'FAIL'} (verdict {d['verdict']})")
+        return
+    eff = on[0]
+    want = MECHANISM[eff["key"]]
+    f = d["findings"][0] if d["findings"] else None
+    got = f["mechanism"] if f else None
+    print(f"   truth: {eff['key']} {eff['parameters']}")
+    print(f"   first finding: {got} location {f and f.get('location')} covariate {f and f.get('covariate')}")
+    print(f"   mechanism: {'PASS' if got == want else 'FAIL'} (want {want})")
+    if not f or got != want:
+        return
+    if want == "temperature_stiffness":
+        ok = f.get("covariate") == eff["expected_diagnosis"]["covariate"]
+        print(f"   covariate: {'PASS' if ok else 'FAIL'} ({f.get('covariate')})")
+    if want == "added_mass":
+        L = f.get("location") or {}
+        dist = ((L.get("x_m", 1e9) - eff["parameters"]["x_m"]) ** 2 + (L.get("y_m", 1e9) - eff["parameters"]["y_m"]) ** 2) ** 0.5
+        print(f"   location: {'PASS' if dist <= 0.010 else 'FAIL'} ({1e3 * dist:.1f} mm from the truth)")
+    if want == "joint_stiffness_per_joint":
+        js = {m["loose_joint"] for m in t["measurements"] if m.get("loose_joint")}
+        j = (f.get("location") or {}).get("joint")
+        print(f"   joint: {'PASS' if j in js else 'FAIL'} (found {j}, loose in the lab: {sorted(js)})")
+    for est_name, key, scale in PARAMETER[want]:
+        truth = eff["parameters"].get(key)
+        ests = [e for e in f["estimates"] if e["parameter"].startswith(est_name)]
+        if truth is None or not ests:
+            print(f"   estimate {est_name}: FAIL (no estimate)")
+            continue
+        e = ests[0]
+        ok = e["q05"] <= truth * scale <= e["q95"]
+        print(f"   estimate {e['parameter']} ({e['scope']}): {'PASS' if ok else 'FAIL'} "
+              f"{e['median']:.4g} ({e['q05']:.4g}–{e['q95']:.4g}), truth {truth * scale:.4g}")
+    for h in f["held_out_error"]:
+        b, a = h["before_percent"], h["after_percent"]
+        ratio = b / a if a and a > 0 else float("inf")
+        print(f"   held-out {h['setup']}: {'PASS' if ratio >= 2 else 'FAIL'} {b:.3f} % → {a:.3f} % ({ratio:.2f}x)")
+
+
+if __name__ == "__main__":
+    main()
