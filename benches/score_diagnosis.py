@@ -68,7 +68,30 @@ def main():
         js = {m["loose_joint"] for m in t["measurements"] if m.get("loose_joint")}
         j = (f.get("location") or {}).get("joint")
         print(f"   joint: {'PASS' if j in js else 'FAIL'} (found {j}, loose in the lab: {sorted(js)})")
+    if want == "joint_stiffness_per_joint":
+        # Per measurement: the loose measurements at the found joint, and their estimates.
+        j = (f.get("location") or {}).get("joint")
+        loose = {m["measurement_id"] for m in t["measurements"] if m.get("loose_joint") == j}
+        per = {e["scope"].split()[-1]: e for e in f["estimates"] if e["scope"].startswith("measurement")}
+        fac = eff["parameters"]["stiffness_factor"]
+        # The true ratio of joint j to the mean of the others in each measurement (the lab
+        # scatters every joint's stiffness by a few per cent, loose or not).
+        meas = {m["measurement_id"]: m for m in t["measurements"]}
+        def true_ratio(mid):
+            m = meas[mid]
+            k = [kk * (fac if m.get("loose_joint") == i + 1 else 1.0) for i, kk in enumerate(m["k_joint_n_per_m"])]
+            others = [kk for i, kk in enumerate(k) if i != j - 1]
+            return k[j - 1] / (sum(others) / len(others))
+        hit = [m for m in sorted(loose) if m in per]
+        cover = [m for m in hit if per[m]["q05"] <= true_ratio(m) <= per[m]["q95"]]
+        print(f"   estimate per measurement: {'PASS' if hit and len(cover) == len(hit) else 'FAIL'} "
+              f"{len(hit)} of {len(loose)} measurements loose at joint {j} estimated, {len(cover)} intervals cover the true ratio; "
+              + ", ".join(f"{m} {per[m]['median']:.3f} ({per[m]['q05']:.3f}–{per[m]['q95']:.3f}) truth {true_ratio(m):.3f}"
+                          + ("" if m in loose else " [loose elsewhere]" if meas[m].get("loose_joint") else " [not loose]")
+                          for m in sorted(per)))
     for est_name, key, scale in PARAMETER[want]:
+        if want == "joint_stiffness_per_joint":
+            break
         truth = eff["parameters"].get(key)
         ests = [e for e in f["estimates"] if e["parameter"].startswith(est_name)]
         if truth is None or not ests:

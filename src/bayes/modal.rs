@@ -358,12 +358,13 @@ pub fn log_lik(data: &UnitData, t: &Terms, eps: &[f64], delta: &[f64]) -> f64 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::fem::{Board, FeModel, RomOptions, Setup};
 
-    /// The default board free-free, its FE model and a 30-vector ROM.
-    fn free_rom() -> (Board, FeModel, crate::fem::Rom) {
+    /// The default board free-free, its FE model and a 30-vector ROM (shared with the
+    /// target's tests).
+    pub(crate) fn free_rom() -> (Board, FeModel, crate::fem::Rom) {
         let board = Board::default_board();
         let model = FeModel::build(&board, Setup::Free, &board.mesh).expect("model");
         let rom = crate::fem::Rom::build(

@@ -326,19 +326,9 @@ impl Target for ModalTarget {
 mod tests {
     use super::*;
     use crate::bayes::modal::{FreqObs, ModalPredictor};
-    use crate::fem::{Board, FeModel, RomOptions, Setup};
 
     fn covariate_target() -> (ModalTarget, Vec<usize>) {
-        let board = Board::default_board();
-        let model = FeModel::build(&board, Setup::Free, &board.mesh).expect("model");
-        let rom = crate::fem::Rom::build(
-            &model,
-            &RomOptions {
-                max_basis: 30,
-                ..RomOptions::default()
-            },
-        )
-        .expect("rom");
+        let (_, _, rom) = crate::bayes::modal::tests::free_rom();
         let names = rom.map.names.clone();
         let pos = |n: &str| names.iter().position(|m| m == n).expect("parameter");
         let updated = vec![pos("e_x_pa"), pos("e_y_pa"), pos("g_xy_pa")];

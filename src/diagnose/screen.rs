@@ -13,7 +13,7 @@
 //! - a numeric covariate trend → `temperature_stiffness` when the column is a temperature
 //!   (its name or unit says so), with the covariate named;
 //! - free-free modes misfit without a covariate → `added_mass` and `local_stiffness_loss`
-//!   (they act in both setups).
+//!   (they act in both setups), before the joint mechanisms (which cannot touch free-free).
 //!
 //! The joint mechanisms have a step-2 refit (`update joints --enrich`),
 //! `temperature_stiffness` a step-1 one (`update boards --enrich`, on the named covariate);
@@ -192,9 +192,18 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
             .iter()
             .any(|c| c.mechanism == Mechanism::TemperatureStiffness)
     {
+        // The joint mechanisms change nothing in free-free: a free-free misfit puts the
+        // mechanisms acting on the board itself before them.
         let why = format!("{free_modes} free-free mode(s) misfit without a covariate trend");
-        out.push(cand(Mechanism::AddedMass, why.clone()));
-        out.push(cand(Mechanism::LocalStiffnessLoss, why));
+        let first_joint = out
+            .iter()
+            .position(|c| c.mechanism != Mechanism::TemperatureStiffness)
+            .unwrap_or(out.len());
+        out.insert(
+            first_joint,
+            cand(Mechanism::LocalStiffnessLoss, why.clone()),
+        );
+        out.insert(first_joint, cand(Mechanism::AddedMass, why));
     }
     out
 }

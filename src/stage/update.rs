@@ -2509,7 +2509,14 @@ pub fn run_joints(
             })
             .collect();
         let t_centre = std::time::Instant::now();
-        let centre = fit_joint_centre(
+        // All coordinates are fitted to the median frequencies (k_con trades off against
+        // k_rot, one joint's ratio against the common k_con); then an enrichment's own
+        // coordinates are kept within half their ROM half-width of their prior's centre, and
+        // k_con is refitted with them held there. Left free, they ran to the box edge in the
+        // lab's scenarios (a fixture resonance crossing the modes, one joint's ratio, a flat
+        // direction of k_rot), which left the prior's centre outside the ROM's box and the
+        // sampler with no particle the ROM could evaluate.
+        let fit = fit_joint_centre(
             &model,
             &p_base,
             &coords,
@@ -2519,6 +2526,33 @@ pub fn run_joints(
             (&w_labels, &points),
             n_track,
         )?;
+        let mut centre: Vec<f64> = fit
+            .iter()
+            .zip(&enr.coordinates)
+            .enumerate()
+            .map(|(k, (x, c))| match c.log_box {
+                Some(w) if k > 0 => x.clamp(-0.5 * w, 0.5 * w),
+                _ => *x,
+            })
+            .collect();
+        if centre != fit {
+            let mut p_held = p_base.clone();
+            for (k, acts) in coords.iter().enumerate().skip(1) {
+                for &(i, a) in acts {
+                    p_held.values[i] *= (a * centre[k]).exp();
+                }
+            }
+            centre[0] = fit_joint_centre(
+                &model,
+                &p_held,
+                &coords[..1],
+                &spans[..1],
+                &labels,
+                &bolted_rows,
+                (&w_labels, &points),
+                n_track,
+            )?[0];
+        }
         if verbose {
             eprintln!(
                 "joints: ROM centre {:?} = {centre:.4?} (ln, relative to the priors' centres), fitted in {:.1} s",
