@@ -19,7 +19,10 @@
 //!   known;
 //! - `joint_mass`: the bolt's mass from the board file (bolt, nut and washers), log-sd 1;
 //! - `fixture_compliance`: fixture mass 0.1 kg with a log-sd of 1.5 (5 g to 2 kg at 2 sd),
-//!   and its own resonance at the top of the measured band with a log-sd of 1;
+//!   and its own resonance at 1.5 × the top of the measured band (a fixture is designed to
+//!   resonate above the band; at the band top it would sit on the highest measured mode,
+//!   where the two hybridise and no draw near the prior's centre could be evaluated) with a
+//!   log-sd of 1;
 //! - `joint_stiffness_per_joint`: the stiffness ratio of one joint to the others, centred on
 //!   1 with a log-sd of 0.7 (a loose bolt halves it, a missing washer doubles it).
 //!
@@ -263,7 +266,11 @@ pub fn joint_enrichment(
         }
         Some(Mechanism::FixtureCompliance) => {
             let m = 0.1;
-            let w = 2.0 * std::f64::consts::PI * ctx.band_top_hz;
+            // The prior's resonance: 1.5 × the band top (a fixture is designed to resonate
+            // above the band; at the band top itself it would sit on the highest measured
+            // mode, where the two hybridise and the mode cannot be tracked).
+            let f0 = 1.5 * ctx.band_top_hz;
+            let w = 2.0 * std::f64::consts::PI * f0;
             let k = m * w * w;
             features.push(JointFeature::CompliantFixture {
                 k_fix_n_per_m: k,
@@ -283,7 +290,7 @@ pub fn joint_enrichment(
             coords.push(Coordinate {
                 name: "ln_f_fix".into(),
                 report_param: "f_fix_hz".into(),
-                report_ref: ctx.band_top_hz,
+                report_ref: f0,
                 report_unit: "Hz".into(),
                 acts_on: vec![(names::K_FIX.into(), 2.0)],
                 prior_sd: 1.0,
@@ -375,7 +382,7 @@ mod tests {
     }
 
     #[test]
-    fn fixture_reference_resonance_is_the_band_top() {
+    fn fixture_reference_resonance_is_above_the_band_top() {
         let b = board();
         let ctx = JointContext {
             band_top_hz: 2500.0,
@@ -384,6 +391,8 @@ mod tests {
         let e = joint_enrichment(&b, Some(Mechanism::FixtureCompliance), None, ctx).unwrap();
         let get = |n: &str| e.reference.iter().find(|(a, _)| a == n).unwrap().1;
         let f = (get(names::K_FIX) / get(names::M_FIX)).sqrt() / (2.0 * std::f64::consts::PI);
-        assert!((f - 2500.0).abs() < 1e-9);
+        assert!((f - 3750.0).abs() < 1e-9);
+        let fc = e.coordinates.iter().find(|c| c.name == "ln_f_fix").unwrap();
+        assert_eq!(fc.report_ref, 3750.0);
     }
 }
