@@ -2680,6 +2680,7 @@ pub fn run_joints(
         }
         // The board mechanism's covariate per bolted measurement, relative to step 1's
         // reference (its evidence.json), and where each board's coefficient sits in aux.
+        let mut step1_enrichment = serde_json::Value::Null;
         let joints_cov = match board_mech {
             None => None,
             Some(m) => {
@@ -2690,6 +2691,7 @@ pub fn run_joints(
                         .with_context(|| format!("{}: cannot read", ev_path.display()))?,
                 )
                 .with_context(|| format!("{}: not JSON", ev_path.display()))?;
+                step1_enrichment = ev["enrichment"].clone();
                 let reference = ev["enrichment"]["covariate_reference"].as_f64().ok_or_else(|| {
                     anyhow!("{}: no enrichment.covariate_reference: --boards must be the step-1 refit of {}", ev_path.display(), m.id())
                 })?;
@@ -2956,10 +2958,7 @@ pub fn run_joints(
         if let Some(m) = board_mech {
             // The joints are the baseline's; the boards carry the mechanism (step 1's refit).
             ev["board_mechanism"] = serde_json::to_value(m)?;
-            ev["boards_dir_evidence"] = serde_json::from_slice::<serde_json::Value>(
-                &std::fs::read(boards_dir.join("evidence.json"))?,
-            )?["enrichment"]
-                .clone();
+            ev["boards_dir_evidence"] = step1_enrichment;
         }
         ev["rom_centre_coordinates"] = serde_json::to_value(&centre)?;
         let p = opts.out.join("evidence.json");

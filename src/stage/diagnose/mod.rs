@@ -531,19 +531,18 @@ fn refit(
     opts: &DiagnoseOptions,
     bases: (&UpdateOptions, Option<&UpdateOptions>),
     cand: &Candidate,
-    outliers: &[String],
+    (outliers, z1): (&[String], &[f64]),
     verbose: bool,
 ) -> Refit {
     let rel = format!("refits/{}", cand.id());
     let out = opts.out.join(&rel);
     let r = run_refit(opts, bases, cand, verbose).and_then(|_| {
-        let z1 = evidence_runs(&opts.work_dir.join("update_boards"))?;
         summarize_refit(
             &out,
             &rel,
             Some(cand.mechanism),
             cand.joint,
-            Some(&z1),
+            Some(z1),
             outliers,
         )
     });
@@ -584,7 +583,8 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
     let base = if step2 { Some(step2_options(w)?) } else { None };
     let mut config = serde_json::to_value(opts)?;
     config["step2_options"] = serde_json::to_value(&base)?;
-    config["step1_options"] = serde_json::to_value(step1_options(w)?)?;
+    let base1 = step1_options(w)?;
+    config["step1_options"] = serde_json::to_value(&base1)?;
     let spec = StageSpec {
         stage: "diagnose".into(),
         inputs,
@@ -594,7 +594,6 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         manifest_path: opts.out.join(MANIFEST),
     };
     // The cluster fan-out: one refit, no diagnosis.
-    let base1 = step1_options(w)?;
     if let Some(only) = &opts.only {
         let (input, _) = inputs::read_inputs(w)?;
         let located = locate::locate(&input, &opts.locate);
@@ -652,7 +651,10 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                     opts,
                     (&base1, base.as_ref()),
                     cand,
-                    &located.measurements_after_covariates,
+                    (
+                        &located.measurements_after_covariates,
+                        &baseline1.log_evidence_runs,
+                    ),
                     verbose,
                 );
                 eprintln!(
