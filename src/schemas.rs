@@ -48,8 +48,8 @@ pub fn generate() -> BTreeMap<String, String> {
                 .expect("schema serialises"),
         ),
     );
-    for (_topic, name, schema) in crate::io::mcap_writer::channel_schemas() {
-        let mut v = schema;
+    for ch in crate::io::mcap_writer::channel_schemas() {
+        let (name, mut v) = (ch.schema_name, ch.schema);
         if let Some(o) = v.as_object_mut() {
             o.insert(
                 "x-mcap-schema-name".into(),

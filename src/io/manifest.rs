@@ -11,6 +11,7 @@
 //! the old complete manifest (whose output hashes then no longer match) or none.
 
 use crate::io::atomic;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -122,10 +123,19 @@ fn canonical_json(v: &serde_json::Value) -> String {
 pub fn prepare(spec: StageSpec) -> io::Result<Prepared> {
     let mut inputs = Vec::with_capacity(spec.inputs.len());
     let mut keys = Vec::with_capacity(spec.inputs.len());
-    for p in &spec.inputs {
-        let (h, n) = hash_file(p).map_err(|e| {
-            io::Error::new(e.kind(), format!("cannot hash input {}: {e}", p.display()))
-        })?;
+    // Files are hashed in parallel (a campaign is tens of files and hundreds of MB) and taken
+    // in input order, so the result does not depend on the thread count.
+    let hashes: Vec<io::Result<(String, u64)>> = spec
+        .inputs
+        .par_iter()
+        .map(|p| {
+            hash_file(p).map_err(|e| {
+                io::Error::new(e.kind(), format!("cannot hash input {}: {e}", p.display()))
+            })
+        })
+        .collect();
+    for (p, hash) in spec.inputs.iter().zip(hashes) {
+        let (h, n) = hash?;
         keys.push((fingerprint_name(p, &spec.input_base), h.clone()));
         inputs.push(FileHash {
             path: rel_path(p, &spec.input_base),
@@ -185,11 +195,12 @@ pub fn up_to_date(prep: &Prepared) -> Option<Manifest> {
         return None;
     }
     let dir = prep.spec.manifest_path.parent().unwrap_or(Path::new("."));
-    for o in &m.outputs {
-        match hash_file(&dir.join(&o.path)) {
-            Ok((h, _)) if h == o.blake3 => {}
-            _ => return None,
-        }
+    let all_match = m
+        .outputs
+        .par_iter()
+        .all(|o| matches!(hash_file(&dir.join(&o.path)), Ok((h, _)) if h == o.blake3));
+    if !all_match {
+        return None;
     }
     Some(m)
 }
@@ -209,8 +220,9 @@ pub fn finish(
         .unwrap_or(Path::new("."))
         .to_path_buf();
     let mut outs = Vec::with_capacity(outputs.len());
-    for p in outputs {
-        let (h, n) = hash_file(p)?;
+    let hashes: Vec<io::Result<(String, u64)>> = outputs.par_iter().map(|p| hash_file(p)).collect();
+    for (p, hash) in outputs.iter().zip(hashes) {
+        let (h, n) = hash?;
         outs.push(FileHash {
             path: rel_path(p, &dir),
             blake3: h,

@@ -215,6 +215,24 @@ pub fn write_parquet(path: &Path, batch: &RecordBatch) -> io::Result<()> {
                 true,
             );
         }
+        // Spectra (list<float64>) are nearly all the bytes of a campaign and near-incompressible
+        // noise in their low mantissa bits: zstd level 1 writes them ~1.5× faster than level 3
+        // for ~9 % more bytes (measured on the lab's paper campaign: 110.6 vs 101.6 MB).
+        if let DataType::List(item) = f.data_type() {
+            if item.data_type() == &DataType::Float64 {
+                let col = parquet::schema::types::ColumnPath::new(vec![
+                    f.name().clone(),
+                    "list".into(),
+                    item.name().clone(),
+                ]);
+                builder = builder
+                    .set_column_compression(
+                        col.clone(),
+                        Compression::ZSTD(ZstdLevel::try_new(1).map_err(io::Error::other)?),
+                    )
+                    .set_column_encoding(col, parquet::basic::Encoding::BYTE_STREAM_SPLIT);
+            }
+        }
     }
     let props = builder
         .set_compression(Compression::ZSTD(

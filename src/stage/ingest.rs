@@ -20,8 +20,9 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 pub const MANIFEST: &str = "ingest.manifest.json";
-/// Version of the output layout (2: frf.parquet's axis as start + step, not a list per row).
-pub const OUTPUT_LAYOUT: u32 = 2;
+/// Version of the output layout (2: frf.parquet's axis as start + step, not a list per row;
+/// 3: the MCAP's spectra as CBOR with float64 byte strings, not JSON text).
+pub const OUTPUT_LAYOUT: u32 = 3;
 
 /// Options of `hbmu ingest`.
 #[derive(Debug, Clone)]

@@ -6,7 +6,7 @@ use crate::common::*;
 
 #[test]
 fn pandas_and_mcap_read_ingest_outputs() {
-    if !python_has(&["pandas", "pyarrow", "mcap"]) {
+    if !python_has(&["pandas", "pyarrow", "mcap", "cbor2"]) {
         return;
     }
     let (t, c) = campaign_copy();

@@ -5,7 +5,9 @@ Usage: read_outputs.py INGEST_DIR SCHEMAS_DIR
 - every Parquet table through pandas (pyarrow engine): documented columns present, dtypes as
   documented, units/provenance metadata in both the Arrow schema and the Parquet footer;
 - campaign.mcap through the official `mcap` Python reader: every channel, its schema (JSON
-  schema encoding, equal to the file in schemas/mcap/), every message decodes as JSON.
+  schema encoding, equal to the file in schemas/mcap/), every message decodes in its channel's
+  encoding: JSON, or CBOR (cbor2) for the spectra, whose ordinates are little-endian float64
+  byte strings.
 Prints a JSON summary on stdout; exits non-zero on the first violation.
 """
 import json
@@ -15,6 +17,8 @@ import sys
 import pandas as pd
 import pyarrow.parquet as pq
 from mcap.reader import make_reader
+import cbor2
+import numpy as np
 
 out, schemas = sys.argv[1], sys.argv[2]
 summary = {"tables": {}, "mcap": {}}
@@ -72,7 +76,8 @@ with open(os.path.join(out, "campaign.mcap"), "rb") as f:
     for cid, ch in s.channels.items():
         sch = s.schemas[ch.schema_id]
         assert sch.encoding == "jsonschema", sch.encoding
-        assert ch.message_encoding == "json"
+        want = "cbor" if ch.topic in ("/frf", "/coherence") else "json"
+        assert ch.message_encoding == want, (ch.topic, ch.message_encoding)
         on_disk = json.load(open(os.path.join(schemas, "mcap", sch.name.split(".", 1)[1] + ".json")))
         on_disk.pop("x-mcap-schema-name", None)
         assert json.loads(sch.data) == on_disk, f"embedded schema {sch.name} differs from schemas/"
@@ -80,7 +85,13 @@ with open(os.path.join(out, "campaign.mcap"), "rb") as f:
     n = 0
     frf_msgs = {}
     for sch, ch, msg in reader.iter_messages():
-        m = json.loads(msg.data)
+        if ch.message_encoding == "cbor":
+            m = cbor2.loads(msg.data)
+            for k in ("re", "im"):
+                assert isinstance(m[k], bytes) and len(m[k]) % 8 == 0, (ch.topic, k)
+                m[k] = np.frombuffer(m[k], "<f8")
+        else:
+            m = json.loads(msg.data)
         if ch.topic == "/frf":
             frf_msgs[(m["measurement_id"], m["node"])] = m
         n += 1
