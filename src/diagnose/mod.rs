@@ -1,9 +1,10 @@
 //! Diagnosis of model inadequacy, pure: locate the mismatch between the updated model and
-//! the recordings ([`locate`]), screen a library of physical mechanisms by how well their
+//! the recordings ([`locate`]; where on the board: [`localize`]), screen a library of physical mechanisms by how well their
 //! sensitivity pattern explains it, select by refitting (Bayes factors from the SMC and
 //! held-out error), and explain.
 
 pub mod library;
+pub mod localize;
 pub mod locate;
 pub mod screen;
 pub mod select;

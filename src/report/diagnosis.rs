@@ -31,6 +31,30 @@ pub struct LocatedView {
     pub covariates: Vec<CovariateView>,
     pub unpaired_clusters: Vec<ClusterView>,
     pub never_seen: Vec<NeverSeenView>,
+    pub board_regions: Vec<RegionView>,
+    pub board_regions_note: String,
+}
+
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(default)]
+pub struct RegionView {
+    pub mechanism: String,
+    pub located: bool,
+    pub fit: RegionFitView,
+    pub sentence: String,
+}
+
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(default)]
+pub struct RegionFitView {
+    pub x_m: Option<f64>,
+    pub y_m: Option<f64>,
+    pub mass_kg: Option<f64>,
+    pub mass_se_kg: Option<f64>,
+    pub region_radius_m: Option<f64>,
+    pub explained_share: Option<f64>,
+    pub p_value: Option<f64>,
+    pub alternatives: Vec<[f64; 3]>,
 }
 
 #[derive(Clone, Debug, Default, Deserialize)]
@@ -281,6 +305,24 @@ pub const NEVER_SEEN: TableSpec = TableSpec {
     ],
 };
 
+pub const REGIONS: TableSpec = TableSpec {
+    name: "diagnosis_board_regions",
+    doc: "Where on the board (diagnosis.json: located.board_regions): the point-mass localisation of the free-free misfit, the best point of a grid over the board, the mass there, the 90 % region's radius, the share of the misfit (off the board parameters' span) it explains, and the places the frequencies cannot tell apart from it.",
+    open: false,
+    columns: &[
+        c("mechanism", Col::Utf8, false, "", "Mechanism whose signature was fitted."),
+        c("located", Col::Bool, false, "", "Significant and explains at least half the misfit."),
+        c("x_mm", Col::Float64, true, "mm", "Best point, x."),
+        c("y_mm", Col::Float64, true, "mm", "Best point, y."),
+        c("mass_g", Col::Float64, true, "g", "Least-squares mass at the best point."),
+        c("mass_se_g", Col::Float64, true, "g", "Its standard error."),
+        c("region_radius_mm", Col::Float64, true, "mm", "Radius of the 90 % region."),
+        c("explained_share", Col::Float64, true, "", "Share of the misfit explained."),
+        c("p_value", Col::Float64, true, "", "Tail probability of the χ² reduction under no point mass."),
+        c("alternatives", Col::Utf8, false, "", "Other points (mm) the frequencies fit about as well."),
+    ],
+};
+
 pub const CANDIDATES: TableSpec = TableSpec {
     name: "diagnosis_candidates",
     doc: "The mechanisms the diagnosis screened (diagnosis.json: candidates), strongest first: why each was screened in, whether it was refitted, its log Bayes factor over the baseline with the standard error, whether it is favoured, the held-out mean absolute frequency error before and after per setup, the parameter estimates (median and 90 % interval) and why a refit failed. A candidate with several held-out setups or parameters takes several rows (the k-th setup and the k-th parameter side by side, the candidate's columns repeated).",
@@ -325,13 +367,14 @@ pub const BEFORE_AFTER: TableSpec = TableSpec {
 };
 
 /// Every table spec of the section (for `hbmu schemas`).
-pub const SPECS: [&TableSpec; 8] = [
+pub const SPECS: [&TableSpec; 9] = [
     &LOCATED_MODES,
     &OUTLIERS,
     &IDENTIFICATION_OUTLIERS,
     &COVARIATES,
     &CLUSTERS,
     &NEVER_SEEN,
+    &REGIONS,
     &CANDIDATES,
     &BEFORE_AFTER,
 ];
@@ -458,6 +501,30 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
                 f(m.median_model_freq_hz),
                 i(m.n_measurements),
                 i(m.n_missing),
+            ]
+        })
+        .collect();
+    let mm = |v: Option<f64>| v.map(|x| x * 1e3);
+    let regions = loc
+        .board_regions
+        .iter()
+        .map(|r| {
+            vec![
+                s(&r.mechanism),
+                Cell::Bool(r.located),
+                f(mm(r.fit.x_m)),
+                f(mm(r.fit.y_m)),
+                f(mm(r.fit.mass_kg)),
+                f(mm(r.fit.mass_se_kg)),
+                f(mm(r.fit.region_radius_m)),
+                f(r.fit.explained_share),
+                f(r.fit.p_value),
+                s(&r.fit
+                    .alternatives
+                    .iter()
+                    .map(|a| format!("({:.0}, {:.0})", a[0] * 1e3, a[1] * 1e3))
+                    .collect::<Vec<_>>()
+                    .join(" ")),
             ]
         })
         .collect();
@@ -604,6 +671,23 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ],
             digits: &[0, 0, 2, 0, 0],
             rows: never,
+        },
+        Table {
+            spec: &REGIONS,
+            headers: &[
+                "mechanism",
+                "located",
+                "x [mm]",
+                "y [mm]",
+                "mass [g]",
+                "± se [g]",
+                "90 % radius [mm]",
+                "share explained",
+                "p",
+                "also fits at [mm]",
+            ],
+            digits: &[0, 0, 1, 1, 3, 3, 1, 3, 3, 0],
+            rows: regions,
         },
         Table {
             spec: &CANDIDATES,
@@ -808,8 +892,26 @@ mod tests {
                 covariates,
                 unpaired_clusters: clusters,
                 never_seen: never,
-                board_regions: vec![],
-                board_regions_note: String::new(),
+                board_regions: vec![crate::stage::diagnose::regions::BoardRegion {
+                    mechanism: Mechanism::AddedMass,
+                    located: true,
+                    fit: crate::diagnose::localize::PointMassFit {
+                        x_m: 0.056,
+                        y_m: 0.030,
+                        mass_kg: 0.207e-3,
+                        mass_se_kg: 0.006e-3,
+                        chi2_before: 1303.9,
+                        chi2_after: 0.22,
+                        dof_after: 1,
+                        explained_share: 0.9998,
+                        p_value: 2.3e-282,
+                        region_radius_m: 0.054,
+                        region_points: 40,
+                        alternatives: vec![[0.024, 0.030, 1303.4]],
+                    },
+                    sentence: "A point mass.".into(),
+                }],
+                board_regions_note: "point-mass localisation".into(),
             },
             findings: if favoured {
                 vec![FindingDoc {
@@ -987,6 +1089,11 @@ mod tests {
         assert_eq!(u[0]["n_measurements"], "6");
         let n = cells(h, "diagnosis_never_seen");
         assert_eq!(num(&n[0]["median_model_freq_hz"]), 3110.8496570560533);
+        let g = cells(h, "diagnosis_board_regions");
+        assert_eq!(g.len(), 1);
+        assert!((num(&g[0]["x_mm"]) - 56.0).abs() < 1e-9, "{g:?}");
+        assert!((num(&g[0]["mass_g"]) - 0.207).abs() < 1e-12, "{g:?}");
+        assert_eq!(g[0]["alternatives"], "(24, 30)");
         assert_eq!(n[0]["n_missing"], "27");
         // Candidates: Bayes factor, held-out error, estimate, failure.
         let k = cells(h, "diagnosis_candidates");

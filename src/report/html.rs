@@ -720,20 +720,29 @@ fn diagnosis_section(pg: &mut Page, md: &mut String, d: Option<&super::diagnosis
         }
     ));
     let tables = diagnosis::tables(d);
-    let titles = [
-        "Misfitting modes",
-        "Outlier measurements",
-        "Significant covariates",
-        "Recurring unpaired-mode clusters",
-        "Model modes never seen",
-        "Candidate mechanisms",
-        "Misfit per mode, before and after the best refit",
-    ];
-    for (t, title) in tables.iter().zip(titles) {
+    // Titles by table (not by position: a table added to the section keeps every title on
+    // its own table).
+    let title = |name: &str| match name {
+        n if n == diagnosis::LOCATED_MODES.name => "Misfitting modes",
+        n if n == diagnosis::OUTLIERS.name => "Outlier measurements",
+        n if n == diagnosis::IDENTIFICATION_OUTLIERS.name => {
+            "Likely identification slips (one mode of one measurement)"
+        }
+        n if n == diagnosis::COVARIATES.name => "Significant covariates",
+        n if n == diagnosis::CLUSTERS.name => "Recurring unpaired-mode clusters",
+        n if n == diagnosis::NEVER_SEEN.name => "Model modes never seen",
+        n if n == diagnosis::REGIONS.name => "Where on the board",
+        n if n == diagnosis::CANDIDATES.name => "Candidate mechanisms",
+        _ => "Diagnosis table",
+    };
+    for t in &tables {
         if t.spec.name == diagnosis::BEFORE_AFTER.name {
             break;
         }
-        diagnosis_table(pg, title, t);
+        diagnosis_table(pg, title(t.spec.name), t);
+        if t.spec.name == diagnosis::REGIONS.name && !doc.located.board_regions_note.is_empty() {
+            pg.p(&esc(&doc.located.board_regions_note));
+        }
     }
     let Some(ba) = tables.last() else {
         return;
@@ -792,7 +801,7 @@ fn diagnosis_section(pg: &mut Page, md: &mut String, d: Option<&super::diagnosis
         ),
         &caption,
     );
-    diagnosis_table(pg, titles[6], ba);
+    diagnosis_table(pg, "Misfit per mode, before and after the best refit", ba);
 }
 
 fn posterior_section(pg: &mut Page, step: &StepData) {

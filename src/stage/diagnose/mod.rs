@@ -11,6 +11,7 @@
 //! its manifest), so the Bayes factors compare like with like.
 
 pub mod inputs;
+pub mod regions;
 
 use crate::diagnose::library::{is_board_mechanism, Mechanism};
 use crate::diagnose::locate::{self, LocateOptions, Located, ModeCheck};
@@ -152,9 +153,10 @@ pub struct LocatedSummary {
     pub covariates: Vec<crate::diagnose::locate::LocatedCovariate>,
     pub unpaired_clusters: Vec<crate::diagnose::locate::UnpairedCluster>,
     pub never_seen: Vec<crate::diagnose::locate::ModelModePresence>,
-    /// Board regions (error localisation from mode-shape residuals): not built yet, always
-    /// empty; `board_regions_note` says so.
-    pub board_regions: Vec<String>,
+    /// Board regions: the point-mass localisation of the free-free misfit
+    /// ([`regions::point_mass_region`]); empty when it did not run, `board_regions_note`
+    /// says why, and what is not localised yet.
+    pub board_regions: Vec<regions::BoardRegion>,
     pub board_regions_note: String,
 }
 
@@ -570,6 +572,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         w.join("pair/pairs.parquet"),
         w.join("update_boards/residuals.parquet"),
         w.join("update_boards/population.parquet"),
+        w.join("update_boards/boards.parquet"),
     ];
     let step2 = w.join("update_joints/evidence.json").is_file();
     if step2 {
@@ -613,6 +616,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         findings.0.extend(in_findings.0);
         let located = locate::locate(&input, &opts.locate);
         let (board, _) = crate::stage::update::load_board(opts.board.as_deref())?;
+        let regions = board_regions(w, &board, &base1, &input, &located, &opts.locate);
         let candidates = screen::screen(&located, &board);
         let mut refits: Vec<Refit> = vec![];
         let baseline1 = summarize_refit(
@@ -680,6 +684,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         write_outputs(
             opts,
             &located,
+            regions,
             &candidates,
             &compared,
             verdict,
@@ -689,9 +694,51 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
     })
 }
 
+/// The board regions of the located free-free misfit and the note on what was (not) done.
+fn board_regions(
+    work: &Path,
+    board: &crate::fem::Board,
+    base1: &UpdateOptions,
+    input: &locate::LocateInput,
+    located: &Located,
+    lopts: &LocateOptions,
+) -> (Vec<regions::BoardRegion>, String) {
+    const NOT_BUILT: &str =
+        "local stiffness changes and mode-shape residuals are not localised yet";
+    if !located.setups.iter().any(|s| s == "free") {
+        return (
+            vec![],
+            format!("not run: no free-free misfit located (the point-mass localisation uses the free-free modes); {NOT_BUILT}"),
+        );
+    }
+    let checks: Vec<ModeCheck> = locate::mode_means(&input.residuals, lopts);
+    let mut freq: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    for r in input.residuals.iter().filter(|r| r.setup == "free") {
+        let e = freq.entry(r.label.clone()).or_insert((0.0, 0));
+        e.0 += r.model_freq_hz_mean;
+        e.1 += 1;
+    }
+    let model_freq: Vec<(String, f64)> = freq
+        .into_iter()
+        .map(|(l, (s, n))| (l, s / n as f64))
+        .collect();
+    match regions::point_mass_region(work, board, &base1.params, &checks, &model_freq, lopts) {
+        Ok(r) => (
+            vec![r],
+            format!("point-mass localisation of the free-free misfit (frequency signature −½ φ², parameters projected off); {NOT_BUILT}"),
+        ),
+        Err(e) => (
+            vec![],
+            format!("point-mass localisation failed: {e:#}; {NOT_BUILT}"),
+        ),
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
 fn write_outputs(
     opts: &DiagnoseOptions,
     located: &Located,
+    (board_regions, board_regions_note): (Vec<regions::BoardRegion>, String),
     candidates: &[Candidate],
     compared: &[Compared],
     verdict: Verdict,
@@ -815,10 +862,8 @@ fn write_outputs(
             covariates: located.covariates.clone(),
             unpaired_clusters: located.unpaired_clusters.clone(),
             never_seen: located.never_seen.clone(),
-            board_regions: vec![],
-            board_regions_note:
-                "not located: the error localisation from mode-shape residuals is not built yet"
-                    .into(),
+            board_regions,
+            board_regions_note,
         },
         findings: findings_doc,
         candidates: rows

@@ -1,0 +1,346 @@
+//! Where on the board: sensitivity-based localisation of a missing point mass from the
+//! free-free frequency residuals (pure).
+//!
+//! A point mass δm at (x, y) on a board whose weighed mass the model spreads over its area
+//! changes each mode's frequency, to first order, by
+//!
+//! ```text
+//! δ ln f_j = −½ δm φ_j(x, y)²  +  (a uniform mass change, absorbed by mass_scale)
+//! ```
+//!
+//! with φ_j the mass-normalised shape (1/√kg). The updating has already fitted each board's
+//! parameters θ (moduli, mass scale), so what the residuals can still hold is the part of the
+//! signature that no change of θ reproduces. For every candidate point on a grid, the
+//! signature s_j(x, y) = −½ φ_j(x, y)² and the residuals r_j (mean over boards of the board
+//! means of (f_measured − f_model)/f_model) are both projected off the span of the parameter
+//! sensitivities A_jk = ∂ ln f_j/∂ ln θ_k, in the metric of the residuals' standard errors;
+//! the weighted least-squares amplitude δm̂ and its χ² reduction
+//!
+//! ```text
+//! Δχ²(x, y) = (s̃ᵀ W r̃)² / (s̃ᵀ W s̃),   δm̂ = s̃ᵀ W r̃ / s̃ᵀ W s̃ (> 0 for a mass)
+//! ```
+//!
+//! map how well a point mass there explains the misfit (the classic sensitivity-based error
+//! localisation of model updating, e.g. Friswell & Mottershead 1995, ch. 8, restricted to a
+//! one-point, one-parameter error). The best point is the located region; its uncertainty is
+//! the set of points whose Δχ² lies within the 90 % quantile of χ²₂ of the best (a profile
+//! likelihood region for two location coordinates), the threshold scaled by the reduced χ²
+//! left after the fit when that exceeds one (the residual model error, not only the
+//! measurement scatter, sets the resolution). Frequencies are invariant under the symmetries
+//! of a symmetric plate, so separate maxima inside that threshold are reported as
+//! alternatives rather than silently dropped.
+
+use serde::Serialize;
+
+use super::locate::chi2_sf;
+
+/// One mode's residual: the mean relative frequency residual over boards and its standard
+/// error.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModeResidual {
+    pub label: String,
+    pub mean_rel: f64,
+    pub se_rel: f64,
+}
+
+/// The inputs of [`localize_point_mass`]; all per-mode vectors in the order of `modes`.
+#[derive(Clone, Debug)]
+pub struct LocalizeInput<'a> {
+    pub modes: &'a [ModeResidual],
+    /// Nuisance sensitivities, one column per updated parameter: ∂ ln f_j/∂ ln θ_k.
+    pub nuisance: &'a [Vec<f64>],
+    /// Candidate points (m, board frame).
+    pub points_m: &'a [[f64; 2]],
+    /// Per point, the signature ∂ ln f_j/∂m (1/kg) of a point mass there.
+    pub signature: &'a [Vec<f64>],
+}
+
+/// The located point mass.
+#[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
+pub struct PointMassFit {
+    /// Best point, m.
+    pub x_m: f64,
+    pub y_m: f64,
+    /// Weighted least-squares mass at the best point, kg, and its standard error (scaled by
+    /// the reduced χ² when above one).
+    pub mass_kg: f64,
+    pub mass_se_kg: f64,
+    /// χ² of the residuals off the parameters' span, before and after the point mass.
+    pub chi2_before: f64,
+    pub chi2_after: f64,
+    /// Degrees of freedom left after the fit (modes − independent parameters − 3).
+    pub dof_after: usize,
+    /// Share of χ²_before the point mass explains.
+    pub explained_share: f64,
+    /// Tail probability of Δχ² under no point mass (χ² with 3 degrees of freedom: mass and
+    /// two coordinates).
+    pub p_value: f64,
+    /// Radius of the 90 % region around the best point, m (largest distance of a point in it).
+    pub region_radius_m: f64,
+    /// Grid points in the region.
+    pub region_points: usize,
+    /// Other local maxima inside the region's threshold, farther than `min_separation_m` from
+    /// the best point and from each other (x_m, y_m, Δχ²): places the frequencies cannot tell
+    /// apart from the best one.
+    pub alternatives: Vec<[f64; 3]>,
+}
+
+/// Weighted residual-space projector: the orthonormal basis of the weighted nuisance columns
+/// (modified Gram–Schmidt; columns that add less than 1e-9 of their norm are dropped).
+fn basis(nuisance: &[Vec<f64>], w_sqrt: &[f64]) -> Vec<Vec<f64>> {
+    let mut q: Vec<Vec<f64>> = vec![];
+    for col in nuisance {
+        let mut v: Vec<f64> = col.iter().zip(w_sqrt).map(|(a, w)| a * w).collect();
+        let n0 = norm(&v);
+        for b in &q {
+            let d = dot(&v, b);
+            v.iter_mut().zip(b).for_each(|(x, y)| *x -= d * y);
+        }
+        let n = norm(&v);
+        if n0 > 0.0 && n > 1e-9 * n0 {
+            q.push(v.iter().map(|x| x / n).collect());
+        }
+    }
+    q
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+fn norm(a: &[f64]) -> f64 {
+    dot(a, a).sqrt()
+}
+
+fn project_off(v: &mut [f64], q: &[Vec<f64>]) {
+    for b in q {
+        let d = dot(v, b);
+        v.iter_mut().zip(b).for_each(|(x, y)| *x -= d * y);
+    }
+}
+
+/// 90 % quantile of χ² with 2 degrees of freedom: −2 ln 0.1.
+const CHI2_2_Q90: f64 = 4.605_170_185_988_091;
+
+/// Locate a point mass; `None` when there are too few modes (at least the independent
+/// nuisance parameters + 3 are needed), no finite standard error, or no point gives a positive
+/// mass. `min_separation_m` separates alternatives from the best point.
+pub fn localize_point_mass(inp: &LocalizeInput, min_separation_m: f64) -> Option<PointMassFit> {
+    let n = inp.modes.len();
+    if n == 0
+        || inp.points_m.len() != inp.signature.len()
+        || inp.nuisance.iter().any(|c| c.len() != n)
+        || inp.signature.iter().any(|s| s.len() != n)
+    {
+        return None;
+    }
+    if inp
+        .modes
+        .iter()
+        .any(|m| !(m.se_rel.is_finite() && m.se_rel > 0.0 && m.mean_rel.is_finite()))
+    {
+        return None;
+    }
+    let w_sqrt: Vec<f64> = inp.modes.iter().map(|m| 1.0 / m.se_rel).collect();
+    let q = basis(inp.nuisance, &w_sqrt);
+    if n < q.len() + 3 {
+        return None;
+    }
+    let mut r: Vec<f64> = inp
+        .modes
+        .iter()
+        .zip(&w_sqrt)
+        .map(|(m, w)| m.mean_rel * w)
+        .collect();
+    project_off(&mut r, &q);
+    let chi2_before = dot(&r, &r);
+    // Per point: amplitude and Δχ² (0 where the amplitude is not a positive mass).
+    let fits: Vec<(f64, f64, f64)> = inp
+        .signature
+        .iter()
+        .map(|s| {
+            let mut v: Vec<f64> = s.iter().zip(&w_sqrt).map(|(a, w)| a * w).collect();
+            project_off(&mut v, &q);
+            let ss = dot(&v, &v);
+            if ss.is_nan() || ss <= 0.0 {
+                return (0.0, 0.0, f64::INFINITY);
+            }
+            let amp = dot(&v, &r) / ss;
+            let d = if amp > 0.0 { amp * amp * ss } else { 0.0 };
+            (d, amp, 1.0 / ss.sqrt())
+        })
+        .collect();
+    let (best, &(d_best, amp, se0)) = fits
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1 .0.total_cmp(&b.1 .0))?;
+    if d_best.is_nan() || d_best <= 0.0 {
+        return None;
+    }
+    let dof_after = n - q.len() - 3;
+    let chi2_after = (chi2_before - d_best).max(0.0);
+    let inflation = if dof_after > 0 {
+        (chi2_after / dof_after as f64).max(1.0)
+    } else {
+        1.0
+    };
+    let threshold = CHI2_2_Q90 * inflation;
+    let [bx, by] = inp.points_m[best];
+    let dist = |p: [f64; 2], q: [f64; 2]| (p[0] - q[0]).hypot(p[1] - q[1]);
+    let in_region: Vec<usize> = (0..fits.len())
+        .filter(|&i| d_best - fits[i].0 <= threshold)
+        .collect();
+    let region_radius_m = in_region
+        .iter()
+        .map(|&i| dist(inp.points_m[i], [bx, by]))
+        .fold(0.0, f64::max);
+    // Local maxima in the region (a point at least as good as every point within the
+    // separation distance), strongest first, kept when far from the best and each other.
+    let mut maxima: Vec<usize> = in_region
+        .iter()
+        .copied()
+        .filter(|&i| i != best)
+        .filter(|&i| {
+            (0..fits.len()).all(|j| {
+                j == i
+                    || dist(inp.points_m[i], inp.points_m[j]) > min_separation_m
+                    || fits[j].0 <= fits[i].0
+            })
+        })
+        .collect();
+    maxima.sort_by(|a, b| fits[*b].0.total_cmp(&fits[*a].0));
+    let mut kept: Vec<[f64; 2]> = vec![[bx, by]];
+    let mut alternatives = vec![];
+    for i in maxima {
+        let p = inp.points_m[i];
+        if kept.iter().all(|k| dist(*k, p) > min_separation_m) {
+            kept.push(p);
+            alternatives.push([p[0], p[1], fits[i].0]);
+        }
+    }
+    Some(PointMassFit {
+        x_m: bx,
+        y_m: by,
+        mass_kg: amp,
+        mass_se_kg: se0 * inflation.sqrt(),
+        chi2_before,
+        chi2_after,
+        dof_after,
+        explained_share: if chi2_before > 0.0 {
+            d_best / chi2_before
+        } else {
+            0.0
+        },
+        p_value: chi2_sf(d_best, 3.0),
+        region_radius_m,
+        region_points: in_region.len(),
+        alternatives,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A synthetic "plate": modes with shapes sin(a x) sin(b y) on a 0.08 × 0.05 m rectangle
+    /// (mass-normalised for a 20 g board), a point mass of 0.3 g at (0.055, 0.031) and two
+    /// nuisance parameters (a uniform stiffness and a uniform mass scale). The residuals are
+    /// the exact first-order effect plus the part the nuisance parameters would have absorbed;
+    /// the localisation finds the point within one grid step (2.5 mm; the true point is off
+    /// the grid in y) and the mass within 10 %.
+    #[test]
+    fn finds_a_point_mass_on_an_asymmetric_signature() {
+        let (lx, ly, m_board): (f64, f64, f64) = (0.08, 0.05, 0.02);
+        let waves: [(f64, f64); 9] = [
+            (1.0, 1.0),
+            (2.0, 1.0),
+            (1.0, 2.0),
+            (3.0, 1.0),
+            (2.0, 2.0),
+            (1.5, 1.0),
+            (3.0, 2.0),
+            (1.0, 3.0),
+            (2.5, 1.5),
+        ];
+        // Half-integer waves break the mirror symmetry as a board's real copper does.
+        let phi = |j: usize, x: f64, y: f64| {
+            let (a, b) = waves[j];
+            2.0 / m_board.sqrt()
+                * (a * std::f64::consts::PI * x / lx).sin()
+                * (b * std::f64::consts::PI * y / ly).sin()
+        };
+        let n = waves.len();
+        let (x0, y0, dm) = (0.055, 0.031, 0.3e-3);
+        let nuisance = vec![vec![0.5; n], vec![-0.5; n]];
+        let stiffness_absorbed = 0.002;
+        let modes: Vec<ModeResidual> = (0..n)
+            .map(|j| ModeResidual {
+                label: format!("m{j}"),
+                mean_rel: -0.5 * dm * phi(j, x0, y0).powi(2) + 0.5 * stiffness_absorbed,
+                se_rel: 1e-4 * (1.0 + 0.1 * j as f64),
+            })
+            .collect();
+        let mut points = vec![];
+        let mut sig = vec![];
+        for i in 0..=32 {
+            for k in 0..=20 {
+                let (x, y) = (i as f64 * 0.0025, k as f64 * 0.0025);
+                points.push([x, y]);
+                sig.push((0..n).map(|j| -0.5 * phi(j, x, y).powi(2)).collect());
+            }
+        }
+        let fit = localize_point_mass(
+            &LocalizeInput {
+                modes: &modes,
+                nuisance: &nuisance,
+                points_m: &points,
+                signature: &sig,
+            },
+            0.01,
+        )
+        .unwrap();
+        assert!(
+            (fit.x_m - x0).abs() <= 0.0025 && (fit.y_m - y0).abs() <= 0.0025,
+            "{fit:?}"
+        );
+        assert!((fit.mass_kg / dm - 1.0).abs() < 0.1, "{fit:?}");
+        assert!(fit.explained_share > 0.9, "{fit:?}");
+        assert!(fit.p_value < 1e-6, "{fit:?}");
+    }
+
+    /// Residuals in the span of the parameters alone (nothing a point mass adds) locate
+    /// nothing significant: the best Δχ² is noise-sized.
+    #[test]
+    fn residuals_the_parameters_explain_locate_nothing() {
+        let n = 6;
+        let nuisance = vec![(0..n).map(|j| 0.3 + 0.1 * j as f64).collect::<Vec<_>>()];
+        // Residual = a multiple of the nuisance column + tiny alternating noise.
+        let modes: Vec<ModeResidual> = (0..n)
+            .map(|j| ModeResidual {
+                label: format!("m{j}"),
+                mean_rel: 0.01 * (0.3 + 0.1 * j as f64) + if j % 2 == 0 { 1e-5 } else { -1e-5 },
+                se_rel: 1e-4,
+            })
+            .collect();
+        let points: Vec<[f64; 2]> = (0..50).map(|i| [i as f64 * 1e-3, 0.0]).collect();
+        let sig: Vec<Vec<f64>> = (0..50)
+            .map(|i| {
+                (0..n)
+                    .map(|j| -((i as f64 * 0.1 + j as f64).sin()).powi(2) * 50.0)
+                    .collect()
+            })
+            .collect();
+        let fit = localize_point_mass(
+            &LocalizeInput {
+                modes: &modes,
+                nuisance: &nuisance,
+                points_m: &points,
+                signature: &sig,
+            },
+            0.01,
+        );
+        if let Some(f) = fit {
+            assert!(f.chi2_before < 1.0 && f.p_value > 0.3, "{f:?}");
+        }
+    }
+}

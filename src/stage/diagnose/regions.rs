@@ -1,0 +1,227 @@
+//! Where on the board: the inputs of [`crate::diagnose::localize`] from a work directory.
+//!
+//! The free-free model is built from the board file at the step-1 posterior centre (the
+//! median over all boards' draws of every updated parameter, `update_boards/boards.parquet`);
+//! its modes give the point-mass signature −½ φ_j² on a grid over the board (holes left out)
+//! and, by finite differences of 1 % in each updated parameter, the sensitivities the
+//! localisation projects off. Labels are matched to model modes by the nearest frequency to
+//! their mean model frequency in the step-1 residuals.
+
+use std::path::Path;
+
+use anyhow::{anyhow, Context};
+
+use crate::diagnose::library::Mechanism;
+use crate::diagnose::localize::{localize_point_mass, LocalizeInput, ModeResidual, PointMassFit};
+use crate::diagnose::locate::{LocateOptions, ModeCheck};
+use crate::fem::{Board, FeModel, Setup};
+use crate::io::tables::{read_parquet, Cols};
+
+/// Grid step of the candidate points, m. 2 mm: a tenth of the shortest bending half-wave of
+/// the modes a free-free test identifies on a board of a few centimetres, and 5× finer than
+/// the 10 mm a located region must be within.
+pub const GRID_STEP_M: f64 = 2e-3;
+
+/// Alternatives closer than this to the best point are the same region.
+pub const MIN_SEPARATION_M: f64 = 10e-3;
+
+/// A point-mass fit is reported as located when its Δχ² is significant at the locate step's
+/// FDR level and it explains at least this share of the free-free misfit off the parameters'
+/// span: a mechanism is named as the location of a misfit only when it accounts for most of
+/// it.
+pub const MIN_EXPLAINED_SHARE: f64 = 0.5;
+
+/// One located (or examined) board region.
+#[derive(Clone, Debug, serde::Serialize, schemars::JsonSchema)]
+pub struct BoardRegion {
+    /// The mechanism whose signature was fitted (`added_mass`).
+    pub mechanism: Mechanism,
+    /// Whether the fit passes the rule (significant, and explains at least half the misfit).
+    pub located: bool,
+    pub fit: PointMassFit,
+    pub sentence: String,
+}
+
+/// The point-mass localisation over the free-free modes of `checks` (locate's mode checks).
+/// `Err` says why it could not run (the stage writes it as the note).
+pub fn point_mass_region(
+    work: &Path,
+    board: &Board,
+    params: &[String],
+    checks: &[ModeCheck],
+    residual_model_freq: &[(String, f64)],
+    locate: &LocateOptions,
+) -> anyhow::Result<BoardRegion> {
+    let free: Vec<&ModeCheck> = checks.iter().filter(|c| c.setup == "free").collect();
+    if free.is_empty() {
+        return Err(anyhow!("no free-free mode residuals"));
+    }
+    let centre = posterior_centre(&work.join("update_boards/boards.parquet"), params)?;
+    let model = FeModel::build(board, Setup::Free, &board.mesh)?;
+    let mut p0 = model.nominal_params();
+    for (name, v) in params.iter().zip(&centre) {
+        p0.set(name, *v)?;
+    }
+    let n_model = free.len() + 4;
+    let modes0 = model.modes(&p0, n_model)?;
+    // Label → model mode by nearest frequency (each model mode used once).
+    let mut taken = vec![false; modes0.freq_hz.len()];
+    let mut index = vec![];
+    for c in &free {
+        let f = residual_model_freq
+            .iter()
+            .find(|(l, _)| *l == c.label)
+            .map(|(_, f)| *f)
+            .ok_or_else(|| anyhow!("label {:?}: no model frequency in the residuals", c.label))?;
+        let (j, _) = modes0
+            .freq_hz
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| !taken[*j])
+            .min_by(|a, b| (a.1 - f).abs().total_cmp(&(b.1 - f).abs()))
+            .ok_or_else(|| anyhow!("fewer model modes than labels"))?;
+        taken[j] = true;
+        index.push(j);
+    }
+    let nuisance: Vec<Vec<f64>> = params
+        .iter()
+        .map(|name| -> anyhow::Result<Vec<f64>> {
+            let mut p = p0.clone();
+            let v = p.get(name)?;
+            let h: f64 = 0.01;
+            p.set(name, v * h.exp())?;
+            let m = model.modes(&p, n_model)?;
+            Ok(index
+                .iter()
+                .map(|&j| {
+                    // The perturbed mode nearest in frequency to the centre's mode j.
+                    let f0 = modes0.freq_hz[j];
+                    let f = m
+                        .freq_hz
+                        .iter()
+                        .copied()
+                        .min_by(|a, b| (a - f0).abs().total_cmp(&(b - f0).abs()))
+                        .unwrap_or(f0);
+                    (f / f0).ln() / h
+                })
+                .collect())
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let points = grid(board);
+    let w = model.w_at(&modes0, &points)?;
+    let signature: Vec<Vec<f64>> = (0..points.len())
+        .map(|i| index.iter().map(|&j| -0.5 * w[(i, j)].powi(2)).collect())
+        .collect();
+    let modes: Vec<ModeResidual> = free
+        .iter()
+        .map(|c| ModeResidual {
+            label: c.label.clone(),
+            mean_rel: c.mean_rel_residual,
+            se_rel: c.se_rel_residual,
+        })
+        .collect();
+    let fit = localize_point_mass(
+        &LocalizeInput {
+            modes: &modes,
+            nuisance: &nuisance,
+            points_m: &points,
+            signature: &signature,
+        },
+        MIN_SEPARATION_M,
+    )
+    .ok_or_else(|| {
+        anyhow!(
+            "no point mass fits the free-free residuals ({} modes, {} parameters)",
+            modes.len(),
+            params.len()
+        )
+    })?;
+    let located = fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE;
+    let alt = if fit.alternatives.is_empty() {
+        String::new()
+    } else {
+        format!(
+            "; the frequencies fit about as well at {}",
+            fit.alternatives
+                .iter()
+                .map(|a| format!("({:.0}, {:.0}) mm", a[0] * 1e3, a[1] * 1e3))
+                .collect::<Vec<_>>()
+                .join(", ")
+        )
+    };
+    let sentence = if located {
+        format!(
+            "A point mass of {:.2} ± {:.2} g at ({:.0}, {:.0}) mm (90 % region radius {:.0} mm) explains {:.0} % of the free-free misfit that the board parameters cannot{alt}.",
+            fit.mass_kg * 1e3,
+            fit.mass_se_kg * 1e3,
+            fit.x_m * 1e3,
+            fit.y_m * 1e3,
+            fit.region_radius_m * 1e3,
+            100.0 * fit.explained_share
+        )
+    } else {
+        format!(
+            "No point mass explains the free-free misfit: the best, {:.3} g at ({:.0}, {:.0}) mm, explains {:.0} % of it (p = {:.2e}); not located.",
+            fit.mass_kg * 1e3,
+            fit.x_m * 1e3,
+            fit.y_m * 1e3,
+            100.0 * fit.explained_share,
+            fit.p_value
+        )
+    };
+    Ok(BoardRegion {
+        mechanism: Mechanism::AddedMass,
+        located,
+        fit,
+        sentence,
+    })
+}
+
+/// Median over every row of `boards.parquet` of each parameter column.
+fn posterior_centre(path: &Path, params: &[String]) -> anyhow::Result<Vec<f64>> {
+    let mut cols: Vec<Vec<f64>> = vec![vec![]; params.len()];
+    for b in read_parquet(path).with_context(|| format!("reading {}", path.display()))? {
+        let c = Cols { batch: &b, path };
+        for (k, name) in params.iter().enumerate() {
+            cols[k].extend(c.f64(name)?.iter().flatten());
+        }
+    }
+    cols.into_iter()
+        .zip(params)
+        .map(|(mut v, name)| {
+            v.retain(|x| x.is_finite());
+            if v.is_empty() {
+                return Err(anyhow!("{}: no finite {name}", path.display()));
+            }
+            v.sort_by(f64::total_cmp);
+            let n = v.len();
+            Ok(if n % 2 == 1 {
+                v[n / 2]
+            } else {
+                0.5 * (v[n / 2 - 1] + v[n / 2])
+            })
+        })
+        .collect()
+}
+
+/// Grid points over the board at [`GRID_STEP_M`], none inside a hole (nor within a grid step
+/// of its edge, where the clamp or the drill sits).
+fn grid(board: &Board) -> Vec<[f64; 2]> {
+    let nx = (board.length_x_m / GRID_STEP_M).round() as usize;
+    let ny = (board.width_y_m / GRID_STEP_M).round() as usize;
+    let mut out = vec![];
+    for i in 0..=nx {
+        for k in 0..=ny {
+            let x = board.length_x_m * i as f64 / nx as f64;
+            let y = board.width_y_m * k as f64 / ny as f64;
+            if board
+                .holes
+                .iter()
+                .all(|h| (x - h.x_m).hypot(y - h.y_m) > 0.5 * h.diameter_m + GRID_STEP_M)
+            {
+                out.push([x, y]);
+            }
+        }
+    }
+    out
+}
