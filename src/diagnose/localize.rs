@@ -75,7 +75,8 @@ pub struct PointMassFit {
     /// Tail probability of Δχ² under no point mass (χ² with 3 degrees of freedom: mass and
     /// two coordinates).
     pub p_value: f64,
-    /// Radius of the 90 % region around the best point, m (largest distance of a point in it).
+    /// Radius of the 90 % region around the best point, m: the largest distance from it of a
+    /// region point that is not nearer to an alternative ([`local_radius`]).
     pub region_radius_m: f64,
     /// Grid points in the region.
     pub region_points: usize,
@@ -83,6 +84,22 @@ pub struct PointMassFit {
     /// the best point and from each other (x_m, y_m, Δχ²): places the frequencies cannot tell
     /// apart from the best one.
     pub alternatives: Vec<[f64; 3]>,
+    /// The region's points (x_m, y_m), for [`local_radius`] after a change of the best point.
+    #[serde(skip)]
+    #[schemars(skip)]
+    pub region_m: Vec<[f64; 2]>,
+}
+
+/// The largest distance from `best` of a region point that is not nearer to one of `others`:
+/// the radius of the part of the region around `best` (the region of a near-symmetric board
+/// holds the mirror points too).
+pub fn local_radius(region: &[[f64; 2]], best: [f64; 2], others: &[[f64; 2]]) -> f64 {
+    let dist = |p: [f64; 2], q: [f64; 2]| (p[0] - q[0]).hypot(p[1] - q[1]);
+    region
+        .iter()
+        .filter(|p| others.iter().all(|o| dist(**p, best) <= dist(**p, *o)))
+        .map(|p| dist(*p, best))
+        .fold(0.0, f64::max)
 }
 
 /// Weighted residual-space projector: the orthonormal basis of the weighted nuisance columns
@@ -190,10 +207,6 @@ pub fn localize_point_mass(inp: &LocalizeInput, min_separation_m: f64) -> Option
     let in_region: Vec<usize> = (0..fits.len())
         .filter(|&i| d_best - fits[i].0 <= threshold)
         .collect();
-    let region_radius_m = in_region
-        .iter()
-        .map(|&i| dist(inp.points_m[i], [bx, by]))
-        .fold(0.0, f64::max);
     // Local maxima in the region (a point at least as good as every point within the
     // separation distance), strongest first, kept when far from the best and each other.
     let mut maxima: Vec<usize> = in_region
@@ -218,6 +231,9 @@ pub fn localize_point_mass(inp: &LocalizeInput, min_separation_m: f64) -> Option
             alternatives.push([p[0], p[1], fits[i].0]);
         }
     }
+    let region_m: Vec<[f64; 2]> = in_region.iter().map(|&i| inp.points_m[i]).collect();
+    let others: Vec<[f64; 2]> = alternatives.iter().map(|a| [a[0], a[1]]).collect();
+    let region_radius_m = local_radius(&region_m, [bx, by], &others);
     Some(PointMassFit {
         x_m: bx,
         y_m: by,
@@ -235,7 +251,62 @@ pub fn localize_point_mass(inp: &LocalizeInput, min_separation_m: f64) -> Option
         region_radius_m,
         region_points: in_region.len(),
         alternatives,
+        region_m,
     })
+}
+
+/// One measured mode shape for [`shape_score`]: the measured shape at the scan points, the
+/// model's (mass-normalised) shape there, and the first-order change of the model's shape
+/// per kilogram of a point mass at the candidate point c,
+///
+/// ```text
+/// ∂φ_j/∂m = Σ_{k≠j} −λ_j φ_k(c) φ_j(c) / (λ_j − λ_k) · φ_k   (rigid-body modes included, λ = 0)
+/// ```
+///
+/// (the −½ φ_j(c)² φ_j self term only rescales the shape and drops out with the optimal
+/// scale). The points are those of one measurement; non-finite measured values are left out.
+#[derive(Clone, Debug)]
+pub struct ShapeObs {
+    pub measured: Vec<f64>,
+    pub model: Vec<f64>,
+    pub d_model_per_kg: Vec<f64>,
+}
+
+/// How much a point mass of `mass_kg` with the given shape changes reduces the mode-shape
+/// residuals: Σ over shapes of (‖ρ‖² − ‖ρ − m σ′‖²) / ‖φ‖², with ρ = ψ/α − φ the residual of
+/// the measured shape ψ after its least-squares scale α (sign included) onto the model's φ,
+/// and σ′ the shape change with its component along φ removed (the scale absorbs it). Larger
+/// is better; a signature of the wrong sign or place scores below zero. The frequencies of a
+/// symmetric board cannot tell mirror points apart, the shape changes can: φ_k(c) φ_j(c)
+/// changes sign under a mirror for modes of opposite symmetry.
+pub fn shape_score(obs: &[ShapeObs], mass_kg: f64) -> f64 {
+    let mut total = 0.0;
+    for o in obs {
+        let idx: Vec<usize> = (0..o.measured.len())
+            .filter(|&i| {
+                o.measured[i].is_finite()
+                    && o.model[i].is_finite()
+                    && o.d_model_per_kg[i].is_finite()
+            })
+            .collect();
+        let pick = |v: &[f64]| idx.iter().map(|&i| v[i]).collect::<Vec<f64>>();
+        let (psi, phi, d) = (pick(&o.measured), pick(&o.model), pick(&o.d_model_per_kg));
+        let pp = dot(&phi, &phi);
+        let alpha = dot(&psi, &phi) / pp;
+        if idx.len() < 3 || pp <= 0.0 || alpha == 0.0 || !alpha.is_finite() {
+            continue;
+        }
+        let rho: Vec<f64> = psi.iter().zip(&phi).map(|(a, b)| a / alpha - b).collect();
+        let along = dot(&d, &phi) / pp;
+        let sig: Vec<f64> = d
+            .iter()
+            .zip(&phi)
+            .map(|(a, b)| mass_kg * (a - along * b))
+            .collect();
+        let after: f64 = rho.iter().zip(&sig).map(|(r, s)| (r - s) * (r - s)).sum();
+        total += (dot(&rho, &rho) - after) / pp;
+    }
+    total
 }
 
 #[cfg(test)]
@@ -306,6 +377,58 @@ mod tests {
         assert!((fit.mass_kg / dm - 1.0).abs() < 0.1, "{fit:?}");
         assert!(fit.explained_share > 0.9, "{fit:?}");
         assert!(fit.p_value < 1e-6, "{fit:?}");
+    }
+
+    /// Measured shapes made by the first-order change of a point mass at c score higher at c
+    /// than at its mirror image, where the change has the opposite sign in the modes of
+    /// opposite symmetry.
+    #[test]
+    fn shape_changes_tell_a_point_from_its_mirror_image() {
+        let lx: f64 = 0.08;
+        let pts: Vec<f64> = (0..=20).map(|i| lx * i as f64 / 20.0).collect();
+        // A beam-like set: a symmetric and an antisymmetric mode about x = lx/2, plus a rigid
+        // translation; eigenvalues 1, 3, 0.
+        let shape = |k: usize, x: f64| match k {
+            0 => (std::f64::consts::PI * x / lx).sin(),
+            1 => (2.0 * std::f64::consts::PI * x / lx).sin(),
+            _ => 0.7,
+        };
+        let lam = [1.0, 3.0, 0.0];
+        let d = |j: usize, c: f64| -> Vec<f64> {
+            pts.iter()
+                .map(|&x| {
+                    (0..3)
+                        .filter(|&k| k != j)
+                        .map(|k| {
+                            -lam[j] * shape(k, c) * shape(j, c) / (lam[j] - lam[k]) * shape(k, x)
+                        })
+                        .sum()
+                })
+                .collect()
+        };
+        let (c, mirror, m) = (0.055, lx - 0.055, 0.05);
+        let obs = |at: f64| -> Vec<ShapeObs> {
+            (0..2)
+                .map(|j| {
+                    let model: Vec<f64> = pts.iter().map(|&x| shape(j, x)).collect();
+                    let truth = d(j, c);
+                    ShapeObs {
+                        measured: model
+                            .iter()
+                            .zip(&truth)
+                            .map(|(a, b)| -2.0 * (a + m * b))
+                            .collect(),
+                        model,
+                        d_model_per_kg: d(j, at),
+                    }
+                })
+                .collect()
+        };
+        let (at_c, at_mirror) = (shape_score(&obs(c), m), shape_score(&obs(mirror), m));
+        assert!(
+            at_c > 0.0 && at_c > at_mirror + 0.5 * at_c,
+            "{at_c} vs {at_mirror}"
+        );
     }
 
     /// Residuals in the span of the parameters alone (nothing a point mass adds) locate

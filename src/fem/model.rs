@@ -1063,6 +1063,18 @@ impl FeModel {
         n_modes: usize,
         opts: &EigenOptions,
     ) -> Result<Modes, FemError> {
+        Ok(self.modes_and_rigid(p, n_modes, opts)?.0)
+    }
+
+    /// [`FeModel::modes_with`] and the rigid-body modes it dropped (mass-normalised, one
+    /// column each; none for a bolted board). Modal perturbation sums over a free board need
+    /// them: a point mass couples every elastic mode to the rigid-body ones.
+    pub fn modes_and_rigid(
+        &self,
+        p: &Params,
+        n_modes: usize,
+        opts: &EigenOptions,
+    ) -> Result<(Modes, Mat<f64>), FemError> {
         if n_modes == 0 {
             return Err(FemError::Request("n_modes: expected >= 1, found 0".into()));
         }
@@ -1097,11 +1109,15 @@ impl FeModel {
             .map(|l| l.max(0.0).sqrt() / (2.0 * std::f64::consts::PI))
             .collect();
         let shapes = Mat::from_fn(self.n_dof, keep.len(), |i, j| vecs[(i, keep[j])]);
-        Ok(Modes {
-            freq_hz,
-            eigenvalues,
-            shapes,
-            n_rigid_dropped: n_rigid,
-        })
+        let rigid = Mat::from_fn(self.n_dof, n_rigid, |i, j| vecs[(i, j)]);
+        Ok((
+            Modes {
+                freq_hz,
+                eigenvalues,
+                shapes,
+                n_rigid_dropped: n_rigid,
+            },
+            rigid,
+        ))
     }
 }

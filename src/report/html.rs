@@ -740,8 +740,13 @@ fn diagnosis_section(pg: &mut Page, md: &mut String, d: Option<&super::diagnosis
             break;
         }
         diagnosis_table(pg, title(t.spec.name), t);
-        if t.spec.name == diagnosis::REGIONS.name && !doc.located.board_regions_note.is_empty() {
-            pg.p(&esc(&doc.located.board_regions_note));
+        if t.spec.name == diagnosis::REGIONS.name {
+            for r in &doc.located.board_regions {
+                pg.p(&esc(&r.sentence));
+            }
+            if !doc.located.board_regions_note.is_empty() {
+                pg.p(&esc(&doc.located.board_regions_note));
+            }
         }
     }
     let Some(ba) = tables.last() else {

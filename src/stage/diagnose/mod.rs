@@ -722,7 +722,15 @@ fn board_regions(
         .into_iter()
         .map(|(l, (s, n))| (l, s / n as f64))
         .collect();
-    match regions::point_mass_region(work, board, &base1.params, &checks, &model_freq, lopts) {
+    match regions::point_mass_region(
+        work,
+        board,
+        &base1.params,
+        &checks,
+        &model_freq,
+        lopts,
+        &input.pairs,
+    ) {
         Ok(r) => (
             vec![r],
             format!("point-mass localisation of the free-free misfit (frequency signature −½ φ², parameters projected off); {NOT_BUILT}"),

@@ -5,15 +5,22 @@
 //! its modes give the point-mass signature −½ φ_j² on a grid over the board (holes left out)
 //! and, by finite differences of 1 % in each updated parameter, the sensitivities the
 //! localisation projects off. Labels are matched to model modes by the nearest frequency to
-//! their mean model frequency in the step-1 residuals.
+//! their mean model frequency in the step-1 residuals. The frequencies cannot tell the mirror
+//! images of a point apart on a near-symmetric board; the measured mode shapes
+//! (`extract/modes.parquet`, the accepted free-free pairs) choose among the best point and
+//! its alternatives by [`shape_score`].
 
 use std::path::Path;
 
 use anyhow::{anyhow, Context};
 
 use crate::diagnose::library::Mechanism;
-use crate::diagnose::localize::{localize_point_mass, LocalizeInput, ModeResidual, PointMassFit};
-use crate::diagnose::locate::{LocateOptions, ModeCheck};
+use crate::diagnose::localize::{
+    local_radius, localize_point_mass, shape_score, LocalizeInput, ModeResidual, PointMassFit,
+    ShapeObs,
+};
+use crate::diagnose::locate::{LocateOptions, ModeCheck, PairObs};
+use crate::fem::eigen::EigenOptions;
 use crate::fem::{Board, FeModel, Setup};
 use crate::io::tables::{read_parquet, Cols};
 
@@ -39,6 +46,13 @@ pub struct BoardRegion {
     /// Whether the fit passes the rule (significant, and explains at least half the misfit).
     pub located: bool,
     pub fit: PointMassFit,
+    /// The mode-shape score of each candidate point (x_m, y_m, score; [`shape_score`],
+    /// larger is better): the best point of the frequencies and its alternatives. Empty when
+    /// no measured shape could be used.
+    pub shape_scores: Vec<[f64; 3]>,
+    /// The shapes chose another point than the frequencies' best (which became an
+    /// alternative).
+    pub chosen_by_shapes: bool,
     pub sentence: String,
 }
 
@@ -51,6 +65,7 @@ pub fn point_mass_region(
     checks: &[ModeCheck],
     residual_model_freq: &[(String, f64)],
     locate: &LocateOptions,
+    pairs: &[PairObs],
 ) -> anyhow::Result<BoardRegion> {
     let free: Vec<&ModeCheck> = checks.iter().filter(|c| c.setup == "free").collect();
     if free.is_empty() {
@@ -63,7 +78,7 @@ pub fn point_mass_region(
         p0.set(name, *v)?;
     }
     let n_model = free.len() + 4;
-    let modes0 = model.modes(&p0, n_model)?;
+    let (modes0, rigid) = model.modes_and_rigid(&p0, n_model, &EigenOptions::default())?;
     // Label → model mode by nearest frequency (each model mode used once).
     let mut taken = vec![false; modes0.freq_hz.len()];
     let mut index = vec![];
@@ -136,17 +151,62 @@ pub fn point_mass_region(
             params.len()
         )
     })?;
+    let mut fit = fit;
+    // Mode shapes choose among the best point and its alternatives.
+    let label_index: Vec<(String, usize)> = free
+        .iter()
+        .zip(&index)
+        .map(|(c, &j)| (c.label.clone(), j))
+        .collect();
+    let shape_scores = shape_choice(
+        &model,
+        (&modes0, &rigid),
+        &work.join("extract/modes.parquet"),
+        pairs,
+        &label_index,
+        &fit,
+    )?;
+    let mut chosen_by_shapes = false;
+    if let Some(best) = shape_scores
+        .iter()
+        .max_by(|a, b| a[2].total_cmp(&b[2]))
+        .filter(|b| (b[0], b[1]) != (fit.x_m, fit.y_m))
+    {
+        let old = [fit.x_m, fit.y_m];
+        let k = fit
+            .alternatives
+            .iter()
+            .position(|a| (a[0], a[1]) == (best[0], best[1]));
+        if let Some(k) = k {
+            let alt = fit.alternatives.remove(k);
+            // The frequencies' best becomes an alternative, with its own Δχ² (the best's).
+            let d_best = fit.chi2_before - fit.chi2_after;
+            fit.alternatives.insert(0, [old[0], old[1], d_best]);
+            fit.x_m = alt[0];
+            fit.y_m = alt[1];
+            let others: Vec<[f64; 2]> = fit.alternatives.iter().map(|a| [a[0], a[1]]).collect();
+            fit.region_radius_m = local_radius(&fit.region_m, [fit.x_m, fit.y_m], &others);
+            chosen_by_shapes = true;
+        }
+    }
     let located = fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE;
     let alt = if fit.alternatives.is_empty() {
         String::new()
     } else {
         format!(
-            "; the frequencies fit about as well at {}",
+            "; the frequencies fit about as well at {}{}",
             fit.alternatives
                 .iter()
                 .map(|a| format!("({:.0}, {:.0}) mm", a[0] * 1e3, a[1] * 1e3))
                 .collect::<Vec<_>>()
-                .join(", ")
+                .join(", "),
+            if chosen_by_shapes {
+                " (the mode shapes chose this point over them)"
+            } else if shape_scores.len() > 1 {
+                " (the mode shapes agree with this point)"
+            } else {
+                " (no measured mode shape to choose)"
+            },
         )
     };
     let sentence = if located {
@@ -173,8 +233,110 @@ pub fn point_mass_region(
         mechanism: Mechanism::AddedMass,
         located,
         fit,
+        shape_scores,
+        chosen_by_shapes,
         sentence,
     })
+}
+
+/// [`shape_score`] of the best point and each alternative over the measured free-free shapes
+/// of the accepted pairs of the labels in `label_index` (label → model mode index).
+fn shape_choice(
+    model: &FeModel,
+    (modes, rigid): (&crate::fem::Modes, &faer::Mat<f64>),
+    modes_path: &Path,
+    pairs: &[PairObs],
+    label_index: &[(String, usize)],
+    fit: &PointMassFit,
+) -> anyhow::Result<Vec<[f64; 3]>> {
+    use std::collections::BTreeMap;
+    let mut wanted: BTreeMap<(String, i32), usize> = BTreeMap::new();
+    for p in pairs.iter().filter(|p| p.setup == "free" && p.accepted) {
+        if let (Some(m), Some((_, j))) = (p.mode, label_index.iter().find(|(l, _)| *l == p.label)) {
+            wanted.insert((p.measurement_id.clone(), m), *j);
+        }
+    }
+    // Measured shapes with their points, by measurement.
+    // Per measurement: (model mode index, measured shape, its points).
+    type Measured = (usize, Vec<f64>, Vec<[f64; 2]>);
+    let mut by_meas: BTreeMap<String, Vec<Measured>> = BTreeMap::new();
+    for b in
+        read_parquet(modes_path).with_context(|| format!("reading {}", modes_path.display()))?
+    {
+        let c = Cols {
+            batch: &b,
+            path: modes_path,
+        };
+        let (mid, mode) = (c.str("measurement_id")?, c.i32("mode")?);
+        for i in 0..b.num_rows() {
+            let Some(&j) = wanted.get(&(mid.value(i).to_string(), mode.value(i))) else {
+                continue;
+            };
+            let s = c.list_f64("shape", i)?.unwrap_or_default();
+            let x = c.list_f64("x_m", i)?.unwrap_or_default();
+            let y = c.list_f64("y_m", i)?.unwrap_or_default();
+            if s.len() != x.len() || s.len() != y.len() || s.is_empty() {
+                continue;
+            }
+            let pts = x.iter().zip(&y).map(|(a, b)| [*a, *b]).collect();
+            by_meas
+                .entry(mid.value(i).to_string())
+                .or_default()
+                .push((j, s, pts));
+        }
+    }
+    let cands: Vec<[f64; 2]> = std::iter::once([fit.x_m, fit.y_m])
+        .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
+        .collect();
+    if cands.len() < 2 || by_meas.is_empty() {
+        return Ok(vec![]);
+    }
+    let at_c = model.shape_operator(&cands)?;
+    let el_c = at_c.apply(modes.shapes.as_ref());
+    let rig_c = at_c.apply(rigid.as_ref());
+    let lam = &modes.eigenvalues;
+    let mut obs: Vec<Vec<ShapeObs>> = vec![vec![]; cands.len()];
+    for shapes in by_meas.values() {
+        for (j, psi, pts) in shapes {
+            // Scan points the model cannot evaluate (in a hole, off the board) leave the
+            // measurement's shape out.
+            let Ok(op) = model.shape_operator(pts) else {
+                continue;
+            };
+            let el = op.apply(modes.shapes.as_ref());
+            let rig = op.apply(rigid.as_ref());
+            let n = pts.len();
+            for (ci, o) in obs.iter_mut().enumerate() {
+                let phi_j_c = el_c[(ci, *j)];
+                let mut d = vec![0.0; n];
+                for k in (0..lam.len()).filter(|k| k != j) {
+                    let coef = -lam[*j] * el_c[(ci, k)] * phi_j_c / (lam[*j] - lam[k]);
+                    d.iter_mut()
+                        .enumerate()
+                        .for_each(|(i, v)| *v += coef * el[(i, k)]);
+                }
+                for r in 0..rig.ncols() {
+                    let coef = -rig_c[(ci, r)] * phi_j_c;
+                    d.iter_mut()
+                        .enumerate()
+                        .for_each(|(i, v)| *v += coef * rig[(i, r)]);
+                }
+                o.push(ShapeObs {
+                    measured: psi.clone(),
+                    model: (0..n).map(|i| el[(i, *j)]).collect(),
+                    d_model_per_kg: d,
+                });
+            }
+        }
+    }
+    if obs[0].is_empty() {
+        return Ok(vec![]);
+    }
+    Ok(cands
+        .iter()
+        .zip(&obs)
+        .map(|(c, o)| [c[0], c[1], shape_score(o, fit.mass_kg)])
+        .collect())
 }
 
 /// Median over every row of `boards.parquet` of each parameter column.
