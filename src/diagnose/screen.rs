@@ -34,6 +34,9 @@ pub struct Candidate {
     /// The joint's centre, m (per-joint candidates).
     pub joint_xy_m: Option<[f64; 2]>,
     pub covariate: Option<String>,
+    /// The located point of a point mechanism (`added_mass`), m.
+    #[serde(default)]
+    pub point_xy_m: Option<[f64; 2]>,
     /// Why it was kept, in words.
     pub reason: String,
 }
@@ -60,11 +63,36 @@ impl Candidate {
 
     /// `location` of diagnosis.json.
     pub fn location_json(&self) -> serde_json::Value {
-        match (self.joint, self.joint_xy_m) {
-            (Some(j), Some([x, y])) => serde_json::json!({"joint": j, "x_m": x, "y_m": y}),
+        match (self.joint, self.joint_xy_m, self.point_xy_m) {
+            (Some(j), Some([x, y]), _) => serde_json::json!({"joint": j, "x_m": x, "y_m": y}),
+            (None, _, Some([x, y])) => serde_json::json!({"x_m": x, "y_m": y}),
             _ => serde_json::Value::Null,
         }
     }
+}
+
+/// Attach a located point mass to the `added_mass` candidate: its location, the reason, and
+/// (when `located`) the candidate moves ahead of `local_stiffness_loss` and the joint
+/// mechanisms, since the frequency signature of a mass at that point explains the misfit.
+pub fn attach_point_mass(cands: &mut Vec<Candidate>, xy_m: [f64; 2], located: bool, why: &str) {
+    let Some(i) = cands
+        .iter()
+        .position(|c| c.mechanism == Mechanism::AddedMass)
+    else {
+        return;
+    };
+    let mut c = cands.remove(i);
+    c.point_xy_m = Some(xy_m);
+    c.reason = format!("{}; {}", c.reason, why.trim_end_matches('.'));
+    let at = if located {
+        cands
+            .iter()
+            .position(|c| c.mechanism != Mechanism::TemperatureStiffness)
+            .unwrap_or(cands.len())
+    } else {
+        i
+    };
+    cands.insert(at.min(cands.len()), c);
 }
 
 fn is_temperature(name: &str, unit: &str) -> bool {
@@ -107,6 +135,7 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
         joint: None,
         joint_xy_m: None,
         covariate: None,
+        point_xy_m: None,
         reason,
     };
     // Covariates first: a trend with a sheet column is the most specific signature.
@@ -142,6 +171,7 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
                 joint: Some(j + 1),
                 joint_xy_m: Some([h.x_m, h.y_m]),
                 covariate: None,
+                point_xy_m: None,
                 reason: why.to_string(),
             })
             .collect()
@@ -206,4 +236,125 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
         out.insert(first_joint, cand(Mechanism::AddedMass, why));
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::diagnose::locate::{
+        locate, LocateInput, LocateOptions, LocatedCovariate, LocatedMode, UnpairedCluster,
+    };
+
+    fn located() -> Located {
+        let mut l = locate(&LocateInput::default(), &LocateOptions::default());
+        l.any = true;
+        l
+    }
+
+    fn mode(setup: &str) -> LocatedMode {
+        LocatedMode {
+            setup: setup.into(),
+            label: "bending-x-1".into(),
+            mean_rel_residual: -0.01,
+            reasons: vec!["mean".into()],
+        }
+    }
+
+    fn ids(c: &[Candidate]) -> Vec<String> {
+        c.iter().map(Candidate::id).collect()
+    }
+
+    /// Nothing located: nothing screened.
+    #[test]
+    fn nothing_located_screens_nothing() {
+        let mut l = located();
+        l.any = false;
+        assert!(screen(&l, &Board::default_board()).is_empty());
+    }
+
+    /// Bolted modes misfit, free-free clean: the joint mechanisms only, rotation first.
+    #[test]
+    fn a_bolted_misfit_screens_the_joint_mechanisms() {
+        let mut l = located();
+        l.modes = vec![mode("bolted")];
+        let c = screen(&l, &Board::default_board());
+        assert_eq!(
+            ids(&c),
+            ["joint_rotation", "joint_mass", "fixture_compliance"]
+        );
+    }
+
+    /// A recurring unpaired bolted mode puts the fixture first: only it adds a mode.
+    #[test]
+    fn a_recurring_unpaired_bolted_mode_puts_the_fixture_first() {
+        let mut l = located();
+        l.modes = vec![mode("bolted")];
+        l.unpaired_clusters = vec![UnpairedCluster {
+            setup: "bolted".into(),
+            median_freq_hz: 2765.0,
+            min_freq_hz: 2750.0,
+            max_freq_hz: 2780.0,
+            n_modes: 30,
+            n_measurements: 30,
+            share_of_setup: 1.0,
+            recurring: true,
+            measurement_ids: vec![],
+        }];
+        let c = screen(&l, &Board::default_board());
+        assert_eq!(c[0].mechanism, Mechanism::FixtureCompliance);
+        assert_eq!(
+            c.iter()
+                .filter(|c| c.mechanism == Mechanism::FixtureCompliance)
+                .count(),
+            1
+        );
+    }
+
+    /// A temperature trend names the covariate and comes first; the board mechanisms that a
+    /// free-free misfit would add are not screened in when the trend explains it.
+    #[test]
+    fn a_temperature_trend_comes_first_with_its_column() {
+        let mut l = located();
+        l.modes = vec![mode("free"), mode("bolted")];
+        l.covariates = vec![LocatedCovariate {
+            setup: "free".into(),
+            covariate: "temperature_c".into(),
+            q_value: 1e-9,
+            slope_rel_per_unit: Some(-2e-3),
+            unit: "°C".into(),
+        }];
+        let c = screen(&l, &Board::default_board());
+        assert_eq!(c[0].mechanism, Mechanism::TemperatureStiffness);
+        assert_eq!(c[0].covariate.as_deref(), Some("temperature_c"));
+        assert!(!c.iter().any(|c| c.mechanism == Mechanism::AddedMass));
+    }
+
+    /// A free-free misfit puts the board mechanisms before the joint ones (which change
+    /// nothing free-free); a located point mass moves `added_mass` first with its location.
+    #[test]
+    fn a_free_free_misfit_puts_the_board_mechanisms_first_and_a_located_mass_leads() {
+        let mut l = located();
+        l.modes = vec![mode("free"), mode("bolted")];
+        let mut c = screen(&l, &Board::default_board());
+        assert_eq!(
+            ids(&c)[..3],
+            ["added_mass", "local_stiffness_loss", "joint_rotation"]
+        );
+        c.swap(0, 1);
+        attach_point_mass(
+            &mut c,
+            [0.056, 0.030],
+            true,
+            "a point mass there explains it",
+        );
+        assert_eq!(c[0].mechanism, Mechanism::AddedMass);
+        assert_eq!(c[0].point_xy_m, Some([0.056, 0.030]));
+        assert_eq!(c[0].location_json()["x_m"], 0.056);
+        assert!(c[0].reason.ends_with("a point mass there explains it"));
+        // Not located: it keeps its place.
+        let mut d = screen(&l, &Board::default_board());
+        d.swap(0, 1);
+        attach_point_mass(&mut d, [0.01, 0.01], false, "weak");
+        assert_eq!(d[1].mechanism, Mechanism::AddedMass);
+    }
 }

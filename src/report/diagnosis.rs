@@ -849,6 +849,7 @@ mod tests {
             joint: None,
             joint_xy_m: None,
             covariate: None,
+            point_xy_m: None,
             reason: "6 bolted mode(s) misfit while free-free fits".into(),
         };
         let favoured = verdict == Verdict::MechanismFound;

@@ -617,7 +617,15 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         let located = locate::locate(&input, &opts.locate);
         let (board, _) = crate::stage::update::load_board(opts.board.as_deref())?;
         let regions = board_regions(w, &board, &base1, &input, &located, &opts.locate);
-        let candidates = screen::screen(&located, &board);
+        let mut candidates = screen::screen(&located, &board);
+        for r in &regions.0 {
+            screen::attach_point_mass(
+                &mut candidates,
+                [r.fit.x_m, r.fit.y_m],
+                r.located,
+                &r.sentence,
+            );
+        }
         let mut refits: Vec<Refit> = vec![];
         let baseline1 = summarize_refit(
             &w.join("update_boards"),
@@ -823,11 +831,16 @@ fn write_outputs(
         Verdict::NoMissingPhysics => "none: no setup, mode, measurement or covariate misfits beyond the tolerance".to_string(),
         Verdict::MechanismFound => "see the best candidate's refit residuals (refits/<id>/residuals.parquet); the located evidence below is the baseline's".to_string(),
         Verdict::UnexplainedMisfit => format!(
-            "located but not explained by any refitted mechanism: setups {:?}, modes {:?}, measurements {:?}, covariates {:?}",
+            "located but not explained by any refitted mechanism: setups {:?}, modes {:?}, measurements {:?}, covariates {:?}{}",
             located.setups,
             located.modes.iter().map(|m| format!("{}/{}", m.setup, m.label)).collect::<Vec<_>>(),
             located.measurements,
-            located.covariates.iter().map(|c| format!("{}/{}", c.setup, c.covariate)).collect::<Vec<_>>()
+            located.covariates.iter().map(|c| format!("{}/{}", c.setup, c.covariate)).collect::<Vec<_>>(),
+            board_regions
+                .iter()
+                .filter(|r| r.located)
+                .map(|r| format!("; where on the board: {}", r.sentence))
+                .collect::<String>()
         ),
     };
     if verdict != Verdict::NoMissingPhysics {
