@@ -313,6 +313,21 @@ pub fn shape_score(obs: &[ShapeObs], mass_kg: f64) -> f64 {
 mod tests {
     use super::*;
 
+    fn fit(
+        modes: &[ModeResidual],
+        nuisance: &[Vec<f64>],
+        points: &[[f64; 2]],
+        sig: &[Vec<f64>],
+    ) -> Option<PointMassFit> {
+        let inp = LocalizeInput {
+            modes,
+            nuisance,
+            points_m: points,
+            signature: sig,
+        };
+        localize_point_mass(&inp, 0.01)
+    }
+
     /// A synthetic "plate": modes with shapes sin(a x) sin(b y) on a 0.08 × 0.05 m rectangle
     /// (mass-normalised for a 20 g board), a point mass of 0.3 g at (0.055, 0.031) and two
     /// nuisance parameters (a uniform stiffness and a uniform mass scale). The residuals are
@@ -360,16 +375,7 @@ mod tests {
                 sig.push((0..n).map(|j| -0.5 * phi(j, x, y).powi(2)).collect());
             }
         }
-        let fit = localize_point_mass(
-            &LocalizeInput {
-                modes: &modes,
-                nuisance: &nuisance,
-                points_m: &points,
-                signature: &sig,
-            },
-            0.01,
-        )
-        .unwrap();
+        let fit = fit(&modes, &nuisance, &points, &sig).unwrap();
         assert!(
             (fit.x_m - x0).abs() <= 0.0025 && (fit.y_m - y0).abs() <= 0.0025,
             "{fit:?}"
@@ -453,16 +459,7 @@ mod tests {
                     .collect()
             })
             .collect();
-        let fit = localize_point_mass(
-            &LocalizeInput {
-                modes: &modes,
-                nuisance: &nuisance,
-                points_m: &points,
-                signature: &sig,
-            },
-            0.01,
-        );
-        if let Some(f) = fit {
+        if let Some(f) = fit(&modes, &nuisance, &points, &sig) {
             assert!(f.chi2_before < 1.0 && f.p_value > 0.3, "{f:?}");
         }
     }
