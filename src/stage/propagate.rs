@@ -27,7 +27,7 @@ pub const MANIFEST: &str = "propagate.manifest.json";
 
 pub const PREDICTIONS: TableSpec = TableSpec {
     name: "predictions",
-    doc: "Monte Carlo predictions of eigenfrequencies from the updated posterior, one row per draw, scope, board, setup and mode label. scope `new_board`: a board not yet measured (parameters drawn from the population, bolted with a new joint); `board`: a measured board (its posterior draw; bolted: with a new joint drawn from the joint population). freq_hz is the model's frequency; freq_obs_hz a predicted measurement of it (the label's relative eigenvalue error added; a validation mode draws its error from the updated modes' log-normal, see eps_pooled). Evaluations at inadmissible parameters or where a label cannot be tracked give no row (counted in propagate_report.json).",
+    doc: "Monte Carlo predictions of eigenfrequencies from the updated posterior, one row per draw, scope, board, setup and mode label. scope `new_board`: a board not yet measured (parameters drawn from the population, bolted with a new joint); `board`: a measured board (its posterior draw; bolted: with a new joint drawn from the joint population). freq_hz is the model's frequency; freq_obs_hz a predicted measurement of it (the label's relative eigenvalue error added; a validation mode draws its error from the updated modes' log-normal, or takes its own measurement repeatability where that is larger, see eps_pooled). Evaluations at inadmissible parameters or where a label cannot be tracked give no row (counted in propagate_report.json).",
     open: false,
     columns: &[
         c("draw", Col::Int32, false, "", "Propagation draw (each draw has its own random stream of the seed)."),
@@ -37,7 +37,7 @@ pub const PREDICTIONS: TableSpec = TableSpec {
         c("label", Col::Utf8, false, "", "Mode label (from pair)."),
         c("freq_hz", Col::Float64, false, "Hz", "Model eigenfrequency at the drawn parameters."),
         c("freq_obs_hz", Col::Float64, false, "Hz", "Predicted measurement: eigenvalue with the relative prediction error ε z, z ~ N(0,1)."),
-        c("eps_pooled", Col::Bool, false, "", "True when the label was not updated: its ε is drawn per row from the log-normal fitted to ln ε of the setup's updated labels at that particle."),
+        c("eps_pooled", Col::Bool, false, "", "True when the label was not updated: its ε is drawn per row from the log-normal fitted to ln ε of the setup's updated labels at that particle, or (free-free) is its measurement repeatability when that is larger (2 × the pooled within-board sd of its relative frequency residuals in the step-1 residuals; the info finding propagate.validation_repeatability lists the values)."),
     ],
 };
 
@@ -214,6 +214,75 @@ fn eps_columns(
             (updated.contains(l) && b.column_by_name(&name).is_some()).then_some(name)
         })
         .collect()
+}
+
+/// Per free label not used for updating, the relative eigenvalue error its repeat
+/// measurements show ([`crate::uq::propagate::repeatability_eps`], boards as groups), from
+/// the step-1 residuals; `None` for updated labels and where there are too few repeats. The
+/// values used are reported as an info finding.
+fn repeatability(
+    path: &Path,
+    labels: &[String],
+    findings: &mut Findings,
+) -> anyhow::Result<Vec<Option<f64>>> {
+    let mut groups: BTreeMap<&str, BTreeMap<String, Vec<f64>>> = BTreeMap::new();
+    let mut updated: BTreeSet<String> = BTreeSet::new();
+    for b in tables::read_parquet(path).with_context(|| format!("reading {}", path.display()))? {
+        let c = Cols { batch: &b, path };
+        let (board, setup, label, rel, used) = (
+            c.str("board_id")?,
+            c.str("setup")?,
+            c.str("label")?,
+            c.f64("rel_residual")?,
+            c.bool("used_for_updating")?,
+        );
+        for i in 0..b.num_rows() {
+            if setup.value(i) != "free" {
+                continue;
+            }
+            if used.value(i) {
+                updated.insert(label.value(i).to_string());
+                continue;
+            }
+            if let Some(l) = labels.iter().find(|l| *l == label.value(i)) {
+                groups
+                    .entry(l.as_str())
+                    .or_default()
+                    .entry(board.value(i).to_string())
+                    .or_default()
+                    .push(rel.value(i));
+            }
+        }
+    }
+    let out: Vec<Option<f64>> = labels
+        .iter()
+        .map(|l| {
+            if updated.contains(l) {
+                return None;
+            }
+            let g: Vec<Vec<f64>> = groups
+                .get(l.as_str())
+                .map(|m| m.values().cloned().collect())
+                .unwrap_or_default();
+            crate::uq::propagate::repeatability_eps(&g)
+        })
+        .collect();
+    let used: Vec<String> = labels
+        .iter()
+        .zip(&out)
+        .filter_map(|(l, e)| e.map(|e| format!("{l} {e:.2e}")))
+        .collect();
+    if !used.is_empty() {
+        findings.push(Finding::new(
+            Severity::Info,
+            "propagate.validation_repeatability",
+            format!(
+                "free validation modes take the larger of the pooled ε and their repeatability (relative eigenvalue error from the within-board scatter of their measurements): {}",
+                used.join(", ")
+            ),
+        ));
+    }
+    Ok(out)
 }
 
 #[allow(clippy::type_complexity)]
@@ -550,7 +619,13 @@ pub fn run(opts: &PropagateOptions, verbose: bool) -> anyhow::Result<StageOutcom
         }
         let (mut post, index) = read_step1(&inp.step1, &free_labels, &mut findings)?;
         let free_idx = positions(&rom_free, &post.params, &inp.rom_free)?;
-        let free = LabelModel::new(rom_free, free_labels.clone(), &free_modes, opts.rom_box)?;
+        let repeat = repeatability(
+            &inp.step1.join("residuals.parquet"),
+            &free_labels,
+            &mut findings,
+        )?;
+        let free = LabelModel::new(rom_free, free_labels.clone(), &free_modes, opts.rom_box)?
+            .with_repeatability(repeat)?;
         let mut bolted_model = None;
         let mut bolted_labels = vec![];
         match &inp.step2 {

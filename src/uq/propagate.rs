@@ -19,6 +19,12 @@
 //! exchangeable draws from a log-normal population, whose parameters are the mean and sample
 //! standard deviation of ln ε over the updated labels of the same setup at that particle, and a
 //! new ε is drawn from it per evaluation ([`pooled_eps`]); its rows say so (`eps_pooled`).
+//! Where the label's own repeat measurements give its measurement repeatability (the pooled
+//! within-board scatter, [`repeatability_eps`]; set with [`LabelModel::with_repeatability`]),
+//! ε is the larger of the two: a mode that the test resolves worse than the updated ones (near
+//! a nodal line of the excitation, say) has a larger error than theirs, and its replicates
+//! show it without using where the mode lies (the model's prediction is still what the
+//! validation checks).
 //!
 //! Parameters outside the admissible region (non-positive moduli, ν² E_y/E_x ≥ 1) or where a
 //! label cannot be tracked give no row; they are counted in [`Counts`], never dropped
@@ -45,6 +51,9 @@ pub struct LabelModel {
     n_track: usize,
     /// Half-width of the ROM's verified box, relative to its centre.
     pub box_rel: f64,
+    /// Per label, the relative eigenvalue error its repeat measurements show
+    /// ([`repeatability_eps`]); used for labels without an inferred ε.
+    pub repeatability_eps: Vec<Option<f64>>,
 }
 
 impl LabelModel {
@@ -80,13 +89,29 @@ impl LabelModel {
                 v.iter().map(|a| a / n).collect()
             })
             .collect();
+        let n = labels.len();
         Ok(LabelModel {
             rom,
             labels,
             refs,
             n_track,
             box_rel,
+            repeatability_eps: vec![None; n],
         })
+    }
+
+    /// Set the repeatability ε per label (order of `labels`; extra or missing entries are an
+    /// error).
+    pub fn with_repeatability(mut self, eps: Vec<Option<f64>>) -> Result<LabelModel, FemError> {
+        if eps.len() != self.labels.len() {
+            return Err(FemError::Request(format!(
+                "repeatability: expected one entry per label ({}), found {}",
+                self.labels.len(),
+                eps.len()
+            )));
+        }
+        self.repeatability_eps = eps;
+        Ok(self)
     }
 
     /// Eigenvalues λ = ω² (rad²/s²) of every label at the full parameter vector `values`;
@@ -420,7 +445,11 @@ fn evaluate(
         let (z, z_eps) = noise[l];
         let (e, pooled) = match eps[l] {
             Some(e) => (e, false),
-            None => (pooled_eps(&updated, z_eps), true),
+            None => {
+                let p = pooled_eps(&updated, z_eps);
+                let r = model.repeatability_eps.get(l).copied().flatten();
+                (r.map_or(p, |r| r.max(p)), true)
+            }
         };
         let to_hz = |x: f64| x.max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
         out.push(Prediction {
@@ -435,6 +464,25 @@ fn evaluate(
         });
     }
     inside
+}
+
+/// The relative eigenvalue error a label's repeat measurements show: 2 s, s the pooled
+/// within-group standard deviation of its relative frequency residuals (one group per board:
+/// the same board measured again differs by the measurement alone), λ = ω² doubling a relative
+/// frequency error. `None` with fewer than 4 degrees of freedom (Σ (n_g − 1)).
+pub fn repeatability_eps(groups: &[Vec<f64>]) -> Option<f64> {
+    let mut ss = 0.0;
+    let mut df = 0usize;
+    for g in groups {
+        let v: Vec<f64> = g.iter().copied().filter(|x| x.is_finite()).collect();
+        if v.len() < 2 {
+            continue;
+        }
+        let m = v.iter().sum::<f64>() / v.len() as f64;
+        ss += v.iter().map(|x| (x - m) * (x - m)).sum::<f64>();
+        df += v.len() - 1;
+    }
+    (df >= 4).then(|| 2.0 * (ss / df as f64).sqrt())
 }
 
 /// ε of a label that was not updated: exp(m + s z), m and s the mean and sample standard
@@ -684,6 +732,42 @@ mod tests {
                 .all(|p| p.eps_pooled == (label == 1));
             assert!(pooled);
         }
+        // With a repeatability of 0.05 (above the pooled 0.02), label 1 takes it; label 0
+        // keeps its own inferred ε.
+        let lm = model()
+            .with_repeatability(vec![Some(0.1), Some(0.05)])
+            .unwrap();
+        let models = Models {
+            free: &lm,
+            free_idx: models.free_idx.clone(),
+            bolted: None,
+        };
+        let (preds, _) = propagate(&posterior(vec![Some(0.02), None]), &models, n, 11).unwrap();
+        for (label, want) in [(0, 0.02), (1, 0.05)] {
+            let r: Vec<f64> = preds
+                .iter()
+                .filter(|p| p.scope == Scope::Board && p.label == label)
+                .map(|p| (p.freq_obs_hz / p.freq_hz).powi(2) - 1.0)
+                .collect();
+            let (_, s) = crate::report::validation::mean_sd(&r);
+            assert!(
+                (s - want).abs() < 4.0 * want / (2.0 * n as f64).sqrt(),
+                "label {label}: sd {s}, want {want}"
+            );
+        }
+    }
+
+    #[test]
+    fn repeatability_is_twice_the_pooled_within_board_sd() {
+        // Two boards: deviations ±1e-4 around each mean, 3 + 2 values (df 3) → None; a
+        // third board adds df 2 → pooled sd from the sums of squares.
+        let a = vec![0.01 - 1e-4, 0.01, 0.01 + 1e-4];
+        let b = vec![-0.02 - 1e-4, -0.02 + 1e-4];
+        assert_eq!(repeatability_eps(&[a.clone(), b.clone()]), None);
+        let c = vec![0.0, 2e-4, 4e-4];
+        let ss = 2e-8 + 2e-8 + 8e-8;
+        let e = repeatability_eps(&[a, b, c, vec![5.0]]).unwrap();
+        assert!((e - 2.0 * (ss / 5.0_f64).sqrt()).abs() < 1e-15, "{e}");
     }
 
     #[test]
