@@ -84,16 +84,12 @@ pub struct PointMassFit {
     /// the best point and from each other (x_m, y_m, Δχ²): places the frequencies cannot tell
     /// apart from the best one.
     pub alternatives: Vec<[f64; 3]>,
-    /// The region's points (x_m, y_m), for [`local_radius`] after a change of the best point.
-    #[serde(skip)]
-    #[schemars(skip)]
-    pub region_m: Vec<[f64; 2]>,
 }
 
 /// The largest distance from `best` of a region point that is not nearer to one of `others`:
 /// the radius of the part of the region around `best` (the region of a near-symmetric board
 /// holds the mirror points too).
-pub fn local_radius(region: &[[f64; 2]], best: [f64; 2], others: &[[f64; 2]]) -> f64 {
+fn local_radius(region: &[[f64; 2]], best: [f64; 2], others: &[[f64; 2]]) -> f64 {
     let dist = |p: [f64; 2], q: [f64; 2]| (p[0] - q[0]).hypot(p[1] - q[1]);
     region
         .iter()
@@ -109,10 +105,7 @@ fn basis(nuisance: &[Vec<f64>], w_sqrt: &[f64]) -> Vec<Vec<f64>> {
     for col in nuisance {
         let mut v: Vec<f64> = col.iter().zip(w_sqrt).map(|(a, w)| a * w).collect();
         let n0 = norm(&v);
-        for b in &q {
-            let d = dot(&v, b);
-            v.iter_mut().zip(b).for_each(|(x, y)| *x -= d * y);
-        }
+        project_off(&mut v, &q);
         let n = norm(&v);
         if n0 > 0.0 && n > 1e-9 * n0 {
             q.push(v.iter().map(|x| x / n).collect());
@@ -143,6 +136,18 @@ const CHI2_2_Q90: f64 = 4.605_170_185_988_091;
 /// nuisance parameters + 3 are needed), no finite standard error, or no point gives a positive
 /// mass. `min_separation_m` separates alternatives from the best point.
 pub fn localize_point_mass(inp: &LocalizeInput, min_separation_m: f64) -> Option<PointMassFit> {
+    localize_point_mass_at(inp, min_separation_m, None)
+}
+
+/// [`localize_point_mass`] with the best point given (`Some(index into points_m)`), e.g. one
+/// of its alternatives that other evidence (the mode shapes) prefers: mass, χ², region and
+/// alternatives are then those of that point. `None` also when the given point's mass is not
+/// positive.
+pub fn localize_point_mass_at(
+    inp: &LocalizeInput,
+    min_separation_m: f64,
+    at: Option<usize>,
+) -> Option<PointMassFit> {
     let n = inp.modes.len();
     if n == 0
         || inp.points_m.len() != inp.signature.len()
@@ -187,10 +192,13 @@ pub fn localize_point_mass(inp: &LocalizeInput, min_separation_m: f64) -> Option
             (d, amp, 1.0 / ss.sqrt())
         })
         .collect();
-    let (best, &(d_best, amp, se0)) = fits
-        .iter()
-        .enumerate()
-        .max_by(|a, b| a.1 .0.total_cmp(&b.1 .0))?;
+    let (best, &(d_best, amp, se0)) = match at {
+        Some(i) => (i, fits.get(i)?),
+        None => fits
+            .iter()
+            .enumerate()
+            .max_by(|a, b| a.1 .0.total_cmp(&b.1 .0))?,
+    };
     if d_best.is_nan() || d_best <= 0.0 {
         return None;
     }
@@ -231,9 +239,9 @@ pub fn localize_point_mass(inp: &LocalizeInput, min_separation_m: f64) -> Option
             alternatives.push([p[0], p[1], fits[i].0]);
         }
     }
-    let region_m: Vec<[f64; 2]> = in_region.iter().map(|&i| inp.points_m[i]).collect();
+    let region: Vec<[f64; 2]> = in_region.iter().map(|&i| inp.points_m[i]).collect();
     let others: Vec<[f64; 2]> = alternatives.iter().map(|a| [a[0], a[1]]).collect();
-    let region_radius_m = local_radius(&region_m, [bx, by], &others);
+    let region_radius_m = local_radius(&region, [bx, by], &others);
     Some(PointMassFit {
         x_m: bx,
         y_m: by,
@@ -251,7 +259,6 @@ pub fn localize_point_mass(inp: &LocalizeInput, min_separation_m: f64) -> Option
         region_radius_m,
         region_points: in_region.len(),
         alternatives,
-        region_m,
     })
 }
 

@@ -215,9 +215,10 @@ pub fn write_parquet(path: &Path, batch: &RecordBatch) -> io::Result<()> {
                 true,
             );
         }
-        // Spectra (list<float64>) are nearly all the bytes of a campaign and near-incompressible
-        // noise in their low mantissa bits: zstd level 1 writes them ~1.5× faster than level 3
-        // for ~9 % more bytes (measured on the lab's paper campaign: 110.6 vs 101.6 MB).
+        // Spectra (list<float64>) are nearly all the bytes of a campaign, noise in their low
+        // mantissa bits: byte-stream-split puts the sign/exponent bytes together, where zstd
+        // level 1 compresses them. On the lab's paper campaign this wrote frf.parquet in
+        // 0.45-0.50 s and 86.4 MB, against 0.83 s and 101.1 MB with plain zstd level 3.
         if let DataType::List(item) = f.data_type() {
             if item.data_type() == &DataType::Float64 {
                 let col = parquet::schema::types::ColumnPath::new(vec![

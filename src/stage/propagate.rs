@@ -225,39 +225,31 @@ fn repeatability(
     labels: &[String],
     findings: &mut Findings,
 ) -> anyhow::Result<Vec<Option<f64>>> {
-    let mut groups: BTreeMap<&str, BTreeMap<String, Vec<f64>>> = BTreeMap::new();
-    let mut updated: BTreeSet<String> = BTreeSet::new();
-    for b in tables::read_parquet(path).with_context(|| format!("reading {}", path.display()))? {
-        let c = Cols { batch: &b, path };
-        let (board, setup, label, rel, used) = (
-            c.str("board_id")?,
-            c.str("setup")?,
-            c.str("label")?,
-            c.f64("rel_residual")?,
-            c.bool("used_for_updating")?,
-        );
-        for i in 0..b.num_rows() {
-            if setup.value(i) != "free" {
-                continue;
-            }
-            if used.value(i) {
-                updated.insert(label.value(i).to_string());
-                continue;
-            }
-            if let Some(l) = labels.iter().find(|l| *l == label.value(i)) {
-                groups
-                    .entry(l.as_str())
-                    .or_default()
-                    .entry(board.value(i).to_string())
-                    .or_default()
-                    .push(rel.value(i));
-            }
+    let mut groups: BTreeMap<&str, BTreeMap<&str, Vec<f64>>> = BTreeMap::new();
+    let rows = crate::stage::diagnose::inputs::read_residuals(path)
+        .with_context(|| format!("reading {}", path.display()))?;
+    let updated: BTreeSet<&str> = rows
+        .iter()
+        .filter(|r| r.setup == "free" && r.used_for_updating)
+        .map(|r| r.label.as_str())
+        .collect();
+    for r in rows
+        .iter()
+        .filter(|r| r.setup == "free" && !r.used_for_updating)
+    {
+        if let Some(l) = labels.iter().find(|l| **l == r.label) {
+            groups
+                .entry(l.as_str())
+                .or_default()
+                .entry(r.board_id.as_str())
+                .or_default()
+                .push(r.rel_residual);
         }
     }
     let out: Vec<Option<f64>> = labels
         .iter()
         .map(|l| {
-            if updated.contains(l) {
+            if updated.contains(l.as_str()) {
                 return None;
             }
             let g: Vec<Vec<f64>> = groups

@@ -50,8 +50,7 @@ for fn in sorted(os.listdir(os.path.join(schemas, "tables"))):
         else:
             assert KIND[kind](s), f"{name}.{col}: expected {kind}, pandas dtype {s.dtype}"
         if kind.startswith("list") and len(s.dropna()):
-            import numpy as np
-            assert isinstance(s.dropna().iloc[0], np.ndarray), f"{name}.{col}: cells should be numpy arrays"
+                        assert isinstance(s.dropna().iloc[0], np.ndarray), f"{name}.{col}: cells should be numpy arrays"
     if not spec.get("additionalProperties", False):
         extra = set(df.columns) - set(spec["properties"])
         assert not extra, f"{name}: undocumented columns {extra}"
@@ -99,7 +98,6 @@ with open(os.path.join(out, "campaign.mcap"), "rb") as f:
     meta = [m for m in reader.iter_metadata()]
     summary["mcap_metadata"] = [m.name for m in meta]
 # frf.parquet: the README's recipe rebuilds the axis, and it agrees with the MCAP's spectra.
-import numpy as np
 frf = pd.read_parquet(os.path.join(out, "frf.parquet"))
 frf["freq_hz"] = [r.freq_start_hz + r.freq_step_hz * np.arange(r.n_lines) for r in frf.itertuples()]
 resp = frf[frf.function_type != 6]

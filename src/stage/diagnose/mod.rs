@@ -712,14 +712,13 @@ fn board_regions(
     lopts: &LocateOptions,
 ) -> (Vec<regions::BoardRegion>, String) {
     const NOT_BUILT: &str =
-        "local stiffness changes and mode-shape residuals are not localised yet";
+        "local stiffness changes are not localised yet, and mode shapes only choose among the points the frequencies give";
     if !located.setups.iter().any(|s| s == "free") {
         return (
             vec![],
             format!("not run: no free-free misfit located (the point-mass localisation uses the free-free modes); {NOT_BUILT}"),
         );
     }
-    let checks: Vec<ModeCheck> = locate::mode_means(&input.residuals, lopts);
     let mut freq: BTreeMap<String, (f64, usize)> = BTreeMap::new();
     for r in input.residuals.iter().filter(|r| r.setup == "free") {
         let e = freq.entry(r.label.clone()).or_insert((0.0, 0));
@@ -734,7 +733,7 @@ fn board_regions(
         work,
         board,
         &base1.params,
-        &checks,
+        &located.mode_checks,
         &model_freq,
         lopts,
         &input.pairs,

@@ -16,8 +16,8 @@ use anyhow::{anyhow, Context};
 
 use crate::diagnose::library::Mechanism;
 use crate::diagnose::localize::{
-    local_radius, localize_point_mass, shape_score, LocalizeInput, ModeResidual, PointMassFit,
-    ShapeObs,
+    localize_point_mass, localize_point_mass_at, shape_score, LocalizeInput, ModeResidual,
+    PointMassFit, ShapeObs,
 };
 use crate::diagnose::locate::{LocateOptions, ModeCheck, PairObs};
 use crate::fem::eigen::EigenOptions;
@@ -51,8 +51,12 @@ pub struct BoardRegion {
     /// no measured shape could be used.
     pub shape_scores: Vec<[f64; 3]>,
     /// The shapes chose another point than the frequencies' best (which became an
-    /// alternative).
+    /// alternative; the fit is the chosen point's).
     pub chosen_by_shapes: bool,
+    /// Measured shapes used by the shape choice, and those left out (lists of unequal
+    /// length, scan points the model cannot evaluate).
+    pub shapes_used: usize,
+    pub shapes_skipped: usize,
     pub sentence: String,
 }
 
@@ -135,30 +139,27 @@ pub fn point_mass_region(
             se_rel: c.se_rel_residual,
         })
         .collect();
-    let fit = localize_point_mass(
-        &LocalizeInput {
-            modes: &modes,
-            nuisance: &nuisance,
-            points_m: &points,
-            signature: &signature,
-        },
-        MIN_SEPARATION_M,
-    )
-    .ok_or_else(|| {
+    let inp = LocalizeInput {
+        modes: &modes,
+        nuisance: &nuisance,
+        points_m: &points,
+        signature: &signature,
+    };
+    let fit = localize_point_mass(&inp, MIN_SEPARATION_M).ok_or_else(|| {
         anyhow!(
             "no point mass fits the free-free residuals ({} modes, {} parameters)",
             modes.len(),
             params.len()
         )
     })?;
-    let mut fit = fit;
-    // Mode shapes choose among the best point and its alternatives.
+    // Mode shapes choose among the best point and its alternatives; the chosen point's own
+    // fit (mass, χ², region) is then the one reported.
     let label_index: Vec<(String, usize)> = free
         .iter()
         .zip(&index)
         .map(|(c, &j)| (c.label.clone(), j))
         .collect();
-    let shape_scores = shape_choice(
+    let shapes = shape_choice(
         &model,
         (&modes0, &rigid),
         &work.join("extract/modes.parquet"),
@@ -166,29 +167,16 @@ pub fn point_mass_region(
         &label_index,
         &fit,
     )?;
-    let mut chosen_by_shapes = false;
-    if let Some(best) = shape_scores
+    let chosen = shapes
+        .scores
         .iter()
         .max_by(|a, b| a[2].total_cmp(&b[2]))
         .filter(|b| (b[0], b[1]) != (fit.x_m, fit.y_m))
-    {
-        let old = [fit.x_m, fit.y_m];
-        let k = fit
-            .alternatives
-            .iter()
-            .position(|a| (a[0], a[1]) == (best[0], best[1]));
-        if let Some(k) = k {
-            let alt = fit.alternatives.remove(k);
-            // The frequencies' best becomes an alternative, with its own Δχ² (the best's).
-            let d_best = fit.chi2_before - fit.chi2_after;
-            fit.alternatives.insert(0, [old[0], old[1], d_best]);
-            fit.x_m = alt[0];
-            fit.y_m = alt[1];
-            let others: Vec<[f64; 2]> = fit.alternatives.iter().map(|a| [a[0], a[1]]).collect();
-            fit.region_radius_m = local_radius(&fit.region_m, [fit.x_m, fit.y_m], &others);
-            chosen_by_shapes = true;
-        }
-    }
+        .and_then(|b| points.iter().position(|p| (p[0], p[1]) == (b[0], b[1])))
+        .and_then(|i| localize_point_mass_at(&inp, MIN_SEPARATION_M, Some(i)));
+    let chosen_by_shapes = chosen.is_some();
+    let fit = chosen.unwrap_or(fit);
+    let shape_scores = shapes.scores;
     let located = fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE;
     let alt = if fit.alternatives.is_empty() {
         String::new()
@@ -209,9 +197,18 @@ pub fn point_mass_region(
             },
         )
     };
+    let skipped = if shapes.skipped > 0 {
+        format!(
+            " {} of {} measured shapes were left out of the shape choice (lists of unequal length, or scan points the model cannot evaluate).",
+            shapes.skipped,
+            shapes.skipped + shapes.used
+        )
+    } else {
+        String::new()
+    };
     let sentence = if located {
         format!(
-            "A point mass of {:.2} ± {:.2} g at ({:.0}, {:.0}) mm (90 % region radius {:.0} mm) explains {:.0} % of the free-free misfit that the board parameters cannot{alt}.",
+            "A point mass of {:.3} ± {:.3} g at ({:.0}, {:.0}) mm (90 % region radius {:.0} mm) explains {:.0} % of the free-free misfit that the board parameters cannot{alt}.{skipped}",
             fit.mass_kg * 1e3,
             fit.mass_se_kg * 1e3,
             fit.x_m * 1e3,
@@ -235,8 +232,18 @@ pub fn point_mass_region(
         fit,
         shape_scores,
         chosen_by_shapes,
+        shapes_used: shapes.used,
+        shapes_skipped: shapes.skipped,
         sentence,
     })
+}
+
+/// What [`shape_choice`] found.
+struct ShapeChoice {
+    /// (x_m, y_m, score) of the best point and each alternative; empty without shapes.
+    scores: Vec<[f64; 3]>,
+    used: usize,
+    skipped: usize,
 }
 
 /// [`shape_score`] of the best point and each alternative over the measured free-free shapes
@@ -248,8 +255,9 @@ fn shape_choice(
     pairs: &[PairObs],
     label_index: &[(String, usize)],
     fit: &PointMassFit,
-) -> anyhow::Result<Vec<[f64; 3]>> {
+) -> anyhow::Result<ShapeChoice> {
     use std::collections::BTreeMap;
+    let mut skipped = 0;
     let mut wanted: BTreeMap<(String, i32), usize> = BTreeMap::new();
     for p in pairs.iter().filter(|p| p.setup == "free" && p.accepted) {
         if let (Some(m), Some((_, j))) = (p.mode, label_index.iter().find(|(l, _)| *l == p.label)) {
@@ -276,6 +284,7 @@ fn shape_choice(
             let x = c.list_f64("x_m", i)?.unwrap_or_default();
             let y = c.list_f64("y_m", i)?.unwrap_or_default();
             if s.len() != x.len() || s.len() != y.len() || s.is_empty() {
+                skipped += 1;
                 continue;
             }
             let pts = x.iter().zip(&y).map(|(a, b)| [*a, *b]).collect();
@@ -288,8 +297,13 @@ fn shape_choice(
     let cands: Vec<[f64; 2]> = std::iter::once([fit.x_m, fit.y_m])
         .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
         .collect();
+    let none = |skipped| ShapeChoice {
+        scores: vec![],
+        used: 0,
+        skipped,
+    };
     if cands.len() < 2 || by_meas.is_empty() {
-        return Ok(vec![]);
+        return Ok(none(skipped));
     }
     let at_c = model.shape_operator(&cands)?;
     let el_c = at_c.apply(modes.shapes.as_ref());
@@ -301,6 +315,7 @@ fn shape_choice(
             // Scan points the model cannot evaluate (in a hole, off the board) leave the
             // measurement's shape out.
             let Ok(op) = model.shape_operator(pts) else {
+                skipped += 1;
                 continue;
             };
             let el = op.apply(modes.shapes.as_ref());
@@ -330,13 +345,17 @@ fn shape_choice(
         }
     }
     if obs[0].is_empty() {
-        return Ok(vec![]);
+        return Ok(none(skipped));
     }
-    Ok(cands
-        .iter()
-        .zip(&obs)
-        .map(|(c, o)| [c[0], c[1], shape_score(o, fit.mass_kg)])
-        .collect())
+    Ok(ShapeChoice {
+        used: obs[0].len(),
+        skipped,
+        scores: cands
+            .iter()
+            .zip(&obs)
+            .map(|(c, o)| [c[0], c[1], shape_score(o, fit.mass_kg)])
+            .collect(),
+    })
 }
 
 /// Median over every row of `boards.parquet` of each parameter column.
