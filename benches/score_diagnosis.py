@@ -22,7 +22,7 @@ MECHANISM = {
 PARAMETER = {
     "joint_rotation": [("k_rot_nm_per_rad", "k_rot_nm_per_rad", 1.0)],
     "temperature_stiffness": [("temperature_coefficient_per_k", "coefficient_per_k", 1.0)],
-    "added_mass": [("mass_kg", "mass_kg", 1.0)],
+    "added_mass": [("added_mass_kg", "mass_kg", 1.0)],
     "fixture_compliance": [("m_fix_kg", "m_fix_kg", 1.0)],
     "joint_stiffness_per_joint": [("k_ratio", "stiffness_factor", 1.0)],
 }

@@ -295,12 +295,16 @@ enum UpdateCommand {
         #[arg(long, default_value_t = 0.05)]
         sigma_scale: f64,
         /// Refit with a board mechanism of the diagnosis's library: `temperature_stiffness`
-        /// (the FR-4 moduli follow a sheet column, `--enrich-covariate`).
+        /// (the FR-4 moduli follow a sheet column, `--enrich-covariate`) or `added_mass` (a
+        /// lumped mass per board at `--enrich-location`).
         #[arg(long, value_enum)]
         enrich: Option<hbmu::diagnose::library::Mechanism>,
         /// The numeric sheet column (measurements.parquet) of `--enrich temperature_stiffness`.
         #[arg(long, default_value = "temperature_c")]
         enrich_covariate: String,
+        /// The point (x_m,y_m, metres from the board's corner) of `--enrich added_mass`.
+        #[arg(long, value_delimiter = ',', value_name = "X_M,Y_M")]
+        enrich_location: Option<Vec<f64>>,
     },
     /// Step 2: joint contact stiffness per bolted measurement and its population, from the
     /// bolted modes, carrying every step-1 draw (the modular, "cut", posterior).
@@ -381,6 +385,7 @@ impl UpdateArgs {
             enrich: None,
             enrich_joint: None,
             enrich_covariate: None,
+            enrich_location: None,
         }
     }
 }
@@ -640,13 +645,23 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                     sigma_scale,
                     enrich,
                     enrich_covariate,
+                    enrich_location,
                 },
         } => {
+            use hbmu::diagnose::library::Mechanism;
             let mut opts = common.options(params, prior_width, sigma_scale);
-            if enrich.is_some() {
-                opts.enrich = enrich;
+            opts.enrich = enrich;
+            if enrich == Some(Mechanism::TemperatureStiffness) {
                 opts.enrich_covariate = Some(enrich_covariate);
             }
+            opts.enrich_location = match enrich_location.as_deref() {
+                None => None,
+                Some([x, y]) => Some([*x, *y]),
+                Some(v) => anyhow::bail!(
+                    "--enrich-location: expected two numbers X_M,Y_M, found {}",
+                    v.len()
+                ),
+            };
             let o = stage::update::run_boards(&opts, cli.verbose)?;
             Ok(report("update boards", &opts.out, &o))
         }

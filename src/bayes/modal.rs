@@ -145,6 +145,10 @@ pub struct ModalPredictor {
     /// at the ROM centre in g.
     pub mass_scale_idx: Option<usize>,
     pub nominal_mass_g: f64,
+    /// Parameters that are lumped masses in kg ([`crate::fem::FeModel::add_point_mass_param`]),
+    /// weighed with the board: they add to the mass, not to `nominal_mass_g`, which is the
+    /// board's alone.
+    pub point_mass_idx: Vec<usize>,
 }
 
 /// Prediction of the updated modes: eigenvalues and reduced vectors in label order.
@@ -192,15 +196,29 @@ impl ModalPredictor {
             n_track,
             mass_scale_idx,
             nominal_mass_g,
+            point_mass_idx: vec![],
         })
+    }
+
+    /// The same predictor whose mass also counts the lumped-mass parameters `idx` (kg);
+    /// `nominal_mass_g` must then be the board's mass without them.
+    pub fn with_point_masses(mut self, idx: Vec<usize>) -> ModalPredictor {
+        self.point_mass_idx = idx;
+        self
     }
 
     /// Model mass at `values` (the ROM's full parameter vector), g.
     pub fn mass_g(&self, values: &[f64]) -> f64 {
-        match self.mass_scale_idx {
+        let board = match self.mass_scale_idx {
             Some(i) => self.nominal_mass_g * values[i] / self.rom.map.nominal[i],
             None => self.nominal_mass_g,
-        }
+        };
+        board
+            + self
+                .point_mass_idx
+                .iter()
+                .map(|&i| 1e3 * values[i])
+                .sum::<f64>()
     }
 
     /// The updated modes at `values`; `None` where the parameters are inadmissible or a

@@ -90,7 +90,11 @@ pub fn build_target(p: &Problem) -> ModalTarget {
     };
     ModalTarget {
         predictor,
-        compose: Compose::Boards { updated, reference },
+        compose: Compose::Boards {
+            updated,
+            reference,
+            log: vec![],
+        },
         prior: PopulationPrior {
             mu_mean: vec![0.0; d],
             mu_sd: vec![p.mu_sd; d],

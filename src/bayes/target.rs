@@ -124,11 +124,14 @@ impl ErrorModel {
 /// parameter vector.
 #[derive(Clone, Debug)]
 pub enum Compose {
-    /// Step 1: p[updated[k]] = reference[k] (1 + x_k); the reference is the board file's
-    /// nominal value, which need not be the ROM's centre.
+    /// Step 1: p[updated[k]] = reference[k] (1 + x_k), or reference[k] e^{x_k} where
+    /// `log[k]` (a parameter whose prior spans orders of magnitude: the diagnosis's added
+    /// mass); the reference is the board file's nominal value, which need not be the ROM's
+    /// centre. `log` may be shorter than `updated` (missing entries: relative).
     Boards {
         updated: Vec<usize>,
         reference: Vec<f64>,
+        log: Vec<bool>,
     },
     /// Step 2: p[board_params[k]] = aux[unit_board[b] · board_params.len() + k] (the step-1
     /// draw of unit b's board, absolute values) and, log-linearly in the unit's coordinates,
@@ -184,9 +187,17 @@ impl ModalTarget {
         let map = &self.predictor.rom.map;
         let mut v = map.nominal.clone();
         match &self.compose {
-            Compose::Boards { updated, reference } => {
+            Compose::Boards {
+                updated,
+                reference,
+                log,
+            } => {
                 for (k, &i) in updated.iter().enumerate() {
-                    v[i] = reference[k] * (1.0 + x[k]);
+                    v[i] = if log.get(k).copied().unwrap_or(false) {
+                        reference[k] * x[k].exp()
+                    } else {
+                        reference[k] * (1.0 + x[k])
+                    };
                 }
             }
             Compose::Joints {
@@ -343,6 +354,7 @@ mod tests {
             compose: Compose::Boards {
                 updated: updated.clone(),
                 reference,
+                log: vec![],
             },
             prior: PopulationPrior {
                 mu_mean: vec![0.0; 4],

@@ -31,7 +31,8 @@
 //! covariate (temperature) and β one global coefficient ([`BoardEnrichment`]), prior
 //! N(0, (0.5 %/K)²): epoxy-glass laminates below their glass transition lose about 0.05–0.5 %
 //! of their moduli per kelvin, so the prior covers that range within about one sd either
-//! way without fixing the sign.
+//! way without fixing the sign. `added_mass` adds a lumped mass at the located point whose
+//! value is a per-board model parameter (`added_mass_kg`, [`BoardEffect::PointMass`]).
 
 use serde::Serialize;
 
@@ -141,30 +142,101 @@ pub struct JointEnrichment {
     pub coordinates: Vec<Coordinate>,
 }
 
-/// A step-1 enrichment: a covariate c of every measurement scales `scaled` (ROM parameter
-/// names) by 1 + β (c − c_ref), β ~ N(prior_mean, prior_sd²).
+/// A step-1 enrichment: the mechanism, what it adds to the board model, and the prior of
+/// its per-board coordinate's population mean, N(prior_mean, prior_sd²) (board-to-board sd
+/// half-normal with a fifth of prior_sd as its scale).
 #[derive(Clone, Debug, Serialize)]
 pub struct BoardEnrichment {
     pub mechanism: Mechanism,
-    /// The coefficient's name, unit in the name (population.parquet column).
-    pub coefficient: String,
-    pub scaled: Vec<String>,
+    pub effect: BoardEffect,
     pub prior_mean: f64,
     pub prior_sd: f64,
 }
 
-/// The step-1 model of a board mechanism; errors name the mechanisms that have one.
-pub fn board_enrichment(mechanism: Mechanism) -> Result<BoardEnrichment, String> {
+/// What a step-1 enrichment adds to the board model.
+#[derive(Clone, Debug, Serialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum BoardEffect {
+    /// A covariate c of every measurement scales `scaled` (ROM parameter names) by
+    /// 1 + β (c − c_ref); β, the board's coordinate, is absolute (`coefficient`, unit in the
+    /// name, a boards.parquet column).
+    Covariate {
+        coefficient: String,
+        scaled: Vec<String>,
+    },
+    /// A lumped mass at (x_m, y_m) that the board file lacks: a model parameter
+    /// `parameter` (kg) whose board coordinate is ln(m / reference_kg), on a logarithmic
+    /// ROM axis of half-width `log_box`.
+    PointMass {
+        parameter: String,
+        x_m: f64,
+        y_m: f64,
+        reference_kg: f64,
+        log_box: f64,
+    },
+}
+
+/// What a step-1 enrichment needs to know: the board model's nominal mass (the prior scale
+/// of an added mass) and the located point of a point mechanism.
+#[derive(Clone, Copy, Debug)]
+pub struct BoardContext {
+    pub board_mass_kg: f64,
+    pub location_m: Option<[f64; 2]>,
+}
+
+/// The boards.parquet column of the `temperature_stiffness` coefficient.
+pub const TEMPERATURE_COEFFICIENT: &str = "temperature_coefficient_per_k";
+
+/// The model parameter of the `added_mass` refit, kg.
+pub const ADDED_MASS: &str = "added_mass_kg";
+
+/// The step-1 model of a board mechanism; errors name the mechanisms that have one and what
+/// they need.
+///
+/// `added_mass`: the prior median is 1 % of the board's nominal mass with a log-sd of 1.5
+/// (0.05 % to 20 % of the board at 2 sd: a glue blob to a connector or a shielding can),
+/// so the prior is set by the board, never by the mass the localisation fitted. The ROM's
+/// axis spans e^±4.5 (3 prior sd); over it the ROM's worst frequency error is 7e-6
+/// (`point_mass_parameter_is_the_point_mass_and_a_log_axis_rom_follows_it`).
+pub fn board_enrichment(
+    mechanism: Mechanism,
+    ctx: BoardContext,
+) -> Result<BoardEnrichment, String> {
     match mechanism {
         Mechanism::TemperatureStiffness => Ok(BoardEnrichment {
             mechanism,
-            coefficient: "temperature_coefficient_per_k".into(),
-            scaled: vec![names::E_X.into(), names::E_Y.into(), names::G_XY.into()],
+            effect: BoardEffect::Covariate {
+                coefficient: TEMPERATURE_COEFFICIENT.into(),
+                scaled: vec![names::E_X.into(), names::E_Y.into(), names::G_XY.into()],
+            },
             prior_mean: 0.0,
             prior_sd: 0.005,
         }),
+        Mechanism::AddedMass => {
+            let [x_m, y_m] = ctx
+                .location_m
+                .ok_or("added_mass needs its location (--enrich-location X_M,Y_M)")?;
+            if !(ctx.board_mass_kg.is_finite() && ctx.board_mass_kg > 0.0) {
+                return Err(format!(
+                    "added_mass: expected a positive board mass, found {} kg",
+                    ctx.board_mass_kg
+                ));
+            }
+            Ok(BoardEnrichment {
+                mechanism,
+                effect: BoardEffect::PointMass {
+                    parameter: ADDED_MASS.into(),
+                    x_m,
+                    y_m,
+                    reference_kg: 0.01 * ctx.board_mass_kg,
+                    log_box: 4.5,
+                },
+                prior_mean: 0.0,
+                prior_sd: 1.5,
+            })
+        }
         m => Err(format!(
-            "{} has no step-1 refit (board mechanisms: temperature_stiffness)",
+            "{} has no step-1 refit (board mechanisms: temperature_stiffness, added_mass)",
             m.id()
         )),
     }
@@ -173,15 +245,12 @@ pub fn board_enrichment(mechanism: Mechanism) -> Result<BoardEnrichment, String>
 /// Whether a column of boards.parquet is a board enrichment's coefficient (not a model
 /// parameter).
 pub fn is_board_coefficient(column: &str) -> bool {
-    Mechanism::ALL
-        .iter()
-        .filter_map(|m| board_enrichment(*m).ok())
-        .any(|e| e.coefficient == column)
+    column == TEMPERATURE_COEFFICIENT
 }
 
 /// Whether the mechanism's refit is a step-1 (board) refit rather than a step-2 one.
 pub fn is_board_mechanism(m: Mechanism) -> bool {
-    board_enrichment(m).is_ok()
+    matches!(m, Mechanism::TemperatureStiffness | Mechanism::AddedMass)
 }
 
 /// What the enrichment needs to know of the campaign: the highest paired bolted frequency

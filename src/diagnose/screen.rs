@@ -37,6 +37,10 @@ pub struct Candidate {
     /// The located point of a point mechanism (`added_mass`), m.
     #[serde(default)]
     pub point_xy_m: Option<[f64; 2]>,
+    /// When the point passed the localisation's rule: what its refit needs of the location's
+    /// uncertainty. `None`: not located, and the point mechanism is not refitted.
+    #[serde(default)]
+    pub point_located: Option<PointLocated>,
     /// Why it was kept, in words.
     pub reason: String,
 }
@@ -59,6 +63,7 @@ impl Candidate {
                 | Mechanism::FixtureCompliance
                 | Mechanism::JointStiffnessPerJoint
         ) || (self.mechanism == Mechanism::TemperatureStiffness && self.covariate.is_some())
+            || (self.mechanism == Mechanism::AddedMass && self.point_located.is_some())
     }
 
     /// `location` of diagnosis.json.
@@ -71,10 +76,29 @@ impl Candidate {
     }
 }
 
-/// Attach a located point mass to the `added_mass` candidate: its location, the reason, and
-/// (when `located`) the candidate moves ahead of `local_stiffness_loss` and the joint
-/// mechanisms, since the frequency signature of a mass at that point explains the misfit.
-pub fn attach_point_mass(cands: &mut Vec<Candidate>, xy_m: [f64; 2], located: bool, why: &str) {
+/// The uncertainty of a located point, for its refit (which fixes the point).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, serde::Deserialize, schemars::JsonSchema)]
+pub struct PointLocated {
+    /// The location's Occam factor
+    /// ([`crate::diagnose::localize::PointMassFit::log_location_occam`]), added to the
+    /// refit's log evidence.
+    pub log_occam: f64,
+    /// The sd of ln(mass) that the location's uncertainty adds
+    /// ([`crate::diagnose::localize::PointMassFit::location_ln_mass_sd`]): the refit's mass
+    /// interval, conditional on the point, is widened by it.
+    pub location_ln_mass_sd: f64,
+}
+
+/// Attach a point mass to the `added_mass` candidate: its location, the reason, and when
+/// `located` is `Some(location Occam factor)` the candidate moves ahead of
+/// `local_stiffness_loss` and the joint mechanisms (the frequency signature of a mass at that
+/// point explains the misfit) and becomes refittable.
+pub fn attach_point_mass(
+    cands: &mut Vec<Candidate>,
+    xy_m: [f64; 2],
+    located: Option<PointLocated>,
+    why: &str,
+) {
     let Some(i) = cands
         .iter()
         .position(|c| c.mechanism == Mechanism::AddedMass)
@@ -83,8 +107,9 @@ pub fn attach_point_mass(cands: &mut Vec<Candidate>, xy_m: [f64; 2], located: bo
     };
     let mut c = cands.remove(i);
     c.point_xy_m = Some(xy_m);
+    c.point_located = located;
     c.reason = format!("{}; {}", c.reason, why.trim_end_matches('.'));
-    let at = if located {
+    let at = if located.is_some() {
         cands
             .iter()
             .position(|c| c.mechanism != Mechanism::TemperatureStiffness)
@@ -136,6 +161,7 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
         joint_xy_m: None,
         covariate: None,
         point_xy_m: None,
+        point_located: None,
         reason,
     };
     // Covariates first: a trend with a sheet column is the most specific signature.
@@ -172,6 +198,7 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
                 joint_xy_m: Some([h.x_m, h.y_m]),
                 covariate: None,
                 point_xy_m: None,
+                point_located: None,
                 reason: why.to_string(),
             })
             .collect()
@@ -344,17 +371,22 @@ mod tests {
         attach_point_mass(
             &mut c,
             [0.056, 0.030],
-            true,
+            Some(PointLocated {
+                log_occam: -4.0,
+                location_ln_mass_sd: 0.02,
+            }),
             "a point mass there explains it",
         );
         assert_eq!(c[0].mechanism, Mechanism::AddedMass);
         assert_eq!(c[0].point_xy_m, Some([0.056, 0.030]));
+        assert!(c[0].refittable());
         assert_eq!(c[0].location_json()["x_m"], 0.056);
         assert!(c[0].reason.ends_with("a point mass there explains it"));
         // Not located: it keeps its place.
         let mut d = screen(&l, &Board::default_board());
         d.swap(0, 1);
-        attach_point_mass(&mut d, [0.01, 0.01], false, "weak");
+        attach_point_mass(&mut d, [0.01, 0.01], None, "weak");
         assert_eq!(d[1].mechanism, Mechanism::AddedMass);
+        assert!(!d[1].refittable(), "a point not located is not refitted");
     }
 }

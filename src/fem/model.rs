@@ -969,6 +969,45 @@ impl FeModel {
         Ok(())
     }
 
+    /// Add a lumped mass at (x_m, y_m) whose value is a parameter `name` (kg, nominal
+    /// `nominal_kg`): a mass term N Nᵀ (1 kg) with the coefficient p / 1 kg, so the model is
+    /// affine in it like in every other parameter and a ROM can carry it along an axis. The
+    /// diagnosis's `added_mass` refit updates it. Errors: a name already taken, a point off
+    /// the board or in a hole, a nominal value that is not positive (a ROM axis is centred
+    /// on it).
+    pub fn add_point_mass_param(
+        &mut self,
+        name: &str,
+        x_m: f64,
+        y_m: f64,
+        nominal_kg: f64,
+    ) -> Result<(), FemError> {
+        if self.map.names.iter().any(|n| n == name) {
+            return Err(FemError::Param(format!(
+                "point-mass parameter {name:?}: the model already has a parameter of that name"
+            )));
+        }
+        if !(nominal_kg.is_finite() && nominal_kg > 0.0) {
+            return Err(FemError::Param(format!(
+                "point-mass parameter {name:?}: expected a finite positive nominal mass in kg, found {nominal_kg}"
+            )));
+        }
+        let row = self.interp_row(x_m, y_m)?;
+        let mut term = vec![0.0; self.pattern.row_idx.len()];
+        for &(r, wr) in &row {
+            for &(c, wc) in &row {
+                term[self.pattern.index(r, c)] += wr * wc;
+            }
+        }
+        self.map.names.push(name.to_string());
+        self.map.nominal.push(nominal_kg);
+        let param = self.map.names.len() - 1;
+        self.m_term_names.push(name.to_string());
+        self.map.m_coefs.push(Coef::Linear { param, scale: 1.0 });
+        self.m_terms.push(term);
+        Ok(())
+    }
+
     fn interp_row(&self, x_m: f64, y_m: f64) -> Result<[(usize, f64); 16], FemError> {
         let (lx, ly) = (self.board.length_x_m, self.board.width_y_m);
         let tol = 1e-9 * lx.max(ly);

@@ -843,6 +843,7 @@ mod tests {
                 vec![]
             },
             failed: failed.map(str::to_string),
+            log_location_occam: None,
         };
         let cand = |m: Mechanism| Candidate {
             mechanism: m,
@@ -850,6 +851,7 @@ mod tests {
             joint_xy_m: None,
             covariate: None,
             point_xy_m: None,
+            point_located: None,
             reason: "6 bolted mode(s) misfit while free-free fits".into(),
         };
         let favoured = verdict == Verdict::MechanismFound;
@@ -909,6 +911,11 @@ mod tests {
                         region_radius_m: 0.054,
                         region_points: 40,
                         alternatives: vec![[0.024, 0.030, 1303.4]],
+                        log_location_occam: -4.1,
+                        location_ln_mass_sd: 0.02,
+                        delta_chi2: vec![],
+                        inflation: 1.0,
+                        mass_kg_at: vec![],
                     },
                     shape_scores: vec![],
                     chosen_by_shapes: false,

@@ -13,7 +13,10 @@ use crate::bayes::modal::{CovariateEffect, FreqObs, MassObs, ModalPredictor, Sha
 use crate::bayes::population::PopulationPrior;
 use crate::bayes::smc::{self, Particle, SmcOptions, StageInfo};
 use crate::bayes::target::{Compose, ErrorModel, ErrorPrior, JointsCovariate, ModalTarget};
-use crate::diagnose::library::{board_enrichment, joint_enrichment, JointContext, Mechanism};
+use crate::diagnose::library::{
+    board_enrichment, is_board_mechanism, joint_enrichment, BoardContext, BoardEffect,
+    JointContext, Mechanism,
+};
 use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Rom, RomOptions, Setup};
 use crate::findings::{Finding, Findings, Severity};
@@ -59,7 +62,7 @@ pub const POPULATION_JOINTS: TableSpec = TableSpec {
 
 pub const POPULATION: TableSpec = TableSpec {
     name: "population",
-    doc: "Posterior draws of the population (hyper-)parameters, one row per particle; run = independent SMC run (ArviZ: chain = run, draw = draw). Step 1 (boards): for every updated parameter <p> (unit in its name) `mu_<p>` (population mean, unit of <p>), `sigma_<p>` (population standard deviation, unit of <p>), `corr_<p>_<q>` (population correlation). Prediction errors per mode label <l>: `eps_<l>` (relative standard deviation of the eigenvalue λ = ω², dimensionless) and `delta_<l>` (standard deviation of the unit-norm shape residual), when inferred.",
+    doc: "Posterior draws of the population (hyper-)parameters, one row per particle; run = independent SMC run (ArviZ: chain = run, draw = draw). Step 1 (boards): for every updated parameter <p> (unit in its name) `mu_<p>` (population mean, unit of <p>), `sigma_<p>` (population standard deviation, unit of <p>), `corr_<p>_<q>` (population correlation); a parameter on a logarithmic coordinate (added_mass_kg of `--enrich added_mass`) has `mu_<p>` = the population median (reference · e^μ, unit of <p>) and `sigma_<p>` in natural-log units. Prediction errors per mode label <l>: `eps_<l>` (relative standard deviation of the eigenvalue λ = ω², dimensionless) and `delta_<l>` (standard deviation of the unit-norm shape residual), when inferred.",
     open: true,
     columns: &[
         c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
@@ -69,7 +72,7 @@ pub const POPULATION: TableSpec = TableSpec {
 
 pub const BOARDS: TableSpec = TableSpec {
     name: "boards",
-    doc: "Step-1 posterior draws of every board's parameters, one row per particle and board; one column per updated parameter, named with its unit (e.g. e_x_pa, e_y_pa, g_xy_pa, mass_scale).",
+    doc: "Step-1 posterior draws of every board's parameters, one row per particle and board; one column per updated parameter, named with its unit (e.g. e_x_pa, e_y_pa, g_xy_pa, mass_scale); a refit with `--enrich added_mass` adds added_mass_kg (the lumped mass at the enrichment's point; mass_g then includes it, as the balance weighs it), one with `--enrich temperature_stiffness` temperature_coefficient_per_k.",
     open: true,
     columns: &[
         c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
@@ -251,6 +254,9 @@ pub struct UpdateOptions {
     /// Step 1 with `temperature_stiffness`: the numeric sheet column the FR-4 moduli follow.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub enrich_covariate: Option<String>,
+    /// Step 1 with `added_mass`: the point (x_m, y_m) of the lumped mass.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub enrich_location: Option<[f64; 2]>,
 }
 
 impl UpdateOptions {
@@ -1286,18 +1292,33 @@ fn population_columns<'a>(
     labels: &[String],
 ) -> (Vec<(String, String)>, PopulationRow<'a>) {
     let d = param_names.len();
+    // Parameters on a logarithmic coordinate (p = ref e^x): μ is reported as the population
+    // median ref e^μ, σ in ln units.
+    let log: Vec<bool> = match &target.compose {
+        Compose::Boards { log, .. } => (0..d)
+            .map(|k| log.get(k).copied().unwrap_or(false))
+            .collect(),
+        Compose::Joints { .. } => vec![false; d],
+    };
     let unit = |n: &str| -> String {
         if n.ends_with("_pa") {
             "Pa".into()
         } else if n.ends_with("_n_per_m") {
             "N/m".into()
+        } else if n.ends_with("_kg") {
+            "kg".into()
         } else {
             String::new()
         }
     };
     let mut cols: Vec<(String, String)> = vec![];
     cols.extend(param_names.iter().map(|n| (format!("mu_{n}"), unit(n))));
-    cols.extend(param_names.iter().map(|n| (format!("sigma_{n}"), unit(n))));
+    cols.extend(param_names.iter().zip(&log).map(|(n, &l)| {
+        (
+            format!("sigma_{n}"),
+            if l { "ln".to_string() } else { unit(n) },
+        )
+    }));
     for i in 0..d {
         for j in i + 1..d {
             cols.push((
@@ -1327,9 +1348,16 @@ fn population_columns<'a>(
         let mut v: Vec<f64> = reference
             .iter()
             .zip(&ctx.pop.mu)
-            .map(|(r, m)| r * (1.0 + m))
+            .zip(&log)
+            .map(|((r, m), &l)| if l { r * m.exp() } else { r * (1.0 + m) })
             .collect();
-        v.extend(reference.iter().zip(&ctx.pop.sigma).map(|(r, s)| r * s));
+        v.extend(
+            reference
+                .iter()
+                .zip(&ctx.pop.sigma)
+                .zip(&log)
+                .map(|((r, s), &l)| if l { *s } else { r * s }),
+        );
         let o = ctx.pop.correlation();
         let dd = ctx.pop.mu.len();
         for i in 0..d {
@@ -1556,7 +1584,13 @@ fn modes_needed(labels: &Labels, all: &Labels) -> usize {
 }
 
 /// Labels of every accepted pair of a setup, with their model mode (0-based), in model order.
-fn all_labels(pairs: &[PairRow], setup: &str, n_modes: usize) -> Labels {
+/// Every paired label of `setup` with its model mode (the one most of its pairs name). A
+/// model mode carries one label: where two labels name the same mode (the pair stage
+/// labels measured modes one measurement at a time, and near-degenerate modes can trade
+/// labels), the label with more pairs keeps it and the other is reported in `findings` and
+/// left out of the residuals. Two labels on one mode gave that mode's reference shape to
+/// both, and the second was tracked onto an unrelated mode (a residual of −40 %).
+fn all_labels(pairs: &[PairRow], setup: &str, n_modes: usize, findings: &mut Findings) -> Labels {
     let mut by: BTreeMap<String, BTreeMap<i32, usize>> = BTreeMap::new();
     for p in pairs.iter().filter(|p| p.setup == setup) {
         *by.entry(p.label.clone())
@@ -1564,17 +1598,32 @@ fn all_labels(pairs: &[PairRow], setup: &str, n_modes: usize) -> Labels {
             .entry(p.model_mode)
             .or_default() += 1;
     }
-    let mut v: Vec<(usize, String)> = by
+    // (model mode, pairs, label), the mode's most-paired label first.
+    let mut v: Vec<(usize, usize, String)> = by
         .into_iter()
         .filter_map(|(l, c)| {
-            let (mm, _) = c.into_iter().max_by_key(|(_, n)| *n)?;
-            (mm >= 1 && (mm as usize) <= n_modes).then(|| ((mm - 1) as usize, l))
+            let (mm, n) = c.into_iter().max_by_key(|(_, n)| *n)?;
+            (mm >= 1 && (mm as usize) <= n_modes).then(|| ((mm - 1) as usize, n, l))
         })
         .collect();
-    v.sort();
+    v.sort_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)).then(a.2.cmp(&b.2)));
+    let mut kept: Vec<(usize, String)> = vec![];
+    for (m, n, l) in v {
+        match kept.iter().find(|(k, _)| *k == m) {
+            Some((_, winner)) => findings.push(Finding::new(
+                Severity::Warning,
+                "update.label_shares_mode",
+                format!(
+                    "{setup}: label {l:?} ({n} pair(s)) names model mode {} like {winner:?}, which has more pairs; its pairs have no residual rows",
+                    m + 1
+                ),
+            )),
+            None => kept.push((m, l)),
+        }
+    }
     Labels {
-        labels: v.iter().map(|(_, l)| l.clone()).collect(),
-        model_mode: v.iter().map(|(m, _)| *m).collect(),
+        labels: kept.iter().map(|(_, l)| l.clone()).collect(),
+        model_mode: kept.iter().map(|(m, _)| *m).collect(),
     }
 }
 
@@ -1805,17 +1854,19 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
     let modes_path = extract_dir.join("modes.parquet");
     let masses_path = opts.ingest_dir.join("masses.parquet");
     let measurements_path = opts.ingest_dir.join("measurements.parquet");
-    let enrichment = opts
-        .enrich
-        .map(|m| board_enrichment(m).map_err(|e| anyhow!("--enrich: {e}")))
-        .transpose()?;
+    if let Some(m) = opts.enrich.filter(|m| !is_board_mechanism(*m)) {
+        bail!(
+            "--enrich {}: not a board mechanism (update boards refits temperature_stiffness, added_mass)",
+            m.id()
+        );
+    }
     let mut inputs = vec![
         pairs_path.clone(),
         presence_path.clone(),
         modes_path.clone(),
         masses_path.clone(),
     ];
-    if enrichment.is_some() {
+    if opts.enrich_covariate.is_some() {
         inputs.push(measurements_path.clone());
     }
     let (board, spec) = step_spec(
@@ -1830,10 +1881,42 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         let pairs = read_pairs(&pairs_path)?;
         let presence = read_presence(&presence_path, "free")?;
         let labels = select_labels(&pairs, "free", &opts.modes, &presence, &mut findings)?;
-        let model = FeModel::build(&board, Setup::Free, &board.mesh)?;
+        let mut model = FeModel::build(&board, Setup::Free, &board.mesh)?;
+        // The board's own mass (the balance weighs an added mass with it).
+        let nominal_mass_g = model.total_mass_kg(&model.nominal_params())? * 1e3;
+        let enrichment = opts
+            .enrich
+            .map(|m| {
+                board_enrichment(
+                    m,
+                    BoardContext {
+                        board_mass_kg: 1e-3 * nominal_mass_g,
+                        location_m: opts.enrich_location,
+                    },
+                )
+                .map_err(|e| anyhow!("--enrich: {e}"))
+            })
+            .transpose()?;
+        // A point mechanism's parameter joins the updated ones on a logarithmic coordinate.
+        let mut param_names = opts.params.clone();
+        let mut log_axes: Vec<(String, f64)> = vec![];
+        if let Some(BoardEffect::PointMass {
+            parameter,
+            x_m,
+            y_m,
+            reference_kg,
+            log_box,
+        }) = enrichment.as_ref().map(|e| &e.effect)
+        {
+            model
+                .add_point_mass_param(parameter, *x_m, *y_m, *reference_kg)
+                .map_err(|e| anyhow!("--enrich added_mass at ({x_m}, {y_m}) m: {e}"))?;
+            param_names.push(parameter.clone());
+            log_axes.push((parameter.clone(), *log_box));
+        }
         let nominal = model.nominal_params();
         let mut updated = vec![];
-        for p in &opts.params {
+        for p in &param_names {
             updated.push(nominal.position(p).map_err(|_| {
                 anyhow!(
                     "--params: {p:?} is not a parameter of the model; expected some of {:?}",
@@ -1845,20 +1928,31 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         if let Some((i, _)) = reference.iter().enumerate().find(|(_, v)| **v == 0.0) {
             bail!(
                 "--params: {} has nominal value 0; relative updating needs a non-zero nominal",
-                opts.params[i]
+                param_names[i]
             );
         }
-        let all = all_labels(&pairs, "free", 40);
+        let all = all_labels(&pairs, "free", 40, &mut findings);
         let need = modes_needed(&labels, &all);
-        let rom = rom_for(&model, need, &[], opts)?;
-        let nominal_mass_g = model.total_mass_kg(&nominal)? * 1e3;
-        let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?;
-        let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?;
+        let rom = rom_for(&model, need, &log_axes, opts)?;
+        let point_masses: Vec<usize> = log_axes
+            .iter()
+            .map(|(n, _)| rom.map.names.iter().position(|m| m == n).unwrap_or(0))
+            .collect();
+        let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?
+            .with_point_masses(point_masses.clone());
+        let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
+            .with_point_masses(point_masses);
         // Units: every board with free-free pairs or a mass.
         let masses = read_masses(&masses_path)?;
         // The enrichment's covariate per free-free measurement, as offsets from their mean.
-        let (cov_offsets, covariate) = match &enrichment {
-            Some(e) => {
+        let (cov_offsets, covariate) = match enrichment.as_ref().and_then(|e| match &e.effect {
+            BoardEffect::Covariate {
+                coefficient,
+                scaled,
+            } => Some((e, coefficient, scaled)),
+            BoardEffect::PointMass { .. } => None,
+        }) {
+            Some((e, coefficient, scaled)) => {
                 let column = opts.enrich_covariate.clone().ok_or_else(|| {
                     anyhow!("--enrich {}: needs the covariate column", e.mechanism.id())
                 })?;
@@ -1869,8 +1963,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                     .collect();
                 let (offsets, reference) =
                     covariate_offsets(&measurements_path, &column, &free, &mut findings)?;
-                let scaled: Vec<usize> = e
-                    .scaled
+                let scaled: Vec<usize> = scaled
                     .iter()
                     .map(|n| {
                         rom.map.names.iter().position(|m| m == n).ok_or_else(|| {
@@ -1882,7 +1975,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                     })
                     .collect::<anyhow::Result<_>>()?;
                 let cov = CovariateEffect {
-                    name: e.coefficient.clone(),
+                    name: coefficient.clone(),
                     covariate: column,
                     reference,
                     scaled,
@@ -1903,7 +1996,9 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             .map(|p| p.board_id.clone())
             .collect();
         board_ids.extend(masses.keys().cloned());
-        let mass_updated = opts.params.iter().any(|p| p == names::MASS_SCALE);
+        // The balance informs the mass parameters: mass_scale, and an added mass.
+        let mass_updated =
+            opts.params.iter().any(|p| p == names::MASS_SCALE) || !log_axes.is_empty();
         let use_shapes = opts.delta.is_some();
         let mut units = vec![];
         let mut units_all = vec![];
@@ -1969,24 +2064,28 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             bail!("no board has data for step 1 (no paired free-free mode and no mass)");
         }
         let d = updated.len();
+        let d0 = opts.params.len();
         let mut prior = PopulationPrior {
-            mu_mean: vec![0.0; d],
-            mu_sd: vec![opts.prior_width; d],
-            sigma_scale: vec![opts.sigma_scale; d],
+            mu_mean: vec![0.0; d0],
+            mu_sd: vec![opts.prior_width; d0],
+            sigma_scale: vec![opts.sigma_scale; d0],
             lkj_eta: opts.lkj_eta,
         };
         if let Some(e) = &enrichment {
-            // The board's coefficient: population mean ~ the mechanism's prior, and a
-            // board-to-board sd of a fifth of that prior's.
+            // The board's coordinate (a coefficient, or ln of an added mass): population
+            // mean ~ the mechanism's prior, and a board-to-board sd of a fifth of that
+            // prior's.
             prior.mu_mean.push(e.prior_mean);
             prior.mu_sd.push(e.prior_sd);
             prior.sigma_scale.push(0.2 * e.prior_sd);
         }
+        let log: Vec<bool> = (0..d).map(|k| k >= d0).collect();
         let target = ModalTarget {
             predictor,
             compose: Compose::Boards {
                 updated: updated.clone(),
                 reference: reference.clone(),
+                log: log.clone(),
             },
             prior,
             errors: ErrorModel {
@@ -2008,8 +2107,11 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         let violations = box_violations(
             &results,
             &unit_names,
-            &opts.params,
-            |_, x| x.abs() <= opts.rom_box,
+            &param_names,
+            |k, x| match log_axes.get(k.wrapping_sub(d0)) {
+                Some((_, w)) if k >= d0 => x.abs() <= *w,
+                _ => x.abs() <= opts.rom_box,
+            },
             opts.box_tolerance,
         );
         if !violations.is_empty() {
@@ -2022,10 +2124,9 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         // Outputs.
         let prov = provenance("update_boards", &prep.fingerprint);
         let mut outputs = vec![];
-        let (pcols, pop_of) = population_columns(&target, &opts.params, &reference, &labels.labels);
+        let (pcols, pop_of) = population_columns(&target, &param_names, &reference, &labels.labels);
         let mut pop = DrawTable::new(&pcols);
-        let mut bcols: Vec<(String, String)> = opts
-            .params
+        let mut bcols: Vec<(String, String)> = param_names
             .iter()
             .map(|p| (p.clone(), String::new()))
             .collect();
@@ -2081,16 +2182,28 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         outputs.push(p);
         let log_z: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
         let mut ev = evidence_json(&log_z, "boards (step 1)");
-        if let (Some(e), Some(c)) = (&enrichment, &covariate) {
-            ev["enrichment"] = serde_json::json!({
-                "mechanism": e.mechanism,
-                "coefficient": e.coefficient,
-                "scaled": e.scaled,
-                "covariate": c.covariate,
-                "covariate_reference": c.reference,
-                "prior_mean": e.prior_mean,
-                "prior_sd": e.prior_sd,
-            });
+        match (&enrichment, &covariate) {
+            (Some(e), Some(c)) => {
+                if let BoardEffect::Covariate {
+                    coefficient,
+                    scaled,
+                } = &e.effect
+                {
+                    ev["enrichment"] = serde_json::json!({
+                        "mechanism": e.mechanism,
+                        "coefficient": coefficient,
+                        "scaled": scaled,
+                        "covariate": c.covariate,
+                        "covariate_reference": c.reference,
+                        "prior_mean": e.prior_mean,
+                        "prior_sd": e.prior_sd,
+                    });
+                }
+            }
+            (Some(e), None) => {
+                ev["enrichment"] = serde_json::to_value(e)?;
+            }
+            _ => {}
         }
         let p = opts.out.join("evidence.json");
         crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
@@ -2129,6 +2242,64 @@ impl Step1 {
     fn block(&self) -> usize {
         self.params.len() + self.coefs.len()
     }
+}
+
+/// The `enrichment` of a step-1 refit's evidence.json (null for the baseline).
+fn read_step1_enrichment(path: &Path) -> anyhow::Result<serde_json::Value> {
+    let ev: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?,
+    )
+    .with_context(|| format!("{}: not JSON", path.display()))?;
+    Ok(ev["enrichment"].clone())
+}
+
+/// A point mass a step-1 refit added to the boards: its parameter, point and posterior mean.
+struct Step1PointMass {
+    parameter: String,
+    x_m: f64,
+    y_m: f64,
+    /// Mean over every board and draw, kg (the bolted ROM's centre along it).
+    mean_kg: f64,
+}
+
+/// The point mass of a step-1 enrichment (its `effect` of kind `point_mass`), if any.
+fn step1_point_mass(
+    enrichment: &serde_json::Value,
+    step1: &Step1,
+    step1_path: &Path,
+) -> anyhow::Result<Option<Step1PointMass>> {
+    let e = &enrichment["effect"];
+    if e["kind"].as_str() != Some("point_mass") {
+        return Ok(None);
+    }
+    let parameter = e["parameter"].as_str().unwrap_or_default().to_string();
+    let (Some(x_m), Some(y_m)) = (e["x_m"].as_f64(), e["y_m"].as_f64()) else {
+        bail!(
+            "{}: the step-1 enrichment's point mass has no x_m/y_m",
+            step1_path.display()
+        );
+    };
+    let Some(k) = step1.params.iter().position(|p| *p == parameter) else {
+        bail!(
+            "{}: no column {parameter:?}, the step-1 enrichment's added mass",
+            step1_path.display()
+        );
+    };
+    let d1 = step1.block();
+    let nb = step1.board_ids.len();
+    let (mut sum, mut n) = (0.0, 0usize);
+    for (_, v) in &step1.draws {
+        for b in 0..nb {
+            sum += v[b * d1 + k];
+            n += 1;
+        }
+    }
+    Ok(Some(Step1PointMass {
+        parameter,
+        x_m,
+        y_m,
+        mean_kg: sum / n.max(1) as f64,
+    }))
 }
 
 fn read_step1(path: &Path) -> anyhow::Result<Step1> {
@@ -2429,6 +2600,22 @@ pub fn run_joints(
             Setup::Bolted(enr.joint_model.clone()),
             board.mesh_for(&Setup::bolted()),
         )?;
+        // The board mechanism's step-1 enrichment (its evidence.json), and a point mass it
+        // added to the boards: the same point mass in the bolted model, its value from each
+        // board's step-1 draw like every board parameter.
+        let step1_enrichment = match board_mech {
+            Some(_) => read_step1_enrichment(&boards_dir.join("evidence.json"))?,
+            None => serde_json::Value::Null,
+        };
+        let point_mass = step1_point_mass(&step1_enrichment, &step1, &step1_path)?;
+        let mut baseline =
+            FeModel::build(&board, Setup::bolted(), board.mesh_for(&Setup::bolted()))?;
+        if let Some(pm) = &point_mass {
+            for m in [&mut model, &mut baseline] {
+                m.add_point_mass_param(&pm.parameter, pm.x_m, pm.y_m, pm.mean_kg)
+                    .map_err(|e| anyhow!("{}: the step-1 added mass: {e}", step1_path.display()))?;
+            }
+        }
         let nominal = model.nominal_params();
         let mut board_params = vec![];
         for p in &step1.params {
@@ -2482,8 +2669,7 @@ pub fn run_joints(
         };
         // Reference shapes: the paired model modes of the baseline at the boards' mean.
         let points = match_points(&board);
-        let baseline = FeModel::build(&board, Setup::bolted(), board.mesh_for(&Setup::bolted()))?;
-        let all = all_labels(&pairs, "bolted", 40);
+        let all = all_labels(&pairs, "bolted", 40, &mut findings);
         let n_ref = modes_needed(&labels, &all);
         let extra_modes = if enr.joint_model.has_fixture() { 3 } else { 2 };
         let n_track = n_ref + extra_modes;
@@ -2615,10 +2801,23 @@ pub fn run_joints(
                 }
             }
         }
+        // The added mass varies between boards and draws by more than a ±20 % box around its
+        // step-1 mean need cover: a logarithmic axis of e^±0.7 (half to twice the mean).
+        let mut point_masses = vec![];
+        if let Some(pm) = &point_mass {
+            log_axes.push((pm.parameter.clone(), 0.7));
+            point_masses.push(nominal.position(&pm.parameter)?);
+        }
         let rom = rom_for(&model, need, &log_axes, opts)?;
-        let nominal_mass_g = model.total_mass_kg(&model.nominal_params())? * 1e3;
-        let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?;
-        let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?;
+        let mut p_board = model.nominal_params();
+        for &i in &point_masses {
+            p_board.values[i] = 0.0;
+        }
+        let nominal_mass_g = model.total_mass_kg(&p_board)? * 1e3;
+        let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?
+            .with_point_masses(point_masses.clone());
+        let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
+            .with_point_masses(point_masses);
         let wanted: BTreeSet<(String, i32)> = bolted_rows
             .iter()
             .map(|p| (p.measurement_id.clone(), p.mode))
@@ -2680,34 +2879,27 @@ pub fn run_joints(
         }
         // The board mechanism's covariate per bolted measurement, relative to step 1's
         // reference (its evidence.json), and where each board's coefficient sits in aux.
-        let mut step1_enrichment = serde_json::Value::Null;
-        let joints_cov = match board_mech {
+        let joints_cov = match board_mech.filter(|m| *m == Mechanism::TemperatureStiffness) {
             None => None,
             Some(m) => {
-                let e = board_enrichment(m).map_err(|e| anyhow!("--enrich: {e}"))?;
                 let ev_path = boards_dir.join("evidence.json");
-                let ev: serde_json::Value = serde_json::from_slice(
-                    &std::fs::read(&ev_path)
-                        .with_context(|| format!("{}: cannot read", ev_path.display()))?,
-                )
-                .with_context(|| format!("{}: not JSON", ev_path.display()))?;
-                step1_enrichment = ev["enrichment"].clone();
-                let reference = ev["enrichment"]["covariate_reference"].as_f64().ok_or_else(|| {
+                let reference = step1_enrichment["covariate_reference"].as_f64().ok_or_else(|| {
                     anyhow!("{}: no enrichment.covariate_reference: --boards must be the step-1 refit of {}", ev_path.display(), m.id())
                 })?;
-                let column = ev["enrichment"]["covariate"]
+                let column = step1_enrichment["covariate"]
                     .as_str()
                     .unwrap_or_default()
                     .to_string();
+                let coefficient = step1_enrichment["coefficient"].as_str().unwrap_or_default();
                 let k = step1
                     .coefs
                     .iter()
-                    .position(|c| *c == e.coefficient)
+                    .position(|c| *c == coefficient)
                     .ok_or_else(|| {
                         anyhow!(
                             "{}: no column {:?}: --boards must be the step-1 refit of {}",
                             step1_path.display(),
-                            e.coefficient,
+                            coefficient,
                             m.id()
                         )
                     })?;
@@ -2718,10 +2910,11 @@ pub fn run_joints(
                     &used,
                     &mut findings,
                 )?;
-                let scaled = e
-                    .scaled
-                    .iter()
-                    .map(|n| nominal.position(n))
+                let scaled = step1_enrichment["scaled"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .map(|n| nominal.position(n.as_str().unwrap_or_default()))
                     .collect::<Result<Vec<_>, _>>()?;
                 Some(JointsCovariate {
                     block: step1.block(),

@@ -307,3 +307,71 @@ fn rom_with_a_logarithmic_axis_matches_the_full_model_along_it() {
     assert!(worst_f <= 1e-4, "worst relative frequency error {worst_f}");
     assert!(worst_mac >= 0.9999, "worst MAC {worst_mac}");
 }
+
+#[test]
+fn point_mass_parameter_is_the_point_mass_and_a_log_axis_rom_follows_it() {
+    let board = Board::default_board();
+    let (x, y) = (0.0553, 0.0311);
+    let mut model = FeModel::build(&board, Setup::Free, &board.mesh).unwrap();
+    let m0 = model.total_mass_kg(&model.nominal_params()).unwrap();
+    let m_ref = 0.01 * m0;
+    model
+        .add_point_mass_param("added_mass_kg", x, y, m_ref)
+        .unwrap();
+    assert!(model
+        .clone()
+        .add_point_mass_param("added_mass_kg", x, y, m_ref)
+        .is_err());
+    let k = model
+        .nominal_params()
+        .position("added_mass_kg")
+        .expect("the parameter");
+    // The same model as a constant point mass of the parameter's value.
+    let mut fixed = FeModel::build(&board, Setup::Free, &board.mesh).unwrap();
+    fixed.add_point_mass(x, y, 2.5e-4).unwrap();
+    let mut p = model.nominal_params();
+    p.values[k] = 2.5e-4;
+    let pf = fixed.nominal_params();
+    assert!((model.total_mass_kg(&p).unwrap() - m0 - 2.5e-4).abs() < 1e-15);
+    let (a, b) = (model.modes(&p, 10).unwrap(), fixed.modes(&pf, 10).unwrap());
+    for j in 0..10 {
+        assert!((a.freq_hz[j] - b.freq_hz[j]).abs() <= 1e-9 * b.freq_hz[j]);
+    }
+    // A ROM with a logarithmic axis over m_ref · e^{±4.5} (0.01 % to 90 % of the board's
+    // mass) against the full model along it, the other parameters over the ±20 % box.
+    let w = 4.5;
+    let opts = RomOptions {
+        n_modes: 10,
+        log_axes: vec![("added_mass_kg".to_string(), w)],
+        max_basis: 72,
+        ..RomOptions::default()
+    };
+    let rom = Rom::build(&model, &opts).unwrap();
+    let pts = board.scan_points_m();
+    let sop = model.shape_operator(&pts).unwrap();
+    let rsop = rom.shape_operator(&model, &pts).unwrap();
+    let sample = latin_hypercube_params(&model.map, 16, 0.2, 0xADD);
+    let (mut worst_f, mut worst_mac) = (0.0f64, 1.0f64);
+    for (i, p0) in sample.iter().enumerate() {
+        let mut p = p0.clone();
+        let t = -0.95 + 1.9 * (i as f64 + 0.5) / sample.len() as f64;
+        p.values[k] = m_ref * (w * t).exp();
+        let full = model.modes(&p, 10).unwrap();
+        let wf = sop.apply(full.shapes.as_ref());
+        let red = rom.eval(&p, &rsop).unwrap();
+        for j in 0..10 {
+            if full.freq_hz[j] < 1.0 {
+                continue; // rigid-body modes
+            }
+            let e = (red.freq_hz[j] - full.freq_hz[j]).abs() / full.freq_hz[j];
+            worst_f = worst_f.max(e);
+            worst_mac = worst_mac.min(mac(&col(&wf, j), &col(&red.shapes_at_points, j)));
+        }
+    }
+    eprintln!(
+        "point-mass log axis: worst freq error {worst_f:e}, worst MAC {worst_mac}, dim {}",
+        rom.dim()
+    );
+    assert!(worst_f <= 1e-4, "worst relative frequency error {worst_f}");
+    assert!(worst_mac >= 0.9999, "worst MAC {worst_mac}");
+}

@@ -84,8 +84,9 @@ pub const MODES: TableSpec = TableSpec {
 pub struct FindingDoc {
     /// Mechanism id.
     pub mechanism: Mechanism,
-    /// The joint (and its centre) a per-joint finding is about; null otherwise.
-    pub location: Option<JointLocation>,
+    /// Where the finding is: the joint and its centre (per-joint mechanisms) or the located
+    /// point (`added_mass`); null for mechanisms without a place.
+    pub location: Option<Location>,
     /// The sheet column the finding follows, if any.
     pub covariate: Option<String>,
     /// Parameter estimates: population median with its 90 % interval.
@@ -100,9 +101,10 @@ pub struct FindingDoc {
 }
 
 #[derive(Debug, Clone, serde::Serialize, schemars::JsonSchema)]
-pub struct JointLocation {
-    /// 1-based, hole order of the board file.
-    pub joint: usize,
+pub struct Location {
+    /// 1-based, hole order of the board file; absent for a point on the board.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub joint: Option<usize>,
     pub x_m: f64,
     pub y_m: f64,
 }
@@ -348,9 +350,43 @@ fn summarize_refit(
         }
     }
     let mut estimates = vec![];
-    if mechanism.is_some_and(is_board_mechanism) {
+    let ev1 = if mechanism.is_some_and(is_board_mechanism) {
+        read_json(&dir.join("boards/evidence.json"))?
+    } else {
+        serde_json::Value::Null
+    };
+    let point_mass = &ev1["enrichment"]["effect"];
+    if point_mass["kind"].as_str() == Some("point_mass") {
+        // Its step-1 refit (`boards/`): the population median of the added mass (the
+        // column holds reference · e^μ, kg), and the mass's spread over the boards.
+        let param = point_mass["parameter"].as_str().unwrap_or_default();
+        let pop = dir.join("boards/population.parquet");
+        let col = format!("mu_{param}");
+        let mut v = vec![];
+        for b in &tables::read_parquet(&pop)? {
+            let a = Cols {
+                batch: b,
+                path: &pop,
+            }
+            .f64(&col)?;
+            v.extend((0..b.num_rows()).map(|i| a.value(i)));
+        }
+        v.sort_by(f64::total_cmp);
+        if !v.is_empty() {
+            estimates.push(Estimate {
+                parameter: param.to_string(),
+                scope: format!(
+                    "population median, at ({:.1}, {:.1}) mm",
+                    1e3 * point_mass["x_m"].as_f64().unwrap_or(f64::NAN),
+                    1e3 * point_mass["y_m"].as_f64().unwrap_or(f64::NAN)
+                ),
+                median: quantile(&v, 0.5),
+                q05: quantile(&v, 0.05),
+                q95: quantile(&v, 0.95),
+            });
+        }
+    } else if mechanism.is_some_and(is_board_mechanism) {
         // Its step-1 refit (`boards/`): the coefficient's population mean, as drawn.
-        let ev1 = read_json(&dir.join("boards/evidence.json"))?;
         let coef = ev1["enrichment"]["coefficient"]
             .as_str()
             .unwrap_or_default();
@@ -475,6 +511,7 @@ fn summarize_refit(
         updated,
         estimates,
         failed,
+        log_location_occam: None,
     })
 }
 
@@ -507,15 +544,18 @@ fn run_refit(
         let mut o = refit_options(opts, base1, cand);
         o.enrich_joint = None;
         o.enrich_covariate = cand.covariate.clone();
+        o.enrich_location = cand.point_xy_m;
         let boards = o.out.join("boards");
         o.out = boards.clone();
-        let r1 = crate::stage::update::run_boards(&o, verbose)?;
+        let r1 = run_gated(o, |o| crate::stage::update::run_boards(o, verbose))?;
         let Some(base) = base2 else {
             return Ok(r1);
         };
         let mut o2 = refit_options(opts, base, cand);
         o2.enrich_joint = None;
-        crate::stage::update::run_joints(&o2, &boards, verbose)
+        run_gated(o2, |o| {
+            crate::stage::update::run_joints(o, &boards, verbose)
+        })
     } else {
         let base = base2.ok_or_else(|| {
             anyhow!(
@@ -524,8 +564,35 @@ fn run_refit(
             )
         })?;
         let o = refit_options(opts, base, cand);
-        crate::stage::update::run_joints(&o, &opts.work_dir.join("update_boards"), verbose)
+        run_gated(o, |o| {
+            crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose)
+        })
     }
+}
+
+/// Run one update step of a refit; when its independent runs disagree on a population-level
+/// parameter (R-hat above [`MAX_R_HAT`], the gate [`summarize_refit`] applies), run it once
+/// more with twice the particles. A refit is a few samplers' worth of work, and without this
+/// a decisive candidate whose nuisance scale mixed slowly (a mode's shape error with a bulk
+/// ESS of 25) gave no Bayes factor at all. The retry replaces the first attempt's outputs;
+/// if it still disagrees, the gate reports it.
+fn run_gated(
+    mut o: UpdateOptions,
+    step: impl Fn(&UpdateOptions) -> anyhow::Result<StageOutcome>,
+) -> anyhow::Result<StageOutcome> {
+    let r = step(&o)?;
+    if let Some((name, rh)) =
+        population_r_hat(&o.out.join("summary.parquet"))?.filter(|(_, r)| *r > MAX_R_HAT)
+    {
+        eprintln!(
+            "diagnose: {}: R-hat across runs of {name} {rh:.3} > {MAX_R_HAT}: rerun with {} particles",
+            o.out.display(),
+            2 * o.smc.n_particles
+        );
+        o.smc.n_particles *= 2;
+        return step(&o);
+    }
+    Ok(r)
 }
 
 /// Run (or find up to date) one candidate's refit.
@@ -539,14 +606,34 @@ fn refit(
     let rel = format!("refits/{}", cand.id());
     let out = opts.out.join(&rel);
     let r = run_refit(opts, bases, cand, verbose).and_then(|_| {
-        summarize_refit(
+        let mut r = summarize_refit(
             &out,
             &rel,
             Some(cand.mechanism),
             cand.joint,
             Some(z1),
             outliers,
-        )
+        )?;
+        // The location was chosen from the data: its Occam factor joins the evidence, and
+        // its uncertainty the mass's interval (the refit's is conditional on the point).
+        if let Some(pl) = cand.point_located {
+            r.log_evidence_runs
+                .iter_mut()
+                .for_each(|z| *z += pl.log_occam);
+            r.log_location_occam = Some(pl.log_occam);
+            for e in r.estimates.iter_mut() {
+                let z = 1.645 * pl.location_ln_mass_sd;
+                let lo = (e.median / e.q05).ln().hypot(z);
+                let hi = (e.q95 / e.median).ln().hypot(z);
+                e.q05 = e.median * (-lo).exp();
+                e.q95 = e.median * hi.exp();
+                e.scope = format!(
+                    "{}; 90 % interval widened by the location's uncertainty (sd of ln mass {:.3})",
+                    e.scope, pl.location_ln_mass_sd
+                );
+            }
+        }
+        Ok(r)
     });
     match r {
         Ok(r) => r,
@@ -559,6 +646,7 @@ fn refit(
             updated: vec![],
             estimates: vec![],
             failed: Some(format!("{e:#}").replace('\n', " ")),
+            log_location_occam: None,
         },
     }
 }
@@ -601,7 +689,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         let (input, _) = inputs::read_inputs(w)?;
         let located = locate::locate(&input, &opts.locate);
         let (board, _) = crate::stage::update::load_board(opts.board.as_deref())?;
-        let cands = screen::screen(&located, &board);
+        let (_, cands) = screen_candidates(w, &board, &base1, &input, &located, &opts.locate);
         let cand = cands.iter().find(|c| c.id() == *only).ok_or_else(|| {
             anyhow!(
                 "--only {only}: not a screened candidate of this work directory (screened: {})",
@@ -616,16 +704,8 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         findings.0.extend(in_findings.0);
         let located = locate::locate(&input, &opts.locate);
         let (board, _) = crate::stage::update::load_board(opts.board.as_deref())?;
-        let regions = board_regions(w, &board, &base1, &input, &located, &opts.locate);
-        let mut candidates = screen::screen(&located, &board);
-        for r in &regions.0 {
-            screen::attach_point_mass(
-                &mut candidates,
-                [r.fit.x_m, r.fit.y_m],
-                r.located,
-                &r.sentence,
-            );
-        }
+        let (regions, candidates) =
+            screen_candidates(w, &board, &base1, &input, &located, &opts.locate);
         let mut refits: Vec<Refit> = vec![];
         let baseline1 = summarize_refit(
             &w.join("update_boards"),
@@ -700,6 +780,32 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             verbose,
         )
     })
+}
+
+/// The board regions and the screened candidates, a located point mass attached (the same
+/// for the diagnosis and for one candidate's refit, `--only`).
+fn screen_candidates(
+    work: &Path,
+    board: &crate::fem::Board,
+    base1: &UpdateOptions,
+    input: &locate::LocateInput,
+    located: &Located,
+    lopts: &LocateOptions,
+) -> ((Vec<regions::BoardRegion>, String), Vec<Candidate>) {
+    let regions = board_regions(work, board, base1, input, located, lopts);
+    let mut candidates = screen::screen(located, board);
+    for r in &regions.0 {
+        screen::attach_point_mass(
+            &mut candidates,
+            [r.fit.x_m, r.fit.y_m],
+            r.located.then_some(screen::PointLocated {
+                log_occam: r.fit.log_location_occam,
+                location_ln_mass_sd: r.fit.location_ln_mass_sd,
+            }),
+            &r.sentence,
+        );
+    }
+    (regions, candidates)
 }
 
 /// The board regions of the located free-free misfit and the note on what was (not) done.
@@ -804,8 +910,17 @@ fn write_outputs(
             let c = r.cmp.as_ref().filter(|c| c.favoured)?;
             Some(FindingDoc {
                 mechanism: r.cand.mechanism,
-                location: match (r.cand.joint, r.cand.joint_xy_m) {
-                    (Some(joint), Some([x_m, y_m])) => Some(JointLocation { joint, x_m, y_m }),
+                location: match (r.cand.joint, r.cand.joint_xy_m, r.cand.point_xy_m) {
+                    (Some(joint), Some([x_m, y_m]), _) => Some(Location {
+                        joint: Some(joint),
+                        x_m,
+                        y_m,
+                    }),
+                    (None, _, Some([x_m, y_m])) => Some(Location {
+                        joint: None,
+                        x_m,
+                        y_m,
+                    }),
                     _ => None,
                 },
                 covariate: r.cand.covariate.clone(),

@@ -16,11 +16,12 @@ use anyhow::{anyhow, Context};
 
 use crate::diagnose::library::Mechanism;
 use crate::diagnose::localize::{
-    localize_point_mass, localize_point_mass_at, shape_score, LocalizeInput, ModeResidual,
-    PointMassFit, ShapeObs,
+    localize_point_mass, localize_point_mass_at, shape_score, weighted_sd, LocalizeInput,
+    ModalBasis, ModeResidual, PointMassFit, ShapeObs, CHI2_2_Q90, CHI2_2_Q999,
 };
 use crate::diagnose::locate::{LocateOptions, ModeCheck, PairObs};
 use crate::fem::eigen::EigenOptions;
+use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Setup};
 use crate::io::tables::{read_parquet, Cols};
 
@@ -47,8 +48,9 @@ pub struct BoardRegion {
     pub located: bool,
     pub fit: PointMassFit,
     /// The mode-shape score of each candidate point (x_m, y_m, score; [`shape_score`],
-    /// larger is better): the best point of the frequencies and its alternatives. Empty when
-    /// no measured shape could be used.
+    /// larger is better): the best point of the frequencies, its alternatives, and the point
+    /// the shapes chose in the frequencies' region when it is none of those. Empty when no
+    /// measured shape could be used.
     pub shape_scores: Vec<[f64; 3]>,
     /// The shapes chose another point than the frequencies' best (which became an
     /// alternative; the fit is the chosen point's).
@@ -81,7 +83,10 @@ pub fn point_mass_region(
     for (name, v) in params.iter().zip(&centre) {
         p0.set(name, *v)?;
     }
-    let n_model = free.len() + 4;
+    // The modes above the measured ones are the exact modal basis's (a point mass couples
+    // every mode; 40 more than measured keep the truncation below the noise, see
+    // `exact_localisation_matches_the_fe_model_with_the_point_mass`).
+    let n_model = free.len() + 40;
     let (modes0, rigid) = model.modes_and_rigid(&p0, n_model, &EigenOptions::default())?;
     // Label → model mode by nearest frequency (each model mode used once).
     let mut taken = vec![false; modes0.freq_hz.len()];
@@ -102,8 +107,16 @@ pub fn point_mass_region(
         taken[j] = true;
         index.push(j);
     }
+    // Where the boards were weighed and the updating fitted their mass scale to the balance,
+    // the total mass is known: an added mass takes its share from the board's own mass, so
+    // the mass scale is not a free direction of the residuals (which would discard the
+    // absolute size of the shifts) but part of the signature (a point mass minus the same
+    // mass spread uniformly).
+    let weighed = params.iter().any(|p| p == names::MASS_SCALE) && weighed(work)?;
+    let board_mass_kg = model.total_mass_kg(&p0)?;
     let nuisance: Vec<Vec<f64>> = params
         .iter()
+        .filter(|name| !(weighed && *name == names::MASS_SCALE))
         .map(|name| -> anyhow::Result<Vec<f64>> {
             let mut p = p0.clone();
             let v = p.get(name)?;
@@ -128,9 +141,30 @@ pub fn point_mass_region(
         .collect::<anyhow::Result<_>>()?;
     let points = grid(board);
     let w = model.w_at(&modes0, &points)?;
+    let uniform = if weighed { 1.0 / board_mass_kg } else { 0.0 };
     let signature: Vec<Vec<f64>> = (0..points.len())
-        .map(|i| index.iter().map(|&j| -0.5 * w[(i, j)].powi(2)).collect())
+        .map(|i| {
+            index
+                .iter()
+                .map(|&j| -0.5 * (w[(i, j)].powi(2) - uniform))
+                .collect()
+        })
         .collect();
+    // The modal basis: rigid-body modes (λ = 0) first, then the elastic ones.
+    let n_rig = rigid.ncols();
+    let w_rig = model.shape_operator(&points)?.apply(rigid.as_ref());
+    let lambda: Vec<f64> = std::iter::repeat_n(0.0, n_rig)
+        .chain(modes0.eigenvalues.iter().copied())
+        .collect();
+    let phi: Vec<Vec<f64>> = (0..points.len())
+        .map(|i| {
+            (0..n_rig)
+                .map(|k| w_rig[(i, k)])
+                .chain((0..modes0.eigenvalues.len()).map(|k| w[(i, k)]))
+                .collect()
+        })
+        .collect();
+    let observed: Vec<usize> = index.iter().map(|j| j + n_rig).collect();
     let modes: Vec<ModeResidual> = free
         .iter()
         .map(|c| ModeResidual {
@@ -144,6 +178,12 @@ pub fn point_mass_region(
         nuisance: &nuisance,
         points_m: &points,
         signature: &signature,
+        exact: Some(ModalBasis {
+            lambda: &lambda,
+            phi: &phi,
+            observed: &observed,
+            weighed_mass_kg: weighed.then_some(board_mass_kg),
+        }),
     };
     let fit = localize_point_mass(&inp, MIN_SEPARATION_M).ok_or_else(|| {
         anyhow!(
@@ -152,31 +192,102 @@ pub fn point_mass_region(
             params.len()
         )
     })?;
-    // Mode shapes choose among the best point and its alternatives; the chosen point's own
-    // fit (mass, χ², region) is then the one reported.
+    // The measured mode shapes join the frequencies: over the points the frequencies leave
+    // open (their 99.9 % region), the first-order Δχ² of the updating's shape terms (weights
+    // n / δ², δ its posterior shape error per mode) adds to the frequencies' Δχ², and the
+    // best of the sum is the located point. Where the updating had no shape terms (no δ),
+    // the shapes only choose among the frequencies' best point and its alternatives.
     let label_index: Vec<(String, usize)> = free
         .iter()
         .zip(&index)
         .map(|(c, &j)| (c.label.clone(), j))
         .collect();
+    let delta = shape_errors(&work.join("update_boards/population.parquet"), &label_index)?;
+    let d_best = fit.delta_chi2.iter().copied().fold(0.0, f64::max);
+    let open: Vec<usize> = match &delta {
+        Some(_) => (0..points.len())
+            .filter(|&i| {
+                fit.delta_chi2[i] > 0.0 && d_best - fit.delta_chi2[i] <= CHI2_2_Q999 * fit.inflation
+            })
+            .collect(),
+        None => std::iter::once([fit.x_m, fit.y_m])
+            .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
+            .filter_map(|c| points.iter().position(|p| *p == c))
+            .collect(),
+    };
     let shapes = shape_choice(
         &model,
         (&modes0, &rigid),
         &work.join("extract/modes.parquet"),
         pairs,
         &label_index,
-        &fit,
+        delta.as_ref(),
+        (&open, &points, &fit.mass_kg_at),
     )?;
-    let chosen = shapes
-        .scores
+    // Per open point: the combined Δχ² (with weights) or the shape score alone.
+    let combined: Vec<f64> = open
         .iter()
-        .max_by(|a, b| a[2].total_cmp(&b[2]))
-        .filter(|b| (b[0], b[1]) != (fit.x_m, fit.y_m))
-        .and_then(|b| points.iter().position(|p| (p[0], p[1]) == (b[0], b[1])))
+        .zip(&shapes.scores)
+        .map(|(&i, sc)| match &delta {
+            Some(_) => fit.delta_chi2[i] + sc[2],
+            None => sc[2],
+        })
+        .collect();
+    let best_open = combined
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map(|(k, _)| k);
+    let chosen = best_open
+        .filter(|_| !shapes.scores.is_empty())
+        .map(|k| open[k])
+        .filter(|&i| points[i] != [fit.x_m, fit.y_m])
         .and_then(|i| localize_point_mass_at(&inp, MIN_SEPARATION_M, Some(i)));
     let chosen_by_shapes = chosen.is_some();
-    let fit = chosen.unwrap_or(fit);
-    let shape_scores = shapes.scores;
+    // Reported: the shape scores of the frequencies' best point, its alternatives and the
+    // chosen point.
+    let shown: Vec<[f64; 2]> = std::iter::once([fit.x_m, fit.y_m])
+        .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
+        .chain(best_open.map(|k| points[open[k]]))
+        .collect();
+    let mut shape_scores: Vec<[f64; 3]> = vec![];
+    for p in shown {
+        if let Some(sc) = shapes.scores.iter().find(|s| [s[0], s[1]] == p) {
+            if !shape_scores.contains(sc) {
+                shape_scores.push(*sc);
+            }
+        }
+    }
+    let mut fit = chosen.unwrap_or(fit);
+    if let (Some(_), Some(k), false) = (&delta, best_open, shapes.scores.is_empty()) {
+        // The region and the location's Occam factor of the combined map (the refit's
+        // likelihood has both the frequencies and the shapes).
+        let s2 = 2.0 * fit.inflation;
+        let top = combined[k];
+        let own: f64 = combined
+            .iter()
+            .map(|d| (-(top - d).max(0.0) / s2).exp())
+            .sum();
+        fit.log_location_occam = (own / points.len() as f64).ln().min(0.0);
+        let wv: Vec<(f64, f64)> = open
+            .iter()
+            .zip(&combined)
+            .filter(|(&i, _)| fit.mass_kg_at[i] > 0.0)
+            .map(|(&i, d)| ((-(top - d).max(0.0) / s2).exp(), fit.mass_kg_at[i].ln()))
+            .collect();
+        fit.location_ln_mass_sd = weighted_sd(&wv);
+        let c = points[open[k]];
+        fit.region_radius_m = open
+            .iter()
+            .zip(&combined)
+            .filter(|(_, d)| top - **d <= CHI2_2_Q90 * fit.inflation)
+            .map(|(&i, _)| (points[i][0] - c[0]).hypot(points[i][1] - c[1]))
+            .fold(0.0, f64::max);
+        fit.region_points = combined
+            .iter()
+            .filter(|d| top - **d <= CHI2_2_Q90 * fit.inflation)
+            .count();
+    }
     let located = fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE;
     let alt = if fit.alternatives.is_empty() {
         String::new()
@@ -246,27 +357,35 @@ struct ShapeChoice {
     skipped: usize,
 }
 
-/// [`shape_score`] of the best point and each alternative over the measured free-free shapes
-/// of the accepted pairs of the labels in `label_index` (label → model mode index).
+/// [`shape_score`] of the points `open` (indices into `points`, each with its fitted mass
+/// from `mass_at`) over the measured free-free shapes of the accepted pairs of the labels in
+/// `label_index` (label → model mode index), each shape weighted by n / δ² of its label
+/// (`delta`) or by 1 (`None`).
 fn shape_choice(
     model: &FeModel,
     (modes, rigid): (&crate::fem::Modes, &faer::Mat<f64>),
     modes_path: &Path,
     pairs: &[PairObs],
     label_index: &[(String, usize)],
-    fit: &PointMassFit,
+    delta: Option<&Vec<f64>>,
+    (open, points, mass_at): (&[usize], &[[f64; 2]], &[f64]),
 ) -> anyhow::Result<ShapeChoice> {
     use std::collections::BTreeMap;
     let mut skipped = 0;
-    let mut wanted: BTreeMap<(String, i32), usize> = BTreeMap::new();
+    // (measurement, mode) → (model mode index, the shape's weight per scan point).
+    let mut wanted: BTreeMap<(String, i32), (usize, f64)> = BTreeMap::new();
     for p in pairs.iter().filter(|p| p.setup == "free" && p.accepted) {
-        if let (Some(m), Some((_, j))) = (p.mode, label_index.iter().find(|(l, _)| *l == p.label)) {
-            wanted.insert((p.measurement_id.clone(), m), *j);
+        let Some(k) = label_index.iter().position(|(l, _)| *l == p.label) else {
+            continue;
+        };
+        if let Some(m) = p.mode {
+            let w = delta.map_or(1.0, |d| 1.0 / (d[k] * d[k]));
+            wanted.insert((p.measurement_id.clone(), m), (label_index[k].1, w));
         }
     }
     // Measured shapes with their points, by measurement.
     // Per measurement: (model mode index, measured shape, its points).
-    type Measured = (usize, Vec<f64>, Vec<[f64; 2]>);
+    type Measured = (usize, f64, Vec<f64>, Vec<[f64; 2]>);
     let mut by_meas: BTreeMap<String, Vec<Measured>> = BTreeMap::new();
     for b in
         read_parquet(modes_path).with_context(|| format!("reading {}", modes_path.display()))?
@@ -277,7 +396,7 @@ fn shape_choice(
         };
         let (mid, mode) = (c.str("measurement_id")?, c.i32("mode")?);
         for i in 0..b.num_rows() {
-            let Some(&j) = wanted.get(&(mid.value(i).to_string(), mode.value(i))) else {
+            let Some(&(j, w)) = wanted.get(&(mid.value(i).to_string(), mode.value(i))) else {
                 continue;
             };
             let s = c.list_f64("shape", i)?.unwrap_or_default();
@@ -291,71 +410,130 @@ fn shape_choice(
             by_meas
                 .entry(mid.value(i).to_string())
                 .or_default()
-                .push((j, s, pts));
+                .push((j, w, s, pts));
         }
     }
-    let cands: Vec<[f64; 2]> = std::iter::once([fit.x_m, fit.y_m])
-        .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
-        .collect();
+    let cands: Vec<[f64; 2]> = open.iter().map(|&i| points[i]).collect();
     let none = |skipped| ShapeChoice {
         scores: vec![],
         used: 0,
         skipped,
     };
-    if cands.len() < 2 || by_meas.is_empty() {
+    if cands.is_empty() || by_meas.is_empty() {
         return Ok(none(skipped));
     }
-    let at_c = model.shape_operator(&cands)?;
-    let el_c = at_c.apply(modes.shapes.as_ref());
-    let rig_c = at_c.apply(rigid.as_ref());
-    let lam = &modes.eigenvalues;
-    let mut obs: Vec<Vec<ShapeObs>> = vec![vec![]; cands.len()];
+    // Per measured shape: its model mode, weight, values, and the model's elastic and rigid
+    // shapes at its scan points.
+    struct Prepared {
+        j: usize,
+        weight: f64,
+        psi: Vec<f64>,
+        el: faer::Mat<f64>,
+        rig: faer::Mat<f64>,
+    }
+    let mut prepared = vec![];
     for shapes in by_meas.values() {
-        for (j, psi, pts) in shapes {
+        for (j, w, psi, pts) in shapes {
             // Scan points the model cannot evaluate (in a hole, off the board) leave the
             // measurement's shape out.
             let Ok(op) = model.shape_operator(pts) else {
                 skipped += 1;
                 continue;
             };
-            let el = op.apply(modes.shapes.as_ref());
-            let rig = op.apply(rigid.as_ref());
-            let n = pts.len();
-            for (ci, o) in obs.iter_mut().enumerate() {
-                let phi_j_c = el_c[(ci, *j)];
+            prepared.push(Prepared {
+                j: *j,
+                weight: w * pts.len() as f64,
+                psi: psi.clone(),
+                el: op.apply(modes.shapes.as_ref()),
+                rig: op.apply(rigid.as_ref()),
+            });
+        }
+    }
+    if prepared.is_empty() {
+        return Ok(none(skipped));
+    }
+    let at_c = model.shape_operator(&cands)?;
+    let el_c = at_c.apply(modes.shapes.as_ref());
+    let rig_c = at_c.apply(rigid.as_ref());
+    let lam = &modes.eigenvalues;
+    use rayon::prelude::*;
+    let scores: Vec<f64> = (0..cands.len())
+        .into_par_iter()
+        .map(|ci| {
+            let mut total = 0.0;
+            for p in &prepared {
+                let (j, n) = (p.j, p.psi.len());
+                let phi_j_c = el_c[(ci, j)];
                 let mut d = vec![0.0; n];
-                for k in (0..lam.len()).filter(|k| k != j) {
-                    let coef = -lam[*j] * el_c[(ci, k)] * phi_j_c / (lam[*j] - lam[k]);
+                for k in (0..lam.len()).filter(|k| *k != j) {
+                    let coef = -lam[j] * el_c[(ci, k)] * phi_j_c / (lam[j] - lam[k]);
                     d.iter_mut()
                         .enumerate()
-                        .for_each(|(i, v)| *v += coef * el[(i, k)]);
+                        .for_each(|(i, v)| *v += coef * p.el[(i, k)]);
                 }
-                for r in 0..rig.ncols() {
+                for r in 0..p.rig.ncols() {
                     let coef = -rig_c[(ci, r)] * phi_j_c;
                     d.iter_mut()
                         .enumerate()
-                        .for_each(|(i, v)| *v += coef * rig[(i, r)]);
+                        .for_each(|(i, v)| *v += coef * p.rig[(i, r)]);
                 }
-                o.push(ShapeObs {
-                    measured: psi.clone(),
-                    model: (0..n).map(|i| el[(i, *j)]).collect(),
+                let o = ShapeObs {
+                    measured: p.psi.clone(),
+                    model: (0..n).map(|i| p.el[(i, j)]).collect(),
                     d_model_per_kg: d,
-                });
+                    weight: p.weight,
+                };
+                total += shape_score(std::slice::from_ref(&o), mass_at[open[ci]]);
             }
-        }
-    }
-    if obs[0].is_empty() {
-        return Ok(none(skipped));
-    }
+            total
+        })
+        .collect();
     Ok(ShapeChoice {
-        used: obs[0].len(),
+        used: prepared.len(),
         skipped,
         scores: cands
             .iter()
-            .zip(&obs)
-            .map(|(c, o)| [c[0], c[1], shape_score(o, fit.mass_kg)])
+            .zip(&scores)
+            .map(|(c, sc)| [c[0], c[1], *sc])
             .collect(),
     })
+}
+
+/// The updating's shape error δ per label of `label_index` (the median of population.parquet's
+/// `delta_<label>`); a label the updating held out (no δ) takes the largest δ of the others,
+/// the least weight. `None` when the updating had no shape terms.
+fn shape_errors(path: &Path, label_index: &[(String, usize)]) -> anyhow::Result<Option<Vec<f64>>> {
+    let batches = read_parquet(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut out: Vec<Option<f64>> = vec![];
+    for (label, _) in label_index {
+        let col = format!("delta_{label}");
+        let mut v = vec![];
+        for b in &batches {
+            let c = Cols { batch: b, path };
+            if let Ok(a) = c.f64(&col) {
+                v.extend(a.iter().flatten().filter(|x| x.is_finite() && *x > 0.0));
+            }
+        }
+        v.sort_by(f64::total_cmp);
+        out.push((!v.is_empty()).then(|| v[v.len() / 2]));
+    }
+    let Some(worst) = out.iter().flatten().copied().reduce(f64::max) else {
+        return Ok(None);
+    };
+    Ok(Some(out.into_iter().map(|d| d.unwrap_or(worst)).collect()))
+}
+
+/// Whether the campaign's balance weighed at least one board (ingest/masses.parquet has a
+/// row with a stable mass).
+fn weighed(work: &Path) -> anyhow::Result<bool> {
+    let path = work.join("ingest/masses.parquet");
+    if !path.is_file() {
+        return Ok(false);
+    }
+    Ok(read_parquet(&path)
+        .with_context(|| format!("reading {}", path.display()))?
+        .iter()
+        .any(|b| b.num_rows() > 0))
 }
 
 /// Median over every row of `boards.parquet` of each parameter column.
