@@ -1008,6 +1008,101 @@ impl FeModel {
         Ok(())
     }
 
+    /// Scale the FR-4 core's bending stiffness by `factor` over the disc of `radius_m` around
+    /// (x_m, y_m): a delamination or a crack region, whose core carries less bending than the
+    /// laminate around it (the copper layers and the mass are unchanged). The disc's share of
+    /// every element is integrated by cut-cell quadrature (as the holes are), and the change,
+    /// (factor − 1) × the core's stiffness over the disc, joins the core's own terms, so it
+    /// follows the core moduli of the parameters exactly. The virtual lab's out-of-library
+    /// effect. Errors: a factor outside [0, 1], a disc that leaves the board or meets a hole.
+    pub fn add_core_stiffness_change(
+        &mut self,
+        x_m: f64,
+        y_m: f64,
+        radius_m: f64,
+        factor: f64,
+    ) -> Result<(), FemError> {
+        if !(factor.is_finite() && (0.0..=1.0).contains(&factor)) {
+            return Err(FemError::Param(format!(
+                "core stiffness change: expected a factor in [0, 1], found {factor}"
+            )));
+        }
+        let (lx, ly) = (self.board.length_x_m, self.board.width_y_m);
+        if !(radius_m > 0.0
+            && x_m - radius_m >= 0.0
+            && y_m - radius_m >= 0.0
+            && x_m + radius_m <= lx
+            && y_m + radius_m <= ly)
+        {
+            return Err(FemError::Param(format!(
+                "core stiffness change: expected a disc of positive radius inside the {lx} × {ly} m board, found radius {radius_m} m at ({x_m}, {y_m}) m"
+            )));
+        }
+        if let Some(h) = self
+            .board
+            .holes
+            .iter()
+            .find(|h| (x_m - h.x_m).hypot(y_m - h.y_m) < radius_m + 0.5 * h.diameter_m)
+        {
+            return Err(FemError::Param(format!(
+                "core stiffness change: the disc at ({x_m}, {y_m}) m meets the hole at ({}, {}) m",
+                h.x_m, h.y_m
+            )));
+        }
+        let c = &self.board.core;
+        let h = c.thickness_m;
+        let q_core = orthotropic_q(c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy);
+        let (_, _, d_core) = layer_factors(-h / 2.0, h / 2.0);
+        let core_names = ["core_q11", "core_q22", "core_q12", "core_q66"];
+        let idx: Vec<usize> = core_names
+            .iter()
+            .map(|n| {
+                self.k_term_names
+                    .iter()
+                    .position(|t| t == n)
+                    .ok_or_else(|| FemError::Mesh(format!("no core term {n}")))
+            })
+            .collect::<Result<_, _>>()?;
+        let (a, b) = (self.mesh.a_m, self.mesh.b_m);
+        let mut touched = 0;
+        for ey in 0..self.mesh.ny {
+            for ex in 0..self.mesh.nx {
+                if !self.mesh.active[ey * self.mesh.nx + ex] {
+                    continue;
+                }
+                let rect = element_rect(ex, ey, a, b);
+                let pts = annulus_rect_quadrature(x_m, y_m, 0.0, radius_m, &rect);
+                if pts.is_empty() {
+                    continue;
+                }
+                let Some(dofs) = self.mesh.element_dofs(ex, ey) else {
+                    continue;
+                };
+                let mut disc = ElementMatrices {
+                    k: [[[0.0; 16]; 16]; 4],
+                    m: [[0.0; 16]; 16],
+                };
+                disc.add_points(&pts, rect.x0, rect.y0, a, b, 1.0);
+                for k in 0..4 {
+                    let s = (factor - 1.0) * q_core[k] * d_core;
+                    for r in 0..16 {
+                        for cc in 0..16 {
+                            let q = self.pattern.index(dofs[r], dofs[cc]);
+                            self.k_terms[idx[k]][q] += s * disc.k[k][r][cc];
+                        }
+                    }
+                }
+                touched += 1;
+            }
+        }
+        if touched == 0 {
+            return Err(FemError::Mesh(format!(
+                "core stiffness change: the disc at ({x_m}, {y_m}) m covers no element"
+            )));
+        }
+        Ok(())
+    }
+
     fn interp_row(&self, x_m: f64, y_m: f64) -> Result<[(usize, f64); 16], FemError> {
         let (lx, ly) = (self.board.length_x_m, self.board.width_y_m);
         let tol = 1e-9 * lx.max(ly);

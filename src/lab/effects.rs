@@ -171,7 +171,7 @@ fn diag(
     }
 }
 
-/// Describe all five effects of `s` (enabled or not) with their expected diagnosis.
+/// Describe all six effects of `s` (enabled or not) with their expected diagnosis.
 pub fn describe(s: &Scenario, ms: &[MeasurementTruth]) -> Vec<EffectTruth> {
     let e = &s.effects;
     let bolted: Vec<&MeasurementTruth> =
@@ -183,6 +183,7 @@ pub fn describe(s: &Scenario, ms: &[MeasurementTruth]) -> Vec<EffectTruth> {
         e.temperature.is_some(),
         e.lumped_mass.is_some(),
         e.compliant_fixture.is_some(),
+        e.delamination.is_some(),
     ]
     .iter()
     .filter(|b| **b)
@@ -327,6 +328,39 @@ pub fn describe(s: &Scenario, ms: &[MeasurementTruth]) -> Vec<EffectTruth> {
         key: "compliant_fixture".into(),
         enabled: d.is_some(),
         description: "a compliant shaker fixture with its own resonance in band".into(),
+        parameters: p,
+        expected_diagnosis: d,
+    });
+
+    let mut p = BTreeMap::new();
+    let d = e.delamination.as_ref().map(|dl| {
+        p.insert("x_m".into(), dl.x_m);
+        p.insert("y_m".into(), dl.y_m);
+        p.insert("radius_m".into(), dl.radius_m);
+        p.insert("stiffness_factor".into(), dl.stiffness_factor);
+        diag(
+            &all,
+            None,
+            Some(format!(
+                "a disc of radius {:.1} mm around x = {:.1} mm, y = {:.1} mm",
+                1e3 * dl.radius_m,
+                1e3 * dl.x_m,
+                1e3 * dl.y_m
+            )),
+            format!(
+                "Every board has a delaminated disc of radius {:.1} mm at ({:.1}, {:.1}) mm whose FR-4 core keeps {:.0} % of its bending stiffness; copper and mass are unchanged. No mechanism of the diagnosis's library models it: the expected verdict is unexplained_misfit, located in free-free and bolted modes with large curvature there, and no mechanism favoured. Shifts below are against the same board without it{combined}.",
+                1e3 * dl.radius_m,
+                1e3 * dl.x_m,
+                1e3 * dl.y_m,
+                100.0 * dl.stiffness_factor
+            ),
+        )
+    });
+    out.push(EffectTruth {
+        letter: "f".into(),
+        key: "delamination".into(),
+        enabled: d.is_some(),
+        description: "a delaminated disc in every board (outside the mechanism library)".into(),
         parameters: p,
         expected_diagnosis: d,
     });

@@ -35,7 +35,7 @@ pub use scenario::Scenario;
 pub use truth::Truth;
 
 /// Built-in scenario files, by name (`paper` is the default campaign).
-pub const BUILTIN_SCENARIOS: [(&str, &str); 7] = [
+pub const BUILTIN_SCENARIOS: [(&str, &str); 8] = [
     ("paper", include_str!("../../data/lab/paper.toml")),
     ("null", include_str!("../../data/lab/null.toml")),
     ("rotational", include_str!("../../data/lab/rotational.toml")),
@@ -49,6 +49,10 @@ pub const BUILTIN_SCENARIOS: [(&str, &str); 7] = [
         include_str!("../../data/lab/lumped_mass.toml"),
     ),
     ("fixture", include_str!("../../data/lab/fixture.toml")),
+    (
+        "delamination",
+        include_str!("../../data/lab/delamination.toml"),
+    ),
 ];
 
 /// Errors of the virtual lab.

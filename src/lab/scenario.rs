@@ -282,6 +282,9 @@ pub struct Effects {
     pub temperature: Option<TemperatureSoftening>,
     pub lumped_mass: Option<LumpedMass>,
     pub compliant_fixture: Option<CompliantFixture>,
+    /// (f) Kept out of the diagnosis's mechanism library on purpose: the test of a misfit
+    /// the library cannot explain.
+    pub delamination: Option<Delamination>,
 }
 
 impl Effects {
@@ -292,6 +295,7 @@ impl Effects {
             || self.temperature.is_some()
             || self.lumped_mass.is_some()
             || self.compliant_fixture.is_some()
+            || self.delamination.is_some()
     }
 }
 
@@ -331,6 +335,18 @@ pub struct LumpedMass {
     pub mass_kg: f64,
     pub x_m: f64,
     pub y_m: f64,
+}
+
+/// (f) A delaminated disc in every board: the FR-4 core carries only `stiffness_factor` of
+/// its bending stiffness there (copper and mass unchanged). Not in the diagnosis's library.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Delamination {
+    pub x_m: f64,
+    pub y_m: f64,
+    pub radius_m: f64,
+    /// Remaining share of the core's bending stiffness in the disc, in [0, 1).
+    pub stiffness_factor: f64,
 }
 
 /// (e) The shaker fixture is compliant: a mass on a spring between armature and bolts.
@@ -603,6 +619,18 @@ impl Scenario {
         if let Some(f) = &e.compliant_fixture {
             pos("effects.compliant_fixture.k_fix_n_per_m", f.k_fix_n_per_m)?;
             pos("effects.compliant_fixture.m_fix_kg", f.m_fix_kg)?;
+        }
+        if let Some(d) = &e.delamination {
+            nonneg("effects.delamination.x_m", d.x_m)?;
+            nonneg("effects.delamination.y_m", d.y_m)?;
+            pos("effects.delamination.radius_m", d.radius_m)?;
+            if !(0.0..1.0).contains(&d.stiffness_factor) {
+                return Err(bad(
+                    "effects.delamination.stiffness_factor",
+                    "a factor in [0, 1)",
+                    d.stiffness_factor,
+                ));
+            }
         }
         Ok(())
     }

@@ -564,3 +564,54 @@ fn rotational_layer_tends_to_the_rigid_patch_as_one_over_k() {
     let gaps = gaps_to_limit(&m, names::K_ROT, &ks, &rigid, n);
     check_one_over_k(&gaps, 3);
 }
+
+/// The core stiffness change over a disc against closed form: for the cylindrical bending
+/// w = x²/2 (curvature κ_xx = 1 everywhere, represented exactly by the BFS element with
+/// DOFs (w, w_x, w_y, w_xy) = (x²/2, x, 0, 0)), wᵀ ΔK w = (factor − 1) Q₁₁ h³/12 · π r².
+/// Softening lowers every frequency, and a factor of 1 changes nothing.
+#[test]
+fn core_stiffness_change_integrates_the_disc_exactly_and_softens() {
+    let b = board();
+    let m0 = FeModel::build(&b, Setup::Free, &b.mesh).unwrap();
+    let p = m0.nominal_params();
+    let (x, y, r) = (0.0413, 0.0237, 0.0061);
+    let mut w = vec![0.0; m0.n_dof];
+    let nx = m0.mesh.nx;
+    for (n, d) in m0.mesh.node_dof.iter().enumerate() {
+        if let Some(d) = d {
+            let xn = (n % (nx + 1)) as f64 * m0.mesh.a_m;
+            w[*d] = 0.5 * xn * xn;
+            w[*d + 1] = xn;
+        }
+    }
+    let energy = |m: &FeModel| -> f64 {
+        let kw = m.stiffness_apply(&p, &w).unwrap();
+        kw.iter().zip(&w).map(|(a, c)| a * c).sum()
+    };
+    let e0 = energy(&m0);
+    let c = &b.core;
+    let q11 = c.e_x_pa / (1.0 - c.nu_xy * c.nu_xy * c.e_y_pa / c.e_x_pa);
+    let d = c.thickness_m.powi(3) / 12.0;
+    let factor = 0.3;
+    let mut m1 = m0.clone();
+    m1.add_core_stiffness_change(x, y, r, factor).unwrap();
+    let want = (factor - 1.0) * q11 * d * std::f64::consts::PI * r * r;
+    let got = energy(&m1) - e0;
+    assert!((got / want - 1.0).abs() < 1e-6, "{got} vs {want}");
+    let f0 = m0.modes(&p, 8).unwrap().freq_hz;
+    let f1 = m1.modes(&p, 8).unwrap().freq_hz;
+    assert!(f1.iter().zip(&f0).all(|(a, c)| a < c), "{f1:?} vs {f0:?}");
+    let mut same = m0.clone();
+    same.add_core_stiffness_change(x, y, r, 1.0).unwrap();
+    assert_eq!(same.modes(&p, 8).unwrap().freq_hz, f0);
+    assert!(
+        m0.clone()
+            .add_core_stiffness_change(0.002, y, r, 0.5)
+            .is_err(),
+        "off the board"
+    );
+    assert!(
+        m0.clone().add_core_stiffness_change(x, y, r, 1.5).is_err(),
+        "a stiffening"
+    );
+}
