@@ -6,12 +6,13 @@
 # location (within 10 mm) / covariate, a 90 % interval that covers the true parameter, and a
 # held-out mean absolute frequency error at least 2x smaller.
 #
-# Usage: benches/diagnose_blind.sh [SCENARIO...]   (default: the five effect scenarios)
+# Usage: benches/diagnose_blind.sh [SCENARIO...]   (default: the five effect scenarios and
+# underfill, the effect kept out of the library)
 # Env: REFITS (candidate refits per diagnosis, default 3). Work dirs: target/work/blind-<name>.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 scen=("$@")
-if [ ${#scen[@]} -eq 0 ]; then scen=(rotational loose_bolt temperature lumped_mass fixture); fi
+if [ ${#scen[@]} -eq 0 ]; then scen=(rotational loose_bolt temperature lumped_mass fixture underfill); fi
 refits=${REFITS:-3}
 for s in "${scen[@]}"; do
   work=$root/target/work/blind-$s

@@ -49,6 +49,20 @@ def main():
         print(f"   null: {'PASS' if ok else 'FAIL'} (verdict {d['verdict']})")
         return
     eff = on[0]
+    if eff["key"] == "underfill":
+        # Outside the library: located, reported as unexplained_misfit, no mechanism forced.
+        ok = d["verdict"] == "unexplained_misfit" and not d["findings"]
+        print(f"   truth: {eff['key']} {eff['parameters']} (outside the library)")
+        print(f"   verdict: {'PASS' if ok else 'FAIL'} ({d['verdict']}, findings "
+              f"{[f['mechanism'] for f in d['findings']]})")
+        P = eff["parameters"]
+        for r in loc.get("board_regions", []):
+            fx = r["fit"]
+            dist = ((fx["x_m"] - P["x_m"]) ** 2 + (fx["y_m"] - P["y_m"]) ** 2) ** 0.5
+            print(f"   board region ({r['mechanism']} signature, located {r['located']}): "
+                  f"({1e3 * fx['x_m']:.0f}, {1e3 * fx['y_m']:.0f}) mm, {1e3 * dist:.1f} mm from the disc's centre")
+        print(f"   remaining discrepancy: {str(d.get('remaining_discrepancy'))[:300]}")
+        return
     want = MECHANISM[eff["key"]]
     f = d["findings"][0] if d["findings"] else None
     got = f["mechanism"] if f else None

@@ -398,7 +398,7 @@ enum LabCommand {
     Simulate {
         /// Scenario file (TOML, schemas/lab_scenario.schema.json) or a built-in name:
         /// paper (default campaign), null, rotational, loose_bolt, temperature, lumped_mass,
-        /// fixture, delamination (an effect outside the diagnosis's library).
+        /// fixture, underfill (a local stiffening, outside the diagnosis's library).
         scenario: String,
         /// Campaign directory to write.
         #[arg(long)]

@@ -1009,12 +1009,13 @@ impl FeModel {
     }
 
     /// Scale the FR-4 core's bending stiffness by `factor` over the disc of `radius_m` around
-    /// (x_m, y_m): a delamination or a crack region, whose core carries less bending than the
-    /// laminate around it (the copper layers and the mass are unchanged). The disc's share of
-    /// every element is integrated by cut-cell quadrature (as the holes are), and the change,
-    /// (factor − 1) × the core's stiffness over the disc, joins the core's own terms, so it
-    /// follows the core moduli of the parameters exactly. The virtual lab's out-of-library
-    /// effect. Errors: a factor outside [0, 1], a disc that leaves the board or meets a hole.
+    /// (x_m, y_m): below 1 a delaminated or cracked region, above 1 a stiffened one (epoxy
+    /// underfill under a BGA); the copper layers and the mass are unchanged. The disc's share
+    /// of every element is integrated by cut-cell quadrature (as the holes are), and the
+    /// change, (factor − 1) × the core's stiffness over the disc, joins the core's own terms,
+    /// so it follows the core moduli of the parameters exactly. The virtual lab's
+    /// out-of-library effect. Errors: a negative or non-finite factor, a disc that leaves the
+    /// board or meets a hole.
     pub fn add_core_stiffness_change(
         &mut self,
         x_m: f64,
@@ -1022,9 +1023,9 @@ impl FeModel {
         radius_m: f64,
         factor: f64,
     ) -> Result<(), FemError> {
-        if !(factor.is_finite() && (0.0..=1.0).contains(&factor)) {
+        if !(factor.is_finite() && factor >= 0.0) {
             return Err(FemError::Param(format!(
-                "core stiffness change: expected a factor in [0, 1], found {factor}"
+                "core stiffness change: expected a finite non-negative factor, found {factor}"
             )));
         }
         let (lx, ly) = (self.board.length_x_m, self.board.width_y_m);

@@ -183,7 +183,7 @@ pub fn describe(s: &Scenario, ms: &[MeasurementTruth]) -> Vec<EffectTruth> {
         e.temperature.is_some(),
         e.lumped_mass.is_some(),
         e.compliant_fixture.is_some(),
-        e.delamination.is_some(),
+        e.underfill.is_some(),
     ]
     .iter()
     .filter(|b| **b)
@@ -333,7 +333,7 @@ pub fn describe(s: &Scenario, ms: &[MeasurementTruth]) -> Vec<EffectTruth> {
     });
 
     let mut p = BTreeMap::new();
-    let d = e.delamination.as_ref().map(|dl| {
+    let d = e.underfill.as_ref().map(|dl| {
         p.insert("x_m".into(), dl.x_m);
         p.insert("y_m".into(), dl.y_m);
         p.insert("radius_m".into(), dl.radius_m);
@@ -348,19 +348,21 @@ pub fn describe(s: &Scenario, ms: &[MeasurementTruth]) -> Vec<EffectTruth> {
                 1e3 * dl.y_m
             )),
             format!(
-                "Every board has a delaminated disc of radius {:.1} mm at ({:.1}, {:.1}) mm whose FR-4 core keeps {:.0} % of its bending stiffness; copper and mass are unchanged. No mechanism of the diagnosis's library models it: the expected verdict is unexplained_misfit, located in free-free and bolted modes with large curvature there, and no mechanism favoured. Shifts below are against the same board without it{combined}.",
+                "Every board carries epoxy underfill, a disc of radius {:.1} mm at ({:.1}, {:.1}) mm where the core is {:.1} times as stiff in bending; copper and mass are unchanged. No mechanism of the diagnosis's library models a local stiffening: the expected verdict is unexplained_misfit, located in free-free and bolted modes with large curvature there, and no mechanism favoured. Shifts below are against the same board without it{combined}.",
                 1e3 * dl.radius_m,
                 1e3 * dl.x_m,
                 1e3 * dl.y_m,
-                100.0 * dl.stiffness_factor
+                dl.stiffness_factor
             ),
         )
     });
     out.push(EffectTruth {
         letter: "f".into(),
-        key: "delamination".into(),
+        key: "underfill".into(),
         enabled: d.is_some(),
-        description: "a delaminated disc in every board (outside the mechanism library)".into(),
+        description:
+            "a locally stiffened disc (underfill) in every board, outside the mechanism library"
+                .into(),
         parameters: p,
         expected_diagnosis: d,
     });

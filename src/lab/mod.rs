@@ -49,10 +49,7 @@ pub const BUILTIN_SCENARIOS: [(&str, &str); 8] = [
         include_str!("../../data/lab/lumped_mass.toml"),
     ),
     ("fixture", include_str!("../../data/lab/fixture.toml")),
-    (
-        "delamination",
-        include_str!("../../data/lab/delamination.toml"),
-    ),
+    ("underfill", include_str!("../../data/lab/underfill.toml")),
 ];
 
 /// Errors of the virtual lab.

@@ -284,7 +284,7 @@ pub struct Effects {
     pub compliant_fixture: Option<CompliantFixture>,
     /// (f) Kept out of the diagnosis's mechanism library on purpose: the test of a misfit
     /// the library cannot explain.
-    pub delamination: Option<Delamination>,
+    pub underfill: Option<Underfill>,
 }
 
 impl Effects {
@@ -295,7 +295,7 @@ impl Effects {
             || self.temperature.is_some()
             || self.lumped_mass.is_some()
             || self.compliant_fixture.is_some()
-            || self.delamination.is_some()
+            || self.underfill.is_some()
     }
 }
 
@@ -337,15 +337,16 @@ pub struct LumpedMass {
     pub y_m: f64,
 }
 
-/// (f) A delaminated disc in every board: the FR-4 core carries only `stiffness_factor` of
-/// its bending stiffness there (copper and mass unchanged). Not in the diagnosis's library.
+/// (f) Epoxy underfill under a BGA in every board: the laminate's core is `stiffness_factor`
+/// times as stiff in bending over a disc (copper and mass unchanged). A local stiffening: not
+/// in the diagnosis's library (which has a local stiffness loss and an added mass).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct Delamination {
+pub struct Underfill {
     pub x_m: f64,
     pub y_m: f64,
     pub radius_m: f64,
-    /// Remaining share of the core's bending stiffness in the disc, in [0, 1).
+    /// Factor on the core's bending stiffness in the disc, > 1.
     pub stiffness_factor: f64,
 }
 
@@ -620,14 +621,14 @@ impl Scenario {
             pos("effects.compliant_fixture.k_fix_n_per_m", f.k_fix_n_per_m)?;
             pos("effects.compliant_fixture.m_fix_kg", f.m_fix_kg)?;
         }
-        if let Some(d) = &e.delamination {
-            nonneg("effects.delamination.x_m", d.x_m)?;
-            nonneg("effects.delamination.y_m", d.y_m)?;
-            pos("effects.delamination.radius_m", d.radius_m)?;
-            if !(0.0..1.0).contains(&d.stiffness_factor) {
+        if let Some(d) = &e.underfill {
+            nonneg("effects.underfill.x_m", d.x_m)?;
+            nonneg("effects.underfill.y_m", d.y_m)?;
+            pos("effects.underfill.radius_m", d.radius_m)?;
+            if !(d.stiffness_factor.is_finite() && d.stiffness_factor > 1.0) {
                 return Err(bad(
-                    "effects.delamination.stiffness_factor",
-                    "a factor in [0, 1)",
+                    "effects.underfill.stiffness_factor",
+                    "a finite factor above 1",
                     d.stiffness_factor,
                 ));
             }

@@ -167,7 +167,7 @@ fn builtin_scenarios_parse_and_differ_from_null_only_in_their_effect() {
             s.effects.temperature.is_some(),
             s.effects.lumped_mass.is_some(),
             s.effects.compliant_fixture.is_some(),
-            s.effects.delamination.is_some(),
+            s.effects.underfill.is_some(),
         ]
         .iter()
         .filter(|b| **b)
@@ -747,14 +747,14 @@ fn schema_describes_every_scenario_field_and_no_other() {
                [effects.temperature]\ncoefficient_per_k = -0.004\nreference_c = 23.0\n\
                [effects.lumped_mass]\nmass_kg = 2e-4\nx_m = 0.06\ny_m = 0.03\n\
                [effects.compliant_fixture]\nk_fix_n_per_m = 3e7\nm_fix_kg = 0.1\n\
-               [effects.delamination]\nx_m = 0.024\ny_m = 0.033\nradius_m = 0.006\n\
-               stiffness_factor = 0.2\n";
+               [effects.underfill]\nx_m = 0.024\ny_m = 0.033\nradius_m = 0.006\n\
+               stiffness_factor = 3.0\n";
     let other = Scenario::from_toml_str(all).unwrap();
     s.effects.loose_bolt = other.effects.loose_bolt;
     s.effects.temperature = other.effects.temperature;
     s.effects.lumped_mass = other.effects.lumped_mass;
     s.effects.compliant_fixture = other.effects.compliant_fixture;
-    s.effects.delamination = other.effects.delamination;
+    s.effects.underfill = other.effects.underfill;
     let v = serde_json::to_value(&s).unwrap();
     fn walk(v: &serde_json::Value, sch: &serde_json::Value, path: &str) {
         let sch = if sch["type"] == "array" {

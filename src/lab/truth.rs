@@ -338,7 +338,7 @@ impl Models {
             let model_changes_bolted = e.rotational_restraint.is_some()
                 || e.compliant_fixture.is_some()
                 || e.lumped_mass.is_some()
-                || e.delamination.is_some();
+                || e.underfill.is_some();
             let mut bolted = if e.rotational_restraint.is_some() || e.compliant_fixture.is_some() {
                 FeModel::build(board, Setup::Bolted(joint_model(s, true)), &bolted_mesh)?
             } else {
@@ -349,13 +349,12 @@ impl Models {
                 free.add_point_mass(lm.x_m, lm.y_m, lm.mass_kg)?;
                 bolted.add_point_mass(lm.x_m, lm.y_m, lm.mass_kg)?;
             }
-            if let Some(d) = &e.delamination {
+            if let Some(d) = &e.underfill {
                 for m in [&mut free, &mut bolted] {
                     m.add_core_stiffness_change(d.x_m, d.y_m, d.radius_m, d.stiffness_factor)?;
                 }
             }
-            let free_cf =
-                (e.lumped_mass.is_some() || e.delamination.is_some()).then_some(free_plain);
+            let free_cf = (e.lumped_mass.is_some() || e.underfill.is_some()).then_some(free_plain);
             let bolted_cf = model_changes_bolted.then_some(bolted_plain);
             (free, free_cf, bolted, bolted_cf)
         };

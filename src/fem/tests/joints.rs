@@ -568,7 +568,8 @@ fn rotational_layer_tends_to_the_rigid_patch_as_one_over_k() {
 /// The core stiffness change over a disc against closed form: for the cylindrical bending
 /// w = x²/2 (curvature κ_xx = 1 everywhere, represented exactly by the BFS element with
 /// DOFs (w, w_x, w_y, w_xy) = (x²/2, x, 0, 0)), wᵀ ΔK w = (factor − 1) Q₁₁ h³/12 · π r².
-/// Softening lowers every frequency, and a factor of 1 changes nothing.
+/// Softening lowers every frequency, stiffening raises them, and a factor of 1 changes
+/// nothing.
 #[test]
 fn core_stiffness_change_integrates_the_disc_exactly_and_softens() {
     let b = board();
@@ -610,8 +611,12 @@ fn core_stiffness_change_integrates_the_disc_exactly_and_softens() {
             .is_err(),
         "off the board"
     );
+    let mut stiff = m0.clone();
+    stiff.add_core_stiffness_change(x, y, r, 3.0).unwrap();
+    let f3 = stiff.modes(&p, 8).unwrap().freq_hz;
+    assert!(f3.iter().zip(&f0).all(|(a, c)| a > c), "{f3:?} vs {f0:?}");
     assert!(
-        m0.clone().add_core_stiffness_change(x, y, r, 1.5).is_err(),
-        "a stiffening"
+        m0.clone().add_core_stiffness_change(x, y, r, -0.5).is_err(),
+        "negative"
     );
 }
