@@ -55,6 +55,11 @@ pub struct Refit {
     /// fixed the location the localisation chose; this accounts for having chosen it).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub log_location_occam: Option<f64>,
+    /// Share of the baseline's located misfit the refit leaves: Σ |mean relative residual|
+    /// over the located modes after the refit / before (a setup the refit does not touch
+    /// keeps the baseline's). `None`: not computed (the baseline itself, a failed refit).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub remaining_share: Option<f64>,
 }
 
 impl Refit {
@@ -80,10 +85,23 @@ impl Refit {
     }
 }
 
+/// The decision rule. A candidate is favoured when its log Bayes factor exceeds `min_log_bf`
+/// and `min_z` standard errors, its held-out error is not worse, and it explains the misfit:
+/// it leaves at most `max_remaining_share` of the located misfit. The last is what keeps a
+/// wrong mechanism out: with a misfit far above the noise, any added flexibility raises the
+/// evidence by a lot (a point mass somewhere absorbs part of a local stiffening), but only
+/// the right one removes most of the misfit. One half is the localisation's own rule (a
+/// point mass must explain half of the misfit to be located).
 #[derive(Clone, Copy, Debug, Serialize, schemars::JsonSchema)]
 pub struct SelectOptions {
     pub min_log_bf: f64,
     pub min_z: f64,
+    #[serde(default = "default_max_remaining_share")]
+    pub max_remaining_share: f64,
+}
+
+fn default_max_remaining_share() -> f64 {
+    0.5
 }
 
 impl Default for SelectOptions {
@@ -91,6 +109,7 @@ impl Default for SelectOptions {
         SelectOptions {
             min_log_bf: 5.0,
             min_z: 3.0,
+            max_remaining_share: default_max_remaining_share(),
         }
     }
 }
@@ -134,10 +153,13 @@ pub fn compare(baseline: &Refit, candidates: &[Refit], opts: &SelectOptions) -> 
                 })
                 .collect();
             let not_worse = held.iter().all(|(_, b, a)| *a <= *b * 1.05);
+            let explains = c
+                .remaining_share
+                .is_none_or(|r| r <= opts.max_remaining_share);
             let favoured = match (lbf, se) {
                 (Some(l), Some(s)) => {
                     let s = if s.is_finite() { s } else { 0.0 };
-                    l > opts.min_log_bf && l - opts.min_z * s > 0.0 && not_worse
+                    l > opts.min_log_bf && l - opts.min_z * s > 0.0 && not_worse && explains
                 }
                 _ => false,
             };
@@ -254,6 +276,16 @@ pub fn sentence(c: &Compared) -> String {
         parts.push(est);
     }
     parts.push(bf);
+    if let Some(r) = c.refit.remaining_share {
+        parts.push(if c.favoured || r <= default_max_remaining_share() {
+            format!("it leaves {:.0} % of the located misfit", 100.0 * r)
+        } else {
+            format!(
+                "it leaves {:.0} % of the located misfit: it does not explain it",
+                100.0 * r
+            )
+        });
+    }
     if !held.is_empty() {
         parts.push(held);
     }
@@ -291,7 +323,26 @@ mod tests {
             estimates: vec![],
             failed: None,
             log_location_occam: None,
+            remaining_share: None,
         }
+    }
+
+    /// A decisive Bayes factor is not enough: a mechanism that leaves most of the located
+    /// misfit (a point mass absorbing part of a local stiffening) is not the explanation.
+    #[test]
+    fn a_mechanism_must_explain_most_of_the_misfit() {
+        let base = refit(None, &[100.0, 100.2], 0.2);
+        let mut partial = refit(Some(Mechanism::AddedMass), &[900.0, 900.4], 0.15);
+        partial.remaining_share = Some(0.7);
+        let mut full = refit(Some(Mechanism::JointRotation), &[500.0, 500.4], 0.02);
+        full.remaining_share = Some(0.1);
+        let c = compare(&base, &[partial, full], &SelectOptions::default());
+        assert_eq!(c[0].refit.mechanism, Some(Mechanism::AddedMass));
+        assert!(!c[0].favoured, "ln B 800 but 70 % of the misfit left");
+        assert!(sentence(&c[0]).contains("70 % of the located misfit: it does not explain it"));
+        assert!(c[1].favoured);
+        assert_eq!(verdict(true, &c), Verdict::MechanismFound);
+        assert_eq!(verdict(true, &c[..1]), Verdict::UnexplainedMisfit);
     }
 
     #[test]

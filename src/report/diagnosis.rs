@@ -844,6 +844,7 @@ mod tests {
             },
             failed: failed.map(str::to_string),
             log_location_occam: None,
+            remaining_share: None,
         };
         let cand = |m: Mechanism| Candidate {
             mechanism: m,

@@ -512,6 +512,7 @@ fn summarize_refit(
         estimates,
         failed,
         log_location_occam: None,
+        remaining_share: None,
     })
 }
 
@@ -647,6 +648,7 @@ fn refit(
             estimates: vec![],
             failed: Some(format!("{e:#}").replace('\n', " ")),
             log_location_occam: None,
+            remaining_share: None,
         },
     }
 }
@@ -732,14 +734,19 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             None
         };
         {
-            // Joint mechanisms need step 2; board mechanisms only step 1.
+            // Joint mechanisms need step 2; board mechanisms only step 1. The refits stop
+            // once one is favoured and leaves at most STOP_REMAINING_SHARE of the located
+            // misfit: the rest of the candidates were screened for a misfit that is then
+            // explained, and each would cost a sampler's run (the per-joint refits of a
+            // campaign whose joints fit are the slowest); they are reported as not refitted.
+            let base_ref = baseline.as_ref().unwrap_or(&baseline1);
             for cand in candidates
                 .iter()
                 .filter(|c| c.refittable() && (step2 || is_board_mechanism(c.mechanism)))
                 .take(opts.max_refits)
             {
                 let t0 = std::time::Instant::now();
-                let r = refit(
+                let mut r = refit(
                     opts,
                     (&base1, base.as_ref()),
                     cand,
@@ -749,6 +756,10 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                     ),
                     verbose,
                 );
+                if r.failed.is_none() {
+                    let modes = refit_mode_means(&opts.out.join(&r.dir), &opts.locate)?;
+                    r.remaining_share = remaining_share(&located, &modes);
+                }
                 eprintln!(
                     "diagnose: refit {} in {:.1} s{}",
                     cand.id(),
@@ -758,7 +769,14 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                         .map(|e| format!(": failed: {e}"))
                         .unwrap_or_default()
                 );
+                let explained = r.remaining_share.is_some_and(|x| x <= STOP_REMAINING_SHARE)
+                    && select::compare(base_ref, std::slice::from_ref(&r), &opts.select)
+                        .first()
+                        .is_some_and(|c| c.favoured);
                 refits.push(r);
+                if explained {
+                    break;
+                }
             }
         }
         // Against the baseline over the same data: both steps where the campaign has a
@@ -780,6 +798,47 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             verbose,
         )
     })
+}
+
+/// A favoured refit that leaves at most this share of the located misfit explains it, and the
+/// remaining candidates are not refitted.
+const STOP_REMAINING_SHARE: f64 = 0.2;
+
+/// Each mode's misfit after a refit: its step 2's residuals and, for a board mechanism, its
+/// step 1's (`boards/`).
+fn refit_mode_means(dir: &Path, lopts: &LocateOptions) -> anyhow::Result<Vec<ModeCheck>> {
+    let mut obs = vec![];
+    for p in [
+        dir.join("residuals.parquet"),
+        dir.join("boards/residuals.parquet"),
+    ] {
+        if p.is_file() {
+            obs.extend(inputs::read_residuals(&p)?);
+        }
+    }
+    Ok(locate::mode_means(&obs, lopts))
+}
+
+/// Σ |mean relative residual| over the located modes after a refit (`after`) over the same
+/// before; a located mode the refit has no row for (a setup it did not refit) keeps its
+/// baseline value. `None` without a located mode.
+fn remaining_share(located: &Located, after: &[ModeCheck]) -> Option<f64> {
+    let (mut before, mut left) = (0.0, 0.0);
+    for l in &located.modes {
+        let Some(b) = located
+            .mode_checks
+            .iter()
+            .find(|m| m.setup == l.setup && m.label == l.label)
+        else {
+            continue;
+        };
+        before += b.mean_rel_residual.abs();
+        left += after
+            .iter()
+            .find(|m| m.setup == l.setup && m.label == l.label)
+            .map_or(b.mean_rel_residual.abs(), |m| m.mean_rel_residual.abs());
+    }
+    (before > 0.0).then(|| left / before)
 }
 
 /// The board regions and the screened candidates, a located point mass attached (the same
@@ -1100,10 +1159,8 @@ fn write_outputs(
         let Some(c) = r.cmp.as_ref().filter(|c| c.refit.failed.is_none()) else {
             continue;
         };
-        let res = opts.out.join(&c.refit.dir).join("residuals.parquet");
-        let obs = inputs::read_residuals(&res)?;
         mode_rows.extend(
-            locate::mode_means(&obs, &opts.locate)
+            refit_mode_means(&opts.out.join(&c.refit.dir), &opts.locate)?
                 .into_iter()
                 .map(|m| (r.cand.id(), m)),
         );
