@@ -346,3 +346,52 @@ fn unknown_params_are_an_error_and_unknown_modes_a_warning() {
         serde_json::from_slice(&std::fs::read(w.p("u2/update_report.json")).unwrap()).unwrap();
     assert_eq!(r["labels"], serde_json::json!(["torsion-1", "bending-x-1"]));
 }
+
+/// `--enrich added_mass` (the diagnosis's refit of a located point mass): boards.parquet gains
+/// added_mass_kg per board, positive; mass_g counts it (the balance weighs it with the board),
+/// so (mass_g − added mass) / mass_scale is the board file's mass in every draw; the evidence
+/// records the point. Without a location, or with the point in a hole, the stage stops with a
+/// message that says so, before any sampling.
+#[test]
+fn added_mass_refit_writes_the_mass_and_refuses_a_point_it_cannot_place() {
+    let w = Work::new();
+    w.chain();
+    let o = w.update(
+        "m",
+        "coarse.toml",
+        PARAMS,
+        &["--enrich", "added_mass", "--enrich-location", "0.05,0.03"],
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let added = board_draws(&w.p("m/boards.parquet"), "PCB-01", "added_mass_kg");
+    let mass_g = board_draws(&w.p("m/boards.parquet"), "PCB-01", "mass_g");
+    let scale = board_draws(&w.p("m/boards.parquet"), "PCB-01", "mass_scale");
+    assert!(!added.is_empty() && added.iter().all(|m| *m > 0.0));
+    let board_g: Vec<f64> = (0..added.len())
+        .map(|i| (mass_g[i] - 1e3 * added[i]) / scale[i])
+        .collect();
+    assert!(
+        board_g.iter().all(|g| (g / board_g[0] - 1.0).abs() < 1e-9),
+        "{board_g:?}"
+    );
+    let ev: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(w.p("m/evidence.json")).unwrap()).unwrap();
+    assert_eq!(ev["enrichment"]["effect"]["kind"], "point_mass");
+    assert_eq!(ev["enrichment"]["effect"]["x_m"], 0.05);
+    let o = w.update("n", "coarse.toml", PARAMS, &["--enrich", "added_mass"]);
+    assert_ne!(o.status.code(), Some(0));
+    assert!(stderr(&o).contains("--enrich-location"), "{}", stderr(&o));
+    let o = w.update(
+        "h",
+        "coarse.toml",
+        PARAMS,
+        &["--enrich", "added_mass", "--enrich-location", "0.005,0.005"],
+    );
+    assert_ne!(o.status.code(), Some(0));
+    assert!(
+        stderr(&o).contains("added_mass at (0.005, 0.005) m"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!w.p("h/boards.parquet").exists());
+}

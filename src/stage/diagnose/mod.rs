@@ -292,6 +292,17 @@ fn population_r_hat(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
     Ok(worst)
 }
 
+/// Every value of a Float64 column of a Parquet table, sorted.
+fn sorted_column(path: &Path, col: &str) -> anyhow::Result<Vec<f64>> {
+    let mut v = vec![];
+    for b in &tables::read_parquet(path)? {
+        let a = Cols { batch: b, path }.f64(col)?;
+        v.extend((0..b.num_rows()).map(|i| a.value(i)));
+    }
+    v.sort_by(f64::total_cmp);
+    Ok(v)
+}
+
 /// A refit directory (or a baseline step) as a [`Refit`]. A board mechanism's refit has
 /// its step 1 in `dir/boards` and, where the campaign has a step 2, its step 2 in `dir`:
 /// its log evidence per run is then Z₂′ + (Z₁′ − Z₁), `step1_baseline` = the baseline's Z₁
@@ -360,18 +371,10 @@ fn summarize_refit(
         // Its step-1 refit (`boards/`): the population median of the added mass (the
         // column holds reference · e^μ, kg), and the mass's spread over the boards.
         let param = point_mass["parameter"].as_str().unwrap_or_default();
-        let pop = dir.join("boards/population.parquet");
-        let col = format!("mu_{param}");
-        let mut v = vec![];
-        for b in &tables::read_parquet(&pop)? {
-            let a = Cols {
-                batch: b,
-                path: &pop,
-            }
-            .f64(&col)?;
-            v.extend((0..b.num_rows()).map(|i| a.value(i)));
-        }
-        v.sort_by(f64::total_cmp);
+        let v = sorted_column(
+            &dir.join("boards/population.parquet"),
+            &format!("mu_{param}"),
+        )?;
         if !v.is_empty() {
             estimates.push(Estimate {
                 parameter: param.to_string(),
@@ -390,18 +393,10 @@ fn summarize_refit(
         let coef = ev1["enrichment"]["coefficient"]
             .as_str()
             .unwrap_or_default();
-        let pop = dir.join("boards/population.parquet");
-        let col = format!("mu_{coef}");
-        let mut v = vec![];
-        for b in &tables::read_parquet(&pop)? {
-            let a = Cols {
-                batch: b,
-                path: &pop,
-            }
-            .f64(&col)?;
-            v.extend((0..b.num_rows()).map(|i| a.value(i)));
-        }
-        v.sort_by(f64::total_cmp);
+        let v = sorted_column(
+            &dir.join("boards/population.parquet"),
+            &format!("mu_{coef}"),
+        )?;
         if !v.is_empty() {
             estimates.push(Estimate {
                 parameter: coef.to_string(),
@@ -851,7 +846,7 @@ fn screen_candidates(
     located: &Located,
     lopts: &LocateOptions,
 ) -> ((Vec<regions::BoardRegion>, String), Vec<Candidate>) {
-    let regions = board_regions(work, board, base1, input, located, lopts);
+    let regions = board_regions(work, board, (base1, input, located), lopts);
     let mut candidates = screen::screen(located, board);
     for r in &regions.0 {
         screen::attach_point_mass(
@@ -871,13 +866,10 @@ fn screen_candidates(
 fn board_regions(
     work: &Path,
     board: &crate::fem::Board,
-    base1: &UpdateOptions,
-    input: &locate::LocateInput,
-    located: &Located,
+    (base1, input, located): (&UpdateOptions, &locate::LocateInput, &Located),
     lopts: &LocateOptions,
 ) -> (Vec<regions::BoardRegion>, String) {
-    const NOT_BUILT: &str =
-        "local stiffness changes are not localised yet, and mode shapes only choose among the points the frequencies give";
+    const NOT_BUILT: &str = "local stiffness changes are not localised yet";
     if !located.setups.iter().any(|s| s == "free") {
         return (
             vec![],
@@ -905,7 +897,7 @@ fn board_regions(
     ) {
         Ok(r) => (
             vec![r],
-            format!("point-mass localisation of the free-free misfit (frequency signature −½ φ², parameters projected off); {NOT_BUILT}"),
+            format!("point-mass localisation of the free-free misfit (exact frequency shifts in a modal basis, the stiffness parameters projected off, the measured shapes choosing over the points the frequencies leave open); {NOT_BUILT}"),
         ),
         Err(e) => (
             vec![],
