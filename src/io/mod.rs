@@ -14,3 +14,10 @@ pub mod mcap_writer;
 pub mod sheet;
 pub mod tables;
 pub mod uff;
+
+/// A JSON document read from `path`; errors name the file (unreadable, or not JSON).
+pub fn read_json(path: &std::path::Path) -> anyhow::Result<serde_json::Value> {
+    use anyhow::Context;
+    let b = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    serde_json::from_slice(&b).with_context(|| format!("{}: not valid JSON", path.display()))
+}

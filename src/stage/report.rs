@@ -272,10 +272,7 @@ fn read_stages(path: &Path) -> anyhow::Result<Vec<Vec<(f64, f64, f64)>>> {
     Ok(runs.into_values().collect())
 }
 
-fn read_json(path: &Path) -> anyhow::Result<serde_json::Value> {
-    let b = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-    serde_json::from_slice(&b).with_context(|| format!("{}: not valid JSON", path.display()))
-}
+use crate::io::read_json;
 
 fn findings_of(stage: &str, v: &serde_json::Value, out: &mut Vec<FindingRow>) {
     for f in v

@@ -2246,11 +2246,7 @@ impl Step1 {
 
 /// The `enrichment` of a step-1 refit's evidence.json (null for the baseline).
 fn read_step1_enrichment(path: &Path) -> anyhow::Result<serde_json::Value> {
-    let ev: serde_json::Value = serde_json::from_slice(
-        &std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?,
-    )
-    .with_context(|| format!("{}: not JSON", path.display()))?;
-    Ok(ev["enrichment"].clone())
+    Ok(crate::io::read_json(path)?["enrichment"].clone())
 }
 
 /// A point mass a step-1 refit added to the boards: its parameter, point and posterior mean.

@@ -183,11 +183,7 @@ pub struct DiagnoseOptions {
     pub max_refits: usize,
 }
 
-fn read_json(path: &Path) -> anyhow::Result<serde_json::Value> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("{}: cannot read", path.display()))?;
-    serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", path.display()))
-}
+use crate::io::read_json;
 
 /// The options the work directory's step 2 ran with (its manifest's config).
 fn step2_options(work: &Path) -> anyhow::Result<UpdateOptions> {
