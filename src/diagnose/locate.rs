@@ -1214,6 +1214,18 @@ fn measurement_response(
     acc.into_iter().map(|(k, (s, w))| (k, s / w)).collect()
 }
 
+/// The covariate tests ([`CovariateTest`]) of a residual table against the sheet's columns,
+/// the same computation as [`locate`]'s. The diagnosis uses it for a refit's residuals, so a
+/// covariate trend before and after a candidate come from one computation.
+pub fn covariate_effects(input: &LocateInput, opts: &LocateOptions) -> Vec<CovariateTest> {
+    let rows: Vec<&ResidualObs> = input
+        .residuals
+        .iter()
+        .filter(|r| r.rel_residual.is_finite() && r.std_residual.is_finite())
+        .collect();
+    covariate_tests(input, &rows, opts).0
+}
+
 fn covariate_tests(
     input: &LocateInput,
     rows: &[&ResidualObs],

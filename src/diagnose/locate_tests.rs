@@ -388,39 +388,49 @@ fn a_small_shift_below_the_tolerance_is_not_located() {
         .any(|m| m.setup == "free" && m.label == "plate-2-1"));
 }
 
+/// A relative frequency trend of `slope` per K in every mode of both setups, centred within
+/// each board (the board parameters absorb each board's mean, as after updating); the board
+/// means of temperature come from a first draw with the same seed.
+fn temperature_shift(
+    synth: &Synth,
+    seed: u64,
+    slope: f64,
+) -> impl Fn(&str, &str, usize, f64) -> f64 {
+    let base = synth.draw(seed, &none);
+    let temp = match &base.covariates[0].values {
+        CovariateValues::Numeric(v) => v.clone(),
+        _ => unreachable!(),
+    };
+    let mut board_mean: BTreeMap<(String, String), (f64, f64)> = BTreeMap::new();
+    for (m, t) in base.measurements.iter().zip(&temp) {
+        let e = board_mean
+            .entry((m.setup.clone(), m.board_id.clone()))
+            .or_default();
+        e.0 += t.unwrap();
+        e.1 += 1.0;
+    }
+    let per_setup = synth.boards * synth.per_board;
+    let tb: Vec<f64> = base
+        .measurements
+        .iter()
+        .map(|m| {
+            let e = board_mean[&(m.setup.clone(), m.board_id.clone())];
+            e.0 / e.1
+        })
+        .collect();
+    move |s: &str, _: &str, j: usize, t: f64| {
+        let k = if s == "free" { j } else { per_setup + j };
+        slope * (t - tb[k])
+    }
+}
+
 #[test]
 fn a_temperature_trend_is_found_with_its_slope() {
     // −0.2 %/K around 23 °C in every mode of both setups; the board parameters absorb each
     // board's mean (so the planted residual is centred within boards, as after updating).
     let synth = Synth::paper();
     for seed in 0..5 {
-        // Board means of temperature from a first draw with the same seed.
-        let base = synth.draw(seed, &none);
-        let temp = match &base.covariates[0].values {
-            CovariateValues::Numeric(v) => v.clone(),
-            _ => unreachable!(),
-        };
-        let mut board_mean: BTreeMap<(String, String), (f64, f64)> = BTreeMap::new();
-        for (m, t) in base.measurements.iter().zip(&temp) {
-            let e = board_mean
-                .entry((m.setup.clone(), m.board_id.clone()))
-                .or_default();
-            e.0 += t.unwrap();
-            e.1 += 1.0;
-        }
-        let per_setup = synth.boards * synth.per_board;
-        let tb: Vec<f64> = base
-            .measurements
-            .iter()
-            .map(|m| {
-                let e = board_mean[&(m.setup.clone(), m.board_id.clone())];
-                e.0 / e.1
-            })
-            .collect();
-        let shift = move |s: &str, _: &str, j: usize, t: f64| {
-            let k = if s == "free" { j } else { per_setup + j };
-            -2e-3 * (t - tb[k])
-        };
+        let shift = temperature_shift(&synth, seed, -2e-3);
         let loc = locate(&synth.draw(seed, &shift), &LocateOptions::default());
         for setup in ["free", "bolted"] {
             let t = loc
@@ -790,4 +800,76 @@ fn summary_text(loc: &Located) -> String {
         }
     }
     s
+}
+
+/// Two effects at once, a temperature trend and a free-free mean shift (a mass): each part of
+/// the misfit is measured on its own, so a refit that removes one part explains that part
+/// and leaves the other, and only both refits together explain the whole.
+#[test]
+fn two_effects_are_two_parts_each_explained_by_its_own_refit() {
+    use crate::diagnose::library::Mechanism;
+    use crate::diagnose::misfit::{self, MisfitParts};
+    use crate::diagnose::screen::Candidate;
+    let synth = Synth::paper();
+    let opts = LocateOptions::default();
+    for seed in 0..3 {
+        let trend = temperature_shift(&synth, seed, -2e-3);
+        let mass = |s: &str, l: &str| {
+            if s == "free" && l == "bending-x-1" {
+                -1e-3
+            } else {
+                0.0
+            }
+        };
+        let both = synth.draw(seed, &|s, l, j, t| trend(s, l, j, t) + mass(s, l));
+        let loc = locate(&both, &opts);
+        assert!(loc
+            .covariates
+            .iter()
+            .any(|c| c.covariate == "temperature_c"));
+        assert!(loc
+            .modes
+            .iter()
+            .any(|m| m.label == "bending-x-1" && m.reasons.iter().any(|r| r == "mean_shift")));
+        // What each refit would leave: the residuals without its effect.
+        let after_temperature = synth.draw(seed, &|s, l, _, _| mass(s, l)).residuals;
+        let after_mass = synth.draw(seed, &|s, l, j, t| trend(s, l, j, t)).residuals;
+        let cand = |m: Mechanism, cov: Option<&str>| Candidate {
+            mechanism: m,
+            joint: None,
+            joint_xy_m: None,
+            covariate: cov.map(String::from),
+            point_xy_m: None,
+            point_located: None,
+            reason: String::new(),
+        };
+        let t = cand(Mechanism::TemperatureStiffness, Some("temperature_c"));
+        let m = cand(Mechanism::AddedMass, None);
+        let own_t = MisfitParts::own_share(&t, &loc, &both, &after_temperature, &opts).unwrap();
+        let own_m = MisfitParts::own_share(&m, &loc, &both, &after_mass, &opts).unwrap();
+        assert!(
+            own_t < 0.1,
+            "seed {seed}: the temperature refit leaves {own_t} of the trend"
+        );
+        assert!(
+            own_m < 0.1,
+            "seed {seed}: the mass refit leaves {own_m} of the mean shifts"
+        );
+        // Judged on the other's part, each leaves (almost) all of it.
+        let cross_t =
+            misfit::remaining_share(&loc, &mode_means(&after_temperature, &opts)).unwrap();
+        let cross_m =
+            misfit::covariate_share(&loc, &both, &after_mass, "temperature_c", &opts).unwrap();
+        assert!(cross_t > 0.8 && cross_m > 0.8, "{cross_t} {cross_m}");
+        let mut parts = MisfitParts::new(&loc);
+        parts.record_favoured(&loc, &both, &after_temperature, &opts);
+        assert!(!parts.all_explained(0.2));
+        let left = parts.unexplained(0.2).unwrap();
+        assert!(
+            left.contains("mean shifts") && !left.contains("temperature"),
+            "{left}"
+        );
+        parts.record_favoured(&loc, &both, &after_mass, &opts);
+        assert!(parts.all_explained(0.2), "{:?}", parts.unexplained(0.2));
+    }
 }

@@ -6,5 +6,6 @@
 pub mod library;
 pub mod localize;
 pub mod locate;
+pub mod misfit;
 pub mod screen;
 pub mod select;

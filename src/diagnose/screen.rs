@@ -92,18 +92,35 @@ pub struct PointLocated {
 /// Attach a point mass to the `added_mass` candidate: its location, the reason, and when
 /// `located` is `Some(location Occam factor)` the candidate moves ahead of
 /// `local_stiffness_loss` and the joint mechanisms (the frequency signature of a mass at that
-/// point explains the misfit) and becomes refittable.
+/// point explains the misfit) and becomes refittable. A located point adds the candidate
+/// where the screening did not list it: a covariate trend keeps the board mechanisms out of
+/// the screening (it explains a free-free misfit by itself), but a mass that explains the
+/// free-free mean shifts is a second effect the trend cannot make.
 pub fn attach_point_mass(
     cands: &mut Vec<Candidate>,
     xy_m: [f64; 2],
     located: Option<PointLocated>,
     why: &str,
 ) {
-    let Some(i) = cands
+    let i = match cands
         .iter()
         .position(|c| c.mechanism == Mechanism::AddedMass)
-    else {
-        return;
+    {
+        Some(i) => i,
+        None if located.is_some() => {
+            cands.push(Candidate {
+                mechanism: Mechanism::AddedMass,
+                joint: None,
+                joint_xy_m: None,
+                covariate: None,
+                point_xy_m: None,
+                point_located: None,
+                reason: "the free-free mean shifts remain once the covariate trend is set aside"
+                    .into(),
+            });
+            cands.len() - 1
+        }
+        None => return,
     };
     let mut c = cands.remove(i);
     c.point_xy_m = Some(xy_m);
@@ -388,5 +405,39 @@ mod tests {
         attach_point_mass(&mut d, [0.01, 0.01], None, "weak");
         assert_eq!(d[1].mechanism, Mechanism::AddedMass);
         assert!(!d[1].refittable(), "a point not located is not refitted");
+    }
+
+    /// Two effects: a temperature trend keeps `added_mass` out of the screening, but a located
+    /// point mass adds it, right after the covariate's candidate; a point not located does not.
+    #[test]
+    fn a_located_point_mass_is_a_candidate_beside_a_temperature_trend() {
+        let mut l = located();
+        l.modes = vec![mode("free"), mode("bolted")];
+        l.covariates = vec![LocatedCovariate {
+            setup: "free".into(),
+            covariate: "temperature_c".into(),
+            q_value: 1e-9,
+            slope_rel_per_unit: Some(-2e-3),
+            unit: "°C".into(),
+        }];
+        let mut c = screen(&l, &Board::default_board());
+        let before = c.len();
+        attach_point_mass(&mut c, [0.01, 0.01], None, "weak");
+        assert_eq!(c.len(), before, "a point not located adds nothing");
+        attach_point_mass(
+            &mut c,
+            [0.058, 0.030],
+            Some(PointLocated {
+                log_occam: -5.0,
+                location_ln_mass_sd: 0.02,
+            }),
+            "a point mass there explains the free-free mean shifts",
+        );
+        assert_eq!(
+            ids(&c)[..3],
+            ["temperature_stiffness", "added_mass", "joint_rotation"]
+        );
+        assert!(c[1].refittable());
+        assert_eq!(c[1].point_xy_m, Some([0.058, 0.030]));
     }
 }

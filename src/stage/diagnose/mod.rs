@@ -15,6 +15,7 @@ pub mod regions;
 
 use crate::diagnose::library::{is_board_mechanism, Mechanism};
 use crate::diagnose::locate::{self, LocateOptions, Located, ModeCheck};
+use crate::diagnose::misfit::MisfitParts;
 use crate::diagnose::screen::{self, Candidate};
 use crate::diagnose::select::{
     self, Compared, Estimate, Refit, SelectOptions, SetupError, Verdict,
@@ -724,12 +725,14 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         } else {
             None
         };
+        let mut parts = MisfitParts::new(&located);
         {
             // Joint mechanisms need step 2; board mechanisms only step 1. The refits stop
-            // once one is favoured and leaves at most STOP_REMAINING_SHARE of the located
-            // misfit: the rest of the candidates were screened for a misfit that is then
-            // explained, and each would cost a sampler's run (the per-joint refits of a
-            // campaign whose joints fit are the slowest); they are reported as not refitted.
+            // once every part of the located misfit (the mean shifts, each covariate trend)
+            // has a favoured refit that leaves at most STOP_REMAINING_SHARE of it: the rest
+            // of the candidates were screened for a misfit that is then explained, and each
+            // would cost a sampler's run (the per-joint refits of a campaign whose joints
+            // fit are the slowest); they are reported as not refitted.
             let base_ref = baseline.as_ref().unwrap_or(&baseline1);
             for cand in candidates
                 .iter()
@@ -747,10 +750,14 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                     ),
                     verbose,
                 );
-                if r.failed.is_none() {
-                    let modes = refit_mode_means(&opts.out.join(&r.dir), &opts.locate)?;
-                    r.remaining_share = remaining_share(&located, &modes);
-                }
+                let after = if r.failed.is_none() {
+                    let after = refit_residuals(&opts.out.join(&r.dir))?;
+                    r.remaining_share =
+                        MisfitParts::own_share(cand, &located, &input, &after, &opts.locate);
+                    after
+                } else {
+                    vec![]
+                };
                 eprintln!(
                     "diagnose: refit {} in {:.1} s{}",
                     cand.id(),
@@ -760,12 +767,14 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                         .map(|e| format!(": failed: {e}"))
                         .unwrap_or_default()
                 );
-                let explained = r.remaining_share.is_some_and(|x| x <= STOP_REMAINING_SHARE)
-                    && select::compare(base_ref, std::slice::from_ref(&r), &opts.select)
-                        .first()
-                        .is_some_and(|c| c.favoured);
+                if select::compare(base_ref, std::slice::from_ref(&r), &opts.select)
+                    .first()
+                    .is_some_and(|c| c.favoured)
+                {
+                    parts.record_favoured(&located, &input, &after, &opts.locate);
+                }
                 refits.push(r);
-                if explained {
+                if parts.all_explained(STOP_REMAINING_SHARE) {
                     break;
                 }
             }
@@ -785,6 +794,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             &candidates,
             &compared,
             verdict,
+            parts.unexplained(STOP_REMAINING_SHARE),
             findings,
             verbose,
         )
@@ -795,9 +805,8 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
 /// remaining candidates are not refitted.
 const STOP_REMAINING_SHARE: f64 = 0.2;
 
-/// Each mode's misfit after a refit: its step 2's residuals and, for a board mechanism, its
-/// step 1's (`boards/`).
-fn refit_mode_means(dir: &Path, lopts: &LocateOptions) -> anyhow::Result<Vec<ModeCheck>> {
+/// A refit's residuals: its step 2's and, for a board mechanism, its step 1's (`boards/`).
+fn refit_residuals(dir: &Path) -> anyhow::Result<Vec<locate::ResidualObs>> {
     let mut obs = vec![];
     for p in [
         dir.join("residuals.parquet"),
@@ -807,29 +816,7 @@ fn refit_mode_means(dir: &Path, lopts: &LocateOptions) -> anyhow::Result<Vec<Mod
             obs.extend(inputs::read_residuals(&p)?);
         }
     }
-    Ok(locate::mode_means(&obs, lopts))
-}
-
-/// Σ |mean relative residual| over the located modes after a refit (`after`) over the same
-/// before; a located mode the refit has no row for (a setup it did not refit) keeps its
-/// baseline value. `None` without a located mode.
-fn remaining_share(located: &Located, after: &[ModeCheck]) -> Option<f64> {
-    let (mut before, mut left) = (0.0, 0.0);
-    for l in &located.modes {
-        let Some(b) = located
-            .mode_checks
-            .iter()
-            .find(|m| m.setup == l.setup && m.label == l.label)
-        else {
-            continue;
-        };
-        before += b.mean_rel_residual.abs();
-        left += after
-            .iter()
-            .find(|m| m.setup == l.setup && m.label == l.label)
-            .map_or(b.mean_rel_residual.abs(), |m| m.mean_rel_residual.abs());
-    }
-    (before > 0.0).then(|| left / before)
+    Ok(obs)
 }
 
 /// The board regions and the screened candidates, a located point mass attached (the same
@@ -910,6 +897,7 @@ fn write_outputs(
     candidates: &[Candidate],
     compared: &[Compared],
     verdict: Verdict,
+    unexplained: Option<String>,
     mut findings: Findings,
     verbose: bool,
 ) -> anyhow::Result<StageResult> {
@@ -990,7 +978,10 @@ fn write_outputs(
         .collect();
     let remaining = match verdict {
         Verdict::NoMissingPhysics => "none: no setup, mode, measurement or covariate misfits beyond the tolerance".to_string(),
-        Verdict::MechanismFound => "see the best candidate's refit residuals (refits/<id>/residuals.parquet); the located evidence below is the baseline's".to_string(),
+        Verdict::MechanismFound => match &unexplained {
+            Some(p) => format!("{p}: no favoured mechanism explains this part of the located misfit (none leaves at most {:.0} % of it); the favoured refits' residuals are in refits/<id>/residuals.parquet, the located evidence below is the baseline's", 100.0 * STOP_REMAINING_SHARE),
+            None => "see the best candidate's refit residuals (refits/<id>/residuals.parquet); the located evidence below is the baseline's".to_string(),
+        },
         Verdict::UnexplainedMisfit => format!(
             "located but not explained by any refitted mechanism: setups {:?}, modes {:?}, measurements {:?}, covariates {:?}{}",
             located.setups,
@@ -1014,6 +1005,13 @@ fn write_outputs(
             rows.first()
                 .map(sentence)
                 .unwrap_or_else(|| remaining.clone()),
+        ));
+    }
+    if let (Verdict::MechanismFound, Some(p)) = (verdict, &unexplained) {
+        findings.push(Finding::new(
+            Severity::Warning,
+            "diagnose.remaining_discrepancy",
+            format!("besides the mechanism(s) found, {p} remain(s) unexplained: {remaining}"),
         ));
     }
     for o in &located.identification_outliers {
@@ -1148,9 +1146,12 @@ fn write_outputs(
             continue;
         };
         mode_rows.extend(
-            refit_mode_means(&opts.out.join(&c.refit.dir), &opts.locate)?
-                .into_iter()
-                .map(|m| (r.cand.id(), m)),
+            locate::mode_means(
+                &refit_residuals(&opts.out.join(&c.refit.dir))?,
+                &opts.locate,
+            )
+            .into_iter()
+            .map(|m| (r.cand.id(), m)),
         );
     }
     let is_located = |m: &ModeCheck| {

@@ -1,0 +1,172 @@
+//! The parts of a located misfit and the share of each a refit leaves: the mean shifts of
+//! the located modes, and each located covariate's trend. A mechanism is judged on the part
+//! it was screened for, and the diagnosis stops refitting once every part is explained. Pure
+//! over [`Located`], the locate input and a refit's residuals.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use super::locate::{self, LocateOptions, Located, ModeCheck, ResidualObs};
+use super::screen::Candidate;
+
+/// The located modes whose mean shift is the misfit a mechanism must remove: those located
+/// for a mean shift. Where none is and no covariate trend was located either (a misfit of
+/// scatter alone, e.g. outlier measurements), every located mode.
+pub fn mean_shift_modes(located: &Located) -> Vec<&locate::LocatedMode> {
+    let shifted: Vec<_> = located
+        .modes
+        .iter()
+        .filter(|m| m.reasons.iter().any(|r| r == "mean_shift"))
+        .collect();
+    if shifted.is_empty() && located.covariates.is_empty() {
+        located.modes.iter().collect()
+    } else {
+        shifted
+    }
+}
+
+/// Σ |mean relative residual| over the mean-shift modes ([`mean_shift_modes`]) after a refit
+/// (`after`) over the same before; a located mode the refit has no row for (a setup it did
+/// not refit) keeps its baseline value. `None` without such a mode.
+pub fn remaining_share(located: &Located, after: &[ModeCheck]) -> Option<f64> {
+    let (mut before, mut left) = (0.0, 0.0);
+    for l in mean_shift_modes(located) {
+        let Some(b) = located
+            .mode_checks
+            .iter()
+            .find(|m| m.setup == l.setup && m.label == l.label)
+        else {
+            continue;
+        };
+        before += b.mean_rel_residual.abs();
+        left += after
+            .iter()
+            .find(|m| m.setup == l.setup && m.label == l.label)
+            .map_or(b.mean_rel_residual.abs(), |m| m.mean_rel_residual.abs());
+    }
+    (before > 0.0).then(|| left / before)
+}
+
+/// The share of a located covariate's trend a refit leaves: Σ over the setups where the trend
+/// was located of its effect (|slope| × the covariate's range, [`locate::covariate_effects`])
+/// on the refit's residuals, over the same on the baseline's. A setup the refit did not touch
+/// keeps the baseline's rows. `None` when the covariate's trend was not located.
+pub fn covariate_share(
+    located: &Located,
+    input: &locate::LocateInput,
+    after: &[ResidualObs],
+    covariate: &str,
+    lopts: &LocateOptions,
+) -> Option<f64> {
+    let setups: BTreeSet<&str> = located
+        .covariates
+        .iter()
+        .filter(|c| c.covariate == covariate)
+        .map(|c| c.setup.as_str())
+        .collect();
+    let effect = |tests: &[locate::CovariateTest]| -> f64 {
+        tests
+            .iter()
+            .filter(|t| t.covariate == covariate && setups.contains(t.setup.as_str()))
+            .map(|t| t.effect_rel)
+            .sum()
+    };
+    let before = effect(&located.covariate_tests);
+    if setups.is_empty() || before <= 0.0 {
+        return None;
+    }
+    let refitted: BTreeSet<&str> = after.iter().map(|r| r.setup.as_str()).collect();
+    let mut merged = locate::LocateInput {
+        residuals: after.to_vec(),
+        ..input.clone()
+    };
+    merged.residuals.extend(
+        input
+            .residuals
+            .iter()
+            .filter(|r| !refitted.contains(r.setup.as_str()))
+            .cloned(),
+    );
+    Some(effect(&locate::covariate_effects(&merged, lopts)) / before)
+}
+
+/// The parts of a located misfit, each of which some mechanism must explain: the mean shifts
+/// ([`remaining_share`]) and each located covariate's trend ([`covariate_share`]). A
+/// covariate mechanism is judged on its covariate's trend, every other mechanism on the mean
+/// shifts: two effects at once (a temperature drift and a mass) are then two findings, each
+/// explaining its part, where one share over both would make each leave the other's.
+#[derive(Debug, Default)]
+pub struct MisfitParts {
+    /// Share of the mean shifts each refit left (`None`: no mean shift located).
+    modes: Option<Vec<f64>>,
+    /// Per located covariate, the share of its trend each refit left.
+    covariates: BTreeMap<String, Vec<f64>>,
+}
+
+impl MisfitParts {
+    pub fn new(located: &Located) -> Self {
+        MisfitParts {
+            modes: remaining_share(located, &[]).map(|_| vec![]),
+            covariates: located
+                .covariates
+                .iter()
+                .map(|c| (c.covariate.clone(), vec![]))
+                .collect(),
+        }
+    }
+
+    /// Record a favoured refit's shares of every part; returns the candidate's own share
+    /// (its covariate's trend, or the mean shifts).
+    pub fn own_share(
+        cand: &Candidate,
+        located: &Located,
+        input: &locate::LocateInput,
+        after: &[ResidualObs],
+        lopts: &LocateOptions,
+    ) -> Option<f64> {
+        match &cand.covariate {
+            Some(c) => covariate_share(located, input, after, c, lopts),
+            None => remaining_share(located, &locate::mode_means(after, lopts)),
+        }
+    }
+
+    /// Count a favoured refit: the share it leaves of every part.
+    pub fn record_favoured(
+        &mut self,
+        located: &Located,
+        input: &locate::LocateInput,
+        after: &[ResidualObs],
+        lopts: &LocateOptions,
+    ) {
+        if let Some(v) = &mut self.modes {
+            if let Some(s) = remaining_share(located, &locate::mode_means(after, lopts)) {
+                v.push(s);
+            }
+        }
+        for (c, v) in self.covariates.iter_mut() {
+            if let Some(s) = covariate_share(located, input, after, c, lopts) {
+                v.push(s);
+            }
+        }
+    }
+
+    /// Every part explained: a favoured refit left at most `share` of it.
+    pub fn all_explained(&self, share: f64) -> bool {
+        let done = |v: &Vec<f64>| v.iter().any(|s| *s <= share);
+        self.modes.as_ref().is_none_or(done) && self.covariates.values().all(done)
+    }
+
+    /// The parts no favoured refit explained, in words (`None`: all explained).
+    pub fn unexplained(&self, share: f64) -> Option<String> {
+        let done = |v: &Vec<f64>| v.iter().any(|s| *s <= share);
+        let mut parts = vec![];
+        if self.modes.as_ref().is_some_and(|v| !done(v)) {
+            parts.push("the located modes' mean shifts".to_string());
+        }
+        for (c, v) in &self.covariates {
+            if !done(v) {
+                parts.push(format!("the trend with the sheet's {c}"));
+            }
+        }
+        (!parts.is_empty()).then(|| parts.join(" and "))
+    }
+}
