@@ -30,7 +30,9 @@ PARAMETER = {
 
 def main():
     work, name, secs = sys.argv[1], sys.argv[2], sys.argv[3]
-    d = json.load(open(f"{work}/diagnose/diagnosis.json"))
+    # An optional fourth argument: the diagnosis directory (default WORK/diagnose).
+    ddir = sys.argv[4] if len(sys.argv) > 4 else f"{work}/diagnose"
+    d = json.load(open(f"{ddir}/diagnosis.json"))
     t = json.load(open(f"{work}/truth.json"))
     on = [e for e in t["effects"] if e["enabled"]]
     print(f"== {name}: verdict {d['verdict']} in {secs} s")
@@ -68,11 +70,15 @@ def main():
         print(f"   verdict: {'PASS' if ok else 'FAIL'} ({d['verdict']}, findings "
               f"{[f['mechanism'] for f in d['findings']]})")
         P = eff["parameters"]
+        near = False
         for r in loc.get("board_regions", []):
             fx = r["fit"]
             dist = ((fx["x_m"] - P["x_m"]) ** 2 + (fx["y_m"] - P["y_m"]) ** 2) ** 0.5
-            print(f"   board region ({r['mechanism']} signature, located {r['located']}): "
+            near = near or (r["located"] and dist <= 0.010)
+            print(f"   board region ({r['mechanism']} signature, located {r['located']}, amplitude "
+                  f"{fx.get('amplitude')} {r.get('amplitude_unit', '')}): "
                   f"({1e3 * fx['x_m']:.0f}, {1e3 * fx['y_m']:.0f}) mm, {1e3 * dist:.1f} mm from the disc's centre")
+        print(f"   located within 10 mm: {'PASS' if near else 'FAIL'}")
         print(f"   remaining discrepancy: {str(d.get('remaining_discrepancy'))[:300]}")
         return
     want = MECHANISM[eff["key"]]

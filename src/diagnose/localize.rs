@@ -1,5 +1,8 @@
-//! Where on the board: sensitivity-based localisation of a missing point mass from the
-//! free-free frequency residuals (pure).
+//! Where on the board: sensitivity-based localisation of a missing point mass, or of a
+//! local stiffness change, from the free-free frequency residuals (pure). The kernel fits
+//! one amplitude at every point of a grid, given each point's signature; the point mass's
+//! signature is derived below, a stiffness change's (either sign, `positive_only = false`)
+//! is ½ (f − 1) E_jj / λ_j with E the changed stiffness as a form on the modes.
 //!
 //! A point mass δm at (x, y) on a board whose weighed mass the model spreads over its area
 //! changes each mode's frequency, to first order, by
@@ -55,6 +58,9 @@ pub struct LocalizeInput<'a> {
     pub signature: &'a [Vec<f64>],
     /// The exact frequency change of a point mass in a modal basis (`None`: first order).
     pub exact: Option<ModalBasis<'a>>,
+    /// Only a positive amplitude is physical (a mass); `false`: either sign (a stiffness
+    /// change, stiffer or softer).
+    pub positive_only: bool,
 }
 
 /// A truncated modal basis of the board: the exact eigenvalues of the board with a point
@@ -210,16 +216,17 @@ fn exact_fit(
     (d.max(0.0), m, 1.0 / jj.sqrt())
 }
 
-/// The located point mass.
+/// A located local change: a point mass, or a change of stiffness over a small disc.
 #[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
-pub struct PointMassFit {
+pub struct LocalFit {
     /// Best point, m.
     pub x_m: f64,
     pub y_m: f64,
-    /// Weighted least-squares mass at the best point, kg, and its standard error (scaled by
-    /// the reduced χ² when above one).
-    pub mass_kg: f64,
-    pub mass_se_kg: f64,
+    /// Weighted least-squares amplitude at the best point and its standard error (scaled by
+    /// the reduced χ² when above one): a point mass's mass in kg, or a stiffness change's
+    /// factor − 1 (see the region's `amplitude_unit`).
+    pub amplitude: f64,
+    pub amplitude_se: f64,
     /// χ² of the residuals off the parameters' span, before and after the point mass.
     pub chi2_before: f64,
     pub chi2_after: f64,
@@ -246,22 +253,23 @@ pub struct PointMassFit {
     /// uniform over the board (Laplace's approximation over the location; the look-elsewhere
     /// penalty of having chosen the point from the data). ≤ 0.
     pub log_location_occam: f64,
-    /// The sd of ln(mass) over the location's uncertainty: of the fitted mass at the points
-    /// of the best point's part of the grid, weighted by the same likelihood ratios. A fit at
-    /// a fixed point is conditional on it; this is what the point's uncertainty adds.
-    pub location_ln_mass_sd: f64,
-    /// Δχ² of every candidate point (the order of `points_m`; 0 where no positive mass
-    /// fits) and the χ² inflation s of the region threshold; not written out.
+    /// The sd of ln|amplitude| over the location's uncertainty: of the fitted amplitude at
+    /// the points of the best point's part of the grid, weighted by the same likelihood
+    /// ratios. A fit at a fixed point is conditional on it; this is what the point's
+    /// uncertainty adds.
+    pub location_ln_amplitude_sd: f64,
+    /// Δχ² of every candidate point (the order of `points_m`; 0 where no amplitude of the
+    /// allowed sign fits) and the χ² inflation s of the region threshold; not written out.
     #[serde(skip)]
     #[schemars(skip)]
     pub delta_chi2: Vec<f64>,
     #[serde(skip)]
     #[schemars(skip)]
     pub inflation: f64,
-    /// The fitted mass at every candidate point, kg; not written out.
+    /// The fitted amplitude at every candidate point; not written out.
     #[serde(skip)]
     #[schemars(skip)]
-    pub mass_kg_at: Vec<f64>,
+    pub amplitude_at: Vec<f64>,
 }
 
 /// The weighted standard deviation of the values of (weight, value) pairs; 0 when empty.
@@ -326,7 +334,7 @@ pub const CHI2_2_Q999: f64 = 13.815_510_557_964_274;
 /// Locate a point mass; `None` when there are too few modes (at least the independent
 /// nuisance parameters + 3 are needed), no finite standard error, or no point gives a positive
 /// mass. `min_separation_m` separates alternatives from the best point.
-pub fn localize_point_mass(inp: &LocalizeInput, min_separation_m: f64) -> Option<PointMassFit> {
+pub fn localize_point_mass(inp: &LocalizeInput, min_separation_m: f64) -> Option<LocalFit> {
     localize_point_mass_at(inp, min_separation_m, None)
 }
 
@@ -338,7 +346,7 @@ pub fn localize_point_mass_at(
     inp: &LocalizeInput,
     min_separation_m: f64,
     at: Option<usize>,
-) -> Option<PointMassFit> {
+) -> Option<LocalFit> {
     let n = inp.modes.len();
     if n == 0
         || inp.points_m.len() != inp.signature.len()
@@ -379,7 +387,11 @@ pub fn localize_point_mass_at(
                 return (0.0, 0.0, f64::INFINITY);
             }
             let amp = dot(&v, &r) / ss;
-            let d = if amp > 0.0 { amp * amp * ss } else { 0.0 };
+            let d = if amp > 0.0 || (!inp.positive_only && amp < 0.0) {
+                amp * amp * ss
+            } else {
+                0.0
+            };
             (d, amp, 1.0 / ss.sqrt())
         })
         .collect();
@@ -462,21 +474,21 @@ pub fn localize_point_mass_at(
     let weighted: Vec<(f64, f64)> = (0..fits.len())
         .filter(|&i| {
             let p = inp.points_m[i];
-            fits[i].1 > 0.0 && others.iter().all(|o| dist(p, [bx, by]) <= dist(p, *o))
+            fits[i].1 * amp > 0.0 && others.iter().all(|o| dist(p, [bx, by]) <= dist(p, *o))
         })
         .map(|i| {
             (
                 (-(d_best - fits[i].0).max(0.0) / (2.0 * inflation)).exp(),
-                fits[i].1.ln(),
+                fits[i].1.abs().ln(),
             )
         })
         .collect();
-    let location_ln_mass_sd = weighted_sd(&weighted);
-    Some(PointMassFit {
+    let location_ln_amplitude_sd = weighted_sd(&weighted);
+    Some(LocalFit {
         x_m: bx,
         y_m: by,
-        mass_kg: amp,
-        mass_se_kg: se0 * inflation.sqrt(),
+        amplitude: amp,
+        amplitude_se: se0 * inflation.sqrt(),
         chi2_before,
         chi2_after,
         dof_after,
@@ -490,10 +502,10 @@ pub fn localize_point_mass_at(
         region_points: in_region.len(),
         alternatives,
         log_location_occam,
-        location_ln_mass_sd,
+        location_ln_amplitude_sd,
         delta_chi2: fits.iter().map(|f| f.0).collect(),
         inflation,
-        mass_kg_at: fits.iter().map(|f| f.1).collect(),
+        amplitude_at: fits.iter().map(|f| f.1).collect(),
     })
 }
 
@@ -565,13 +577,14 @@ mod tests {
         nuisance: &[Vec<f64>],
         points: &[[f64; 2]],
         sig: &[Vec<f64>],
-    ) -> Option<PointMassFit> {
+    ) -> Option<LocalFit> {
         let inp = LocalizeInput {
             modes,
             nuisance,
             points_m: points,
             signature: sig,
             exact: None,
+            positive_only: true,
         };
         localize_point_mass(&inp, 0.01)
     }
@@ -628,7 +641,7 @@ mod tests {
             (fit.x_m - x0).abs() <= 0.0025 && (fit.y_m - y0).abs() <= 0.0025,
             "{fit:?}"
         );
-        assert!((fit.mass_kg / dm - 1.0).abs() < 0.1, "{fit:?}");
+        assert!((fit.amplitude / dm - 1.0).abs() < 0.1, "{fit:?}");
         assert!(fit.explained_share > 0.9, "{fit:?}");
         assert!(fit.p_value < 1e-6, "{fit:?}");
         // The location's Occam factor: between one grid point of the board's and all of

@@ -13,7 +13,10 @@
 //! - a numeric covariate trend → `temperature_stiffness` when the column is a temperature
 //!   (its name or unit says so), with the covariate named;
 //! - free-free modes misfit without a covariate → `added_mass` and `local_stiffness_loss`
-//!   (they act in both setups), before the joint mechanisms (which cannot touch free-free).
+//!   (they act in both setups), before the joint mechanisms (which cannot touch free-free);
+//! - a located point mass or stiffness loss (the localisation, [`attach_point_mass`],
+//!   [`attach_stiffness_loss`]) moves its mechanism first, with its location; a located
+//!   point mass is a candidate even beside a covariate trend (two effects at once).
 //!
 //! The joint mechanisms have a step-2 refit (`update joints --enrich`),
 //! `temperature_stiffness` a step-1 one (`update boards --enrich`, on the named covariate);
@@ -80,11 +83,11 @@ impl Candidate {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct PointLocated {
     /// The location's Occam factor
-    /// ([`crate::diagnose::localize::PointMassFit::log_location_occam`]), added to the
+    /// ([`crate::diagnose::localize::LocalFit::log_location_occam`]), added to the
     /// refit's log evidence.
     pub log_occam: f64,
     /// The sd of ln(mass) that the location's uncertainty adds
-    /// ([`crate::diagnose::localize::PointMassFit::location_ln_mass_sd`]): the refit's mass
+    /// ([`crate::diagnose::localize::LocalFit::location_ln_mass_sd`]): the refit's mass
     /// interval, conditional on the point, is widened by it.
     pub location_ln_mass_sd: f64,
 }
@@ -135,6 +138,27 @@ pub fn attach_point_mass(
         i
     };
     cands.insert(at.min(cands.len()), c);
+}
+
+/// Attach a located stiffness loss to the `local_stiffness_loss` candidate: its location and
+/// the reason; it moves ahead of the joint mechanisms (after a covariate's candidate) and
+/// before `added_mass` (the stiffness signature explained more than the point mass's). It has
+/// no refit: it is reported with its location and no Bayes factor.
+pub fn attach_stiffness_loss(cands: &mut Vec<Candidate>, xy_m: [f64; 2], why: &str) {
+    let Some(i) = cands
+        .iter()
+        .position(|c| c.mechanism == Mechanism::LocalStiffnessLoss)
+    else {
+        return;
+    };
+    let mut c = cands.remove(i);
+    c.point_xy_m = Some(xy_m);
+    c.reason = format!("{}; {}", c.reason, why.trim_end_matches('.'));
+    let at = cands
+        .iter()
+        .position(|c| c.mechanism != Mechanism::TemperatureStiffness)
+        .unwrap_or(cands.len());
+    cands.insert(at, c);
 }
 
 fn is_temperature(name: &str, unit: &str) -> bool {
@@ -405,6 +429,12 @@ mod tests {
         attach_point_mass(&mut d, [0.01, 0.01], None, "weak");
         assert_eq!(d[1].mechanism, Mechanism::AddedMass);
         assert!(!d[1].refittable(), "a point not located is not refitted");
+        // A located stiffness loss moves first with its location, and is not refitted.
+        attach_stiffness_loss(&mut d, [0.024, 0.033], "a loss there explains it.");
+        assert_eq!(d[0].mechanism, Mechanism::LocalStiffnessLoss);
+        assert_eq!(d[0].location_json()["y_m"], 0.033);
+        assert!(d[0].reason.ends_with("a loss there explains it"));
+        assert!(!d[0].refittable());
     }
 
     /// Two effects: a temperature trend keeps `added_mass` out of the screening, but a located

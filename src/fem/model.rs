@@ -1050,10 +1050,6 @@ impl FeModel {
                 h.x_m, h.y_m
             )));
         }
-        let c = &self.board.core;
-        let h = c.thickness_m;
-        let q_core = orthotropic_q(c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy);
-        let (_, _, d_core) = layer_factors(-h / 2.0, h / 2.0);
         let core_names = ["core_q11", "core_q22", "core_q12", "core_q66"];
         let idx: Vec<usize> = core_names
             .iter()
@@ -1064,8 +1060,42 @@ impl FeModel {
                     .ok_or_else(|| FemError::Mesh(format!("no core term {n}")))
             })
             .collect::<Result<_, _>>()?;
+        let (elements, qd) = self.core_disc(x_m, y_m, radius_m);
+        let touched = elements.len();
+        for (dofs, disc) in elements {
+            for k in 0..4 {
+                let s = (factor - 1.0) * qd[k];
+                for r in 0..16 {
+                    for cc in 0..16 {
+                        let q = self.pattern.index(dofs[r], dofs[cc]);
+                        self.k_terms[idx[k]][q] += s * disc.k[k][r][cc];
+                    }
+                }
+            }
+        }
+        if touched == 0 {
+            return Err(FemError::Mesh(format!(
+                "core stiffness change: the disc at ({x_m}, {y_m}) m covers no element"
+            )));
+        }
+        Ok(())
+    }
+
+    /// The elements a disc of the board overlaps, each with its DOFs and the disc's part of
+    /// its unit bending matrices (cut-cell quadrature), and the core's factors Q_k h³/12 (at
+    /// the board file's core moduli) that turn them into the core's bending stiffness.
+    fn core_disc(
+        &self,
+        x_m: f64,
+        y_m: f64,
+        radius_m: f64,
+    ) -> (Vec<([usize; 16], ElementMatrices)>, [f64; 4]) {
+        let c = &self.board.core;
+        let h = c.thickness_m;
+        let q_core = orthotropic_q(c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy);
+        let (_, _, d_core) = layer_factors(-h / 2.0, h / 2.0);
         let (a, b) = (self.mesh.a_m, self.mesh.b_m);
-        let mut touched = 0;
+        let mut out = vec![];
         for ey in 0..self.mesh.ny {
             for ex in 0..self.mesh.nx {
                 if !self.mesh.active[ey * self.mesh.nx + ex] {
@@ -1084,24 +1114,58 @@ impl FeModel {
                     m: [[0.0; 16]; 16],
                 };
                 disc.add_points(&pts, rect.x0, rect.y0, a, b, 1.0);
-                for k in 0..4 {
-                    let s = (factor - 1.0) * q_core[k] * d_core;
-                    for r in 0..16 {
-                        for cc in 0..16 {
-                            let q = self.pattern.index(dofs[r], dofs[cc]);
-                            self.k_terms[idx[k]][q] += s * disc.k[k][r][cc];
-                        }
-                    }
-                }
-                touched += 1;
+                out.push((dofs, disc));
             }
         }
-        if touched == 0 {
-            return Err(FemError::Mesh(format!(
-                "core stiffness change: the disc at ({x_m}, {y_m}) m covers no element"
-            )));
+        (out, q_core.map(|q| q * d_core))
+    }
+
+    /// The core's bending stiffness over a disc, as a form on the columns of `vectors`
+    /// (DOF vectors, e.g. mode shapes): E_jk = v_jᵀ K_disc v_k, with K_disc the core's
+    /// bending stiffness (board file's core moduli) over the disc of radius `radius_m` at
+    /// (x_m, y_m), clipped to the board. A core stiffness change of factor f there changes
+    /// an eigenvalue by (f − 1) E_jj to first order, and couples the modes by (f − 1) E_jk:
+    /// the signature of a local stiffness change for the diagnosis's localisation.
+    pub fn core_stiffness_form(
+        &self,
+        x_m: f64,
+        y_m: f64,
+        radius_m: f64,
+        vectors: faer::MatRef<'_, f64>,
+    ) -> Mat<f64> {
+        let n = vectors.ncols();
+        let mut e = Mat::<f64>::zeros(n, n);
+        let (elements, qd) = self.core_disc(x_m, y_m, radius_m);
+        for (dofs, disc) in elements {
+            let mut kel = [[0.0; 16]; 16];
+            for (k, q) in qd.iter().enumerate() {
+                for r in 0..16 {
+                    for c in 0..16 {
+                        kel[r][c] += q * disc.k[k][r][c];
+                    }
+                }
+            }
+            // K_el v_k restricted to the element, then v_jᵀ of it.
+            let kv: Vec<[f64; 16]> = (0..n)
+                .map(|k| {
+                    let mut out = [0.0; 16];
+                    for r in 0..16 {
+                        out[r] = (0..16).map(|c| kel[r][c] * vectors[(dofs[c], k)]).sum();
+                    }
+                    out
+                })
+                .collect();
+            for j in 0..n {
+                for k in j..n {
+                    let v: f64 = (0..16).map(|r| vectors[(dofs[r], j)] * kv[k][r]).sum();
+                    e[(j, k)] += v;
+                    if k != j {
+                        e[(k, j)] += v;
+                    }
+                }
+            }
         }
-        Ok(())
+        e
     }
 
     fn interp_row(&self, x_m: f64, y_m: f64) -> Result<[(usize, f64); 16], FemError> {

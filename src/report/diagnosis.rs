@@ -39,6 +39,7 @@ pub struct LocatedView {
 #[serde(default)]
 pub struct RegionView {
     pub mechanism: String,
+    pub amplitude_unit: String,
     pub located: bool,
     pub fit: RegionFitView,
     pub sentence: String,
@@ -49,8 +50,8 @@ pub struct RegionView {
 pub struct RegionFitView {
     pub x_m: Option<f64>,
     pub y_m: Option<f64>,
-    pub mass_kg: Option<f64>,
-    pub mass_se_kg: Option<f64>,
+    pub amplitude: Option<f64>,
+    pub amplitude_se: Option<f64>,
     pub region_radius_m: Option<f64>,
     pub explained_share: Option<f64>,
     pub p_value: Option<f64>,
@@ -307,18 +308,19 @@ pub const NEVER_SEEN: TableSpec = TableSpec {
 
 pub const REGIONS: TableSpec = TableSpec {
     name: "diagnosis_board_regions",
-    doc: "Where on the board (diagnosis.json: located.board_regions): the point-mass localisation of the free-free misfit, the best point of a grid over the board, the mass there, the 90 % region's radius, the share of the misfit (off the board parameters' span) it explains, and the places the frequencies cannot tell apart from it.",
+    doc: "Where on the board (diagnosis.json: located.board_regions): the localisations of the free-free misfit, one row per signature (a point mass, `added_mass`; a change of the core's bending stiffness over a small disc, `local_stiffness_loss`, either sign): the best point of a grid over the board, the amplitude there (a mass in g, or the stiffness factor − 1), the 90 % region's radius, the share of the misfit (off the board parameters' span) it explains, and the places the frequencies cannot tell apart from it. Where both signatures pass the rule, only the one explaining more is located.",
     open: false,
     columns: &[
         c("mechanism", Col::Utf8, false, "", "Mechanism whose signature was fitted."),
         c("located", Col::Bool, false, "", "Significant and explains at least half the misfit."),
         c("x_mm", Col::Float64, true, "mm", "Best point, x."),
         c("y_mm", Col::Float64, true, "mm", "Best point, y."),
-        c("mass_g", Col::Float64, true, "g", "Least-squares mass at the best point."),
-        c("mass_se_g", Col::Float64, true, "g", "Its standard error."),
+        c("amplitude", Col::Float64, true, "", "Least-squares amplitude at the best point, in amplitude_unit."),
+        c("amplitude_se", Col::Float64, true, "", "Its standard error."),
+        c("amplitude_unit", Col::Utf8, false, "", "`g` (a point mass) or `factor - 1` (the core's bending stiffness over the disc)."),
         c("region_radius_mm", Col::Float64, true, "mm", "Radius of the 90 % region."),
         c("explained_share", Col::Float64, true, "", "Share of the misfit explained."),
-        c("p_value", Col::Float64, true, "", "Tail probability of the χ² reduction under no point mass."),
+        c("p_value", Col::Float64, true, "", "Tail probability of the χ² reduction under no change."),
         c("alternatives", Col::Utf8, false, "", "Other points (mm) the frequencies fit about as well."),
     ],
 };
@@ -505,6 +507,14 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
         })
         .collect();
     let mm = |v: Option<f64>| v.map(|x| x * 1e3);
+    // A mass in g; another amplitude as it is.
+    let amp = |r: &RegionView, v: Option<f64>| {
+        if r.amplitude_unit == "kg" {
+            mm(v)
+        } else {
+            v
+        }
+    };
     let regions = loc
         .board_regions
         .iter()
@@ -514,8 +524,13 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
                 Cell::Bool(r.located),
                 f(mm(r.fit.x_m)),
                 f(mm(r.fit.y_m)),
-                f(mm(r.fit.mass_kg)),
-                f(mm(r.fit.mass_se_kg)),
+                f(amp(r, r.fit.amplitude)),
+                f(amp(r, r.fit.amplitude_se)),
+                s(if r.amplitude_unit == "kg" {
+                    "g"
+                } else {
+                    &r.amplitude_unit
+                }),
                 f(mm(r.fit.region_radius_m)),
                 f(r.fit.explained_share),
                 f(r.fit.p_value),
@@ -679,14 +694,15 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
                 "located",
                 "x [mm]",
                 "y [mm]",
-                "mass [g]",
-                "± se [g]",
+                "amplitude",
+                "± se",
+                "unit",
                 "90 % radius [mm]",
                 "share explained",
                 "p",
                 "also fits at [mm]",
             ],
-            digits: &[0, 0, 1, 1, 3, 3, 1, 3, 3, 0],
+            digits: &[0, 0, 1, 1, 3, 3, 0, 1, 3, 3, 0],
             rows: regions,
         },
         Table {
@@ -898,12 +914,13 @@ mod tests {
                 never_seen: never,
                 board_regions: vec![crate::stage::diagnose::regions::BoardRegion {
                     mechanism: Mechanism::AddedMass,
+                    amplitude_unit: "kg".into(),
                     located: true,
-                    fit: crate::diagnose::localize::PointMassFit {
+                    fit: crate::diagnose::localize::LocalFit {
                         x_m: 0.056,
                         y_m: 0.030,
-                        mass_kg: 0.207e-3,
-                        mass_se_kg: 0.006e-3,
+                        amplitude: 0.207e-3,
+                        amplitude_se: 0.006e-3,
                         chi2_before: 1303.9,
                         chi2_after: 0.22,
                         dof_after: 1,
@@ -913,10 +930,10 @@ mod tests {
                         region_points: 40,
                         alternatives: vec![[0.024, 0.030, 1303.4]],
                         log_location_occam: -4.1,
-                        location_ln_mass_sd: 0.02,
+                        location_ln_amplitude_sd: 0.02,
                         delta_chi2: vec![],
                         inflation: 1.0,
-                        mass_kg_at: vec![],
+                        amplitude_at: vec![],
                     },
                     shape_scores: vec![],
                     chosen_by_shapes: false,
@@ -1105,7 +1122,8 @@ mod tests {
         let g = cells(h, "diagnosis_board_regions");
         assert_eq!(g.len(), 1);
         assert!((num(&g[0]["x_mm"]) - 56.0).abs() < 1e-9, "{g:?}");
-        assert!((num(&g[0]["mass_g"]) - 0.207).abs() < 1e-12, "{g:?}");
+        assert!((num(&g[0]["amplitude"]) - 0.207).abs() < 1e-12, "{g:?}");
+        assert_eq!(g[0]["amplitude_unit"], "g");
         assert_eq!(g[0]["alternatives"], "(24, 30)");
         assert_eq!(n[0]["n_missing"], "27");
         // Candidates: Bayes factor, held-out error, estimate, failure.

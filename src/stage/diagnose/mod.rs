@@ -832,15 +832,23 @@ fn screen_candidates(
     let regions = board_regions(work, board, (base1, input, located), lopts);
     let mut candidates = screen::screen(located, board);
     for r in &regions.0 {
-        screen::attach_point_mass(
-            &mut candidates,
-            [r.fit.x_m, r.fit.y_m],
-            r.located.then_some(screen::PointLocated {
-                log_occam: r.fit.log_location_occam,
-                location_ln_mass_sd: r.fit.location_ln_mass_sd,
-            }),
-            &r.sentence,
-        );
+        match r.mechanism {
+            Mechanism::AddedMass => screen::attach_point_mass(
+                &mut candidates,
+                [r.fit.x_m, r.fit.y_m],
+                r.located.then_some(screen::PointLocated {
+                    log_occam: r.fit.log_location_occam,
+                    location_ln_mass_sd: r.fit.location_ln_amplitude_sd,
+                }),
+                &r.sentence,
+            ),
+            // A located loss is the library's `local_stiffness_loss` there; a stiffening has
+            // no mechanism in the library and stays a located, unexplained signature.
+            Mechanism::LocalStiffnessLoss if r.located && r.fit.amplitude < 0.0 => {
+                screen::attach_stiffness_loss(&mut candidates, [r.fit.x_m, r.fit.y_m], &r.sentence)
+            }
+            _ => {}
+        }
     }
     (regions, candidates)
 }
@@ -852,11 +860,10 @@ fn board_regions(
     (base1, input, located): (&UpdateOptions, &locate::LocateInput, &Located),
     lopts: &LocateOptions,
 ) -> (Vec<regions::BoardRegion>, String) {
-    const NOT_BUILT: &str = "local stiffness changes are not localised yet";
     if !located.setups.iter().any(|s| s == "free") {
         return (
             vec![],
-            format!("not run: no free-free misfit located (the point-mass localisation uses the free-free modes); {NOT_BUILT}"),
+            "not run: no free-free misfit located (the point-mass and stiffness localisations use the free-free modes)".to_string(),
         );
     }
     let mut freq: BTreeMap<String, (f64, usize)> = BTreeMap::new();
@@ -869,7 +876,7 @@ fn board_regions(
         .into_iter()
         .map(|(l, (s, n))| (l, s / n as f64))
         .collect();
-    match regions::point_mass_region(
+    let mass = regions::point_mass_region(
         work,
         board,
         &base1.params,
@@ -877,15 +884,61 @@ fn board_regions(
         &model_freq,
         lopts,
         &input.pairs,
-    ) {
-        Ok(r) => (
-            vec![r],
-            format!("point-mass localisation of the free-free misfit (exact frequency shifts in a modal basis, the stiffness parameters projected off, the measured shapes choosing over the points the frequencies leave open); {NOT_BUILT}"),
-        ),
-        Err(e) => (
-            vec![],
-            format!("point-mass localisation failed: {e:#}; {NOT_BUILT}"),
-        ),
+    );
+    let stiffness = regions::stiffness_region(
+        work,
+        board,
+        &base1.params,
+        &located.mode_checks,
+        &model_freq,
+        lopts,
+        &input.pairs,
+    );
+    let mut note = vec![];
+    let mut out = vec![];
+    match mass {
+        Ok(r) => {
+            note.push("point-mass localisation of the free-free misfit (exact frequency shifts in a modal basis, the stiffness parameters projected off, the measured shapes choosing over the points the frequencies leave open)".to_string());
+            out.push(r);
+        }
+        Err(e) => note.push(format!("point-mass localisation failed: {e:#}")),
+    }
+    match stiffness {
+        Ok(r) => {
+            note.push(format!("stiffness localisation (first-order signature of a change of the core's bending stiffness over a {:.0} mm disc, either sign, the board parameters projected off, the measured shapes choosing as for the point mass)", 2e3 * regions::STIFFNESS_RADIUS_M));
+            out.push(r);
+        }
+        Err(e) => note.push(format!("stiffness localisation failed: {e:#}")),
+    }
+    demote_weaker_regions(&mut out);
+    (out, note.join("; "))
+}
+
+/// Where several signatures located the same misfit, the one that explains less of it is not
+/// located: the same residuals, the same number of fitted quantities (an amplitude and two
+/// coordinates), so the larger explained share (frequencies alone, for both) is the likelier
+/// mechanism. Its sentence says which one explains more.
+fn demote_weaker_regions(regions: &mut [regions::BoardRegion]) {
+    let best = regions
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| r.located)
+        .max_by(|a, b| a.1.fit.explained_share.total_cmp(&b.1.fit.explained_share))
+        .map(|(i, r)| (i, r.mechanism, r.fit.explained_share));
+    let Some((bi, bm, bs)) = best else {
+        return;
+    };
+    for (i, r) in regions.iter_mut().enumerate() {
+        if i != bi && r.located {
+            r.located = false;
+            r.sentence = format!(
+                "{} Not located: the {} signature explains more of the misfit ({:.0} % against {:.0} %).",
+                r.sentence,
+                bm.id(),
+                100.0 * bs,
+                100.0 * r.fit.explained_share
+            );
+        }
     }
 }
 

@@ -16,8 +16,8 @@ use anyhow::{anyhow, Context};
 
 use crate::diagnose::library::Mechanism;
 use crate::diagnose::localize::{
-    localize_point_mass, localize_point_mass_at, shape_score, weighted_sd, LocalizeInput,
-    ModalBasis, ModeResidual, PointMassFit, ShapeObs, CHI2_2_Q90, CHI2_2_Q999,
+    localize_point_mass, localize_point_mass_at, shape_score, weighted_sd, LocalFit, LocalizeInput,
+    ModalBasis, ModeResidual, ShapeObs, CHI2_2_Q90, CHI2_2_Q999,
 };
 use crate::diagnose::locate::{LocateOptions, ModeCheck, PairObs};
 use crate::fem::eigen::EigenOptions;
@@ -42,11 +42,17 @@ pub const MIN_EXPLAINED_SHARE: f64 = 0.5;
 /// One located (or examined) board region.
 #[derive(Clone, Debug, serde::Serialize, schemars::JsonSchema)]
 pub struct BoardRegion {
-    /// The mechanism whose signature was fitted (`added_mass`).
+    /// The mechanism whose signature was fitted: `added_mass` (a point mass) or
+    /// `local_stiffness_loss` (a change of the core's bending stiffness over a small disc,
+    /// either sign: a negative amplitude is a loss, a positive one a stiffening, which the
+    /// library has no mechanism for).
     pub mechanism: Mechanism,
+    /// The unit of `fit.amplitude`: `kg` (a point mass) or `factor - 1` (the core bending
+    /// stiffness over the disc of [`STIFFNESS_RADIUS_M`]).
+    pub amplitude_unit: String,
     /// Whether the fit passes the rule (significant, and explains at least half the misfit).
     pub located: bool,
-    pub fit: PointMassFit,
+    pub fit: LocalFit,
     /// The mode-shape score of each candidate point (x_m, y_m, score; [`shape_score`],
     /// larger is better): the best point of the frequencies, its alternatives, and the point
     /// the shapes chose in the frequencies' region when it is none of those. Empty when no
@@ -62,6 +68,126 @@ pub struct BoardRegion {
     pub sentence: String,
 }
 
+/// The free-free model at the step-1 posterior centre, its modes matched to the residuals'
+/// labels, and the parameter sensitivities a localisation projects off: what the point-mass
+/// and the stiffness localisations share.
+struct FreeBasis {
+    model: FeModel,
+    modes0: crate::fem::Modes,
+    rigid: faer::Mat<f64>,
+    /// Per free-free label (the order of `free`), its model mode.
+    index: Vec<usize>,
+    free: Vec<ModeCheck>,
+    nuisance: Vec<Vec<f64>>,
+    /// The boards were weighed and the mass scale followed the balance (not a nuisance).
+    weighed: bool,
+    board_mass_kg: f64,
+}
+
+impl FreeBasis {
+    fn new(
+        work: &Path,
+        board: &Board,
+        params: &[String],
+        checks: &[ModeCheck],
+        residual_model_freq: &[(String, f64)],
+    ) -> anyhow::Result<Self> {
+        let free: Vec<ModeCheck> = checks
+            .iter()
+            .filter(|c| c.setup == "free")
+            .cloned()
+            .collect();
+        if free.is_empty() {
+            return Err(anyhow!("no free-free mode residuals"));
+        }
+        let centre = posterior_centre(&work.join("update_boards/boards.parquet"), params)?;
+        let model = FeModel::build(board, Setup::Free, &board.mesh)?;
+        let mut p0 = model.nominal_params();
+        for (name, v) in params.iter().zip(&centre) {
+            p0.set(name, *v)?;
+        }
+        // The modes above the measured ones are the exact modal basis's (a point mass
+        // couples every mode; 40 more than measured keep the truncation below the noise, see
+        // `exact_localisation_matches_the_fe_model_with_the_point_mass`).
+        let n_model = free.len() + 40;
+        let (modes0, rigid) = model.modes_and_rigid(&p0, n_model, &EigenOptions::default())?;
+        // Label → model mode by nearest frequency (each model mode used once).
+        let mut taken = vec![false; modes0.freq_hz.len()];
+        let mut index = vec![];
+        for c in &free {
+            let f = residual_model_freq
+                .iter()
+                .find(|(l, _)| *l == c.label)
+                .map(|(_, f)| *f)
+                .ok_or_else(|| {
+                    anyhow!("label {:?}: no model frequency in the residuals", c.label)
+                })?;
+            let (j, _) = modes0
+                .freq_hz
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| !taken[*j])
+                .min_by(|a, b| (a.1 - f).abs().total_cmp(&(b.1 - f).abs()))
+                .ok_or_else(|| anyhow!("fewer model modes than labels"))?;
+            taken[j] = true;
+            index.push(j);
+        }
+        // Where the boards were weighed and the updating fitted their mass scale to the
+        // balance, the total mass is known: an added mass takes its share from the board's
+        // own mass, so the mass scale is not a free direction of the residuals (which would
+        // discard the absolute size of the shifts) but part of the signature (a point mass
+        // minus the same mass spread uniformly). A stiffness change leaves the mass alone.
+        let weighed = params.iter().any(|p| p == names::MASS_SCALE) && weighed(work)?;
+        let board_mass_kg = model.total_mass_kg(&p0)?;
+        let nuisance: Vec<Vec<f64>> = params
+            .iter()
+            .filter(|name| !(weighed && *name == names::MASS_SCALE))
+            .map(|name| -> anyhow::Result<Vec<f64>> {
+                let mut p = p0.clone();
+                let v = p.get(name)?;
+                let h: f64 = 0.01;
+                p.set(name, v * h.exp())?;
+                let m = model.modes(&p, n_model)?;
+                Ok(index
+                    .iter()
+                    .map(|&j| {
+                        // The perturbed mode nearest in frequency to the centre's mode j.
+                        let f0 = modes0.freq_hz[j];
+                        let f = m
+                            .freq_hz
+                            .iter()
+                            .copied()
+                            .min_by(|a, b| (a - f0).abs().total_cmp(&(b - f0).abs()))
+                            .unwrap_or(f0);
+                        (f / f0).ln() / h
+                    })
+                    .collect())
+            })
+            .collect::<anyhow::Result<_>>()?;
+        Ok(FreeBasis {
+            model,
+            modes0,
+            rigid,
+            index,
+            free,
+            nuisance,
+            weighed,
+            board_mass_kg,
+        })
+    }
+
+    fn residuals(&self) -> Vec<ModeResidual> {
+        self.free
+            .iter()
+            .map(|c| ModeResidual {
+                label: c.label.clone(),
+                mean_rel: c.mean_rel_residual,
+                se_rel: c.se_rel_residual,
+            })
+            .collect()
+    }
+}
+
 /// The point-mass localisation over the free-free modes of `checks` (locate's mode checks).
 /// `Err` says why it could not run (the stage writes it as the note).
 pub fn point_mass_region(
@@ -73,74 +199,20 @@ pub fn point_mass_region(
     locate: &LocateOptions,
     pairs: &[PairObs],
 ) -> anyhow::Result<BoardRegion> {
-    let free: Vec<&ModeCheck> = checks.iter().filter(|c| c.setup == "free").collect();
-    if free.is_empty() {
-        return Err(anyhow!("no free-free mode residuals"));
-    }
-    let centre = posterior_centre(&work.join("update_boards/boards.parquet"), params)?;
-    let model = FeModel::build(board, Setup::Free, &board.mesh)?;
-    let mut p0 = model.nominal_params();
-    for (name, v) in params.iter().zip(&centre) {
-        p0.set(name, *v)?;
-    }
-    // The modes above the measured ones are the exact modal basis's (a point mass couples
-    // every mode; 40 more than measured keep the truncation below the noise, see
-    // `exact_localisation_matches_the_fe_model_with_the_point_mass`).
-    let n_model = free.len() + 40;
-    let (modes0, rigid) = model.modes_and_rigid(&p0, n_model, &EigenOptions::default())?;
-    // Label → model mode by nearest frequency (each model mode used once).
-    let mut taken = vec![false; modes0.freq_hz.len()];
-    let mut index = vec![];
-    for c in &free {
-        let f = residual_model_freq
-            .iter()
-            .find(|(l, _)| *l == c.label)
-            .map(|(_, f)| *f)
-            .ok_or_else(|| anyhow!("label {:?}: no model frequency in the residuals", c.label))?;
-        let (j, _) = modes0
-            .freq_hz
-            .iter()
-            .enumerate()
-            .filter(|(j, _)| !taken[*j])
-            .min_by(|a, b| (a.1 - f).abs().total_cmp(&(b.1 - f).abs()))
-            .ok_or_else(|| anyhow!("fewer model modes than labels"))?;
-        taken[j] = true;
-        index.push(j);
-    }
-    // Where the boards were weighed and the updating fitted their mass scale to the balance,
-    // the total mass is known: an added mass takes its share from the board's own mass, so
-    // the mass scale is not a free direction of the residuals (which would discard the
-    // absolute size of the shifts) but part of the signature (a point mass minus the same
-    // mass spread uniformly).
-    let weighed = params.iter().any(|p| p == names::MASS_SCALE) && weighed(work)?;
-    let board_mass_kg = model.total_mass_kg(&p0)?;
-    let nuisance: Vec<Vec<f64>> = params
-        .iter()
-        .filter(|name| !(weighed && *name == names::MASS_SCALE))
-        .map(|name| -> anyhow::Result<Vec<f64>> {
-            let mut p = p0.clone();
-            let v = p.get(name)?;
-            let h: f64 = 0.01;
-            p.set(name, v * h.exp())?;
-            let m = model.modes(&p, n_model)?;
-            Ok(index
-                .iter()
-                .map(|&j| {
-                    // The perturbed mode nearest in frequency to the centre's mode j.
-                    let f0 = modes0.freq_hz[j];
-                    let f = m
-                        .freq_hz
-                        .iter()
-                        .copied()
-                        .min_by(|a, b| (a - f0).abs().total_cmp(&(b - f0).abs()))
-                        .unwrap_or(f0);
-                    (f / f0).ln() / h
-                })
-                .collect())
-        })
-        .collect::<anyhow::Result<_>>()?;
+    let fb = FreeBasis::new(work, board, params, checks, residual_model_freq)?;
+    let FreeBasis {
+        model,
+        modes0,
+        rigid,
+        index,
+        free,
+        nuisance,
+        weighed,
+        board_mass_kg,
+    } = &fb;
+    let (weighed, board_mass_kg) = (*weighed, *board_mass_kg);
     let points = grid(board);
-    let w = model.w_at(&modes0, &points)?;
+    let w = model.w_at(modes0, &points)?;
     let uniform = if weighed { 1.0 / board_mass_kg } else { 0.0 };
     let signature: Vec<Vec<f64>> = (0..points.len())
         .map(|i| {
@@ -165,17 +237,10 @@ pub fn point_mass_region(
         })
         .collect();
     let observed: Vec<usize> = index.iter().map(|j| j + n_rig).collect();
-    let modes: Vec<ModeResidual> = free
-        .iter()
-        .map(|c| ModeResidual {
-            label: c.label.clone(),
-            mean_rel: c.mean_rel_residual,
-            se_rel: c.se_rel_residual,
-        })
-        .collect();
+    let modes = fb.residuals();
     let inp = LocalizeInput {
         modes: &modes,
-        nuisance: &nuisance,
+        nuisance,
         points_m: &points,
         signature: &signature,
         exact: Some(ModalBasis {
@@ -184,6 +249,7 @@ pub fn point_mass_region(
             observed: &observed,
             weighed_mass_kg: weighed.then_some(board_mass_kg),
         }),
+        positive_only: true,
     };
     let fit = localize_point_mass(&inp, MIN_SEPARATION_M).ok_or_else(|| {
         anyhow!(
@@ -199,47 +265,22 @@ pub fn point_mass_region(
     // the shapes only choose among the frequencies' best point and its alternatives.
     let label_index: Vec<(String, usize)> = free
         .iter()
-        .zip(&index)
+        .zip(index)
         .map(|(c, &j)| (c.label.clone(), j))
         .collect();
     let delta = shape_errors(&work.join("update_boards/population.parquet"), &label_index)?;
-    let d_best = fit.delta_chi2.iter().copied().fold(0.0, f64::max);
-    let open: Vec<usize> = match &delta {
-        Some(_) => (0..points.len())
-            .filter(|&i| {
-                fit.delta_chi2[i] > 0.0 && d_best - fit.delta_chi2[i] <= CHI2_2_Q999 * fit.inflation
-            })
-            .collect(),
-        None => std::iter::once([fit.x_m, fit.y_m])
-            .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
-            .filter_map(|c| points.iter().position(|p| *p == c))
-            .collect(),
-    };
+    let open = open_points(&fit, delta.is_some(), &points);
     let shapes = shape_choice(
-        &model,
-        (&modes0, &rigid),
-        &work.join("extract/modes.parquet"),
-        pairs,
+        model,
+        (modes0, rigid),
+        (&work.join("extract/modes.parquet"), pairs),
         &label_index,
         delta.as_ref(),
-        (&open, &points, &fit.mass_kg_at),
+        (&open, &points, &fit.amplitude_at),
+        Coupling::PointMass,
     )?;
-    // Per open point: the combined Δχ² (with weights) or the shape score alone.
-    let combined: Vec<f64> = open
-        .iter()
-        .zip(&shapes.scores)
-        .map(|(&i, sc)| match &delta {
-            Some(_) => fit.delta_chi2[i] + sc[2],
-            None => sc[2],
-        })
-        .collect();
-    let best_open = combined
-        .iter()
-        .enumerate()
-        .max_by(|a, b| a.1.total_cmp(b.1))
-        .map(|(k, _)| k);
+    let (combined, best_open) = combined_scores(&fit, delta.is_some(), &open, &shapes);
     let chosen = best_open
-        .filter(|_| !shapes.scores.is_empty())
         .map(|k| open[k])
         .filter(|&i| points[i] != [fit.x_m, fit.y_m])
         .and_then(|i| localize_point_mass_at(&inp, MIN_SEPARATION_M, Some(i)));
@@ -272,10 +313,10 @@ pub fn point_mass_region(
         let wv: Vec<(f64, f64)> = open
             .iter()
             .zip(&combined)
-            .filter(|(&i, _)| fit.mass_kg_at[i] > 0.0)
-            .map(|(&i, d)| ((-(top - d).max(0.0) / s2).exp(), fit.mass_kg_at[i].ln()))
+            .filter(|(&i, _)| fit.amplitude_at[i] > 0.0)
+            .map(|(&i, d)| ((-(top - d).max(0.0) / s2).exp(), fit.amplitude_at[i].ln()))
             .collect();
-        fit.location_ln_mass_sd = weighted_sd(&wv);
+        fit.location_ln_amplitude_sd = weighted_sd(&wv);
         let c = points[open[k]];
         fit.region_radius_m = open
             .iter()
@@ -320,8 +361,8 @@ pub fn point_mass_region(
     let sentence = if located {
         format!(
             "A point mass of {:.3} ± {:.3} g at ({:.0}, {:.0}) mm (90 % region radius {:.0} mm) explains {:.0} % of the free-free misfit that the board parameters cannot{alt}.{skipped}",
-            fit.mass_kg * 1e3,
-            fit.mass_se_kg * 1e3,
+            fit.amplitude * 1e3,
+            fit.amplitude_se * 1e3,
             fit.x_m * 1e3,
             fit.y_m * 1e3,
             fit.region_radius_m * 1e3,
@@ -330,7 +371,7 @@ pub fn point_mass_region(
     } else {
         format!(
             "No point mass explains the free-free misfit: the best, {:.3} g at ({:.0}, {:.0}) mm, explains {:.0} % of it (p = {:.2e}); not located.",
-            fit.mass_kg * 1e3,
+            fit.amplitude * 1e3,
             fit.x_m * 1e3,
             fit.y_m * 1e3,
             100.0 * fit.explained_share,
@@ -339,6 +380,7 @@ pub fn point_mass_region(
     };
     Ok(BoardRegion {
         mechanism: Mechanism::AddedMass,
+        amplitude_unit: "kg".into(),
         located,
         fit,
         shape_scores,
@@ -347,6 +389,241 @@ pub fn point_mass_region(
         shapes_skipped: shapes.skipped,
         sentence,
     })
+}
+
+/// Radius of the disc of a stiffness change's signature, m: a spot the size of a component's
+/// footprint or a delamination (the signature varies over a bending half-wave, ≥ 15 mm on a
+/// board of a few centimetres, so a disc up to a few mm wide has one signature).
+pub const STIFFNESS_RADIUS_M: f64 = 4e-3;
+
+/// The localisation of a local stiffness change from the free-free frequency residuals: at
+/// every grid point, the first-order signature of a change of the core's bending stiffness
+/// over a disc of [`STIFFNESS_RADIUS_M`] there, δ ln f_j = ½ (f − 1) E_jj / λ_j with E the
+/// core's bending stiffness over the disc as a form on the modes
+/// ([`FeModel::core_stiffness_form`]), fitted with either sign, the board parameters'
+/// sensitivities projected off as for the point mass ([`localize_point_mass`]). The
+/// frequencies alone cannot tell the mirror points of a near-symmetric board apart: they are
+/// the alternatives.
+pub fn stiffness_region(
+    work: &Path,
+    board: &Board,
+    params: &[String],
+    checks: &[ModeCheck],
+    residual_model_freq: &[(String, f64)],
+    locate: &LocateOptions,
+    pairs: &[PairObs],
+) -> anyhow::Result<BoardRegion> {
+    let fb = FreeBasis::new(work, board, params, checks, residual_model_freq)?;
+    let points: Vec<[f64; 2]> = grid(board);
+    let cols: Vec<usize> = fb.index.clone();
+    let shapes = faer::Mat::<f64>::from_fn(fb.modes0.shapes.nrows(), cols.len(), |r, c| {
+        fb.modes0.shapes[(r, cols[c])]
+    });
+    let signature: Vec<Vec<f64>> = points
+        .iter()
+        .map(|p| {
+            let e = fb
+                .model
+                .core_stiffness_form(p[0], p[1], STIFFNESS_RADIUS_M, shapes.as_ref());
+            cols.iter()
+                .enumerate()
+                .map(|(k, &j)| 0.5 * e[(k, k)] / fb.modes0.eigenvalues[j])
+                .collect()
+        })
+        .collect();
+    let modes = fb.residuals();
+    let inp = LocalizeInput {
+        modes: &modes,
+        nuisance: &fb.nuisance,
+        points_m: &points,
+        signature: &signature,
+        exact: None,
+        positive_only: false,
+    };
+    let fit = localize_point_mass(&inp, MIN_SEPARATION_M).ok_or_else(|| {
+        anyhow!(
+            "no stiffness change fits the free-free residuals ({} modes, {} parameters)",
+            modes.len(),
+            params.len()
+        )
+    })?;
+    // The measured shapes choose among the points the frequencies leave open, as for the
+    // point mass: the first-order Δχ² of the updating's shape terms joins the frequencies'
+    // (weights n/δ²) over their 99.9 % region, or, without shape terms, the shapes choose
+    // among the best point and its alternatives.
+    let label_index: Vec<(String, usize)> = fb
+        .free
+        .iter()
+        .zip(&fb.index)
+        .map(|(c, &j)| (c.label.clone(), j))
+        .collect();
+    let delta = shape_errors(&work.join("update_boards/population.parquet"), &label_index)?;
+    let open = open_points(&fit, delta.is_some(), &points);
+    let forms: Vec<faer::Mat<f64>> = open
+        .iter()
+        .map(|&i| {
+            fb.model.core_stiffness_form(
+                points[i][0],
+                points[i][1],
+                STIFFNESS_RADIUS_M,
+                fb.modes0.shapes.as_ref(),
+            )
+        })
+        .collect();
+    let shapes = shape_choice(
+        &fb.model,
+        (&fb.modes0, &fb.rigid),
+        (&work.join("extract/modes.parquet"), pairs),
+        &label_index,
+        delta.as_ref(),
+        (&open, &points, &fit.amplitude_at),
+        Coupling::Stiffness(&forms),
+    )?;
+    let (combined, best_open) = combined_scores(&fit, delta.is_some(), &open, &shapes);
+    let chosen = best_open
+        .map(|k| open[k])
+        .filter(|&i| points[i] != [fit.x_m, fit.y_m])
+        .and_then(|i| localize_point_mass_at(&inp, MIN_SEPARATION_M, Some(i)));
+    let chosen_by_shapes = chosen.is_some();
+    let shape_scores: Vec<[f64; 3]> = std::iter::once([fit.x_m, fit.y_m])
+        .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
+        .chain(best_open.map(|k| points[open[k]]))
+        .filter_map(|p| shapes.scores.iter().find(|s| [s[0], s[1]] == p).copied())
+        .fold(vec![], |mut v, sc| {
+            if !v.contains(&sc) {
+                v.push(sc);
+            }
+            v
+        });
+    let mut fit = chosen.unwrap_or(fit);
+    if let (Some(_), Some(k)) = (&delta, best_open) {
+        // The region of the combined map (frequencies and shapes).
+        let c = points[open[k]];
+        let top = combined[k];
+        let region: Vec<usize> = (0..open.len())
+            .filter(|&m| top - combined[m] <= CHI2_2_Q90 * fit.inflation)
+            .collect();
+        fit.region_radius_m = region
+            .iter()
+            .map(|&m| (points[open[m]][0] - c[0]).hypot(points[open[m]][1] - c[1]))
+            .fold(0.0, f64::max);
+        fit.region_points = region.len();
+    }
+    let located = fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE;
+    let kind = if fit.amplitude > 0.0 {
+        "stiffening"
+    } else {
+        "loss"
+    };
+    let area_mm2 = std::f64::consts::PI * (STIFFNESS_RADIUS_M * 1e3).powi(2);
+    let alt = if fit.alternatives.is_empty() {
+        String::new()
+    } else {
+        format!(
+            "; the frequencies fit about as well at {}{}",
+            fit.alternatives
+                .iter()
+                .map(|a| format!("({:.0}, {:.0}) mm", a[0] * 1e3, a[1] * 1e3))
+                .collect::<Vec<_>>()
+                .join(", "),
+            if chosen_by_shapes {
+                " (the mode shapes chose this point over them)"
+            } else if shape_scores.len() > 1 {
+                " (the mode shapes agree with this point)"
+            } else {
+                " (no measured mode shape to choose)"
+            }
+        )
+    };
+    let sentence = if located {
+        format!(
+            "A local {kind} of the board's bending stiffness at ({:.0}, {:.0}) mm (90 % region {}): the core's bending stiffness × {:.2} ± {:.2} over a {:.0} mm disc (or as much over another small area: (f − 1) × area = {:+.0} mm²) explains {:.0} % of the free-free misfit that the board parameters cannot{alt}.",
+            fit.x_m * 1e3,
+            fit.y_m * 1e3,
+            if fit.region_radius_m > 0.0 {
+                format!("radius {:.0} mm", fit.region_radius_m * 1e3)
+            } else {
+                format!("within the {:.0} mm grid step", GRID_STEP_M * 1e3)
+            },
+            1.0 + fit.amplitude,
+            fit.amplitude_se,
+            2.0 * STIFFNESS_RADIUS_M * 1e3,
+            fit.amplitude * area_mm2,
+            100.0 * fit.explained_share
+        ) + if fit.amplitude > 0.0 {
+            " The library has no mechanism that stiffens the board locally (an underfilled or potted component, a stiffener, a thicker laminate there): the location and the size are the signature to act on."
+        } else {
+            ""
+        }
+    } else {
+        format!(
+            "No local stiffness change explains the free-free misfit: the best, a {kind} (core bending stiffness × {:.2} over a {:.0} mm disc) at ({:.0}, {:.0}) mm, explains {:.0} % of it (p = {:.2e}); not located.",
+            1.0 + fit.amplitude,
+            2.0 * STIFFNESS_RADIUS_M * 1e3,
+            fit.x_m * 1e3,
+            fit.y_m * 1e3,
+            100.0 * fit.explained_share,
+            fit.p_value
+        )
+    };
+    Ok(BoardRegion {
+        mechanism: Mechanism::LocalStiffnessLoss,
+        amplitude_unit: "factor - 1".into(),
+        located,
+        fit,
+        shape_scores,
+        chosen_by_shapes,
+        shapes_used: shapes.used,
+        shapes_skipped: shapes.skipped,
+        sentence,
+    })
+}
+
+/// The points the measured shapes choose among: with the updating's shape errors (`delta`),
+/// every point in the frequencies' 99.9 % region; without, the best point and its
+/// alternatives.
+fn open_points(fit: &LocalFit, has_delta: bool, points: &[[f64; 2]]) -> Vec<usize> {
+    let d_best = fit.delta_chi2.iter().copied().fold(0.0, f64::max);
+    if has_delta {
+        (0..points.len())
+            .filter(|&i| {
+                fit.delta_chi2[i] > 0.0 && d_best - fit.delta_chi2[i] <= CHI2_2_Q999 * fit.inflation
+            })
+            .collect()
+    } else {
+        std::iter::once([fit.x_m, fit.y_m])
+            .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
+            .filter_map(|c| points.iter().position(|p| *p == c))
+            .collect()
+    }
+}
+
+/// Per open point, the frequencies' Δχ² plus the shapes' (with shape errors) or the shape
+/// score alone (without), and the open point where it is largest (`None` without shapes).
+fn combined_scores(
+    fit: &LocalFit,
+    has_delta: bool,
+    open: &[usize],
+    shapes: &ShapeChoice,
+) -> (Vec<f64>, Option<usize>) {
+    let combined: Vec<f64> = open
+        .iter()
+        .zip(&shapes.scores)
+        .map(|(&i, sc)| {
+            if has_delta {
+                fit.delta_chi2[i] + sc[2]
+            } else {
+                sc[2]
+            }
+        })
+        .collect();
+    let best = combined
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map(|(k, _)| k)
+        .filter(|_| !shapes.scores.is_empty());
+    (combined, best)
 }
 
 /// What [`shape_choice`] found.
@@ -361,14 +638,26 @@ struct ShapeChoice {
 /// from `mass_at`) over the measured free-free shapes of the accepted pairs of the labels in
 /// `label_index` (label → model mode index), each shape weighted by n / δ² of its label
 /// (`delta`) or by 1 (`None`).
+/// How a local change at a candidate point couples the modes, to first order: the change of
+/// mode j's shape per unit amplitude is Σ_k c_k φ_k over the elastic modes plus Σ_r c_r ρ_r
+/// over the rigid-body modes.
+enum Coupling<'a> {
+    /// A point mass (per kg): c_k = −λ_j φ_k(p) φ_j(p) / (λ_j − λ_k), c_r = −ρ_r(p) φ_j(p).
+    PointMass,
+    /// A stiffness change with the form E (per open point, over the elastic modes;
+    /// [`FeModel::core_stiffness_form`]) per unit amplitude: c_k = E_kj / (λ_j − λ_k); a
+    /// stiffness change does not strain the rigid-body modes (c_r = 0).
+    Stiffness(&'a [faer::Mat<f64>]),
+}
+
 fn shape_choice(
     model: &FeModel,
     (modes, rigid): (&crate::fem::Modes, &faer::Mat<f64>),
-    modes_path: &Path,
-    pairs: &[PairObs],
+    (modes_path, pairs): (&Path, &[PairObs]),
     label_index: &[(String, usize)],
     delta: Option<&Vec<f64>>,
     (open, points, mass_at): (&[usize], &[[f64; 2]], &[f64]),
+    coupling: Coupling,
 ) -> anyhow::Result<ShapeChoice> {
     use std::collections::BTreeMap;
     let mut skipped = 0;
@@ -466,16 +755,23 @@ fn shape_choice(
                 let phi_j_c = el_c[(ci, j)];
                 let mut d = vec![0.0; n];
                 for k in (0..lam.len()).filter(|k| *k != j) {
-                    let coef = -lam[j] * el_c[(ci, k)] * phi_j_c / (lam[j] - lam[k]);
+                    let coef = match &coupling {
+                        Coupling::PointMass => {
+                            -lam[j] * el_c[(ci, k)] * phi_j_c / (lam[j] - lam[k])
+                        }
+                        Coupling::Stiffness(e) => e[ci][(k, j)] / (lam[j] - lam[k]),
+                    };
                     d.iter_mut()
                         .enumerate()
                         .for_each(|(i, v)| *v += coef * p.el[(i, k)]);
                 }
-                for r in 0..p.rig.ncols() {
-                    let coef = -rig_c[(ci, r)] * phi_j_c;
-                    d.iter_mut()
-                        .enumerate()
-                        .for_each(|(i, v)| *v += coef * p.rig[(i, r)]);
+                if let Coupling::PointMass = coupling {
+                    for r in 0..p.rig.ncols() {
+                        let coef = -rig_c[(ci, r)] * phi_j_c;
+                        d.iter_mut()
+                            .enumerate()
+                            .for_each(|(i, v)| *v += coef * p.rig[(i, r)]);
+                    }
                 }
                 let o = ShapeObs {
                     measured: p.psi.clone(),
