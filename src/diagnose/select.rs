@@ -121,6 +121,9 @@ pub struct Compared {
     pub log_bayes_factor: Option<f64>,
     pub log_bayes_factor_se: Option<f64>,
     pub favoured: bool,
+    /// It leaves at most [`SelectOptions::max_remaining_share`] of its part of the located
+    /// misfit (true where the share was not computed).
+    pub explains: bool,
     /// Held-out mean absolute error before → after, per setup present in both.
     pub held_out_before_after: Vec<(String, f64, f64)>,
 }
@@ -168,6 +171,7 @@ pub fn compare(baseline: &Refit, candidates: &[Refit], opts: &SelectOptions) -> 
                 log_bayes_factor: lbf,
                 log_bayes_factor_se: se,
                 favoured,
+                explains,
                 held_out_before_after: held,
             }
         })
@@ -277,11 +281,18 @@ pub fn sentence(c: &Compared) -> String {
     }
     parts.push(bf);
     if let Some(r) = c.refit.remaining_share {
-        parts.push(if c.favoured || r <= default_max_remaining_share() {
-            format!("it leaves {:.0} % of the located misfit", 100.0 * r)
+        // A covariate mechanism is judged on the covariate's trend, the others on the mean
+        // shifts (crate::diagnose::misfit).
+        let part = if c.refit.mechanism == Some(Mechanism::TemperatureStiffness) {
+            "the located covariate trend"
+        } else {
+            "the located misfit"
+        };
+        parts.push(if c.explains {
+            format!("it leaves {:.0} % of {part}", 100.0 * r)
         } else {
             format!(
-                "it leaves {:.0} % of the located misfit: it does not explain it",
+                "it leaves {:.0} % of {part}: it does not explain it",
                 100.0 * r
             )
         });

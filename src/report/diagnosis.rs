@@ -877,6 +877,7 @@ mod tests {
             log_bayes_factor: Some(868.6582312557075),
             log_bayes_factor_se: Some(1.8878265146718618),
             favoured,
+            explains: true,
             held_out_before_after: vec![(
                 "bolted".into(),
                 0.12947891045305393,
@@ -891,6 +892,7 @@ mod tests {
             log_bayes_factor: None,
             log_bayes_factor_se: None,
             favoured: false,
+            explains: true,
             held_out_before_after: vec![],
         };
         DiagnosisDoc {
