@@ -328,6 +328,17 @@ mod tests {
         }
     }
 
+    /// A located free-free trend with the sheet's temperature column.
+    fn temperature_trend() -> LocatedCovariate {
+        LocatedCovariate {
+            setup: "free".into(),
+            covariate: "temperature_c".into(),
+            q_value: 1e-9,
+            slope_rel_per_unit: Some(-2e-3),
+            unit: "°C".into(),
+        }
+    }
+
     fn ids(c: &[Candidate]) -> Vec<String> {
         c.iter().map(Candidate::id).collect()
     }
@@ -384,13 +395,7 @@ mod tests {
     fn a_temperature_trend_comes_first_with_its_column() {
         let mut l = located();
         l.modes = vec![mode("free"), mode("bolted")];
-        l.covariates = vec![LocatedCovariate {
-            setup: "free".into(),
-            covariate: "temperature_c".into(),
-            q_value: 1e-9,
-            slope_rel_per_unit: Some(-2e-3),
-            unit: "°C".into(),
-        }];
+        l.covariates = vec![temperature_trend()];
         let c = screen(&l, &Board::default_board());
         assert_eq!(c[0].mechanism, Mechanism::TemperatureStiffness);
         assert_eq!(c[0].covariate.as_deref(), Some("temperature_c"));
@@ -443,13 +448,7 @@ mod tests {
     fn a_located_point_mass_is_a_candidate_beside_a_temperature_trend() {
         let mut l = located();
         l.modes = vec![mode("free"), mode("bolted")];
-        l.covariates = vec![LocatedCovariate {
-            setup: "free".into(),
-            covariate: "temperature_c".into(),
-            q_value: 1e-9,
-            slope_rel_per_unit: Some(-2e-3),
-            unit: "°C".into(),
-        }];
+        l.covariates = vec![temperature_trend()];
         let mut c = screen(&l, &Board::default_board());
         let before = c.len();
         attach_point_mass(&mut c, [0.01, 0.01], None, "weak");

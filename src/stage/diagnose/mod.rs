@@ -876,34 +876,29 @@ fn board_regions(
         .into_iter()
         .map(|(l, (s, n))| (l, s / n as f64))
         .collect();
-    let mass = regions::point_mass_region(
+    let inp = regions::RegionInput {
         work,
         board,
-        &base1.params,
-        &located.mode_checks,
-        &model_freq,
-        lopts,
-        &input.pairs,
-    );
-    let stiffness = regions::stiffness_region(
-        work,
-        board,
-        &base1.params,
-        &located.mode_checks,
-        &model_freq,
-        lopts,
-        &input.pairs,
-    );
+        params: &base1.params,
+        checks: &located.mode_checks,
+        residual_model_freq: &model_freq,
+        locate: lopts,
+        pairs: &input.pairs,
+    };
+    let fb = match regions::FreeBasis::new(&inp) {
+        Ok(fb) => fb,
+        Err(e) => return (vec![], format!("localisation failed: {e:#}")),
+    };
     let mut note = vec![];
     let mut out = vec![];
-    match mass {
+    match regions::point_mass_region(&inp, &fb) {
         Ok(r) => {
             note.push("point-mass localisation of the free-free misfit (exact frequency shifts in a modal basis, the stiffness parameters projected off, the measured shapes choosing over the points the frequencies leave open)".to_string());
             out.push(r);
         }
         Err(e) => note.push(format!("point-mass localisation failed: {e:#}")),
     }
-    match stiffness {
+    match regions::stiffness_region(&inp, &fb) {
         Ok(r) => {
             note.push(format!("stiffness localisation (first-order signature of a change of the core's bending stiffness over a {:.0} mm disc, either sign, the board parameters projected off, the measured shapes choosing as for the point mass)", 2e3 * regions::STIFFNESS_RADIUS_M));
             out.push(r);

@@ -68,10 +68,23 @@ pub struct BoardRegion {
     pub sentence: String,
 }
 
+/// What the localisations read: the work directory (step-1 posterior, measured shapes), the
+/// board, the updated parameters, locate's mode checks (the free-free ones are localised),
+/// each label's mean model frequency in the step-1 residuals, locate's options and the pairs.
+pub struct RegionInput<'a> {
+    pub work: &'a Path,
+    pub board: &'a Board,
+    pub params: &'a [String],
+    pub checks: &'a [ModeCheck],
+    pub residual_model_freq: &'a [(String, f64)],
+    pub locate: &'a LocateOptions,
+    pub pairs: &'a [PairObs],
+}
+
 /// The free-free model at the step-1 posterior centre, its modes matched to the residuals'
 /// labels, and the parameter sensitivities a localisation projects off: what the point-mass
 /// and the stiffness localisations share.
-struct FreeBasis {
+pub struct FreeBasis {
     model: FeModel,
     modes0: crate::fem::Modes,
     rigid: faer::Mat<f64>,
@@ -85,13 +98,17 @@ struct FreeBasis {
 }
 
 impl FreeBasis {
-    fn new(
-        work: &Path,
-        board: &Board,
-        params: &[String],
-        checks: &[ModeCheck],
-        residual_model_freq: &[(String, f64)],
-    ) -> anyhow::Result<Self> {
+    /// `Err` says why no localisation can run (no free-free residuals, a label without a
+    /// model mode, a model that cannot be built).
+    pub fn new(inp: &RegionInput) -> anyhow::Result<Self> {
+        let RegionInput {
+            work,
+            board,
+            params,
+            checks,
+            residual_model_freq,
+            ..
+        } = *inp;
         let free: Vec<ModeCheck> = checks
             .iter()
             .filter(|c| c.setup == "free")
@@ -190,16 +207,15 @@ impl FreeBasis {
 
 /// The point-mass localisation over the free-free modes of `checks` (locate's mode checks).
 /// `Err` says why it could not run (the stage writes it as the note).
-pub fn point_mass_region(
-    work: &Path,
-    board: &Board,
-    params: &[String],
-    checks: &[ModeCheck],
-    residual_model_freq: &[(String, f64)],
-    locate: &LocateOptions,
-    pairs: &[PairObs],
-) -> anyhow::Result<BoardRegion> {
-    let fb = FreeBasis::new(work, board, params, checks, residual_model_freq)?;
+pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<BoardRegion> {
+    let RegionInput {
+        work,
+        board,
+        params,
+        locate,
+        pairs,
+        ..
+    } = *inp;
     let FreeBasis {
         model,
         modes0,
@@ -209,7 +225,7 @@ pub fn point_mass_region(
         nuisance,
         weighed,
         board_mass_kg,
-    } = &fb;
+    } = fb;
     let (weighed, board_mass_kg) = (*weighed, *board_mass_kg);
     let points = grid(board);
     let w = model.w_at(modes0, &points)?;
@@ -317,38 +333,10 @@ pub fn point_mass_region(
             .map(|(&i, d)| ((-(top - d).max(0.0) / s2).exp(), fit.amplitude_at[i].ln()))
             .collect();
         fit.location_ln_amplitude_sd = weighted_sd(&wv);
-        let c = points[open[k]];
-        fit.region_radius_m = open
-            .iter()
-            .zip(&combined)
-            .filter(|(_, d)| top - **d <= CHI2_2_Q90 * fit.inflation)
-            .map(|(&i, _)| (points[i][0] - c[0]).hypot(points[i][1] - c[1]))
-            .fold(0.0, f64::max);
-        fit.region_points = combined
-            .iter()
-            .filter(|d| top - **d <= CHI2_2_Q90 * fit.inflation)
-            .count();
+        combined_region(&mut fit, &combined, k, &open, &points);
     }
     let located = fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE;
-    let alt = if fit.alternatives.is_empty() {
-        String::new()
-    } else {
-        format!(
-            "; the frequencies fit about as well at {}{}",
-            fit.alternatives
-                .iter()
-                .map(|a| format!("({:.0}, {:.0}) mm", a[0] * 1e3, a[1] * 1e3))
-                .collect::<Vec<_>>()
-                .join(", "),
-            if chosen_by_shapes {
-                " (the mode shapes chose this point over them)"
-            } else if shape_scores.len() > 1 {
-                " (the mode shapes agree with this point)"
-            } else {
-                " (no measured mode shape to choose)"
-            },
-        )
-    };
+    let alt = alternatives_clause(&fit, chosen_by_shapes, shape_scores.len());
     let skipped = if shapes.skipped > 0 {
         format!(
             " {} of {} measured shapes were left out of the shape choice (lists of unequal length, or scan points the model cannot evaluate).",
@@ -404,16 +392,15 @@ pub const STIFFNESS_RADIUS_M: f64 = 4e-3;
 /// sensitivities projected off as for the point mass ([`localize_point_mass`]). The
 /// frequencies alone cannot tell the mirror points of a near-symmetric board apart: they are
 /// the alternatives.
-pub fn stiffness_region(
-    work: &Path,
-    board: &Board,
-    params: &[String],
-    checks: &[ModeCheck],
-    residual_model_freq: &[(String, f64)],
-    locate: &LocateOptions,
-    pairs: &[PairObs],
-) -> anyhow::Result<BoardRegion> {
-    let fb = FreeBasis::new(work, board, params, checks, residual_model_freq)?;
+pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<BoardRegion> {
+    let RegionInput {
+        work,
+        board,
+        params,
+        locate,
+        pairs,
+        ..
+    } = *inp;
     let points: Vec<[f64; 2]> = grid(board);
     let cols: Vec<usize> = fb.index.clone();
     let shapes = faer::Mat::<f64>::from_fn(fb.modes0.shapes.nrows(), cols.len(), |r, c| {
@@ -497,17 +484,7 @@ pub fn stiffness_region(
         });
     let mut fit = chosen.unwrap_or(fit);
     if let (Some(_), Some(k)) = (&delta, best_open) {
-        // The region of the combined map (frequencies and shapes).
-        let c = points[open[k]];
-        let top = combined[k];
-        let region: Vec<usize> = (0..open.len())
-            .filter(|&m| top - combined[m] <= CHI2_2_Q90 * fit.inflation)
-            .collect();
-        fit.region_radius_m = region
-            .iter()
-            .map(|&m| (points[open[m]][0] - c[0]).hypot(points[open[m]][1] - c[1]))
-            .fold(0.0, f64::max);
-        fit.region_points = region.len();
+        combined_region(&mut fit, &combined, k, &open, &points);
     }
     let located = fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE;
     let kind = if fit.amplitude > 0.0 {
@@ -516,25 +493,7 @@ pub fn stiffness_region(
         "loss"
     };
     let area_mm2 = std::f64::consts::PI * (STIFFNESS_RADIUS_M * 1e3).powi(2);
-    let alt = if fit.alternatives.is_empty() {
-        String::new()
-    } else {
-        format!(
-            "; the frequencies fit about as well at {}{}",
-            fit.alternatives
-                .iter()
-                .map(|a| format!("({:.0}, {:.0}) mm", a[0] * 1e3, a[1] * 1e3))
-                .collect::<Vec<_>>()
-                .join(", "),
-            if chosen_by_shapes {
-                " (the mode shapes chose this point over them)"
-            } else if shape_scores.len() > 1 {
-                " (the mode shapes agree with this point)"
-            } else {
-                " (no measured mode shape to choose)"
-            }
-        )
-    };
+    let alt = alternatives_clause(&fit, chosen_by_shapes, shape_scores.len());
     let sentence = if located {
         format!(
             "A local {kind} of the board's bending stiffness at ({:.0}, {:.0}) mm (90 % region {}): the core's bending stiffness × {:.2} ± {:.2} over a {:.0} mm disc (or as much over another small area: (f − 1) × area = {:+.0} mm²) explains {:.0} % of the free-free misfit that the board parameters cannot{alt}.",
@@ -577,6 +536,50 @@ pub fn stiffness_region(
         shapes_skipped: shapes.skipped,
         sentence,
     })
+}
+
+/// "; the frequencies fit about as well at …" with what the shapes said, or nothing without
+/// alternatives.
+fn alternatives_clause(fit: &LocalFit, chosen_by_shapes: bool, n_scores: usize) -> String {
+    if fit.alternatives.is_empty() {
+        return String::new();
+    }
+    format!(
+        "; the frequencies fit about as well at {}{}",
+        fit.alternatives
+            .iter()
+            .map(|a| format!("({:.0}, {:.0}) mm", a[0] * 1e3, a[1] * 1e3))
+            .collect::<Vec<_>>()
+            .join(", "),
+        if chosen_by_shapes {
+            " (the mode shapes chose this point over them)"
+        } else if n_scores > 1 {
+            " (the mode shapes agree with this point)"
+        } else {
+            " (no measured mode shape to choose)"
+        }
+    )
+}
+
+/// The 90 % region of the combined (frequencies and shapes) map around the open point `k`:
+/// its radius and number of points.
+fn combined_region(
+    fit: &mut LocalFit,
+    combined: &[f64],
+    k: usize,
+    open: &[usize],
+    points: &[[f64; 2]],
+) {
+    let c = points[open[k]];
+    let top = combined[k];
+    let region: Vec<usize> = (0..open.len())
+        .filter(|&m| top - combined[m] <= CHI2_2_Q90 * fit.inflation)
+        .collect();
+    fit.region_radius_m = region
+        .iter()
+        .map(|&m| (points[open[m]][0] - c[0]).hypot(points[open[m]][1] - c[1]))
+        .fold(0.0, f64::max);
+    fit.region_points = region.len();
 }
 
 /// The points the measured shapes choose among: with the updating's shape errors (`delta`),
