@@ -209,11 +209,9 @@ impl FreeBasis {
 /// `Err` says why it could not run (the stage writes it as the note).
 pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<BoardRegion> {
     let RegionInput {
-        work,
         board,
         params,
         locate,
-        pairs,
         ..
     } = *inp;
     let FreeBasis {
@@ -221,10 +219,10 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         modes0,
         rigid,
         index,
-        free,
         nuisance,
         weighed,
         board_mass_kg,
+        ..
     } = fb;
     let (weighed, board_mass_kg) = (*weighed, *board_mass_kg);
     let points = grid(board);
@@ -254,7 +252,7 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         .collect();
     let observed: Vec<usize> = index.iter().map(|j| j + n_rig).collect();
     let modes = fb.residuals();
-    let inp = LocalizeInput {
+    let loc_in = LocalizeInput {
         modes: &modes,
         nuisance,
         points_m: &points,
@@ -267,7 +265,7 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         }),
         positive_only: true,
     };
-    let fit = localize_point_mass(&inp, MIN_SEPARATION_M).ok_or_else(|| {
+    let fit = localize_point_mass(&loc_in, MIN_SEPARATION_M).ok_or_else(|| {
         anyhow!(
             "no point mass fits the free-free residuals ({} modes, {} parameters)",
             modes.len(),
@@ -279,44 +277,18 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
     // n / δ², δ its posterior shape error per mode) adds to the frequencies' Δχ², and the
     // best of the sum is the located point. Where the updating had no shape terms (no δ),
     // the shapes only choose among the frequencies' best point and its alternatives.
-    let label_index: Vec<(String, usize)> = free
-        .iter()
-        .zip(index)
-        .map(|(c, &j)| (c.label.clone(), j))
-        .collect();
-    let delta = shape_errors(&work.join("update_boards/population.parquet"), &label_index)?;
-    let open = open_points(&fit, delta.is_some(), &points);
-    let shapes = shape_choice(
-        model,
-        (modes0, rigid),
-        (&work.join("extract/modes.parquet"), pairs),
-        &label_index,
-        delta.as_ref(),
-        (&open, &points, &fit.amplitude_at),
-        Coupling::PointMass,
-    )?;
-    let (combined, best_open) = combined_scores(&fit, delta.is_some(), &open, &shapes);
-    let chosen = best_open
-        .map(|k| open[k])
-        .filter(|&i| points[i] != [fit.x_m, fit.y_m])
-        .and_then(|i| localize_point_mass_at(&inp, MIN_SEPARATION_M, Some(i)));
-    let chosen_by_shapes = chosen.is_some();
-    // Reported: the shape scores of the frequencies' best point, its alternatives and the
-    // chosen point.
-    let shown: Vec<[f64; 2]> = std::iter::once([fit.x_m, fit.y_m])
-        .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
-        .chain(best_open.map(|k| points[open[k]]))
-        .collect();
-    let mut shape_scores: Vec<[f64; 3]> = vec![];
-    for p in shown {
-        if let Some(sc) = shapes.scores.iter().find(|s| [s[0], s[1]] == p) {
-            if !shape_scores.contains(sc) {
-                shape_scores.push(*sc);
-            }
-        }
-    }
+    let ShapeDecision {
+        fit: chosen,
+        chosen_by_shapes,
+        shape_scores,
+        shapes,
+        has_delta,
+        open,
+        combined,
+        best_open,
+    } = decide_by_shapes(inp, fb, &loc_in, &fit, &|_| Coupling::PointMass)?;
     let mut fit = chosen.unwrap_or(fit);
-    if let (Some(_), Some(k), false) = (&delta, best_open, shapes.scores.is_empty()) {
+    if let (true, Some(k), false) = (has_delta, best_open, shapes.scores.is_empty()) {
         // The region and the location's Occam factor of the combined map (the refit's
         // likelihood has both the frequencies and the shapes).
         let s2 = 2.0 * fit.inflation;
@@ -390,15 +362,13 @@ pub const STIFFNESS_RADIUS_M: f64 = 4e-3;
 /// core's bending stiffness over the disc as a form on the modes
 /// ([`FeModel::core_stiffness_form`]), fitted with either sign, the board parameters'
 /// sensitivities projected off as for the point mass ([`localize_point_mass`]). The
-/// frequencies alone cannot tell the mirror points of a near-symmetric board apart: they are
-/// the alternatives.
+/// frequencies alone cannot tell the mirror points of a near-symmetric board apart; the
+/// measured shapes choose among them ([`decide_by_shapes`]).
 pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<BoardRegion> {
     let RegionInput {
-        work,
         board,
         params,
         locate,
-        pairs,
         ..
     } = *inp;
     let points: Vec<[f64; 2]> = grid(board);
@@ -419,7 +389,7 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
         })
         .collect();
     let modes = fb.residuals();
-    let inp = LocalizeInput {
+    let loc_in = LocalizeInput {
         modes: &modes,
         nuisance: &fb.nuisance,
         points_m: &points,
@@ -427,7 +397,7 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
         exact: None,
         positive_only: false,
     };
-    let fit = localize_point_mass(&inp, MIN_SEPARATION_M).ok_or_else(|| {
+    let fit = localize_point_mass(&loc_in, MIN_SEPARATION_M).ok_or_else(|| {
         anyhow!(
             "no stiffness change fits the free-free residuals ({} modes, {} parameters)",
             modes.len(),
@@ -438,52 +408,31 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
     // point mass: the first-order Δχ² of the updating's shape terms joins the frequencies'
     // (weights n/δ²) over their 99.9 % region, or, without shape terms, the shapes choose
     // among the best point and its alternatives.
-    let label_index: Vec<(String, usize)> = fb
-        .free
-        .iter()
-        .zip(&fb.index)
-        .map(|(c, &j)| (c.label.clone(), j))
-        .collect();
-    let delta = shape_errors(&work.join("update_boards/population.parquet"), &label_index)?;
-    let open = open_points(&fit, delta.is_some(), &points);
-    let forms: Vec<faer::Mat<f64>> = open
-        .iter()
-        .map(|&i| {
-            fb.model.core_stiffness_form(
-                points[i][0],
-                points[i][1],
-                STIFFNESS_RADIUS_M,
-                fb.modes0.shapes.as_ref(),
-            )
-        })
-        .collect();
-    let shapes = shape_choice(
-        &fb.model,
-        (&fb.modes0, &fb.rigid),
-        (&work.join("extract/modes.parquet"), pairs),
-        &label_index,
-        delta.as_ref(),
-        (&open, &points, &fit.amplitude_at),
-        Coupling::Stiffness(&forms),
-    )?;
-    let (combined, best_open) = combined_scores(&fit, delta.is_some(), &open, &shapes);
-    let chosen = best_open
-        .map(|k| open[k])
-        .filter(|&i| points[i] != [fit.x_m, fit.y_m])
-        .and_then(|i| localize_point_mass_at(&inp, MIN_SEPARATION_M, Some(i)));
-    let chosen_by_shapes = chosen.is_some();
-    let shape_scores: Vec<[f64; 3]> = std::iter::once([fit.x_m, fit.y_m])
-        .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
-        .chain(best_open.map(|k| points[open[k]]))
-        .filter_map(|p| shapes.scores.iter().find(|s| [s[0], s[1]] == p).copied())
-        .fold(vec![], |mut v, sc| {
-            if !v.contains(&sc) {
-                v.push(sc);
-            }
-            v
-        });
+    let ShapeDecision {
+        fit: chosen,
+        chosen_by_shapes,
+        shape_scores,
+        shapes,
+        has_delta,
+        open,
+        combined,
+        best_open,
+    } = decide_by_shapes(inp, fb, &loc_in, &fit, &|open| {
+        Coupling::Stiffness(
+            open.iter()
+                .map(|&i| {
+                    fb.model.core_stiffness_form(
+                        points[i][0],
+                        points[i][1],
+                        STIFFNESS_RADIUS_M,
+                        fb.modes0.shapes.as_ref(),
+                    )
+                })
+                .collect(),
+        )
+    })?;
     let mut fit = chosen.unwrap_or(fit);
-    if let (Some(_), Some(k)) = (&delta, best_open) {
+    if let (true, Some(k)) = (has_delta, best_open) {
         combined_region(&mut fit, &combined, k, &open, &points);
     }
     let located = fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE;
@@ -535,6 +484,84 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
         shapes_used: shapes.used,
         shapes_skipped: shapes.skipped,
         sentence,
+    })
+}
+
+/// What the measured shapes decided for a localisation ([`decide_by_shapes`]).
+struct ShapeDecision {
+    /// The fit at the point the shapes chose, when it is not the frequencies' best.
+    fit: Option<LocalFit>,
+    chosen_by_shapes: bool,
+    /// The shape scores of the frequencies' best point, its alternatives and the chosen
+    /// point.
+    shape_scores: Vec<[f64; 3]>,
+    shapes: ShapeChoice,
+    /// The updating had shape terms (the shapes' Δχ² joins the frequencies').
+    has_delta: bool,
+    open: Vec<usize>,
+    combined: Vec<f64>,
+    best_open: Option<usize>,
+}
+
+/// The measured mode shapes join a localisation's frequencies: over the points the
+/// frequencies leave open (their 99.9 % region), the first-order Δχ² of the updating's shape
+/// terms (weights n / δ², δ its posterior shape error per mode) adds to the frequencies'
+/// Δχ², and the best of the sum is the located point. Where the updating had no shape terms
+/// (no δ), the shapes only choose among the frequencies' best point and its alternatives.
+/// `coupling` gives the change's coupling of the modes at the open points.
+fn decide_by_shapes(
+    inp: &RegionInput,
+    fb: &FreeBasis,
+    loc_in: &LocalizeInput,
+    fit: &LocalFit,
+    coupling: &dyn Fn(&[usize]) -> Coupling,
+) -> anyhow::Result<ShapeDecision> {
+    let label_index: Vec<(String, usize)> = fb
+        .free
+        .iter()
+        .zip(&fb.index)
+        .map(|(c, &j)| (c.label.clone(), j))
+        .collect();
+    let delta = shape_errors(
+        &inp.work.join("update_boards/population.parquet"),
+        &label_index,
+    )?;
+    let has_delta = delta.is_some();
+    let points = loc_in.points_m;
+    let open = open_points(fit, has_delta, points);
+    let shapes = shape_choice(
+        &fb.model,
+        (&fb.modes0, &fb.rigid),
+        (&inp.work.join("extract/modes.parquet"), inp.pairs),
+        &label_index,
+        delta.as_ref(),
+        (&open, points, &fit.amplitude_at),
+        coupling(&open),
+    )?;
+    let (combined, best_open) = combined_scores(fit, has_delta, &open, &shapes);
+    let chosen = best_open
+        .map(|k| open[k])
+        .filter(|&i| points[i] != [fit.x_m, fit.y_m])
+        .and_then(|i| localize_point_mass_at(loc_in, MIN_SEPARATION_M, Some(i)));
+    let shape_scores: Vec<[f64; 3]> = std::iter::once([fit.x_m, fit.y_m])
+        .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
+        .chain(best_open.map(|k| points[open[k]]))
+        .filter_map(|p| shapes.scores.iter().find(|s| [s[0], s[1]] == p).copied())
+        .fold(vec![], |mut v, sc| {
+            if !v.contains(&sc) {
+                v.push(sc);
+            }
+            v
+        });
+    Ok(ShapeDecision {
+        chosen_by_shapes: chosen.is_some(),
+        fit: chosen,
+        shape_scores,
+        shapes,
+        has_delta,
+        open,
+        combined,
+        best_open,
     })
 }
 
@@ -644,13 +671,13 @@ struct ShapeChoice {
 /// How a local change at a candidate point couples the modes, to first order: the change of
 /// mode j's shape per unit amplitude is Σ_k c_k φ_k over the elastic modes plus Σ_r c_r ρ_r
 /// over the rigid-body modes.
-enum Coupling<'a> {
+enum Coupling {
     /// A point mass (per kg): c_k = −λ_j φ_k(p) φ_j(p) / (λ_j − λ_k), c_r = −ρ_r(p) φ_j(p).
     PointMass,
     /// A stiffness change with the form E (per open point, over the elastic modes;
     /// [`FeModel::core_stiffness_form`]) per unit amplitude: c_k = E_kj / (λ_j − λ_k); a
     /// stiffness change does not strain the rigid-body modes (c_r = 0).
-    Stiffness(&'a [faer::Mat<f64>]),
+    Stiffness(Vec<faer::Mat<f64>>),
 }
 
 fn shape_choice(
