@@ -272,11 +272,7 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
             params.len()
         )
     })?;
-    // The measured mode shapes join the frequencies: over the points the frequencies leave
-    // open (their 99.9 % region), the first-order Δχ² of the updating's shape terms (weights
-    // n / δ², δ its posterior shape error per mode) adds to the frequencies' Δχ², and the
-    // best of the sum is the located point. Where the updating had no shape terms (no δ),
-    // the shapes only choose among the frequencies' best point and its alternatives.
+    // The measured mode shapes join the frequencies.
     let ShapeDecision {
         fit: chosen,
         chosen_by_shapes,
@@ -404,10 +400,7 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
             params.len()
         )
     })?;
-    // The measured shapes choose among the points the frequencies leave open, as for the
-    // point mass: the first-order Δχ² of the updating's shape terms joins the frequencies'
-    // (weights n/δ²) over their 99.9 % region, or, without shape terms, the shapes choose
-    // among the best point and its alternatives.
+    // The measured mode shapes join the frequencies, as for the point mass.
     let ShapeDecision {
         fit: chosen,
         chosen_by_shapes,
