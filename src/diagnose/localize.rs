@@ -653,6 +653,82 @@ mod tests {
         );
     }
 
+    /// A change of either sign (a stiffness loss, amplitude < 0, on a signature of the
+    /// stiffness's sign) is found where `positive_only` is off, at its point and size; a fit
+    /// restricted to positive amplitudes (a mass) explains clearly less, elsewhere.
+    #[test]
+    fn either_sign_finds_a_loss_a_positive_fit_misses() {
+        let (lx, ly): (f64, f64) = (0.08, 0.05);
+        let waves: [(f64, f64); 7] = [
+            (1.0, 1.0),
+            (2.0, 1.0),
+            (1.0, 2.0),
+            (3.0, 1.0),
+            (2.0, 2.0),
+            (1.5, 1.0),
+            (2.5, 1.5),
+        ];
+        // Curvature-like signature: positive everywhere but with its own pattern per mode.
+        let sig_at = |j: usize, x: f64, y: f64| {
+            let (a, b) = waves[j];
+            0.01 * ((a * std::f64::consts::PI * x / lx).cos()
+                * (b * std::f64::consts::PI * y / ly).cos())
+            .powi(2)
+        };
+        let n = waves.len();
+        let (x0, y0, amp) = (0.0225, 0.0325, -0.6);
+        let nuisance = vec![vec![0.5; n]];
+        let modes: Vec<ModeResidual> = (0..n)
+            .map(|j| ModeResidual {
+                label: format!("m{j}"),
+                mean_rel: amp * sig_at(j, x0, y0),
+                se_rel: 1e-4,
+            })
+            .collect();
+        let mut points = vec![];
+        let mut sig = vec![];
+        for i in 0..=32 {
+            for k in 0..=20 {
+                let (x, y) = (i as f64 * 0.0025, k as f64 * 0.0025);
+                points.push([x, y]);
+                sig.push((0..n).map(|j| sig_at(j, x, y)).collect::<Vec<f64>>());
+            }
+        }
+        let inp = |positive_only| LocalizeInput {
+            modes: &modes,
+            nuisance: &nuisance,
+            points_m: &points,
+            signature: &sig,
+            exact: None,
+            positive_only,
+        };
+        let either = localize_point_mass(&inp(false), 0.01).unwrap();
+        assert!((either.amplitude / amp - 1.0).abs() < 1e-6, "{either:?}");
+        assert!(either.explained_share > 0.999, "{either:?}");
+        // The cos² signature is mirror-symmetric: the point or one of its mirror images.
+        let mirrors = [[x0, y0], [lx - x0, y0], [x0, ly - y0], [lx - x0, ly - y0]];
+        assert!(
+            mirrors
+                .iter()
+                .any(|m| (either.x_m - m[0]).abs() < 1e-9 && (either.y_m - m[1]).abs() < 1e-9),
+            "{either:?}"
+        );
+        // Restricted to positive amplitudes, the best fit lies elsewhere and explains
+        // clearly less.
+        if let Some(p) = localize_point_mass(&inp(true), 0.01) {
+            assert!(p.amplitude > 0.0);
+            assert!(
+                p.explained_share < either.explained_share - 0.1,
+                "{} vs {}",
+                p.explained_share,
+                either.explained_share
+            );
+            assert!(!mirrors
+                .iter()
+                .any(|m| (p.x_m - m[0]).abs() < 1e-9 && (p.y_m - m[1]).abs() < 1e-9));
+        }
+    }
+
     /// Measured shapes made by the first-order change of a point mass at c score higher at c
     /// than at its mirror image, where the change has the opposite sign in the modes of
     /// opposite symmetry.

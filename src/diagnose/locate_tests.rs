@@ -808,7 +808,7 @@ fn summary_text(loc: &Located) -> String {
 #[test]
 fn two_effects_are_two_parts_each_explained_by_its_own_refit() {
     use crate::diagnose::library::Mechanism;
-    use crate::diagnose::misfit::{self, MisfitParts};
+    use crate::diagnose::misfit::{self, MisfitParts, RefitShares};
     use crate::diagnose::screen::Candidate;
     let synth = Synth::paper();
     let opts = LocateOptions::default();
@@ -845,8 +845,10 @@ fn two_effects_are_two_parts_each_explained_by_its_own_refit() {
         };
         let t = cand(Mechanism::TemperatureStiffness, Some("temperature_c"));
         let m = cand(Mechanism::AddedMass, None);
-        let own_t = MisfitParts::own_share(&t, &loc, &both, &after_temperature, &opts).unwrap();
-        let own_m = MisfitParts::own_share(&m, &loc, &both, &after_mass, &opts).unwrap();
+        let shares_t = RefitShares::new(&loc, &both, &after_temperature, &opts);
+        let shares_m = RefitShares::new(&loc, &both, &after_mass, &opts);
+        let own_t = shares_t.own(&t).unwrap();
+        let own_m = shares_m.own(&m).unwrap();
         assert!(
             own_t < 0.1,
             "seed {seed}: the temperature refit leaves {own_t} of the trend"
@@ -862,14 +864,14 @@ fn two_effects_are_two_parts_each_explained_by_its_own_refit() {
             misfit::covariate_share(&loc, &both, &after_mass, "temperature_c", &opts).unwrap();
         assert!(cross_t > 0.8 && cross_m > 0.8, "{cross_t} {cross_m}");
         let mut parts = MisfitParts::new(&loc);
-        parts.record_favoured(&loc, &both, &after_temperature, &opts);
+        parts.record_favoured(&shares_t);
         assert!(!parts.all_explained(0.2));
         let left = parts.unexplained(0.2).unwrap();
         assert!(
             left.contains("mean shifts") && !left.contains("temperature"),
             "{left}"
         );
-        parts.record_favoured(&loc, &both, &after_mass, &opts);
+        parts.record_favoured(&shares_m);
         assert!(parts.all_explained(0.2), "{:?}", parts.unexplained(0.2));
     }
 }

@@ -94,12 +94,51 @@ pub fn covariate_share(
 /// covariate mechanism is judged on its covariate's trend, every other mechanism on the mean
 /// shifts: two effects at once (a temperature drift and a mass) are then two findings, each
 /// explaining its part, where one share over both would make each leave the other's.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct MisfitParts {
     /// Share of the mean shifts each refit left (`None`: no mean shift located).
     modes: Option<Vec<f64>>,
     /// Per located covariate, the share of its trend each refit left.
     covariates: BTreeMap<String, Vec<f64>>,
+}
+
+/// The share of every part of the located misfit one refit leaves, computed once from its
+/// residuals.
+#[derive(Debug)]
+pub struct RefitShares {
+    /// Of the mean shifts (`None`: none located).
+    modes: Option<f64>,
+    /// Of each located covariate's trend.
+    covariates: BTreeMap<String, Option<f64>>,
+}
+
+impl RefitShares {
+    pub fn new(
+        located: &Located,
+        input: &locate::LocateInput,
+        after: &[ResidualObs],
+        lopts: &LocateOptions,
+    ) -> Self {
+        RefitShares {
+            modes: remaining_share(located, &locate::mode_means(after, lopts)),
+            covariates: located
+                .covariates
+                .iter()
+                .map(|c| {
+                    let share = covariate_share(located, input, after, &c.covariate, lopts);
+                    (c.covariate.clone(), share)
+                })
+                .collect(),
+        }
+    }
+
+    /// The candidate's own share: of its covariate's trend, or of the mean shifts.
+    pub fn own(&self, cand: &Candidate) -> Option<f64> {
+        match &cand.covariate {
+            Some(c) => self.covariates.get(c).copied().flatten(),
+            None => self.modes,
+        }
+    }
 }
 
 impl MisfitParts {
@@ -114,41 +153,17 @@ impl MisfitParts {
         }
     }
 
-    /// Record a favoured refit's shares of every part; returns the candidate's own share
-    /// (its covariate's trend, or the mean shifts).
-    pub fn own_share(
-        cand: &Candidate,
-        located: &Located,
-        input: &locate::LocateInput,
-        after: &[ResidualObs],
-        lopts: &LocateOptions,
-    ) -> Option<f64> {
-        match &cand.covariate {
-            Some(c) => covariate_share(located, input, after, c, lopts),
-            None => remaining_share(located, &locate::mode_means(after, lopts)),
-        }
-    }
-
     /// Count a favoured refit: the share it leaves of every part.
-    pub fn record_favoured(
-        &mut self,
-        located: &Located,
-        input: &locate::LocateInput,
-        after: &[ResidualObs],
-        lopts: &LocateOptions,
-    ) {
-        if let Some(v) = &mut self.modes {
-            if let Some(s) = remaining_share(located, &locate::mode_means(after, lopts)) {
-                v.push(s);
-            }
+    pub fn record_favoured(&mut self, shares: &RefitShares) {
+        if let (Some(v), Some(s)) = (&mut self.modes, shares.modes) {
+            v.push(s);
         }
         for (c, v) in self.covariates.iter_mut() {
-            if let Some(s) = covariate_share(located, input, after, c, lopts) {
+            if let Some(s) = shares.covariates.get(c).copied().flatten() {
                 v.push(s);
             }
         }
     }
-
     /// Every part explained: a favoured refit left at most `share` of it.
     pub fn all_explained(&self, share: f64) -> bool {
         let done = |v: &Vec<f64>| v.iter().any(|s| *s <= share);

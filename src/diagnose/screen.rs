@@ -49,6 +49,19 @@ pub struct Candidate {
 }
 
 impl Candidate {
+    /// A candidate with no joint, covariate or point yet.
+    pub fn new(mechanism: Mechanism, reason: String) -> Candidate {
+        Candidate {
+            mechanism,
+            joint: None,
+            joint_xy_m: None,
+            covariate: None,
+            point_xy_m: None,
+            point_located: None,
+            reason,
+        }
+    }
+
     /// The id of its refit directory and of `diagnose --only`.
     pub fn id(&self) -> String {
         match self.joint {
@@ -87,7 +100,7 @@ pub struct PointLocated {
     /// refit's log evidence.
     pub log_occam: f64,
     /// The sd of ln(mass) that the location's uncertainty adds
-    /// ([`crate::diagnose::localize::LocalFit::location_ln_mass_sd`]): the refit's mass
+    /// ([`crate::diagnose::localize::LocalFit::location_ln_amplitude_sd`]): the refit's mass
     /// interval, conditional on the point, is widened by it.
     pub location_ln_mass_sd: f64,
 }
@@ -111,16 +124,10 @@ pub fn attach_point_mass(
     {
         Some(i) => i,
         None if located.is_some() => {
-            cands.push(Candidate {
-                mechanism: Mechanism::AddedMass,
-                joint: None,
-                joint_xy_m: None,
-                covariate: None,
-                point_xy_m: None,
-                point_located: None,
-                reason: "the free-free mean shifts remain once the covariate trend is set aside"
-                    .into(),
-            });
+            cands.push(Candidate::new(
+                Mechanism::AddedMass,
+                "the free-free mean shifts remain once the covariate trend is set aside".into(),
+            ));
             cands.len() - 1
         }
         None => return,
@@ -196,15 +203,7 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
         .filter(|c| c.setup == "bolted" && c.recurring)
         .map(|c| c.median_freq_hz)
         .collect::<Vec<_>>();
-    let cand = |m: Mechanism, reason: String| Candidate {
-        mechanism: m,
-        joint: None,
-        joint_xy_m: None,
-        covariate: None,
-        point_xy_m: None,
-        point_located: None,
-        reason,
-    };
+    let cand = Candidate::new;
     // Covariates first: a trend with a sheet column is the most specific signature.
     for c in &located.covariates {
         if c.slope_rel_per_unit.is_some() && is_temperature(&c.covariate, &c.unit) {

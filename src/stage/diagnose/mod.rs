@@ -15,7 +15,7 @@ pub mod regions;
 
 use crate::diagnose::library::{is_board_mechanism, Mechanism};
 use crate::diagnose::locate::{self, LocateOptions, Located, ModeCheck};
-use crate::diagnose::misfit::MisfitParts;
+use crate::diagnose::misfit::{MisfitParts, RefitShares};
 use crate::diagnose::screen::{self, Candidate};
 use crate::diagnose::select::{
     self, Compared, Estimate, Refit, SelectOptions, SetupError, Verdict,
@@ -750,13 +750,13 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                     ),
                     verbose,
                 );
-                let after = if r.failed.is_none() {
+                let shares = if r.failed.is_none() {
                     let after = refit_residuals(&opts.out.join(&r.dir))?;
-                    r.remaining_share =
-                        MisfitParts::own_share(cand, &located, &input, &after, &opts.locate);
-                    after
+                    let shares = RefitShares::new(&located, &input, &after, &opts.locate);
+                    r.remaining_share = shares.own(cand);
+                    Some(shares)
                 } else {
-                    vec![]
+                    None
                 };
                 eprintln!(
                     "diagnose: refit {} in {:.1} s{}",
@@ -767,11 +767,12 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                         .map(|e| format!(": failed: {e}"))
                         .unwrap_or_default()
                 );
-                if select::compare(base_ref, std::slice::from_ref(&r), &opts.select)
-                    .first()
-                    .is_some_and(|c| c.favoured)
-                {
-                    parts.record_favoured(&located, &input, &after, &opts.locate);
+                if let Some(shares) = shares.filter(|_| {
+                    select::compare(base_ref, std::slice::from_ref(&r), &opts.select)
+                        .first()
+                        .is_some_and(|c| c.favoured)
+                }) {
+                    parts.record_favoured(&shares);
                 }
                 refits.push(r);
                 if parts.all_explained(STOP_REMAINING_SHARE) {

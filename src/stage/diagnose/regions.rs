@@ -2,7 +2,8 @@
 //!
 //! The free-free model is built from the board file at the step-1 posterior centre (the
 //! median over all boards' draws of every updated parameter, `update_boards/boards.parquet`);
-//! its modes give the point-mass signature −½ φ_j² on a grid over the board (holes left out)
+//! its modes give the point-mass signature −½ φ_j² and a core stiffness change's
+//! ½ E_jj/λ_j ([`stiffness_region`]) on a grid over the board (holes left out)
 //! and, by finite differences of 1 % in each updated parameter, the sensitivities the
 //! localisation projects off. Labels are matched to model modes by the nearest frequency to
 //! their mean model frequency in the step-1 residuals. The frequencies cannot tell the mirror
@@ -38,6 +39,12 @@ pub const MIN_SEPARATION_M: f64 = 10e-3;
 /// span: a mechanism is named as the location of a misfit only when it accounts for most of
 /// it.
 pub const MIN_EXPLAINED_SHARE: f64 = 0.5;
+
+/// The rule of a located region: significant at the locate step's FDR level, and explaining
+/// at least [`MIN_EXPLAINED_SHARE`] of the misfit.
+fn passes_rule(fit: &LocalFit, locate: &LocateOptions) -> bool {
+    fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE
+}
 
 /// One located (or examined) board region.
 #[derive(Clone, Debug, serde::Serialize, schemars::JsonSchema)]
@@ -95,6 +102,8 @@ pub struct FreeBasis {
     /// The boards were weighed and the mass scale followed the balance (not a nuisance).
     weighed: bool,
     board_mass_kg: f64,
+    /// The candidate points ([`grid`]).
+    points: Vec<[f64; 2]>,
 }
 
 impl FreeBasis {
@@ -190,6 +199,7 @@ impl FreeBasis {
             nuisance,
             weighed,
             board_mass_kg,
+            points: grid(board),
         })
     }
 
@@ -208,12 +218,7 @@ impl FreeBasis {
 /// The point-mass localisation over the free-free modes of `checks` (locate's mode checks).
 /// `Err` says why it could not run (the stage writes it as the note).
 pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<BoardRegion> {
-    let RegionInput {
-        board,
-        params,
-        locate,
-        ..
-    } = *inp;
+    let RegionInput { params, locate, .. } = *inp;
     let FreeBasis {
         model,
         modes0,
@@ -225,8 +230,8 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         ..
     } = fb;
     let (weighed, board_mass_kg) = (*weighed, *board_mass_kg);
-    let points = grid(board);
-    let w = model.w_at(modes0, &points)?;
+    let points = &fb.points;
+    let w = model.w_at(modes0, points)?;
     let uniform = if weighed { 1.0 / board_mass_kg } else { 0.0 };
     let signature: Vec<Vec<f64>> = (0..points.len())
         .map(|i| {
@@ -238,7 +243,7 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         .collect();
     // The modal basis: rigid-body modes (λ = 0) first, then the elastic ones.
     let n_rig = rigid.ncols();
-    let w_rig = model.shape_operator(&points)?.apply(rigid.as_ref());
+    let w_rig = model.shape_operator(points)?.apply(rigid.as_ref());
     let lambda: Vec<f64> = std::iter::repeat_n(0.0, n_rig)
         .chain(modes0.eigenvalues.iter().copied())
         .collect();
@@ -255,7 +260,7 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
     let loc_in = LocalizeInput {
         modes: &modes,
         nuisance,
-        points_m: &points,
+        points_m: points,
         signature: &signature,
         exact: Some(ModalBasis {
             lambda: &lambda,
@@ -301,9 +306,9 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
             .map(|(&i, d)| ((-(top - d).max(0.0) / s2).exp(), fit.amplitude_at[i].ln()))
             .collect();
         fit.location_ln_amplitude_sd = weighted_sd(&wv);
-        combined_region(&mut fit, &combined, k, &open, &points);
+        combined_region(&mut fit, &combined, k, &open, points);
     }
-    let located = fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE;
+    let located = passes_rule(&fit, locate);
     let alt = alternatives_clause(&fit, chosen_by_shapes, shape_scores.len());
     let skipped = if shapes.skipped > 0 {
         format!(
@@ -361,14 +366,9 @@ pub const STIFFNESS_RADIUS_M: f64 = 4e-3;
 /// frequencies alone cannot tell the mirror points of a near-symmetric board apart; the
 /// measured shapes choose among them ([`decide_by_shapes`]).
 pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<BoardRegion> {
-    let RegionInput {
-        board,
-        params,
-        locate,
-        ..
-    } = *inp;
-    let points: Vec<[f64; 2]> = grid(board);
-    let cols: Vec<usize> = fb.index.clone();
+    let RegionInput { params, locate, .. } = *inp;
+    let points = &fb.points;
+    let cols = &fb.index;
     let shapes = faer::Mat::<f64>::from_fn(fb.modes0.shapes.nrows(), cols.len(), |r, c| {
         fb.modes0.shapes[(r, cols[c])]
     });
@@ -388,7 +388,7 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
     let loc_in = LocalizeInput {
         modes: &modes,
         nuisance: &fb.nuisance,
-        points_m: &points,
+        points_m: points,
         signature: &signature,
         exact: None,
         positive_only: false,
@@ -426,9 +426,9 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
     })?;
     let mut fit = chosen.unwrap_or(fit);
     if let (true, Some(k)) = (has_delta, best_open) {
-        combined_region(&mut fit, &combined, k, &open, &points);
+        combined_region(&mut fit, &combined, k, &open, points);
     }
-    let located = fit.p_value < locate.fdr && fit.explained_share >= MIN_EXPLAINED_SHARE;
+    let located = passes_rule(&fit, locate);
     let kind = if fit.amplitude > 0.0 {
         "stiffening"
     } else {
