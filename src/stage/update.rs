@@ -2425,7 +2425,15 @@ fn match_modes(
 /// values of the joint parameters), by Levenberg–Marquardt within ±`spans[k]`, with the
 /// full FE model. The ROM
 /// is built around it: its box is ±20 % and the nominal joint can be off by far more.
-/// Only the ROM's centre depends on the data; the priors do not.
+/// Only the ROM's centre depends on the data; the priors do not. The reference of the SMC
+/// starts its search there too.
+///
+/// An enrichment can make the fit multimodal: a fixture resonance fits one way above the
+/// band (where it hardly acts) and another way between two measured modes, and a local
+/// search from the prior's centre never crosses a mode to reach the other. So the
+/// enrichment's own coordinates (all but the first, k_con) are first scanned on a grid
+/// over ±2 `prior_sd` (7 points each, at most 7² points), and the search runs from the prior's
+/// centre and from the two best grid points; the lowest misfit wins.
 #[allow(clippy::too_many_arguments)]
 fn fit_joint_centre(
     model: &FeModel,
@@ -2436,6 +2444,7 @@ fn fit_joint_centre(
     rows: &[&PairRow],
     (w_ref, points): (&faer::Mat<f64>, &[[f64; 2]]),
     n_modes: usize,
+    prior_sd: &[f64],
 ) -> anyhow::Result<Vec<f64>> {
     // Median measured frequency per label.
     let med: Vec<Option<f64>> = labels
@@ -2471,7 +2480,59 @@ fn fit_joint_centre(
     // other (k_con against k_rot), a ridge a one-coordinate-at-a-time search crawls along.
     let d = coords.len();
     let sq = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
-    let mut x = vec![0.0; d];
+    // The grid of starts over the enrichment's coordinates.
+    const GRID: [f64; 7] = [-2.0, -4.0 / 3.0, -2.0 / 3.0, 0.0, 2.0 / 3.0, 4.0 / 3.0, 2.0];
+    let mut grid: Vec<Vec<f64>> = vec![vec![0.0; d]];
+    for k in 1..d.min(3) {
+        grid = grid
+            .iter()
+            .flat_map(|g| {
+                GRID.iter().map(move |&t| {
+                    let mut g = g.clone();
+                    g[k] = (t * prior_sd[k]).clamp(-spans[k], spans[k]);
+                    g
+                })
+            })
+            .collect();
+    }
+    let mut scored: Vec<(f64, Vec<f64>)> = vec![];
+    if d > 1 {
+        for g in grid {
+            // A grid point where the model cannot be solved is no start.
+            if let Ok(r) = resid(&g) {
+                scored.push((sq(&r), g));
+            }
+        }
+        scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    }
+    let mut starts = vec![vec![0.0; d]];
+    starts.extend(
+        scored
+            .into_iter()
+            .map(|(_, g)| g)
+            .filter(|g| g.iter().any(|v| *v != 0.0))
+            .take(2),
+    );
+    let mut best: Option<(f64, Vec<f64>)> = None;
+    for x0 in starts {
+        let (c, x) = levenberg_marquardt(&resid, x0, spans)?;
+        if best.as_ref().is_none_or(|(cb, _)| c < *cb) {
+            best = Some((c, x));
+        }
+    }
+    Ok(best.map(|(_, x)| x).unwrap_or_else(|| vec![0.0; d]))
+}
+
+/// Levenberg–Marquardt on the residuals `resid` from `x0`, kept inside ±`spans`: the final
+/// sum of squares and point.
+fn levenberg_marquardt(
+    resid: &dyn Fn(&[f64]) -> anyhow::Result<Vec<f64>>,
+    x0: Vec<f64>,
+    spans: &[f64],
+) -> anyhow::Result<(f64, Vec<f64>)> {
+    let d = x0.len();
+    let sq = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
+    let mut x = x0;
     let mut r0 = resid(&x)?;
     let mut c0 = sq(&r0);
     let mut mu = 1e-3;
@@ -2535,7 +2596,7 @@ fn fit_joint_centre(
             break;
         }
     }
-    Ok(x)
+    Ok((c0, x))
 }
 
 /// Step 2: joints, bolted, the modular posterior over the step-1 draws.
@@ -2690,6 +2751,7 @@ pub fn run_joints(
                 }
             })
             .collect();
+        let prior_sds: Vec<f64> = enr.coordinates.iter().map(|c| c.prior_sd).collect();
         let t_centre = std::time::Instant::now();
         // All coordinates are fitted to the median frequencies (k_con trades off against
         // k_rot, one joint's ratio against the common k_con); then an enrichment's own
@@ -2707,6 +2769,7 @@ pub fn run_joints(
             &bolted_rows,
             (&w_labels, &points),
             n_track,
+            &prior_sds,
         )?;
         let mut centre: Vec<f64> = fit
             .iter()
@@ -2733,6 +2796,7 @@ pub fn run_joints(
                 &bolted_rows,
                 (&w_labels, &points),
                 n_track,
+                &prior_sds[..1],
             )?[0];
         }
         if verbose {

@@ -30,7 +30,6 @@
 //! label cannot be tracked give no row; they are counted in [`Counts`], never dropped
 //! silently. Draws outside the ROM's verified box are evaluated and counted.
 
-use crate::fem::params::names;
 use crate::fem::rom::Rom;
 use crate::fem::FemError;
 use faer::{Mat, Side};
@@ -115,45 +114,19 @@ impl LabelModel {
     }
 
     /// Eigenvalues λ = ω² (rad²/s²) of every label at the full parameter vector `values`;
-    /// `None` where the parameters are inadmissible or a label cannot be tracked (best
-    /// overlap below 1/√2).
+    /// `None` where the parameters are inadmissible or a label cannot be tracked
+    /// ([`crate::bayes::modal::assign_labels`]).
     pub fn eigenvalues(&self, values: &[f64]) -> Option<Vec<f64>> {
         let map = &self.rom.map;
-        for (n, v) in map.names.iter().zip(values) {
-            let ok = v.is_finite() && (n == names::NU_XY || *v > 0.0);
-            if !ok {
-                return None;
-            }
-        }
-        let [ix, iy, _, inu] = map.core_idx;
-        if values[inu] * values[inu] * values[iy] / values[ix] >= 1.0 {
+        if !crate::bayes::modal::admissible(map, values) {
             return None;
         }
         let c = map.coefficients_unchecked(values);
         let modes = self.rom.eval_lowest(&c.k, &c.m, self.n_track).ok()?;
-        let mut pairs = Vec::with_capacity(self.refs.len() * modes.vectors.len());
-        for (m, r) in self.refs.iter().enumerate() {
-            for (j, y) in modes.vectors.iter().enumerate() {
-                let ny = y.iter().map(|a| a * a).sum::<f64>().sqrt();
-                let o = y.iter().zip(r).map(|(a, b)| a * b).sum::<f64>().abs() / ny;
-                pairs.push((o, m, j));
-            }
-        }
-        // Greedy by overlap, ties broken by (label, mode) order: deterministic.
-        pairs.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
-        let mut out = vec![f64::NAN; self.refs.len()];
-        let mut taken = vec![false; modes.vectors.len()];
-        for (o, m, j) in pairs {
-            if !out[m].is_nan() || taken[j] {
-                continue;
-            }
-            if o < std::f64::consts::FRAC_1_SQRT_2 {
-                return None;
-            }
-            taken[j] = true;
-            out[m] = modes.eigenvalues[j];
-        }
-        Some(out)
+        crate::bayes::modal::assign_labels(&self.refs, &modes.vectors)
+            .into_iter()
+            .map(|a| a.map(|j| modes.eigenvalues[j]))
+            .collect::<Option<Vec<f64>>>()
     }
 
     /// True when every parameter lies inside the ROM's box around its centre.
@@ -596,6 +569,7 @@ fn one_draw(
 mod tests {
     use super::*;
     use crate::fem::model::Setup;
+    use crate::fem::params::names;
     use crate::fem::rom::RomOptions;
     use crate::fem::tests::helpers::{build, plain_board};
 
