@@ -589,6 +589,24 @@ mod tests {
         localize_point_mass(&inp, 0.01)
     }
 
+    /// The 0.08 × 0.05 m board's points on a 2.5 mm grid, and at each the signature of
+    /// modes 0..n from `sig_at(mode, x_m, y_m)`.
+    fn board_grid(
+        n: usize,
+        sig_at: impl Fn(usize, f64, f64) -> f64,
+    ) -> (Vec<[f64; 2]>, Vec<Vec<f64>>) {
+        let mut points = vec![];
+        let mut sig = vec![];
+        for i in 0..=32 {
+            for k in 0..=20 {
+                let (x, y) = (i as f64 * 0.0025, k as f64 * 0.0025);
+                points.push([x, y]);
+                sig.push((0..n).map(|j| sig_at(j, x, y)).collect());
+            }
+        }
+        (points, sig)
+    }
+
     /// A synthetic "plate": modes with shapes sin(a x) sin(b y) on a 0.08 × 0.05 m rectangle
     /// (mass-normalised for a 20 g board), a point mass of 0.3 g at (0.055, 0.031) and two
     /// nuisance parameters (a uniform stiffness and a uniform mass scale). The residuals are
@@ -627,15 +645,7 @@ mod tests {
                 se_rel: 1e-4 * (1.0 + 0.1 * j as f64),
             })
             .collect();
-        let mut points = vec![];
-        let mut sig = vec![];
-        for i in 0..=32 {
-            for k in 0..=20 {
-                let (x, y) = (i as f64 * 0.0025, k as f64 * 0.0025);
-                points.push([x, y]);
-                sig.push((0..n).map(|j| -0.5 * phi(j, x, y).powi(2)).collect());
-            }
-        }
+        let (points, sig) = board_grid(n, |j, x, y| -0.5 * phi(j, x, y).powi(2));
         let fit = fit(&modes, &nuisance, &points, &sig).unwrap();
         assert!(
             (fit.x_m - x0).abs() <= 0.0025 && (fit.y_m - y0).abs() <= 0.0025,
@@ -685,15 +695,7 @@ mod tests {
                 se_rel: 1e-4,
             })
             .collect();
-        let mut points = vec![];
-        let mut sig = vec![];
-        for i in 0..=32 {
-            for k in 0..=20 {
-                let (x, y) = (i as f64 * 0.0025, k as f64 * 0.0025);
-                points.push([x, y]);
-                sig.push((0..n).map(|j| sig_at(j, x, y)).collect::<Vec<f64>>());
-            }
-        }
+        let (points, sig) = board_grid(n, sig_at);
         let inp = |positive_only| LocalizeInput {
             modes: &modes,
             nuisance: &nuisance,

@@ -2431,9 +2431,10 @@ fn match_modes(
 /// An enrichment can make the fit multimodal: a fixture resonance fits one way above the
 /// band (where it hardly acts) and another way between two measured modes, and a local
 /// search from the prior's centre never crosses a mode to reach the other. So the
-/// enrichment's own coordinates (all but the first, k_con) are first scanned on a grid
-/// over ±2 `prior_sd` (7 points each, at most 7² points), and the search runs from the prior's
-/// centre and from the two best grid points; the lowest misfit wins.
+/// enrichment's own coordinates (all but the first, k_con; the first two of them) are first
+/// scanned on a grid over ±⅔ of their spans (7 points each, at most 7² points), and the
+/// search runs from the prior's centre and from the two best grid points; the lowest misfit
+/// wins.
 #[allow(clippy::too_many_arguments)]
 fn fit_joint_centre(
     model: &FeModel,
@@ -2444,7 +2445,6 @@ fn fit_joint_centre(
     rows: &[&PairRow],
     (w_ref, points): (&faer::Mat<f64>, &[[f64; 2]]),
     n_modes: usize,
-    prior_sd: &[f64],
 ) -> anyhow::Result<Vec<f64>> {
     // Median measured frequency per label.
     let med: Vec<Option<f64>> = labels
@@ -2479,9 +2479,9 @@ fn fit_joint_centre(
     // dozen FE solves), kept inside ±spans: a joint's stiffnesses trade off against each
     // other (k_con against k_rot), a ridge a one-coordinate-at-a-time search crawls along.
     let d = coords.len();
-    let sq = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
-    // The grid of starts over the enrichment's coordinates.
-    const GRID: [f64; 7] = [-2.0, -4.0 / 3.0, -2.0 / 3.0, 0.0, 2.0 / 3.0, 4.0 / 3.0, 2.0];
+    // The grid of starts over the enrichment's coordinates: 7 points over ±⅔ of each span
+    // (±2 prior sd, the spans being 3 prior sd).
+    const GRID: [f64; 7] = [-1.0, -2.0 / 3.0, -1.0 / 3.0, 0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0];
     let mut grid: Vec<Vec<f64>> = vec![vec![0.0; d]];
     for k in 1..d.min(3) {
         grid = grid
@@ -2489,38 +2489,34 @@ fn fit_joint_centre(
             .flat_map(|g| {
                 GRID.iter().map(move |&t| {
                     let mut g = g.clone();
-                    g[k] = (t * prior_sd[k]).clamp(-spans[k], spans[k]);
+                    g[k] = t * 2.0 / 3.0 * spans[k];
                     g
                 })
             })
             .collect();
     }
-    let mut scored: Vec<(f64, Vec<f64>)> = vec![];
-    if d > 1 {
-        for g in grid {
-            // A grid point where the model cannot be solved is no start.
-            if let Ok(r) = resid(&g) {
-                scored.push((sq(&r), g));
+    let mut scored: Vec<(f64, Vec<f64>)> = grid
+        .into_iter()
+        // The prior's centre is the search's first start anyway.
+        .filter(|g| g.iter().any(|v| *v != 0.0))
+        .filter_map(|g| resid(&g).ok().map(|r| (sum_sq(&r), g)))
+        .collect();
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // From the prior's centre as before (its failure is the step's); a grid start whose
+    // search meets a point the model cannot solve is dropped.
+    let mut best = levenberg_marquardt(&resid, vec![0.0; d], spans)?;
+    for (_, x0) in scored.into_iter().take(2) {
+        if let Ok((c, x)) = levenberg_marquardt(&resid, x0, spans) {
+            if c < best.0 {
+                best = (c, x);
             }
         }
-        scored.sort_by(|a, b| a.0.total_cmp(&b.0));
     }
-    let mut starts = vec![vec![0.0; d]];
-    starts.extend(
-        scored
-            .into_iter()
-            .map(|(_, g)| g)
-            .filter(|g| g.iter().any(|v| *v != 0.0))
-            .take(2),
-    );
-    let mut best: Option<(f64, Vec<f64>)> = None;
-    for x0 in starts {
-        let (c, x) = levenberg_marquardt(&resid, x0, spans)?;
-        if best.as_ref().is_none_or(|(cb, _)| c < *cb) {
-            best = Some((c, x));
-        }
-    }
-    Ok(best.map(|(_, x)| x).unwrap_or_else(|| vec![0.0; d]))
+    Ok(best.1)
+}
+
+fn sum_sq(r: &[f64]) -> f64 {
+    r.iter().map(|v| v * v).sum()
 }
 
 /// Levenberg–Marquardt on the residuals `resid` from `x0`, kept inside ±`spans`: the final
@@ -2531,10 +2527,9 @@ fn levenberg_marquardt(
     spans: &[f64],
 ) -> anyhow::Result<(f64, Vec<f64>)> {
     let d = x0.len();
-    let sq = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
     let mut x = x0;
     let mut r0 = resid(&x)?;
-    let mut c0 = sq(&r0);
+    let mut c0 = sum_sq(&r0);
     let mut mu = 1e-3;
     let h = 1e-3;
     for _ in 0..12 {
@@ -2581,7 +2576,7 @@ fn levenberg_marquardt(
                 .map(|k| (x[k] + delta[k]).clamp(-spans[k], spans[k]))
                 .collect();
             let r = resid(&y)?;
-            let c = sq(&r);
+            let c = sum_sq(&r);
             if c < c0 {
                 x = y;
                 r0 = r;
@@ -2751,7 +2746,6 @@ pub fn run_joints(
                 }
             })
             .collect();
-        let prior_sds: Vec<f64> = enr.coordinates.iter().map(|c| c.prior_sd).collect();
         let t_centre = std::time::Instant::now();
         // All coordinates are fitted to the median frequencies (k_con trades off against
         // k_rot, one joint's ratio against the common k_con); then an enrichment's own
@@ -2769,7 +2763,6 @@ pub fn run_joints(
             &bolted_rows,
             (&w_labels, &points),
             n_track,
-            &prior_sds,
         )?;
         let mut centre: Vec<f64> = fit
             .iter()
@@ -2796,7 +2789,6 @@ pub fn run_joints(
                 &bolted_rows,
                 (&w_labels, &points),
                 n_track,
-                &prior_sds[..1],
             )?[0];
         }
         if verbose {
