@@ -29,6 +29,7 @@ pub mod dense;
 pub mod eigen;
 pub mod geometry;
 pub mod gerber;
+pub mod grading;
 pub mod joints;
 pub mod laminate;
 pub mod model;

@@ -262,7 +262,7 @@ impl Rom {
                 for j in 0..=mesh.ny {
                     for i in 0..=mesh.nx {
                         if let Some(d) = mesh.node_dof[j * (mesh.nx + 1) + i] {
-                            let (x, y) = (i as f64 * mesh.a_m, j as f64 * mesh.b_m);
+                            let (x, y) = (mesh.x_m[i], mesh.y_m[j]);
                             match kind {
                                 0 => r[d] = 1.0,
                                 1 => {

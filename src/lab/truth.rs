@@ -442,7 +442,7 @@ fn rigid_shapes(
     for j in 0..=mesh.ny {
         for i in 0..=mesh.nx {
             if let Some(d) = mesh.node_dof[j * (mesh.nx + 1) + i] {
-                let (x, y) = (i as f64 * mesh.a_m, j as f64 * mesh.b_m);
+                let (x, y) = (mesh.x_m[i], mesh.y_m[j]);
                 vecs[0][d] = 1.0;
                 vecs[1][d] = x - cx;
                 vecs[1][d + 1] = 1.0;
@@ -496,9 +496,9 @@ fn mode_set(
         for j in 0..=mesh.ny {
             for i in 0..=mesh.nx {
                 if let Some(d) = mesh.node_dof[j * (mesh.nx + 1) + i] {
-                    rx[d] = i as f64 * mesh.a_m - xr;
+                    rx[d] = mesh.x_m[i] - xr;
                     rx[d + 1] = 1.0;
-                    ry[d] = j as f64 * mesh.b_m - yr;
+                    ry[d] = mesh.y_m[j] - yr;
                     ry[d + 2] = 1.0;
                 }
             }

@@ -283,7 +283,7 @@ fn joint_totals_are_exact_on_every_mesh() {
         for j in 0..=ny {
             for i in 0..=nx {
                 if let Some(d) = m.mesh.node_dof[j * (nx + 1) + i] {
-                    rx[d] = i as f64 * m.mesh.a_m;
+                    rx[d] = m.mesh.x_m[i];
                     rx[d + 1] = 1.0;
                 }
             }
@@ -399,6 +399,22 @@ fn bolted_modes_are_mesh_independent_at_fixed_k_con() {
     }
 }
 
+/// `board` in `setup` on the uniform mesh `mesh` (a bolted board is otherwise graded
+/// towards its joints, and these limits need the holes on the nodes).
+fn build_uniform(
+    board: &Board,
+    setup: Setup,
+    mesh: &MeshOptions,
+) -> Result<FeModel, crate::fem::FemError> {
+    use crate::fem::grading::uniform_lines;
+    FeModel::build_on_lines(
+        board,
+        setup,
+        uniform_lines(board.length_x_m, mesh.nx),
+        uniform_lines(board.width_y_m, mesh.ny),
+    )
+}
+
 /// The default board on a 16 × 10 mesh (5 mm elements) with its four bolt holes on
 /// mesh nodes, 1 mm holes and 9.6 mm clamps: each annulus lies inside the four elements
 /// around its node and covers 72 % of each, so no element is a sliver and the penalty
@@ -489,8 +505,8 @@ fn check_one_over_k(gaps: &[Vec<f64>], decades: usize) {
 #[test]
 fn spring_layer_tends_to_the_clamped_patch_as_one_over_k() {
     let (b, mesh) = sliver_free_joint_board();
-    let m = FeModel::build(&b, Setup::bolted(), &mesh).unwrap();
-    let free = FeModel::build(&b, Setup::Free, &mesh).unwrap();
+    let m = build_uniform(&b, Setup::bolted(), &mesh).unwrap();
+    let free = build_uniform(&b, Setup::Free, &mesh).unwrap();
     assert_eq!(m.n_dof, free.n_dof);
     assert_eq!(m.mesh.node_dof, free.mesh.node_dof);
     let mut fixed: Vec<usize> = Vec::new();
@@ -517,7 +533,7 @@ fn spring_layer_tends_to_the_clamped_patch_as_one_over_k() {
 #[test]
 fn rotational_layer_tends_to_the_rigid_patch_as_one_over_k() {
     let (b, mesh) = sliver_free_joint_board();
-    let m = FeModel::build(
+    let m = build_uniform(
         &b,
         Setup::Bolted(JointModel {
             features: vec![
@@ -530,7 +546,7 @@ fn rotational_layer_tends_to_the_rigid_patch_as_one_over_k() {
         &mesh,
     )
     .unwrap();
-    let base = FeModel::build(&b, Setup::bolted(), &mesh).unwrap();
+    let base = build_uniform(&b, Setup::bolted(), &mesh).unwrap();
     assert_eq!(m.n_dof, base.n_dof);
     // Reduced DOFs: one tied w per joint patch, every other DOF its own, the patch
     // slopes dropped.
@@ -577,10 +593,9 @@ fn core_stiffness_change_integrates_the_disc_exactly_and_softens() {
     let p = m0.nominal_params();
     let (x, y, r) = (0.0413, 0.0237, 0.0061);
     let mut w = vec![0.0; m0.n_dof];
-    let nx = m0.mesh.nx;
     for (n, d) in m0.mesh.node_dof.iter().enumerate() {
         if let Some(d) = d {
-            let xn = (n % (nx + 1)) as f64 * m0.mesh.a_m;
+            let xn = m0.mesh.node_xy(n).0;
             w[*d] = 0.5 * xn * xn;
             w[*d + 1] = xn;
         }
@@ -654,10 +669,9 @@ fn core_stiffness_form_is_the_first_order_eigenvalue_change() {
         );
     }
     let mut w = faer::Mat::<f64>::zeros(m0.n_dof, 1);
-    let nx = m0.mesh.nx;
     for (n, d) in m0.mesh.node_dof.iter().enumerate() {
         if let Some(d) = d {
-            let xn = (n % (nx + 1)) as f64 * m0.mesh.a_m;
+            let xn = m0.mesh.node_xy(n).0;
             w[(*d, 0)] = 0.5 * xn * xn;
             w[(*d + 1, 0)] = xn;
         }
