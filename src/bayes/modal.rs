@@ -131,6 +131,41 @@ pub struct Terms {
     pub one_minus_mac: Vec<f64>,
     /// Model mass, g.
     pub mass_g: f64,
+    /// The unit's log-likelihood reduced to per-mode sums that do not depend on ε or δ
+    /// ([`Terms::with_sufficient`]); empty where not formed. With them a change of the
+    /// global vector (ε, δ, the population) re-prices a unit in O(modes), not O(data).
+    pub suff: Vec<f64>,
+}
+
+impl Terms {
+    /// These terms with the per-mode sufficient statistics of `data` for `n_modes`
+    /// updated modes: Σ ((λ̂ − λ)/λ̂)² and the count of eigenvalue terms, Σ n (1 − MAC) and
+    /// Σ n of the shape terms, then everything else (normalising constants, the mass term).
+    pub fn with_sufficient(mut self, data: &UnitData, n_modes: usize) -> Terms {
+        let nm = n_modes;
+        let mut s = vec![0.0; 4 * nm + 1];
+        let mut rest = 0.0;
+        for f in &data.freq {
+            let lambda = self.lambda[f.cond * nm + f.mode];
+            let r = (f.lambda_hat - lambda) / f.lambda_hat;
+            s[f.mode] += r * r;
+            s[nm + f.mode] += 1.0;
+            rest += 0.5 * LN_2PI + f.ln_lambda_hat;
+        }
+        for (o, omm) in data.shapes.iter().zip(&self.one_minus_mac) {
+            let n = o.n_points as f64;
+            s[2 * nm + o.mode] += n * omm;
+            s[3 * nm + o.mode] += n;
+            rest += 0.5 * n * (LN_2PI - o.ln_n);
+        }
+        if let Some(m) = &data.mass {
+            let z = (m.mass_g - self.mass_g) / m.sd_g;
+            rest += 0.5 * (LN_2PI + z * z) + m.sd_g.ln();
+        }
+        s[4 * nm] = rest;
+        self.suff = s;
+        self
+    }
 }
 
 /// The ROM with the updated modes' references: the forward model of a unit.
@@ -393,6 +428,7 @@ impl ModalPredictor {
                 .collect(),
             one_minus_mac,
             mass_g: self.mass_g(values),
+            suff: vec![],
         }
     }
 }
@@ -400,10 +436,49 @@ impl ModalPredictor {
 /// log L of one unit given its terms, the relative eigenvalue errors ε (per mode) and the
 /// shape errors δ (per mode; unused when the unit has no shape observations).
 pub fn log_lik(data: &UnitData, t: &Terms, eps: &[f64], delta: &[f64]) -> f64 {
-    // Logarithms per mode, not per observation (the sampler's hot path).
-    let ln_eps: Vec<f64> = eps.iter().map(|e| e.ln()).collect();
-    let ln_d2: Vec<f64> = delta.iter().map(|d| 2.0 * d.ln()).collect();
+    log_lik_with(data, t, eps, delta, &ErrorLogs::new(eps, delta))
+}
+
+/// ln ε and 2 ln δ per mode: formed once per global vector and shared by every unit's
+/// [`log_lik_with`] (the sampler's hot path).
+#[derive(Clone, Debug, Default)]
+pub struct ErrorLogs {
+    ln_eps: Vec<f64>,
+    ln_d2: Vec<f64>,
+}
+
+impl ErrorLogs {
+    pub fn new(eps: &[f64], delta: &[f64]) -> ErrorLogs {
+        ErrorLogs {
+            ln_eps: eps.iter().map(|e| e.ln()).collect(),
+            ln_d2: delta.iter().map(|d| 2.0 * d.ln()).collect(),
+        }
+    }
+}
+
+/// [`log_lik`] with the logarithms of ε and δ given (`logs` = `ErrorLogs::new(eps, delta)`).
+pub fn log_lik_with(
+    data: &UnitData,
+    t: &Terms,
+    eps: &[f64],
+    delta: &[f64],
+    logs: &ErrorLogs,
+) -> f64 {
+    let (ln_eps, ln_d2) = (&logs.ln_eps, &logs.ln_d2);
     let nm = eps.len();
+    if t.suff.len() == 4 * nm + 1 {
+        let s = &t.suff;
+        let mut l = -s[4 * nm];
+        for m in 0..nm {
+            if s[nm + m] > 0.0 {
+                l -= 0.5 * s[m] / (eps[m] * eps[m]) + s[nm + m] * ln_eps[m];
+            }
+            if s[3 * nm + m] > 0.0 {
+                l -= 0.5 * s[3 * nm + m] * ln_d2[m] + s[2 * nm + m] / (2.0 * delta[m] * delta[m]);
+            }
+        }
+        return l;
+    }
     let mut l = 0.0;
     for f in &data.freq {
         let sd = eps[f.mode] * f.lambda_hat;
@@ -578,6 +653,52 @@ pub(crate) mod tests {
 
     /// A label whose reference no model mode resembles voids the likelihood's prediction,
     /// while the reporting prediction keeps every other label, with the same eigenvalues.
+    /// The sufficient-statistics path of `log_lik_with` (O(modes)) equals the term-by-term
+    /// sum over every observation, with two conditions, shapes, a mode with no data and the
+    /// mass term.
+    #[test]
+    fn sufficient_statistics_give_the_term_by_term_log_likelihood() {
+        let nm = 3;
+        let mut data = UnitData::default();
+        for (k, (mode, lh)) in [(0, 1.0e7), (0, 1.02e7), (2, 4.1e7), (2, 3.9e7), (0, 0.98e7)]
+            .into_iter()
+            .enumerate()
+        {
+            let mut f = FreqObs::new(mode, lh);
+            f.cond = k % 2;
+            data.freq.push(f);
+        }
+        for (mode, n) in [(0, 40usize), (2, 35), (2, 40)] {
+            data.shapes.push(ShapeObs {
+                mode,
+                pt_u: vec![],
+                gram: 0,
+                n_points: n,
+                ln_n: (n as f64).ln(),
+                cond: 0,
+            });
+        }
+        data.mass = Some(MassObs {
+            mass_g: 13.1,
+            sd_g: 0.02,
+        });
+        let t = Terms {
+            lambda: vec![1.01e7, 2.0e7, 4.05e7, 0.99e7, 2.1e7, 3.95e7],
+            one_minus_mac: vec![0.01, 0.002, 0.03],
+            mass_g: 13.12,
+            suff: vec![],
+        };
+        let (eps, delta) = ([0.011, 0.02, 0.007], [0.05, 0.1, 0.08]);
+        let direct = log_lik(&data, &t, &eps, &delta);
+        let fast = t.clone().with_sufficient(&data, nm);
+        assert_eq!(fast.suff.len(), 4 * nm + 1);
+        let got = log_lik(&data, &fast, &eps, &delta);
+        assert!(
+            (got - direct).abs() <= 1e-12 * direct.abs(),
+            "{got} vs {direct}"
+        );
+    }
+
     #[test]
     fn a_lost_label_voids_predict_but_not_the_other_labels_of_predict_tracked() {
         let (_, _, rom) = free_rom();

@@ -29,7 +29,7 @@ use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
 use super::smc::{stream_key, Target};
-use super::stats::{cholesky_jittered, lower_mul, lower_solve, LN_2PI};
+use super::stats::{cholesky_jittered, lower_mul, lower_solve, lower_solve_sq_norm, LN_2PI};
 
 /// A multivariate normal with a lower Cholesky factor (row-major).
 #[derive(Clone, Debug, serde::Serialize)]
@@ -60,9 +60,8 @@ impl Mvn {
         if d == 0 {
             return 0.0;
         }
-        let r: Vec<f64> = x.iter().zip(&self.mean).map(|(a, m)| a - m).collect();
-        let z = lower_solve(&self.chol, d, &r);
-        -0.5 * (d as f64 * LN_2PI + z.iter().map(|v| v * v).sum::<f64>()) - self.log_det_l
+        let ss = lower_solve_sq_norm(&self.chol, d, x, &self.mean);
+        -0.5 * (d as f64 * LN_2PI + ss) - self.log_det_l
     }
     pub fn sample(&self, rng: &mut ChaCha8Rng) -> Vec<f64> {
         let d = self.dim();

@@ -94,6 +94,29 @@ pub fn lower_mul(l: &[f64], d: usize, x: &[f64]) -> Vec<f64> {
 }
 
 /// Solve L x = b for a lower-triangular row-major L.
+/// ‖L⁻¹ (x − m)‖² for lower-triangular L (row-major d × d), without allocating for
+/// d ≤ 32: the squared Mahalanobis distance of the sampler's hot path (population and
+/// reference densities, evaluated for every unit at every move of the global vector).
+pub fn lower_solve_sq_norm(l: &[f64], d: usize, x: &[f64], m: &[f64]) -> f64 {
+    let mut stack = [0.0; 32];
+    let mut heap = Vec::new();
+    let z: &mut [f64] = if d <= stack.len() {
+        &mut stack[..d]
+    } else {
+        heap.resize(d, 0.0);
+        &mut heap
+    };
+    let mut ss = 0.0;
+    for i in 0..d {
+        let row = &l[i * d..i * d + i];
+        let s: f64 = row.iter().zip(&z[..i]).map(|(a, b)| a * b).sum();
+        let zi = (x[i] - m[i] - s) / l[i * d + i];
+        z[i] = zi;
+        ss += zi * zi;
+    }
+    ss
+}
+
 pub fn lower_solve(l: &[f64], d: usize, b: &[f64]) -> Vec<f64> {
     let mut x = vec![0.0; d];
     for i in 0..d {

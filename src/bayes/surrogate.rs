@@ -150,6 +150,7 @@ impl UnitSurrogate {
                 .map(|v| v.max(0.0))
                 .collect(),
             mass_g: out[n_out - 1],
+            suff: vec![],
         }
     }
 }
@@ -438,7 +439,7 @@ impl Target for SurrogateTarget<'_> {
         if let Some(Some(s)) = self.surrogates.get(b) {
             let v = self.inner.values(aux, b, x);
             if let Some(t) = s.terms(&v) {
-                return Some(t);
+                return Some(t.with_sufficient(&self.inner.units[b], self.inner.errors.n_modes));
             }
             self.outside_box
                 .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
@@ -457,7 +458,10 @@ impl Target for SurrogateTarget<'_> {
         if s.box_position(&v) <= 1.0 {
             return None;
         }
-        Some(s.extrapolate(&v))
+        Some(
+            s.extrapolate(&v)
+                .with_sufficient(&self.inner.units[b], self.inner.errors.n_modes),
+        )
     }
     fn to_standard(&self, ctx: &Self::Ctx, b: usize, x: &[f64]) -> Vec<f64> {
         self.inner.to_standard(ctx, b, x)

@@ -179,6 +179,8 @@ pub struct Ctx {
     pub pop: Population,
     pub eps: Vec<f64>,
     pub delta: Vec<f64>,
+    /// ln ε and 2 ln δ per mode, formed once per global vector (not per unit).
+    pub logs: modal::ErrorLogs,
 }
 
 impl ModalTarget {
@@ -291,6 +293,7 @@ impl Target for ModalTarget {
         let (eps, delta) = self.errors.unpack(&g[k..]);
         Ctx {
             pop: self.prior.unpack(&g[..k]),
+            logs: modal::ErrorLogs::new(&eps, &delta),
             eps,
             delta,
         }
@@ -308,22 +311,23 @@ impl Target for ModalTarget {
     fn model(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Terms> {
         let v = self.values(aux, b, x);
         let data = &self.units[b];
-        match self.condition_values(b, &v, x) {
+        let t = match self.condition_values(b, &v, x) {
             None => {
                 let pred = self.predictor.predict(&v)?;
-                Some(self.predictor.terms(&pred, data, &v))
+                self.predictor.terms(&pred, data, &v)
             }
             Some(vs) => {
                 let preds = vs
                     .iter()
                     .map(|vk| self.predictor.predict(vk.as_ref()?))
                     .collect::<Option<Vec<_>>>()?;
-                Some(self.predictor.terms_conditions(&preds, data, &v))
+                self.predictor.terms_conditions(&preds, data, &v)
             }
-        }
+        };
+        Some(t.with_sufficient(data, self.errors.n_modes))
     }
     fn log_lik(&self, ctx: &Ctx, b: usize, _x: &[f64], c: &Terms) -> f64 {
-        modal::log_lik(&self.units[b], c, &ctx.eps, &ctx.delta)
+        modal::log_lik_with(&self.units[b], c, &ctx.eps, &ctx.delta, &ctx.logs)
     }
     fn to_standard(&self, ctx: &Ctx, _b: usize, x: &[f64]) -> Vec<f64> {
         ctx.pop.to_standard(x)
