@@ -93,7 +93,6 @@ pub fn lower_mul(l: &[f64], d: usize, x: &[f64]) -> Vec<f64> {
         .collect()
 }
 
-/// Solve L x = b for a lower-triangular row-major L.
 /// ‖L⁻¹ (x − m)‖² for lower-triangular L (row-major d × d), without allocating for
 /// d ≤ 32: the squared Mahalanobis distance of the sampler's hot path (population and
 /// reference densities, evaluated for every unit at every move of the global vector).
@@ -106,24 +105,26 @@ pub fn lower_solve_sq_norm(l: &[f64], d: usize, x: &[f64], m: &[f64]) -> f64 {
         heap.resize(d, 0.0);
         &mut heap
     };
-    let mut ss = 0.0;
-    for i in 0..d {
-        let row = &l[i * d..i * d + i];
-        let s: f64 = row.iter().zip(&z[..i]).map(|(a, b)| a * b).sum();
-        let zi = (x[i] - m[i] - s) / l[i * d + i];
-        z[i] = zi;
-        ss += zi * zi;
+    for ((zi, a), b) in z.iter_mut().zip(x).zip(m) {
+        *zi = a - b;
     }
-    ss
+    lower_solve_in_place(l, d, z);
+    z.iter().map(|v| v * v).sum()
 }
 
+/// L⁻¹ b for lower-triangular L (row-major d × d).
 pub fn lower_solve(l: &[f64], d: usize, b: &[f64]) -> Vec<f64> {
-    let mut x = vec![0.0; d];
+    let mut x = b[..d].to_vec();
+    lower_solve_in_place(l, d, &mut x);
+    x
+}
+
+/// Forward substitution in place: b (length d) becomes L⁻¹ b.
+fn lower_solve_in_place(l: &[f64], d: usize, x: &mut [f64]) {
     for i in 0..d {
         let s: f64 = (0..i).map(|k| l[i * d + k] * x[k]).sum();
-        x[i] = (b[i] - s) / l[i * d + i];
+        x[i] = (x[i] - s) / l[i * d + i];
     }
-    x
 }
 
 #[cfg(test)]

@@ -249,13 +249,13 @@ pub const JOINT_GRADING: f64 = 2.0;
 pub const JOINT_GRADING_WIDTH: f64 = 1.0;
 
 impl Mesh {
-    /// The node lines of `nx × ny` elements for `board` in `setup`: uniform for a free
+    /// The node lines (x, y) of `nx × ny` elements for `board` in `setup`: uniform for a free
     /// board; for a bolted one graded towards the joints (the holes' centres), where the
     /// field varies on the scale of the clamp: a small stiff support is resolved by the
     /// mesh's total element count rather than by a uniformly finer mesh (see
     /// `fem::tests::convergence`). The map does not depend on nx, ny: meshes n ⊂ 2n stay
-    /// nested. Element data (`active`, …) are left empty.
-    pub fn lines(board: &Board, setup: &Setup, nx: usize, ny: usize) -> Mesh {
+    /// nested.
+    pub fn lines(board: &Board, setup: &Setup, nx: usize, ny: usize) -> (Vec<f64>, Vec<f64>) {
         let (lx, ly) = (board.length_x_m, board.width_y_m);
         let (x_m, y_m) = match setup {
             Setup::Bolted(_) => {
@@ -272,7 +272,7 @@ impl Mesh {
                 super::grading::uniform_lines(ly, ny),
             ),
         };
-        Mesh::from_lines(x_m, y_m, lx, ly)
+        (x_m, y_m)
     }
 
     /// A mesh skeleton (element data left empty) on node lines over an `lx × ly` board.
@@ -460,8 +460,8 @@ impl FeModel {
                 mesh.nx, mesh.ny
             )));
         }
-        let lines = Mesh::lines(board, &setup, mesh.nx, mesh.ny);
-        Self::build_on_lines(board, setup, lines.x_m, lines.y_m)
+        let (x_m, y_m) = Mesh::lines(board, &setup, mesh.nx, mesh.ny);
+        Self::build_on_lines(board, setup, x_m, y_m)
     }
 
     /// Build the model of `board` in `setup` on the tensor-product mesh with node lines
@@ -481,8 +481,13 @@ impl FeModel {
                 || (l[l.len() - 1] - len).abs() > tol
                 || l.windows(2).any(|p| !(p[1] > p[0]))
             {
+                let bad = l.windows(2).position(|p| !(p[1] > p[0]));
                 return Err(FemError::Mesh(format!(
-                    "expected at least 2 elements along {axis}: node lines increasing from 0 to {len} m, found {l:?}"
+                    "expected at least 2 elements along {axis}: node lines strictly increasing from 0 to {len} m, found {} lines from {:?} to {:?}{}",
+                    l.len(),
+                    l.first(),
+                    l.last(),
+                    bad.map_or(String::new(), |i| format!(", not increasing at line {}", i + 1))
                 )));
             }
         }

@@ -120,3 +120,28 @@ fn realistic_board_bolted_is_mesh_independent_at_fixed_k_con() {
     );
     assert!(e80 < DEFAULT_MESH_TOL, "80 × 50 would be rejected: {e80:e}");
 }
+
+/// Node lines that do not span the board, or do not increase, are refused with the axis
+/// and the offending line named.
+#[test]
+fn build_on_lines_refuses_bad_node_lines() {
+    let b = realistic();
+    let xs = crate::fem::grading::uniform_lines(b.length_x_m, 8);
+    let ys = crate::fem::grading::uniform_lines(b.width_y_m, 5);
+    assert!(FeModel::build_on_lines(&b, Setup::Free, xs.clone(), ys.clone()).is_ok());
+    let mut short = xs.clone();
+    short.pop();
+    let e = FeModel::build_on_lines(&b, Setup::Free, short, ys.clone())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("along x") && e.contains("8 lines"), "{e}");
+    let mut swapped = ys.clone();
+    swapped.swap(2, 3);
+    let e = FeModel::build_on_lines(&b, Setup::Free, xs, swapped)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("along y") && e.contains("not increasing at line 3"),
+        "{e}"
+    );
+}
