@@ -162,6 +162,9 @@ impl Default for SmcOptions {
 /// fixed auxiliary values that no move changes (shared, as resampling copies them).
 #[derive(Clone, Debug)]
 pub struct Particle<C> {
+    /// The particle's group (0 without groups): resampling copies within a group, so it never
+    /// changes; it picks the group's reference q with [`Start::GroupReferences`].
+    pub group: usize,
     pub aux: std::sync::Arc<Vec<f64>>,
     pub g: Vec<f64>,
     pub x: Vec<Vec<f64>>,
@@ -225,6 +228,8 @@ pub enum SmcError {
     NoFiniteLikelihood(usize),
     #[error("{n} particles cannot form {groups} equal groups")]
     Groups { n: usize, groups: usize },
+    #[error("{references} group references for {groups} particle groups")]
+    GroupReferences { references: usize, groups: usize },
     #[error("tempering did not reach β = 1 within {stages} stages (β = {beta:.3e})")]
     TooManyStages { stages: usize, beta: f64 },
 }
@@ -261,6 +266,22 @@ pub enum Start {
     /// A normalised reference q (see [`super::reference`]): π_β ∝ q^{1−β} · (p L)^β. The log
     /// evidence is still that of p L, because q is normalised.
     Reference(std::sync::Arc<GaussianReference>),
+    /// One normalised reference per particle group (`SmcOptions::groups`): group k tempers
+    /// from q_k, e.g. a modular posterior's second step, where each group's target depends on
+    /// its carried first-step draw and one q for all would fit none. Each group's log evidence
+    /// stays that of p L given its draw, because every q_k is normalised.
+    GroupReferences(std::sync::Arc<Vec<GaussianReference>>),
+}
+
+impl Start {
+    /// The reference q of particle group `group` (None: the prior).
+    pub fn q(&self, group: usize) -> Option<&GaussianReference> {
+        match self {
+            Start::Prior => None,
+            Start::Reference(q) => Some(q),
+            Start::GroupReferences(qs) => Some(&qs[group % qs.len()]),
+        }
+    }
 }
 
 /// The tempered density π_β, split as the moves need it: a global part and one part per unit.
@@ -282,31 +303,33 @@ fn mix(a: f64, b: f64, beta: f64) -> f64 {
 }
 
 impl<T: Target> Tempered<'_, T> {
-    fn global(&self, g: &[f64]) -> f64 {
+    /// The global part for a particle of group `group`.
+    fn global(&self, group: usize, g: &[f64]) -> f64 {
         let lp = self.t.log_prior_global(g);
-        match self.start {
-            Start::Prior => lp,
-            Start::Reference(q) => mix(q.global.lpdf(g), lp, self.beta),
+        match self.start.q(group) {
+            None => lp,
+            Some(q) => mix(q.global.lpdf(g), lp, self.beta),
         }
     }
-    /// The unit's part given its log prior under g and its log-likelihood.
-    fn unit(&self, b: usize, x: &[f64], lp: f64, ll: f64) -> f64 {
-        match self.start {
-            Start::Prior => {
+    /// The unit's part given its log prior under g and its log-likelihood (particle group
+    /// `group`).
+    fn unit(&self, group: usize, b: usize, x: &[f64], lp: f64, ll: f64) -> f64 {
+        match self.start.q(group) {
+            None => {
                 lp + if self.beta == 0.0 {
                     0.0
                 } else {
                     self.beta * ll
                 }
             }
-            Start::Reference(q) => mix(q.units[b].lpdf(x), lp + ll, self.beta),
+            Some(q) => mix(q.units[b].lpdf(x), lp + ll, self.beta),
         }
     }
     /// log (p L / q) of a particle: what the next temperature increment weights by.
     fn log_ratio(&self, p: &Particle<T::Cache>) -> f64 {
-        match self.start {
-            Start::Prior => p.log_lik(),
-            Start::Reference(q) => {
+        match self.start.q(p.group) {
+            None => p.log_lik(),
+            Some(q) => {
                 let ctx = self.t.ctx(&p.g);
                 let mut s = self.t.log_prior_global(&p.g) - q.global.lpdf(&p.g);
                 for b in 0..p.x.len() {
@@ -494,7 +517,7 @@ fn unit_move<T: Target>(
         return MoveOutcome::default();
     }
     let lp_old = t.log_prior_unit(ctx, b, &p.x[b]);
-    let old = tp.unit(b, &p.x[b], lp_old, p.ll[b]);
+    let old = tp.unit(p.group, b, &p.x[b], lp_old, p.ll[b]);
     let (s_new, s_old) = (
         screen_ll(t, &p.aux, ctx, b, &xn),
         screen_ll(t, &p.aux, ctx, b, &p.x[b]),
@@ -513,8 +536,8 @@ fn unit_move<T: Target>(
                 l
             }
         };
-        let r1 =
-            tp.unit(b, &xn, lp_new, f_new) - tp.unit(b, &p.x[b], lp_old, s_old.unwrap_or(p.ll[b]));
+        let r1 = tp.unit(p.group, b, &xn, lp_new, f_new)
+            - tp.unit(p.group, b, &p.x[b], lp_old, s_old.unwrap_or(p.ll[b]));
         if !(f_new > f64::NEG_INFINITY && u.ln() < r1) {
             out.screened_out = u64::from(s_new.is_some());
             return out;
@@ -528,7 +551,7 @@ fn unit_move<T: Target>(
             eval_unit(t, &p.aux, ctx, b, &xn)
         }
     };
-    let log_r = tp.unit(b, &xn, lp_new, ll) - old;
+    let log_r = tp.unit(p.group, b, &xn, lp_new, ll) - old;
     // Plain: the one uniform, min(1, r). Delayed: a second uniform, min(1, r / r̃).
     let (u2, log_r2) = match log_r1 {
         None => (u, log_r),
@@ -558,7 +581,7 @@ fn centred_g_move<T: Target>(
     if !t.log_prior_global(&gn).is_finite() {
         return false;
     }
-    let lg_new = tp.global(&gn);
+    let lg_new = tp.global(p.group, &gn);
     let ctx_new = t.ctx(&gn);
     let mut log_r = lg_new - *lg;
     let mut ll_new = Vec::with_capacity(t.n_units());
@@ -568,8 +591,19 @@ fn centred_g_move<T: Target>(
             None => f64::NEG_INFINITY,
         };
         let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
-        log_r += tp.unit(b, &p.x[b], t.log_prior_unit(&ctx_new, b, &p.x[b]), l)
-            - tp.unit(b, &p.x[b], t.log_prior_unit(ctx, b, &p.x[b]), p.ll[b]);
+        log_r += tp.unit(
+            p.group,
+            b,
+            &p.x[b],
+            t.log_prior_unit(&ctx_new, b, &p.x[b]),
+            l,
+        ) - tp.unit(
+            p.group,
+            b,
+            &p.x[b],
+            t.log_prior_unit(ctx, b, &p.x[b]),
+            p.ll[b],
+        );
         ll_new.push(l);
     }
     if log_r.is_finite() && u.ln() < log_r {
@@ -632,7 +666,7 @@ fn sweep<T: Target>(
         st.screened_out += m.screened_out;
     }
     // Centred moves of g: no model evaluation.
-    let mut lg = tp.global(&p.g);
+    let mut lg = tp.global(p.group, &p.g);
     for _ in 0..opts.global_moves {
         let eps = normal_vec(rng, ng);
         let step = lower_mul(&prop.global, ng, &eps);
@@ -672,7 +706,7 @@ fn sweep<T: Target>(
         let u: f64 = rng.random();
         st.n_nc += 1.0;
         if t.log_prior_global(&gn).is_finite() {
-            let lg_new = tp.global(&gn);
+            let lg_new = tp.global(p.group, &gn);
             let ctx_new = t.ctx(&gn);
             // Delayed acceptance where the target has a stand-in (its screen) at some unit's
             // new or current value (see `unit_move`): the first stage takes the stand-in
@@ -689,7 +723,7 @@ fn sweep<T: Target>(
                     t.log_prior_unit(&ctx, b, &p.x[b]),
                     t.log_prior_unit(&ctx_new, b, &xn),
                 );
-                let old = tp.unit(b, &p.x[b], lp_old, p.ll[b]);
+                let old = tp.unit(p.group, b, &p.x[b], lp_old, p.ll[b]);
                 let (s_new, s_old) = (
                     screen_ll(t, &p.aux, &ctx_new, b, &xn),
                     screen_ll(t, &p.aux, &ctx, b, &p.x[b]),
@@ -701,13 +735,13 @@ fn sweep<T: Target>(
                     (None, f64::NEG_INFINITY)
                 };
                 if s_new.is_some() || s_old.is_some() {
-                    log_r1 += tp.unit(b, &xn, lp_new, s_new.unwrap_or(l))
-                        - tp.unit(b, &p.x[b], lp_old, s_old.unwrap_or(p.ll[b]))
+                    log_r1 += tp.unit(p.group, b, &xn, lp_new, s_new.unwrap_or(l))
+                        - tp.unit(p.group, b, &p.x[b], lp_old, s_old.unwrap_or(p.ll[b]))
                         + lp_old
                         - lp_new;
                     deferred.push(b);
                 } else {
-                    let d = tp.unit(b, &xn, lp_new, l) - old + lp_old - lp_new;
+                    let d = tp.unit(p.group, b, &xn, lp_new, l) - old + lp_old - lp_new;
                     log_r += d;
                     log_r1 += d;
                 }
@@ -727,7 +761,7 @@ fn sweep<T: Target>(
                         m.1 = c;
                         m.2 = l;
                     }
-                    log_r += tp.unit(b, &m.0, m.4, m.2) - m.5 + m.3 - m.4;
+                    log_r += tp.unit(p.group, b, &m.0, m.4, m.2) - m.5 + m.3 - m.4;
                 }
                 log_r -= log_r1;
                 u = rng.random();
@@ -886,16 +920,21 @@ pub fn run_with<T: Target>(
         .into_par_iter()
         .map(|i| {
             let mut rng = rng_for(&[seed, r, 0, u64::MAX, i as u64]);
-            let (g, x) = match start {
-                Start::Prior => t.sample_prior(&mut rng),
-                Start::Reference(q) => q.sample(&mut rng),
+            let group = if opts.groups > 1 {
+                i / (n / opts.groups).max(1)
+            } else {
+                0
+            };
+            let (g, x) = match start.q(group) {
+                None => t.sample_prior(&mut rng),
+                Some(q) => q.sample(&mut rng),
             };
             let ctx = t.ctx(&g);
             let aux = if aux.is_empty() {
                 empty.clone()
             } else if opts.groups > 1 {
                 // One auxiliary value per group.
-                aux[(i / (n / opts.groups).max(1)) % aux.len()].clone()
+                aux[group % aux.len()].clone()
             } else {
                 aux[i % aux.len()].clone()
             };
@@ -905,6 +944,7 @@ pub fn run_with<T: Target>(
                 .map(|(b, xb)| eval_unit(t, &aux, &ctx, b, xb))
                 .unzip();
             Particle {
+                group,
                 aux,
                 g,
                 x,
@@ -1088,6 +1128,14 @@ pub fn run_from<T: Target>(
     let groups = opts.groups.max(1);
     if n % groups != 0 {
         return Err(SmcError::Groups { n, groups });
+    }
+    if let Start::GroupReferences(qs) = start {
+        if qs.len() != groups {
+            return Err(SmcError::GroupReferences {
+                references: qs.len(),
+                groups,
+            });
+        }
     }
     let mut beta = beta0;
     let mut log_z = 0.0;

@@ -1012,7 +1012,9 @@ fn run_smc(
     start: Option<&[f64]>,
     verbose: bool,
 ) -> anyhow::Result<(Results, Acceleration)> {
-    use crate::bayes::reference::{laplace_reference, ReferenceOptions};
+    use crate::bayes::reference::{
+        laplace_reference, reference_for_aux, GaussianReference, ReferenceOptions,
+    };
     use crate::bayes::surrogate::{fit_unit, SurrogateOptions, SurrogateTarget};
     use rand::SeedableRng;
     use rayon::prelude::*;
@@ -1024,11 +1026,12 @@ fn run_smc(
         },
         ..Default::default()
     };
-    let start = if opts.from_prior {
-        smc::Start::Prior
+    let t_start = std::time::Instant::now();
+    let base_ref = if opts.from_prior {
+        None
     } else {
         // Units are located with the mean auxiliary values (step 2: the step-1 posterior
-        // mean); the tempering corrects for the spread of the draws.
+        // mean); with groups, each group's reference is then moved to its own draw.
         let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
         let aux_mean: Vec<f64> = match all_aux.first() {
             None => vec![],
@@ -1038,6 +1041,9 @@ fn run_smc(
         };
         let ropts = ReferenceOptions {
             start: start.map(<[f64]>::to_vec),
+            // A modular step: units of few parameters (a joint's stiffness per bolted
+            // measurement) that can fit a mode exactly (see `ReferenceOptions`).
+            reform_curvature: opts.smc.groups > 1 && !aux.is_empty(),
             ..ReferenceOptions::default()
         };
         let (q, info) = laplace_reference(target, &aux_mean, &ropts, opts.seed)
@@ -1045,21 +1051,76 @@ fn run_smc(
         acc.reference_model_evals = info.model_evals;
         acc.reference_g_acceptance = info.g_acceptance;
         acc.reference_units_converged = info.converged;
-        smc::Start::Reference(Arc::new(q))
+        if verbose {
+            eprintln!(
+                "{what}: reference g mean {:.4?}, sd {:.4?}; unit sd {:.3?}",
+                q.global.mean,
+                q.global.sd(),
+                q.units.iter().map(|u| u.sd()).collect::<Vec<_>>()
+            );
+        }
+        Some((Arc::new(q), ropts))
     };
+    // One start per run: the prior, the reference, or (groups carrying their own auxiliary
+    // values: a modular step) one reference per group.
+    let t_base = t_start.elapsed().as_secs_f64();
+    let grouped = base_ref.is_some() && opts.smc.groups > 1 && !aux.is_empty();
     let nu = smc::Target::n_units(target);
+    // Where the units go across the groups' draws: with groups, each group's units sit
+    // elsewhere (its draw moves them), so a few pilot groups, spread over the draws, are
+    // moved to their own draws with the ROM; the surrogates' samples then cover the base
+    // reference widened by twice the pilots' spread of the units, and the groups' own
+    // references are found on the surrogates (their boxes cover where they go).
+    let unit_spread: Vec<Option<crate::bayes::reference::Mvn>> = match &base_ref {
+        Some((q, ropts)) if grouped => {
+            let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
+            let n_pilot = all_aux.len().min(8);
+            let pilots: Vec<(GaussianReference, u64)> = (0..n_pilot)
+                .into_par_iter()
+                .map(|k| {
+                    let a = all_aux[(2 * k + 1) * all_aux.len() / (2 * n_pilot)];
+                    reference_for_aux(target, q, a, ropts, 1)
+                })
+                .collect::<Result<_, _>>()
+                .map_err(|e| anyhow!("{what}: a pilot group's reference: {e}"))?;
+            acc.reference_model_evals += pilots.iter().map(|(_, e)| e).sum::<u64>();
+            (0..nu)
+                .map(|b| {
+                    let d = q.units[b].dim();
+                    let np = pilots.len() as f64;
+                    let mean: Vec<f64> = (0..d)
+                        .map(|k| pilots.iter().map(|(p, _)| p.units[b].mean[k]).sum::<f64>() / np)
+                        .collect();
+                    let mut cov = q.units[b].covariance();
+                    for (p, _) in &pilots {
+                        for i in 0..d {
+                            for j in 0..d {
+                                cov[i * d + j] += 4.0
+                                    * (p.units[b].mean[i] - mean[i])
+                                    * (p.units[b].mean[j] - mean[j])
+                                    / np;
+                            }
+                        }
+                    }
+                    Some(crate::bayes::reference::Mvn::new(mean, &cov))
+                })
+                .collect()
+        }
+        _ => vec![None; nu],
+    };
     let surrogates: Vec<Option<Arc<crate::bayes::surrogate::UnitSurrogate>>> =
-        match (&start, opts.surrogate) {
-            (smc::Start::Reference(q), true) => {
+        match (&base_ref, opts.surrogate) {
+            (Some((q, _)), true) => {
                 let ctx = smc::Target::ctx(target, &q.global.mean);
                 let so = SurrogateOptions::default();
+                let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
                 let fits: Vec<_> = (0..nu)
                     .into_par_iter()
                     .map(|b| {
                         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(smc::stream_key(&[
                             opts.seed, 0x5A, b as u64,
                         ]));
-                        let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
+                        let unit_q = unit_spread[b].as_ref().unwrap_or(&q.units[b]);
                         let samples: Vec<Vec<f64>> = (0..400)
                             .map(|i| {
                                 let a: &[f64] = if all_aux.is_empty() {
@@ -1067,7 +1128,7 @@ fn run_smc(
                                 } else {
                                     all_aux[(i * 7919) % all_aux.len()]
                                 };
-                                target.values(a, b, &q.units[b].sample(&mut rng))
+                                target.values(a, b, &unit_q.sample(&mut rng))
                             })
                             .collect();
                         fit_unit(target, b, &samples, &ctx.eps, &ctx.delta, &so, opts.seed)
@@ -1096,11 +1157,39 @@ fn run_smc(
             }
             _ => vec![None; nu],
         };
+    let t_surrogates = t_start.elapsed().as_secs_f64() - t_base;
     let sur = SurrogateTarget {
         inner: target,
         surrogates,
         outside_box: Default::default(),
     };
+    // One start per run: the prior, the reference, or (groups carrying their own auxiliary
+    // values: a modular step) one reference per group, found on the surrogates.
+    let starts: Vec<smc::Start> = match &base_ref {
+        None => vec![smc::Start::Prior; opts.runs],
+        Some((q, _)) if !grouped => vec![smc::Start::Reference(q.clone()); opts.runs],
+        Some((q, ropts)) => {
+            let mut starts = Vec::with_capacity(opts.runs);
+            for r in 0..opts.runs {
+                let run_aux = &aux[r % aux.len()];
+                let refs: Vec<(GaussianReference, u64)> = run_aux
+                    .par_iter()
+                    .map(|a| reference_for_aux(&sur, q, a, ropts, 2))
+                    .collect::<Result<_, _>>()
+                    .map_err(|e| anyhow!("{what}: a group's reference (run {}): {e}", r + 1))?;
+                starts.push(smc::Start::GroupReferences(Arc::new(
+                    refs.into_iter().map(|(q, _)| q).collect(),
+                )));
+            }
+            starts
+        }
+    };
+    let t_groups = t_start.elapsed().as_secs_f64() - t_base - t_surrogates;
+    if verbose {
+        eprintln!(
+            "{what}: reference {t_base:.1} s (pilots and) surrogates {t_surrogates:.1} s, group references {t_groups:.1} s"
+        );
+    }
     let pb = crate::stage::progress_bar((opts.runs * 1000) as u64, what);
     let mut out = vec![];
     for r in 0..opts.runs {
@@ -1126,7 +1215,7 @@ fn run_smc(
         } else {
             &aux[r % aux.len()]
         };
-        let mut res = smc::run_with(&sur, &opts.smc, opts.seed, r, &start, a, &observe)
+        let mut res = smc::run_with(&sur, &opts.smc, opts.seed, r, &starts[r], a, &observe)
             .map_err(|e| anyhow!("{what}, run {}: {e}", r + 1))?;
         if sur.surrogates.iter().any(|s| s.is_some()) {
             // Correction to the ROM: every particle's units re-evaluated by the ROM and
@@ -1155,7 +1244,11 @@ fn run_smc(
                 })
                 .collect();
             let max_dll = lw.iter().map(|v| v.abs()).fold(0.0, f64::max);
-            let info = smc::correct(target, &opts.smc, opts.seed, r, &mut res, &lw, 0.98);
+            // Mutation after the correction runs on the ROM (every proposal a ROM evaluation):
+            // on the demo's step 2 at 2000 × 4 two such sweeps cost ~100 s a run to
+            // diversify the 4 % of particles the resampling duplicated (correction ESS 0.99),
+            // so they run only when more than a tenth are copies (a surrogate that missed).
+            let info = smc::correct(target, &opts.smc, opts.seed, r, &mut res, &lw, 0.9);
             let rom_evals = (res.particles.len() * acc.surrogate_units) as u64;
             if let Some(last) = res.stages.last_mut() {
                 last.model_evals += rom_evals;
@@ -1165,28 +1258,54 @@ fn run_smc(
             acc.correction_max_abs_dlog_lik.push(max_dll);
             acc.correction_sweeps.push(info.sweeps);
         }
-        if let (0, smc::Start::Reference(q)) = (r, &start) {
-            let sd = |vals: Vec<f64>| -> f64 {
-                let n = vals.len() as f64;
-                let m = vals.iter().sum::<f64>() / n;
-                (vals.iter().map(|v| (v - m).powi(2)).sum::<f64>() / n).sqrt()
+        if let (0, Some(_)) = (r, &base_ref) {
+            // Each particle measured against its own group's q: (value − q mean) / q sd;
+            // the mean of that is the offset, its sd the posterior sd / reference sd.
+            let start = &starts[0];
+            let moments = |z: Vec<f64>| -> (f64, f64) {
+                let n = z.len().max(1) as f64;
+                let m = z.iter().sum::<f64>() / n;
+                (
+                    m,
+                    (z.iter().map(|v| (v - m).powi(2)).sum::<f64>() / n).sqrt(),
+                )
             };
-            let qs = q.global.sd();
-            acc.reference_sd_ratio_global = (0..qs.len())
-                .map(|k| sd(res.particles.iter().map(|p| p.g[k]).collect()) / qs[k])
-                .collect();
-            acc.reference_sd_ratio_units = (0..nu)
-                .map(|b| {
-                    let qs = q.units[b].sd();
-                    (0..qs.len())
-                        .map(|k| sd(res.particles.iter().map(|p| p.x[b][k]).collect()) / qs[k])
-                        .collect()
+            let q_of = |p: &smc::Particle<crate::bayes::modal::Terms>| {
+                start.q(p.group).expect("a reference start")
+            };
+            let ng = smc::Target::n_global(target);
+            let global: Vec<(f64, f64)> = (0..ng)
+                .map(|k| {
+                    moments(
+                        res.particles
+                            .iter()
+                            .map(|p| {
+                                let q = q_of(p);
+                                (p.g[k] - q.global.mean[k]) / q.global.sd()[k]
+                            })
+                            .collect(),
+                    )
                 })
                 .collect();
-            let mean = |vals: Vec<f64>| vals.iter().sum::<f64>() / vals.len().max(1) as f64;
-            let qm = &q.global.mean;
-            acc.reference_offset_global = (0..qs.len())
-                .map(|k| (mean(res.particles.iter().map(|p| p.g[k]).collect()) - qm[k]) / qs[k])
+            acc.reference_offset_global = global.iter().map(|m| m.0).collect();
+            acc.reference_sd_ratio_global = global.iter().map(|m| m.1).collect();
+            acc.reference_sd_ratio_units = (0..nu)
+                .map(|b| {
+                    (0..smc::Target::unit_dim(target))
+                        .map(|k| {
+                            moments(
+                                res.particles
+                                    .iter()
+                                    .map(|p| {
+                                        let q = &q_of(p).units[b];
+                                        (p.x[b][k] - q.mean[k]) / q.sd()[k]
+                                    })
+                                    .collect(),
+                            )
+                            .1
+                        })
+                        .collect()
+                })
                 .collect();
             if verbose {
                 eprintln!(
