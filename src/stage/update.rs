@@ -1027,12 +1027,14 @@ fn run_smc(
         ..Default::default()
     };
     let t_start = std::time::Instant::now();
+    let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
+    // A modular step: groups carrying their own auxiliary values (step-1 draws).
+    let modular = opts.smc.groups > 1 && !aux.is_empty();
     let base_ref = if opts.from_prior {
         None
     } else {
         // Units are located with the mean auxiliary values (step 2: the step-1 posterior
         // mean); with groups, each group's reference is then moved to its own draw.
-        let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
         let aux_mean: Vec<f64> = match all_aux.first() {
             None => vec![],
             Some(a0) => (0..a0.len())
@@ -1043,7 +1045,7 @@ fn run_smc(
             start: start.map(<[f64]>::to_vec),
             // A modular step: units of few parameters (a joint's stiffness per bolted
             // measurement) that can fit a mode exactly (see `ReferenceOptions`).
-            reform_curvature: opts.smc.groups > 1 && !aux.is_empty(),
+            reform_curvature: modular,
             ..ReferenceOptions::default()
         };
         let (q, info) = laplace_reference(target, &aux_mean, &ropts, opts.seed)
@@ -1061,10 +1063,8 @@ fn run_smc(
         }
         Some((Arc::new(q), ropts))
     };
-    // One start per run: the prior, the reference, or (groups carrying their own auxiliary
-    // values: a modular step) one reference per group.
     let t_base = t_start.elapsed().as_secs_f64();
-    let grouped = base_ref.is_some() && opts.smc.groups > 1 && !aux.is_empty();
+    let grouped = base_ref.is_some() && modular;
     let nu = smc::Target::n_units(target);
     // Where the units go across the groups' draws: with groups, each group's units sit
     // elsewhere (its draw moves them), so a few pilot groups, spread over the draws, are
@@ -1073,7 +1073,6 @@ fn run_smc(
     // references are found on the surrogates (their boxes cover where they go).
     let unit_spread: Vec<Option<crate::bayes::reference::Mvn>> = match &base_ref {
         Some((q, ropts)) if grouped => {
-            let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
             let n_pilot = all_aux.len().min(8);
             let pilots: Vec<(GaussianReference, u64)> = (0..n_pilot)
                 .into_par_iter()
@@ -1113,7 +1112,6 @@ fn run_smc(
             (Some((q, _)), true) => {
                 let ctx = smc::Target::ctx(target, &q.global.mean);
                 let so = SurrogateOptions::default();
-                let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
                 let fits: Vec<_> = (0..nu)
                     .into_par_iter()
                     .map(|b| {
