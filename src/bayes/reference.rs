@@ -102,6 +102,28 @@ pub struct GaussianReference {
 }
 
 impl GaussianReference {
+    /// Why this reference cannot start a tempering, if it cannot: a coordinate whose mean is
+    /// not finite, or whose sd is not finite or below 1e-8 (1 + |mean|), a spread no posterior
+    /// of measured data has. From such a q the log-weights span hundreds of orders of magnitude
+    /// and the tempering stalls (`smc::SmcError::Stalled`).
+    pub fn degeneracy(&self) -> Option<String> {
+        let check = |what: &str, m: &Mvn| -> Option<String> {
+            m.mean
+                .iter()
+                .zip(m.sd())
+                .enumerate()
+                .find_map(|(k, (mu, sd))| {
+                    (!mu.is_finite() || !sd.is_finite() || sd <= 1e-8 * (1.0 + mu.abs()))
+                        .then(|| format!("{what} coordinate {k}: mean {mu:.4e}, sd {sd:.3e}"))
+                })
+        };
+        check("global", &self.global).or_else(|| {
+            self.units
+                .iter()
+                .enumerate()
+                .find_map(|(b, u)| check(&format!("unit {b}"), u))
+        })
+    }
     pub fn sample(&self, rng: &mut ChaCha8Rng) -> (Vec<f64>, Vec<Vec<f64>>) {
         let g = self.global.sample(rng);
         let x = self.units.iter().map(|u| u.sample(rng)).collect();
@@ -128,8 +150,10 @@ pub struct ReferenceOptions {
     #[serde(default)]
     pub start: Option<Vec<f64>>,
     /// Re-form each unit's likelihood quadratic at every g in the step for g (see
-    /// `GivenUnits`): for units of one or few parameters that can fit some data exactly (a
-    /// modular step's joints); off by default.
+    /// `GivenUnits`): for units of one parameter that can fit some data exactly (a
+    /// modular step's joints); off by default. With two (ln K and ln k_rot per measurement)
+    /// it ran the demo's ε and δ to e^-75 … e^-244 ([`GaussianReference::degeneracy`] flags
+    /// such a result).
     #[serde(default)]
     pub reform_curvature: bool,
 }
@@ -162,7 +186,7 @@ pub struct ReferenceInfo {
 #[derive(Debug, thiserror::Error)]
 pub enum ReferenceError {
     #[error(
-        "unit {0}: the model is undefined at the prior's centre, no reference can start there"
+        "unit {0}: the model is undefined at the unit's reference point (the prior's centre, or the optimum a search reached), so no reference can be built there"
     )]
     Undefined(usize),
 }
@@ -513,7 +537,11 @@ struct GivenUnits<'a, T: Target> {
     at_round: Vec<Option<RoundQuadratic>>,
 }
 
-/// A unit's stencil steps, points and model outputs there (None where undefined).
+/// Times a unit's stencil is shrunk (by 4) before its quadratic stays frozen instead.
+const STENCIL_SHRINKS: usize = 4;
+
+/// A unit's stencil steps (empty: no stencil), points (x̂_b first) and model outputs there
+/// (None where undefined).
 type UnitStencil<C> = (Vec<f64>, Vec<Vec<f64>>, Vec<Option<C>>);
 
 /// See [`GivenUnits`]: the curvature (made positive unless reformed), the gradient, and the
@@ -540,21 +568,28 @@ impl<'a, T: Target> GivenUnits<'a, T> {
             .into_par_iter()
             .map(|b| {
                 let x = &xs[b];
-                let (h, pts) = if reform {
+                if reform {
                     let inv = spd_inverse(&precs[b], d);
-                    let h: Vec<f64> = (0..d)
+                    let mut h: Vec<f64> = (0..d)
                         .map(|i| {
                             let sd = inv[i * d + i].max(0.0).sqrt();
                             (0.2 * sd).max(1e-9 * (1.0 + x[i].abs()))
                         })
                         .collect();
-                    let pts = stencil_points(x, &h);
-                    (h, pts)
-                } else {
-                    (vec![], vec![x.clone()])
-                };
-                let caches = pts.iter().map(|pt| t.model(aux, b, pt)).collect();
-                (h, pts, caches)
+                    // A stencil point outside the model's domain (a unit near the edge where
+                    // the model stops being defined): shrink the stencil; if it still leaves
+                    // the domain, this unit keeps the quadratic frozen at the round's g.
+                    for _ in 0..STENCIL_SHRINKS {
+                        let pts = stencil_points(x, &h);
+                        let caches: Vec<Option<T::Cache>> =
+                            pts.iter().map(|pt| t.model(aux, b, pt)).collect();
+                        if caches.iter().all(Option::is_some) {
+                            return (h, pts, caches);
+                        }
+                        h.iter_mut().for_each(|v| *v *= 0.25);
+                    }
+                }
+                (vec![], vec![x.clone()], vec![t.model(aux, b, x)])
             })
             .collect();
         let mut evals = 0u64;
@@ -581,6 +616,7 @@ impl<'a, T: Target> GivenUnits<'a, T> {
                 let gradient: Vec<f64> = (0..d)
                     .map(|i| (0..d).map(|j| p[i * d + j] * r[j]).sum())
                     .collect();
+                let reform = !steps[b].is_empty();
                 let stencil = if reform {
                     let ll: Vec<f64> = points[b]
                         .iter()

@@ -232,7 +232,33 @@ pub enum SmcError {
     GroupReferences { references: usize, groups: usize },
     #[error("tempering did not reach β = 1 within {stages} stages (β = {beta:.3e})")]
     TooManyStages { stages: usize, beta: f64 },
+    /// The tempering has stalled: at [`STALLED_STAGES`] stages in a row even the smallest
+    /// step the bisection resolves left the weights degenerate. It would creep on by
+    /// Δβ ≈ 1e-12 a stage with one live particle, and never finish.
+    #[error(
+        "tempering stalled at stage {stage} (β = {beta:.3e}): {stalled} stages in a row, even \
+         Δβ = {delta:.1e} left an ESS of {ess:.2} of {n} particles ({infinite} with a log-likelihood \
+         ratio of −∞; the finite ones span {spread:.3e}). The start is far narrower than the \
+         posterior (a reference of near-zero spread) or the likelihood is degenerate \
+         (a noise level near zero)"
+    )]
+    Stalled {
+        stage: usize,
+        beta: f64,
+        stalled: usize,
+        delta: f64,
+        ess: f64,
+        n: usize,
+        infinite: usize,
+        spread: f64,
+    },
 }
+
+/// Stages in a row whose temperature step cannot keep the ESS at its target before
+/// [`run_from`] gives up with [`SmcError::Stalled`]. One such stage is normal (e.g. the first,
+/// when most prior draws have a zero likelihood: the step kills them and the resampling
+/// recovers); three mean the weights stay degenerate however small the step.
+pub const STALLED_STAGES: usize = 3;
 
 /// A key mixed from several integers (splitmix64 steps): independent streams per
 /// (seed, run, stage, sweep, particle).
@@ -850,15 +876,17 @@ fn group_ess_fraction(lw: &[f64], groups: usize) -> f64 {
 }
 
 /// Bisection for the next temperature increment: the largest Δ ≤ 1 − β whose incremental
-/// weights keep the (mean within-group) ESS ≥ target · N.
-fn next_increment(ll: &[f64], beta: f64, target: f64, groups: usize) -> f64 {
+/// weights keep the (mean within-group) ESS ≥ target · N. When not even the smallest step it
+/// resolves (1e-12 (1 − β)) keeps the target, that smallest step is returned, flagged `true`
+/// (stalled).
+fn next_increment(ll: &[f64], beta: f64, target: f64, groups: usize) -> (f64, bool) {
     let frac_at = |delta: f64| -> f64 {
         let lw: Vec<f64> = ll.iter().map(|l| delta * l).collect();
         group_ess_fraction(&lw, groups)
     };
     let max = 1.0 - beta;
     if frac_at(max) >= target {
-        return max;
+        return (max, false);
     }
     let (mut lo, mut hi) = (0.0, max);
     for _ in 0..100 {
@@ -872,7 +900,11 @@ fn next_increment(ll: &[f64], beta: f64, target: f64, groups: usize) -> f64 {
             break;
         }
     }
-    lo.max(1e-12 * max)
+    if lo > 0.0 {
+        (lo, false)
+    } else {
+        (1e-12 * max, true)
+    }
 }
 
 /// Run one tempered SMC from the prior; `observe` sees every stage as it ends.
@@ -1143,6 +1175,7 @@ pub fn run_from<T: Target>(
     let mut stages = Vec::new();
     let mut scales = Scales::new(t);
     let mut stage = 0usize;
+    let mut stalled = 0usize;
     while beta < 1.0 {
         stage += 1;
         if stage > opts.max_stages {
@@ -1155,8 +1188,25 @@ pub fn run_from<T: Target>(
             let tp = Tempered { t, start, beta };
             particles.par_iter().map(|p| tp.log_ratio(p)).collect()
         };
-        let delta = next_increment(&ratio, beta, opts.target_ess, groups);
+        let (delta, stall) = next_increment(&ratio, beta, opts.target_ess, groups);
         let lw: Vec<f64> = ratio.iter().map(|l| delta * l).collect();
+        stalled = if stall { stalled + 1 } else { 0 };
+        if stalled >= STALLED_STAGES {
+            let finite = ratio.iter().copied().filter(|l| l.is_finite());
+            let (lo, hi) = finite.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), l| {
+                (a.min(l), b.max(l))
+            });
+            return Err(SmcError::Stalled {
+                stage,
+                beta,
+                stalled,
+                delta,
+                ess: group_ess_fraction(&lw, groups) * n as f64,
+                n,
+                infinite: ratio.iter().filter(|l| !l.is_finite()).count(),
+                spread: (hi - lo).max(0.0),
+            });
+        }
         beta = if 1.0 - (beta + delta) < 1e-12 {
             1.0
         } else {

@@ -420,3 +420,56 @@ fn delayed_acceptance_with_a_wrong_screen_still_matches_the_closed_form() {
     assert!(screened > 0, "the screen never rejected a proposal");
     assert_matches_exact(&t.0, &results);
 }
+
+/// A likelihood of (near) zero noise — the replicates disagree by 0.1 at a noise sd of 1e-9,
+/// so log L spans ~1e16 over the prior — leaves the weights degenerate at every step the
+/// bisection can resolve. The sampler must stop with `Stalled` after `STALLED_STAGES`
+/// stages, not creep on by Δβ ≈ 1e-12 a stage.
+#[test]
+fn degenerate_weights_stop_the_tempering_with_a_clear_error() {
+    let mut t = problem();
+    t.s = vec![1e-9, 1e-9];
+    let opts = SmcOptions {
+        n_particles: 200,
+        ..SmcOptions::default()
+    };
+    match smc::run(&t, &opts, 7, 0, &|_| {}) {
+        Err(e @ smc::SmcError::Stalled { stage, stalled, .. }) => {
+            eprintln!("{e}");
+            assert_eq!(stalled, smc::STALLED_STAGES);
+            assert_eq!(stage, smc::STALLED_STAGES);
+            assert!(e.to_string().contains("stalled"), "{e}");
+        }
+        Err(e) => panic!("expected Stalled, got {e}"),
+        Ok(r) => panic!(
+            "expected Stalled, reached β = 1 in {} stages",
+            r.stages.len()
+        ),
+    }
+}
+
+/// A reference of near-zero spread (what a runaway ascent to ε → 0 leaves) is flagged, with
+/// the coordinate named; the Laplace reference of the closed-form problem is not.
+#[test]
+fn a_reference_of_zero_spread_is_flagged_degenerate() {
+    use super::reference::{GaussianReference, Mvn};
+    let t = problem();
+    let (q, _) = super::reference::laplace_reference(
+        &t,
+        &[],
+        &super::reference::ReferenceOptions::default(),
+        5,
+    )
+    .expect("reference");
+    assert_eq!(q.degeneracy(), None);
+    let mut bad: GaussianReference = q.clone();
+    bad.units[2] = Mvn::new(vec![-75.0, 0.3], &[1e-30, 0.0, 0.0, 1e-2]);
+    let why = bad.degeneracy().expect("degenerate");
+    assert!(why.contains("unit 2 coordinate 0"), "{why}");
+    let mut nan = q;
+    nan.global.mean[1] = f64::NAN;
+    assert!(nan
+        .degeneracy()
+        .expect("degenerate")
+        .contains("global coordinate 1"));
+}

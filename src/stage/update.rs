@@ -1041,15 +1041,33 @@ fn run_smc(
                 .map(|k| all_aux.iter().map(|a| a[k]).sum::<f64>() / all_aux.len() as f64)
                 .collect(),
         };
-        let ropts = ReferenceOptions {
+        let mut ropts = ReferenceOptions {
             start: start.map(<[f64]>::to_vec),
-            // A modular step: units of few parameters (a joint's stiffness per bolted
-            // measurement) that can fit a mode exactly (see `ReferenceOptions`).
-            reform_curvature: modular,
+            // A modular step whose units are one parameter (a joint's stiffness per bolted
+            // measurement) that can fit a mode exactly (see `ReferenceOptions`). With two
+            // (an enrichment's refit: ln K and ln k_rot per measurement) the re-formed
+            // quadratic ran the demo's ε and δ to e^-75 … e^-244, a reference of zero spread.
+            reform_curvature: modular && smc::Target::unit_dim(target) == 1,
             ..ReferenceOptions::default()
         };
-        let (q, info) = laplace_reference(target, &aux_mean, &ropts, opts.seed)
+        let (mut q, mut info) = laplace_reference(target, &aux_mean, &ropts, opts.seed)
             .map_err(|e| anyhow!("{what}: building the reference: {e}"))?;
+        if let (Some(why), true) = (q.degeneracy(), ropts.reform_curvature) {
+            // The re-formed quadratic extrapolated past where it holds: the frozen one.
+            if verbose {
+                eprintln!("{what}: the re-formed reference is degenerate ({why}); frozen curvature instead");
+            }
+            ropts.reform_curvature = false;
+            (q, info) = laplace_reference(target, &aux_mean, &ropts, opts.seed)
+                .map_err(|e| anyhow!("{what}: building the reference: {e}"))?;
+        }
+        if let Some(why) = q.degeneracy() {
+            anyhow::bail!(
+                "{what}: the reference built from the Laplace approximation is degenerate ({why}): \
+                 the data pin a coordinate far more tightly than measurement noise can; check \
+                 the noise priors (--eps-median, --delta-median, --eps-fixed, --delta-fixed) and the modes used, or start from the prior (--from-prior)"
+            );
+        }
         acc.reference_model_evals = info.model_evals;
         acc.reference_g_acceptance = info.g_acceptance;
         acc.reference_units_converged = info.converged;
