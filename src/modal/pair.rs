@@ -2,7 +2,9 @@
 //! acceptance thresholds, shape labels, swap and missing-mode reports, and the rule that
 //! decides which modes count as present in every measurement of a setup.
 //!
-//! Labels come from the model shape at the scan points: scan points are grouped into rows
+//! Labels come from the model shape at a grid of points (the pair stage labels each setup's
+//! model once, on a grid over the whole board, [`pair_modes_labelled`]; [`pair_modes`] labels
+//! at the measurement's scan points): points are grouped into rows
 //! (same y) and columns (same x); along each row the sign changes of the shape are counted
 //! (ignoring components below `label_amp_fraction` of the largest), giving `nx` nodal lines
 //! crossed along x, and likewise `ny` along y (energy-weighted median over rows/columns).
@@ -237,18 +239,60 @@ pub fn pair_modes(
             });
         }
     }
+    let model_labels = label_modes(model, points, params);
+    pair_modes_labelled(identified, model, model_labels, band_hz, params)
+}
+
+/// Labels of model modes from their shapes at `points` ([`label_shape`]), made unique (a
+/// second occurrence gets "#2", ...).
+pub fn label_modes(model: &[ModelMode], points: &[ScanPoint], params: &PairParams) -> Vec<String> {
     let mut model_labels: Vec<String> = model
         .iter()
         .enumerate()
         .map(|(j, m)| label_shape(&m.shape, points, j, params))
         .collect();
-    // Make labels unique (second occurrence gets "#2", ...).
     let mut seen: BTreeMap<String, usize> = BTreeMap::new();
     for l in model_labels.iter_mut() {
         let c = seen.entry(l.clone()).or_insert(0);
         *c += 1;
         if *c > 1 {
             *l = format!("{l}#{c}");
+        }
+    }
+    model_labels
+}
+
+/// [`pair_modes`] with the model modes' labels given: e.g. labelled once per setup on a
+/// grid over the whole board, so that a model mode keeps its label in every measurement,
+/// whichever part of the board a measurement scanned (labels from a measurement's own scan
+/// points can differ between scan grids for a mode whose nodal pattern is ambiguous).
+pub fn pair_modes_labelled(
+    identified: &[IdentifiedShape],
+    model: &[ModelMode],
+    model_labels: Vec<String>,
+    band_hz: (f64, f64),
+    params: &PairParams,
+) -> Result<Pairing, ModalError> {
+    if model_labels.len() != model.len() {
+        return Err(ModalError::ShapeLength {
+            context: "pair_modes_labelled (labels vs model modes)",
+            expected: model.len(),
+            found: model_labels.len(),
+        });
+    }
+    if let Some(n) = model.first().map(|m| m.shape.len()) {
+        for s in identified
+            .iter()
+            .map(|m| &m.shape)
+            .chain(model.iter().map(|m| &m.shape))
+        {
+            if s.len() != n {
+                return Err(ModalError::ShapeLength {
+                    context: "pair_modes_labelled (identified vs model shapes)",
+                    expected: n,
+                    found: s.len(),
+                });
+            }
         }
     }
     let id_shapes: Vec<Vec<f64>> = identified.iter().map(|m| m.shape.clone()).collect();

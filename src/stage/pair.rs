@@ -154,14 +154,18 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
         let board = Board::from_toml_str(&board_text)?;
         let ms = read_modes(&modes_path)?;
         // One model per setup present.
-        let mut models: BTreeMap<String, (FeModel, crate::fem::Modes)> = BTreeMap::new();
+        // Each model mode is labelled once per setup, on a grid over the whole board, so it
+        // keeps its label in every measurement whatever part of the board was scanned.
+        let mut models: BTreeMap<String, (FeModel, crate::fem::Modes, Vec<String>)> =
+            BTreeMap::new();
         for setup in [SetupArg::Free, SetupArg::Bolted] {
             if ms.iter().any(|m| m.setup == setup.as_str()) {
                 let fe_setup = setup.to_setup();
                 let model = FeModel::build(&board, fe_setup.clone(), board.mesh_for(&fe_setup))?;
                 let p = model.nominal_params();
                 let modes = model.modes(&p, opts.n_model_modes)?;
-                models.insert(setup.as_str().into(), (model, modes));
+                let labels = board_grid_labels(&board, &model, &modes, &opts.params)?;
+                models.insert(setup.as_str().into(), (model, modes, labels));
             }
         }
         let mut findings = Findings::default();
@@ -169,7 +173,7 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
         let mut presence: Vec<PresenceRecord> = vec![];
         let mut outputs = vec![];
         for m in &ms {
-            let Some((model, fe_modes)) = models.get(&m.setup) else {
+            let Some((model, fe_modes, labels)) = models.get(&m.setup) else {
                 continue;
             };
             // Scan points the model cannot evaluate (outside the outline, inside a hole) are
@@ -223,17 +227,22 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
                     shape: keep.iter().map(|&i| s[i]).collect(),
                 })
                 .collect();
-            let pairing =
-                match pair::pair_modes(&identified, &model_modes, &points, m.band, &opts.params) {
-                    Ok(p) => p,
-                    Err(e) => {
-                        findings.push(
-                            Finding::new(Severity::Quarantined, "pair.failed", e.to_string())
-                                .measurement(m.measurement_id.clone()),
-                        );
-                        continue;
-                    }
-                };
+            let pairing = match pair::pair_modes_labelled(
+                &identified,
+                &model_modes,
+                labels.clone(),
+                m.band,
+                &opts.params,
+            ) {
+                Ok(p) => p,
+                Err(e) => {
+                    findings.push(
+                        Finding::new(Severity::Quarantined, "pair.failed", e.to_string())
+                            .measurement(m.measurement_id.clone()),
+                    );
+                    continue;
+                }
+            };
             let swapped: std::collections::BTreeSet<usize> =
                 pairing.swaps.iter().flat_map(|&(a, b)| [a, b]).collect();
             let mut accepted_labels = vec![];
@@ -406,4 +415,51 @@ struct Row<'a> {
     accepted: bool,
     missing: bool,
     swapped: bool,
+}
+
+/// Grid points along the board's longer side for labelling model modes (25 on an 80 mm board): a
+/// mode's nodal lines are resolved up to order ~8 whatever the scan grid was.
+const LABEL_GRID_POINTS: usize = 25;
+
+/// Labels of the model's modes from their shapes on a regular grid over the whole board
+/// (cell centres of a `LABEL_GRID_POINTS`-per-longer-side grid; points in holes or off the
+/// outline are left out), made unique ([`pair::label_modes`]).
+fn board_grid_labels(
+    board: &Board,
+    model: &FeModel,
+    modes: &crate::fem::Modes,
+    params: &PairParams,
+) -> anyhow::Result<Vec<String>> {
+    let (lx, ly) = (board.length_x_m, board.width_y_m);
+    let step = lx.max(ly) / LABEL_GRID_POINTS as f64;
+    let (nx, ny) = (
+        ((lx / step).round() as usize).max(3),
+        ((ly / step).round() as usize).max(3),
+    );
+    let mut points = vec![];
+    for j in 0..ny {
+        for i in 0..nx {
+            let (x, y) = (
+                (i as f64 + 0.5) * lx / nx as f64,
+                (j as f64 + 0.5) * ly / ny as f64,
+            );
+            if model.w_at(modes, &[[x, y]]).is_ok() {
+                points.push(ScanPoint {
+                    node_id: (j * nx + i) as i64,
+                    x_m: x,
+                    y_m: y,
+                    z_m: 0.0,
+                });
+            }
+        }
+    }
+    let pts: Vec<[f64; 2]> = points.iter().map(|p| [p.x_m, p.y_m]).collect();
+    let w = model.w_at(modes, &pts)?;
+    let shapes: Vec<ModelMode> = (0..modes.freq_hz.len())
+        .map(|j| ModelMode {
+            freq_hz: modes.freq_hz[j],
+            shape: (0..pts.len()).map(|i| w[(i, j)]).collect(),
+        })
+        .collect();
+    Ok(pair::label_modes(&shapes, &points, params))
 }

@@ -84,6 +84,37 @@ fn extract_recovers_the_example_modes_and_pair_labels_them() {
         torsion_ok, 6,
         "the example's torsion mode is paired in every free measurement"
     );
+    // A model mode carries one label in every measurement of its setup, whatever each
+    // measurement scanned (labels come from the setup's model on a grid over the board).
+    let mut labels: std::collections::BTreeMap<(String, i32), std::collections::BTreeSet<String>> =
+        Default::default();
+    for b in &pairs {
+        let cols = hbmu::io::tables::Cols {
+            batch: b,
+            path: Path::new("pairs.parquet"),
+        };
+        let (setup, model_mode, label) = (
+            cols.str("setup").unwrap(),
+            b.column_by_name("model_mode")
+                .unwrap()
+                .as_any()
+                .downcast_ref::<arrow::array::Int32Array>()
+                .unwrap(),
+            cols.str("label").unwrap(),
+        );
+        for i in 0..b.num_rows() {
+            if arrow::array::Array::is_valid(model_mode, i) {
+                labels
+                    .entry((setup.value(i).to_string(), model_mode.value(i)))
+                    .or_default()
+                    .insert(label.value(i).to_string());
+            }
+        }
+    }
+    assert!(!labels.is_empty());
+    for (k, v) in &labels {
+        assert_eq!(v.len(), 1, "model mode {k:?} has labels {v:?}");
+    }
 }
 
 #[test]
