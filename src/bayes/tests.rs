@@ -473,3 +473,46 @@ fn a_reference_of_zero_spread_is_flagged_degenerate() {
         .expect("degenerate")
         .contains("global coordinate 1"));
 }
+
+/// A reference refitted to a pilot run's moments (`reference::pilot_reference`) is still a
+/// normalised q: tempering from it matches the closed form, in no more stages than from the
+/// Laplace reference it was refined from.
+#[test]
+fn smc_from_a_pilot_refined_reference_matches_the_closed_form() {
+    let t = problem();
+    let opts = SmcOptions {
+        n_particles: 1000,
+        ..SmcOptions::default()
+    };
+    let (q, _) = super::reference::laplace_reference(
+        &t,
+        &[],
+        &super::reference::ReferenceOptions::default(),
+        5,
+    )
+    .expect("reference");
+    let (pilot, pilot_stages) =
+        super::reference::pilot_reference(&t, &q, &opts, 300, 1.1, 11).expect("pilot");
+    assert!(pilot_stages >= 1);
+    assert_eq!(pilot.degeneracy(), None);
+    let from_laplace = smc::run_with(
+        &t,
+        &opts,
+        42,
+        0,
+        &smc::Start::Reference(std::sync::Arc::new(q)),
+        &[],
+        &|_| {},
+    )
+    .expect("run")
+    .stages
+    .len();
+    let start = smc::Start::Reference(std::sync::Arc::new(pilot));
+    let results: Vec<_> = (0..8)
+        .map(|r| smc::run_with(&t, &opts, 42, r, &start, &[], &|_| {}).expect("run"))
+        .collect();
+    let from_pilot = results[0].stages.len();
+    eprintln!("stages: from the Laplace reference {from_laplace}, from the pilot's {from_pilot}");
+    assert!(from_pilot <= from_laplace, "{from_pilot} vs {from_laplace}");
+    assert_matches_exact(&t, &results);
+}
