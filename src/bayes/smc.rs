@@ -351,6 +351,23 @@ impl<T: Target> Tempered<'_, T> {
             Some(q) => mix(q.units[b].lpdf(x), lp + ll, self.beta),
         }
     }
+    /// `unit(new) − unit(old)` for one unit whose x is unchanged (a centred move of g):
+    /// (log prior, log-likelihood) new and old. A reference's q_b(x_b) then cancels, so it is
+    /// not evaluated.
+    fn unit_change(&self, group: usize, new: (f64, f64), old: (f64, f64)) -> f64 {
+        let tempered = |(lp, ll): (f64, f64)| {
+            lp + if self.beta == 0.0 {
+                0.0
+            } else {
+                self.beta * ll
+            }
+        };
+        match self.start.q(group) {
+            None => tempered(new) - tempered(old),
+            Some(_) if self.beta == 0.0 => 0.0,
+            Some(_) => self.beta * (new.0 + new.1) - self.beta * (old.0 + old.1),
+        }
+    }
     /// log (p L / q) of a particle: what the next temperature increment weights by.
     fn log_ratio(&self, p: &Particle<T::Cache>) -> f64 {
         match self.start.q(p.group) {
@@ -593,13 +610,15 @@ fn unit_move<T: Target>(
 }
 
 /// A centred move of g to `gn` with every unit fixed (their cached model outputs reused: no
-/// model evaluation): accepted with uniform `u`, updating the particle, its context and its
-/// global density term. Returns whether it was accepted.
+/// model evaluation): accepted with uniform `u`, updating the particle, its context, its
+/// global density term and `lp_units` (each unit's log p(x_b | g), kept by the caller so each
+/// move prices the units under the new g only). Returns whether it was accepted.
 fn centred_g_move<T: Target>(
     tp: &Tempered<'_, T>,
     p: &mut Particle<T::Cache>,
     ctx: &mut T::Ctx,
     lg: &mut f64,
+    lp_units: &mut [f64],
     gn: Vec<f64>,
     u: f64,
 ) -> bool {
@@ -611,31 +630,23 @@ fn centred_g_move<T: Target>(
     let ctx_new = t.ctx(&gn);
     let mut log_r = lg_new - *lg;
     let mut ll_new = Vec::with_capacity(t.n_units());
+    let mut lp_new = Vec::with_capacity(t.n_units());
     for b in 0..t.n_units() {
         let l = match &p.cache[b] {
             Some(c) => t.log_lik(&ctx_new, b, &p.x[b], c),
             None => f64::NEG_INFINITY,
         };
         let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
-        log_r += tp.unit(
-            p.group,
-            b,
-            &p.x[b],
-            t.log_prior_unit(&ctx_new, b, &p.x[b]),
-            l,
-        ) - tp.unit(
-            p.group,
-            b,
-            &p.x[b],
-            t.log_prior_unit(ctx, b, &p.x[b]),
-            p.ll[b],
-        );
+        let lp = t.log_prior_unit(&ctx_new, b, &p.x[b]);
+        log_r += tp.unit_change(p.group, (lp, l), (lp_units[b], p.ll[b]));
         ll_new.push(l);
+        lp_new.push(lp);
     }
     if log_r.is_finite() && u.ln() < log_r {
         p.g = gn;
         *ctx = ctx_new;
         p.ll = ll_new;
+        lp_units.copy_from_slice(&lp_new);
         *lg = lg_new;
         true
     } else {
@@ -693,6 +704,9 @@ fn sweep<T: Target>(
     }
     // Centred moves of g: no model evaluation.
     let mut lg = tp.global(p.group, &p.g);
+    let mut lp_units: Vec<f64> = (0..t.n_units())
+        .map(|b| t.log_prior_unit(&ctx, b, &p.x[b]))
+        .collect();
     for _ in 0..opts.global_moves {
         let eps = normal_vec(rng, ng);
         let step = lower_mul(&prop.global, ng, &eps);
@@ -703,7 +717,7 @@ fn sweep<T: Target>(
                 .collect();
         let u: f64 = rng.random();
         st.n_global += 1.0;
-        if centred_g_move(tp, p, &mut ctx, &mut lg, gn, u) {
+        if centred_g_move(tp, p, &mut ctx, &mut lg, &mut lp_units, gn, u) {
             st.acc_global += 1.0;
         }
     }
@@ -717,7 +731,7 @@ fn sweep<T: Target>(
         gn[k] += sc.comp * prop.global_sd[k] * e;
         let u: f64 = rng.random();
         st.n_comp += 1.0;
-        if centred_g_move(tp, p, &mut ctx, &mut lg, gn, u) {
+        if centred_g_move(tp, p, &mut ctx, &mut lg, &mut lp_units, gn, u) {
             st.acc_comp += 1.0;
         }
     }

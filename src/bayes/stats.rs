@@ -46,14 +46,22 @@ pub fn half_normal_lpdf(x: f64, s: f64) -> f64 {
 
 /// Lower Cholesky factor of a symmetric positive (semi-)definite d × d matrix (row-major),
 /// with a diagonal jitter added where a pivot is not positive. Returns the factor and the
-/// jitter used (0 for a positive-definite input).
+/// jitter used (0 for a positive-definite input). A matrix with a non-finite entry, or one
+/// that no jitter up to 1e3 × its largest diagonal makes positive, has no factor: the result is
+/// then a factor of NaNs with an infinite jitter, so every density built on it is NaN (which
+/// the sampler treats as −∞, and `GaussianReference::degeneracy` reports) instead of this
+/// looping for ever, as it did on a NaN covariance.
 pub fn cholesky_jittered(a: &[f64], d: usize) -> (Vec<f64>, f64) {
+    let no_factor = || (vec![f64::NAN; d * d], f64::INFINITY);
+    if a[..d * d].iter().any(|v| !v.is_finite()) {
+        return no_factor();
+    }
     let scale = (0..d)
         .map(|i| a[i * d + i].abs())
         .fold(0.0, f64::max)
         .max(1e-300);
     let mut jitter = 0.0;
-    loop {
+    while jitter <= 1e3 * scale {
         if let Some(l) = cholesky(a, d, jitter) {
             return (l, jitter);
         }
@@ -63,6 +71,7 @@ pub fn cholesky_jittered(a: &[f64], d: usize) -> (Vec<f64>, f64) {
             jitter * 10.0
         };
     }
+    no_factor()
 }
 
 fn cholesky(a: &[f64], d: usize, jitter: f64) -> Option<Vec<f64>> {
@@ -159,5 +168,11 @@ mod tests {
         // Singular input gets a jitter, never a failure.
         let (_, j) = cholesky_jittered(&[1.0, 1.0, 1.0, 1.0], 2);
         assert!(j > 0.0);
+        // A NaN input, or one no jitter up to 1e3 × its largest diagonal makes positive, has
+        // no factor: NaNs, returned (it looped for ever on a NaN before).
+        for bad in [[f64::NAN, 0.0, 0.0, 1.0], [0.0, 1e6, 1e6, 0.0]] {
+            let (l, j) = cholesky_jittered(&bad, 2);
+            assert!(j.is_infinite() && l.iter().all(|v| v.is_nan()), "{bad:?}");
+        }
     }
 }

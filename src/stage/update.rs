@@ -1000,6 +1000,10 @@ struct Acceleration {
     pilot_particles: usize,
     pilot_stages: usize,
     pilot_seconds: f64,
+    /// Step 2: pilot groups left out of the surrogates' spread, and groups (over all runs)
+    /// that tempered from the base reference, because their moved reference was degenerate.
+    degenerate_pilot_groups: usize,
+    degenerate_group_references: usize,
 }
 
 /// Particles of the pilot run whose posterior moments replace the Laplace reference of a run
@@ -1115,8 +1119,18 @@ fn run_smc(
                 .collect::<Result<_, _>>()
                 .map_err(|e| anyhow!("{what}: a pilot group's reference: {e}"))?;
             acc.reference_model_evals += pilots.iter().map(|(_, e)| e).sum::<u64>();
+            // A pilot whose reference came out degenerate says nothing about the spread.
+            let n_all = pilots.len();
+            let pilots: Vec<(GaussianReference, u64)> = pilots
+                .into_iter()
+                .filter(|(p, _)| p.degeneracy().is_none())
+                .collect();
+            acc.degenerate_pilot_groups = n_all - pilots.len();
             (0..nu)
                 .map(|b| {
+                    if pilots.is_empty() {
+                        return None;
+                    }
                     let d = q.units[b].dim();
                     let np = pilots.len() as f64;
                     let mean: Vec<f64> = (0..d)
@@ -1227,8 +1241,18 @@ fn run_smc(
                     .map(|a| reference_for_aux(&sur, q, a, ropts, 2))
                     .collect::<Result<_, _>>()
                     .map_err(|e| anyhow!("{what}: a group's reference (run {}): {e}", r + 1))?;
+                // A group whose moved reference is degenerate tempers from the base reference
+                // instead: still normalised, so still exact, only slower for that group.
                 starts.push(smc::Start::GroupReferences(Arc::new(
-                    refs.into_iter().map(|(q, _)| q).collect(),
+                    refs.into_iter()
+                        .map(|(g, _)| match g.degeneracy() {
+                            None => g,
+                            Some(_) => {
+                                acc.degenerate_group_references += 1;
+                                (**q).clone()
+                            }
+                        })
+                        .collect(),
                 )));
             }
             starts
