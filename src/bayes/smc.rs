@@ -631,14 +631,14 @@ fn centred_g_move<T: Target>(
     let mut log_r = lg_new - *lg;
     let mut ll_new = Vec::with_capacity(t.n_units());
     let mut lp_new = Vec::with_capacity(t.n_units());
-    for b in 0..t.n_units() {
+    for (b, lp_old) in lp_units.iter().enumerate() {
         let l = match &p.cache[b] {
             Some(c) => t.log_lik(&ctx_new, b, &p.x[b], c),
             None => f64::NEG_INFINITY,
         };
         let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
         let lp = t.log_prior_unit(&ctx_new, b, &p.x[b]);
-        log_r += tp.unit_change(p.group, (lp, l), (lp_units[b], p.ll[b]));
+        log_r += tp.unit_change(p.group, (lp, l), (*lp_old, p.ll[b]));
         ll_new.push(l);
         lp_new.push(lp);
     }
