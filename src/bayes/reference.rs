@@ -33,7 +33,9 @@ use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
 use super::smc::{stream_key, Target};
-use super::stats::{cholesky_jittered, lower_mul, lower_solve, lower_solve_sq_norm, LN_2PI};
+use super::stats::{
+    cholesky_jittered, lower_mul, lower_solve, lower_solve_sq_norm, mean_and_covariance, LN_2PI,
+};
 
 /// A multivariate normal with a lower Cholesky factor (row-major).
 #[derive(Clone, Debug, serde::Serialize)]
@@ -914,26 +916,14 @@ where
         &|_| {},
     )?;
     let c2 = inflation * inflation;
-    let moments = |vs: Vec<&[f64]>| -> Mvn {
-        let (n, d) = (vs.len() as f64, vs[0].len());
-        let mean: Vec<f64> = (0..d)
-            .map(|k| vs.iter().map(|v| v[k]).sum::<f64>() / n)
-            .collect();
-        let mut cov = vec![0.0; d * d];
-        for v in &vs {
-            for i in 0..d {
-                for j in 0..d {
-                    cov[i * d + j] += (v[i] - mean[i]) * (v[j] - mean[j]) * c2 / (n - 1.0);
-                }
-            }
-        }
-        Mvn::new(mean, &cov)
+    let moments = |(mean, cov): (Vec<f64>, Vec<f64>)| -> Mvn {
+        Mvn::new(mean, &cov.iter().map(|v| v * c2).collect::<Vec<_>>())
     };
     let ps = &res.particles;
     let refit = GaussianReference {
-        global: moments(ps.iter().map(|p| p.g.as_slice()).collect()),
+        global: moments(mean_and_covariance(ps.iter().map(|p| p.g.as_slice()))),
         units: (0..q.units.len())
-            .map(|b| moments(ps.iter().map(|p| p.x[b].as_slice()).collect()))
+            .map(|b| moments(mean_and_covariance(ps.iter().map(|p| p.x[b].as_slice()))))
             .collect(),
     };
     let stages = res.stages.len();

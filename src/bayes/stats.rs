@@ -95,6 +95,28 @@ fn cholesky(a: &[f64], d: usize, jitter: f64) -> Option<Vec<f64>> {
     Some(l)
 }
 
+/// Mean and covariance (divided by n, the maximum-likelihood form) of equal-length vectors
+/// (at least one).
+pub fn mean_and_covariance<'a>(
+    vs: impl Iterator<Item = &'a [f64]> + Clone,
+) -> (Vec<f64>, Vec<f64>) {
+    let n = vs.clone().count().max(1) as f64;
+    let d = vs.clone().next().map_or(0, <[f64]>::len);
+    let mut mean = vec![0.0; d];
+    for v in vs.clone() {
+        mean.iter_mut().zip(v).for_each(|(m, x)| *m += x / n);
+    }
+    let mut cov = vec![0.0; d * d];
+    for v in vs {
+        for i in 0..d {
+            for j in 0..d {
+                cov[i * d + j] += (v[i] - mean[i]) * (v[j] - mean[j]) / n;
+            }
+        }
+    }
+    (mean, cov)
+}
+
 /// y = L x for a lower-triangular row-major L.
 pub fn lower_mul(l: &[f64], d: usize, x: &[f64]) -> Vec<f64> {
     (0..d)

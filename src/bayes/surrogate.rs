@@ -263,17 +263,7 @@ pub fn fit_unit(
                 .collect()
         })
         .collect();
-    let centre: Vec<f64> = (0..d)
-        .map(|k| w.iter().map(|s| s[k]).sum::<f64>() / n)
-        .collect();
-    let mut cov = vec![0.0; d * d];
-    for s in &w {
-        for i in 0..d {
-            for j in 0..d {
-                cov[i * d + j] += (s[i] - centre[i]) * (s[j] - centre[j]) / n;
-            }
-        }
-    }
+    let (centre, cov) = super::stats::mean_and_covariance(w.iter().map(Vec::as_slice));
     let chol = cholesky_jittered(&cov, d).0;
     let rom_terms = |v: &[f64]| -> Option<Terms> {
         let p = target.predictor.predict(v)?;

@@ -211,14 +211,7 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
                 continue;
             }
             let points: Vec<ScanPoint> = keep.iter().map(|&i| m.points[i]).collect();
-            let pts: Vec<[f64; 2]> = points.iter().map(|p| [p.x_m, p.y_m]).collect();
-            let w = model.w_at(fe_modes, &pts)?;
-            let model_modes: Vec<ModelMode> = (0..fe_modes.freq_hz.len())
-                .map(|j| ModelMode {
-                    freq_hz: fe_modes.freq_hz[j],
-                    shape: (0..pts.len()).map(|i| w[(i, j)]).collect(),
-                })
-                .collect();
+            let model_modes = modes_at(model, fe_modes, &points)?;
             let identified: Vec<IdentifiedShape> = m
                 .modes
                 .iter()
@@ -453,13 +446,22 @@ fn board_grid_labels(
             }
         }
     }
+    let shapes = modes_at(model, modes, &points)?;
+    Ok(pair::label_modes(&shapes, &points, params))
+}
+
+/// The model's modes as shapes at `points`.
+fn modes_at(
+    model: &FeModel,
+    modes: &crate::fem::Modes,
+    points: &[ScanPoint],
+) -> anyhow::Result<Vec<ModelMode>> {
     let pts: Vec<[f64; 2]> = points.iter().map(|p| [p.x_m, p.y_m]).collect();
     let w = model.w_at(modes, &pts)?;
-    let shapes: Vec<ModelMode> = (0..modes.freq_hz.len())
+    Ok((0..modes.freq_hz.len())
         .map(|j| ModelMode {
             freq_hz: modes.freq_hz[j],
             shape: (0..pts.len()).map(|i| w[(i, j)]).collect(),
         })
-        .collect();
-    Ok(pair::label_modes(&shapes, &points, params))
+        .collect())
 }
