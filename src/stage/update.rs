@@ -1347,16 +1347,20 @@ fn run_smc(
             let q_of = |p: &smc::Particle<crate::bayes::modal::Terms>| {
                 start.q(p.group).expect("a reference start")
             };
+            // Each group's q sds, once (Mvn::sd sums its Cholesky rows).
+            let sds: Vec<(Vec<f64>, Vec<Vec<f64>>)> = (0..opts.smc.groups.max(1))
+                .map(|g| {
+                    let q = start.q(g).expect("a reference start");
+                    (q.global.sd(), q.units.iter().map(|u| u.sd()).collect())
+                })
+                .collect();
             let ng = smc::Target::n_global(target);
             let global: Vec<(f64, f64)> = (0..ng)
                 .map(|k| {
                     moments(
                         res.particles
                             .iter()
-                            .map(|p| {
-                                let q = q_of(p);
-                                (p.g[k] - q.global.mean[k]) / q.global.sd()[k]
-                            })
+                            .map(|p| (p.g[k] - q_of(p).global.mean[k]) / sds[p.group].0[k])
                             .collect(),
                     )
                 })
@@ -1371,8 +1375,8 @@ fn run_smc(
                                 res.particles
                                     .iter()
                                     .map(|p| {
-                                        let q = &q_of(p).units[b];
-                                        (p.x[b][k] - q.mean[k]) / q.sd()[k]
+                                        (p.x[b][k] - q_of(p).units[b].mean[k])
+                                            / sds[p.group].1[b][k]
                                     })
                                     .collect(),
                             )
