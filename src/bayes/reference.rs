@@ -848,13 +848,9 @@ pub fn reference_for_aux<T: Target>(
     rounds: usize,
 ) -> Result<(GaussianReference, u64), ReferenceError> {
     let nu = t.n_units();
-    let ng = t.n_global();
     let d = t.unit_dim();
     let c2 = opts.inflation * opts.inflation;
-    let g_cov: Vec<f64> = lower_times_upper(&base.global.chol, ng)
-        .iter()
-        .map(|v| v / c2)
-        .collect();
+    let g_cov: Vec<f64> = base.global.covariance().iter().map(|v| v / c2).collect();
     let mut g = base.global.mean.clone();
     let mut xs: Vec<Vec<f64>> = base.units.iter().map(|u| u.mean.clone()).collect();
     let mut precs = vec![vec![0.0; d * d]; nu];
@@ -876,7 +872,7 @@ pub fn reference_for_aux<T: Target>(
         evals += e;
         g = ascend_in_metric(&|v: &[f64]| given.log_density(v), &g, &g_cov, 20);
     }
-    let global = Mvn::new(g, &lower_times_upper(&base.global.chol, ng));
+    let global = Mvn::new(g, &base.global.covariance());
     let units = unit_references(&xs, &precs, c2);
     Ok((GaussianReference { global, units }, evals))
 }
