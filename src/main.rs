@@ -273,6 +273,11 @@ struct UpdateArgs {
     /// Rerun even when up to date.
     #[arg(long)]
     force: bool,
+    /// Step 1: take the model as exact, without the per-mode model-error term (a relative
+    /// eigenvalue error shared by all boards, its prior sd from how the model's frequencies
+    /// move on finer meshes).
+    #[arg(long)]
+    no_model_error: bool,
 }
 
 #[derive(Subcommand)]
@@ -386,6 +391,7 @@ impl UpdateArgs {
             enrich_joint: None,
             enrich_covariate: None,
             enrich_location: None,
+            model_error: !self.no_model_error,
         }
     }
 }
@@ -679,6 +685,8 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             let mut opts = common.options(vec![], prior_width, sigma_scale);
             opts.enrich = enrich;
             opts.enrich_joint = enrich_joint;
+            // Step 2 has no model-error term (its manifest must not claim one).
+            opts.model_error = false;
             let o = stage::update::run_joints(&opts, &boards, cli.verbose)?;
             Ok(report("update joints", &opts.out, &o))
         }

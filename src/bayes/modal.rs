@@ -121,6 +121,9 @@ pub struct UnitData {
     pub conditions: Vec<f64>,
 }
 
+/// Per-mode blocks of [`Terms::suff`] (then one scalar).
+const SUFF_BLOCKS: usize = 6;
+
 /// The model's prediction for one unit at one parameter point.
 #[derive(Clone, Debug)]
 pub struct Terms {
@@ -139,17 +142,22 @@ pub struct Terms {
 
 impl Terms {
     /// These terms with the per-mode sufficient statistics of `data` for `n_modes`
-    /// updated modes: Σ ((λ̂ − λ)/λ̂)² and the count of eigenvalue terms, Σ n (1 − MAC) and
-    /// Σ n of the shape terms, then everything else (normalising constants, the mass term).
+    /// updated modes: Σ u² and the count of eigenvalue terms, Σ n (1 − MAC) and Σ n of the
+    /// shape terms, Σ u v and Σ v² (u = (λ̂ − λ)/λ̂, v = λ/λ̂: with a model error b the
+    /// residual is u − b v, so Σ (u − b v)² = Σu² − 2b Σuv + b² Σv², see [`log_lik_with`]),
+    /// then everything else (normalising constants, the mass term).
     pub fn with_sufficient(mut self, data: &UnitData, n_modes: usize) -> Terms {
         let nm = n_modes;
-        let mut s = vec![0.0; 4 * nm + 1];
+        let mut s = vec![0.0; SUFF_BLOCKS * nm + 1];
         let mut rest = 0.0;
         for f in &data.freq {
             let lambda = self.lambda[f.cond * nm + f.mode];
             let r = (f.lambda_hat - lambda) / f.lambda_hat;
+            let v = lambda / f.lambda_hat;
             s[f.mode] += r * r;
             s[nm + f.mode] += 1.0;
+            s[4 * nm + f.mode] += r * v;
+            s[5 * nm + f.mode] += v * v;
             rest += 0.5 * LN_2PI + f.ln_lambda_hat;
         }
         for (o, omm) in data.shapes.iter().zip(&self.one_minus_mac) {
@@ -162,7 +170,7 @@ impl Terms {
             let z = (m.mass_g - self.mass_g) / m.sd_g;
             rest += 0.5 * (LN_2PI + z * z) + m.sd_g.ln();
         }
-        s[4 * nm] = rest;
+        s[SUFF_BLOCKS * nm] = rest;
         self.suff = s;
         self
     }
@@ -439,12 +447,14 @@ pub fn log_lik(data: &UnitData, t: &Terms, eps: &[f64], delta: &[f64]) -> f64 {
     log_lik_with(data, t, eps, delta, &ErrorLogs::new(eps, delta))
 }
 
-/// ln ε and 2 ln δ per mode: formed once per global vector and shared by every unit's
-/// [`log_lik_with`] (the sampler's hot path).
+/// ln ε and 2 ln δ per mode, formed once per global vector and shared by every unit's
+/// [`log_lik_with`] (the sampler's hot path), and the variances s² of the model-error term
+/// per mode (empty: none).
 #[derive(Clone, Debug, Default)]
 pub struct ErrorLogs {
     ln_eps: Vec<f64>,
     ln_d2: Vec<f64>,
+    model_var: Vec<f64>,
 }
 
 impl ErrorLogs {
@@ -452,11 +462,24 @@ impl ErrorLogs {
         ErrorLogs {
             ln_eps: eps.iter().map(|e| e.ln()).collect(),
             ln_d2: delta.iter().map(|d| 2.0 * d.ln()).collect(),
+            model_var: vec![],
         }
+    }
+    /// These logs with the model-error term's prior sd s per mode (empty: none).
+    pub fn with_model_error(mut self, sd: &[f64]) -> ErrorLogs {
+        self.model_var = sd.iter().map(|s| s * s).collect();
+        self
     }
 }
 
-/// [`log_lik`] with the logarithms of ε and δ given (`logs` = `ErrorLogs::new(eps, delta)`).
+/// [`log_lik`] with the logarithms of ε and δ given (`logs` = `ErrorLogs::new(eps, delta)`),
+/// and, where `logs` holds a model-error variance s_m², the unit's eigenvalue terms of mode
+/// m integrated over a model error b_m ~ N(0, s_m²) common to them (the model eigenvalue
+/// λ (1 + b_m)): with q = Σu², a = Σuv, c = Σv² (u = (λ̂ − λ)/λ̂, v = λ/λ̂) and P = 1/s² + c/ε²,
+/// ∫ N(b; 0, s²) Π N(λ̂; λ(1 + b), (ε λ̂)²) db = Π (2π)^(-1/2) (ε λ̂)^(-1)
+/// · exp(−q/(2ε²) + (a/ε²)²/(2P)) · (1 + s² c/ε²)^(-1/2), exact. The error is common to one
+/// unit's measurements and independent between units, which keeps units conditionally
+/// independent (the sampler's blocked moves need it).
 pub fn log_lik_with(
     data: &UnitData,
     t: &Terms,
@@ -466,18 +489,43 @@ pub fn log_lik_with(
 ) -> f64 {
     let (ln_eps, ln_d2) = (&logs.ln_eps, &logs.ln_d2);
     let nm = eps.len();
-    if t.suff.len() == 4 * nm + 1 {
+    if t.suff.len() == SUFF_BLOCKS * nm + 1 {
         let s = &t.suff;
-        let mut l = -s[4 * nm];
+        let mut l = -s[SUFF_BLOCKS * nm];
         for m in 0..nm {
             if s[nm + m] > 0.0 {
-                l -= 0.5 * s[m] / (eps[m] * eps[m]) + s[nm + m] * ln_eps[m];
+                let e2 = eps[m] * eps[m];
+                match logs.model_var.get(m).filter(|v| **v > 0.0) {
+                    None => l -= 0.5 * s[m] / e2 + s[nm + m] * ln_eps[m],
+                    Some(&v) => {
+                        // The closed form rearranged so that nothing cancels: with
+                        // W = q c − a² ≥ 0 (Cauchy–Schwarz; the spread of the unit's
+                        // measurements about their common offset, clamped against
+                        // round-off) and D = ε² + s² c,
+                        // −q/(2D) − s² W/(2ε² D) − (n − 1) ln ε − ½ ln D. As written above
+                        // (−q/(2ε²) + …), the two large terms cancel as ε → 0 and their
+                        // round-off ran the reference's ε to zero on a mode measured once
+                        // per unit (W = 0: ε is then free, not rewarded).
+                        let (q, a, c) = (s[m], s[4 * nm + m], s[5 * nm + m]);
+                        let w = (q * c - a * a).max(0.0);
+                        let dd = e2 + v * c;
+                        l -= 0.5 * q / dd
+                            + 0.5 * v * w / (e2 * dd)
+                            + (s[nm + m] - 1.0) * ln_eps[m]
+                            + 0.5 * dd.ln();
+                    }
+                }
             }
             if s[3 * nm + m] > 0.0 {
                 l -= 0.5 * s[3 * nm + m] * ln_d2[m] + s[2 * nm + m] / (2.0 * delta[m] * delta[m]);
             }
         }
         return l;
+    }
+    if !logs.model_var.is_empty() {
+        // The eigenvalue terms no longer factor by measurement: through the statistics.
+        let fast = t.clone().with_sufficient(data, nm);
+        return log_lik_with(data, &fast, eps, delta, logs);
     }
     let mut l = 0.0;
     for f in &data.freq {
@@ -691,12 +739,49 @@ pub(crate) mod tests {
         let (eps, delta) = ([0.011, 0.02, 0.007], [0.05, 0.1, 0.08]);
         let direct = log_lik(&data, &t, &eps, &delta);
         let fast = t.clone().with_sufficient(&data, nm);
-        assert_eq!(fast.suff.len(), 4 * nm + 1);
+        assert_eq!(fast.suff.len(), SUFF_BLOCKS * nm + 1);
         let got = log_lik(&data, &fast, &eps, &delta);
         assert!(
             (got - direct).abs() <= 1e-12 * direct.abs(),
             "{got} vs {direct}"
         );
+        // With a model-error term: the closed form equals the likelihood integrated over b
+        // numerically (λ (1 + b), b ~ N(0, s²); trapezoid over ±10 s), mode by mode.
+        let sd = [0.004, 0.01, 0.003];
+        let logs = ErrorLogs::new(&eps, &delta).with_model_error(&sd);
+        let closed = log_lik_with(&data, &t, &eps, &delta, &logs);
+        let at = |b: &[f64]| {
+            let mut shifted = t.clone();
+            for (k, l) in shifted.lambda.iter_mut().enumerate() {
+                *l *= 1.0 + b[k % nm];
+            }
+            log_lik(&data, &shifted, &eps, &delta)
+        };
+        // Modes 0 and 2 have data (mode 1 none: its b integrates to 1); the integrand
+        // factors by mode, so integrate each mode with the other's b at 0 and add the
+        // logs, minus the b = 0 likelihood counted twice.
+        let l0 = at(&[0.0; 3]);
+        let mut integrated = l0;
+        for m in [0, 2] {
+            let n = 4000;
+            let h = 20.0 * sd[m] / n as f64;
+            let mut acc = 0.0;
+            for i in 0..=n {
+                let b = -10.0 * sd[m] + i as f64 * h;
+                let mut bv = [0.0; 3];
+                bv[m] = b;
+                let w = if i == 0 || i == n { 0.5 } else { 1.0 };
+                let prior = (-0.5 * (b / sd[m]).powi(2)).exp()
+                    / (sd[m] * (2.0 * std::f64::consts::PI).sqrt());
+                acc += w * h * prior * (at(&bv) - l0).exp();
+            }
+            integrated += acc.ln();
+        }
+        assert!(
+            (closed - integrated).abs() < 1e-6,
+            "closed form {closed} vs quadrature {integrated}"
+        );
+        assert!((closed - direct).abs() > 0.1);
     }
 
     #[test]

@@ -105,6 +105,7 @@ pub fn build_target(p: &Problem) -> ModalTarget {
             n_modes: p.modes.len(),
             eps: p.eps,
             delta: None,
+            model_error_sd: None,
         },
         units: vec![unit; p.boards],
         covariate: None,

@@ -11,6 +11,13 @@
 //! Global vector: [population (see [`PopulationPrior`]) | ln ε per mode | ln δ per mode];
 //! the error blocks are absent when fixed.
 //!
+//! The model-error term ([`ErrorModel::model_error_sd`]): each unit's model eigenvalue of
+//! mode m is λ_m (1 + b_m), b_m ~ N(0, s_m²) a relative model-form error (e.g. the
+//! discretization's, [`crate::fem::convergence::mesh_spread`]), integrated out in closed
+//! form per unit ([`modal::log_lik_with`]). Without it a model error common to all
+//! measurements of a board is read as information about the board's parameters, whose
+//! intervals, as narrow as the measurements allow, then miss the truth.
+//!
 //! With a [`CovariateEffect`] (step 1 only; the diagnosis's `temperature_stiffness`), a
 //! board's x has one more coordinate, its coefficient β_b (absolute, after the relative
 //! deviations), and the board's model is evaluated at every condition of its measurements. ln ε and ln δ are normal (log-normal scales): a
@@ -44,6 +51,9 @@ pub struct ErrorModel {
     pub eps: ErrorPrior,
     /// `None`: shape terms are not used.
     pub delta: Option<ErrorPrior>,
+    /// Prior sd s_m of each mode's relative eigenvalue model error b_m ~ N(0, s_m²),
+    /// integrated out per unit (`None`: the model is taken as exact).
+    pub model_error_sd: Option<Vec<f64>>,
 }
 
 impl ErrorModel {
@@ -293,7 +303,8 @@ impl Target for ModalTarget {
         let (eps, delta) = self.errors.unpack(&g[k..]);
         Ctx {
             pop: self.prior.unpack(&g[..k]),
-            logs: modal::ErrorLogs::new(&eps, &delta),
+            logs: modal::ErrorLogs::new(&eps, &delta)
+                .with_model_error(self.errors.model_error_sd.as_deref().unwrap_or(&[])),
             eps,
             delta,
         }
@@ -370,6 +381,7 @@ mod tests {
                 n_modes: 4,
                 eps: ErrorPrior::Fixed { value: 1e-4 },
                 delta: None,
+                model_error_sd: None,
             },
             units: vec![unit],
             covariate: Some(CovariateEffect {

@@ -194,7 +194,7 @@ pub const RESIDUALS: TableSpec = TableSpec {
         c("freq_hz", Col::Float64, false, "Hz", "Identified frequency."),
         c("model_freq_hz_mean", Col::Float64, false, "Hz", "Posterior mean of the model frequency of this board/measurement."),
         c("model_freq_hz_sd", Col::Float64, false, "Hz", "Posterior standard deviation of the model frequency (parameter uncertainty)."),
-        c("predictive_sd_hz", Col::Float64, false, "Hz", "Posterior-predictive standard deviation of a measurement: parameter uncertainty and, for updated modes, the inferred prediction error."),
+        c("predictive_sd_hz", Col::Float64, false, "Hz", "Posterior-predictive standard deviation of a measurement: parameter uncertainty, for updated modes the inferred prediction error, and (step 1 with its model-error term) the model error's prior spread of the label (evidence.json's model_error)."),
         c("rel_residual", Col::Float64, false, "", "(freq_hz - model_freq_hz_mean) / model_freq_hz_mean."),
         c("std_residual", Col::Float64, false, "", "(freq_hz - model_freq_hz_mean) / predictive_sd_hz."),
         c("mac", Col::Float64, true, "", "MAC of the measured shape and the model shape (posterior mean); null without a usable shape."),
@@ -257,6 +257,10 @@ pub struct UpdateOptions {
     /// Step 1 with `added_mass`: the point (x_m, y_m) of the lumped mass.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub enrich_location: Option<[f64; 2]>,
+    /// Step 1: infer a relative model-form error per updated mode, shared by all boards,
+    /// with a prior sd from the model's discretization spread (`fem::convergence::mesh_spread`).
+    #[serde(default)]
+    pub model_error: bool,
 }
 
 impl UpdateOptions {
@@ -1532,6 +1536,7 @@ fn population_columns<'a>(
     if infer_delta {
         cols.extend(labels.iter().map(|l| (format!("delta_{l}"), String::new())));
     }
+
     // The covariate coefficient (absolute, the unit coordinate after the parameters).
     if let Some(c) = &target.covariate {
         let unit = format!("1/(unit of {})", c.covariate);
@@ -1589,6 +1594,7 @@ fn residuals(
     results: &[smc::RunResult<crate::bayes::modal::Terms>],
     setup: &str,
     draws_per_run: usize,
+    model_error_sd: Option<&[f64]>,
 ) -> (Vec<Residual>, Vec<Lost>) {
     use rayon::prelude::*;
     let upd_idx: Vec<Option<usize>> = all_labels
@@ -1644,6 +1650,11 @@ fn residuals(
                         nk[k] += 1.0;
                         if let Some(u) = upd_idx[f.mode] {
                             let e = ctx.eps[u] * fm / 2.0;
+                            se[k] += e * e;
+                        }
+                        // The model-error term's spread (relative on λ: half on f).
+                        if let Some(sd) = model_error_sd {
+                            let e = sd[f.mode] * fm / 2.0;
                             se[k] += e * e;
                         }
                     }
@@ -1769,6 +1780,53 @@ fn lost_finding(lost: &[Lost], findings: &mut Findings) {
 }
 
 /// Model modes a ROM must carry for the updated labels and every paired label.
+/// The prior of step 1's model-error term ([`ErrorModel::model_error_sd`]).
+#[derive(Clone, Debug, serde::Serialize)]
+struct ModelErrorPrior {
+    /// How the model's frequencies move on finer meshes.
+    spread: crate::fem::convergence::MeshSpread,
+    /// Every paired free-free label (updating and validation) and its prior sd of the
+    /// relative eigenvalue error b.
+    labels: Vec<String>,
+    sd: Vec<f64>,
+    /// The sds of the updated labels, in their order.
+    #[serde(skip)]
+    sd_updated: Vec<f64>,
+}
+
+/// Floor of a label's model-error sd, relative to the largest of the labels: a mode whose
+/// frequency happens to agree between the meshes compared is not thereby exact.
+const MODEL_ERROR_FLOOR_SHARE: f64 = 0.1;
+
+/// The model-error prior of the labels: b_m ~ N(0, s_m²), s_m = 2 × the mode's relative
+/// frequency spread over the √2 and 2 × finer meshes (λ = ω², so twice the frequency's
+/// relative error), floored at a tenth of the largest s of the labels (and 1e-7).
+fn model_error_prior(
+    board: &Board,
+    nominal: &crate::fem::Params,
+    updated: &Labels,
+    all: &Labels,
+) -> anyhow::Result<ModelErrorPrior> {
+    let n = modes_needed(updated, all);
+    let spread = crate::fem::convergence::mesh_spread(board, &Setup::Free, &board.mesh, nominal, n)
+        .map_err(|e| anyhow!("the model-error term's mesh study: {e}"))?;
+    let raw = |mm: usize| 2.0 * spread.rel_spread.get(mm).copied().unwrap_or(0.0);
+    let top = all
+        .model_mode
+        .iter()
+        .chain(&updated.model_mode)
+        .map(|&mm| raw(mm))
+        .fold(0.0, f64::max);
+    let floor = (MODEL_ERROR_FLOOR_SHARE * top).max(1e-7);
+    let sd_of = |mm: usize| raw(mm).max(floor);
+    Ok(ModelErrorPrior {
+        labels: all.labels.clone(),
+        sd: all.model_mode.iter().map(|&mm| sd_of(mm)).collect(),
+        sd_updated: updated.model_mode.iter().map(|&mm| sd_of(mm)).collect(),
+        spread,
+    })
+}
+
 fn modes_needed(labels: &Labels, all: &Labels) -> usize {
     labels
         .model_mode
@@ -2079,6 +2137,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         let presence = read_presence(&presence_path, "free")?;
         let labels = select_labels(&pairs, "free", &opts.modes, &presence, &mut findings)?;
         let mut model = FeModel::build(&board, Setup::Free, &board.mesh)?;
+        let board_nominal = model.nominal_params();
         // The board's own mass (the balance weighs an added mass with it).
         let nominal_mass_g = model.total_mass_kg(&model.nominal_params())? * 1e3;
         let enrichment = opts
@@ -2131,6 +2190,10 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         let all = all_labels(&pairs, "free", 40, &mut findings);
         let need = modes_needed(&labels, &all);
         let rom = rom_for(&model, need, &log_axes, opts)?;
+        let model_error = opts
+            .model_error
+            .then(|| model_error_prior(&board, &board_nominal, &labels, &all))
+            .transpose()?;
         let point_masses: Vec<usize> = log_axes
             .iter()
             .map(|(n, _)| rom.map.names.iter().position(|m| m == n).unwrap_or(0))
@@ -2289,6 +2352,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 n_modes: labels.labels.len(),
                 eps: opts.eps,
                 delta: opts.delta,
+                model_error_sd: model_error.as_ref().map(|m| m.sd_updated.clone()),
             },
             units,
             covariate: covariate.clone(),
@@ -2369,6 +2433,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             &results,
             "free",
             opts.residual_draws,
+            model_error.as_ref().map(|m| m.sd.as_slice()),
         );
         lost_finding(&lost, &mut findings);
         let p = opts.out.join("residuals.parquet");
@@ -2402,6 +2467,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             }
             _ => {}
         }
+        ev["model_error"] = serde_json::to_value(&model_error)?;
         let p = opts.out.join("evidence.json");
         crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
         outputs.push(p);
@@ -3199,6 +3265,7 @@ pub fn run_joints(
                 n_modes: labels.labels.len(),
                 eps: opts.eps,
                 delta: opts.delta,
+                model_error_sd: None,
             },
             units,
             covariate: None,
@@ -3384,6 +3451,7 @@ pub fn run_joints(
             &results,
             "bolted",
             opts.residual_draws,
+            None,
         );
         lost_finding(&lost, &mut findings);
         let p = opts.out.join("residuals.parquet");
