@@ -27,7 +27,7 @@ pub const MANIFEST: &str = "propagate.manifest.json";
 
 pub const PREDICTIONS: TableSpec = TableSpec {
     name: "predictions",
-    doc: "Monte Carlo predictions of eigenfrequencies from the updated posterior, one row per draw, scope, board, setup and mode label. scope `new_board`: a board not yet measured (parameters drawn from the population, bolted with a new joint); `board`: a measured board (its posterior draw; bolted: with a new joint drawn from the joint population). freq_hz is the model's frequency; freq_obs_hz a predicted measurement of it (the label's relative eigenvalue error added; a validation mode draws its error from the updated modes' log-normal, or takes its own measurement repeatability where that is larger, see eps_pooled). Evaluations at inadmissible parameters or where a label cannot be tracked give no row (counted in propagate_report.json).",
+    doc: "Monte Carlo predictions of eigenfrequencies from the updated posterior, one row per draw, scope, board, setup and mode label. scope `new_board`: a board not yet measured (parameters drawn from the population, bolted with a new joint); `board`: a measured board (its posterior draw; bolted: with a new joint drawn from the joint population). freq_hz is the model's frequency; freq_obs_hz a predicted measurement of it (step 1's model-error term drawn where the data have not fixed it: every label of a new board and a measured board's validation labels; then the label's relative eigenvalue error added; a validation mode draws its error from the updated modes' log-normal, or takes its own measurement repeatability where that is larger, see eps_pooled). Evaluations at inadmissible parameters or where a label cannot be tracked give no row (counted in propagate_report.json).",
     open: false,
     columns: &[
         c("draw", Col::Int32, false, "", "Propagation draw (each draw has its own random stream of the seed)."),
@@ -528,6 +528,64 @@ fn update_rom_options(manifest: &Path) -> (Option<usize>, Option<f64>) {
     }
 }
 
+/// The model-error term's prior sd per free label from step 1's evidence.json
+/// (`model_error`: `labels`, `sd`); zeros when step 1 ran without it. A label step 1 did not
+/// give an sd (paired differently since) gets the largest of the others, and a finding.
+fn model_error_sd(
+    path: &Path,
+    labels: &[String],
+    findings: &mut Findings,
+) -> anyhow::Result<Vec<f64>> {
+    if !path.exists() {
+        return Ok(vec![0.0; labels.len()]);
+    }
+    let ev = crate::io::read_json(path)?;
+    let me = &ev["model_error"];
+    if me.is_null() {
+        return Ok(vec![0.0; labels.len()]);
+    }
+    let (Some(ls), Some(sd)) = (me["labels"].as_array(), me["sd"].as_array()) else {
+        bail!(
+            "{}: model_error: expected arrays `labels` and `sd`",
+            path.display()
+        );
+    };
+    let mut by_label = BTreeMap::new();
+    for (l, v) in ls.iter().zip(sd) {
+        match (l.as_str(), v.as_f64()) {
+            (Some(l), Some(v)) if v.is_finite() && v >= 0.0 => {
+                by_label.insert(l.to_string(), v);
+            }
+            _ => bail!(
+                "{}: model_error: expected a label and a finite sd ≥ 0, found {l} and {v}",
+                path.display()
+            ),
+        }
+    }
+    let top = by_label.values().copied().fold(0.0, f64::max);
+    let mut missing = vec![];
+    let out = labels
+        .iter()
+        .map(|l| {
+            by_label.get(l).copied().unwrap_or_else(|| {
+                missing.push(l.clone());
+                top
+            })
+        })
+        .collect();
+    if !missing.is_empty() {
+        findings.push(Finding::new(
+            Severity::Info,
+            "propagate.model_error_missing",
+            format!(
+                "{}: no model-error sd for free label(s) {missing:?}; they take the largest of the others ({top:.2e})",
+                path.display()
+            ),
+        ));
+    }
+    Ok(out)
+}
+
 fn positions(rom: &Rom, params: &[String], path: &Path) -> anyhow::Result<Vec<usize>> {
     params
         .iter()
@@ -552,6 +610,11 @@ pub fn run(opts: &PropagateOptions, verbose: bool) -> anyhow::Result<StageOutcom
         inp.pairs.clone(),
         inp.rom_free.clone(),
     ];
+    // Step 1's evidence.json carries its model-error prior (absent from older outputs).
+    let evidence1 = inp.step1.join("evidence.json");
+    if evidence1.exists() {
+        inputs.push(evidence1.clone());
+    }
     if let Some(s2) = &inp.step2 {
         inputs.push(s2.join("population.parquet"));
         inputs.push(s2.join("residuals.parquet"));
@@ -616,8 +679,10 @@ pub fn run(opts: &PropagateOptions, verbose: bool) -> anyhow::Result<StageOutcom
             &free_labels,
             &mut findings,
         )?;
+        let model_error = model_error_sd(&evidence1, &free_labels, &mut findings)?;
         let free = LabelModel::new(rom_free, free_labels.clone(), &free_modes, opts.rom_box)?
-            .with_repeatability(repeat)?;
+            .with_repeatability(repeat)?
+            .with_model_error(model_error)?;
         let mut bolted_model = None;
         let mut bolted_labels = vec![];
         match &inp.step2 {

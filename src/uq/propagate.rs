@@ -26,6 +26,13 @@
 //! show it without using where the mode lies (the model's prediction is still what the
 //! validation checks).
 //!
+//! The model-error term of step 1 (`bayes::target::ErrorModel::model_error_sd`, a relative
+//! eigenvalue error b ~ N(0, s²) common to a board's measurements of a mode and independent
+//! between boards): f_obs gets λ (1 + b)(1 + ε z) with b drawn from that prior for a new board
+//! (every label) and for a measured board's labels that were not updated. A measured board's
+//! updated label keeps b = 0: its own measurements have fixed b together with the board's
+//! parameters, and b's prior spread added again would widen what the data already settled.
+//!
 //! Parameters outside the admissible region (non-positive moduli, ν² E_y/E_x ≥ 1) or where a
 //! label cannot be tracked give no row; they are counted in [`Counts`], never dropped
 //! silently. Draws outside the ROM's verified box are evaluated and counted.
@@ -53,6 +60,8 @@ pub struct LabelModel {
     /// Per label, the relative eigenvalue error its repeat measurements show
     /// ([`repeatability_eps`]); used for labels without an inferred ε.
     pub repeatability_eps: Vec<Option<f64>>,
+    /// Per label, the prior sd s of the model-error term (0: none).
+    pub model_error_sd: Vec<f64>,
 }
 
 impl LabelModel {
@@ -96,7 +105,21 @@ impl LabelModel {
             n_track,
             box_rel,
             repeatability_eps: vec![None; n],
+            model_error_sd: vec![0.0; n],
         })
+    }
+
+    /// Set the model-error term's prior sd per label (order of `labels`; 0: none).
+    pub fn with_model_error(mut self, sd: Vec<f64>) -> Result<LabelModel, FemError> {
+        if sd.len() != self.labels.len() || sd.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
+            return Err(FemError::Request(format!(
+                "model error: expected one finite sd ≥ 0 per label ({}), found {:?}",
+                self.labels.len(),
+                sd
+            )));
+        }
+        self.model_error_sd = sd;
+        Ok(self)
     }
 
     /// Set the repeatability ε per label (order of `labels`; extra or missing entries are an
@@ -406,8 +429,14 @@ fn evaluate(
     let updated: Vec<f64> = eps.iter().flatten().copied().collect();
     // The random numbers are drawn whether or not the evaluation succeeds, so one failed
     // evaluation does not shift the streams of the others.
-    let noise: Vec<(f64, f64)> = (0..eps.len())
-        .map(|_| (StandardNormal.sample(rng), StandardNormal.sample(rng)))
+    let noise: Vec<(f64, f64, f64)> = (0..eps.len())
+        .map(|_| {
+            (
+                StandardNormal.sample(rng),
+                StandardNormal.sample(rng),
+                StandardNormal.sample(rng),
+            )
+        })
         .collect();
     let Some(lambda) = model.eigenvalues(&v) else {
         counts.inadmissible_or_untracked += 1;
@@ -415,7 +444,7 @@ fn evaluate(
     };
     let (draw, scope, board, setup) = head;
     for (l, lam) in lambda.iter().enumerate() {
-        let (z, z_eps) = noise[l];
+        let (z, z_eps, z_b) = noise[l];
         let (e, pooled) = match eps[l] {
             Some(e) => (e, false),
             None => {
@@ -425,6 +454,13 @@ fn evaluate(
             }
         };
         let to_hz = |x: f64| x.max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
+        // The model error: drawn where the data have not fixed it (module doc).
+        let s = model.model_error_sd.get(l).copied().unwrap_or(0.0);
+        let b = if scope == Scope::NewBoard || eps[l].is_none() {
+            s * z_b
+        } else {
+            0.0
+        };
         out.push(Prediction {
             draw,
             scope,
@@ -432,7 +468,7 @@ fn evaluate(
             setup,
             label: l,
             freq_hz: to_hz(*lam),
-            freq_obs_hz: to_hz(lam * (1.0 + e * z)),
+            freq_obs_hz: to_hz(lam * (1.0 + b) * (1.0 + e * z)),
             eps_pooled: pooled,
         });
     }
@@ -729,6 +765,52 @@ mod tests {
                 "label {label}: sd {s}, want {want}"
             );
         }
+    }
+
+    /// The model-error term: (f_obs/f)² = (1 + b)(1 + ε z), so its variance is
+    /// s² + ε² + s²ε²; drawn for a new board's labels and a measured board's validation label,
+    /// not for a measured board's updated label (its sd stays ε).
+    #[test]
+    fn model_error_widens_what_the_data_have_not_fixed() {
+        let lm = model().with_model_error(vec![0.03, 0.04]).unwrap();
+        let idx = vec![lm
+            .rom
+            .map
+            .names
+            .iter()
+            .position(|n| n == names::MASS_SCALE)
+            .unwrap()];
+        let models = Models {
+            free: &lm,
+            free_idx: idx,
+            bolted: None,
+        };
+        let n = 4000;
+        let (preds, _) = propagate(&posterior(vec![Some(0.02), None]), &models, n, 13).unwrap();
+        let sd_of = |scope: Scope, label: usize| {
+            let r: Vec<f64> = preds
+                .iter()
+                .filter(|p| p.scope == scope && p.label == label)
+                .map(|p| (p.freq_obs_hz / p.freq_hz).powi(2) - 1.0)
+                .collect();
+            crate::report::validation::mean_sd(&r).1
+        };
+        let e = 0.02f64;
+        for (scope, label, s) in [
+            (Scope::Board, 0, 0.0),
+            (Scope::Board, 1, 0.04),
+            (Scope::NewBoard, 0, 0.03),
+            (Scope::NewBoard, 1, 0.04),
+        ] {
+            let want = (s * s + e * e + s * s * e * e).sqrt();
+            let got = sd_of(scope, label);
+            assert!(
+                (got - want).abs() < 4.0 * want / (2.0 * n as f64).sqrt(),
+                "{scope:?} label {label}: sd {got}, want {want}"
+            );
+        }
+        assert!(model().with_model_error(vec![0.01]).is_err());
+        assert!(model().with_model_error(vec![0.01, f64::NAN]).is_err());
     }
 
     #[test]
