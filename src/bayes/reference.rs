@@ -460,40 +460,104 @@ fn lower_times_upper(l: &[f64], d: usize) -> Vec<f64> {
     out
 }
 
-/// log ∫ N(x; m, L Lᵀ) exp(−½ (x − x̂)ᵀ H (x − x̂) + gᵀ (x − x̂)) dx, in the prior's whitened
-/// coordinates x = m + L z (stable as L → 0): with u = m − x̂, B = I + Lᵀ H L and
-/// c = Lᵀ (g − H u), it is −½ uᵀ H u + gᵀ u − ½ log |B| + ½ cᵀ B⁻¹ c. H positive
-/// semi-definite; H = 0 and g = 0 give 0.
+/// log ∫ N(x; m, L Lᵀ) exp(−½ (x − x̂)ᵀ H (x − x̂) + gᵀ (x − x̂)) dx, H positive
+/// semi-definite; H = 0 and g = 0 give 0. In the prior's whitened coordinates x = m + L z
+/// (stable as L → 0), with u = m − x̂, B = I + Lᵀ H L and c = Lᵀ (g − H u), it is
+/// −½ uᵀ H u + gᵀ u − ½ log |B| + ½ cᵀ B⁻¹ c. Evaluated as written, −½ uᵀ H u and the
+/// quadratic part of ½ cᵀ B⁻¹ c cancel: with a unit pinned to 1e-4 (H ~ 1e9) and m a few
+/// prior sds away, both are ~1e12 and the round-off of the difference (~1e3) outgrew the
+/// density's true variation, so the reference's random walk in g rode it to μ = 48 (the
+/// null-3 campaign with the model-error term). Here, with H = Rᵀ R (R = Λ^½ Qᵀ from H's
+/// eigen-decomposition, zero rows where H is flat), w = R u and M = R L, the quadratic part
+/// is −½ wᵀ (I + M Mᵀ)⁻¹ w (push-through identity), a sum of squares; log |B| = log |I + M Mᵀ|
+/// (Sylvester), and the rest, gᵀ u + ½ (Lᵀg)ᵀ B⁻¹ (Lᵀg) − (Lᵀg)ᵀ B⁻¹ Mᵀ w, is of the order of
+/// |g| |u| only.
 fn log_marginal_quadratic(m: &[f64], l: &[f64], x_hat: &[f64], h: &[f64], g: &[f64]) -> f64 {
+    log_marginal_quadratic_root(m, l, x_hat, &psd_root(h, m.len()), g)
+}
+
+/// [`log_marginal_quadratic`] given R with Rᵀ R = H ([`psd_root`]; formed once where H is
+/// fixed).
+fn log_marginal_quadratic_root(m: &[f64], l: &[f64], x_hat: &[f64], r: &[f64], g: &[f64]) -> f64 {
     let d = m.len();
     let u: Vec<f64> = m.iter().zip(x_hat).map(|(a, b)| a - b).collect();
-    let hu: Vec<f64> = (0..d)
-        .map(|i| (0..d).map(|j| h[i * d + j] * u[j]).sum())
+    let w: Vec<f64> = (0..d)
+        .map(|k| (0..d).map(|q| r[k * d + q] * u[q]).sum())
         .collect();
-    let uhu: f64 = u.iter().zip(&hu).map(|(a, b)| a * b).sum();
-    let gu: f64 = g.iter().zip(&u).map(|(a, b)| a * b).sum();
-    // Lᵀ H L and Lᵀ (g − H u).
-    let hl: Vec<f64> = (0..d * d)
-        .map(|k| {
-            let (i, j) = (k / d, k % d);
-            (0..d).map(|q| h[i * d + q] * l[q * d + j]).sum()
+    // M = R L (lower-triangular L, row-major).
+    let mm: Vec<f64> = (0..d * d)
+        .map(|idx| {
+            let (k, j) = (idx / d, idx % d);
+            (j..d).map(|q| r[k * d + q] * l[q * d + j]).sum()
         })
         .collect();
-    let mut bm = vec![0.0; d * d];
-    for i in 0..d {
-        for j in 0..d {
-            bm[i * d + j] = (0..d).map(|q| l[q * d + i] * hl[q * d + j]).sum::<f64>()
-                + if i == j { 1.0 } else { 0.0 };
+    let gram = |left: bool| -> Vec<f64> {
+        // I + M Mᵀ (left) or I + Mᵀ M.
+        (0..d * d)
+            .map(|idx| {
+                let (i, j) = (idx / d, idx % d);
+                let s: f64 = if left {
+                    (0..d).map(|k| mm[i * d + k] * mm[j * d + k]).sum()
+                } else {
+                    (0..d).map(|k| mm[k * d + i] * mm[k * d + j]).sum()
+                };
+                s + if i == j { 1.0 } else { 0.0 }
+            })
+            .collect()
+    };
+    let (lc, _) = cholesky_jittered(&gram(true), d);
+    let (lb, _) = cholesky_jittered(&gram(false), d);
+    let log_det_c: f64 = (0..d).map(|i| 2.0 * lc[i * d + i].ln()).sum();
+    let quad = lower_solve(&lc, d, &w).iter().map(|v| v * v).sum::<f64>();
+    // Lᵀ g, B⁻¹ Lᵀ g and Mᵀ w.
+    let lg: Vec<f64> = (0..d)
+        .map(|j| (j..d).map(|q| l[q * d + j] * g[q]).sum())
+        .collect();
+    let y = lower_solve(&lb, d, &lg);
+    let b_inv_lg = upper_solve_transposed(&lb, d, &y);
+    let mtw: Vec<f64> = (0..d)
+        .map(|j| (0..d).map(|k| mm[k * d + j] * w[k]).sum())
+        .collect();
+    let gu: f64 = g.iter().zip(&u).map(|(a, b)| a * b).sum();
+    let lg_b_lg: f64 = y.iter().map(|v| v * v).sum();
+    let cross: f64 = b_inv_lg.iter().zip(&mtw).map(|(a, b)| a * b).sum();
+    -0.5 * quad - 0.5 * log_det_c + gu + 0.5 * lg_b_lg - cross
+}
+
+/// R with Rᵀ R = H for a symmetric positive semi-definite H (negative eigenvalues, from
+/// round-off, taken as 0): R = Λ^½ Qᵀ, row-major d × d.
+fn psd_root(h: &[f64], d: usize) -> Vec<f64> {
+    let m = faer::Mat::<f64>::from_fn(d, d, |i, j| 0.5 * (h[i * d + j] + h[j * d + i]));
+    let mut r = vec![0.0; d * d];
+    match m.as_ref().self_adjoint_eigen(faer::Side::Lower) {
+        Ok(evd) => {
+            let (q, s) = (evd.U(), evd.S());
+            for k in 0..d {
+                let root = s[k].max(0.0).sqrt();
+                for j in 0..d {
+                    r[k * d + j] = root * q[(j, k)];
+                }
+            }
+        }
+        // Not expected for finite input: the diagonal's roots (a non-finite H gives NaN,
+        // which the caller's density turns into −∞).
+        Err(_) => {
+            for i in 0..d {
+                r[i * d + i] = h[i * d + i].max(0.0).sqrt();
+            }
         }
     }
-    let w: Vec<f64> = g.iter().zip(&hu).map(|(a, b)| a - b).collect();
-    let c: Vec<f64> = (0..d)
-        .map(|i| (0..d).map(|q| l[q * d + i] * w[q]).sum())
-        .collect();
-    let (lb, _) = cholesky_jittered(&bm, d);
-    let log_det_b: f64 = (0..d).map(|i| 2.0 * lb[i * d + i].ln()).sum();
-    let y = lower_solve(&lb, d, &c);
-    -0.5 * uhu + gu - 0.5 * log_det_b + 0.5 * y.iter().map(|v| v * v).sum::<f64>()
+    r
+}
+
+/// x with Lᵀ x = y, L lower-triangular row-major.
+fn upper_solve_transposed(l: &[f64], d: usize, y: &[f64]) -> Vec<f64> {
+    let mut x = y.to_vec();
+    for i in (0..d).rev() {
+        let s: f64 = (i + 1..d).map(|k| l[k * d + i] * x[k]).sum();
+        x[i] = (x[i] - s) / l[i * d + i];
+    }
+    x
 }
 
 /// Coordinate-wise median of vectors.
@@ -550,6 +614,8 @@ type UnitStencil<C> = (Vec<f64>, Vec<Vec<f64>>, Vec<Option<C>>);
 /// stencil's likelihood gradient and Hessian at the round's g (with `reform`).
 struct RoundQuadratic {
     curvature: Vec<f64>,
+    /// R with Rᵀ R = `curvature` (the frozen form's, formed once).
+    root: Vec<f64>,
     gradient: Vec<f64>,
     stencil: Option<(Vec<f64>, Vec<f64>)>,
 }
@@ -632,6 +698,7 @@ impl<'a, T: Target> GivenUnits<'a, T> {
                 };
                 let curvature = if reform { h } else { make_positive(&h, d, 0.0) };
                 Some(RoundQuadratic {
+                    root: psd_root(&curvature, d),
                     curvature,
                     gradient,
                     stencil,
@@ -670,7 +737,7 @@ impl<'a, T: Target> GivenUnits<'a, T> {
                 continue;
             };
             match &q0.stencil {
-                None => s += ll[0] + log_marginal_quadratic(&m, &l, x, &q0.curvature, &q0.gradient),
+                None => s += ll[0] + log_marginal_quadratic_root(&m, &l, x, &q0.root, &q0.gradient),
                 Some((sg, sh)) => {
                     let Some((l0, grad, hess)) = stencil_derivatives(&ll, &self.steps[b]) else {
                         return f64::NEG_INFINITY;
@@ -1039,6 +1106,54 @@ fn rwm(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A unit pinned far more tightly than the prior (H ~ 1e9) with the prior's mean far
+    /// from x̂: the value equals the covariance form −½ uᵀ (H⁻¹ + Σ)⁻¹ u − ½ log |I + Σ H|
+    /// (g = 0; 2 × 2 inverses by hand) to 1e-9 relative, where the two ~1e12 terms of the
+    /// whitened form used to cancel to ~1e3 of round-off.
+    #[test]
+    fn marginal_of_a_sharp_quadratic_far_from_the_prior_is_exact() {
+        let l = [0.02, 0.0, 0.01, 0.015];
+        let (c, s) = (0.6f64, 0.8f64);
+        let (a, b) = (1e9, 4e9);
+        // H = Q diag(a, b) Qᵀ, Q the rotation by (c, s).
+        let h = [
+            a * c * c + b * s * s,
+            (a - b) * c * s,
+            (a - b) * c * s,
+            a * s * s + b * c * c,
+        ];
+        let m = [40.0, -30.0];
+        let x_hat = [0.0, 0.0];
+        let got = log_marginal_quadratic(&m, &l, &x_hat, &h, &[0.0, 0.0]);
+        let sigma = [
+            l[0] * l[0],
+            l[0] * l[2],
+            l[0] * l[2],
+            l[2] * l[2] + l[3] * l[3],
+        ];
+        let inv2 = |m: [f64; 4]| {
+            let det = m[0] * m[3] - m[1] * m[2];
+            [m[3] / det, -m[1] / det, -m[2] / det, m[0] / det]
+        };
+        let hi = inv2(h);
+        let sm = inv2([
+            hi[0] + sigma[0],
+            hi[1] + sigma[1],
+            hi[2] + sigma[2],
+            hi[3] + sigma[3],
+        ]);
+        let quad = m[0] * (sm[0] * m[0] + sm[1] * m[1]) + m[1] * (sm[2] * m[0] + sm[3] * m[1]);
+        // I + Σ H.
+        let sh = [
+            1.0 + sigma[0] * h[0] + sigma[1] * h[2],
+            sigma[0] * h[1] + sigma[1] * h[3],
+            sigma[2] * h[0] + sigma[3] * h[2],
+            1.0 + sigma[2] * h[1] + sigma[3] * h[3],
+        ];
+        let want = -0.5 * quad - 0.5 * (sh[0] * sh[3] - sh[1] * sh[2]).ln();
+        assert!((got - want).abs() <= 1e-9 * want.abs(), "{got} vs {want}");
+    }
 
     /// The closed form against a brute-force 2-D quadrature of the same integral.
     #[test]
