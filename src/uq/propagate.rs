@@ -627,6 +627,22 @@ mod tests {
         LabelModel::new(rom, vec!["m1".into(), "m2".into()], &[0, 1], 0.2).unwrap()
     }
 
+    /// Free-free models of `lm` whose one updated parameter is mass_scale.
+    fn mass_scale_models(lm: &LabelModel) -> Models<'_> {
+        let idx = vec![lm
+            .rom
+            .map
+            .names
+            .iter()
+            .position(|n| n == names::MASS_SCALE)
+            .unwrap()];
+        Models {
+            free: lm,
+            free_idx: idx,
+            bolted: None,
+        }
+    }
+
     fn posterior(eps: Vec<Option<f64>>) -> Posterior {
         // One updated parameter: mass_scale ~ N(1, 0.05²) in the population; one board at 1.1.
         Posterior {
@@ -650,24 +666,13 @@ mod tests {
         // With only the mass scaled, λ(m) = λ₀ / m exactly (M(p) = m M₀, K fixed), so
         // f = f₀ / √m with m ~ N(1, 0.05²): P(f ≤ f₀/√(1 + 0.05 z_p)) = 1 − p.
         let lm = model();
-        let idx = vec![lm
-            .rom
-            .map
-            .names
-            .iter()
-            .position(|n| n == names::MASS_SCALE)
-            .unwrap()];
         let f0: Vec<f64> = lm
             .eigenvalues(&lm.rom.map.nominal)
             .unwrap()
             .iter()
             .map(|l| l.sqrt() / (2.0 * std::f64::consts::PI))
             .collect();
-        let models = Models {
-            free: &lm,
-            free_idx: idx,
-            bolted: None,
-        };
+        let models = mass_scale_models(&lm);
         let n = 4000;
         let (preds, counts) = propagate(&posterior(vec![None, None]), &models, n, 7).unwrap();
         assert_eq!(counts.evaluations, 2 * n as u64);
@@ -705,18 +710,7 @@ mod tests {
     #[test]
     fn prediction_error_is_relative_on_the_eigenvalue_and_pooled_for_validation_modes() {
         let lm = model();
-        let idx = vec![lm
-            .rom
-            .map
-            .names
-            .iter()
-            .position(|n| n == names::MASS_SCALE)
-            .unwrap()];
-        let models = Models {
-            free: &lm,
-            free_idx: idx,
-            bolted: None,
-        };
+        let models = mass_scale_models(&lm);
         let n = 4000;
         let (preds, _) = propagate(&posterior(vec![Some(0.02), None]), &models, n, 11).unwrap();
         for label in [0, 1] {
@@ -747,11 +741,7 @@ mod tests {
         let lm = model()
             .with_repeatability(vec![Some(0.1), Some(0.05)])
             .unwrap();
-        let models = Models {
-            free: &lm,
-            free_idx: models.free_idx.clone(),
-            bolted: None,
-        };
+        let models = mass_scale_models(&lm);
         let (preds, _) = propagate(&posterior(vec![Some(0.02), None]), &models, n, 11).unwrap();
         for (label, want) in [(0, 0.02), (1, 0.05)] {
             let r: Vec<f64> = preds
@@ -773,18 +763,7 @@ mod tests {
     #[test]
     fn model_error_widens_what_the_data_have_not_fixed() {
         let lm = model().with_model_error(vec![0.03, 0.04]).unwrap();
-        let idx = vec![lm
-            .rom
-            .map
-            .names
-            .iter()
-            .position(|n| n == names::MASS_SCALE)
-            .unwrap()];
-        let models = Models {
-            free: &lm,
-            free_idx: idx,
-            bolted: None,
-        };
+        let models = mass_scale_models(&lm);
         let n = 4000;
         let (preds, _) = propagate(&posterior(vec![Some(0.02), None]), &models, n, 13).unwrap();
         let sd_of = |scope: Scope, label: usize| {
@@ -840,18 +819,7 @@ mod tests {
     #[test]
     fn same_seed_same_predictions_whatever_the_thread_count() {
         let lm = model();
-        let idx = vec![lm
-            .rom
-            .map
-            .names
-            .iter()
-            .position(|n| n == names::MASS_SCALE)
-            .unwrap()];
-        let models = Models {
-            free: &lm,
-            free_idx: idx,
-            bolted: None,
-        };
+        let models = mass_scale_models(&lm);
         let post = posterior(vec![Some(0.01), None]);
         let run = |threads: usize| {
             rayon::ThreadPoolBuilder::new()
