@@ -274,8 +274,8 @@ struct UpdateArgs {
     #[arg(long)]
     force: bool,
     /// Step 1: take the model as exact, without the per-mode model-error term (a relative
-    /// eigenvalue error shared by all boards, its prior sd from how the model's frequencies
-    /// move on finer meshes).
+    /// eigenvalue error common to a board's measurements, its prior sd from how the model's
+    /// frequencies move on finer meshes).
     #[arg(long)]
     no_model_error: bool,
 }

@@ -257,8 +257,9 @@ pub struct UpdateOptions {
     /// Step 1 with `added_mass`: the point (x_m, y_m) of the lumped mass.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub enrich_location: Option<[f64; 2]>,
-    /// Step 1: infer a relative model-form error per updated mode, shared by all boards,
-    /// with a prior sd from the model's discretization spread (`fem::convergence::mesh_spread`).
+    /// Step 1: a relative model-form error per updated mode, common to a board's
+    /// measurements and independent between boards, integrated out; its prior sd from the
+    /// model's discretization spread (`fem::convergence::mesh_spread`).
     #[serde(default)]
     pub model_error: bool,
 }
@@ -1536,7 +1537,6 @@ fn population_columns<'a>(
     if infer_delta {
         cols.extend(labels.iter().map(|l| (format!("delta_{l}"), String::new())));
     }
-
     // The covariate coefficient (absolute, the unit coordinate after the parameters).
     if let Some(c) = &target.covariate {
         let unit = format!("1/(unit of {})", c.covariate);
@@ -1779,7 +1779,6 @@ fn lost_finding(lost: &[Lost], findings: &mut Findings) {
     ));
 }
 
-/// Model modes a ROM must carry for the updated labels and every paired label.
 /// The prior of step 1's model-error term ([`ErrorModel::model_error_sd`]).
 #[derive(Clone, Debug, serde::Serialize)]
 struct ModelErrorPrior {
@@ -1827,6 +1826,7 @@ fn model_error_prior(
     })
 }
 
+/// Model modes a ROM must carry for the updated labels and every paired label.
 fn modes_needed(labels: &Labels, all: &Labels) -> usize {
     labels
         .model_mode
