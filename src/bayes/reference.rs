@@ -297,14 +297,7 @@ fn fd_newton_terms(
 /// Solve (A) x = b for a symmetric positive-definite A via its (jittered) Cholesky factor.
 fn spd_solve(a: &[f64], d: usize, b: &[f64]) -> Vec<f64> {
     let (l, _) = cholesky_jittered(a, d);
-    let y = lower_solve(&l, d, b);
-    // Back substitution with Lᵀ.
-    let mut x = vec![0.0; d];
-    for i in (0..d).rev() {
-        let s: f64 = (i + 1..d).map(|k| l[k * d + i] * x[k]).sum();
-        x[i] = (y[i] - s) / l[i * d + i];
-    }
-    x
+    upper_solve_transposed(&l, d, &lower_solve(&l, d, b))
 }
 
 /// Inverse of a symmetric positive-definite matrix.
@@ -321,34 +314,39 @@ fn spd_inverse(a: &[f64], d: usize) -> Vec<f64> {
     inv
 }
 
-/// The positive-definite part of a symmetric matrix: eigenvalues clamped to ≥ `floor`
-/// (a Jacobi sweep: the matrices are unit-sized, d ≤ ~10).
+/// Eigenvalues (clamped to ≥ `floor`) and eigenvectors (column k of the row-major d × d
+/// matrix) of the symmetric part of `a` (faer's self-adjoint eigen-decomposition; the
+/// matrices are unit-sized, d ≤ ~10).
+fn clamped_eigen(a: &[f64], d: usize, floor: f64) -> (Vec<f64>, Vec<f64>) {
+    // NaN stays NaN (`f64::max` would return the floor), so a non-finite matrix gives a
+    // NaN density, which the callers turn into −∞, not a finite one.
+    let clamp = |v: f64| if v.is_nan() { v } else { v.max(floor) };
+    let m = faer::Mat::<f64>::from_fn(d, d, |i, j| 0.5 * (a[i * d + j] + a[j * d + i]));
+    let Ok(evd) = m.as_ref().self_adjoint_eigen(faer::Side::Lower) else {
+        // Not expected for finite input; fall back to the clamped diagonal.
+        let mut u = vec![0.0; d * d];
+        (0..d).for_each(|i| u[i * d + i] = 1.0);
+        return ((0..d).map(|i| clamp(a[i * d + i])).collect(), u);
+    };
+    let (u, lam) = (evd.U(), evd.S());
+    (
+        (0..d).map(|k| clamp(lam[k])).collect(),
+        (0..d * d).map(|idx| u[(idx / d, idx % d)]).collect(),
+    )
+}
+
+/// The positive-definite part of a symmetric matrix: U max(Λ, floor) Uᵀ.
 fn make_positive(a: &[f64], d: usize, floor: f64) -> Vec<f64> {
     if d == 1 {
         return vec![a[0].max(floor)];
     }
-    let mut m = faer::Mat::<f64>::from_fn(d, d, |i, j| 0.5 * (a[i * d + j] + a[j * d + i]));
-    let Ok(evd) = m.as_ref().self_adjoint_eigen(faer::Side::Lower) else {
-        // Not expected for finite input; fall back to the clamped diagonal.
-        for i in 0..d {
-            for j in 0..d {
-                m[(i, j)] = if i == j { a[i * d + i].max(floor) } else { 0.0 };
-            }
-        }
-        return (0..d * d).map(|k| m[(k / d, k % d)]).collect();
-    };
-    let u = evd.U();
-    let s = evd.S();
-    let mut out = vec![0.0; d * d];
-    for k in 0..d {
-        let lam = s[k].max(floor);
-        for i in 0..d {
-            for j in 0..d {
-                out[i * d + j] += u[(i, k)] * lam * u[(j, k)];
-            }
-        }
-    }
-    out
+    let (lam, u) = clamped_eigen(a, d, floor);
+    (0..d * d)
+        .map(|idx| {
+            let (i, j) = (idx / d, idx % d);
+            (0..d).map(|k| u[i * d + k] * lam[k] * u[j * d + k]).sum()
+        })
+        .collect()
 }
 
 /// Newton's method on one unit's f_b; returns (x̂, precision −∇²f at x̂, converged, evals).
@@ -464,10 +462,12 @@ fn lower_times_upper(l: &[f64], d: usize) -> Vec<f64> {
 /// semi-definite; H = 0 and g = 0 give 0. In the prior's whitened coordinates x = m + L z
 /// (stable as L → 0), with u = m − x̂, B = I + Lᵀ H L and c = Lᵀ (g − H u), it is
 /// −½ uᵀ H u + gᵀ u − ½ log |B| + ½ cᵀ B⁻¹ c. Evaluated as written, −½ uᵀ H u and the
-/// quadratic part of ½ cᵀ B⁻¹ c cancel: with a unit pinned to 1e-4 (H ~ 1e9) and m a few
-/// prior sds away, both are ~1e12 and the round-off of the difference (~1e3) outgrew the
-/// density's true variation, so the reference's random walk in g rode it to μ = 48 (the
-/// null-3 campaign with the model-error term). Here, with H = Rᵀ R (R = Λ^½ Qᵀ from H's
+/// quadratic part of ½ cᵀ B⁻¹ c cancel, and where the prior is wide against a sharply
+/// pinned unit (L Lᵀ H large) their round-off is several units of log density and of
+/// either sign (test below: +3.0 on a true −34.1), so the density can rise where it falls.
+/// The g random walk of the reference, on null-3 with the model-error term (and an
+/// adaptive proposal, since dropped), reached population sds of e^3.9 and log densities of
+/// 6e10 before this form. Here, with H = Rᵀ R (R = Λ^½ Qᵀ from H's
 /// eigen-decomposition, zero rows where H is flat), w = R u and M = R L, the quadratic part
 /// is −½ wᵀ (I + M Mᵀ)⁻¹ w (push-through identity), a sum of squares; log |B| = log |I + M Mᵀ|
 /// (Sylvester), and the rest, gᵀ u + ½ (Lᵀg)ᵀ B⁻¹ (Lᵀg) − (Lᵀg)ᵀ B⁻¹ Mᵀ w, is of the order of
@@ -524,30 +524,16 @@ fn log_marginal_quadratic_root(m: &[f64], l: &[f64], x_hat: &[f64], r: &[f64], g
     -0.5 * quad - 0.5 * log_det_c + gu + 0.5 * lg_b_lg - cross
 }
 
-/// R with Rᵀ R = H for a symmetric positive semi-definite H (negative eigenvalues, from
-/// round-off, taken as 0): R = Λ^½ Qᵀ, row-major d × d.
+/// R with Rᵀ R = H⁺, H⁺ the positive semi-definite part of a symmetric H (negative
+/// eigenvalues taken as 0): R = Λ^½ Uᵀ, row-major d × d.
 fn psd_root(h: &[f64], d: usize) -> Vec<f64> {
-    let m = faer::Mat::<f64>::from_fn(d, d, |i, j| 0.5 * (h[i * d + j] + h[j * d + i]));
-    let mut r = vec![0.0; d * d];
-    match m.as_ref().self_adjoint_eigen(faer::Side::Lower) {
-        Ok(evd) => {
-            let (q, s) = (evd.U(), evd.S());
-            for k in 0..d {
-                let root = s[k].max(0.0).sqrt();
-                for j in 0..d {
-                    r[k * d + j] = root * q[(j, k)];
-                }
-            }
-        }
-        // Not expected for finite input: the diagonal's roots (a non-finite H gives NaN,
-        // which the caller's density turns into −∞).
-        Err(_) => {
-            for i in 0..d {
-                r[i * d + i] = h[i * d + i].max(0.0).sqrt();
-            }
-        }
-    }
-    r
+    let (lam, u) = clamped_eigen(h, d, 0.0);
+    (0..d * d)
+        .map(|idx| {
+            let (k, j) = (idx / d, idx % d);
+            lam[k].sqrt() * u[j * d + k]
+        })
+        .collect()
 }
 
 /// x with Lᵀ x = y, L lower-triangular row-major.
@@ -610,11 +596,14 @@ const STENCIL_SHRINKS: usize = 4;
 /// (None where undefined).
 type UnitStencil<C> = (Vec<f64>, Vec<Vec<f64>>, Vec<Option<C>>);
 
-/// See [`GivenUnits`]: the curvature (made positive unless reformed), the gradient, and the
-/// stencil's likelihood gradient and Hessian at the round's g (with `reform`).
+/// See [`GivenUnits`]: the curvature (re-formed) or the root of its positive part (frozen),
+/// the gradient, and the stencil's likelihood gradient and Hessian at the round's g (with
+/// `reform`).
 struct RoundQuadratic {
+    /// The re-formed form's curvature at the round's g (empty when frozen).
     curvature: Vec<f64>,
-    /// R with Rᵀ R = `curvature` (the frozen form's, formed once).
+    /// The frozen form's R with Rᵀ R = the positive part of the curvature, formed once
+    /// (empty when re-formed: the curvature then changes with g).
     root: Vec<f64>,
     gradient: Vec<f64>,
     stencil: Option<(Vec<f64>, Vec<f64>)>,
@@ -696,9 +685,15 @@ impl<'a, T: Target> GivenUnits<'a, T> {
                 } else {
                     None
                 };
-                let curvature = if reform { h } else { make_positive(&h, d, 0.0) };
+                // Re-formed: the curvature at the round's g, changed per g by the stencil;
+                // frozen: only its positive part's root is needed.
+                let (curvature, root) = if reform {
+                    (h, vec![])
+                } else {
+                    (vec![], psd_root(&h, d))
+                };
                 Some(RoundQuadratic {
-                    root: psd_root(&curvature, d),
+                    root,
                     curvature,
                     gradient,
                     stencil,
@@ -1107,52 +1102,33 @@ fn rwm(
 mod tests {
     use super::*;
 
-    /// A unit pinned far more tightly than the prior (H ~ 1e9) with the prior's mean far
-    /// from x̂: the value equals the covariance form −½ uᵀ (H⁻¹ + Σ)⁻¹ u − ½ log |I + Σ H|
-    /// (g = 0; 2 × 2 inverses by hand) to 1e-9 relative, where the two ~1e12 terms of the
-    /// whitened form used to cancel to ~1e3 of round-off.
+    /// A wide prior against a sharply pinned unit: H = Q diag(1e13, 1e7) Qᵀ, L = 50 I,
+    /// u = (100, −80), g = 0. With L isotropic the integral factors along H's eigenvectors:
+    /// Σ_k −½ w_k² / (1/h_k + ρ²) − ½ ln(1 + ρ² h_k), w = Qᵀ u, each term exact in f64.
+    /// The value is within 1e-9 of it; the whitened form as written (−½ uᵀ H u + ½ cᵀ B⁻¹ c,
+    /// two ~1e16 terms) gave −31.16 here (run against the previous implementation).
     #[test]
-    fn marginal_of_a_sharp_quadratic_far_from_the_prior_is_exact() {
-        let l = [0.02, 0.0, 0.01, 0.015];
+    fn marginal_of_a_wide_prior_against_a_sharp_quadratic_is_exact() {
         let (c, s) = (0.6f64, 0.8f64);
-        let (a, b) = (1e9, 4e9);
-        // H = Q diag(a, b) Qᵀ, Q the rotation by (c, s).
+        let hk = [1e13, 1e7];
+        // H = Q diag(hk) Qᵀ, Q = [[c, −s], [s, c]].
         let h = [
-            a * c * c + b * s * s,
-            (a - b) * c * s,
-            (a - b) * c * s,
-            a * s * s + b * c * c,
+            hk[0] * c * c + hk[1] * s * s,
+            (hk[0] - hk[1]) * c * s,
+            (hk[0] - hk[1]) * c * s,
+            hk[0] * s * s + hk[1] * c * c,
         ];
-        let m = [40.0, -30.0];
-        let x_hat = [0.0, 0.0];
-        let got = log_marginal_quadratic(&m, &l, &x_hat, &h, &[0.0, 0.0]);
-        let sigma = [
-            l[0] * l[0],
-            l[0] * l[2],
-            l[0] * l[2],
-            l[2] * l[2] + l[3] * l[3],
-        ];
-        let inv2 = |m: [f64; 4]| {
-            let det = m[0] * m[3] - m[1] * m[2];
-            [m[3] / det, -m[1] / det, -m[2] / det, m[0] / det]
-        };
-        let hi = inv2(h);
-        let sm = inv2([
-            hi[0] + sigma[0],
-            hi[1] + sigma[1],
-            hi[2] + sigma[2],
-            hi[3] + sigma[3],
-        ]);
-        let quad = m[0] * (sm[0] * m[0] + sm[1] * m[1]) + m[1] * (sm[2] * m[0] + sm[3] * m[1]);
-        // I + Σ H.
-        let sh = [
-            1.0 + sigma[0] * h[0] + sigma[1] * h[2],
-            sigma[0] * h[1] + sigma[1] * h[3],
-            sigma[2] * h[0] + sigma[3] * h[2],
-            1.0 + sigma[2] * h[1] + sigma[3] * h[3],
-        ];
-        let want = -0.5 * quad - 0.5 * (sh[0] * sh[3] - sh[1] * sh[2]).ln();
-        assert!((got - want).abs() <= 1e-9 * want.abs(), "{got} vs {want}");
+        let rho = 50.0;
+        let l = [rho, 0.0, 0.0, rho];
+        let u = [100.0, -80.0];
+        let got = log_marginal_quadratic(&u, &l, &[0.0, 0.0], &h, &[0.0, 0.0]);
+        let w = [c * u[0] + s * u[1], -s * u[0] + c * u[1]];
+        let want: f64 = (0..2)
+            .map(|k| {
+                -0.5 * w[k] * w[k] / (1.0 / hk[k] + rho * rho) - 0.5 * (rho * rho * hk[k]).ln_1p()
+            })
+            .sum();
+        assert!((got - want).abs() <= 1e-9, "{got} vs {want}");
     }
 
     /// The closed form against a brute-force 2-D quadrature of the same integral.
