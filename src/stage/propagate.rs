@@ -550,6 +550,14 @@ fn model_error_sd(
             path.display()
         );
     };
+    if ls.len() != sd.len() {
+        bail!(
+            "{}: model_error: expected as many sds as labels, found {} labels and {} sds",
+            path.display(),
+            ls.len(),
+            sd.len()
+        );
+    }
     let mut by_label = BTreeMap::new();
     for (l, v) in ls.iter().zip(sd) {
         match (l.as_str(), v.as_f64()) {

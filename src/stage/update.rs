@@ -2139,7 +2139,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         let mut model = FeModel::build(&board, Setup::Free, &board.mesh)?;
         let board_nominal = model.nominal_params();
         // The board's own mass (the balance weighs an added mass with it).
-        let nominal_mass_g = model.total_mass_kg(&model.nominal_params())? * 1e3;
+        let nominal_mass_g = model.total_mass_kg(&board_nominal)? * 1e3;
         let enrichment = opts
             .enrich
             .map(|m| {
