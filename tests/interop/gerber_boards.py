@@ -2,12 +2,19 @@
 with an independent third-party renderer (pygerber's raster backend), for the Gerber import
 test (tests/interop/gerber.rs).
 
-Usage: gerber_boards.py OUT_DIR DPMM NX NY [NX NY ...]
+Usage: gerber_boards.py OUT_DIR DPMM NX NY [NX NY ...] [--window LAYER X0 Y0 X1 Y1 WDPMM]
 
 Writes OUT_DIR/{top,bottom,outline}.gbr (gerbonara, the files hbmu reads unchanged) and prints
 JSON: for each copper layer and each NX × NY grid of elements over the board, the copper
 coverage fraction of every element (row-major from the lowest row), as rendered by pygerber at
-DPMM pixels per mm; plus the board corner in Gerber coordinates (mm).
+DPMM pixels per mm; plus the board corner in Gerber coordinates (mm). With --window, the part
+of LAYER inside the box X0 Y0 X1 Y1 (board mm) is written again on its own
+(OUT_DIR/window_LAYER.gbr: the objects that meet it, strokes clipped) and rendered at WDPMM,
+and the coverage of every element lying inside the box is printed under "window": pygerber
+draws each macro flash on its own pixel-snapped sub-image, which at 200 px/mm puts a pad
+~2 pixels (10 µm) off, ~1 % of a 1 mm element; a finer rendering of the part that holds the
+macro pads shrinks that in proportion, where the whole board at that resolution would not fit
+in memory.
 
 The boards hold what real copper layers hold: hatched pours (diagonal and orthogonal hatch
 lines), pads flashed with circle (with a hole), rectangle, obround and polygon apertures,
@@ -200,27 +207,71 @@ def render(path, dpmm):
     return img[::-1, :]  # row 0 = lowest y
 
 
-def placement(img, dpmm):
+def placement(img, dpmm, marks=MARKS, search_mm=2.0):
     """Pixel coordinate (continuous, pixel k spans [k, k+1)) of Gerber x, y: from the
-    centroids of the two marker squares."""
+    centroids of the two marker squares, the image's extreme features (lower-left and
+    upper-right), found within `search_mm` of the image's corners."""
     h, w = img.shape
-    cents = []
-    for mx, my in MARKS:
-        # Search a window around the expected spot of each mark.
-        cents.append(None)
     ys, xs = np.nonzero(img > 0.5)
-    out = []
-    for mx, my in MARKS:
-        # The marks are the extreme features: pick pixels within 2 mm of the image corner.
-        if mx < OX:
-            sel = (xs < 2.0 * dpmm) & (ys < 2.0 * dpmm)
-        else:
-            sel = (xs >= w - 2.0 * dpmm) & (ys >= h - 2.0 * dpmm)
-        out.append((xs[sel].mean() + 0.5, ys[sel].mean() + 0.5))
+    r = search_mm * dpmm
+    lo = (xs < r) & (ys < r)
+    hi = (xs >= w - r) & (ys >= h - r)
+    out = [(xs[sel].mean() + 0.5, ys[sel].mean() + 0.5) for sel in (lo, hi)]
     (px0, py0), (px1, py1) = out
-    sx = (px1 - px0) / (MARKS[1][0] - MARKS[0][0])
-    sy = (py1 - py0) / (MARKS[1][1] - MARKS[0][1])
-    return (px0 - sx * MARKS[0][0], sx), (py0 - sy * MARKS[0][1], sy)
+    sx = (px1 - px0) / (marks[1][0] - marks[0][0])
+    sy = (py1 - py0) / (marks[1][1] - marks[0][1])
+    return (px0 - sx * marks[0][0], sx), (py0 - sy * marks[0][1], sy)
+
+
+def clip_segment(p, q, box):
+    """The part of segment p–q inside box = (x0, y0, x1, y1) (Liang–Barsky), or None."""
+    (x0, y0, x1, y1) = box
+    t0, t1 = 0.0, 1.0
+    dx, dy = q[0] - p[0], q[1] - p[1]
+    for d, lo, hi, v in ((dx, x0, x1, p[0]), (dy, y0, y1, p[1])):
+        if d == 0.0:
+            if v < lo or v > hi:
+                return None
+            continue
+        a, b = (lo - v) / d, (hi - v) / d
+        t0, t1 = max(t0, min(a, b)), min(t1, max(a, b))
+    if t0 > t1:
+        return None
+    return (p[0] + t0 * dx, p[1] + t0 * dy), (p[0] + t1 * dx, p[1] + t1 * dy)
+
+
+def window_layer(g, box):
+    """A copy of layer `g` that draws the same image inside `box` (Gerber mm) and as little
+    as it can outside: the objects whose bounding box meets the box grown by 0.3 mm, with
+    straight strokes clipped to that grown box (a round-capped stroke clipped to a box grown
+    by at least its half width draws the same image inside the box), and two marks 1.5 mm
+    beyond the kept objects' bounding box at its diagonal corners. Returns the layer and its
+    marks. pygerber renders an image as large as the layer's extent, so this is how a part of
+    a board is rendered at a resolution the whole board would not fit in memory at."""
+    m = 0.3
+    grown = (box[0] - m, box[1] - m, box[2] + m, box[3] + m)
+    w = GerberFile()
+    lo, hi = [math.inf, math.inf], [-math.inf, -math.inf]
+    for obj in g.objects:
+        (bx0, by0), (bx1, by1) = obj.bounding_box(MM)
+        if bx1 < grown[0] or bx0 > grown[2] or by1 < grown[1] or by0 > grown[3]:
+            continue
+        if isinstance(obj, Line):
+            seg = clip_segment((obj.x1, obj.y1), (obj.x2, obj.y2), grown)
+            if seg is None:
+                continue
+            obj = Line(*seg[0], *seg[1], aperture=obj.aperture, unit=MM, polarity_dark=obj.polarity_dark)
+            (bx0, by0), (bx1, by1) = obj.bounding_box(MM)
+        elif not isinstance(obj, Flash):
+            raise ValueError(f"window_layer: {type(obj).__name__} meets the window; not handled")
+        w.objects.append(obj)
+        lo = [min(lo[0], bx0), min(lo[1], by0)]
+        hi = [max(hi[0], bx1), max(hi[1], by1)]
+    mk = [(lo[0] - 1.5, lo[1] - 1.5), (hi[0] + 1.5, hi[1] + 1.5)]
+    sq = RectangleAperture(MARK, MARK, unit=MM)
+    for x, y in mk:
+        w.objects.append(Flash(x, y, sq, unit=MM))
+    return w, mk
 
 
 def weights(n_el, lo_mm, hi_mm, a, s, npx):
@@ -235,10 +286,39 @@ def weights(n_el, lo_mm, hi_mm, a, s, npx):
     return m
 
 
+def element_coverage(img, placement_xy, grids, box_mm=None):
+    """Per element of each grid over the board, the mean of `img` over the element. With
+    `box_mm` (board mm: x0, y0, x1, y1), only the elements lying inside that box, as a
+    {"i,j": coverage} map; otherwise every element, row-major from the lowest row."""
+    (ax, sx), (ay, sy) = placement_xy
+    h, w = img.shape
+    per = {}
+    for nx, ny in grids:
+        wx = weights(nx, OX, OX + L, ax, sx, w)
+        wy = weights(ny, OY, OY + W, ay, sy, h)
+        if box_mm is None:
+            cov = (wy @ img @ wx.T) / np.outer(wy.sum(1), wx.sum(1))
+            per[f"{nx}x{ny}"] = cov.ravel().tolist()
+            continue
+        eps = 1e-9
+        ii = [i for i in range(nx) if box_mm[0] - eps <= L * i / nx and L * (i + 1) / nx <= box_mm[2] + eps]
+        jj = [j for j in range(ny) if box_mm[1] - eps <= W * j / ny and W * (j + 1) / ny <= box_mm[3] + eps]
+        cov = (wy[jj] @ img @ wx[ii].T) / np.outer(wy[jj].sum(1), wx[ii].sum(1))
+        per[f"{nx}x{ny}"] = {f"{i},{j}": cov[b, a] for b, j in enumerate(jj) for a, i in enumerate(ii)}
+    return per
+
+
 def main():
-    out = Path(sys.argv[1])
-    dpmm = int(sys.argv[2])
-    grids = [(int(a), int(b)) for a, b in zip(sys.argv[3::2], sys.argv[4::2])]
+    args = sys.argv[1:]
+    window = None
+    if "--window" in args:
+        k = args.index("--window")
+        name, *rest = args[k + 1 : k + 7]
+        window = (name, [float(v) for v in rest[:4]], int(rest[4]))
+        del args[k : k + 7]
+    out = Path(args[0])
+    dpmm = int(args[1])
+    grids = [(int(a), int(b)) for a, b in zip(args[2::2], args[3::2])]
     out.mkdir(parents=True, exist_ok=True)
     layers = {"top": top_layer(), "bottom": bottom_layer(), "outline": outline_layer()}
     for name, g in layers.items():
@@ -246,15 +326,27 @@ def main():
     res = {"corner_mm": [OX, OY], "size_mm": [L, W], "dpmm": dpmm, "layers": {}}
     for name in ["top", "bottom"]:
         img = render(out / f"{name}.gbr", dpmm)
-        (ax, sx), (ay, sy) = placement(img, dpmm)
-        h, w = img.shape
-        per = {}
-        for nx, ny in grids:
-            wx = weights(nx, OX, OX + L, ax, sx, w)
-            wy = weights(ny, OY, OY + W, ay, sy, h)
-            cov = (wy @ img @ wx.T) / np.outer(wy.sum(1), wx.sum(1))
-            per[f"{nx}x{ny}"] = cov.ravel().tolist()
-        res["layers"][name] = {"scale_px_per_mm": [sx, sy], "coverage": per}
+        pl = placement(img, dpmm)
+        cov = element_coverage(img, pl, grids)
+        res["layers"][name] = {"scale_px_per_mm": [pl[0][1], pl[1][1]], "coverage": cov}
+        del img
+    if window is not None:
+        # One part of a layer again, at a finer resolution, from a file that draws only
+        # that part (the same objects, written by gerbonara again).
+        name, box, wdpmm = window
+        gbox = (OX + box[0], OY + box[1], OX + box[2], OY + box[3])
+        wl, wmarks = window_layer(layers[name], gbox)
+        wpath = out / f"window_{name}.gbr"
+        wl.save(wpath)
+        img = render(wpath, wdpmm)
+        pl = placement(img, wdpmm, wmarks, search_mm=1.0)
+        res["window"] = {
+            "layer": name,
+            "box_mm": box,
+            "dpmm": wdpmm,
+            "objects": len(wl.objects) - 2,
+            "coverage": element_coverage(img, pl, grids, box),
+        }
     print(json.dumps(res))
 
 
