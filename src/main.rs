@@ -27,6 +27,10 @@ struct Cli {
 }
 
 #[derive(Subcommand)]
+#[allow(
+    clippy::large_enum_variant,
+    reason = "parsed once per process: boxing the update options would buy nothing"
+)]
 enum Command {
     /// Read a measurement campaign (sheet, UFF files, balance logs) into campaign.mcap and
     /// Parquet tables (measurements, scan_points, frf, scale_readings, masses), with a report
@@ -310,6 +314,10 @@ enum UpdateCommand {
         /// The point (x_m,y_m, metres from the board's corner) of `--enrich added_mass`.
         #[arg(long, value_delimiter = ',', value_name = "X_M,Y_M")]
         enrich_location: Option<Vec<f64>>,
+        /// Boards left out of the updating (their modes and masses unused), to validate the
+        /// new-board prediction on: `report` compares their measurements with it.
+        #[arg(long, value_delimiter = ',', value_name = "BOARD,...")]
+        hold_out: Vec<String>,
     },
     /// Step 2: joint contact stiffness per bolted measurement and its population, from the
     /// bolted modes, carrying every step-1 draw (the modular, "cut", posterior).
@@ -392,6 +400,7 @@ impl UpdateArgs {
             enrich_covariate: None,
             enrich_location: None,
             model_error: !self.no_model_error,
+            hold_out_boards: vec![],
         }
     }
 }
@@ -652,11 +661,13 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                     enrich,
                     enrich_covariate,
                     enrich_location,
+                    hold_out,
                 },
         } => {
             use hbmu::diagnose::library::Mechanism;
             let mut opts = common.options(params, prior_width, sigma_scale);
             opts.enrich = enrich;
+            opts.hold_out_boards = hold_out;
             if enrich == Some(Mechanism::TemperatureStiffness) {
                 opts.enrich_covariate = Some(enrich_covariate);
             }

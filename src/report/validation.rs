@@ -30,6 +30,9 @@ pub struct Measured {
     pub label: String,
     pub freq_hz: f64,
     pub used_for_updating: bool,
+    /// The board was held out of the updating (`update boards --hold-out`): compared with
+    /// the new-board prediction only.
+    pub held_out: bool,
 }
 
 /// Key of an interval: (scope, board, setup, label).
@@ -54,9 +57,14 @@ pub struct Interval {
     pub q50_hz: f64,
     pub q75_hz: f64,
     pub q95_hz: f64,
-    /// Measurements compared (all boards' for a new board) and how many lie in [q05, q95].
+    /// Measurements compared (the board's own; for a new board, those of every board used
+    /// for updating) and how many lie in [q05, q95].
     pub n_measured: usize,
     pub n_inside_90: usize,
+    /// For a new board: the measurements of the held-out boards and how many lie in
+    /// [q05, q95] (0 for a measured board's interval).
+    pub n_held_out: usize,
+    pub n_held_out_inside_90: usize,
 }
 
 /// Quantile `p` of sorted data, numpy's default linear interpolation.
@@ -85,8 +93,9 @@ pub fn mean_sd(x: &[f64]) -> (f64, f64) {
 }
 
 /// Intervals of every (scope, board, setup, label) of the predictions, sorted by key, with
-/// the coverage of the measurements: a board's own measurements for scope `board`, every
-/// board's measurements of that setup and label for a new board.
+/// the coverage of the measurements: a board's own measurements for scope `board`; for a new
+/// board, every updated board's measurements of that setup and label, and apart from them
+/// the held-out boards' (the out-of-sample test of the new-board prediction).
 pub fn intervals(preds: &[Pred], measured: &[Measured]) -> Vec<Interval> {
     let mut groups: BTreeMap<Key, (Vec<f64>, Vec<f64>)> = BTreeMap::new();
     for p in preds {
@@ -103,6 +112,7 @@ pub fn intervals(preds: &[Pred], measured: &[Measured]) -> Vec<Interval> {
     }
     let used: BTreeMap<(String, String), bool> = measured
         .iter()
+        .filter(|m| !m.held_out)
         .map(|m| ((m.setup.clone(), m.label.clone()), m.used_for_updating))
         .collect();
     groups
@@ -111,15 +121,25 @@ pub fn intervals(preds: &[Pred], measured: &[Measured]) -> Vec<Interval> {
             obs.sort_by(f64::total_cmp);
             let q = |p| quantile_sorted(&obs, p);
             let (q05, q95) = (q(0.05), q(0.95));
-            let meas: Vec<f64> = measured
-                .iter()
-                .filter(|m| {
-                    m.setup == setup
-                        && m.label == label
-                        && board_id.as_ref().is_none_or(|b| *b == m.board_id)
-                })
-                .map(|m| m.freq_hz)
-                .collect();
+            let compared = |held_out: bool| -> Vec<f64> {
+                measured
+                    .iter()
+                    .filter(|m| {
+                        m.setup == setup
+                            && m.label == label
+                            && m.held_out == held_out
+                            && board_id.as_ref().is_none_or(|b| *b == m.board_id)
+                    })
+                    .map(|m| m.freq_hz)
+                    .collect()
+            };
+            let meas = compared(false);
+            let held = if board_id.is_none() {
+                compared(true)
+            } else {
+                vec![]
+            };
+            let inside = |f: &[f64]| f.iter().filter(|f| **f >= q05 && **f <= q95).count();
             let (mm, ms) = mean_sd(&model);
             Interval {
                 used_for_updating: used
@@ -135,7 +155,9 @@ pub fn intervals(preds: &[Pred], measured: &[Measured]) -> Vec<Interval> {
                 q75_hz: q(0.75),
                 q95_hz: q95,
                 n_measured: meas.len(),
-                n_inside_90: meas.iter().filter(|f| **f >= q05 && **f <= q95).count(),
+                n_inside_90: inside(&meas),
+                n_held_out: held.len(),
+                n_held_out_inside_90: inside(&held),
                 scope,
                 board_id,
                 setup,
@@ -166,10 +188,15 @@ pub struct Table2Row {
     pub board_coverage_90: f64,
     /// Fraction of the measurements inside the new board's 90 % interval.
     pub new_board_coverage_90: f64,
+    /// Measurements of the held-out boards, and the fraction of them inside the new board's
+    /// 90 % interval (NaN without held-out boards).
+    pub n_held_out: usize,
+    pub held_out_coverage_90: f64,
 }
 
 /// The Table-2 analog per setup and label with predictions for a new board: measured mean
-/// and sd over every measurement of every board against the new-board prediction.
+/// and sd over every measurement of every updated board against the new-board prediction,
+/// and the held-out boards' coverage by it.
 pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Table2Row> {
     let mut newb: BTreeMap<(String, String), (Vec<f64>, Vec<f64>)> = BTreeMap::new();
     for p in preds.iter().filter(|p| p.scope == "new_board") {
@@ -184,7 +211,7 @@ pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Tab
     for ((setup, label), (model, obs)) in newb {
         let ms: Vec<&Measured> = measured
             .iter()
-            .filter(|m| m.setup == setup && m.label == label)
+            .filter(|m| m.setup == setup && m.label == label && !m.held_out)
             .collect();
         let f: Vec<f64> = ms.iter().map(|m| m.freq_hz).collect();
         let (mm, msd) = mean_sd(&f);
@@ -228,6 +255,11 @@ pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Tab
                 Some(i) if !ms.is_empty() => i.n_inside_90 as f64 / n,
                 _ => f64::NAN,
             },
+            n_held_out: nb.map_or(0, |i| i.n_held_out),
+            held_out_coverage_90: match nb {
+                Some(i) if i.n_held_out > 0 => i.n_held_out_inside_90 as f64 / i.n_held_out as f64,
+                _ => f64::NAN,
+            },
             setup,
             label,
         });
@@ -239,6 +271,39 @@ pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Tab
 pub fn coverage<'a>(iv: impl IntoIterator<Item = &'a Interval>) -> (usize, usize) {
     iv.into_iter()
         .fold((0, 0), |(a, b), i| (a + i.n_inside_90, b + i.n_measured))
+}
+
+/// Coverage of the held-out boards by the new-board intervals: (inside, measurements).
+pub fn held_out_coverage<'a>(iv: impl IntoIterator<Item = &'a Interval>) -> (usize, usize) {
+    iv.into_iter().fold((0, 0), |(a, b), i| {
+        (a + i.n_held_out_inside_90, b + i.n_held_out)
+    })
+}
+
+/// How often the new-unit 90 % predictive interval covers the units it was learnt from, when
+/// `n` units are drawn from a normal population and observed exactly, with a flat prior on
+/// the mean and on ln σ: the posterior predictive is x̄ ± t₀.₉₅,ₙ₋₁ s √(1 + 1/n), and for an
+/// in-sample unit n (xᵢ − x̄)² / ((n − 1)² s²) ~ Beta(½, (n − 2)/2), so the coverage is
+/// I_z(½, (n − 2)/2) at z = t² (n + 1) / (n − 1)² (1 if z ≥ 1). It exceeds 90 % (99.6 % for
+/// n = 7: every in-sample unit lies within (n − 1)/√n sample sds of the mean), so a new-board
+/// prediction that covers all measured boards is what a calibrated hierarchy with few boards
+/// gives; the test at the nominal rate is on held-out boards. NaN below 3 units.
+pub fn in_sample_coverage_90(n: usize) -> f64 {
+    use statrs::distribution::{ContinuousCDF, StudentsT};
+    use statrs::function::beta::beta_reg;
+    if n < 3 {
+        return f64::NAN;
+    }
+    let nf = n as f64;
+    let t = StudentsT::new(0.0, 1.0, nf - 1.0)
+        .expect("n ≥ 3: positive degrees of freedom")
+        .inverse_cdf(0.95);
+    let z = t * t * (nf + 1.0) / ((nf - 1.0) * (nf - 1.0));
+    if z >= 1.0 {
+        1.0
+    } else {
+        beta_reg(0.5, (nf - 2.0) / 2.0, z)
+    }
 }
 
 #[cfg(test)]
@@ -293,9 +358,19 @@ mod tests {
             label: "m1".into(),
             freq_hz: f,
             used_for_updating: false,
+            held_out: b == "H",
         };
-        // Board A: 90 % interval [99.1, 100.9]; B: [109.1, 110.9]; new: [96, 114].
-        let meas = vec![m("A", 100.0), m("A", 101.5), m("B", 110.5), m("B", 120.0)];
+        // Board A: 90 % interval [99.1, 100.9]; B: [109.1, 110.9]; new: [96, 114]. Board H
+        // is held out: compared with the new board only, and apart.
+        let meas = vec![
+            m("A", 100.0),
+            m("A", 101.5),
+            m("B", 110.5),
+            m("B", 120.0),
+            m("H", 97.0),
+            m("H", 95.0),
+            m("H", 113.0),
+        ];
         let iv = intervals(&preds, &meas);
         assert_eq!(iv.len(), 3);
         let a = iv
@@ -306,11 +381,62 @@ mod tests {
         assert_eq!((a.n_inside_90, a.n_measured), (1, 2));
         let nb = iv.iter().find(|i| i.scope == "new_board").unwrap();
         assert_eq!((nb.n_inside_90, nb.n_measured), (3, 4));
+        assert_eq!((nb.n_held_out_inside_90, nb.n_held_out), (2, 3));
+        assert!(iv
+            .iter()
+            .all(|i| i.scope == "new_board" || i.n_held_out == 0));
+        assert_eq!(held_out_coverage(&iv), (2, 3));
         let t = table2(&preds, &meas, &iv);
         assert_eq!(t.len(), 1);
         assert!((t[0].board_coverage_90 - 0.5).abs() < 1e-12);
         assert!((t[0].new_board_coverage_90 - 0.75).abs() < 1e-12);
         assert!((t[0].measured_mean_hz - 108.0).abs() < 1e-12);
         assert!((t[0].simulated_mean_hz - 105.0).abs() < 1e-9);
+        assert_eq!(t[0].n_measured, 4);
+        assert_eq!(t[0].n_held_out, 3);
+        assert!((t[0].held_out_coverage_90 - 2.0 / 3.0).abs() < 1e-12);
+    }
+
+    /// The closed form against a seeded simulation of the classical setting: n exact draws
+    /// of a normal population, interval x̄ ± t s √(1 + 1/n), the fraction of the n draws
+    /// inside (and, as a check of the simulation, a new draw's coverage, 90 %).
+    #[test]
+    fn in_sample_coverage_matches_a_simulation() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, StandardNormal};
+        use statrs::distribution::{ContinuousCDF, StudentsT};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for n in [3usize, 5, 7, 12] {
+            let nf = n as f64;
+            let t = StudentsT::new(0.0, 1.0, nf - 1.0)
+                .unwrap()
+                .inverse_cdf(0.95);
+            let reps = 40_000;
+            let (mut inside, mut new_inside) = (0usize, 0usize);
+            for _ in 0..reps {
+                let x: Vec<f64> = (0..n).map(|_| StandardNormal.sample(&mut rng)).collect();
+                let (m, s) = mean_sd(&x);
+                let h = t * s * (1.0 + 1.0 / nf).sqrt();
+                inside += x.iter().filter(|v| (*v - m).abs() <= h).count();
+                let y: f64 = StandardNormal.sample(&mut rng);
+                new_inside += usize::from((y - m).abs() <= h);
+            }
+            let sim = inside as f64 / (reps * n) as f64;
+            let want = in_sample_coverage_90(n);
+            // Draws within a replication are dependent: a generous 5 binomial sds of the
+            // replications alone.
+            let se = (want * (1.0 - want) / reps as f64).sqrt().max(1e-4);
+            assert!(
+                (sim - want).abs() < 5.0 * se,
+                "n = {n}: simulated {sim}, closed form {want}"
+            );
+            let new = new_inside as f64 / reps as f64;
+            assert!(
+                (new - 0.9).abs() < 5.0 * (0.09f64 / reps as f64).sqrt(),
+                "n = {n}: new {new}"
+            );
+        }
+        assert!((in_sample_coverage_90(7) - 0.9962).abs() < 5e-4);
+        assert!(in_sample_coverage_90(2).is_nan());
     }
 }

@@ -45,12 +45,14 @@ pub const TABLE2: TableSpec = TableSpec {
         c("sd_error_pct", Col::Float64, true, "%", "(predictive sd - measured sd) / measured sd."),
         c("board_coverage_90", Col::Float64, true, "", "Fraction of the measurements inside their own board's predicted 90 % interval."),
         c("new_board_coverage_90", Col::Float64, true, "", "Fraction of the measurements inside the new board's predicted 90 % interval."),
+        c("n_held_out", Col::Int32, false, "", "Measurements of the mode on boards held out of the updating (`update boards --hold-out`); not in n_measured or the measured mean and sd."),
+        c("held_out_coverage_90", Col::Float64, true, "", "Fraction of the held-out boards' measurements inside the new board's predicted 90 % interval (the out-of-sample test); null without held-out boards."),
     ],
 };
 
 pub const INTERVALS: TableSpec = TableSpec {
     name: "intervals",
-    doc: "Predicted distributions of the validation report (the Figure-6 analog's boxes): per scope (`board`, `new_board`), board, setup and mode, the model frequency's mean and sd and the quantiles of a predicted measurement (numpy's default linear interpolation), with the measurements compared (the board's own; every board's for a new board) and how many lie in [q05, q95].",
+    doc: "Predicted distributions of the validation report (the Figure-6 analog's boxes): per scope (`board`, `new_board`), board, setup and mode, the model frequency's mean and sd and the quantiles of a predicted measurement (numpy's default linear interpolation), with the measurements compared (the board's own; every updated board's for a new board, and apart the held-out boards') and how many lie in [q05, q95].",
     open: false,
     columns: &[
         c("scope", Col::Utf8, false, "", "`board` or `new_board`."),
@@ -68,6 +70,8 @@ pub const INTERVALS: TableSpec = TableSpec {
         c("q95_hz", Col::Float64, true, "Hz", "95 % quantile."),
         c("n_measured", Col::Int32, false, "", "Measurements compared."),
         c("n_inside_90", Col::Int32, false, "", "Measurements inside [q05, q95]."),
+        c("n_held_out", Col::Int32, false, "", "For a new board: measurements of the boards held out of the updating; 0 for a measured board."),
+        c("n_held_out_inside_90", Col::Int32, false, "", "Held-out measurements inside [q05, q95]."),
     ],
 };
 
@@ -128,6 +132,66 @@ fn read_measured(path: &Path) -> anyhow::Result<Vec<Measured>> {
                 label: l.value(i).into(),
                 freq_hz: f.value(i),
                 used_for_updating: u.value(i),
+                held_out: false,
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// Boards step 1 held out of the updating (update_report.json's `held_out_boards`; absent
+/// in reports written before the option).
+fn held_out_boards(update_report: &serde_json::Value) -> Vec<String> {
+    update_report
+        .get("held_out_boards")
+        .and_then(|v| v.as_array())
+        .into_iter()
+        .flatten()
+        .filter_map(|b| b.as_str().map(str::to_string))
+        .collect()
+}
+
+/// The held-out boards' measured frequencies: the accepted, labelled pairs of pairs.parquet
+/// (both setups), each mode's role taken from the updated boards' residuals.
+fn read_held_out(
+    pairs: &Path,
+    boards: &[String],
+    roles: &BTreeMap<(String, String), bool>,
+) -> anyhow::Result<Vec<Measured>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(pairs)? {
+        let c = Cols {
+            batch: &b,
+            path: pairs,
+        };
+        let (m, bid, st, l, f, acc) = (
+            c.str("measurement_id")?,
+            c.str("board_id")?,
+            c.str("setup")?,
+            c.str("label")?,
+            c.f64("freq_hz")?,
+            c.bool("accepted")?,
+        );
+        for i in 0..b.num_rows() {
+            if !acc.value(i)
+                || l.is_null(i)
+                || f.is_null(i)
+                || !boards.iter().any(|h| h == bid.value(i))
+            {
+                continue;
+            }
+            let key = (st.value(i).to_string(), l.value(i).to_string());
+            let Some(used) = roles.get(&key) else {
+                continue; // a mode the updated boards' residuals do not have: nothing predicts it
+            };
+            out.push(Measured {
+                measurement_id: m.value(i).into(),
+                board_id: bid.value(i).into(),
+                setup: key.0,
+                label: key.1,
+                freq_hz: f.value(i),
+                used_for_updating: *used,
+                held_out: true,
             });
         }
     }
@@ -366,6 +430,10 @@ fn write_table2(
         f(|r| r.sd_error_pct),
         f(|r| r.board_coverage_90),
         f(|r| r.new_board_coverage_90),
+        Arc::new(Int32Array::from_iter_values(
+            rows.iter().map(|r| r.n_held_out as i32),
+        )),
+        f(|r| r.held_out_coverage_90),
     ];
     write_both(out, &TABLE2, cols, prov)
 }
@@ -413,6 +481,12 @@ fn write_intervals(
         )),
         Arc::new(Int32Array::from_iter_values(
             rows.iter().map(|r| r.n_inside_90 as i32),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            rows.iter().map(|r| r.n_held_out as i32),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            rows.iter().map(|r| r.n_held_out_inside_90 as i32),
         )),
     ];
     write_both(out, &INTERVALS, cols, prov)
@@ -562,6 +636,8 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         );
     }
     let has2 = step2.join("joints.parquet").is_file();
+    let held_out = held_out_boards(&read_json(&step1.join("update_report.json"))?);
+    let pairs = w.join("pair").join("pairs.parquet");
     let mut inputs = vec![
         prop.join("predictions.parquet"),
         prop.join("propagate_report.json"),
@@ -585,6 +661,16 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
                 .filter(|p| !p.ends_with("update_report.json") || p.is_file()),
         );
         inputs.push(step2.join("joints.parquet"));
+    }
+    if !held_out.is_empty() {
+        if !pairs.is_file() {
+            bail!(
+                "{}: step 1 held out boards {} but the work directory has no pair/pairs.parquet to compare their measurements with",
+                step1.display(),
+                held_out.join(", ")
+            );
+        }
+        inputs.push(pairs.clone());
     }
     let ingest_report = w.join("ingest").join("ingest_report.json");
     if ingest_report.is_file() {
@@ -658,6 +744,13 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
                 "the work directory has no step-2 posterior (update_joints/joints.parquet): the joints were not updated, so there are no bolted predictions, no bolted Table-2 rows or boxes, and no joint posterior in this report."
             .to_string(),
             );
+        }
+        if !held_out.is_empty() {
+            let roles: BTreeMap<(String, String), bool> = measured
+                .iter()
+                .map(|m| ((m.setup.clone(), m.label.clone()), m.used_for_updating))
+                .collect();
+            measured.extend(read_held_out(&pairs, &held_out, &roles)?);
         }
         let iv = validation::intervals(&preds, &measured);
         let t2 = validation::table2(&preds, &measured, &iv);
@@ -814,9 +907,18 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         };
         let (vk, vn) = cov("board", Some(false));
         let (nk, nn) = cov("new_board", None);
+        let (hk, hn) = validation::held_out_coverage(
+            iv.iter()
+                .filter(|i| i.scope == "new_board" && i.setup == "free"),
+        );
         eprintln!(
-            "report: {} figures; free-free coverage of the 90 % intervals: validation modes {vk}/{vn}, new board {nk}/{nn}{}",
+            "report: {} figures; free-free coverage of the 90 % intervals: validation modes {vk}/{vn}, new board {nk}/{nn}{}{}",
             r.figures,
+            if hn > 0 {
+                format!(", held-out boards by the new board {hk}/{hn}")
+            } else {
+                String::new()
+            },
             if has2 { "" } else { "; no step-2 posterior: no bolted predictions" }
         );
         if verbose {
@@ -834,6 +936,9 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
             "new_board_coverage_free".into(),
             serde_json::json!([nk, nn]),
         );
+        if hn > 0 {
+            s.insert("held_out_coverage_free".into(), serde_json::json!([hk, hn]));
+        }
         Ok(StageResult {
             outputs,
             exit_code: exit::OK,

@@ -262,6 +262,10 @@ pub struct UpdateOptions {
     /// model's discretization spread (`fem::convergence::mesh_spread`).
     #[serde(default)]
     pub model_error: bool,
+    /// Step 1: boards whose measurements and masses are left out of the updating, so that
+    /// the new-board prediction can be validated on them (the report compares them with it).
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub hold_out_boards: Vec<String>,
 }
 
 impl UpdateOptions {
@@ -2256,6 +2260,23 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             .map(|p| p.board_id.clone())
             .collect();
         board_ids.extend(masses.keys().cloned());
+        for b in &opts.hold_out_boards {
+            if !board_ids.contains(b) {
+                bail!(
+                    "--hold-out: board {b} has no paired free-free mode and no balance reading in this campaign (boards: {})",
+                    board_ids.iter().cloned().collect::<Vec<_>>().join(", ")
+                );
+            }
+            findings.push(Finding::new(
+                Severity::Info,
+                "update.board_held_out",
+                format!("board {b} is held out (--hold-out): its modes and mass are not used; the report compares its measurements with the new-board prediction"),
+            ));
+        }
+        board_ids.retain(|b| !opts.hold_out_boards.contains(b));
+        if board_ids.is_empty() {
+            bail!("--hold-out leaves no board to update");
+        }
         // The balance informs the mass parameters: mass_scale, and an added mass.
         let mass_updated =
             opts.params.iter().any(|p| p == names::MASS_SCALE) || !log_axes.is_empty();
@@ -3532,6 +3553,7 @@ fn finish(
         "min_ess": min_ess,
         "evidence": ev,
         "acceleration": acceleration,
+        "held_out_boards": opts.hold_out_boards,
         "findings": findings.0,
     });
     let p = opts.out.join("update_report.json");

@@ -150,6 +150,136 @@ fn propagate_and_report_give_the_same_bytes_whatever_the_threads_and_the_directo
     }
 }
 
+/// A board held out of step 1 (`update boards --hold-out`) is not updated, and the report
+/// compares its measurements with the new-board prediction, apart from the in-sample boards.
+#[test]
+fn a_held_out_board_is_compared_with_the_new_board_prediction_only() {
+    use arrow::array::{Array, BooleanArray, Int32Array, StringArray};
+    let work = small_work();
+    let t = tempfile::tempdir().unwrap();
+    let w = t.path().join("held");
+    for d in ["ingest", "extract", "pair"] {
+        crate::common::copy_dir(&work.join(d), &w.join(d));
+    }
+    // The held-out board: the second board of the campaign (sorted ids).
+    let mut boards = vec![];
+    // (board, label) of every accepted, labelled free-free pair.
+    let mut pairs_free: Vec<(String, String)> = vec![];
+    for b in hbmu::io::tables::read_parquet(&w.join("pair/pairs.parquet")).unwrap() {
+        let col = |n: &str| b.column(b.schema().index_of(n).unwrap()).clone();
+        let bid = col("board_id");
+        let bid = bid.as_any().downcast_ref::<StringArray>().unwrap();
+        let st = col("setup");
+        let st = st.as_any().downcast_ref::<StringArray>().unwrap();
+        let acc = col("accepted");
+        let acc = acc.as_any().downcast_ref::<BooleanArray>().unwrap();
+        let lab = col("label");
+        let lab = lab.as_any().downcast_ref::<StringArray>().unwrap();
+        for i in 0..b.num_rows() {
+            boards.push(bid.value(i).to_string());
+            if st.value(i) == "free" && acc.value(i) && !lab.is_null(i) {
+                pairs_free.push((bid.value(i).to_string(), lab.value(i).to_string()));
+            }
+        }
+    }
+    boards.sort();
+    boards.dedup();
+    assert_eq!(boards.len(), 2, "{boards:?}");
+    let held = boards[1].clone();
+    let step1 = w.join("update_boards");
+    let (ingest, pair) = (w.join("ingest"), w.join("pair"));
+    let run = |extra: &[&str]| {
+        let mut a = vec![
+            "update",
+            "boards",
+            ingest.to_str().unwrap(),
+            pair.to_str().unwrap(),
+            "--particles",
+            "100",
+            "--runs",
+            "2",
+            "--out",
+            step1.to_str().unwrap(),
+        ];
+        a.extend_from_slice(extra);
+        crate::common::hbmu(&a)
+    };
+    // A board that is not in the campaign: a clear error naming it and the boards there are.
+    let o = run(&["--hold-out", "NO-SUCH-BOARD"]);
+    assert!(!o.status.success());
+    let e = crate::common::stderr(&o);
+    assert!(
+        e.contains("NO-SUCH-BOARD") && e.contains(&held),
+        "expected the board and the campaign's boards named: {e}"
+    );
+    let o = run(&["--hold-out", &held]);
+    assert!(o.status.success(), "{}", crate::common::stderr(&o));
+    let rep: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(step1.join("update_report.json")).unwrap()).unwrap();
+    assert_eq!(rep["held_out_boards"], serde_json::json!([held]));
+    let updated: Vec<String> = hbmu::io::tables::read_parquet(&step1.join("boards.parquet"))
+        .unwrap()
+        .iter()
+        .flat_map(|b| {
+            let c = b.column(b.schema().index_of("board_id").unwrap()).clone();
+            let c = c.as_any().downcast_ref::<StringArray>().unwrap().clone();
+            (0..c.len()).map(move |i| c.value(i).to_string())
+        })
+        .collect();
+    assert!(!updated.is_empty() && updated.iter().all(|b| *b != held));
+    let o = crate::common::hbmu(&[
+        "propagate",
+        step1.to_str().unwrap(),
+        "--draws",
+        "400",
+        "--out",
+        w.join("propagate").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", crate::common::stderr(&o));
+    let o = crate::common::hbmu(&[
+        "report",
+        w.to_str().unwrap(),
+        "--out",
+        w.join("report").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", crate::common::stderr(&o));
+    let e = crate::common::stderr(&o);
+    assert!(e.contains("held-out boards by the new board"), "{e}");
+    // Every accepted, labelled free-free pair of the held-out board is compared once, with
+    // the new board's intervals only (the table counts it apart from the in-sample boards).
+    let t2 = hbmu::io::tables::read_parquet(&w.join("report/table2.parquet")).unwrap();
+    let (mut n_held, mut n_in, mut labels) = (0, 0, vec![]);
+    for b in &t2 {
+        let col = |n: &str| b.column(b.schema().index_of(n).unwrap()).clone();
+        let st = col("setup");
+        let st = st.as_any().downcast_ref::<StringArray>().unwrap();
+        let nh = col("n_held_out");
+        let nh = nh.as_any().downcast_ref::<Int32Array>().unwrap();
+        let nm = col("n_measured");
+        let nm = nm.as_any().downcast_ref::<Int32Array>().unwrap();
+        let lab = col("label");
+        let lab = lab.as_any().downcast_ref::<StringArray>().unwrap();
+        for i in 0..b.num_rows() {
+            if st.value(i) == "free" {
+                n_held += nh.value(i) as usize;
+                n_in += nm.value(i) as usize;
+                labels.push(lab.value(i).to_string());
+            }
+        }
+    }
+    let count = |board: &str| {
+        pairs_free
+            .iter()
+            .filter(|(b, l)| b == board && labels.contains(l))
+            .count()
+    };
+    assert!(n_held > 0);
+    assert_eq!(n_held, count(&held), "held-out measurements compared");
+    assert_eq!(n_in, count(&boards[0]), "in-sample measurements compared");
+    let html = std::fs::read_to_string(w.join("report/report.html")).unwrap();
+    assert!(html.contains("all modes, new board, held-out boards"));
+}
+
 fn run_small_pipeline(work: &Path) {
     let o = Command::new("make")
         .arg("-C")

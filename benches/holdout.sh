@@ -1,0 +1,75 @@
+#!/usr/bin/env bash
+# The out-of-sample test of the new-board prediction (issue 10): leave-one-board-out on the
+# lab's null scenario (data/lab/null.toml) under several seeds. Per seed, the campaign goes
+# through the DAG up to `pair` once; then, per board, step 1 runs without that board
+# (`update boards --hold-out B`), `propagate` predicts a new board, and `report` counts how
+# many of the held-out board's free-free measurements lie inside the new board's 90 %
+# intervals. A calibrated hierarchy covers about 90 % of them; the same report's in-sample
+# count (the other boards against the same interval) is printed beside it, with the rate the
+# classical predictive interval gives in-sample for that many boards.
+#
+# Usage: benches/holdout.sh [SEED...] (default 1 2 3); work directories under
+# target/work/null-<seed> (shared with benches/diagnose_null.sh), folds under
+# target/work/null-<seed>/holdout/<board>. HOLDOUT_PARTICLES, HOLDOUT_RUNS (default 200, 2:
+# the pipeline's) and HOLDOUT_DRAWS (propagate, default 2000) set the sizes.
+set -euo pipefail
+root=$(cd "$(dirname "$0")/.." && pwd)
+seeds=("$@")
+if [ ${#seeds[@]} -eq 0 ]; then seeds=(1 2 3); fi
+particles=${HOLDOUT_PARTICLES:-200}
+runs=${HOLDOUT_RUNS:-2}
+draws=${HOLDOUT_DRAWS:-2000}
+make -C "$root/pipelines" --no-print-directory build >/dev/null
+hbmu=$root/target/debug/hbmu
+# The pipeline's model cache: the folds share the campaign's ROM instead of building it each.
+export HBMU_CACHE=${HBMU_CACHE-$root/target/cache}
+for s in "${seeds[@]}"; do
+  work=$root/target/work/null-$s
+  mkdir -p "$work"
+  sed -E "s/^seed = .*/seed = $s/; s/^name = .*/name = \"null-$s\"/" "$root/data/lab/null.toml" > "$work/scenario.toml"
+  make -C "$root/pipelines" --no-print-directory all SCENARIO="$work/scenario.toml" WORK="$work" > "$work/make-holdout.log" 2>&1 || {
+    echo "seed $s: pipeline failed (see $work/make-holdout.log)"; tail -5 "$work/make-holdout.log"; continue; }
+  boards=$(python3 -c "import pandas as pd, sys; print(' '.join(sorted(pd.read_parquet(sys.argv[1]).query('setup == \"free\"').board_id.unique())))" "$work/pair/pairs.parquet")
+  for b in $boards; do
+    f=$work/holdout/$b
+    mkdir -p "$f"
+    for d in ingest extract pair; do ln -sfn "$work/$d" "$f/$d"; done
+    SECONDS=0
+    "$hbmu" update boards "$f/ingest" "$f/pair" --extract "$f/extract" --particles "$particles" --runs "$runs" \
+      --seed 20261122 --rom-basis 30 --hold-out "$b" --out "$f/update_boards" > "$f/log" 2>&1
+    "$hbmu" propagate "$f/update_boards" --fe "$work/fe" --draws "$draws" --out "$f/propagate" >> "$f/log" 2>&1
+    "$hbmu" report "$f" --out "$f/report" >> "$f/log" 2>&1
+    echo "seed $s board $b: $(grep -o 'free-free coverage.*' "$f/log" | head -1) (${SECONDS} s)"
+  done
+done
+python3 - "$root/target/work" "${seeds[@]}" <<'PY'
+import json, sys, math
+from pathlib import Path
+from scipy import stats
+base, seeds = Path(sys.argv[1]), sys.argv[2:]
+held = [0, 0]
+ins = [0, 0]
+per_board = []
+nb = set()
+for s in seeds:
+    for f in sorted((base / f"null-{s}" / "holdout").glob("*")):
+        m = json.loads((f / "report" / "report.manifest.json").read_text())
+        summ = m.get("summary", {})
+        h = summ.get("held_out_coverage_free")
+        n = summ.get("new_board_coverage_free")
+        if not h:
+            print(f"{f}: no held-out coverage in the report's manifest"); continue
+        held[0] += h[0]; held[1] += h[1]
+        ins[0] += n[0]; ins[1] += n[1]
+        per_board.append(h[0] == h[1])
+        nb.add(len(list((base / f"null-{s}" / "holdout").glob("*"))) - 1)
+k, n = held
+p = stats.binomtest(k, n, 0.9).pvalue if n else float("nan")
+print(f"held-out boards: {k}/{n} measurements inside the new board's 90 % interval ({100 * k / max(n, 1):.1f} %, binomial p = {p:.3g} against 90 %; measurements of a board are not independent)")
+print(f"  boards with every measurement inside: {sum(per_board)}/{len(per_board)}")
+print(f"in-sample (the other boards, same intervals): {ins[0]}/{ins[1]} ({100 * ins[0] / max(ins[1], 1):.1f} %)")
+for m in sorted(nb):
+    t = stats.t.ppf(0.95, m - 1)
+    z = t * t * (m + 1) / (m - 1) ** 2
+    print(f"  classical in-sample rate for {m} boards: {100 * (1.0 if z >= 1 else stats.beta.cdf(z, 0.5, (m - 2) / 2)):.1f} %")
+PY
