@@ -389,7 +389,7 @@ impl UpdateArgs {
                     },
                 })
             },
-            rom_box: 0.2,
+            rom_box: stage::update::UpdateOptions::DEFAULT_ROM_BOX,
             box_tolerance: 0.01,
             residual_draws: 250,
             rom_max_basis: self.rom_basis,

@@ -138,7 +138,7 @@ pub fn prepare(spec: StageSpec) -> io::Result<Prepared> {
         let (h, n) = hash?;
         keys.push((fingerprint_name(p, &spec.input_base), h.clone()));
         inputs.push(FileHash {
-            path: rel_path(p, &spec.input_base),
+            path: recorded_path(p, &spec.input_base, &spec.manifest_path),
             blake3: h,
             bytes: n,
         });
@@ -170,6 +170,24 @@ pub fn prepare(spec: StageSpec) -> io::Result<Prepared> {
         config_blake3,
         fingerprint,
     })
+}
+
+/// How an input is named in the manifest: relative to `base` when it lies under it; else, when
+/// it lies in the stage directory's parent (another stage's output in the same work
+/// directory, as the updating's inputs are), relative to the stage directory
+/// (`../ingest/masses.parquet`), so that the manifest does not depend on where the work
+/// directory lies; else as given. The fingerprint does not use it ([`fingerprint_name`]).
+fn recorded_path(p: &Path, base: &Path, manifest_path: &Path) -> String {
+    if base.as_os_str().is_empty() || p.strip_prefix(base).is_err() {
+        let work = manifest_path.parent().and_then(Path::parent);
+        if let Some(rel) = work
+            .filter(|w| !w.as_os_str().is_empty())
+            .and_then(|w| p.strip_prefix(w).ok())
+        {
+            return format!("../{}", rel.to_string_lossy().replace('\\', "/"));
+        }
+    }
+    rel_path(p, base)
 }
 
 /// An input's name in the fingerprint: its path relative to `base` when it lies under a
@@ -257,6 +275,25 @@ pub fn now_utc() -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn inputs_of_sibling_stages_are_recorded_relative_to_the_stage_directory() {
+        let m = Path::new("/w/work/update_boards/update_boards.manifest.json");
+        let none = Path::new("");
+        assert_eq!(
+            recorded_path(Path::new("/w/work/ingest/masses.parquet"), none, m),
+            "../ingest/masses.parquet"
+        );
+        // Outside the work directory: as given. Under the base: relative to it.
+        assert_eq!(
+            recorded_path(Path::new("/repo/data/boards/b.toml"), none, m),
+            "/repo/data/boards/b.toml"
+        );
+        assert_eq!(
+            recorded_path(Path::new("/w/work/pair/pairs.parquet"), Path::new("/w/work"), m),
+            "pair/pairs.parquet"
+        );
+    }
 
     #[test]
     fn tool_version_carries_the_source_revision() {

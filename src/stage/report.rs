@@ -662,6 +662,12 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         );
         inputs.push(step2.join("joints.parquet"));
     }
+    // Step 2 that ran without a posterior (a campaign without paired bolted modes) says why.
+    let step2_note = step2.join("update_report.json");
+    let step2_note = (!has2 && step2_note.is_file()).then_some(step2_note);
+    if let Some(p) = &step2_note {
+        inputs.push(p.clone());
+    }
     if !held_out.is_empty() {
         if !pairs.is_file() {
             bail!(
@@ -740,10 +746,19 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
                 "measurement_id",
             )?);
         } else {
-            step2_absent = Some(
-                "the work directory has no step-2 posterior (update_joints/joints.parquet): the joints were not updated, so there are no bolted predictions, no bolted Table-2 rows or boxes, and no joint posterior in this report."
-            .to_string(),
-            );
+            let why = match &step2_note {
+                Some(p) => read_json(p)?
+                    .get("findings")
+                    .and_then(|f| f.as_array())
+                    .and_then(|f| f.iter().find(|f| f["code"] == "update.no_bolted_data"))
+                    .and_then(|f| f["message"].as_str())
+                    .map(|m| format!("step 2 ran and found nothing to update: {m}. "))
+                    .unwrap_or_default(),
+                None => String::new(),
+            };
+            step2_absent = Some(format!(
+                "{why}The work directory has no step-2 posterior (update_joints/joints.parquet): the joints were not updated, so there are no bolted predictions, no bolted Table-2 rows or boxes, and no joint posterior in this report."
+            ));
         }
         if !held_out.is_empty() {
             let roles: BTreeMap<(String, String), bool> = measured

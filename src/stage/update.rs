@@ -269,6 +269,10 @@ pub struct UpdateOptions {
 }
 
 impl UpdateOptions {
+    /// The ROM box the tests verify the ROM over (relative half-width); step 1 widens it
+    /// when the posterior presses against it ([`MAX_ROM_BOX`]).
+    pub const DEFAULT_ROM_BOX: f64 = 0.2;
+
     fn extract_dir(&self) -> PathBuf {
         self.extract_dir.clone().unwrap_or_else(|| {
             self.pair_dir
@@ -946,6 +950,58 @@ fn write_residuals(
         Arc::new(BooleanArray::from_iter(rows.iter().map(|r| Some(r.used)))),
     ];
     write_table(path, &RESIDUALS, cols, &[], prov)
+}
+
+/// Step 2 of a campaign without a paired bolted mode (free-free only, or every bolted
+/// measurement quarantined or without an identified mode): nothing to update. The stage
+/// succeeds with `update_report.json` alone, which says why, and no posterior: `propagate`
+/// and `report` then go on without bolted predictions, so a free-free campaign goes through
+/// the whole pipeline.
+fn no_bolted_data(
+    opts: &UpdateOptions,
+    measurements: &Path,
+    mut findings: Findings,
+) -> anyhow::Result<StageResult> {
+    let mut n_bolted = 0usize;
+    for b in tables::read_parquet(measurements)? {
+        let c = Cols {
+            batch: &b,
+            path: measurements,
+        };
+        let st = c.str("setup")?;
+        n_bolted += (0..b.num_rows())
+            .filter(|&i| arrow::array::Array::is_valid(st, i) && st.value(i) == "bolted")
+            .count();
+    }
+    let (severity, message) = if n_bolted == 0 {
+        (
+            Severity::Info,
+            "the campaign has no bolted measurement: step 2 has nothing to update (no joint posterior)".to_string(),
+        )
+    } else {
+        (
+            Severity::Warning,
+            format!("none of the campaign's {n_bolted} bolted measurements has a paired mode in pairs.parquet (see the ingest and pair reports): step 2 has nothing to update (no joint posterior)"),
+        )
+    };
+    eprintln!("update joints: {message}");
+    findings.push(Finding::new(severity, "update.no_bolted_data", message));
+    let report = serde_json::json!({
+        "labels": Vec::<String>::new(),
+        "runs": 0,
+        "bolted_measurements": n_bolted,
+        "findings": findings.0,
+    });
+    let p = opts.out.join("update_report.json");
+    crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    Ok(StageResult {
+        outputs: vec![p],
+        exit_code: crate::stage::exit::OK,
+        summary: BTreeMap::from([(
+            "bolted_measurements".to_string(),
+            serde_json::json!(n_bolted),
+        )]),
+    })
 }
 
 /// Evidence of the runs: each run's log evidence, their mean and standard error.
@@ -2136,376 +2192,488 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
         MANIFEST_BOARDS,
     )?;
     crate::stage::run(spec, opts.force, |prep| {
-        let mut findings = Findings::default();
-        let pairs = read_pairs(&pairs_path)?;
-        let presence = read_presence(&presence_path, "free")?;
-        let labels = select_labels(&pairs, "free", &opts.modes, &presence, &mut findings)?;
-        let mut model = FeModel::build(&board, Setup::Free, &board.mesh)?;
-        let board_nominal = model.nominal_params();
-        // The board's own mass (the balance weighs an added mass with it).
-        let nominal_mass_g = model.total_mass_kg(&board_nominal)? * 1e3;
-        let enrichment = opts
-            .enrich
-            .map(|m| {
-                board_enrichment(
-                    m,
-                    BoardContext {
-                        board_mass_kg: 1e-3 * nominal_mass_g,
-                        location_m: opts.enrich_location,
-                    },
-                )
-                .map_err(|e| anyhow!("--enrich: {e}"))
-            })
-            .transpose()?;
-        // A point mechanism's parameter joins the updated ones on a logarithmic coordinate.
-        let mut param_names = opts.params.clone();
-        let mut log_axes: Vec<(String, f64)> = vec![];
-        if let Some(BoardEffect::PointMass {
-            parameter,
-            x_m,
-            y_m,
-            reference_kg,
-            log_box,
-        }) = enrichment.as_ref().map(|e| &e.effect)
-        {
-            model
-                .add_point_mass_param(parameter, *x_m, *y_m, *reference_kg)
-                .map_err(|e| anyhow!("--enrich added_mass at ({x_m}, {y_m}) m: {e}"))?;
-            param_names.push(parameter.clone());
-            log_axes.push((parameter.clone(), *log_box));
-        }
-        let nominal = model.nominal_params();
-        let mut updated = vec![];
-        for p in &param_names {
-            updated.push(nominal.position(p).map_err(|_| {
-                anyhow!(
-                    "--params: {p:?} is not a parameter of the model; expected some of {:?}",
-                    nominal.names
-                )
-            })?);
-        }
-        let reference: Vec<f64> = updated.iter().map(|&i| nominal.values[i]).collect();
-        if let Some((i, _)) = reference.iter().enumerate().find(|(_, v)| **v == 0.0) {
-            bail!(
-                "--params: {} has nominal value 0; relative updating needs a non-zero nominal",
-                param_names[i]
-            );
-        }
-        let all = all_labels(&pairs, "free", 40, &mut findings);
-        let need = modes_needed(&labels, &all);
-        let rom = rom_for(&model, need, &log_axes, opts)?;
-        let model_error = opts
-            .model_error
-            .then(|| model_error_prior(&board, &board_nominal, &labels, &all))
-            .transpose()?;
-        let point_masses: Vec<usize> = log_axes
-            .iter()
-            .map(|(n, _)| rom.map.names.iter().position(|m| m == n).unwrap_or(0))
-            .collect();
-        let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?
-            .with_point_masses(point_masses.clone());
-        let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
-            .with_point_masses(point_masses);
-        // Units: every board with free-free pairs or a mass.
-        let masses = read_masses(&masses_path)?;
-        // The enrichment's covariate per free-free measurement, as offsets from their mean.
-        let (cov_offsets, covariate) = match enrichment.as_ref().and_then(|e| match &e.effect {
-            BoardEffect::Covariate {
-                coefficient,
-                scaled,
-            } => Some((e, coefficient, scaled)),
-            BoardEffect::PointMass { .. } => None,
-        }) {
-            Some((e, coefficient, scaled)) => {
-                let column = opts.enrich_covariate.clone().ok_or_else(|| {
-                    anyhow!("--enrich {}: needs the covariate column", e.mechanism.id())
-                })?;
-                let free: BTreeSet<&str> = pairs
-                    .iter()
-                    .filter(|p| p.setup == "free")
-                    .map(|p| p.measurement_id.as_str())
-                    .collect();
-                let (offsets, reference) =
-                    covariate_offsets(&measurements_path, &column, &free, &mut findings)?;
-                let scaled: Vec<usize> = scaled
-                    .iter()
-                    .map(|n| {
-                        rom.map.names.iter().position(|m| m == n).ok_or_else(|| {
-                            anyhow!(
-                                "--enrich {}: the model has no parameter {n:?}",
-                                e.mechanism.id()
-                            )
-                        })
-                    })
-                    .collect::<anyhow::Result<_>>()?;
-                let cov = CovariateEffect {
-                    name: coefficient.clone(),
-                    covariate: column,
-                    reference,
-                    scaled,
-                };
-                (Some(offsets), Some(cov))
+        // One attempt at the ROM box `opts.rom_box`; `carried` are findings of an earlier one.
+        let attempt = |opts: &UpdateOptions, carried: &[Finding]| -> anyhow::Result<StageResult> {
+            let mut findings = Findings::default();
+            findings.0.extend(carried.iter().cloned());
+            let pairs = read_pairs(&pairs_path)?;
+            let presence = read_presence(&presence_path, "free")?;
+            let labels = select_labels(&pairs, "free", &opts.modes, &presence, &mut findings)?;
+            let mut model = FeModel::build(&board, Setup::Free, &board.mesh)?;
+            let board_nominal = model.nominal_params();
+            // The board's own mass (the balance weighs an added mass with it).
+            let nominal_mass_g = model.total_mass_kg(&board_nominal)? * 1e3;
+            let enrichment = opts
+                .enrich
+                .map(|m| {
+                    board_enrichment(
+                        m,
+                        BoardContext {
+                            board_mass_kg: 1e-3 * nominal_mass_g,
+                            location_m: opts.enrich_location,
+                        },
+                    )
+                    .map_err(|e| anyhow!("--enrich: {e}"))
+                })
+                .transpose()?;
+            // A point mechanism's parameter joins the updated ones on a logarithmic coordinate.
+            let mut param_names = opts.params.clone();
+            let mut log_axes: Vec<(String, f64)> = vec![];
+            if let Some(BoardEffect::PointMass {
+                parameter,
+                x_m,
+                y_m,
+                reference_kg,
+                log_box,
+            }) = enrichment.as_ref().map(|e| &e.effect)
+            {
+                model
+                    .add_point_mass_param(parameter, *x_m, *y_m, *reference_kg)
+                    .map_err(|e| anyhow!("--enrich added_mass at ({x_m}, {y_m}) m: {e}"))?;
+                param_names.push(parameter.clone());
+                log_axes.push((parameter.clone(), *log_box));
             }
-            None => (None, None),
-        };
-        let wanted: BTreeSet<(String, i32)> = pairs
-            .iter()
-            .filter(|p| p.setup == "free")
-            .map(|p| (p.measurement_id.clone(), p.mode))
-            .collect();
-        let shapes = read_shapes(&modes_path, &wanted)?;
-        let mut board_ids: BTreeSet<String> = pairs
-            .iter()
-            .filter(|p| p.setup == "free")
-            .map(|p| p.board_id.clone())
-            .collect();
-        board_ids.extend(masses.keys().cloned());
-        for b in &opts.hold_out_boards {
-            if !board_ids.contains(b) {
+            let nominal = model.nominal_params();
+            let mut updated = vec![];
+            for p in &param_names {
+                updated.push(nominal.position(p).map_err(|_| {
+                    anyhow!(
+                        "--params: {p:?} is not a parameter of the model; expected some of {:?}",
+                        nominal.names
+                    )
+                })?);
+            }
+            let reference: Vec<f64> = updated.iter().map(|&i| nominal.values[i]).collect();
+            if let Some((i, _)) = reference.iter().enumerate().find(|(_, v)| **v == 0.0) {
                 bail!(
+                    "--params: {} has nominal value 0; relative updating needs a non-zero nominal",
+                    param_names[i]
+                );
+            }
+            let all = all_labels(&pairs, "free", 40, &mut findings);
+            let need = modes_needed(&labels, &all);
+            let rom = rom_for(&model, need, &log_axes, opts)?;
+            if opts.rom_box > UpdateOptions::DEFAULT_ROM_BOX {
+                let worst = rom_box_check(&model, &rom, opts.rom_box, need)?;
+                findings.push(Finding::new(
+                if worst > 1e-4 { Severity::Warning } else { Severity::Info },
+                "update.rom_box_check",
+                format!(
+                    "the ROM over ±{:.0} %: worst relative frequency error {worst:.1e} against the full model over its first {need} modes at 8 Latin-hypercube points{}",
+                    100.0 * opts.rom_box,
+                    if worst > 1e-4 { " (above 1e-4, the accuracy the ±20 % ROM is held to: raise --rom-basis)" } else { "" }
+                ),
+            ));
+            }
+            let model_error = opts
+                .model_error
+                .then(|| model_error_prior(&board, &board_nominal, &labels, &all))
+                .transpose()?;
+            let point_masses: Vec<usize> = log_axes
+                .iter()
+                .map(|(n, _)| rom.map.names.iter().position(|m| m == n).unwrap_or(0))
+                .collect();
+            let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?
+                .with_point_masses(point_masses.clone());
+            let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
+                .with_point_masses(point_masses);
+            // Units: every board with free-free pairs or a mass.
+            let masses = read_masses(&masses_path)?;
+            // The enrichment's covariate per free-free measurement, as offsets from their mean.
+            let (cov_offsets, covariate) = match enrichment.as_ref().and_then(|e| match &e.effect {
+                BoardEffect::Covariate {
+                    coefficient,
+                    scaled,
+                } => Some((e, coefficient, scaled)),
+                BoardEffect::PointMass { .. } => None,
+            }) {
+                Some((e, coefficient, scaled)) => {
+                    let column = opts.enrich_covariate.clone().ok_or_else(|| {
+                        anyhow!("--enrich {}: needs the covariate column", e.mechanism.id())
+                    })?;
+                    let free: BTreeSet<&str> = pairs
+                        .iter()
+                        .filter(|p| p.setup == "free")
+                        .map(|p| p.measurement_id.as_str())
+                        .collect();
+                    let (offsets, reference) =
+                        covariate_offsets(&measurements_path, &column, &free, &mut findings)?;
+                    let scaled: Vec<usize> = scaled
+                        .iter()
+                        .map(|n| {
+                            rom.map.names.iter().position(|m| m == n).ok_or_else(|| {
+                                anyhow!(
+                                    "--enrich {}: the model has no parameter {n:?}",
+                                    e.mechanism.id()
+                                )
+                            })
+                        })
+                        .collect::<anyhow::Result<_>>()?;
+                    let cov = CovariateEffect {
+                        name: coefficient.clone(),
+                        covariate: column,
+                        reference,
+                        scaled,
+                    };
+                    (Some(offsets), Some(cov))
+                }
+                None => (None, None),
+            };
+            let wanted: BTreeSet<(String, i32)> = pairs
+                .iter()
+                .filter(|p| p.setup == "free")
+                .map(|p| (p.measurement_id.clone(), p.mode))
+                .collect();
+            let shapes = read_shapes(&modes_path, &wanted)?;
+            let mut board_ids: BTreeSet<String> = pairs
+                .iter()
+                .filter(|p| p.setup == "free")
+                .map(|p| p.board_id.clone())
+                .collect();
+            board_ids.extend(masses.keys().cloned());
+            for b in &opts.hold_out_boards {
+                if !board_ids.contains(b) {
+                    bail!(
                     "--hold-out: board {b} has no paired free-free mode and no balance reading in this campaign (boards: {})",
                     board_ids.iter().cloned().collect::<Vec<_>>().join(", ")
                 );
-            }
-            findings.push(Finding::new(
+                }
+                findings.push(Finding::new(
                 Severity::Info,
                 "update.board_held_out",
                 format!("board {b} is held out (--hold-out): its modes and mass are not used; the report compares its measurements with the new-board prediction"),
             ));
-        }
-        board_ids.retain(|b| !opts.hold_out_boards.contains(b));
-        if board_ids.is_empty() {
-            bail!("--hold-out leaves no board to update");
-        }
-        // The balance informs the mass parameters: mass_scale, and an added mass.
-        let mass_updated =
-            opts.params.iter().any(|p| p == names::MASS_SCALE) || !log_axes.is_empty();
-        let use_shapes = opts.delta.is_some();
-        let mut units = vec![];
-        let mut units_all = vec![];
-        let mut unit_names = vec![];
-        for b in &board_ids {
-            let rows: Vec<&PairRow> = pairs
-                .iter()
-                .filter(|p| p.setup == "free" && &p.board_id == b)
-                .collect();
-            let (mut data, (data_all, meta_all)) = unit_and_residual_data(
-                &rows,
-                &labels,
-                &all,
-                use_shapes,
-                (&model, &rom, &shapes),
-                cov_offsets.as_ref(),
-                &mut findings,
-            )?;
-            data.mass = match masses.get(b) {
-                Some(m) if mass_updated => mass_obs(m, b, &mut findings),
-                Some(_) => None,
-                None => {
-                    findings.push(Finding::new(
+            }
+            board_ids.retain(|b| !opts.hold_out_boards.contains(b));
+            if board_ids.is_empty() {
+                bail!("--hold-out leaves no board to update");
+            }
+            // The balance informs the mass parameters: mass_scale, and an added mass.
+            let mass_updated =
+                opts.params.iter().any(|p| p == names::MASS_SCALE) || !log_axes.is_empty();
+            let use_shapes = opts.delta.is_some();
+            let mut units = vec![];
+            let mut units_all = vec![];
+            let mut unit_names = vec![];
+            for b in &board_ids {
+                let rows: Vec<&PairRow> = pairs
+                    .iter()
+                    .filter(|p| p.setup == "free" && &p.board_id == b)
+                    .collect();
+                let (mut data, (data_all, meta_all)) = unit_and_residual_data(
+                    &rows,
+                    &labels,
+                    &all,
+                    use_shapes,
+                    (&model, &rom, &shapes),
+                    cov_offsets.as_ref(),
+                    &mut findings,
+                )?;
+                data.mass = match masses.get(b) {
+                    Some(m) if mass_updated => mass_obs(m, b, &mut findings),
+                    Some(_) => None,
+                    None => {
+                        findings.push(Finding::new(
                         Severity::Warning,
                         "update.not_weighed",
                         format!("board {b} was never weighed (no stable balance reading): its mass is informed by the population only"),
                     ));
-                    None
-                }
-            };
-            if data.freq.is_empty() && data.mass.is_none() {
-                findings.push(Finding::new(
+                        None
+                    }
+                };
+                if data.freq.is_empty() && data.mass.is_none() {
+                    findings.push(Finding::new(
                     Severity::Warning,
                     "update.board_no_data",
                     format!("board {b} has no paired free-free mode to update and no usable mass; left out of step 1"),
                 ));
-                continue;
-            }
-            if data.freq.is_empty() {
-                findings.push(Finding::new(
+                    continue;
+                }
+                if data.freq.is_empty() {
+                    findings.push(Finding::new(
                     Severity::Warning,
                     "update.board_no_modes",
                     format!("board {b} has no paired free-free mode to update; only its mass informs it"),
                 ));
-            }
-            // Modes missing in some measurements: reported, the rest are used.
-            let meas: BTreeSet<&str> = rows.iter().map(|p| p.measurement_id.as_str()).collect();
-            for (m, l) in labels.labels.iter().enumerate() {
-                let n = data.freq.iter().filter(|f| f.mode == m).count();
-                if n > 0 && n < meas.len() {
-                    findings.push(Finding::new(
+                }
+                // Modes missing in some measurements: reported, the rest are used.
+                let meas: BTreeSet<&str> = rows.iter().map(|p| p.measurement_id.as_str()).collect();
+                for (m, l) in labels.labels.iter().enumerate() {
+                    let n = data.freq.iter().filter(|f| f.mode == m).count();
+                    if n > 0 && n < meas.len() {
+                        findings.push(Finding::new(
                         Severity::Info,
                         "update.mode_missing",
                         format!("board {b}: mode {l:?} is paired in {n} of {} measurements; the others contribute no term for it", meas.len()),
                     ));
+                    }
                 }
+                units.push(data);
+                units_all.push((data_all, meta_all));
+                unit_names.push(b.clone());
             }
-            units.push(data);
-            units_all.push((data_all, meta_all));
-            unit_names.push(b.clone());
-        }
-        if units.is_empty() {
-            bail!("no board has data for step 1 (no paired free-free mode and no mass)");
-        }
-        let d = updated.len();
-        let d0 = opts.params.len();
-        let mut prior = PopulationPrior {
-            mu_mean: vec![0.0; d0],
-            mu_sd: vec![opts.prior_width; d0],
-            sigma_scale: vec![opts.sigma_scale; d0],
-            lkj_eta: opts.lkj_eta,
-        };
-        if let Some(e) = &enrichment {
-            // The board's coordinate (a coefficient, or ln of an added mass): population
-            // mean ~ the mechanism's prior, and a board-to-board sd of a fifth of that
-            // prior's.
-            prior.mu_mean.push(e.prior_mean);
-            prior.mu_sd.push(e.prior_sd);
-            prior.sigma_scale.push(0.2 * e.prior_sd);
-        }
-        let log: Vec<bool> = (0..d).map(|k| k >= d0).collect();
-        let target = ModalTarget {
-            predictor,
-            compose: Compose::Boards {
-                updated: updated.clone(),
-                reference: reference.clone(),
-                log: log.clone(),
-            },
-            prior,
-            errors: ErrorModel {
-                n_modes: labels.labels.len(),
-                eps: opts.eps,
-                delta: opts.delta,
-                model_error_sd: model_error.as_ref().map(|m| m.sd_updated.clone()),
-            },
-            units,
-            covariate: covariate.clone(),
-        };
-        let t0 = std::time::Instant::now();
-        // The surrogates model a unit's terms as a function of its ROM parameters alone; with
-        // a covariate the terms also follow the unit's coefficient, so the ROM runs directly.
-        let mut sopts = opts.clone();
-        sopts.surrogate &= target.covariate.is_none();
-        let (results, acceleration) = run_smc(&target, &sopts, "boards", &[], None, verbose)?;
-        let sampler_seconds = t0.elapsed().as_secs_f64();
-        check_surrogate_edges(&acceleration, &mut findings);
-        let violations = box_violations(
-            &results,
-            &unit_names,
-            &param_names,
-            |k, x| match log_axes.get(k.wrapping_sub(d0)) {
-                Some((_, w)) if k >= d0 => x.abs() <= *w,
-                _ => x.abs() <= opts.rom_box,
-            },
-            opts.box_tolerance,
-        );
-        if !violations.is_empty() {
-            bail!(
-                "the posterior presses against the ROM's ±{:.0} % box (relative to the board file's nominal values):\n  {}\nThe ROM is not verified there. Re-centre the model: put the posterior means in the board file (--model) and run again.",
-                100.0 * opts.rom_box,
-                violations.join("\n  ")
+            if units.is_empty() {
+                bail!("no board has data for step 1 (no paired free-free mode and no mass)");
+            }
+            let d = updated.len();
+            let d0 = opts.params.len();
+            let mut prior = PopulationPrior {
+                mu_mean: vec![0.0; d0],
+                mu_sd: vec![opts.prior_width; d0],
+                sigma_scale: vec![opts.sigma_scale; d0],
+                lkj_eta: opts.lkj_eta,
+            };
+            if let Some(e) = &enrichment {
+                // The board's coordinate (a coefficient, or ln of an added mass): population
+                // mean ~ the mechanism's prior, and a board-to-board sd of a fifth of that
+                // prior's.
+                prior.mu_mean.push(e.prior_mean);
+                prior.mu_sd.push(e.prior_sd);
+                prior.sigma_scale.push(0.2 * e.prior_sd);
+            }
+            let log: Vec<bool> = (0..d).map(|k| k >= d0).collect();
+            let target = ModalTarget {
+                predictor,
+                compose: Compose::Boards {
+                    updated: updated.clone(),
+                    reference: reference.clone(),
+                    log: log.clone(),
+                },
+                prior,
+                errors: ErrorModel {
+                    n_modes: labels.labels.len(),
+                    eps: opts.eps,
+                    delta: opts.delta,
+                    model_error_sd: model_error.as_ref().map(|m| m.sd_updated.clone()),
+                },
+                units,
+                covariate: covariate.clone(),
+            };
+            let t0 = std::time::Instant::now();
+            // The surrogates model a unit's terms as a function of its ROM parameters alone; with
+            // a covariate the terms also follow the unit's coefficient, so the ROM runs directly.
+            let mut sopts = opts.clone();
+            sopts.surrogate &= target.covariate.is_none();
+            let (results, acceleration) = run_smc(&target, &sopts, "boards", &[], None, verbose)?;
+            let sampler_seconds = t0.elapsed().as_secs_f64();
+            check_surrogate_edges(&acceleration, &mut findings);
+            let violations = box_violations(
+                &results,
+                &unit_names,
+                &param_names,
+                |k, x| match log_axes.get(k.wrapping_sub(d0)) {
+                    Some((_, w)) if k >= d0 => x.abs() <= *w,
+                    _ => x.abs() <= opts.rom_box,
+                },
+                opts.box_tolerance,
             );
-        }
-        // Outputs.
-        let prov = provenance("update_boards", &prep.fingerprint);
-        let mut outputs = vec![];
-        let (pcols, pop_of) = population_columns(&target, &param_names, &reference, &labels.labels);
-        let mut pop = DrawTable::new(&pcols);
-        let mut bcols: Vec<(String, String)> = param_names
-            .iter()
-            .map(|p| (p.clone(), String::new()))
-            .collect();
-        bcols.push(("mass_g".into(), "g".into()));
-        // A board enrichment's coefficient per board (step 2 carries it with the draw).
-        if let Some(c) = &covariate {
-            bcols.push((c.name.clone(), format!("1/(unit of {})", c.covariate)));
-        }
-        let mut boards = DrawTable::new(&bcols);
-        for (r, i, p) in particles_of(&results) {
-            pop.push(r, i, None, &pop_of(&p.g));
-            for (b, name) in unit_names.iter().enumerate() {
-                let v = target.values(&p.aux, b, &p.x[b]);
-                let mut row: Vec<f64> = updated.iter().map(|&k| v[k]).collect();
-                row.push(target.predictor.mass_g(&v));
-                if covariate.is_some() {
-                    row.push(p.x[b][d]);
+            if !violations.is_empty() {
+                // The half-width that holds every sampled value of the relative coordinates, with
+                // a margin, to the next 5 %.
+                let mut reach = 0.0f64;
+                for r in &results {
+                    for p in &r.particles {
+                        for x in &p.x {
+                            for (k, v) in x.iter().enumerate() {
+                                if k < d0 || log_axes.get(k.wrapping_sub(d0)).is_none() {
+                                    reach = reach.max(v.abs());
+                                }
+                            }
+                        }
+                    }
                 }
-                boards.push(r, i, Some(name), &row);
+                return Err(RomBoxViolation {
+                message: format!(
+                    "the posterior presses against the ROM's ±{:.0} % box (relative to the board file's nominal values):\n  {}\nThe ROM is not verified there. Re-centre the model: put the posterior means in the board file (--model) and run again, or leave an uninformed parameter out (--params).",
+                    100.0 * opts.rom_box,
+                    violations.join("\n  ")
+                ),
+                needed_half_width: (reach * 1.15 / 0.05).ceil() * 0.05,
             }
-        }
-        let mut summary = pop.summarize(opts.runs, true);
-        summary.extend(boards.summarize(opts.runs, true));
-        let p = opts.out.join("population.parquet");
-        write_draws(&p, &POPULATION, &pop, false, &prov)?;
-        outputs.push(p);
-        let p = opts.out.join("boards.parquet");
-        write_draws(&p, &BOARDS, &boards, true, &prov)?;
-        outputs.push(p);
-        let p = opts.out.join("summary.parquet");
-        write_summary(&p, &summary, &prov)?;
-        outputs.push(p);
-        let stages: Vec<StageInfo> = results.iter().flat_map(|r| r.stages.clone()).collect();
-        let p = opts.out.join("stages.parquet");
-        write_stages(&p, &stages, &prov)?;
-        outputs.push(p);
-        let (res, lost) = residuals(
-            &target,
-            &all_pred,
-            &all.labels,
-            &labels.labels,
-            &units_all,
-            &results,
-            "free",
-            opts.residual_draws,
-            model_error.as_ref().map(|m| m.sd.as_slice()),
-        );
-        lost_finding(&lost, &mut findings);
-        let p = opts.out.join("residuals.parquet");
-        write_residuals(&p, &res, &prov)?;
-        outputs.push(p);
-        let p = opts.out.join("rom.npz");
-        crate::io::atomic::write_bytes(&p, &target.predictor.rom.to_npz_bytes())?;
-        outputs.push(p);
-        let log_z: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
-        let mut ev = evidence_json(&log_z, "boards (step 1)");
-        match (&enrichment, &covariate) {
-            (Some(e), Some(c)) => {
-                if let BoardEffect::Covariate {
-                    coefficient,
-                    scaled,
-                } = &e.effect
-                {
-                    ev["enrichment"] = serde_json::json!({
-                        "mechanism": e.mechanism,
-                        "coefficient": coefficient,
-                        "scaled": scaled,
-                        "covariate": c.covariate,
-                        "covariate_reference": c.reference,
-                        "prior_mean": e.prior_mean,
-                        "prior_sd": e.prior_sd,
-                    });
+            .into());
+            }
+            // Outputs.
+            let prov = provenance("update_boards", &prep.fingerprint);
+            let mut outputs = vec![];
+            let (pcols, pop_of) =
+                population_columns(&target, &param_names, &reference, &labels.labels);
+            let mut pop = DrawTable::new(&pcols);
+            let mut bcols: Vec<(String, String)> = param_names
+                .iter()
+                .map(|p| (p.clone(), String::new()))
+                .collect();
+            bcols.push(("mass_g".into(), "g".into()));
+            // A board enrichment's coefficient per board (step 2 carries it with the draw).
+            if let Some(c) = &covariate {
+                bcols.push((c.name.clone(), format!("1/(unit of {})", c.covariate)));
+            }
+            let mut boards = DrawTable::new(&bcols);
+            for (r, i, p) in particles_of(&results) {
+                pop.push(r, i, None, &pop_of(&p.g));
+                for (b, name) in unit_names.iter().enumerate() {
+                    let v = target.values(&p.aux, b, &p.x[b]);
+                    let mut row: Vec<f64> = updated.iter().map(|&k| v[k]).collect();
+                    row.push(target.predictor.mass_g(&v));
+                    if covariate.is_some() {
+                        row.push(p.x[b][d]);
+                    }
+                    boards.push(r, i, Some(name), &row);
                 }
             }
-            (Some(e), None) => {
-                ev["enrichment"] = serde_json::to_value(e)?;
+            let mut summary = pop.summarize(opts.runs, true);
+            summary.extend(boards.summarize(opts.runs, true));
+            let p = opts.out.join("population.parquet");
+            write_draws(&p, &POPULATION, &pop, false, &prov)?;
+            outputs.push(p);
+            let p = opts.out.join("boards.parquet");
+            write_draws(&p, &BOARDS, &boards, true, &prov)?;
+            outputs.push(p);
+            let p = opts.out.join("summary.parquet");
+            write_summary(&p, &summary, &prov)?;
+            outputs.push(p);
+            let stages: Vec<StageInfo> = results.iter().flat_map(|r| r.stages.clone()).collect();
+            let p = opts.out.join("stages.parquet");
+            write_stages(&p, &stages, &prov)?;
+            outputs.push(p);
+            let (res, lost) = residuals(
+                &target,
+                &all_pred,
+                &all.labels,
+                &labels.labels,
+                &units_all,
+                &results,
+                "free",
+                opts.residual_draws,
+                model_error.as_ref().map(|m| m.sd.as_slice()),
+            );
+            lost_finding(&lost, &mut findings);
+            let p = opts.out.join("residuals.parquet");
+            write_residuals(&p, &res, &prov)?;
+            outputs.push(p);
+            let p = opts.out.join("rom.npz");
+            crate::io::atomic::write_bytes(&p, &target.predictor.rom.to_npz_bytes())?;
+            outputs.push(p);
+            let log_z: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
+            let mut ev = evidence_json(&log_z, "boards (step 1)");
+            match (&enrichment, &covariate) {
+                (Some(e), Some(c)) => {
+                    if let BoardEffect::Covariate {
+                        coefficient,
+                        scaled,
+                    } = &e.effect
+                    {
+                        ev["enrichment"] = serde_json::json!({
+                            "mechanism": e.mechanism,
+                            "coefficient": coefficient,
+                            "scaled": scaled,
+                            "covariate": c.covariate,
+                            "covariate_reference": c.reference,
+                            "prior_mean": e.prior_mean,
+                            "prior_sd": e.prior_sd,
+                        });
+                    }
+                }
+                (Some(e), None) => {
+                    ev["enrichment"] = serde_json::to_value(e)?;
+                }
+                _ => {}
             }
-            _ => {}
-        }
-        ev["model_error"] = serde_json::to_value(&model_error)?;
-        let p = opts.out.join("evidence.json");
-        crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
-        outputs.push(p);
-        finish(
-            opts,
-            findings,
-            outputs,
-            &results,
-            &summary,
-            ev,
-            sampler_seconds,
-            &labels.labels,
-            verbose,
-            "update boards",
-            &acceleration,
-        )
+            ev["model_error"] = serde_json::to_value(&model_error)?;
+            let p = opts.out.join("evidence.json");
+            crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
+            outputs.push(p);
+            finish(
+                opts,
+                findings,
+                outputs,
+                &results,
+                &summary,
+                ev,
+                sampler_seconds,
+                &labels.labels,
+                verbose,
+                "update boards",
+                &acceleration,
+            )
+        };
+        widen_rom_box_once(opts, |o, carried| attempt(o, carried))
     })
+}
+
+/// Widest ROM box step 1 rebuilds to, relative half-width: beyond it a parameter is so far from
+/// the board file's value, or so little informed, that the board file (or `--params`) needs
+/// changing, not the ROM.
+const MAX_ROM_BOX: f64 = 0.5;
+
+/// The step-1 posterior pressing against the ROM's box: the stage's message, and the relative
+/// half-width that would hold what was sampled.
+#[derive(Debug)]
+struct RomBoxViolation {
+    message: String,
+    needed_half_width: f64,
+}
+
+impl std::fmt::Display for RomBoxViolation {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.message)
+    }
+}
+
+impl std::error::Error for RomBoxViolation {}
+
+/// Runs a step-1 attempt; when its posterior presses against the ROM's box and a box up to
+/// [`MAX_ROM_BOX`] would hold it, rebuilds the ROM over that box and runs once more (the
+/// finding `update.rom_box_widened` says so, and the new ROM is checked against the full
+/// model). A posterior that still presses, or needs more, stops the stage with the message.
+fn widen_rom_box_once(
+    opts: &UpdateOptions,
+    attempt: impl Fn(&UpdateOptions, &[Finding]) -> anyhow::Result<StageResult>,
+) -> anyhow::Result<StageResult> {
+    let e = match attempt(opts, &[]) {
+        Err(e) => e,
+        ok => return ok,
+    };
+    let Some(v) = e.downcast_ref::<RomBoxViolation>() else {
+        return Err(e);
+    };
+    if v.needed_half_width > MAX_ROM_BOX || v.needed_half_width <= opts.rom_box {
+        return Err(e);
+    }
+    let mut wider = opts.clone();
+    wider.rom_box = v.needed_half_width;
+    let what = v
+        .message
+        .lines()
+        .filter_map(|l| l.strip_prefix("  "))
+        .collect::<Vec<_>>()
+        .join("; ");
+    let note = Finding::new(
+        Severity::Warning,
+        "update.rom_box_widened",
+        format!(
+            "the posterior pressed against the ROM's ±{:.0} % box ({}): the ROM was rebuilt over ±{:.0} % around the board file's values, checked against the full model (update.rom_box_check), and the sampling run again",
+            100.0 * opts.rom_box,
+            what.trim(),
+            100.0 * wider.rom_box
+        ),
+    );
+    eprintln!("update boards: {}", note.message);
+    attempt(&wider, &[note])
+}
+
+/// The ROM's worst relative frequency error against the full model over the first `n_modes`
+/// modes, at `n_points` Latin-hypercube points of its box (a design apart from the build's).
+fn rom_box_check(model: &FeModel, rom: &Rom, box_rel: f64, n_modes: usize) -> anyhow::Result<f64> {
+    let sop = rom.shape_operator(model, &[[0.0, 0.0]])?;
+    let mut worst = 0.0f64;
+    for p in crate::fem::rom::latin_hypercube_params(&model.map, 8, box_rel, 0x00B0_C5EC) {
+        let full = model.modes(&p, n_modes)?;
+        let red = rom.eval(&p, &sop)?;
+        for (a, b) in red.freq_hz.iter().zip(&full.freq_hz).take(n_modes) {
+            worst = worst.max((a - b).abs() / b);
+        }
+    }
+    Ok(worst)
 }
 
 /// Step-1 posterior draws read back from boards.parquet.
@@ -2889,11 +3057,13 @@ pub fn run_joints(
     let presence_path = opts.pair_dir.join("presence.parquet");
     let modes_path = extract_dir.join("modes.parquet");
     let step1_path = boards_dir.join("boards.parquet");
+    let measurements_path = opts.ingest_dir.join("measurements.parquet");
     let mut inputs = vec![
         pairs_path.clone(),
         presence_path.clone(),
         modes_path.clone(),
         step1_path.clone(),
+        measurements_path.clone(),
     ];
     if opts
         .enrich
@@ -2911,8 +3081,11 @@ pub fn run_joints(
     )?;
     crate::stage::run(spec, opts.force, |prep| {
         let mut findings = Findings::default();
-        let step1 = read_step1(&step1_path)?;
         let pairs = read_pairs(&pairs_path)?;
+        if !pairs.iter().any(|p| p.setup == "bolted") {
+            return no_bolted_data(opts, &measurements_path, findings);
+        }
+        let step1 = read_step1(&step1_path)?;
         let presence = read_presence(&presence_path, "bolted")?;
         let labels = select_labels(&pairs, "bolted", &opts.modes, &presence, &mut findings)?;
         let bolted_rows: Vec<&PairRow> = pairs.iter().filter(|p| p.setup == "bolted").collect();

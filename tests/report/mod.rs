@@ -286,7 +286,7 @@ fn run_small_pipeline(work: &Path) {
         .arg(repo().join("pipelines"))
         .args([
             "--no-print-directory",
-            "all",
+            "prepare",
             "update-boards",
             "propagate",
             "report",
