@@ -290,7 +290,11 @@ mod tests {
             "/repo/data/boards/b.toml"
         );
         assert_eq!(
-            recorded_path(Path::new("/w/work/pair/pairs.parquet"), Path::new("/w/work"), m),
+            recorded_path(
+                Path::new("/w/work/pair/pairs.parquet"),
+                Path::new("/w/work"),
+                m
+            ),
             "pair/pairs.parquet"
         );
     }
