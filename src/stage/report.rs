@@ -151,49 +151,31 @@ fn held_out_boards(update_report: &serde_json::Value) -> Vec<String> {
         .collect()
 }
 
-/// The held-out boards' measured frequencies: the accepted, labelled pairs of pairs.parquet
-/// (both setups), each mode's role taken from the updated boards' residuals.
+/// The held-out boards' measured frequencies: their accepted pairs (both setups, read as the
+/// updating reads them), each mode's role taken from the updated boards' residuals.
 fn read_held_out(
     pairs: &Path,
     boards: &[String],
     roles: &BTreeMap<(String, String), bool>,
 ) -> anyhow::Result<Vec<Measured>> {
     let mut out = vec![];
-    for b in tables::read_parquet(pairs)? {
-        let c = Cols {
-            batch: &b,
-            path: pairs,
-        };
-        let (m, bid, st, l, f, acc) = (
-            c.str("measurement_id")?,
-            c.str("board_id")?,
-            c.str("setup")?,
-            c.str("label")?,
-            c.f64("freq_hz")?,
-            c.bool("accepted")?,
-        );
-        for i in 0..b.num_rows() {
-            if !acc.value(i)
-                || l.is_null(i)
-                || f.is_null(i)
-                || !boards.iter().any(|h| h == bid.value(i))
-            {
-                continue;
-            }
-            let key = (st.value(i).to_string(), l.value(i).to_string());
-            let Some(used) = roles.get(&key) else {
-                continue; // a mode the updated boards' residuals do not have: nothing predicts it
-            };
-            out.push(Measured {
-                measurement_id: m.value(i).into(),
-                board_id: bid.value(i).into(),
-                setup: key.0,
-                label: key.1,
-                freq_hz: f.value(i),
-                used_for_updating: *used,
-                held_out: true,
-            });
+    for p in crate::stage::update::read_pairs(pairs)? {
+        if !boards.contains(&p.board_id) {
+            continue;
         }
+        let key = (p.setup, p.label);
+        let Some(used) = roles.get(&key) else {
+            continue; // a mode the updated boards' residuals do not have: nothing predicts it
+        };
+        out.push(Measured {
+            measurement_id: p.measurement_id,
+            board_id: p.board_id,
+            setup: key.0,
+            label: key.1,
+            freq_hz: p.freq_hz,
+            used_for_updating: *used,
+            held_out: true,
+        });
     }
     Ok(out)
 }
@@ -636,7 +618,8 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         );
     }
     let has2 = step2.join("joints.parquet").is_file();
-    let held_out = held_out_boards(&read_json(&step1.join("update_report.json"))?);
+    let step1_report = read_json(&step1.join("update_report.json"))?;
+    let held_out = held_out_boards(&step1_report);
     let pairs = w.join("pair").join("pairs.parquet");
     let mut inputs = vec![
         prop.join("predictions.parquet"),
@@ -802,11 +785,7 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
             }
             findings_of("ingest", &v, &mut findings);
         }
-        findings_of(
-            "update boards",
-            &read_json(&step1.join("update_report.json"))?,
-            &mut findings,
-        );
+        findings_of("update boards", &step1_report, &mut findings);
         if has2 && step2.join("update_report.json").is_file() {
             findings_of(
                 "update joints",

@@ -287,17 +287,18 @@ impl UpdateOptions {
 // Reading the campaign's tables.
 
 #[derive(Debug, Clone)]
-struct PairRow {
-    measurement_id: String,
-    board_id: String,
-    setup: String,
-    mode: i32,
-    freq_hz: f64,
-    model_mode: i32,
-    label: String,
+pub(crate) struct PairRow {
+    pub(crate) measurement_id: String,
+    pub(crate) board_id: String,
+    pub(crate) setup: String,
+    pub(crate) mode: i32,
+    pub(crate) freq_hz: f64,
+    pub(crate) model_mode: i32,
+    pub(crate) label: String,
 }
 
-fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairRow>> {
+/// The accepted pairs of pairs.parquet (with an identified mode, a frequency and a model mode).
+pub(crate) fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairRow>> {
     let mut out = vec![];
     for b in tables::read_parquet(path)? {
         let c = Cols { batch: &b, path };
