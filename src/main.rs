@@ -338,7 +338,8 @@ enum UpdateCommand {
         #[arg(long, value_enum)]
         enrich: Option<hbmu::diagnose::library::Mechanism>,
         /// The joint (1-based, hole order of the board file) of
-        /// `--enrich joint_stiffness_per_joint`.
+        /// `--enrich joint_stiffness_per_joint`; without it, every joint gets its own
+        /// stiffness ratio in every measurement.
         #[arg(long)]
         enrich_joint: Option<usize>,
     },

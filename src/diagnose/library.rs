@@ -24,7 +24,9 @@
 //!   where the two hybridise and no draw near the prior's centre could be evaluated) with a
 //!   log-sd of 1;
 //! - `joint_stiffness_per_joint`: the stiffness ratio of one joint to the others, centred on
-//!   1 with a log-sd of 0.7 (a loose bolt halves it, a missing washer doubles it).
+//!   1 with a log-sd of 0.7 (a loose bolt halves it, a missing washer doubles it); without a
+//!   joint named, every joint's ratio at once, per measurement (the bolt that is loose may
+//!   differ between assemblies).
 //!
 //! A board mechanism enriches step 1 (free-free): `temperature_stiffness` scales the FR-4
 //! moduli (E_x, E_y, G_xy) of every measurement by 1 + β (c − c_ref), c the sheet's
@@ -140,6 +142,33 @@ pub struct JointEnrichment {
     /// (ROM parameter name, reference value) for every parameter a coordinate moves.
     pub reference: Vec<(String, f64)>,
     pub coordinates: Vec<Coordinate>,
+}
+
+impl JointEnrichment {
+    /// `joint_stiffness_per_joint` with every joint its own contrast (no joint named).
+    pub fn every_joint(&self) -> bool {
+        self.mechanism == Some(Mechanism::JointStiffnessPerJoint) && self.joint.is_none()
+    }
+
+    /// One unit's coordinates as reported (joints.parquet): report_ref · e^x, except the
+    /// contrasts of [`Self::every_joint`], reported as each joint's stiffness over the mean
+    /// of the others' in that measurement, k_j / mean_{i≠j} k_i (x_0 cancels). With one
+    /// joint named, e^x of its coordinate is that ratio already.
+    pub fn report_values(&self, x: &[f64]) -> Vec<f64> {
+        if !self.every_joint() {
+            return self
+                .coordinates
+                .iter()
+                .zip(x)
+                .map(|(c, v)| c.report_ref * v.exp())
+                .collect();
+        }
+        let e: Vec<f64> = x[1..].iter().map(|v| v.exp()).collect();
+        let (sum, others) = (e.iter().sum::<f64>(), (e.len() - 1) as f64);
+        let mut out = vec![self.coordinates[0].report_ref * x[0].exp()];
+        out.extend(e.iter().map(|&k| k * others / (sum - k)));
+        out
+    }
 }
 
 /// A step-1 enrichment: the mechanism, what it adds to the board model, and the prior of
@@ -368,10 +397,9 @@ pub fn joint_enrichment(
         }
         Some(Mechanism::JointStiffnessPerJoint) => {
             let n = board.holes.len();
-            let j = joint.ok_or("joint_stiffness_per_joint needs the joint (1-based)")?;
-            if j == 0 || j > n {
+            if n < 2 {
                 return Err(format!(
-                    "joint_stiffness_per_joint: expected a joint in 1..={n}, found {j}"
+                    "joint_stiffness_per_joint: the board has {n} joint(s); one joint against the others needs at least 2"
                 ));
             }
             features = vec![JointFeature::PerJointTranslational];
@@ -381,15 +409,51 @@ pub fn joint_enrichment(
                 k0,
                 ctx.k_con_prior_sd,
             )];
-            coords.push(Coordinate {
-                name: format!("ln_k_ratio_{j}"),
-                report_param: format!("k_ratio_{j}"),
-                report_ref: 1.0,
-                report_unit: String::new(),
-                acts_on: vec![(names::k_con_joint(j), 1.0)],
-                prior_sd: 0.7,
-                log_box: Some(2.1),
-            });
+            match joint {
+                Some(j) => {
+                    if j == 0 || j > n {
+                        return Err(format!(
+                            "joint_stiffness_per_joint: expected a joint in 1..={n}, found {j}"
+                        ));
+                    }
+                    coords.push(Coordinate {
+                        name: format!("ln_k_ratio_{j}"),
+                        report_param: format!("k_ratio_{j}"),
+                        report_ref: 1.0,
+                        report_unit: String::new(),
+                        acts_on: vec![(names::k_con_joint(j), 1.0)],
+                        prior_sd: 0.7,
+                        log_box: Some(2.1),
+                    });
+                }
+                None => {
+                    // Every joint its own stiffness in every measurement (the bolt that is
+                    // loose may differ between assemblies): a centred contrast per joint,
+                    // ln k_i = x_0 + r_i − r̄, so x_0 stays the joints' mean (geometric)
+                    // stiffness and the likelihood sees only the contrasts; their common
+                    // part r̄ is left to the prior (nothing in the data moves it). The
+                    // contrasts' half-width 1.4 (e^−1.4 = 0.25: a bolt at a quarter of the
+                    // others') makes each joint's ROM axis 1 + 2 (n−1)/n · 1.4, 3.1 for four
+                    // joints, the single-joint refit's.
+                    let inv = 1.0 / n as f64;
+                    for j in 1..=n {
+                        coords.push(Coordinate {
+                            name: format!("ln_k_contrast_{j}"),
+                            report_param: format!("k_ratio_{j}"),
+                            report_ref: 1.0,
+                            report_unit: String::new(),
+                            acts_on: (1..=n)
+                                .map(|i| {
+                                    let a = if i == j { 1.0 - inv } else { -inv };
+                                    (names::k_con_joint(i), a)
+                                })
+                                .collect(),
+                            prior_sd: 0.7,
+                            log_box: Some(1.4),
+                        });
+                    }
+                }
+            }
         }
         Some(m) => {
             return Err(format!(
@@ -448,6 +512,66 @@ mod tests {
             joint_enrichment(&b, Some(Mechanism::JointStiffnessPerJoint), Some(9), ctx).is_err()
         );
         assert!(joint_enrichment(&b, Some(Mechanism::AddedMass), None, ctx).is_err());
+    }
+
+    #[test]
+    fn every_joint_contrasts_leave_the_mean_stiffness_and_report_ratios_to_the_others() {
+        let b = board();
+        let ctx = JointContext {
+            band_top_hz: 3000.0,
+            k_con_prior_sd: 1.0,
+        };
+        let e = joint_enrichment(&b, Some(Mechanism::JointStiffnessPerJoint), None, ctx).unwrap();
+        let n = b.holes.len();
+        assert!(e.every_joint());
+        assert_eq!(e.coordinates.len(), 1 + n);
+        // ln k_i = Σ_k a_ik x_k: the contrasts move no joint's mean, so equal contrasts
+        // change nothing and x_0 is the joints' mean ln stiffness.
+        let ln_k = |x: &[f64]| -> Vec<f64> {
+            (1..=n)
+                .map(|i| {
+                    let p = names::k_con_joint(i);
+                    e.coordinates
+                        .iter()
+                        .zip(x)
+                        .map(|(c, v)| {
+                            c.acts_on
+                                .iter()
+                                .filter(|(q, _)| *q == p)
+                                .map(|(_, a)| a * v)
+                                .sum::<f64>()
+                        })
+                        .sum()
+                })
+                .collect()
+        };
+        let mut x = vec![0.3; 1 + n];
+        let k = ln_k(&x);
+        assert!(k.iter().all(|v| (v - 0.3).abs() < 1e-12), "{k:?}");
+        // Joint 2 at half the others: its ratio is 0.5, the others' (1 / mean of the rest).
+        x[2] += 0.5f64.ln();
+        let k = ln_k(&x);
+        let mean_ln = k.iter().sum::<f64>() / n as f64;
+        assert!((mean_ln - 0.3).abs() < 1e-12);
+        let r = e.report_values(&x);
+        assert!((r[0] - b.joint.k_con_n_per_m * 0.3f64.exp()).abs() < 1e-6 * r[0]);
+        let kk: Vec<f64> = k.iter().map(|v| v.exp()).collect();
+        for j in 0..n {
+            let others: f64 = kk
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| *i != j)
+                .map(|(_, v)| v)
+                .sum::<f64>()
+                / (n - 1) as f64;
+            assert!((r[1 + j] - kk[j] / others).abs() < 1e-12, "{j}: {r:?}");
+        }
+        assert!((r[2] - 0.5).abs() < 1e-12);
+        // A single joint named reports e^x: the ratio of that joint to the others.
+        let one =
+            joint_enrichment(&b, Some(Mechanism::JointStiffnessPerJoint), Some(3), ctx).unwrap();
+        assert!(!one.every_joint());
+        assert!((one.report_values(&[0.0, 0.5f64.ln()])[1] - 0.5).abs() < 1e-12);
     }
 
     #[test]

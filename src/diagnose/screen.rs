@@ -6,8 +6,9 @@
 //! - only the bolted setup misfits (free-free clean) → the joint mechanisms: they change
 //!   nothing in free-free. A recurring unpaired bolted mode (an extra resonance in every
 //!   bolted measurement) puts `fixture_compliance` first: only it adds a mode. Outlier
-//!   measurements without a mode-level shift put `joint_stiffness_per_joint` (one candidate
-//!   per joint) first: it acts on some measurements only. Otherwise the order is
+//!   measurements without a mode-level shift put `joint_stiffness_per_joint` first: every
+//!   joint at once per measurement (which joint is loose may differ between assemblies),
+//!   then one candidate per joint; it acts on some measurements only. Otherwise the order is
 //!   `joint_rotation` (changes the bending pattern of all modes), `joint_mass`,
 //!   `fixture_compliance`, then the per-joint candidates when outliers were found too;
 //! - a numeric covariate trend → `temperature_stiffness` when the column is a temperature
@@ -274,7 +275,15 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
         // Outliers are the more specific signature: a mechanism acting on all measurements
         // alike cannot make a few of them outliers, while one joint's looseness in some
         // measurements also moves the modes' means a little.
+        //
+        // First every joint at once, per measurement: the bolt that is loose may differ
+        // between assemblies, and that refit finds which joint deviates in which measurement
+        // itself (one refit where the single joints would take one each and explain only
+        // their own measurements); the single joints follow.
         if !bolted_outliers.is_empty() {
+            if board.holes.len() >= 2 {
+                joint_cands.push(cand(Mechanism::JointStiffnessPerJoint, why_out.clone()));
+            }
             joint_cands.extend(per_joint(&why_out));
         }
         joint_cands.push(cand(Mechanism::JointRotation, why_modes.clone()));
@@ -309,7 +318,8 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
 mod tests {
     use super::*;
     use crate::diagnose::locate::{
-        locate, LocateInput, LocateOptions, LocatedCovariate, LocatedMode, UnpairedCluster,
+        locate, LocateInput, LocateOptions, LocatedCovariate, LocatedMode, MeasurementCheck,
+        UnpairedCluster,
     };
 
     fn located() -> Located {
@@ -360,6 +370,41 @@ mod tests {
             ids(&c),
             ["joint_rotation", "joint_mass", "fixture_compliance"]
         );
+    }
+
+    /// Bolted outlier measurements (free-free clean): every joint at once first, then each
+    /// joint with its centre, then the mechanisms acting on all measurements alike.
+    #[test]
+    fn bolted_outliers_put_every_joint_first_then_each_joint() {
+        let mut l = located();
+        l.measurements_after_covariates = vec!["M-07".into(), "M-19".into()];
+        l.measurement_checks = l
+            .measurements_after_covariates
+            .iter()
+            .map(|m| MeasurementCheck {
+                measurement_id: m.clone(),
+                board_id: "PCB-01".into(),
+                setup: "bolted".into(),
+                n_modes: 5,
+                chi2: 60.0,
+                p_value: Some(1e-9),
+                q_value: Some(1e-8),
+                outlier: true,
+                single_mode: None,
+                left_out_of_scale: true,
+                residuals: vec![],
+            })
+            .collect();
+        let b = Board::default_board();
+        let c = screen(&l, &b);
+        let n = b.holes.len();
+        let mut want = vec!["joint_stiffness_per_joint".to_string()];
+        want.extend((1..=n).map(|j| format!("joint_stiffness_per_joint_{j}")));
+        assert_eq!(ids(&c)[..1 + n], want[..]);
+        assert!(c[0].refittable() && c[0].joint.is_none());
+        assert!(c[0].reason.contains("M-07"));
+        assert_eq!(c[2].joint_xy_m, Some([b.holes[1].x_m, b.holes[1].y_m]));
+        assert!(ids(&c).contains(&"joint_rotation".to_string()));
     }
 
     /// A recurring unpaired bolted mode puts the fixture first: only it adds a mode.

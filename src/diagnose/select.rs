@@ -35,6 +35,36 @@ pub struct Estimate {
     pub q95: f64,
 }
 
+/// A joint that differs from the others in one measurement, from the every-joint refit of
+/// `joint_stiffness_per_joint`: its stiffness over the mean of the others' there.
+#[derive(Clone, Debug, Serialize, PartialEq, schemars::JsonSchema)]
+pub struct DeviatingJoint {
+    pub measurement_id: String,
+    /// 1-based, hole order of the board file.
+    pub joint: usize,
+    /// The joint's centre, m.
+    pub x_m: f64,
+    pub y_m: f64,
+    /// k_j / mean of the other joints' k: posterior median and 90 % interval.
+    pub ratio_median: f64,
+    pub ratio_q05: f64,
+    pub ratio_q95: f64,
+}
+
+/// The joint that deviates in the most measurements (ties: the larger |ln ratio| summed).
+pub fn main_deviating_joint(dev: &[DeviatingJoint]) -> Option<&DeviatingJoint> {
+    let score = |j: usize| -> (usize, f64) {
+        let of: Vec<&DeviatingJoint> = dev.iter().filter(|d| d.joint == j).collect();
+        (of.len(), of.iter().map(|d| d.ratio_median.ln().abs()).sum())
+    };
+    dev.iter().max_by(|a, b| {
+        let (sa, sb) = (score(a.joint), score(b.joint));
+        sa.0.cmp(&sb.0)
+            .then(sa.1.total_cmp(&sb.1))
+            .then(b.joint.cmp(&a.joint))
+    })
+}
+
 /// One refit's summary (the baseline's too).
 #[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct Refit {
@@ -60,6 +90,10 @@ pub struct Refit {
     /// keeps the baseline's). `None`: not computed (the baseline itself, a failed refit).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub remaining_share: Option<f64>,
+    /// The every-joint refit of `joint_stiffness_per_joint`: the joints that differ from the
+    /// others, per measurement.
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub deviating_joints: Vec<DeviatingJoint>,
 }
 
 impl Refit {
@@ -231,6 +265,24 @@ pub fn sentence(c: &Compared) -> String {
             let mut d = m.description().to_string();
             if let Some(j) = c.refit.joint {
                 d = format!("{d}: joint {j}");
+            } else if !c.refit.deviating_joints.is_empty() {
+                let list = c
+                    .refit
+                    .deviating_joints
+                    .iter()
+                    .map(|x| {
+                        format!(
+                            "joint {} in {} ({} of the others' stiffness, 90 % interval {}–{})",
+                            x.joint,
+                            x.measurement_id,
+                            fmt_num(x.ratio_median),
+                            fmt_num(x.ratio_q05),
+                            fmt_num(x.ratio_q95)
+                        )
+                    })
+                    .collect::<Vec<_>>()
+                    .join("; ");
+                d = format!("{d}: {list}");
             }
             let mut first = d.chars();
             match first.next() {
@@ -335,6 +387,7 @@ mod tests {
             failed: None,
             log_location_occam: None,
             remaining_share: None,
+            deviating_joints: vec![],
         }
     }
 

@@ -861,6 +861,7 @@ mod tests {
             failed: failed.map(str::to_string),
             log_location_occam: None,
             remaining_share: None,
+            deviating_joints: vec![],
         };
         let cand = |m: Mechanism| Candidate {
             mechanism: m,

@@ -35,7 +35,7 @@ pub const MANIFEST_JOINTS: &str = "update_joints.manifest.json";
 
 pub const JOINTS: TableSpec = TableSpec {
     name: "joints",
-    doc: "Step-2 posterior draws of every bolted measurement's joint stiffness, one row per particle and measurement. The modular (cut) posterior: every particle carries one step-1 draw of the boards (population.parquet's boards_run/boards_draw), and the bolted data updated only the joint parameters. A refit with an enrichment (`--enrich`, the diagnosis's candidates) adds one column per extra coordinate, named with its unit (e.g. k_rot_nm_per_rad, joint_mass_kg, m_fix_kg, f_fix_hz, k_ratio_<j>); with `joint_stiffness_per_joint` k_con_n_per_m is the stiffness of the other joints.",
+    doc: "Step-2 posterior draws of every bolted measurement's joint stiffness, one row per particle and measurement. The modular (cut) posterior: every particle carries one step-1 draw of the boards (population.parquet's boards_run/boards_draw), and the bolted data updated only the joint parameters. A refit with an enrichment (`--enrich`, the diagnosis's candidates) adds one column per extra coordinate, named with its unit (e.g. k_rot_nm_per_rad, joint_mass_kg, m_fix_kg, f_fix_hz, k_ratio_<j>); with `joint_stiffness_per_joint` at one joint k_con_n_per_m is the stiffness of the other joints and k_ratio_<j> that joint's over theirs; with every joint (no joint named) k_con_n_per_m is the joints' geometric mean and k_ratio_<j> each joint's stiffness over the mean of the others' in that measurement.",
     open: true,
     columns: &[
         c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
@@ -248,7 +248,7 @@ pub struct UpdateOptions {
     /// Step 2: refit with a joint enrichment of the diagnosis's library (`None`: the baseline).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub enrich: Option<Mechanism>,
-    /// Step 2 with `joint_stiffness_per_joint`: the joint (1-based).
+    /// Step 2 with `joint_stiffness_per_joint`: the joint (1-based; `None`: every joint).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub enrich_joint: Option<usize>,
     /// Step 1 with `temperature_stiffness`: the numeric sheet column the FR-4 moduli follow.
@@ -3212,16 +3212,23 @@ pub fn run_joints(
         // lab's scenarios (a fixture resonance crossing the modes, one joint's ratio, a flat
         // direction of k_rot), which left the prior's centre outside the ROM's box and the
         // sampler with no particle the ROM could evaluate.
-        let fit = fit_joint_centre(
+        //
+        // Every joint's contrast (`joint_stiffness_per_joint` with no joint named) stays at 0,
+        // equal joints: fitted to the median frequencies they have no common direction the
+        // data fix (their mean is the prior's alone), and a typical assembly has no loose
+        // bolt.
+        let n_fit = if enr.every_joint() { 1 } else { coords.len() };
+        let mut fit = fit_joint_centre(
             &model,
             &p_base,
-            &coords,
-            &spans,
+            &coords[..n_fit],
+            &spans[..n_fit],
             &labels,
             &bolted_rows,
             (&w_labels, &points),
             n_track,
         )?;
+        fit.resize(coords.len(), 0.0);
         let mut centre: Vec<f64> = fit
             .iter()
             .zip(&enr.coordinates)
@@ -3587,13 +3594,7 @@ pub fn run_joints(
             b_run.push(kr);
             b_draw.push(kd);
             for (b, name) in unit_names.iter().enumerate() {
-                let v: Vec<f64> = enr
-                    .coordinates
-                    .iter()
-                    .zip(&p.x[b])
-                    .map(|(c, x)| c.report_ref * x.exp())
-                    .collect();
-                jt.push(r, i, Some(name), &v);
+                jt.push(r, i, Some(name), &enr.report_values(&p.x[b]));
                 joint_boards.push(unit_boards[b].clone());
             }
         }

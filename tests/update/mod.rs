@@ -38,9 +38,13 @@ struct Work {
 
 impl Work {
     fn new() -> Work {
+        Work::with_scenario(SCENARIO)
+    }
+    /// A work directory with the campaign of `scenario` (a lab scenario's TOML).
+    fn with_scenario(scenario: &str) -> Work {
         let dir = tempfile::tempdir().unwrap();
         let w = Work { dir };
-        std::fs::write(w.p("small.toml"), SCENARIO).unwrap();
+        std::fs::write(w.p("small.toml"), scenario).unwrap();
         let o = hbmu(&[
             "lab",
             "simulate",
@@ -461,4 +465,120 @@ fn added_mass_refit_writes_the_mass_and_refuses_a_point_it_cannot_place() {
         stderr(&o)
     );
     assert!(!w.p("h/boards.parquet").exists());
+}
+
+/// Three boards, two bolted measurements each, every one with a bolt at 40 % of the others'
+/// contact stiffness (which bolt: the lab's draw, per measurement).
+const LOOSE: &str = r#"
+name = "loose"
+description = "three boards; one loose bolt in every bolted measurement"
+seed = 11
+
+[campaign]
+n_boards = 3
+free_per_board = 2
+
+[[campaign.bolted]]
+boards = [1, 2, 3]
+per_board = 2
+
+[truth]
+mesh_nx = 24
+mesh_ny = 15
+n_free_modes = 8
+n_bolted_modes = 8
+
+[effects.loose_bolt]
+share = 1.0
+stiffness_factor = 0.4
+"#;
+
+/// `update joints --enrich joint_stiffness_per_joint` without a joint: every joint gets its
+/// own stiffness in every measurement. joints.parquet reports each joint's stiffness over the
+/// mean of the others' there; in every measurement the lab's loose joint is the one with the
+/// lowest ratio, well below the others', and the other joints stay near each other.
+#[test]
+fn every_joint_refit_finds_the_loose_joint_of_each_measurement() {
+    let w = Work::with_scenario(LOOSE);
+    w.chain();
+    let o = w.update("u", "coarse.toml", PARAMS, &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let o = hbmu(&[
+        "update",
+        "joints",
+        &w.s("ingest"),
+        &w.s("pair"),
+        "--boards",
+        &w.s("u"),
+        "--model",
+        &w.s("coarse.toml"),
+        "--out",
+        &w.s("j"),
+        "--particles",
+        "100",
+        "--runs",
+        "1",
+        "--enrich",
+        "joint_stiffness_per_joint",
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let ev: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(w.p("j/evidence.json")).unwrap()).unwrap();
+    let coords = ev["enrichment"]["coordinates"].as_array().unwrap();
+    let n = coords.len() - 1;
+    assert_eq!(n, 4, "{coords:?}");
+    // The lab's loose joint per measurement (1-based).
+    let truth: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(w.p("truth.json")).unwrap()).unwrap();
+    let loose: std::collections::BTreeMap<String, usize> = truth["measurements"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|m| {
+            Some((
+                m["measurement_id"].as_str()?.to_string(),
+                m["loose_joint"].as_u64()? as usize,
+            ))
+        })
+        .collect();
+    assert_eq!(loose.len(), 6, "{loose:?}");
+    // Median ratio per (measurement, joint).
+    let mut by: std::collections::BTreeMap<String, Vec<Vec<f64>>> = Default::default();
+    let path = w.p("j/joints.parquet");
+    for b in hbmu::io::tables::read_parquet(&path).unwrap() {
+        let c = hbmu::io::tables::Cols {
+            batch: &b,
+            path: &path,
+        };
+        let m = c.str("measurement_id").unwrap();
+        let k = c.f64("k_con_n_per_m").unwrap();
+        let cols: Vec<_> = (1..=n)
+            .map(|j| c.f64(&format!("k_ratio_{j}")).unwrap())
+            .collect();
+        for i in 0..b.num_rows() {
+            assert!(k.value(i) > 0.0);
+            let e = by
+                .entry(m.value(i).to_string())
+                .or_insert_with(|| vec![vec![]; n]);
+            for (j, a) in cols.iter().enumerate() {
+                e[j].push(a.value(i));
+            }
+        }
+    }
+    assert_eq!(by.len(), loose.len());
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    for (m, mut per) in by {
+        let med: Vec<f64> = per.iter_mut().map(median).collect();
+        let lowest = (0..n).min_by(|&a, &b| med[a].total_cmp(&med[b])).unwrap() + 1;
+        assert_eq!(lowest, loose[&m], "{m}: ratios {med:?}");
+        assert!(med[lowest - 1] < 0.7, "{m}: ratios {med:?}");
+        for (j, r) in med.iter().enumerate() {
+            if j + 1 != lowest {
+                assert!(*r > 0.9, "{m}: ratios {med:?}");
+            }
+        }
+    }
 }

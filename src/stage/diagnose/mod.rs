@@ -18,7 +18,7 @@ use crate::diagnose::locate::{self, LocateOptions, Located, ModeCheck};
 use crate::diagnose::misfit::{MisfitParts, RefitShares};
 use crate::diagnose::screen::{self, Candidate};
 use crate::diagnose::select::{
-    self, Compared, Estimate, Refit, SelectOptions, SetupError, Verdict,
+    self, Compared, DeviatingJoint, Estimate, Refit, SelectOptions, SetupError, Verdict,
 };
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::manifest::StageSpec;
@@ -420,7 +420,11 @@ fn summarize_refit(
             .unwrap_or_default();
         let pop = dir.join("population.parquet");
         let batches = tables::read_parquet(&pop)?;
-        for cdef in coords.iter().skip(1) {
+        // Every joint's contrast (no joint named): no population median to report (their
+        // common part is the prior's); the per-measurement ratios are `every_joint_estimates`.
+        let every_joint = mechanism == Some(Mechanism::JointStiffnessPerJoint) && joint.is_none();
+        let skip = if every_joint { coords.len() } else { 1 };
+        for cdef in coords.iter().skip(skip) {
             let name = cdef["name"].as_str().unwrap_or_default();
             let param = cdef["report_param"].as_str().unwrap_or_default();
             let col = format!("mu_{name}");
@@ -450,7 +454,7 @@ fn summarize_refit(
         // (joints.parquet holds report_ref · e^x per measurement). Not every measurement
         // whose interval excludes the reference: the joints of one assembly differ by a few
         // per cent anyway, and the bolted data resolve that.
-        if mechanism == Some(Mechanism::JointStiffnessPerJoint) {
+        if mechanism == Some(Mechanism::JointStiffnessPerJoint) && !every_joint {
             let jp = dir.join("joints.parquet");
             for cdef in coords.iter().skip(1) {
                 let param = cdef["report_param"].as_str().unwrap_or_default();
@@ -505,7 +509,87 @@ fn summarize_refit(
         failed,
         log_location_occam: None,
         remaining_share: None,
+        deviating_joints: vec![],
     })
+}
+
+/// A joint deviates in a measurement when the 90 % interval of its stiffness over the mean
+/// of the others' lies entirely below `DEVIATING_RATIO` or entirely above its inverse. The joints of one correctly torqued
+/// assembly differ by a few per cent to ~10 % (contact-stiffness scatter); a loose bolt or a
+/// missing washer changes one by a factor of 1.5 or more. 0.8 sits between: a mere scatter
+/// never reaches it, and a bolt at two thirds of the others' still does.
+const DEVIATING_RATIO: f64 = 0.8;
+
+/// The every-joint refit of `joint_stiffness_per_joint` (refits/<id>/joints.parquet: per
+/// measurement each joint's k_ratio_<j>): per measurement, the joint with the largest
+/// |ln median ratio|, when it deviates (`DEVIATING_RATIO`) or the measurement is one of
+/// locate's outliers; as estimates (parameter k_ratio_<j>, scope "measurement <id>") and
+/// as deviating joints (only those that deviate).
+fn every_joint_estimates(
+    dir: &Path,
+    board: &crate::fem::Board,
+    outliers: &[String],
+) -> anyhow::Result<(Vec<Estimate>, Vec<DeviatingJoint>)> {
+    let jp = dir.join("joints.parquet");
+    let n = board.holes.len();
+    // measurement → per joint, the ratio draws.
+    let mut by: BTreeMap<String, Vec<Vec<f64>>> = BTreeMap::new();
+    for b in &tables::read_parquet(&jp)? {
+        let c = Cols {
+            batch: b,
+            path: &jp,
+        };
+        let m = c.str("measurement_id")?;
+        let cols = (1..=n)
+            .map(|j| c.f64(&format!("k_ratio_{j}")))
+            .collect::<std::io::Result<Vec<_>>>()?;
+        for i in 0..b.num_rows() {
+            let e = by
+                .entry(m.value(i).to_string())
+                .or_insert_with(|| vec![vec![]; n]);
+            for (j, a) in cols.iter().enumerate() {
+                e[j].push(a.value(i));
+            }
+        }
+    }
+    let (mut est, mut dev) = (vec![], vec![]);
+    for (m, mut per) in by {
+        let q: Vec<(f64, f64, f64)> = per
+            .iter_mut()
+            .map(|v| {
+                v.sort_by(f64::total_cmp);
+                (quantile(v, 0.5), quantile(v, 0.05), quantile(v, 0.95))
+            })
+            .collect();
+        let Some(j) = (0..n).max_by(|&a, &b| q[a].0.ln().abs().total_cmp(&q[b].0.ln().abs()))
+        else {
+            continue;
+        };
+        let (med, lo, hi) = q[j];
+        let deviates = hi < DEVIATING_RATIO || lo > 1.0 / DEVIATING_RATIO;
+        if !(deviates || outliers.contains(&m)) {
+            continue;
+        }
+        est.push(Estimate {
+            parameter: format!("k_ratio_{}", j + 1),
+            scope: format!("measurement {m}"),
+            median: med,
+            q05: lo,
+            q95: hi,
+        });
+        if deviates {
+            dev.push(DeviatingJoint {
+                measurement_id: m,
+                joint: j + 1,
+                x_m: board.holes[j].x_m,
+                y_m: board.holes[j].y_m,
+                ratio_median: med,
+                ratio_q05: lo,
+                ratio_q95: hi,
+            });
+        }
+    }
+    Ok((est, dev))
 }
 
 /// The options of one candidate's refit: the step-2 options with the enrichment.
@@ -607,6 +691,12 @@ fn refit(
             Some(z1),
             outliers,
         )?;
+        if cand.mechanism == Mechanism::JointStiffnessPerJoint && cand.joint.is_none() {
+            let (board, _) = crate::stage::update::load_board(opts.board.as_deref())?;
+            let (est, dev) = every_joint_estimates(&out, &board, outliers)?;
+            r.estimates.extend(est);
+            r.deviating_joints = dev;
+        }
         // The location was chosen from the data: its Occam factor joins the evidence, and
         // its uncertainty the mass's interval (the refit's is conditional on the point).
         if let Some(pl) = cand.point_located {
@@ -641,6 +731,7 @@ fn refit(
             failed: Some(format!("{e:#}").replace('\n', " ")),
             log_location_occam: None,
             remaining_share: None,
+            deviating_joints: vec![],
         },
     }
 }
@@ -995,6 +1086,15 @@ fn write_outputs(
             Some(FindingDoc {
                 mechanism: r.cand.mechanism,
                 location: match (r.cand.joint, r.cand.joint_xy_m, r.cand.point_xy_m) {
+                    // The every-joint refit: the joint that deviates in the most measurements
+                    // (all of them in the estimates and the sentence).
+                    (None, None, None) if !c.refit.deviating_joints.is_empty() => {
+                        select::main_deviating_joint(&c.refit.deviating_joints).map(|d| Location {
+                            joint: Some(d.joint),
+                            x_m: d.x_m,
+                            y_m: d.y_m,
+                        })
+                    }
                     (Some(joint), Some([x_m, y_m]), _) => Some(Location {
                         joint: Some(joint),
                         x_m,
