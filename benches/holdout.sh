@@ -16,7 +16,16 @@
 # 5 hammer measurements a board; work directories target/work/null<N>-<seed>), and
 # HOLDOUT_GROUP=K holds K boards out per fold (default 1): with many boards the population's
 # covariance is learnt well and the held-out coverage should approach 90 %. Extra options of
-# `update boards` (e.g. a prior) go in HOLDOUT_UPDATE_ARGS.
+# `update boards` (e.g. a prior) go in HOLDOUT_UPDATE_ARGS; HOLDOUT_LABEL=X puts the folds
+# under holdout-X instead of holdout, so two settings can be kept side by side.
+#
+# Besides the counts, the summary gives the reference this is judged against: per held-out
+# board and mode, the classical prediction interval from the other boards' means of that
+# mode, x̄ ± t(0.95, n−1) s √(1 + 1/n), exact for normal board-to-board scatter. Its
+# coverage on the same folds says how easy the folds happened to be; the ratio of the
+# hierarchy's 90 % half-width to it says how much wider the hierarchy predicts; the PIT
+# (the held-out board mean's rank among the new-board draws) should be uniform, and the
+# coverage is given at 50, 80 and 90 %.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 seeds=("$@")
@@ -27,6 +36,7 @@ draws=${HOLDOUT_DRAWS:-2000}
 nboards=${HOLDOUT_N:-}
 group=${HOLDOUT_GROUP:-1}
 tag=null${nboards}
+holdout=holdout${HOLDOUT_LABEL:+-$HOLDOUT_LABEL}
 make -C "$root/pipelines" --no-print-directory build >/dev/null
 hbmu=$root/target/debug/hbmu
 # The pipeline's model cache: the folds share the campaign's ROM instead of building it each.
@@ -54,7 +64,7 @@ EOF
   # Folds of $group boards each, in id order.
   folds=$(python3 -c "import sys; b = sys.argv[2:]; k = int(sys.argv[1]); print(' '.join(','.join(b[i:i + k]) for i in range(0, len(b), k)))" "$group" $boards)
   for b in $folds; do
-    f=$work/holdout/$b
+    f=$work/$holdout/$b
     mkdir -p "$f"
     for d in ingest extract pair; do ln -sfn "$work/$d" "$f/$d"; done
     SECONDS=0
@@ -65,17 +75,19 @@ EOF
     echo "seed $s board $b: $(grep -o 'free-free coverage.*' "$f/log" | head -1) (${SECONDS} s)"
   done
 done
-python3 - "$root/target/work" "$tag" "${seeds[@]}" <<'PY'
+python3 - "$root/target/work" "$tag" "$holdout" "${seeds[@]}" <<'PY'
 import json, sys, math
 from pathlib import Path
+import numpy as np
+import pandas as pd
 from scipy import stats
-base, tag, seeds = Path(sys.argv[1]), sys.argv[2], sys.argv[3:]
+base, tag, holdout, seeds = Path(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4:]
 held = [0, 0]
 ins = [0, 0]
 per_board = []
 nb = set()
 for s in seeds:
-    folds = sorted((base / f"{tag}-{s}" / "holdout").glob("*"))
+    folds = sorted((base / f"{tag}-{s}" / holdout).glob("*"))
     n_all = sum(len(f.name.split(",")) for f in folds)
     for f in folds:
         m = json.loads((f / "report" / "report.manifest.json").read_text())
@@ -97,4 +109,37 @@ for m in sorted(nb):
     t = stats.t.ppf(0.95, m - 1)
     z = t * t * (m + 1) / (m - 1) ** 2
     print(f"  classical in-sample rate for {m} boards: {100 * (1.0 if z >= 1 else stats.beta.cdf(z, 0.5, (m - 2) / 2)):.1f} %")
+# Against the classical prediction interval, per held-out board and mode (board means).
+rows = []
+for s in seeds:
+    work = base / f"{tag}-{s}"
+    pairs = pd.read_parquet(work / "pair" / "pairs.parquet")
+    pairs = pairs[pairs.setup == "free"]
+    if "accepted" in pairs:
+        pairs = pairs[pairs.accepted]
+    for f in sorted((work / holdout).glob("*")):
+        held = f.name.split(",")
+        pr = pd.read_parquet(f / "propagate" / "predictions.parquet")
+        nb = pr[(pr.scope == "new_board") & (pr.setup == "free")]
+        for lab, g in nb.groupby("label"):
+            d = np.sort(g.freq_hz.values)
+            bm = pairs[pairs.label == lab].groupby("board_id").freq_hz.mean()
+            ins = bm[~bm.index.isin(held)]
+            n = len(ins)
+            if n < 3:
+                continue
+            half = stats.t.ppf(0.95, n - 1) * ins.std(ddof=1) * math.sqrt(1 + 1 / n)
+            ours = (np.quantile(d, 0.95) - np.quantile(d, 0.05)) / 2
+            for b in held:
+                if b in bm:
+                    y = bm[b]
+                    rows.append(dict(pit=np.searchsorted(d, y) / len(d), ratio=ours / half,
+                                     classical=abs(y - ins.mean()) <= half))
+if rows:
+    df = pd.DataFrame(rows)
+    cov = lambda lv: ((df.pit >= (1 - lv) / 2) & (df.pit <= (1 + lv) / 2)).mean()
+    print(f"per held-out board and mode ({len(df)}): coverage 50 % {100 * cov(0.5):.1f} %, 80 % {100 * cov(0.8):.1f} %, 90 % {100 * cov(0.9):.1f} %")
+    print(f"  classical prediction interval (90 %) on the same folds: {100 * df.classical.mean():.1f} %")
+    print(f"  hierarchy's 90 % half-width / classical: median {df.ratio.median():.3f} (range {df.ratio.min():.3f}-{df.ratio.max():.3f})")
+    print(f"  PIT in tenths: {np.histogram(df.pit, bins=10, range=(0, 1))[0].tolist()}")
 PY

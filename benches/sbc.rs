@@ -9,7 +9,7 @@
 //! `cargo bench --bench sbc`
 
 use hbmu::bayes::modal::{FreqObs, ModalPredictor, UnitData};
-use hbmu::bayes::population::PopulationPrior;
+use hbmu::bayes::population::{PopulationPrior, SigmaPrior};
 use hbmu::bayes::smc::{self, SmcOptions, Target};
 use hbmu::bayes::target::{Compose, ErrorModel, ErrorPrior, ModalTarget};
 use hbmu::fem::{Board, FeModel, MeshOptions, Rom, RomOptions, Setup};
@@ -45,6 +45,7 @@ fn main() {
         rom_random: 8,
         mu_sd: 0.05,
         sigma_scale: 0.03,
+        sigma_prior: SigmaPrior::HalfNormal,
         lkj_eta: 2.0,
         eps: ErrorPrior::Inferred {
             median: 0.02,

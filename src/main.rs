@@ -300,9 +300,14 @@ enum UpdateCommand {
         /// Prior sd of the population means, relative to the board file's nominal values.
         #[arg(long, default_value_t = 0.1)]
         prior_width: f64,
-        /// Half-normal scale of the population sds, relative.
+        /// Scale of the population sds' prior, relative: the half-normal's scale; the
+        /// log-normal's median is 0.6745 × it.
         #[arg(long, default_value_t = 0.05)]
         sigma_scale: f64,
+        /// Prior family of the population sds: half-normal, or log-normal (ln σ ~ N(ln of the
+        /// half-normal's median, 1.5²), locally the scale-invariant prior).
+        #[arg(long, value_enum, default_value = "half-normal")]
+        sigma_prior: hbmu::bayes::population::SigmaPrior,
         /// Refit with a board mechanism of the diagnosis's library: `temperature_stiffness`
         /// (the FR-4 moduli follow a sheet column, `--enrich-covariate`) or `added_mass` (a
         /// lumped mass per board at `--enrich-location`).
@@ -371,6 +376,7 @@ impl UpdateArgs {
             params,
             prior_width,
             sigma_scale,
+            sigma_prior: Default::default(),
             lkj_eta: self.lkj_eta,
             eps: match self.eps_fixed {
                 Some(v) => ErrorPrior::Fixed { value: v },
@@ -659,6 +665,7 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                     params,
                     prior_width,
                     sigma_scale,
+                    sigma_prior,
                     enrich,
                     enrich_covariate,
                     enrich_location,
@@ -667,6 +674,7 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
         } => {
             use hbmu::diagnose::library::Mechanism;
             let mut opts = common.options(params, prior_width, sigma_scale);
+            opts.sigma_prior = sigma_prior;
             opts.enrich = enrich;
             opts.hold_out_boards = hold_out;
             if enrich == Some(Mechanism::TemperatureStiffness) {

@@ -48,6 +48,8 @@ pub struct Problem {
     /// Population prior: sd of μ, half-normal scale of σ, LKJ η (relative units).
     pub mu_sd: f64,
     pub sigma_scale: f64,
+    /// σ's prior family (the update's default for boards: log-normal).
+    pub sigma_prior: SigmaPrior,
     pub lkj_eta: f64,
     /// Prior of the relative eigenvalue errors ε.
     pub eps: ErrorPrior,
@@ -99,6 +101,7 @@ pub fn build_target(p: &Problem) -> ModalTarget {
             mu_mean: vec![0.0; d],
             mu_sd: vec![p.mu_sd; d],
             sigma_scale: vec![p.sigma_scale; d],
+            sigma_prior: vec![p.sigma_prior; d],
             lkj_eta: p.lkj_eta,
         },
         errors: ErrorModel {

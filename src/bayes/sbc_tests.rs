@@ -16,7 +16,7 @@
 //! The larger run is the benchmark `benches/sbc.rs`.
 
 use super::modal::{FreqObs, ModalPredictor, UnitData};
-use super::population::PopulationPrior;
+use super::population::{PopulationPrior, SigmaPrior};
 use super::smc::{self, SmcOptions, Target};
 use super::target::{Compose, ErrorModel, ErrorPrior, ModalTarget};
 use crate::fem::{Board, FeModel, MeshOptions, Rom, RomOptions, Setup};
@@ -41,6 +41,7 @@ pub(crate) fn ci_problem() -> Problem {
         rom_random: 8,
         mu_sd: 0.05,
         sigma_scale: 0.03,
+        sigma_prior: SigmaPrior::HalfNormal,
         lkj_eta: 2.0,
         eps: ErrorPrior::Inferred {
             median: 0.02,

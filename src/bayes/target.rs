@@ -375,6 +375,7 @@ mod tests {
                 mu_mean: vec![0.0; 4],
                 mu_sd: vec![0.1, 0.1, 0.1, 0.005],
                 sigma_scale: vec![0.05, 0.05, 0.05, 0.001],
+                sigma_prior: vec![],
                 lkj_eta: 2.0,
             },
             errors: ErrorModel {

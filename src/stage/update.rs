@@ -227,8 +227,13 @@ pub struct UpdateOptions {
     pub params: Vec<String>,
     /// Prior sd of the population means, relative to nominal (step 1) or in ln K (step 2).
     pub prior_width: f64,
-    /// Half-normal scale of the population sds (relative, or in ln K).
+    /// Scale of the population sds' prior (relative, or in ln K): the half-normal's scale;
+    /// the log-normal's median is 0.6745 × it.
     pub sigma_scale: f64,
+    /// Step 1: the prior family of the board parameters' population sds (step 2: always
+    /// half-normal).
+    #[serde(default)]
+    pub sigma_prior: crate::bayes::population::SigmaPrior,
     pub lkj_eta: f64,
     pub eps: ErrorPrior,
     /// `None`: shape terms off.
@@ -2422,6 +2427,9 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 mu_mean: vec![0.0; d0],
                 mu_sd: vec![opts.prior_width; d0],
                 sigma_scale: vec![opts.sigma_scale; d0],
+                // The board parameters' family; an enrichment's coordinate stays half-normal
+                // (a coefficient probably common to all boards).
+                sigma_prior: vec![opts.sigma_prior; d0],
                 lkj_eta: opts.lkj_eta,
             };
             if let Some(e) = &enrichment {
@@ -3461,6 +3469,7 @@ pub fn run_joints(
                 mu_mean: vec![0.0; coords.len()],
                 mu_sd: enr.coordinates.iter().map(|c| c.prior_sd).collect(),
                 sigma_scale: vec![opts.sigma_scale; coords.len()],
+                sigma_prior: vec![],
                 lkj_eta: opts.lkj_eta,
             },
             errors: ErrorModel {
