@@ -146,6 +146,24 @@ impl Work {
         args.extend(extra.iter().map(|s| s.to_string()));
         hbmu(&args.iter().map(|s| s.as_str()).collect::<Vec<_>>())
     }
+    /// `update joints` on the step-1 output `boards` with the coarse model, plus extra
+    /// arguments.
+    fn joints(&self, out: &str, boards: &str, extra: &[&str]) -> Output {
+        let mut args: Vec<String> = vec![
+            "update".into(),
+            "joints".into(),
+            self.s("ingest"),
+            self.s("pair"),
+            "--boards".into(),
+            self.s(boards),
+            "--model".into(),
+            self.s("coarse.toml"),
+            "--out".into(),
+            self.s(out),
+        ];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        hbmu(&args.iter().map(|s| s.as_str()).collect::<Vec<_>>())
+    }
     fn findings(&self, out: &str) -> Vec<serde_json::Value> {
         let r: serde_json::Value =
             serde_json::from_slice(&std::fs::read(self.p(out).join("update_report.json")).unwrap())
@@ -370,18 +388,7 @@ fn step_2_without_bolted_measurements_has_nothing_to_update_and_says_so() {
     w.chain();
     let o = w.update("u", "coarse.toml", PARAMS, &[]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
-    let o = hbmu(&[
-        "update",
-        "joints",
-        &w.s("ingest"),
-        &w.s("pair"),
-        "--boards",
-        &w.s("u"),
-        "--model",
-        &w.s("coarse.toml"),
-        "--out",
-        &w.s("j"),
-    ]);
+    let o = w.joints("j", "u", &[]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let fs = w.findings("j");
     let f = with_code(&fs, "update.no_bolted_data");
@@ -503,24 +510,18 @@ fn every_joint_refit_finds_the_loose_joint_of_each_measurement() {
     w.chain();
     let o = w.update("u", "coarse.toml", PARAMS, &[]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
-    let o = hbmu(&[
-        "update",
-        "joints",
-        &w.s("ingest"),
-        &w.s("pair"),
-        "--boards",
-        &w.s("u"),
-        "--model",
-        &w.s("coarse.toml"),
-        "--out",
-        &w.s("j"),
-        "--particles",
-        "100",
-        "--runs",
-        "1",
-        "--enrich",
-        "joint_stiffness_per_joint",
-    ]);
+    let o = w.joints(
+        "j",
+        "u",
+        &[
+            "--particles",
+            "100",
+            "--runs",
+            "1",
+            "--enrich",
+            "joint_stiffness_per_joint",
+        ],
+    );
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let ev: serde_json::Value =
         serde_json::from_slice(&std::fs::read(w.p("j/evidence.json")).unwrap()).unwrap();
