@@ -48,7 +48,7 @@ pub struct Problem {
     /// Population prior: sd of μ, half-normal scale of σ, LKJ η (relative units).
     pub mu_sd: f64,
     pub sigma_scale: f64,
-    /// σ's prior family (the update's default for boards: log-normal).
+    /// σ's prior family (the update's default: half-normal).
     pub sigma_prior: SigmaPrior,
     pub lkj_eta: f64,
     /// Prior of the relative eigenvalue errors ε.

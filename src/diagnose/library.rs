@@ -144,10 +144,16 @@ pub struct JointEnrichment {
     pub coordinates: Vec<Coordinate>,
 }
 
+/// `joint_stiffness_per_joint` with every joint its own contrast: the mechanism with no
+/// joint named.
+pub fn is_every_joint(mechanism: Option<Mechanism>, joint: Option<usize>) -> bool {
+    mechanism == Some(Mechanism::JointStiffnessPerJoint) && joint.is_none()
+}
+
 impl JointEnrichment {
-    /// `joint_stiffness_per_joint` with every joint its own contrast (no joint named).
+    /// [`is_every_joint`] of this enrichment.
     pub fn every_joint(&self) -> bool {
-        self.mechanism == Some(Mechanism::JointStiffnessPerJoint) && self.joint.is_none()
+        is_every_joint(self.mechanism, self.joint)
     }
 
     /// One unit's coordinates as reported (joints.parquet): report_ref · e^x, except the

@@ -422,7 +422,7 @@ fn summarize_refit(
         let batches = tables::read_parquet(&pop)?;
         // Every joint's contrast (no joint named): no population median to report (their
         // common part is the prior's); the per-measurement ratios are `every_joint_estimates`.
-        let every_joint = mechanism == Some(Mechanism::JointStiffnessPerJoint) && joint.is_none();
+        let every_joint = crate::diagnose::library::is_every_joint(mechanism, joint);
         let skip = if every_joint { coords.len() } else { 1 };
         for cdef in coords.iter().skip(skip) {
             let name = cdef["name"].as_str().unwrap_or_default();
@@ -675,6 +675,7 @@ fn run_gated(
 /// Run (or find up to date) one candidate's refit.
 fn refit(
     opts: &DiagnoseOptions,
+    board: &crate::fem::Board,
     bases: (&UpdateOptions, Option<&UpdateOptions>),
     cand: &Candidate,
     (outliers, z1): (&[String], &[f64]),
@@ -691,9 +692,8 @@ fn refit(
             Some(z1),
             outliers,
         )?;
-        if cand.mechanism == Mechanism::JointStiffnessPerJoint && cand.joint.is_none() {
-            let (board, _) = crate::stage::update::load_board(opts.board.as_deref())?;
-            let (est, dev) = every_joint_estimates(&out, &board, outliers)?;
+        if crate::diagnose::library::is_every_joint(Some(cand.mechanism), cand.joint) {
+            let (est, dev) = every_joint_estimates(&out, board, outliers)?;
             r.estimates.extend(est);
             r.deviating_joints = dev;
         }
@@ -833,6 +833,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                 let t0 = std::time::Instant::now();
                 let mut r = refit(
                     opts,
+                    &board,
                     (&base1, base.as_ref()),
                     cand,
                     (
