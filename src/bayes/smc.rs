@@ -120,6 +120,13 @@ pub struct SmcOptions {
     pub decorrelation_target: f64,
     pub min_sweeps: usize,
     pub max_sweeps: usize,
+    /// The cap of the last stage (β = 1), whose particles are the posterior sample: its
+    /// mutation goes on until the same decorrelation rule holds, up to this many sweeps.
+    /// Slowly mixing coordinates (an error scale pinned by the units it trades off with, a
+    /// funnel) carry the tempering path's imprint into the output when the last stage stops
+    /// at `max_sweeps`; the intermediate stages only need to keep the cloud healthy.
+    #[serde(default = "default_final_max_sweeps")]
+    pub final_max_sweeps: usize,
     /// Centred moves of g per sweep (they need no model evaluation).
     pub global_moves: usize,
     /// Non-centred moves of g per sweep (each costs one model evaluation per unit).
@@ -141,6 +148,10 @@ fn one() -> usize {
     1
 }
 
+fn default_final_max_sweeps() -> usize {
+    100
+}
+
 impl Default for SmcOptions {
     fn default() -> Self {
         SmcOptions {
@@ -150,6 +161,7 @@ impl Default for SmcOptions {
             decorrelation_target: 0.5,
             min_sweeps: 2,
             max_sweeps: 25,
+            final_max_sweeps: default_final_max_sweeps(),
             global_moves: 20,
             noncentred: 2,
             max_stages: 400,
@@ -1077,7 +1089,12 @@ fn stage_step<T: Target>(
         let prop = proposals(particles, t.n_units(), groups);
         let start: Vec<Vec<f64>> = particles.iter().map(flat).collect();
         rho = 1.0;
-        while sweeps < opts.max_sweeps {
+        let cap = if tp.beta >= 1.0 {
+            opts.final_max_sweeps.max(opts.max_sweeps)
+        } else {
+            opts.max_sweeps
+        };
+        while sweeps < cap {
             let stats: Vec<SweepStats> = particles
                 .par_iter_mut()
                 .enumerate()
