@@ -1337,6 +1337,7 @@ fn run_smc(
     }
     let pb = crate::stage::progress_bar((opts.runs * 1000) as u64, what);
     let mut out = vec![];
+    let (mut t_tempering, mut t_correction) = (0.0, 0.0);
     for r in 0..opts.runs {
         let base = (r * 1000) as u64;
         let observe = |s: &StageInfo| {
@@ -1360,8 +1361,11 @@ fn run_smc(
         } else {
             &aux[r % aux.len()]
         };
+        let t_run = std::time::Instant::now();
         let mut res = smc::run_with(&sur, &opts.smc, opts.seed, r, &starts[r], a, &observe)
             .map_err(|e| anyhow!("{what}, run {}: {e}", r + 1))?;
+        t_tempering += t_run.elapsed().as_secs_f64();
+        let t_corr = std::time::Instant::now();
         if sur.surrogates.iter().any(|s| s.is_some()) {
             // Correction to the ROM: every particle's units re-evaluated by the ROM and
             // weighted by L_ROM / L_surrogate.
@@ -1403,6 +1407,7 @@ fn run_smc(
             acc.correction_max_abs_dlog_lik.push(max_dll);
             acc.correction_sweeps.push(info.sweeps);
         }
+        t_correction += t_corr.elapsed().as_secs_f64();
         if let (0, Some(_)) = (r, &base_ref) {
             // Each particle measured against its own group's q: (value − q mean) / q sd;
             // the mean of that is the offset, its sd the posterior sd / reference sd.
@@ -1474,6 +1479,9 @@ fn run_smc(
         out.push(res);
     }
     pb.finish_and_clear();
+    if verbose {
+        eprintln!("{what}: tempering {t_tempering:.1} s, correction to the ROM {t_correction:.1} s (all runs)");
+    }
     acc.surrogate_proposals_outside_box =
         sur.outside_box.load(std::sync::atomic::Ordering::Relaxed);
     // Final particles beyond the boxes cost ROM evaluations at every later sweep: the
@@ -2200,6 +2208,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
     crate::stage::run(spec, opts.force, |prep| {
         // One attempt at the ROM box `opts.rom_box`; `carried` are findings of an earlier one.
         let attempt = |opts: &UpdateOptions, carried: &[Finding]| -> anyhow::Result<StageResult> {
+            let mut clock = PhaseClock::new("update boards", verbose);
             let mut findings = Findings::default();
             findings.0.extend(carried.iter().cloned());
             let pairs = read_pairs(&pairs_path)?;
@@ -2258,7 +2267,9 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             }
             let all = all_labels(&pairs, "free", 40, &mut findings);
             let need = modes_needed(&labels, &all);
+            clock.lap("models");
             let rom = rom_for(&model, need, &log_axes, opts)?;
+            clock.lap("rom_build");
             if opts.rom_box > UpdateOptions::DEFAULT_ROM_BOX {
                 let worst = rom_box_check(&model, &rom, opts.rom_box, need)?;
                 findings.push(Finding::new(
@@ -2463,7 +2474,9 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             // a covariate the terms also follow the unit's coefficient, so the ROM runs directly.
             let mut sopts = opts.clone();
             sopts.surrogate &= target.covariate.is_none();
+            clock.lap("unit_data");
             let (results, acceleration) = run_smc(&target, &sopts, "boards", &[], None, verbose)?;
+            clock.lap("sampler");
             let sampler_seconds = t0.elapsed().as_secs_f64();
             check_surrogate_edges(&acceleration, &mut findings);
             let violations = box_violations(
@@ -2544,6 +2557,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             let p = opts.out.join("stages.parquet");
             write_stages(&p, &stages, &prov)?;
             outputs.push(p);
+            clock.lap("tables");
             let (res, lost) = residuals(
                 &target,
                 &all_pred,
@@ -2591,6 +2605,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             let p = opts.out.join("evidence.json");
             crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
             outputs.push(p);
+            clock.lap("residuals");
             finish(
                 opts,
                 findings,
@@ -2603,6 +2618,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 verbose,
                 "update boards",
                 &acceleration,
+                &clock,
             )
         };
         widen_rom_box_once(opts, |o, carried| attempt(o, carried))
@@ -3089,6 +3105,7 @@ pub fn run_joints(
         MANIFEST_JOINTS,
     )?;
     crate::stage::run(spec, opts.force, |prep| {
+        let mut clock = PhaseClock::new("update joints", verbose);
         let mut findings = Findings::default();
         let pairs = read_pairs(&pairs_path)?;
         if !pairs.iter().any(|p| p.setup == "bolted") {
@@ -3212,6 +3229,7 @@ pub fn run_joints(
                 }
             })
             .collect();
+        clock.lap("models");
         let t_centre = std::time::Instant::now();
         // All coordinates are fitted to the median frequencies (k_con trades off against
         // k_rot, one joint's ratio against the common k_con); then an enrichment's own
@@ -3333,7 +3351,9 @@ pub fn run_joints(
             log_axes.push((pm.parameter.clone(), 0.7));
             point_masses.push(nominal.position(&pm.parameter)?);
         }
+        clock.lap("centre_fit");
         let rom = rom_for(&model, need, &log_axes, opts)?;
+        clock.lap("rom_build");
         let mut p_board = model.nominal_params();
         for &i in &point_masses {
             p_board.values[i] = 0.0;
@@ -3505,9 +3525,11 @@ pub fn run_joints(
                 a
             })
             .collect();
+        clock.lap("unit_data");
         let t0 = std::time::Instant::now();
         let (results, acceleration) =
             run_smc(&target, &sopts, "joints", &aux, Some(&centre), verbose)?;
+        clock.lap("sampler");
         let sampler_seconds = t0.elapsed().as_secs_f64();
         check_surrogate_edges(&acceleration, &mut findings);
         // The ROM's box per coordinate, around the fitted centre.
@@ -3647,6 +3669,7 @@ pub fn run_joints(
         let p = opts.out.join("stages.parquet");
         write_stages(&p, &stages, &prov)?;
         outputs.push(p);
+        clock.lap("tables");
         let (res, lost) = residuals(
             &target,
             &all_pred,
@@ -3679,6 +3702,7 @@ pub fn run_joints(
         let p = opts.out.join("evidence.json");
         crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
         outputs.push(p);
+        clock.lap("residuals");
         finish(
             &sopts,
             findings,
@@ -3691,8 +3715,50 @@ pub fn run_joints(
             verbose,
             "update joints",
             &acceleration,
+            &clock,
         )
     })
+}
+
+/// Wall time per phase of an update step: printed with `--verbose` as each phase ends, and
+/// kept in the manifest's summary (`phase_seconds`), never in an output table (outputs stay
+/// byte-identical between runs). Where the time goes is an acceptance point of the updating.
+struct PhaseClock {
+    last: std::time::Instant,
+    laps: Vec<(&'static str, f64)>,
+    verbose: bool,
+    what: &'static str,
+}
+
+impl PhaseClock {
+    fn new(what: &'static str, verbose: bool) -> PhaseClock {
+        PhaseClock {
+            last: std::time::Instant::now(),
+            laps: vec![],
+            verbose,
+            what,
+        }
+    }
+
+    /// End the phase `name` now.
+    fn lap(&mut self, name: &'static str) {
+        let now = std::time::Instant::now();
+        let s = now.duration_since(self.last).as_secs_f64();
+        self.last = now;
+        if self.verbose {
+            eprintln!("{}: {name} {s:.1} s", self.what);
+        }
+        self.laps.push((name, s));
+    }
+
+    fn summary(&self) -> serde_json::Value {
+        serde_json::Value::Object(
+            self.laps
+                .iter()
+                .map(|(n, s)| (n.to_string(), serde_json::json!(s)))
+                .collect(),
+        )
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -3708,6 +3774,7 @@ fn finish(
     verbose: bool,
     what: &str,
     acceleration: &Acceleration,
+    phases: &PhaseClock,
 ) -> anyhow::Result<StageResult> {
     let mut findings = findings;
     if let Some(f) = convergence_finding(summary, results.len()) {
@@ -3760,6 +3827,7 @@ fn finish(
     s.insert("max_r_hat".into(), serde_json::json!(max_rhat));
     s.insert("rom_evaluations".into(), serde_json::json!(evals));
     s.insert("sampler_seconds".into(), serde_json::json!(sampler_seconds));
+    s.insert("phase_seconds".into(), phases.summary());
     Ok(StageResult {
         outputs,
         exit_code: exit::OK,
