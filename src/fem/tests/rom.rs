@@ -73,6 +73,29 @@ fn rom_matches_full_model_bolted_over_latin_hypercube() {
     assert!(m >= 0.9999, "worst MAC {m}");
 }
 
+/// The build runs its snapshot solves and products on the rayon pool: the ROM must be the
+/// same bytes on one thread and on three (more snapshots than one product chunk, so the
+/// chunked products split).
+#[test]
+fn rom_build_gives_the_same_bytes_whatever_the_thread_count() {
+    let board = Board::default_board();
+    let model = FeModel::build(&board, Setup::bolted(), &board.mesh).unwrap();
+    let opts = RomOptions {
+        n_modes: 4,
+        n_random: 6,
+        ..RomOptions::default()
+    };
+    let on = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| Rom::build(&model, &opts).unwrap().to_npz_bytes())
+    };
+    let one = on(1);
+    assert!(one == on(3), "the ROM differs between 1 and 3 threads");
+}
+
 #[test]
 fn rom_npz_round_trip_preserves_every_number() {
     let board = Board::default_board();
