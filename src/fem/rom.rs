@@ -388,6 +388,16 @@ impl Rom {
         let n_rigid = vecs.len();
         vecs.extend(pod);
         m_gram_schmidt(&mut vecs, &mdot);
+        if !keep_rigid {
+            // One mass term M(p) = c_m(p) M₁: the evaluation's hot path takes Mʳ = c_m I,
+            // so the basis must be orthonormal in M₁ itself, not in M(centre) = c_m(centre)
+            // M₁. The two differ when the centre's mass coefficient is not 1 (a ROM centred
+            // on a posterior mean of `mass_scale`): every eigenvalue was off by that factor.
+            let s = c0.m[0].sqrt();
+            for v in &mut vecs {
+                v.iter_mut().for_each(|x| *x *= s);
+            }
+        }
         let r = vecs.len();
         let basis = Mat::from_fn(n, r, |i, j| vecs[j][i]);
         // Vᵀ T V per affine term, the terms in parallel (each product sequential: the same
