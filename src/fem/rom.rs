@@ -338,8 +338,13 @@ impl Rom {
         // M-weighted POD via the Gram matrix G = Sᵀ M₀ S (dense products, see `at_b`).
         let ns = snaps.len();
         let s_mat = Mat::from_fn(n, ns, |i, j| snaps[j][i]);
-        let ms_mat = sparse_times(&model.pattern, &m0, &snaps);
-        let gram = at_b(&s_mat, &ms_mat);
+        drop(snaps);
+        let ms_mat = by_column_chunks(n, ns, |j0, w| {
+            sparse_times(&model.pattern, &m0, &s_mat, j0, w)
+        });
+        let gram = by_column_chunks(ns, ns, |j0, w| {
+            at_b(s_mat.as_ref(), ms_mat.as_ref().subcols(j0, w))
+        });
         // Largest Gram eigenpairs = lowest of −G, by the sequential dense solver.
         let max_pod = opts.max_basis.saturating_sub(if model.m_terms.len() > 1 {
             lead.len()
@@ -403,8 +408,8 @@ impl Rom {
         // Vᵀ T V per affine term, the terms in parallel (each product sequential: the same
         // bytes whatever the thread count).
         let project = |val: &Vec<f64>| -> Mat<f64> {
-            let kv = sparse_times_seq(&model.pattern, val, &vecs);
-            let mut m = at_b_seq(&basis, &kv);
+            let kv = sparse_times(&model.pattern, val, &basis, 0, r);
+            let mut m = at_b(basis.as_ref(), kv.as_ref());
             symmetrize(&mut m);
             m
         };
@@ -764,77 +769,56 @@ fn symmetrize(m: &mut Mat<f64>) {
     }
 }
 
-/// Two-pass modified Gram–Schmidt in the M-inner product; drops vectors that become
-/// negligible (relative M-norm below 1e-10).
-/// Columns of width [`PRODUCT_CHUNK`] per parallel task in [`at_b`] and [`sparse_times`]:
-/// fixed, not derived from the thread count, so every entry is computed by the same
-/// sequence of operations whatever the pool size.
+/// Columns of width [`PRODUCT_CHUNK`] per parallel task in [`by_column_chunks`]: fixed, not
+/// derived from the thread count, so every entry is computed by the same sequence of
+/// operations whatever the pool size.
 const PRODUCT_CHUNK: usize = 32;
 
-/// T X for the sparse symmetric T (values `val` on `pattern`) and the columns `xs`, as an
-/// n × len(xs) matrix; columns in parallel chunks.
-fn sparse_times(pattern: &super::sparse::Pattern, val: &[f64], xs: &[Vec<f64>]) -> Mat<f64> {
-    let n = xs.first().map_or(0, |x| x.len());
-    let cols: Vec<Vec<f64>> = xs
-        .par_chunks(PRODUCT_CHUNK)
-        .flat_map_iter(|chunk| {
-            chunk.iter().map(|x| {
-                let mut y = vec![0.0; n];
-                pattern.matvec(val, x, &mut y);
-                y
-            })
-        })
+/// A `rows` × `q` matrix whose columns `j0 .. j0 + w` are `block(j0, w)`: the chunks of
+/// [`PRODUCT_CHUNK`] columns in parallel, each on one thread, stitched in order. Why the
+/// blocked products at all: on the bolted ROM's snapshots (n = 16,412, 744 columns) the
+/// row-by-row dot products they replace took most of the ROM build.
+fn by_column_chunks(
+    rows: usize,
+    q: usize,
+    block: impl Fn(usize, usize) -> Mat<f64> + Sync,
+) -> Mat<f64> {
+    let starts: Vec<usize> = (0..q).step_by(PRODUCT_CHUNK).collect();
+    let blocks: Vec<Mat<f64>> = starts
+        .par_iter()
+        .map(|&j0| block(j0, PRODUCT_CHUNK.min(q - j0)))
         .collect();
-    Mat::from_fn(n, cols.len(), |i, j| cols[j][i])
-}
-
-/// [`sparse_times`] on the calling thread (for callers already inside a parallel loop).
-fn sparse_times_seq(pattern: &super::sparse::Pattern, val: &[f64], xs: &[Vec<f64>]) -> Mat<f64> {
-    let n = xs.first().map_or(0, |x| x.len());
-    let mut out = Mat::<f64>::zeros(n, xs.len());
-    let mut y = vec![0.0; n];
-    for (j, x) in xs.iter().enumerate() {
-        pattern.matvec(val, x, &mut y);
-        for (i, v) in y.iter().enumerate() {
-            out[(i, j)] = *v;
-        }
+    let mut out = Mat::<f64>::zeros(rows, q);
+    for (blk, &j0) in blocks.iter().zip(&starts) {
+        out.as_mut().subcols_mut(j0, blk.ncols()).copy_from(blk);
     }
     out
 }
 
-/// Aᵀ B (A: n × p, B: n × q) by faer's blocked product, B's columns in parallel chunks of
-/// [`PRODUCT_CHUNK`], each product sequential. Why not row-by-row dot products: on the
-/// bolted ROM's snapshots (n = 16,412, 744 columns) those took most of the ROM build.
-fn at_b(a: &Mat<f64>, b: &Mat<f64>) -> Mat<f64> {
-    let q = b.ncols();
-    let starts: Vec<usize> = (0..q).step_by(PRODUCT_CHUNK).collect();
-    let blocks: Vec<Mat<f64>> = starts
-        .par_iter()
-        .map(|&j0| {
-            let w = PRODUCT_CHUNK.min(q - j0);
-            let bj = b.as_ref().subcols(j0, w).to_owned();
-            at_b_seq(a, &bj)
-        })
-        .collect();
-    let mut out = Mat::<f64>::zeros(a.ncols(), q);
-    for (blk, &j0) in blocks.iter().zip(&starts) {
-        for j in 0..blk.ncols() {
-            for i in 0..blk.nrows() {
-                out[(i, j0 + j)] = blk[(i, j)];
-            }
-        }
+/// T X[:, j0 .. j0 + w] for the sparse symmetric T (values `val` on `pattern`), on the
+/// calling thread.
+fn sparse_times(
+    pattern: &super::sparse::Pattern,
+    val: &[f64],
+    x: &Mat<f64>,
+    j0: usize,
+    w: usize,
+) -> Mat<f64> {
+    let mut out = Mat::<f64>::zeros(x.nrows(), w);
+    for j in 0..w {
+        pattern.matvec(val, x.col_as_slice(j0 + j), out.col_as_slice_mut(j));
     }
     out
 }
 
 /// Aᵀ B, one sequential faer product.
-fn at_b_seq(a: &Mat<f64>, b: &Mat<f64>) -> Mat<f64> {
+fn at_b(a: MatRef<'_, f64>, b: MatRef<'_, f64>) -> Mat<f64> {
     let mut out = Mat::<f64>::zeros(a.ncols(), b.ncols());
     faer::linalg::matmul::matmul(
         out.as_mut(),
         faer::Accum::Replace,
-        a.as_ref().transpose(),
-        b.as_ref(),
+        a.transpose(),
+        b,
         1.0,
         faer::Par::Seq,
     );
@@ -842,6 +826,8 @@ fn at_b_seq(a: &Mat<f64>, b: &Mat<f64>) -> Mat<f64> {
     out
 }
 
+/// Two-pass modified Gram–Schmidt in the M-inner product; drops vectors that become
+/// negligible (relative M-norm below 1e-10).
 fn m_gram_schmidt(vecs: &mut Vec<Vec<f64>>, mdot: &impl Fn(&[f64]) -> Vec<f64>) {
     let mut out: Vec<Vec<f64>> = Vec::new();
     let mut mout: Vec<Vec<f64>> = Vec::new();

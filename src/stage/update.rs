@@ -2269,8 +2269,8 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             let need = modes_needed(&labels, &all);
             clock.lap("models");
             let rom = rom_for(&model, need, &log_axes, opts)?;
-            clock.lap("rom_build");
             rom_centre_check(&model, &rom, need, &mut findings)?;
+            clock.lap("rom_build");
             if opts.rom_box > UpdateOptions::DEFAULT_ROM_BOX {
                 let worst = rom_box_check(&model, &rom, opts.rom_box, need)?;
                 findings.push(Finding::new(
@@ -2470,15 +2470,13 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 units,
                 covariate: covariate.clone(),
             };
-            let t0 = std::time::Instant::now();
             // The surrogates model a unit's terms as a function of its ROM parameters alone; with
             // a covariate the terms also follow the unit's coefficient, so the ROM runs directly.
             let mut sopts = opts.clone();
             sopts.surrogate &= target.covariate.is_none();
             clock.lap("unit_data");
             let (results, acceleration) = run_smc(&target, &sopts, "boards", &[], None, verbose)?;
-            clock.lap("sampler");
-            let sampler_seconds = t0.elapsed().as_secs_f64();
+            let sampler_seconds = clock.lap("sampler");
             check_surrogate_edges(&acceleration, &mut findings);
             let violations = box_violations(
                 &results,
@@ -2698,16 +2696,7 @@ fn rom_centre_check(
     n_modes: usize,
     findings: &mut Findings,
 ) -> anyhow::Result<()> {
-    let p = model.nominal_params();
-    let full = model.modes(&p, n_modes)?;
-    let c = rom.map.coefficients(&p)?;
-    let red = rom.eval_lowest(&c.k, &c.m, n_modes)?;
-    let worst = red
-        .eigenvalues
-        .iter()
-        .zip(&full.freq_hz)
-        .map(|(l, f)| (l.max(0.0).sqrt() / (2.0 * std::f64::consts::PI) - f).abs() / f)
-        .fold(0.0f64, f64::max);
+    let worst = worst_frequency_error(model, rom, &[model.nominal_params()], n_modes)?;
     findings.push(Finding::new(
         if worst > 1e-5 {
             Severity::Warning
@@ -2723,19 +2712,31 @@ fn rom_centre_check(
     Ok(())
 }
 
-/// The ROM's worst relative frequency error against the full model over the first `n_modes`
-/// modes, at `n_points` Latin-hypercube points of its box (a design apart from the build's).
-fn rom_box_check(model: &FeModel, rom: &Rom, box_rel: f64, n_modes: usize) -> anyhow::Result<f64> {
+/// The worst relative difference between the ROM's and the full model's `n_modes` lowest
+/// frequencies over `points` (one full solve each).
+fn worst_frequency_error(
+    model: &FeModel,
+    rom: &Rom,
+    points: &[crate::fem::Params],
+    n_modes: usize,
+) -> anyhow::Result<f64> {
     let sop = rom.shape_operator(model, &[[0.0, 0.0]])?;
     let mut worst = 0.0f64;
-    for p in crate::fem::rom::latin_hypercube_params(&model.map, 8, box_rel, 0x00B0_C5EC) {
-        let full = model.modes(&p, n_modes)?;
-        let red = rom.eval(&p, &sop)?;
+    for p in points {
+        let full = model.modes(p, n_modes)?;
+        let red = rom.eval(p, &sop)?;
         for (a, b) in red.freq_hz.iter().zip(&full.freq_hz).take(n_modes) {
             worst = worst.max((a - b).abs() / b);
         }
     }
     Ok(worst)
+}
+
+/// The ROM's worst relative frequency error against the full model over the first `n_modes`
+/// modes, at `n_points` Latin-hypercube points of its box (a design apart from the build's).
+fn rom_box_check(model: &FeModel, rom: &Rom, box_rel: f64, n_modes: usize) -> anyhow::Result<f64> {
+    let points = crate::fem::rom::latin_hypercube_params(&model.map, 8, box_rel, 0x00B0_C5EC);
+    worst_frequency_error(model, rom, &points, n_modes)
 }
 
 /// Step-1 posterior draws read back from boards.parquet.
@@ -3390,8 +3391,8 @@ pub fn run_joints(
         }
         clock.lap("centre_fit");
         let rom = rom_for(&model, need, &log_axes, opts)?;
-        clock.lap("rom_build");
         rom_centre_check(&model, &rom, need, &mut findings)?;
+        clock.lap("rom_build");
         let mut p_board = model.nominal_params();
         for &i in &point_masses {
             p_board.values[i] = 0.0;
@@ -3564,11 +3565,9 @@ pub fn run_joints(
             })
             .collect();
         clock.lap("unit_data");
-        let t0 = std::time::Instant::now();
         let (results, acceleration) =
             run_smc(&target, &sopts, "joints", &aux, Some(&centre), verbose)?;
-        clock.lap("sampler");
-        let sampler_seconds = t0.elapsed().as_secs_f64();
+        let sampler_seconds = clock.lap("sampler");
         check_surrogate_edges(&acceleration, &mut findings);
         // The ROM's box per coordinate, around the fitted centre.
         let coord_names: Vec<String> = enr.coordinates.iter().map(|c| c.name.clone()).collect();
@@ -3778,8 +3777,8 @@ impl PhaseClock {
         }
     }
 
-    /// End the phase `name` now.
-    fn lap(&mut self, name: &'static str) {
+    /// End the phase `name` now; returns its seconds.
+    fn lap(&mut self, name: &'static str) -> f64 {
         let now = std::time::Instant::now();
         let s = now.duration_since(self.last).as_secs_f64();
         self.last = now;
@@ -3787,6 +3786,7 @@ impl PhaseClock {
             eprintln!("{}: {name} {s:.1} s", self.what);
         }
         self.laps.push((name, s));
+        s
     }
 
     fn summary(&self) -> serde_json::Value {
