@@ -21,6 +21,8 @@ pub mod surrogate;
 pub mod target;
 
 #[cfg(test)]
+mod funnel_tests;
+#[cfg(test)]
 mod sbc_tests;
 #[cfg(test)]
 mod surrogate_tests;

@@ -26,6 +26,13 @@
 //!      move mixes well when the data pin the units, the non-centred one when they do not.
 //!
 //!    - one componentwise pass over g (one coordinate at a time, no model evaluation).
+//!    - per prediction-error scale ε_m the target declares ([`Target::log_error_scales`]),
+//!      one move of ln ε_m by s that takes every unit along its residual line, multiplying
+//!      its residual of mode m by about e^s (one model evaluation per unit). Where the units
+//!      can fit a mode nearly exactly (as many unit parameters as the modes less one) the
+//!      likelihood grows without bound as ε_m → 0, and (ε_m, units) form a funnel: the moves
+//!      above, which hold the units or their standardised values while ε_m moves, cross it
+//!      only by many small steps, and the runs disagree on ε_m (`funnel_tests`).
 //!
 //!    A move whose proposal lands where the model is expensive (the target offers a cheap
 //!    stand-in there, [`Target::screen`]) is a delayed-acceptance move (Christen & Fox 2005):
@@ -54,7 +61,9 @@ use rayon::prelude::*;
 
 use super::reference::GaussianReference;
 use super::resample;
-use super::stats::{cholesky_jittered, ess, log_mean_exp, lower_mul};
+use super::stats::{
+    cholesky_jittered, ess, log_mean_exp, lower_mul, lower_solve, lower_transpose_solve,
+};
 
 /// A hierarchical target (see the module doc).
 pub trait Target: Sync {
@@ -103,6 +112,18 @@ pub trait Target: Sync {
     fn screen(&self, _aux: &[f64], _b: usize, _x: &[f64]) -> Option<Self::Cache> {
         None
     }
+    /// The global coordinates of the per-mode prediction-error scales on the log scale
+    /// (ln ε_m, mode m = position in the list), for the moves that scale an error scale
+    /// together with the residuals it governs; empty (the default) where g has none.
+    fn log_error_scales(&self) -> Vec<usize> {
+        vec![]
+    }
+    /// Unit b's residual of error mode m (the m-th of [`Target::log_error_scales`]) from its
+    /// model output, on the scale ε_m measures (e.g. the mean relative eigenvalue error);
+    /// None where the unit has no observation of the mode.
+    fn residual(&self, _b: usize, _m: usize, _cache: &Self::Cache) -> Option<f64> {
+        None
+    }
 }
 
 /// Tuning of the sampler.
@@ -127,6 +148,13 @@ pub struct SmcOptions {
     /// at `max_sweeps`; the intermediate stages only need to keep the cloud healthy.
     #[serde(default = "default_final_max_sweeps")]
     pub final_max_sweeps: usize,
+    /// The decorrelation target of the last stage (β = 1), at most `decorrelation_target`:
+    /// a cloud whose slowest coordinate (an error scale's long tail into a funnel) is still
+    /// correlated 0.5 with where resampling left it reports that tail as the tempering path
+    /// drew it (in the funnel test of `funnel_tests`, the 5 % quantile of ln ε 0.3 too high
+    /// at 0.5, within 0.06 at 0.1).
+    #[serde(default = "default_final_decorrelation_target")]
+    pub final_decorrelation_target: f64,
     /// Centred moves of g per sweep (they need no model evaluation).
     pub global_moves: usize,
     /// Non-centred moves of g per sweep (each costs one model evaluation per unit).
@@ -148,6 +176,10 @@ fn one() -> usize {
     1
 }
 
+fn default_final_decorrelation_target() -> f64 {
+    0.1
+}
+
 fn default_final_max_sweeps() -> usize {
     100
 }
@@ -162,6 +194,7 @@ impl Default for SmcOptions {
             min_sweeps: 2,
             max_sweeps: 25,
             final_max_sweeps: default_final_max_sweeps(),
+            final_decorrelation_target: default_final_decorrelation_target(),
             global_moves: 20,
             noncentred: 2,
             max_stages: 400,
@@ -209,6 +242,9 @@ pub struct StageInfo {
     pub acceptance_unit: f64,
     pub acceptance_global: f64,
     pub acceptance_noncentred: f64,
+    /// Acceptance rate of the moves that scale an error scale with its residuals (NaN where
+    /// the target has none).
+    pub acceptance_rescale: f64,
     /// Mutation sweeps run.
     pub sweeps: usize,
     /// Mean correlation between the coordinates after resampling and after mutation.
@@ -482,9 +518,123 @@ struct Proposals {
     global: Vec<f64>,
     /// The cloud's standard deviation of every global coordinate (componentwise moves).
     global_sd: Vec<f64>,
+    /// Per error scale of [`Target::log_error_scales`]: its global coordinate and every
+    /// unit's residual line (None: the unit stays put in that scale's moves).
+    rescale: Vec<(usize, Vec<Option<ResidualLine>>)>,
 }
 
-fn proposals<C>(ps: &[Particle<C>], n_units: usize, groups: usize) -> Proposals {
+/// One unit's residual of one error mode, linearised across the particle cloud, for the
+/// move that scales the error scale and the residuals together ([`rescale_step`]):
+/// r(x) ≈ r0[group] + a·x (the cloud's least-squares line, pooled within groups), and the
+/// direction `dir` (a·dir = 1) along which the unit moves to change r: the cloud's
+/// regression of x on r, so the unit follows the trade-offs the posterior has between r
+/// and its other terms (another mode's residual, the population).
+struct ResidualLine {
+    a: Vec<f64>,
+    dir: Vec<f64>,
+    r0: Vec<f64>,
+}
+
+impl ResidualLine {
+    /// The map x → x + (e^s − 1) r(x) dir, which multiplies r by e^s (exactly for the line,
+    /// about for the model), and the log of its Jacobian |1 + (e^s − 1) a·dir| (= s).
+    /// The same map with −s undoes it: a bijection, as Metropolis–Hastings needs.
+    fn apply(&self, group: usize, x: &[f64], s: f64) -> (Vec<f64>, f64) {
+        let r = self.r0[group.min(self.r0.len() - 1)] + dot(&self.a, x);
+        let f = s.exp_m1();
+        let xn = x
+            .iter()
+            .zip(&self.dir)
+            .map(|(v, d)| v + f * r * d)
+            .collect();
+        let log_jac = (1.0 + f * dot(&self.a, &self.dir)).abs().ln();
+        (xn, log_jac)
+    }
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(u, v)| u * v).sum()
+}
+
+/// The smallest share of a residual's spread across the cloud that its line must explain
+/// for the unit to follow the line (R² of the within-group regression): below it the
+/// residual is not near-linear in x over the cloud (or does not vary), and a unit that
+/// followed would only spoil the move's acceptance.
+const MIN_LINE_R2: f64 = 0.5;
+
+/// The residual line of unit b for error mode m across the particles (see [`ResidualLine`]).
+fn residual_line<T: Target>(
+    t: &T,
+    ps: &[Particle<T::Cache>],
+    groups: usize,
+    b: usize,
+    m: usize,
+) -> Option<ResidualLine> {
+    let d = t.unit_dim();
+    let rs = ps
+        .iter()
+        .map(|p| p.cache[b].as_ref().and_then(|c| t.residual(b, m, c)))
+        .collect::<Option<Vec<f64>>>()?;
+    let ng = if groups > 1 && ps.len().is_multiple_of(groups) {
+        groups
+    } else {
+        1
+    };
+    let k = ps.len() / ng;
+    let (mut xbar, mut rbar) = (vec![vec![0.0; d]; ng], vec![0.0; ng]);
+    for (i, p) in ps.iter().enumerate() {
+        for (m, v) in xbar[i / k].iter_mut().zip(&p.x[b]) {
+            *m += v / k as f64;
+        }
+        rbar[i / k] += rs[i] / k as f64;
+    }
+    let n = ps.len() as f64;
+    let (mut sxx, mut sxr, mut srr) = (vec![0.0; d * d], vec![0.0; d], 0.0);
+    for (i, p) in ps.iter().enumerate() {
+        let (c, dr) = (&xbar[i / k], rs[i] - rbar[i / k]);
+        srr += dr * dr / n;
+        for j in 0..d {
+            let dj = p.x[b][j] - c[j];
+            sxr[j] += dj * dr / n;
+            for l in 0..=j {
+                sxx[j * d + l] += dj * (p.x[b][l] - c[l]) / n;
+            }
+        }
+    }
+    for j in 0..d {
+        for l in 0..j {
+            sxx[l * d + j] = sxx[j * d + l];
+        }
+    }
+    let (lf, jitter) = cholesky_jittered(&sxx, d);
+    if !jitter.is_finite() {
+        return None;
+    }
+    let a = lower_transpose_solve(&lf, d, &lower_solve(&lf, d, &sxr));
+    // The variance the line explains, aᵀ Σ a = aᵀ c.
+    let explained = dot(&a, &sxr);
+    if !(explained.is_finite() && explained > 0.0 && explained >= MIN_LINE_R2 * srr) {
+        return None;
+    }
+    let dir = sxr.iter().map(|c| c / explained).collect();
+    let r0 = (0..ng).map(|g| rbar[g] - dot(&a, &xbar[g])).collect();
+    Some(ResidualLine { a, dir, r0 })
+}
+
+fn proposals<T: Target>(t: &T, ps: &[Particle<T::Cache>], groups: usize) -> Proposals {
+    let n_units = t.n_units();
+    let rescale = t
+        .log_error_scales()
+        .into_iter()
+        .enumerate()
+        .map(|(m, k)| {
+            let lines = (0..n_units)
+                .into_par_iter()
+                .map(|b| residual_line(t, ps, groups, b, m))
+                .collect();
+            (k, lines)
+        })
+        .collect();
     let unit = (0..n_units)
         .map(|b| {
             cloud_cholesky(
@@ -510,6 +660,7 @@ fn proposals<C>(ps: &[Particle<C>], n_units: usize, groups: usize) -> Proposals 
         unit,
         global,
         global_sd,
+        rescale,
     }
 }
 
@@ -525,6 +676,8 @@ struct SweepStats {
     n_nc: f64,
     acc_comp: f64,
     n_comp: f64,
+    acc_rescale: f64,
+    n_rescale: f64,
     evals: u64,
     /// Proposals rejected by a delayed-acceptance screen (no model evaluation).
     screened_out: u64,
@@ -666,6 +819,141 @@ fn centred_g_move<T: Target>(
     }
 }
 
+/// A move of g to `gn` (with its context) that takes unit b to `moves[b]` =
+/// (x_b', log |∂x_b'/∂x_b|), or leaves it where it is (None: its cached model output is
+/// re-priced under gn, no model evaluation). Metropolis–Hastings with the Jacobian: the map
+/// must be a bijection that the same move with the opposite step undoes. Where the target
+/// has a stand-in (its screen) at a moving unit's new or current value, delayed acceptance
+/// (see `unit_move`): the first stage takes the stand-in density π̃ for those units, and the
+/// model is evaluated at their new values only if it passes; units without one enter both
+/// stages with the model. Returns whether it was accepted.
+#[allow(clippy::too_many_arguments, clippy::type_complexity)]
+fn joint_move<T: Target>(
+    tp: &Tempered<'_, T>,
+    p: &mut Particle<T::Cache>,
+    ctx: &mut T::Ctx,
+    lg: &mut f64,
+    (gn, ctx_new): (Vec<f64>, T::Ctx),
+    moves: Vec<Option<(Vec<f64>, f64)>>,
+    rng: &mut ChaCha8Rng,
+    st: &mut SweepStats,
+) -> bool {
+    let t = tp.t;
+    let u: f64 = rng.random();
+    let lg_new = tp.global(p.group, &gn);
+    let mut log_r = lg_new - *lg;
+    let mut log_r1 = log_r;
+    // Per unit: (new x or None, model output, log L, its new log prior, its old density,
+    // whether a stand-in priced it, log-Jacobian).
+    let mut moved: Vec<(Option<Vec<f64>>, Option<T::Cache>, f64, f64, f64, bool, f64)> =
+        Vec::with_capacity(moves.len());
+    let mut deferred = vec![];
+    for (b, mv) in moves.into_iter().enumerate() {
+        let lp_old = t.log_prior_unit(ctx, b, &p.x[b]);
+        let Some((xn, jac)) = mv else {
+            let l = match &p.cache[b] {
+                Some(c) => t.log_lik(&ctx_new, b, &p.x[b], c),
+                None => f64::NEG_INFINITY,
+            };
+            let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
+            let lp = t.log_prior_unit(&ctx_new, b, &p.x[b]);
+            let d = tp.unit_change(p.group, (lp, l), (lp_old, p.ll[b]));
+            log_r += d;
+            log_r1 += d;
+            moved.push((None, None, l, lp, 0.0, false, 0.0));
+            continue;
+        };
+        let lp_new = t.log_prior_unit(&ctx_new, b, &xn);
+        let old = tp.unit(p.group, b, &p.x[b], lp_old, p.ll[b]);
+        let (s_new, s_old) = (
+            screen_ll(t, &p.aux, &ctx_new, b, &xn),
+            screen_ll(t, &p.aux, ctx, b, &p.x[b]),
+        );
+        let (c, l) = if s_new.is_none() {
+            st.evals += 1;
+            eval_unit(t, &p.aux, &ctx_new, b, &xn)
+        } else {
+            (None, f64::NEG_INFINITY)
+        };
+        if s_new.is_some() || s_old.is_some() {
+            log_r1 += tp.unit(p.group, b, &xn, lp_new, s_new.unwrap_or(l))
+                - tp.unit(p.group, b, &p.x[b], lp_old, s_old.unwrap_or(p.ll[b]))
+                + jac;
+            deferred.push(b);
+        } else {
+            let d = tp.unit(p.group, b, &xn, lp_new, l) - old + jac;
+            log_r += d;
+            log_r1 += d;
+        }
+        moved.push((Some(xn), c, l, lp_new, old, s_new.is_some(), jac));
+    }
+    let mut u = u;
+    if !deferred.is_empty() {
+        if !(log_r1.is_finite() && u.ln() < log_r1) {
+            st.screened_out += 1;
+            return false;
+        }
+        for &b in &deferred {
+            let m = &mut moved[b];
+            let xn = m.0.as_ref().expect("a deferred unit moves");
+            if m.5 {
+                let (c, l) = eval_unit(t, &p.aux, &ctx_new, b, xn);
+                st.evals += 1;
+                m.1 = c;
+                m.2 = l;
+            }
+            log_r += tp.unit(p.group, b, xn, m.3, m.2) - m.4 + m.6;
+        }
+        log_r -= log_r1;
+        u = rng.random();
+    }
+    if !(log_r.is_finite() && u.ln() < log_r) {
+        return false;
+    }
+    p.g = gn;
+    *ctx = ctx_new;
+    *lg = lg_new;
+    for (b, (xn, c, l, ..)) in moved.into_iter().enumerate() {
+        if let Some(xn) = xn {
+            p.x[b] = xn;
+            p.cache[b] = c;
+        }
+        p.ll[b] = l;
+    }
+    true
+}
+
+/// A move of one error scale ln ε_m by `step` = s that takes every unit with a residual
+/// line for the mode along it, multiplying its (linearised) residual by e^s: the
+/// standardised residuals r/ε stay about where they were, so the move crosses the funnel
+/// between an error scale and the units that pin it in one step (a data-space analogue of
+/// the non-centred parametrisation). Each moved unit costs one model evaluation.
+#[allow(clippy::too_many_arguments)]
+fn rescale_step<T: Target>(
+    tp: &Tempered<'_, T>,
+    p: &mut Particle<T::Cache>,
+    ctx: &mut T::Ctx,
+    lg: &mut f64,
+    (k, lines): (usize, &[Option<ResidualLine>]),
+    step: f64,
+    rng: &mut ChaCha8Rng,
+    st: &mut SweepStats,
+) -> bool {
+    let t = tp.t;
+    let mut gn = p.g.clone();
+    gn[k] += step;
+    if !t.log_prior_global(&gn).is_finite() {
+        return false;
+    }
+    let ctx_new = t.ctx(&gn);
+    let moves = lines
+        .iter()
+        .enumerate()
+        .map(|(b, line)| line.as_ref().map(|l| l.apply(p.group, &p.x[b], step)))
+        .collect();
+    joint_move(tp, p, ctx, lg, (gn, ctx_new), moves, rng, st)
+}
+
 /// One Metropolis-within-Gibbs sweep of one particle at β.
 fn sweep<T: Target>(
     tp: &Tempered<'_, T>,
@@ -747,88 +1035,41 @@ fn sweep<T: Target>(
             st.acc_comp += 1.0;
         }
     }
+    // Moves of one error scale with the residuals it governs (see `rescale_step`): an
+    // error scale that the units can pin (a mode they fit nearly exactly, its ε near zero,
+    // the units in a narrow band of width ∝ ε) is a funnel that the moves above cross only
+    // by many small steps.
+    for (k, lines) in &prop.rescale {
+        let e: f64 = StandardNormal.sample(rng);
+        let step = sc.rescale * prop.global_sd[*k] * e;
+        st.n_rescale += 1.0;
+        if rescale_step(tp, p, &mut ctx, &mut lg, (*k, lines), step, rng, &mut st) {
+            st.acc_rescale += 1.0;
+        }
+    }
     // Non-centred moves of g: units follow through their standardised values. In (g, z)
     // coordinates the density gains the Jacobian |∂x/∂z| = det(diag σ L), and
-    // log p(x | g) + log |∂x/∂z| = log N(z; 0, I) is unchanged when z is, so a unit
-    // contributes [U_b(new) − U_b(old)] + [log p(x_b | g) − log p(x_b' | g')].
+    // log p(x | g) + log |∂x/∂z| = log N(z; 0, I) is unchanged when z is, so a unit's
+    // log-Jacobian is log p(x_b | g) − log p(x_b' | g').
     for _ in 0..if t.n_units() > 0 { opts.noncentred } else { 0 } {
         let eps = normal_vec(rng, ng);
         let step = lower_mul(&prop.global, ng, &eps);
         let gn: Vec<f64> = p.g.iter().zip(&step).map(|(a, s)| a + sc.nc * s).collect();
-        let u: f64 = rng.random();
         st.n_nc += 1.0;
-        if t.log_prior_global(&gn).is_finite() {
-            let lg_new = tp.global(p.group, &gn);
-            let ctx_new = t.ctx(&gn);
-            // Delayed acceptance where the target has a stand-in (its screen) at some unit's
-            // new or current value (see `unit_move`): the first stage takes the stand-in
-            // density π̃ for those units, and the model is evaluated at their new values only
-            // if it passes. Units without one enter both stages with the model.
-            let mut log_r = lg_new - lg;
-            let mut log_r1 = lg_new - lg;
-            let mut moved = Vec::with_capacity(t.n_units());
-            let mut deferred = vec![];
-            for b in 0..t.n_units() {
+        if !t.log_prior_global(&gn).is_finite() {
+            continue;
+        }
+        let ctx_new = t.ctx(&gn);
+        let moves = (0..t.n_units())
+            .map(|b| {
                 let z = t.to_standard(&ctx, b, &p.x[b]);
                 let xn = t.from_standard(&ctx_new, b, &z);
-                let (lp_old, lp_new) = (
-                    t.log_prior_unit(&ctx, b, &p.x[b]),
-                    t.log_prior_unit(&ctx_new, b, &xn),
-                );
-                let old = tp.unit(p.group, b, &p.x[b], lp_old, p.ll[b]);
-                let (s_new, s_old) = (
-                    screen_ll(t, &p.aux, &ctx_new, b, &xn),
-                    screen_ll(t, &p.aux, &ctx, b, &p.x[b]),
-                );
-                let (c, l) = if s_new.is_none() {
-                    st.evals += 1;
-                    eval_unit(t, &p.aux, &ctx_new, b, &xn)
-                } else {
-                    (None, f64::NEG_INFINITY)
-                };
-                if s_new.is_some() || s_old.is_some() {
-                    log_r1 += tp.unit(p.group, b, &xn, lp_new, s_new.unwrap_or(l))
-                        - tp.unit(p.group, b, &p.x[b], lp_old, s_old.unwrap_or(p.ll[b]))
-                        + lp_old
-                        - lp_new;
-                    deferred.push(b);
-                } else {
-                    let d = tp.unit(p.group, b, &xn, lp_new, l) - old + lp_old - lp_new;
-                    log_r += d;
-                    log_r1 += d;
-                }
-                moved.push((xn, c, l, lp_old, lp_new, old, s_new.is_some()));
-            }
-            let mut u = u;
-            if !deferred.is_empty() {
-                if !(log_r1.is_finite() && u.ln() < log_r1) {
-                    st.screened_out += 1;
-                    continue;
-                }
-                for &b in &deferred {
-                    let m = &mut moved[b];
-                    if m.6 {
-                        let (c, l) = eval_unit(t, &p.aux, &ctx_new, b, &m.0);
-                        st.evals += 1;
-                        m.1 = c;
-                        m.2 = l;
-                    }
-                    log_r += tp.unit(p.group, b, &m.0, m.4, m.2) - m.5 + m.3 - m.4;
-                }
-                log_r -= log_r1;
-                u = rng.random();
-            }
-            if log_r.is_finite() && u.ln() < log_r {
-                p.g = gn;
-                ctx = ctx_new;
-                lg = lg_new;
-                for (b, (xn, c, l, ..)) in moved.into_iter().enumerate() {
-                    p.x[b] = xn;
-                    p.cache[b] = c;
-                    p.ll[b] = l;
-                }
-                st.acc_nc += 1.0;
-            }
+                let jac = t.log_prior_unit(&ctx, b, &p.x[b]) - t.log_prior_unit(&ctx_new, b, &xn);
+                Some((xn, jac))
+            })
+            .collect();
+        if joint_move(tp, p, &mut ctx, &mut lg, (gn, ctx_new), moves, rng, &mut st) {
+            st.acc_nc += 1.0;
         }
     }
     st
@@ -1021,6 +1262,7 @@ struct Scales {
     global: f64,
     nc: f64,
     comp: f64,
+    rescale: f64,
 }
 
 impl Scales {
@@ -1033,6 +1275,7 @@ impl Scales {
             global: 2.38 / g,
             nc: 2.38 / g,
             comp: 2.4,
+            rescale: 2.4,
         }
     }
 }
@@ -1081,18 +1324,22 @@ fn stage_step<T: Target>(
     };
     *particles = idx.iter().map(|&i| particles[i].clone()).collect();
     let mut rho = 0.0;
-    let (mut acc_u, mut acc_g, mut acc_n) = (0.0, 0.0, 0.0);
+    let (mut acc_u, mut acc_g, mut acc_n, mut acc_r) = (0.0, 0.0, 0.0, 0.0);
     let mut sweeps = 0;
     let mut evals = 0u64;
     let mut screened_out = 0u64;
     if (unique as f64) < mutate_if_unique_below * n as f64 {
-        let prop = proposals(particles, t.n_units(), groups);
+        let prop = proposals(t, particles, groups);
         let start: Vec<Vec<f64>> = particles.iter().map(flat).collect();
         rho = 1.0;
-        let cap = if tp.beta >= 1.0 {
-            opts.final_max_sweeps.max(opts.max_sweeps)
+        let (cap, target) = if tp.beta >= 1.0 {
+            (
+                opts.final_max_sweeps.max(opts.max_sweeps),
+                opts.final_decorrelation_target
+                    .min(opts.decorrelation_target),
+            )
         } else {
-            opts.max_sweeps
+            (opts.max_sweeps, opts.decorrelation_target)
         };
         while sweeps < cap {
             let stats: Vec<SweepStats> = particles
@@ -1116,6 +1363,8 @@ fn stage_step<T: Target>(
                 tot.n_nc += s.n_nc;
                 tot.acc_comp += s.acc_comp;
                 tot.n_comp += s.n_comp;
+                tot.acc_rescale += s.acc_rescale;
+                tot.n_rescale += s.n_rescale;
                 tot.evals += s.evals;
                 tot.screened_out += s.screened_out;
             }
@@ -1145,8 +1394,13 @@ fn stage_step<T: Target>(
             if ac.is_finite() {
                 scales.comp = (scales.comp * (ac - 0.44).exp()).clamp(1e-3, 20.0);
             }
+            let ar = rate(tot.acc_rescale, tot.n_rescale);
+            acc_r += ar;
+            if ar.is_finite() {
+                scales.rescale = (scales.rescale * (ar - 0.44).exp()).clamp(1e-3, 20.0);
+            }
             rho = max_correlation(&start, particles, groups);
-            if sweeps >= opts.min_sweeps && rho <= opts.decorrelation_target {
+            if sweeps >= opts.min_sweeps && rho <= target {
                 break;
             }
         }
@@ -1162,6 +1416,7 @@ fn stage_step<T: Target>(
         acceptance_unit: if sweeps > 0 { acc_u / k } else { f64::NAN },
         acceptance_global: if sweeps > 0 { acc_g / k } else { f64::NAN },
         acceptance_noncentred: if sweeps > 0 { acc_n / k } else { f64::NAN },
+        acceptance_rescale: if sweeps > 0 { acc_r / k } else { f64::NAN },
         sweeps,
         decorrelation: rho,
         unique_after_resampling: unique,
@@ -1299,6 +1554,12 @@ pub fn correct<T: Target>(
     };
     let mut scales = Scales::new(t);
     let stage = res.stages.len() + 1;
+    // The mutation here only diversifies the copies the reweighting made (the tempering's
+    // last stage has mixed already, under the stricter rule): the intermediate stages' rule.
+    let opts = &SmcOptions {
+        final_decorrelation_target: opts.decorrelation_target,
+        ..opts.clone()
+    };
     let mut info = stage_step(
         &tp,
         opts,

@@ -150,6 +150,17 @@ pub fn lower_solve(l: &[f64], d: usize, b: &[f64]) -> Vec<f64> {
     x
 }
 
+/// L⁻ᵀ b for lower-triangular L (row-major d × d): back substitution with Lᵀ. With
+/// [`lower_solve`] it solves (L Lᵀ) x = b.
+pub fn lower_transpose_solve(l: &[f64], d: usize, b: &[f64]) -> Vec<f64> {
+    let mut x = b[..d].to_vec();
+    for i in (0..d).rev() {
+        let s: f64 = (i + 1..d).map(|k| l[k * d + i] * x[k]).sum();
+        x[i] = (x[i] - s) / l[i * d + i];
+    }
+    x
+}
+
 /// Forward substitution in place: b (length d) becomes L⁻¹ b.
 fn lower_solve_in_place(l: &[f64], d: usize, x: &mut [f64]) {
     for i in 0..d {
@@ -186,6 +197,12 @@ mod tests {
         let back = lower_mul(&l, 3, &x);
         for (u, v) in back.iter().zip(&b) {
             assert!((u - v).abs() < 1e-12);
+        }
+        // (L Lᵀ)⁻¹ b: A x = b.
+        let x = lower_transpose_solve(&l, 3, &lower_solve(&l, 3, &b));
+        for i in 0..3 {
+            let ax: f64 = (0..3).map(|k| a[i * 3 + k] * x[k]).sum();
+            assert!((ax - b[i]).abs() < 1e-12, "row {i}");
         }
         // Singular input gets a jitter, never a failure.
         let (_, j) = cholesky_jittered(&[1.0, 1.0, 1.0, 1.0], 2);

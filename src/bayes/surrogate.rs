@@ -459,4 +459,10 @@ impl Target for SurrogateTarget<'_> {
     fn from_standard(&self, ctx: &Self::Ctx, b: usize, z: &[f64]) -> Vec<f64> {
         self.inner.from_standard(ctx, b, z)
     }
+    fn log_error_scales(&self) -> Vec<usize> {
+        self.inner.log_error_scales()
+    }
+    fn residual(&self, b: usize, m: usize, c: &Terms) -> Option<f64> {
+        self.inner.residual(b, m, c)
+    }
 }

@@ -346,6 +346,25 @@ impl Target for ModalTarget {
     fn from_standard(&self, ctx: &Ctx, _b: usize, z: &[f64]) -> Vec<f64> {
         ctx.pop.from_standard(z)
     }
+    fn log_error_scales(&self) -> Vec<usize> {
+        match self.errors.eps {
+            ErrorPrior::Inferred { .. } => (0..self.errors.n_modes)
+                .map(|m| self.prior.dim() + m)
+                .collect(),
+            ErrorPrior::Fixed { .. } => vec![],
+        }
+    }
+    /// The mean relative eigenvalue residual λ_m / λ̂ − 1 over the unit's observations of
+    /// mode m (each at its own condition).
+    fn residual(&self, b: usize, m: usize, c: &Terms) -> Option<f64> {
+        let nm = self.errors.n_modes;
+        let (mut sum, mut n) = (0.0, 0usize);
+        for f in self.units[b].freq.iter().filter(|f| f.mode == m) {
+            sum += c.lambda[f.cond * nm + m] / f.lambda_hat - 1.0;
+            n += 1;
+        }
+        (n > 0).then(|| sum / n as f64)
+    }
 }
 
 #[cfg(test)]

@@ -150,6 +150,13 @@ pub const STAGES: TableSpec = TableSpec {
             "",
             "Acceptance rate of the non-centred population moves.",
         ),
+        c(
+            "acceptance_rescale",
+            Col::Float64,
+            true,
+            "",
+            "Acceptance rate of the moves that scale one mode's prediction-error scale together with the units' residuals of that mode (null where no error scale is inferred).",
+        ),
         c("mutation_steps", Col::Int32, false, "", "Mutation sweeps."),
         c(
             "unique_after_resampling",
@@ -889,6 +896,9 @@ fn write_stages(
         Arc::new(Float64Array::from_iter(
             st.iter().map(|s| nan_null(s.acceptance_noncentred)),
         )),
+        Arc::new(Float64Array::from_iter(
+            st.iter().map(|s| nan_null(s.acceptance_rescale)),
+        )),
         Arc::new(Int32Array::from_iter_values(
             st.iter().map(|s| s.sweeps as i32),
         )),
@@ -1343,9 +1353,9 @@ fn run_smc(
         let observe = |s: &StageInfo| {
             if verbose {
                 eprintln!(
-                    "{what} run {} stage {:3} {} beta {:.3e} ess {:6.0} acc unit/global/nc {:.2}/{:.2}/{:.2} sweeps {:2} rho {:.2} unique {:5} evals {}",
+                    "{what} run {} stage {:3} {} beta {:.3e} ess {:6.0} acc unit/global/nc/rescale {:.2}/{:.2}/{:.2}/{:.2} sweeps {:2} rho {:.2} unique {:5} evals {}",
                     r + 1, s.stage, s.kind, s.beta, s.ess, s.acceptance_unit, s.acceptance_global,
-                    s.acceptance_noncentred, s.sweeps, s.decorrelation, s.unique_after_resampling, s.model_evals
+                    s.acceptance_noncentred, s.acceptance_rescale, s.sweeps, s.decorrelation, s.unique_after_resampling, s.model_evals
                 );
             }
             pb.set_position(base + (s.beta * 1000.0) as u64);
