@@ -185,7 +185,7 @@ fn posterior(
     all.sort_by(f64::total_cmp);
     let q = probs
         .iter()
-        .map(|p| all[((all.len() - 1) as f64 * p).round() as usize])
+        .map(|&p| crate::report::validation::quantile_sorted(&all, p))
         .collect();
     (q, rhat(&chains), ess_bulk(&chains))
 }

@@ -2,7 +2,7 @@
 //! posterior moments and evidence are exact, and thread-count independence.
 
 use super::smc::{self, SmcOptions, Target};
-use super::stats::{cholesky_jittered, lower_solve, LN_2PI};
+use super::stats::{cholesky_jittered, lower_solve, lower_transpose_solve, LN_2PI};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
@@ -108,16 +108,7 @@ fn exact(t: &LinearGaussian, k: usize) -> (Vec<f64>, Vec<f64>, f64) {
     let log_z = -0.5 * (no as f64 * LN_2PI + w.iter().map(|a| a * a).sum::<f64>())
         - (0..no).map(|i| l[i * no + i].ln()).sum::<f64>();
     // Solve Syy α = y and Syy B = Syl.
-    let solve = |b: &[f64]| -> Vec<f64> {
-        let z = lower_solve(&l, no, b);
-        // back substitution with Lᵀ
-        let mut x = vec![0.0; no];
-        for i in (0..no).rev() {
-            let s: f64 = (i + 1..no).map(|q| l[q * no + i] * x[q]).sum();
-            x[i] = (z[i] - s) / l[i * no + i];
-        }
-        x
-    };
+    let solve = |b: &[f64]| lower_transpose_solve(&l, no, &lower_solve(&l, no, b));
     let alpha = solve(&y);
     let mut mean = vec![0.0; nl];
     let mut var = vec![0.0; nl];
