@@ -152,8 +152,11 @@ pub struct SmcOptions {
     /// a cloud whose slowest coordinate (an error scale's long tail into a funnel) is still
     /// correlated 0.5 with where resampling left it reports that tail as the tempering path
     /// drew it (in the funnel test of `funnel_tests`, the worst quantile of ln ε 0.34 off at
-    /// 0.5, 0.075 at 0.1). At a few hundred particles 0.1 is near the noise floor of the
-    /// largest correlation over all coordinates, so this stage then runs to its cap.
+    /// 0.5, 0.075 at 0.1). The stage takes the larger of this and the noise floor of the
+    /// largest correlation over its coordinates (`correlation_noise_floor`, about
+    /// √(2 ln D / N) for D coordinates and N distinct starts): below that floor the rule
+    /// cannot tell a mixed cloud from an unmixed one and would run every last stage to its
+    /// cap.
     #[serde(default = "default_final_decorrelation_target")]
     pub final_decorrelation_target: f64,
     /// Centred moves of g per sweep (they need no model evaluation).
@@ -1124,6 +1127,16 @@ fn max_correlation<C: Sync + Send>(start: &[Vec<f64>], ps: &[Particle<C>], group
     }
 }
 
+/// The level the largest of `dim` sample correlations between independent clouds of
+/// `n_eff` distinct points stays near even when every coordinate has forgotten its start:
+/// each is about N(0, 1/n_eff), and the largest of `dim` such is about √(2 ln dim / n_eff)
+/// (the Gumbel location of a Gaussian maximum). A decorrelation target below it cannot be
+/// told from noise: the mutation would run to its cap whatever the chain's mixing (at 400
+/// particles and 60 coordinates it is 0.14, more with duplicated starts).
+fn correlation_noise_floor(dim: usize, n_eff: f64) -> f64 {
+    (2.0 * (dim.max(2) as f64).ln() / n_eff.max(1.0)).sqrt()
+}
+
 /// Mean over groups of the within-group ESS fraction of log weights.
 fn group_ess_fraction(lw: &[f64], groups: usize) -> f64 {
     let k = lw.len() / groups;
@@ -1313,6 +1326,20 @@ fn stage_step<T: Target>(
         v.dedup();
         v.len()
     };
+    // Effective number of distinct starting points, N² / Σ c_i² over the copy counts c_i
+    // (systematic resampling returns each parent's copies next to each other).
+    let copies_eff = {
+        let mut sq = 0.0;
+        let mut run = 0usize;
+        for (j, &i) in idx.iter().enumerate() {
+            run += 1;
+            if j + 1 == idx.len() || idx[j + 1] != i {
+                sq += (run * run) as f64;
+                run = 0;
+            }
+        }
+        (n * n) as f64 / sq
+    };
     *particles = idx.iter().map(|&i| particles[i].clone()).collect();
     let mut rho = 0.0;
     let (mut acc_u, mut acc_g, mut acc_n, mut acc_r) = (0.0, 0.0, 0.0, 0.0);
@@ -1327,7 +1354,8 @@ fn stage_step<T: Target>(
             (
                 opts.final_max_sweeps.max(opts.max_sweeps),
                 opts.final_decorrelation_target
-                    .min(opts.decorrelation_target),
+                    .min(opts.decorrelation_target)
+                    .max(correlation_noise_floor(start[0].len(), copies_eff)),
             )
         } else {
             (opts.max_sweeps, opts.decorrelation_target)
