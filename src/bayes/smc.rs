@@ -615,12 +615,53 @@ fn residual_line<T: Target>(
     Some(ResidualLine { a, dir, r0 })
 }
 
+/// The smallest share of ln ε_m's spread across the cloud that the units' residuals of mode m
+/// must pin (R² of ln ε_m on ln of their mean square, within groups) for the rescale move of
+/// ε_m to run: the conditional spread of ln ε_m given the units is then at most √(1 − R²) ≈
+/// 0.71 of its marginal one, and below that the componentwise move of ε_m (no model
+/// evaluation) loses little. In a funnel R² is near 1; where ε_m is set by the spread of many
+/// measurements and not by a few units' fits, near 0, and the move's model evaluations (one
+/// per unit) would be spent for nothing.
+const MIN_FUNNEL_R2: f64 = 0.5;
+
+/// R² across the cloud (pooled within groups) of g[k] = ln ε_m against ln of the mean over
+/// units of their squared residual of mode m; 0 where a residual is missing or does not vary.
+fn funnel_r2<T: Target>(
+    t: &T,
+    ps: &[Particle<T::Cache>],
+    groups: usize,
+    k: usize,
+    m: usize,
+) -> f64 {
+    let rows = ps
+        .iter()
+        .map(|p| {
+            let mut s = 0.0;
+            for (b, c) in p.cache.iter().enumerate() {
+                let r = t.residual(b, m, c.as_ref()?)?;
+                s += r * r;
+            }
+            let v = (s / t.n_units().max(1) as f64).ln();
+            v.is_finite().then_some([p.g[k], v])
+        })
+        .collect::<Option<Vec<[f64; 2]>>>();
+    let Some(rows) = rows else { return 0.0 };
+    let (_, _, cov) = pooled_covariance(&rows.iter().map(|r| &r[..]).collect::<Vec<_>>(), groups);
+    let r2 = cov[1] * cov[1] / (cov[0] * cov[3]);
+    if r2.is_finite() {
+        r2
+    } else {
+        0.0
+    }
+}
+
 fn proposals<T: Target>(t: &T, ps: &[Particle<T::Cache>], groups: usize) -> Proposals {
     let n_units = t.n_units();
     let rescale = t
         .log_error_scales()
         .into_iter()
         .enumerate()
+        .filter(|&(m, k)| funnel_r2(t, ps, groups, k, m) >= MIN_FUNNEL_R2)
         .map(|(m, k)| {
             let lines = (0..n_units)
                 .into_par_iter()
