@@ -118,12 +118,29 @@ pub trait Target: Sync {
     fn log_error_scales(&self) -> Vec<usize> {
         vec![]
     }
+    /// Which terms of the density g's coordinate k enters (beyond log p(g)): a move of that
+    /// coordinate alone re-prices only those. [`GlobalRole::Both`] (the default) is always
+    /// correct; the others only save work.
+    fn global_role(&self, _k: usize) -> GlobalRole {
+        GlobalRole::Both
+    }
     /// Unit b's residual of error mode m (the m-th of [`Target::log_error_scales`]) from its
     /// model output, on the scale ε_m measures (e.g. the mean relative eigenvalue error);
     /// None where the unit has no observation of the mode.
     fn residual(&self, _b: usize, _m: usize, _cache: &Self::Cache) -> Option<f64> {
         None
     }
+}
+
+/// The terms of the density a coordinate of g enters besides log p(g) ([`Target::global_role`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GlobalRole {
+    /// The units' prior log p(x_b | g) only (a population parameter).
+    UnitPrior,
+    /// The units' likelihood only (a prediction-error scale).
+    Likelihood,
+    /// Both.
+    Both,
 }
 
 /// Tuning of the sampler.
@@ -383,7 +400,10 @@ fn mix(a: f64, b: f64, beta: f64) -> f64 {
 impl<T: Target> Tempered<'_, T> {
     /// The global part for a particle of group `group`.
     fn global(&self, group: usize, g: &[f64]) -> f64 {
-        let lp = self.t.log_prior_global(g);
+        self.global_with_prior(group, g, self.t.log_prior_global(g))
+    }
+    /// [`Tempered::global`] given log p(g) = `lp`.
+    fn global_with_prior(&self, group: usize, g: &[f64], lp: f64) -> f64 {
         match self.start.q(group) {
             None => lp,
             Some(q) => mix(q.global.lpdf(g), lp, self.beta),
@@ -812,7 +832,9 @@ fn unit_move<T: Target>(
 /// A centred move of g to `gn` with every unit fixed (their cached model outputs reused: no
 /// model evaluation): accepted with uniform `u`, updating the particle, its context, its
 /// global density term and `lp_units` (each unit's log p(x_b | g), kept by the caller so each
-/// move prices the units under the new g only). Returns whether it was accepted.
+/// move prices the units under the new g only); `role`: the terms a move along one
+/// coordinate must re-price ([`Target::global_role`]). Returns whether it was accepted.
+#[allow(clippy::too_many_arguments)]
 fn centred_g_move<T: Target>(
     tp: &Tempered<'_, T>,
     p: &mut Particle<T::Cache>,
@@ -820,24 +842,31 @@ fn centred_g_move<T: Target>(
     lg: &mut f64,
     lp_units: &mut [f64],
     gn: Vec<f64>,
+    role: GlobalRole,
     u: f64,
 ) -> bool {
     let t = tp.t;
-    if !t.log_prior_global(&gn).is_finite() {
+    let lp_g = t.log_prior_global(&gn);
+    if !lp_g.is_finite() {
         return false;
     }
-    let lg_new = tp.global(p.group, &gn);
+    let lg_new = tp.global_with_prior(p.group, &gn, lp_g);
     let ctx_new = t.ctx(&gn);
     let mut log_r = lg_new - *lg;
     let mut ll_new = Vec::with_capacity(t.n_units());
     let mut lp_new = Vec::with_capacity(t.n_units());
     for (b, lp_old) in lp_units.iter().enumerate() {
-        let l = match &p.cache[b] {
-            Some(c) => t.log_lik(&ctx_new, b, &p.x[b], c),
-            None => f64::NEG_INFINITY,
+        let l = match (&p.cache[b], role) {
+            (_, GlobalRole::UnitPrior) => p.ll[b],
+            (Some(c), _) => t.log_lik(&ctx_new, b, &p.x[b], c),
+            (None, _) => f64::NEG_INFINITY,
         };
         let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
-        let lp = t.log_prior_unit(&ctx_new, b, &p.x[b]);
+        let lp = if role == GlobalRole::Likelihood {
+            *lp_old
+        } else {
+            t.log_prior_unit(&ctx_new, b, &p.x[b])
+        };
         log_r += tp.unit_change(p.group, (lp, l), (*lp_old, p.ll[b]));
         ll_new.push(l);
         lp_new.push(lp);
@@ -1052,7 +1081,16 @@ fn sweep<T: Target>(
                 .collect();
         let u: f64 = rng.random();
         st.n_global += 1.0;
-        if centred_g_move(tp, p, &mut ctx, &mut lg, &mut lp_units, gn, u) {
+        if centred_g_move(
+            tp,
+            p,
+            &mut ctx,
+            &mut lg,
+            &mut lp_units,
+            gn,
+            GlobalRole::Both,
+            u,
+        ) {
             st.acc_global += 1.0;
         }
     }
@@ -1066,7 +1104,8 @@ fn sweep<T: Target>(
         gn[k] += sc.comp * prop.global_sd[k] * e;
         let u: f64 = rng.random();
         st.n_comp += 1.0;
-        if centred_g_move(tp, p, &mut ctx, &mut lg, &mut lp_units, gn, u) {
+        let role = t.global_role(k);
+        if centred_g_move(tp, p, &mut ctx, &mut lg, &mut lp_units, gn, role, u) {
             st.acc_comp += 1.0;
         }
     }

@@ -19,7 +19,7 @@ use rand_chacha::ChaCha8Rng;
 use std::sync::Arc;
 
 use super::modal::{self, Terms, UnitData};
-use super::smc::{stream_key, Target};
+use super::smc::{stream_key, GlobalRole, Target};
 use super::stats::{cholesky_jittered, lower_mul, lower_solve};
 use super::target::ModalTarget;
 
@@ -458,6 +458,9 @@ impl Target for SurrogateTarget<'_> {
     }
     fn from_standard(&self, ctx: &Self::Ctx, b: usize, z: &[f64]) -> Vec<f64> {
         self.inner.from_standard(ctx, b, z)
+    }
+    fn global_role(&self, k: usize) -> GlobalRole {
+        self.inner.global_role(k)
     }
     fn log_error_scales(&self) -> Vec<usize> {
         self.inner.log_error_scales()

@@ -31,7 +31,7 @@ use serde::Serialize;
 
 use super::modal::{self, CovariateEffect, ModalPredictor, Terms, UnitData};
 use super::population::{Population, PopulationPrior};
-use super::smc::Target;
+use super::smc::{GlobalRole, Target};
 use super::stats::normal_lpdf;
 
 /// How one family of prediction-error scales is treated.
@@ -345,6 +345,15 @@ impl Target for ModalTarget {
     }
     fn from_standard(&self, ctx: &Ctx, _b: usize, z: &[f64]) -> Vec<f64> {
         ctx.pop.from_standard(z)
+    }
+    fn global_role(&self, k: usize) -> GlobalRole {
+        // g = (population parameters, error scales): the first enter the units' prior only,
+        // the others their likelihood only.
+        if k < self.prior.dim() {
+            GlobalRole::UnitPrior
+        } else {
+            GlobalRole::Likelihood
+        }
     }
     fn log_error_scales(&self) -> Vec<usize> {
         match self.errors.eps {
