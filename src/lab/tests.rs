@@ -709,7 +709,9 @@ fn pyuff_and_pandas_read_the_campaign() {
 }
 
 #[test]
-fn default_campaign_is_fast_and_modest() {
+fn default_campaign_is_modest() {
+    // Its time goes to `make -C pipelines bench-lab`, not into an assertion here: a timed
+    // test fails on a busy machine and proves nothing on an idle one.
     let s = builtin_scenario("paper").unwrap();
     let t = std::time::Instant::now();
     let c = simulate(&s, &Board::default_board(), s.seed).unwrap();
@@ -721,7 +723,6 @@ fn default_campaign_is_fast_and_modest() {
         bytes as f64 / 1e6
     );
     assert_eq!(c.truth.measurements.len(), 7 * 5 + 2 * 9 + 4 * 3);
-    assert!(secs < 60.0);
     assert!(bytes < 200_000_000);
     let eff = c
         .truth
