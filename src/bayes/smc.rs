@@ -1212,17 +1212,17 @@ fn correlations<C: Sync + Send>(
 /// above that floor (at twice it), is taken to decay geometrically over the sweeps
 /// (ρ_t = ρ^t, the autocorrelation of a chain with one slow direction), and the stage runs
 /// until every coordinate's extrapolated correlation is at the target.
-struct Decorrelation {
+pub(crate) struct Decorrelation {
     target: f64,
     floor: f64,
     /// Per coordinate, the sweeps its last clear reading says it needs.
     need: Vec<usize>,
     /// The largest correlation of the last sweep.
-    max: f64,
+    pub(crate) max: f64,
 }
 
 impl Decorrelation {
-    fn new(target: f64, dim: usize, n_eff: f64) -> Decorrelation {
+    pub(crate) fn new(target: f64, dim: usize, n_eff: f64) -> Decorrelation {
         Decorrelation {
             target,
             floor: correlation_noise_floor(dim, n_eff),
@@ -1231,7 +1231,7 @@ impl Decorrelation {
         }
     }
     /// Reads the correlations after `sweeps` sweeps; true when the stage may stop.
-    fn update(&mut self, sweeps: usize, rho: &[Option<f64>]) -> bool {
+    pub(crate) fn update(&mut self, sweeps: usize, rho: &[Option<f64>]) -> bool {
         self.max = rho
             .iter()
             .flatten()

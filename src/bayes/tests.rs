@@ -507,3 +507,21 @@ fn smc_from_a_pilot_refined_reference_matches_the_closed_form() {
     assert!(from_pilot <= from_laplace, "{from_pilot} vs {from_laplace}");
     assert_matches_exact(&t, &results);
 }
+
+/// The stopping rule on a coordinate whose correlation decays geometrically, ρ_t = 0.8^t
+/// (0.8^11 = 0.086 is the first at or below the target 0.1): read directly where the noise
+/// floor is low, and extrapolated from its last clear reading where the floor hides
+/// everything below 0.4; both stop at sweep 11. Raising the target to the floor instead
+/// (the rule before) would stop at sweep 8, where ρ = 0.17.
+#[test]
+fn decorrelation_rule_extrapolates_below_the_noise_floor() {
+    let stop_at = |n_eff: f64| {
+        let mut rule = smc::Decorrelation::new(0.1, 2, n_eff);
+        (1..100)
+            .find(|&t| rule.update(t, &[Some(0.8f64.powi(t as i32)), Some(0.0)]))
+            .unwrap()
+    };
+    // Floor √(2 ln 2 / n_eff): 0.012 at 10⁴ distinct starts, 0.2 at 35.
+    assert_eq!(stop_at(1e4), 11);
+    assert_eq!(stop_at(2.0 * 2f64.ln() / 0.04), 11);
+}
