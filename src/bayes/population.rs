@@ -118,6 +118,13 @@ impl PopulationPrior {
 
     /// Log density of the unconstrained global vector (all Jacobians included).
     pub fn log_prior(&self, g: &[f64]) -> f64 {
+        let (l, log_jac) = lkj_cholesky(&g[2 * self.d()..], self.d());
+        self.log_prior_with(g, &l, log_jac)
+    }
+
+    /// [`PopulationPrior::log_prior`] given the correlation's Cholesky factor of g and its
+    /// log-Jacobian ([`lkj_cholesky`]).
+    fn log_prior_with(&self, g: &[f64], l: &[f64], log_jac: f64) -> f64 {
         let d = self.d();
         let mut lp = 0.0;
         for k in 0..d {
@@ -137,11 +144,10 @@ impl PopulationPrior {
                 ),
             };
         }
-        let (l, log_jac) = lkj_cholesky(&g[2 * d..], d);
         if !log_jac.is_finite() {
             return f64::NEG_INFINITY;
         }
-        lp + lkj_cholesky_lpdf(&l, d, self.lkj_eta) + log_jac
+        lp + lkj_cholesky_lpdf(l, d, self.lkj_eta) + log_jac
     }
 
     /// A draw of the global vector from the prior.
@@ -175,10 +181,18 @@ impl PopulationPrior {
 
     /// μ, σ, Cholesky factors of a global vector.
     pub fn unpack(&self, g: &[f64]) -> Population {
+        self.unpack_with_prior(g).0
+    }
+
+    /// [`PopulationPrior::unpack`] and [`PopulationPrior::log_prior`] of g together: they
+    /// share the correlation's Cholesky factor, which the sampler's moves of g would
+    /// otherwise form twice.
+    pub fn unpack_with_prior(&self, g: &[f64]) -> (Population, f64) {
         let d = self.d();
         let mu = g[..d].to_vec();
         let sigma: Vec<f64> = g[d..2 * d].iter().map(|v| v.exp()).collect();
-        let (l_corr, _) = lkj_cholesky(&g[2 * d..], d);
+        let (l_corr, log_jac) = lkj_cholesky(&g[2 * d..], d);
+        let lp = self.log_prior_with(g, &l_corr, log_jac);
         let mut l_cov = l_corr.clone();
         for i in 0..d {
             for j in 0..=i {
@@ -186,13 +200,16 @@ impl PopulationPrior {
             }
         }
         let log_det_half = (0..d).map(|i| l_cov[i * d + i].ln()).sum();
-        Population {
-            mu,
-            sigma,
-            l_corr,
-            l_cov,
-            log_det_half,
-        }
+        (
+            Population {
+                mu,
+                sigma,
+                l_corr,
+                l_cov,
+                log_det_half,
+            },
+            lp,
+        )
     }
 }
 

@@ -85,6 +85,17 @@ pub trait Target: Sync {
     fn log_prior_global(&self, g: &[f64]) -> f64;
     /// Unpack g.
     fn ctx(&self, g: &[f64]) -> Self::Ctx;
+    /// [`Target::ctx`] and [`Target::log_prior_global`] of g together (a target whose two
+    /// share work overrides it).
+    fn ctx_with_prior(&self, g: &[f64]) -> (Self::Ctx, f64) {
+        (self.ctx(g), self.log_prior_global(g))
+    }
+    /// [`Target::ctx_with_prior`] at `gn`, which differs only in coordinate k from the g
+    /// whose context `ctx` is (a target can then redo only what k enters; the default redoes
+    /// everything).
+    fn ctx_after(&self, _ctx: &Self::Ctx, gn: &[f64], _k: usize) -> (Self::Ctx, f64) {
+        self.ctx_with_prior(gn)
+    }
     /// log p(x_b | g).
     fn log_prior_unit(&self, ctx: &Self::Ctx, b: usize, x: &[f64]) -> f64;
     /// The model evaluation of unit b at x, given the particle's fixed auxiliary values
@@ -838,23 +849,22 @@ fn unit_move<T: Target>(
 /// move prices the units under the new g only); `role`: the terms a move along one
 /// coordinate must re-price ([`Target::global_role`]). Returns whether it was accepted.
 #[allow(clippy::too_many_arguments)]
+#[allow(clippy::too_many_arguments)]
 fn centred_g_move<T: Target>(
     tp: &Tempered<'_, T>,
     p: &mut Particle<T::Cache>,
     ctx: &mut T::Ctx,
     lg: &mut f64,
     lp_units: &mut [f64],
-    gn: Vec<f64>,
+    (gn, ctx_new, lp_g): (Vec<f64>, T::Ctx, f64),
     role: GlobalRole,
     u: f64,
 ) -> bool {
     let t = tp.t;
-    let lp_g = t.log_prior_global(&gn);
     if !lp_g.is_finite() {
         return false;
     }
     let lg_new = tp.global_with_prior(p.group, &gn, lp_g);
-    let ctx_new = t.ctx(&gn);
     let mut log_r = lg_new - *lg;
     let mut ll_new = Vec::with_capacity(t.n_units());
     let mut lp_new = Vec::with_capacity(t.n_units());
@@ -1084,13 +1094,14 @@ fn sweep<T: Target>(
                 .collect();
         let u: f64 = rng.random();
         st.n_global += 1.0;
+        let (ctx_new, lp_g) = t.ctx_with_prior(&gn);
         if centred_g_move(
             tp,
             p,
             &mut ctx,
             &mut lg,
             &mut lp_units,
-            gn,
+            (gn, ctx_new, lp_g),
             GlobalRole::Both,
             u,
         ) {
@@ -1108,7 +1119,9 @@ fn sweep<T: Target>(
         let u: f64 = rng.random();
         st.n_comp += 1.0;
         let role = t.global_role(k);
-        if centred_g_move(tp, p, &mut ctx, &mut lg, &mut lp_units, gn, role, u) {
+        let (ctx_new, lp_g) = t.ctx_after(&ctx, &gn, k);
+        let moved = (gn, ctx_new, lp_g);
+        if centred_g_move(tp, p, &mut ctx, &mut lg, &mut lp_units, moved, role, u) {
             st.acc_comp += 1.0;
         }
     }

@@ -422,6 +422,12 @@ impl Target for SurrogateTarget<'_> {
     fn ctx(&self, g: &[f64]) -> Self::Ctx {
         self.inner.ctx(g)
     }
+    fn ctx_with_prior(&self, g: &[f64]) -> (Self::Ctx, f64) {
+        self.inner.ctx_with_prior(g)
+    }
+    fn ctx_after(&self, ctx: &Self::Ctx, gn: &[f64], k: usize) -> (Self::Ctx, f64) {
+        self.inner.ctx_after(ctx, gn, k)
+    }
     fn log_prior_unit(&self, ctx: &Self::Ctx, b: usize, x: &[f64]) -> f64 {
         self.inner.log_prior_unit(ctx, b, x)
     }

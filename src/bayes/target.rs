@@ -187,6 +187,8 @@ pub struct ModalTarget {
 /// Unpacked global vector.
 pub struct Ctx {
     pub pop: Population,
+    /// log p of the population block of g ([`PopulationPrior::log_prior`]).
+    pub lp_pop: f64,
     pub eps: Vec<f64>,
     pub delta: Vec<f64>,
     /// ln ε and 2 ln δ per mode, formed once per global vector (not per unit).
@@ -247,6 +249,19 @@ impl ModalTarget {
 }
 
 impl ModalTarget {
+    /// The context of a population (with its log prior) and the error block `h` of g.
+    fn ctx_of(&self, pop: Population, lp_pop: f64, h: &[f64]) -> Ctx {
+        let (eps, delta) = self.errors.unpack(h);
+        Ctx {
+            pop,
+            lp_pop,
+            logs: modal::ErrorLogs::new(&eps, &delta)
+                .with_model_error(self.errors.model_error_sd.as_deref().unwrap_or(&[])),
+            eps,
+            delta,
+        }
+    }
+
     /// With a covariate effect, the ROM parameter vector of every condition of unit b
     /// (None where the coefficient makes a stiffness non-positive); `None` without one.
     pub fn condition_values(
@@ -300,14 +315,23 @@ impl Target for ModalTarget {
     }
     fn ctx(&self, g: &[f64]) -> Ctx {
         let k = self.prior.dim();
-        let (eps, delta) = self.errors.unpack(&g[k..]);
-        Ctx {
-            pop: self.prior.unpack(&g[..k]),
-            logs: modal::ErrorLogs::new(&eps, &delta)
-                .with_model_error(self.errors.model_error_sd.as_deref().unwrap_or(&[])),
-            eps,
-            delta,
+        let (pop, lp_pop) = self.prior.unpack_with_prior(&g[..k]);
+        self.ctx_of(pop, lp_pop, &g[k..])
+    }
+    fn ctx_with_prior(&self, g: &[f64]) -> (Ctx, f64) {
+        let ctx = self.ctx(g);
+        let lp = ctx.lp_pop + self.errors.log_prior(&g[self.prior.dim()..]);
+        (ctx, lp)
+    }
+    fn ctx_after(&self, ctx: &Ctx, gn: &[f64], k: usize) -> (Ctx, f64) {
+        // An error scale leaves the population (and its LKJ factor) as it was.
+        let pd = self.prior.dim();
+        if k < pd {
+            return self.ctx_with_prior(gn);
         }
+        let new = self.ctx_of(ctx.pop.clone(), ctx.lp_pop, &gn[pd..]);
+        let lp = new.lp_pop + self.errors.log_prior(&gn[pd..]);
+        (new, lp)
     }
     fn log_prior_unit(&self, ctx: &Ctx, _b: usize, x: &[f64]) -> f64 {
         ctx.pop.log_density(x)
