@@ -849,7 +849,6 @@ fn unit_move<T: Target>(
 /// move prices the units under the new g only); `role`: the terms a move along one
 /// coordinate must re-price ([`Target::global_role`]). Returns whether it was accepted.
 #[allow(clippy::too_many_arguments)]
-#[allow(clippy::too_many_arguments)]
 fn centred_g_move<T: Target>(
     tp: &Tempered<'_, T>,
     p: &mut Particle<T::Cache>,
