@@ -418,11 +418,14 @@ impl ModalPredictor {
                 let uy: f64 = s.pt_u.iter().zip(y).map(|(a, b)| a * b).sum();
                 let slot = &mut yy[(s.cond * ng + s.gram) * nm + s.mode];
                 if slot.is_nan() {
+                    // G is symmetric: yᵀGy = Σ_i y_i (G_ii y_i + 2 Σ_{j>i} G_ij y_j), half
+                    // the multiply-adds of the full form.
                     let g = &data.grams[s.gram];
                     let mut q = 0.0;
                     for i in 0..r {
-                        let row = &g[i * r..(i + 1) * r];
-                        q += y[i] * row.iter().zip(y).map(|(a, b)| a * b).sum::<f64>();
+                        let row = &g[i * r + i + 1..(i + 1) * r];
+                        let off: f64 = row.iter().zip(&y[i + 1..]).map(|(a, b)| a * b).sum();
+                        q += y[i] * (g[i * r + i] * y[i] + 2.0 * off);
                     }
                     *slot = q;
                 }

@@ -190,7 +190,11 @@ pub struct SmcOptions {
     /// from its last clear reading (`Decorrelation`).
     #[serde(default = "default_final_decorrelation_target")]
     pub final_decorrelation_target: f64,
-    /// Centred moves of g per sweep (they need no model evaluation).
+    /// Centred moves of g per sweep (they need no model evaluation), besides one
+    /// componentwise move per coordinate. 8: step 1 of the demo at 4 × 2000 ran the same
+    /// sweeps with 8 as with 20 (last stage 17–20 against 18–21), min ESS 7061 against 6934,
+    /// R-hat ≤ 1.001, in 35.9 s against 40.9 s; with 4 it was 37.7 s (one run took a stage
+    /// more).
     pub global_moves: usize,
     /// Non-centred moves of g per sweep (each costs one model evaluation per unit).
     pub noncentred: usize,
@@ -230,7 +234,7 @@ impl Default for SmcOptions {
             max_sweeps: 25,
             final_max_sweeps: default_final_max_sweeps(),
             final_decorrelation_target: default_final_decorrelation_target(),
-            global_moves: 20,
+            global_moves: 8,
             noncentred: 2,
             max_stages: 400,
             groups: 1,

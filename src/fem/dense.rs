@@ -21,6 +21,7 @@ pub struct SymEigen {
 
 /// Eigenvalues (all) and the eigenvectors of the eigenvalues with ascending indices
 /// `first .. first + count` of the symmetric matrix `a` (row-major r × r, overwritten).
+/// Only `a`'s upper triangle (j ≥ i) is read.
 pub fn lowest_eigenpairs(a: &mut [f64], r: usize, first: usize, count: usize) -> SymEigen {
     debug_assert_eq!(a.len(), r * r);
     let (d, e, us) = tridiagonalize(a, r);
