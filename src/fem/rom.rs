@@ -893,16 +893,7 @@ impl Rom {
         let d0 = cm[0];
         // Only the upper triangle: the tridiagonalisation reads nothing else (half the
         // 49 × r² multiply-adds of the built-in board's stiffness terms).
-        let mut a = vec![0.0; r * r];
-        for (c, kf) in ck.iter().zip(&self.k_flat) {
-            for i in 0..r {
-                let row = i * r + i..(i + 1) * r;
-                a[row.clone()]
-                    .iter_mut()
-                    .zip(&kf[row])
-                    .for_each(|(x, y)| *x += c * y);
-            }
-        }
+        let mut a = super::dense::upper_sum(ck, &self.k_flat, r);
         let se = super::dense::lowest_eigenpairs(&mut a, r, self.n_rigid, count);
         let scale = 1.0 / d0.sqrt();
         let vectors = se
