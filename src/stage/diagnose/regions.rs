@@ -315,10 +315,13 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         // frequencies' map (their χ² inflated by the misfit left) fits 0.23–0.33 g over
         // points within its 90 % region. The shapes still choose between regions (mirror
         // images), which the frequencies cannot.
-        let (sd_freq, radius_freq) = (fit.location_ln_amplitude_sd, fit.region_radius_m);
-        fit.location_ln_amplitude_sd = weighted_sd(&wv).max(sd_freq);
+        let freq_region = (fit.region_radius_m, fit.region_points);
+        fit.location_ln_amplitude_sd = weighted_sd(&wv).max(fit.location_ln_amplitude_sd);
         combined_region(&mut fit, &combined, k, &open, points);
-        fit.region_radius_m = fit.region_radius_m.max(radius_freq);
+        // The region reported (radius and its points together) is the wider of the two.
+        if freq_region.0 > fit.region_radius_m {
+            (fit.region_radius_m, fit.region_points) = freq_region;
+        }
     }
     let located = passes_rule(&fit, locate);
     let alt = alternatives_clause(&fit, chosen_by_shapes, shape_scores.len());
