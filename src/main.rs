@@ -274,6 +274,10 @@ struct UpdateArgs {
     /// ROM at the end (slower; same posterior).
     #[arg(long)]
     no_surrogate: bool,
+    /// Correct the surrogates to the whole ROM instead of to each unit's verified subspace
+    /// of it (slower; the same posterior within the subspaces' verified error).
+    #[arg(long)]
+    no_subspace: bool,
     /// Rerun even when up to date.
     #[arg(long)]
     force: bool,
@@ -402,6 +406,7 @@ impl UpdateArgs {
             rom_max_basis: self.rom_basis,
             from_prior: self.from_prior,
             surrogate: !self.no_surrogate,
+            subspace: !self.no_subspace,
             enrich: None,
             enrich_joint: None,
             enrich_covariate: None,

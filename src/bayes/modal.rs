@@ -360,13 +360,47 @@ impl ModalPredictor {
         self.assign(values, true)
     }
 
-    fn assign(&self, values: &[f64], allow_lost: bool) -> Option<(Prediction, Vec<bool>)> {
+    /// Every tracked mode (not only the updated ones) at `values`, None where the parameters
+    /// are inadmissible.
+    pub fn tracked_modes(&self, values: &[f64]) -> Option<crate::fem::rom::ReducedModes> {
         let map = &self.rom.map;
         if !admissible(map, values) {
             return None;
         }
         let c = map.coefficients_unchecked(values);
-        let modes = self.rom.eval_lowest(&c.k, &c.m, self.n_track).ok()?;
+        self.rom.eval_lowest(&c.k, &c.m, self.n_track).ok()
+    }
+
+    /// As [`Self::predict`], the modes solved in the subspace `sub` of the ROM
+    /// ([`crate::fem::rom::Rom::subspace`]; its error against the ROM is the caller's to
+    /// verify).
+    pub fn predict_in(
+        &self,
+        sub: &crate::fem::rom::SubspaceRom,
+        values: &[f64],
+    ) -> Option<Prediction> {
+        let map = &self.rom.map;
+        if !admissible(map, values) {
+            return None;
+        }
+        let c = map.coefficients_unchecked(values);
+        let modes = self
+            .rom
+            .eval_lowest_in(sub, &c.k, &c.m, self.n_track)
+            .ok()?;
+        self.label(modes, false).map(|(p, _)| p)
+    }
+
+    fn assign(&self, values: &[f64], allow_lost: bool) -> Option<(Prediction, Vec<bool>)> {
+        self.label(self.tracked_modes(values)?, allow_lost)
+    }
+
+    /// The updated modes among `modes`, by their overlap with the references.
+    fn label(
+        &self,
+        modes: crate::fem::rom::ReducedModes,
+        allow_lost: bool,
+    ) -> Option<(Prediction, Vec<bool>)> {
         let nm = self.refs.len();
         let mut out_l = vec![0.0; nm];
         let mut out_v = vec![Vec::new(); nm];

@@ -13,6 +13,9 @@
 //! Exactness does not rest on the surrogate: the sampler's final correction stage weights
 //! every particle by L_ROM / L_surrogate (`smc::correct`), so the posterior and the evidence
 //! are the ROM's; the surrogate's error only costs effective sample size, which is reported.
+//! The correction prices each unit in a subspace of the ROM ([`fit_subspace`]) built over
+//! the same box: a Galerkin reduction, not a fit, verified to |Δ log L| ≤ 1e-3 per unit
+//! against the ROM; beyond the box the ROM itself answers.
 
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -66,6 +69,9 @@ pub struct UnitSurrogate {
     pub centre: Vec<f64>,
     chol: Vec<f64>,
     pub half_width: f64,
+    /// The ROM parameter vector the inputs are set in (the other parameters keep its values).
+    #[serde(skip)]
+    base: Vec<f64>,
     pub degree: usize,
     #[serde(skip)]
     exps: Vec<Vec<u8>>,
@@ -119,6 +125,16 @@ impl UnitSurrogate {
                     .product()
             })
             .collect()
+    }
+    /// The ROM parameter vector at whitened box coordinates u.
+    pub fn point(&self, u: &[f64]) -> Vec<f64> {
+        let x = lower_mul(&self.chol, self.inputs.len(), u);
+        let mut v = self.base.clone();
+        for (k, &i) in self.inputs.iter().enumerate() {
+            let a = self.centre[k] + self.half_width * x[k];
+            v[i] = if self.log_input[k] { a.exp() } else { a };
+        }
+        v
     }
     /// The largest |u_k| of v in box units (1 = the box's edge).
     pub fn box_position(&self, v: &[f64]) -> f64 {
@@ -274,15 +290,6 @@ pub fn fit_unit(
     let mut errors = vec![];
     let mut half_width = opts.half_width_sd;
     while half_width >= opts.min_half_width_sd {
-        let point = |u: &[f64]| -> Vec<f64> {
-            let x = lower_mul(&chol, d, u);
-            let mut v = raw_mean.clone();
-            for (k, &i) in inputs.iter().enumerate() {
-                let a = centre[k] + half_width * x[k];
-                v[i] = if log_input[k] { a.exp() } else { a };
-            }
-            v
-        };
         let mut last_err = String::new();
         'degrees: for &p in &opts.degrees {
             let exps = multi_indices(d, p);
@@ -294,6 +301,7 @@ pub fn fit_unit(
                 centre: centre.clone(),
                 chol: chol.clone(),
                 half_width,
+                base: raw_mean.clone(),
                 degree: p,
                 exps,
                 coef: vec![],
@@ -313,7 +321,7 @@ pub fn fit_unit(
                 } else {
                     (0..d).map(|_| 2.0 * rng.random::<f64>() - 1.0).collect()
                 };
-                let v = point(&u);
+                let v = s.point(&u);
                 evals += 1;
                 let Some(t) = rom_terms(&v) else {
                     last_err = untracked.into();
@@ -355,7 +363,7 @@ pub fn fit_unit(
             let mut worst = 0.0f64;
             for _ in 0..opts.n_verify {
                 let u: Vec<f64> = (0..d).map(|_| 2.0 * rng.random::<f64>() - 1.0).collect();
-                let v = point(&u);
+                let v = s.point(&u);
                 evals += 1;
                 let Some(tr) = rom_terms(&v) else {
                     last_err = untracked.into();
@@ -474,4 +482,140 @@ impl Target for SurrogateTarget<'_> {
     fn residual(&self, b: usize, m: usize, c: &Terms) -> Option<f64> {
         self.inner.residual(b, m, c)
     }
+}
+
+/// A unit's subspace of the ROM ([`crate::fem::rom::SubspaceRom`]) over its surrogate's box:
+/// the exact model of the correction stage, where every final particle's units are priced
+/// (N × units evaluations a run, the sampler's largest fixed cost). Its error is measured the
+/// way the surrogate's is: |log L_subspace − log L_ROM| at fresh points all over the box, at
+/// the reference's error scales, held to [`SubspaceOptions::tolerance_dll`].
+#[derive(Clone, Debug)]
+pub struct UnitSubspace {
+    pub sub: crate::fem::rom::SubspaceRom,
+    /// The box it was built and verified in.
+    pub region: Arc<UnitSurrogate>,
+    /// Largest |log L_subspace − log L_ROM| on the verification points.
+    pub max_abs_dll: f64,
+    /// ROM evaluations spent building and verifying it.
+    pub rom_evals: u64,
+}
+
+/// Tuning of the unit subspaces.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct SubspaceOptions {
+    /// Largest accepted |Δ log L| on the verification points. It bounds how far the
+    /// posterior can sit from the ROM's: a particle's log weight moves by at most this much
+    /// per unit in the box (default 1e-3; the reference's own Monte Carlo error of log Z is
+    /// ~1e-2).
+    pub tolerance_dll: f64,
+    /// Verification points per round.
+    pub n_verify: usize,
+    /// Rounds that add the eigenvectors of the points that failed and verify again.
+    pub max_rounds: usize,
+    /// A subspace wider than this fraction of the ROM is not worth it: the unit keeps the ROM.
+    pub max_dim_fraction: f64,
+    /// Eigenvectors within this distance (relative) of the span add no direction.
+    pub rel_tol: f64,
+}
+
+impl Default for SubspaceOptions {
+    fn default() -> Self {
+        SubspaceOptions {
+            tolerance_dll: 1e-3,
+            n_verify: 40,
+            max_rounds: 3,
+            max_dim_fraction: 0.7,
+            rel_tol: 1e-7,
+        }
+    }
+}
+
+/// Build and verify unit b's subspace over `region` (the unit's surrogate): eigenvectors of
+/// the tracked modes at the box's centre and at ±½ and ±1 along each of its axes, then
+/// rounds of verification on fresh points, each adding the vectors of the points that
+/// failed. `eps`, `delta` = error scales at which the log-likelihood error is verified.
+pub fn fit_subspace(
+    target: &ModalTarget,
+    b: usize,
+    region: &Arc<UnitSurrogate>,
+    eps: &[f64],
+    delta: &[f64],
+    opts: &SubspaceOptions,
+    seed: u64,
+) -> Result<UnitSubspace, String> {
+    let data: &UnitData = &target.units[b];
+    let pred = &target.predictor;
+    let r = pred.rom.dim();
+    let d = region.inputs.len();
+    let mut rng = ChaCha8Rng::seed_from_u64(stream_key(&[seed, 0x5B5u64, b as u64]));
+    let mut evals = 0u64;
+    let mut snaps: Vec<Vec<f64>> = vec![];
+    let vectors = |v: &[f64]| -> Result<Vec<Vec<f64>>, String> {
+        pred.tracked_modes(v)
+            .map(|m| m.vectors)
+            .ok_or_else(|| "the ROM has no modes at a point of the box".into())
+    };
+    let mut design = vec![vec![0.0; d]];
+    for k in 0..d {
+        for a in [-1.0, -0.5, 0.5, 1.0] {
+            let mut u = vec![0.0; d];
+            u[k] = a;
+            design.push(u);
+        }
+    }
+    for u in &design {
+        snaps.extend(vectors(&region.point(u))?);
+        evals += 1;
+    }
+    let mut worst = f64::INFINITY;
+    for _ in 0..=opts.max_rounds {
+        let sub = pred
+            .rom
+            .subspace(&snaps, opts.rel_tol)
+            .ok_or("the ROM has several mass terms")?;
+        if sub.dim() as f64 > opts.max_dim_fraction * r as f64 {
+            return Err(format!(
+                "the subspace needs {} of the ROM's {r} dimensions",
+                sub.dim()
+            ));
+        }
+        worst = 0.0f64;
+        let mut failed = vec![];
+        for _ in 0..opts.n_verify {
+            let u: Vec<f64> = (0..d).map(|_| 2.0 * rng.random::<f64>() - 1.0).collect();
+            let v = region.point(&u);
+            evals += 1;
+            let p_rom = pred
+                .predict(&v)
+                .ok_or("the ROM cannot track the updated modes")?;
+            let t_rom = pred.terms(&p_rom, data, &v);
+            let dll = match pred.predict_in(&sub, &v) {
+                Some(p) => (modal::log_lik(data, &pred.terms(&p, data, &v), eps, delta)
+                    - modal::log_lik(data, &t_rom, eps, delta))
+                .abs(),
+                None => f64::INFINITY,
+            };
+            let dll = if dll.is_nan() { f64::INFINITY } else { dll };
+            if dll > opts.tolerance_dll {
+                failed.push(v);
+            }
+            worst = worst.max(dll);
+        }
+        if failed.is_empty() {
+            return Ok(UnitSubspace {
+                sub,
+                region: Arc::clone(region),
+                max_abs_dll: worst,
+                rom_evals: evals,
+            });
+        }
+        for v in failed.iter().take(4 * d.max(1)) {
+            snaps.extend(vectors(v)?);
+            evals += 1;
+        }
+    }
+    Err(format!(
+        "max |Δ log L| {worst:.3e} on the verification points after {} rounds",
+        opts.max_rounds + 1
+    ))
 }

@@ -83,3 +83,90 @@ fn a_tolerance_no_polynomial_meets_halves_the_box_to_its_floor_then_refuses() {
     }
     assert!(!e.contains("1.25 sd"), "{e}");
 }
+
+/// The subspace of the ROM the correction solves in: verified on the unit's surrogate box,
+/// Rayleigh–Ritz (its eigenvalues never below the ROM's), exact where its eigenvectors were
+/// taken (the box's centre; to the square of its span tolerance), and within its verified tolerance of the ROM's log-likelihood
+/// on fresh points in the box, through [`ModalTarget::model`] itself.
+#[test]
+fn the_subspace_is_an_upper_bound_exact_at_its_snapshots_and_within_tolerance_in_its_box() {
+    use super::surrogate::{fit_subspace, SubspaceOptions};
+    use std::sync::Arc;
+    let (t, samples, eps) = problem(0.004);
+    let s = Arc::new(
+        fit_unit(&t, 0, &samples, &eps, &[], &SurrogateOptions::default(), 11)
+            .expect("a surrogate"),
+    );
+    // This ROM is small (r = 14): a looser span tolerance than the default (1e-7) keeps the
+    // subspace a strict one, so the checks below are not trivially met.
+    let so = SubspaceOptions {
+        rel_tol: 1e-5,
+        max_dim_fraction: 1.0,
+        ..SubspaceOptions::default()
+    };
+    let sub = Arc::new(fit_subspace(&t, 0, &s, &eps, &[], &so, 11).expect("a subspace"));
+    assert!(sub.max_abs_dll <= so.tolerance_dll, "{}", sub.max_abs_dll);
+    let r = t.predictor.rom.dim();
+    assert!(sub.sub.dim() < r, "subspace {} of {r}", sub.sub.dim());
+    let rom = &t.predictor.rom;
+    let n = t.predictor.n_track;
+    let at = |v: &[f64]| {
+        let c = rom.map.coefficients_unchecked(v);
+        let full = rom.eval_lowest(&c.k, &c.m, n).unwrap();
+        let local = rom.eval_lowest_in(&sub.sub, &c.k, &c.m, n).unwrap();
+        (full, local)
+    };
+    let (full, local) = at(&s.point(&[0.0, 0.0]));
+    for j in 0..n {
+        let rel = (local.eigenvalues[j] - full.eigenvalues[j]) / full.eigenvalues[j];
+        // Vectors within rel_tol of the span add none: the error is of order rel_tol².
+        assert!(
+            rel.abs() < 100.0 * so.rel_tol.powi(2),
+            "centre, mode {j}: {rel:e}"
+        );
+    }
+    let mut target = t.clone();
+    target.subspaces = vec![Some(Arc::clone(&sub))];
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let mut worst = 0.0f64;
+    for _ in 0..100 {
+        let u: Vec<f64> = (0..2).map(|_| 2.0 * rng.random::<f64>() - 1.0).collect();
+        let v = s.point(&u);
+        let (full, local) = at(&v);
+        for j in 0..n {
+            let rel = (local.eigenvalues[j] - full.eigenvalues[j]) / full.eigenvalues[j];
+            assert!(
+                rel > -1e-12,
+                "below the ROM's eigenvalue, mode {j}: {rel:e}"
+            );
+        }
+        // The unit's coordinates of v, inverting `Compose::Boards`.
+        let super::target::Compose::Boards {
+            updated,
+            reference,
+            log,
+        } = &t.compose
+        else {
+            panic!("a step-1 target");
+        };
+        let x: Vec<f64> = updated
+            .iter()
+            .enumerate()
+            .map(|(k, &i)| {
+                if log.get(k).copied().unwrap_or(false) {
+                    (v[i] / reference[k]).ln()
+                } else {
+                    v[i] / reference[k] - 1.0
+                }
+            })
+            .collect();
+        let tm = target.model(&[], 0, &x).expect("subspace terms");
+        let p = t.predictor.predict(&v).expect("ROM");
+        let tr = t.predictor.terms(&p, &t.units[0], &v);
+        let dll = modal::log_lik(&t.units[0], &tm, &eps, &[])
+            - modal::log_lik(&t.units[0], &tr, &eps, &[]);
+        worst = worst.max(dll.abs());
+    }
+    assert!(worst <= 3.0 * so.tolerance_dll, "max |Δ log L| {worst:.3e}");
+    assert!(worst > 0.0, "the target did not solve in the subspace");
+}

@@ -182,6 +182,9 @@ pub struct ModalTarget {
     pub units: Vec<UnitData>,
     /// A per-measurement covariate scaling stiffness (`None`: the baseline); step 1 only.
     pub covariate: Option<CovariateEffect>,
+    /// Per unit, a verified subspace of the ROM that [`Target::model`] solves in inside its
+    /// box (`surrogate::fit_subspace`); empty or None: the ROM.
+    pub subspaces: Vec<Option<std::sync::Arc<super::surrogate::UnitSubspace>>>,
 }
 
 /// Unpacked global vector.
@@ -348,7 +351,12 @@ impl Target for ModalTarget {
         let data = &self.units[b];
         let t = match self.condition_values(b, &v, x) {
             None => {
-                let pred = self.predictor.predict(&v)?;
+                let pred = match self.subspaces.get(b) {
+                    Some(Some(s)) if s.region.box_position(&v) <= 1.0 => {
+                        self.predictor.predict_in(&s.sub, &v)?
+                    }
+                    _ => self.predictor.predict(&v)?,
+                };
                 self.predictor.terms(&pred, data, &v)
             }
             Some(vs) => {
@@ -443,6 +451,7 @@ mod tests {
                 reference: 23.0,
                 scaled: updated.clone(),
             }),
+            subspaces: vec![],
         };
         (t, updated)
     }

@@ -184,7 +184,7 @@ pub const STAGES: TableSpec = TableSpec {
             Col::Utf8,
             false,
             "",
-            "`temper`: a tempering stage; `correct`: the final correction from the surrogates to the ROM at β = 1 (weights L_ROM / L_surrogate, resampling, and mutation under the ROM only when resampling left fewer than 98 % of the particles distinct).",
+            "`temper`: a tempering stage; `correct`: the final correction from the surrogates to the ROM at β = 1 (weights L_ROM / L_surrogate, the ROM solved in each unit's verified subspace inside its box, resampling, and mutation under the ROM only when resampling left fewer than 98 % of the particles distinct).",
         ),
     ],
 };
@@ -257,6 +257,9 @@ pub struct UpdateOptions {
     pub from_prior: bool,
     /// Local surrogates of the units' modal terms, corrected to the ROM at the end.
     pub surrogate: bool,
+    /// The correction solves each unit's modes in a verified subspace of the ROM inside the
+    /// unit's surrogate box (else in the whole ROM).
+    pub subspace: bool,
     /// Step 2: refit with a joint enrichment of the diagnosis's library (`None`: the baseline).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub enrich: Option<Mechanism>,
@@ -1068,6 +1071,14 @@ struct Acceleration {
     correction_max_abs_dlog_lik: Vec<f64>,
     /// Per run: mutation sweeps of the correction stage (0 when resampling kept ≥ 98 %).
     correction_sweeps: Vec<usize>,
+    /// Per unit: the dimension of the verified subspace of the ROM the correction solves in
+    /// inside the unit's surrogate box (`bayes::surrogate::fit_subspace`; None: the ROM).
+    subspace_dim: Vec<Option<usize>>,
+    /// Per unit: its largest |log L_subspace − log L_ROM| on the verification points.
+    subspace_max_abs_dlog_lik: Vec<Option<f64>>,
+    subspace_refused: Vec<String>,
+    subspace_rom_evals: u64,
+    subspace_seconds: f64,
     /// Posterior sd / reference sd per global coordinate (first run): how well the
     /// reference fitted (1 = exactly; the reference is inflated, so ~0.8 is expected).
     reference_sd_ratio_global: Vec<f64>,
@@ -1114,7 +1125,9 @@ fn run_smc(
     use crate::bayes::reference::{
         laplace_reference, reference_for_aux, GaussianReference, ReferenceOptions,
     };
-    use crate::bayes::surrogate::{fit_unit, SurrogateOptions, SurrogateTarget};
+    use crate::bayes::surrogate::{
+        fit_subspace, fit_unit, SubspaceOptions, SurrogateOptions, SurrogateTarget,
+    };
     use rand::SeedableRng;
     use rayon::prelude::*;
     let mut acc = Acceleration {
@@ -1283,6 +1296,52 @@ fn run_smc(
             _ => vec![None; nu],
         };
     let t_surrogates = t_start.elapsed().as_secs_f64() - t_base;
+    // The correction's model: per unit with a surrogate, a verified subspace of the ROM over
+    // the surrogate's box (the ROM beyond it).
+    let t_sub = std::time::Instant::now();
+    let exact_target: Option<ModalTarget> = match (&base_ref, opts.subspace) {
+        (Some((q, _)), true) if surrogates.iter().any(Option::is_some) => {
+            let ctx = smc::Target::ctx(target, &q.global.mean);
+            let so = SubspaceOptions::default();
+            let fits: Vec<Option<Result<_, String>>> = surrogates
+                .par_iter()
+                .enumerate()
+                .map(|(b, s)| {
+                    let s = s.as_ref()?;
+                    Some(fit_subspace(
+                        target, b, s, &ctx.eps, &ctx.delta, &so, opts.seed,
+                    ))
+                })
+                .collect();
+            let subspaces = fits
+                .into_iter()
+                .enumerate()
+                .map(|(b, f)| match f {
+                    Some(Ok(s)) => {
+                        acc.subspace_dim.push(Some(s.sub.dim()));
+                        acc.subspace_max_abs_dlog_lik.push(Some(s.max_abs_dll));
+                        acc.subspace_rom_evals += s.rom_evals;
+                        Some(Arc::new(s))
+                    }
+                    other => {
+                        if let Some(Err(e)) = other {
+                            acc.subspace_refused.push(format!("unit {b}: {e}"));
+                        }
+                        acc.subspace_dim.push(None);
+                        acc.subspace_max_abs_dlog_lik.push(None);
+                        None
+                    }
+                })
+                .collect();
+            Some(ModalTarget {
+                subspaces,
+                ..target.clone()
+            })
+        }
+        _ => None,
+    };
+    acc.subspace_seconds = t_sub.elapsed().as_secs_f64();
+    let exact: &ModalTarget = exact_target.as_ref().unwrap_or(target);
     let sur = SurrogateTarget {
         inner: target,
         surrogates,
@@ -1383,15 +1442,15 @@ fn run_smc(
                 .particles
                 .par_iter_mut()
                 .map(|p| {
-                    let ctx = smc::Target::ctx(target, &p.g);
+                    let ctx = smc::Target::ctx(exact, &p.g);
                     let mut lw = 0.0;
                     for b in 0..nu {
                         if sur.surrogates[b].is_none() {
                             continue;
                         }
-                        let c = smc::Target::model(target, &p.aux, b, &p.x[b]);
+                        let c = smc::Target::model(exact, &p.aux, b, &p.x[b]);
                         let l = match &c {
-                            Some(c) => smc::Target::log_lik(target, &ctx, b, &p.x[b], c),
+                            Some(c) => smc::Target::log_lik(exact, &ctx, b, &p.x[b], c),
                             None => f64::NEG_INFINITY,
                         };
                         let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
@@ -1407,7 +1466,7 @@ fn run_smc(
             // on the demo's step 2 at 2000 × 4 two such sweeps cost ~100 s a run to
             // diversify the 4 % of particles the resampling duplicated (correction ESS 0.99),
             // so they run only when more than a tenth are copies (a surrogate that missed).
-            let info = smc::correct(target, &opts.smc, opts.seed, r, &mut res, &lw, 0.9);
+            let info = smc::correct(exact, &opts.smc, opts.seed, r, &mut res, &lw, 0.9);
             let rom_evals = (res.particles.len() * acc.surrogate_units) as u64;
             if let Some(last) = res.stages.last_mut() {
                 last.model_evals += rom_evals;
@@ -2479,6 +2538,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 },
                 units,
                 covariate: covariate.clone(),
+                subspaces: vec![],
             };
             // The surrogates model a unit's terms as a function of its ROM parameters alone; with
             // a covariate the terms also follow the unit's coefficient, so the ROM runs directly.
@@ -3549,6 +3609,7 @@ pub fn run_joints(
             },
             units,
             covariate: None,
+            subspaces: vec![],
         };
         // The cut posterior: groups of `group` particles, each carrying one step-1 draw; every
         // run takes its own evenly spaced subset of the step-1 draws.
