@@ -1078,6 +1078,9 @@ struct Acceleration {
     subspace_max_abs_dlog_lik: Vec<Option<f64>>,
     subspace_refused: Vec<String>,
     subspace_rom_evals: u64,
+    /// Wall seconds stay out of the file (the same inputs and seed give the same bytes);
+    /// `-v` prints them.
+    #[serde(skip)]
     subspace_seconds: f64,
     /// Posterior sd / reference sd per global coordinate (first run): how well the
     /// reference fitted (1 = exactly; the reference is inflated, so ~0.8 is expected).
@@ -1088,9 +1091,11 @@ struct Acceleration {
     /// (same order as `reference_sd_ratio_global`).
     reference_offset_global: Vec<f64>,
     /// Particles of the pilot run whose posterior moments replaced the Laplace reference
-    /// (0: no pilot), its tempering stages, and its wall seconds.
+    /// (0: no pilot), its tempering stages, and its wall seconds (printed with `-v`, kept out
+    /// of the file: a pilot made update_report.json differ between two runs).
     pilot_particles: usize,
     pilot_stages: usize,
+    #[serde(skip)]
     pilot_seconds: f64,
     /// Step 2: pilot groups left out of the surrogates' spread, and groups (over all runs)
     /// that tempered from the base reference, because their moved reference was degenerate.
@@ -1401,7 +1406,10 @@ fn run_smc(
     let t_groups = t_start.elapsed().as_secs_f64() - t_base - t_surrogates;
     if verbose {
         eprintln!(
-            "{what}: reference {t_base:.1} s (pilots and) surrogates {t_surrogates:.1} s, pilot run or group references {t_groups:.1} s"
+            "{what}: reference {t_base:.1} s (pilots and) surrogates {t_surrogates:.1} s, subspaces {:.1} s, pilot run ({:.1} s) or group references {:.1} s",
+            acc.subspace_seconds,
+            acc.pilot_seconds,
+            t_groups - acc.subspace_seconds
         );
     }
     let pb = crate::stage::progress_bar((opts.runs * 1000) as u64, what);
