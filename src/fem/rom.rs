@@ -607,11 +607,8 @@ impl Rom {
         for (c, kf) in ck.iter().zip(&self.k_flat) {
             a.iter_mut().zip(kf).for_each(|(x, y)| *x += c * y);
         }
-        let se = super::dense::lowest_eigenpairs(&mut a, r, self.n_rigid, nm);
-        let lam: Vec<f64> = se.values[self.n_rigid..self.n_rigid + nm]
-            .iter()
-            .map(|v| v / d0)
-            .collect();
+        let se = super::dense::wanted_eigenpairs(&mut a, r, self.n_rigid, nm);
+        let lam: Vec<f64> = se.values[..nm].iter().map(|v| v / d0).collect();
         let scale = 1.0 / d0.sqrt();
         let mut reduced = Mat::<f64>::zeros(r, nm);
         let npts = shapes.p.nrows();
@@ -894,7 +891,7 @@ impl Rom {
         // Only the upper triangle: the tridiagonalisation reads nothing else (half the
         // 49 × r² multiply-adds of the built-in board's stiffness terms).
         let mut a = super::dense::upper_sum(ck, &self.k_flat, r);
-        let se = super::dense::lowest_eigenpairs(&mut a, r, self.n_rigid, count);
+        let se = super::dense::wanted_eigenpairs(&mut a, r, self.n_rigid, count);
         let scale = 1.0 / d0.sqrt();
         let vectors = se
             .vectors
@@ -909,10 +906,7 @@ impl Rom {
             })
             .collect();
         Ok(ReducedModes {
-            eigenvalues: se.values[self.n_rigid..self.n_rigid + count]
-                .iter()
-                .map(|v| v / d0)
-                .collect(),
+            eigenvalues: se.values[..count].iter().map(|v| v / d0).collect(),
             vectors,
         })
     }
@@ -1055,7 +1049,7 @@ impl Rom {
         let count = count.min(self.n_modes).min(q);
         let d0 = cm[0];
         let mut a = super::dense::upper_sum(ck, &sub.k_flat, q);
-        let se = super::dense::lowest_eigenpairs(&mut a, q, 0, count);
+        let se = super::dense::wanted_eigenpairs(&mut a, q, 0, count);
         let scale = 1.0 / d0.sqrt();
         let vectors = se
             .vectors
