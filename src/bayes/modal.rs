@@ -363,12 +363,22 @@ impl ModalPredictor {
     /// Every tracked mode (not only the updated ones) at `values`, None where the parameters
     /// are inadmissible.
     pub fn tracked_modes(&self, values: &[f64]) -> Option<crate::fem::rom::ReducedModes> {
-        let map = &self.rom.map;
-        if !admissible(map, values) {
+        self.solve(values, |c| self.rom.eval_lowest(&c.k, &c.m, self.n_track))
+    }
+
+    /// `eval` at the affine coefficients of `values`, None where they are inadmissible or it
+    /// fails.
+    fn solve(
+        &self,
+        values: &[f64],
+        eval: impl FnOnce(
+            &crate::fem::params::Coefficients,
+        ) -> Result<crate::fem::rom::ReducedModes, crate::fem::FemError>,
+    ) -> Option<crate::fem::rom::ReducedModes> {
+        if !admissible(&self.rom.map, values) {
             return None;
         }
-        let c = map.coefficients_unchecked(values);
-        self.rom.eval_lowest(&c.k, &c.m, self.n_track).ok()
+        eval(&self.rom.map.coefficients_unchecked(values)).ok()
     }
 
     /// As [`Self::predict`], the modes solved in the subspace `sub` of the ROM
@@ -379,15 +389,9 @@ impl ModalPredictor {
         sub: &crate::fem::rom::SubspaceRom,
         values: &[f64],
     ) -> Option<Prediction> {
-        let map = &self.rom.map;
-        if !admissible(map, values) {
-            return None;
-        }
-        let c = map.coefficients_unchecked(values);
-        let modes = self
-            .rom
-            .eval_lowest_in(sub, &c.k, &c.m, self.n_track)
-            .ok()?;
+        let modes = self.solve(values, |c| {
+            self.rom.eval_lowest_in(sub, &c.k, &c.m, self.n_track)
+        })?;
         self.label(modes, false).map(|(p, _)| p)
     }
 

@@ -895,15 +895,8 @@ impl Rom {
         let scale = 1.0 / d0.sqrt();
         let vectors = se
             .vectors
-            .iter()
-            .map(|z| {
-                let neg = (0..r)
-                    .map(|i| super::eigen::sign_weight(i) * z[i])
-                    .sum::<f64>()
-                    < 0.0;
-                let s = if neg { -scale } else { scale };
-                z.iter().map(|v| v * s).collect()
-            })
+            .into_iter()
+            .map(|z| mass_normalised(z, scale))
             .collect();
         Ok(ReducedModes {
             eigenvalues: se.values[..count].iter().map(|v| v / d0).collect(),
@@ -993,36 +986,34 @@ impl Rom {
                 w[i * q + j] = b[i];
             }
         }
-        // Wᵀ K W by K W first (r × q), then Wᵀ (K W); faer products would do the same work,
-        // these are built once per unit.
+        let wm = Mat::from_fn(r, q, |i, j| w[i * q + j]);
         let k_flat = self
-            .k_flat
+            .k_r
             .iter()
             .map(|k| {
-                let mut kw = vec![0.0; r * q];
-                for i in 0..r {
-                    let row = &k[i * r..(i + 1) * r];
-                    let out = &mut kw[i * q..(i + 1) * q];
-                    for (l, &kil) in row.iter().enumerate() {
-                        if kil != 0.0 {
-                            out.iter_mut()
-                                .zip(&w[l * q..(l + 1) * q])
-                                .for_each(|(o, x)| *o += kil * x);
-                        }
-                    }
-                }
-                let mut ks = vec![0.0; q * q];
-                for i in 0..r {
-                    let wi = &w[i * q..(i + 1) * q];
-                    let kwi = &kw[i * q..(i + 1) * q];
-                    for (a, &wia) in wi.iter().enumerate() {
-                        ks[a * q..(a + 1) * q]
-                            .iter_mut()
-                            .zip(kwi)
-                            .for_each(|(o, x)| *o += wia * x);
-                    }
-                }
-                ks
+                // Sequential products: the same bits whatever the thread count.
+                let mut kw = Mat::<f64>::zeros(r, q);
+                faer::linalg::matmul::matmul(
+                    kw.as_mut(),
+                    faer::Accum::Replace,
+                    k.as_ref(),
+                    wm.as_ref(),
+                    1.0,
+                    faer::Par::Seq,
+                );
+                let mut ks = Mat::<f64>::zeros(q, q);
+                faer::linalg::matmul::matmul(
+                    ks.as_mut(),
+                    faer::Accum::Replace,
+                    wm.transpose(),
+                    kw.as_ref(),
+                    1.0,
+                    faer::Par::Seq,
+                );
+                (0..q)
+                    .flat_map(|i| (0..q).map(move |j| (i, j)))
+                    .map(|(i, j)| ks[(i, j)])
+                    .collect()
             })
             .collect();
         Some(SubspaceRom { r, q, w, k_flat })
@@ -1055,7 +1046,7 @@ impl Rom {
             .vectors
             .iter()
             .map(|z| {
-                let mut y: Vec<f64> = (0..r)
+                let y = (0..r)
                     .map(|i| {
                         sub.w[i * q..(i + 1) * q]
                             .iter()
@@ -1064,15 +1055,7 @@ impl Rom {
                             .sum::<f64>()
                     })
                     .collect();
-                let neg = y
-                    .iter()
-                    .enumerate()
-                    .map(|(i, v)| super::eigen::sign_weight(i) * v)
-                    .sum::<f64>()
-                    < 0.0;
-                let s = if neg { -scale } else { scale };
-                y.iter_mut().for_each(|v| *v *= s);
-                y
+                mass_normalised(y, scale)
             })
             .collect();
         Ok(ReducedModes {
@@ -1080,4 +1063,18 @@ impl Rom {
             vectors,
         })
     }
+}
+
+/// A unit eigenvector z of Kʳ/d₀ (Mʳ = d₀ I) as the mass-normalised vector `scale` · z
+/// (`scale` = 1/√d₀), its sign fixed as every ROM mode's (see `eigen::sign_weight`).
+fn mass_normalised(mut z: Vec<f64>, scale: f64) -> Vec<f64> {
+    let neg = z
+        .iter()
+        .enumerate()
+        .map(|(i, v)| super::eigen::sign_weight(i) * v)
+        .sum::<f64>()
+        < 0.0;
+    let s = if neg { -scale } else { scale };
+    z.iter_mut().for_each(|v| *v *= s);
+    z
 }
