@@ -296,9 +296,9 @@ pub fn render(d: &ReportData) -> Rendered {
         "table2",
         "Measured vs simulated frequencies (Table 2 analog)",
     );
-    pg.p("Per mode: mean and standard deviation of every measurement of every board, against the prediction for a new board from the posterior population (model frequency: mean and sd; predictive sd: with the prediction error). Errors are (simulated − measured) / measured. Validation modes were not used for updating.");
-    let _ = writeln!(md, "## Measured vs simulated (Table 2 analog)\n\n| setup | mode | role | n | measured mean [Hz] | measured sd [Hz] | simulated mean [Hz] | simulated sd [Hz] | predictive sd [Hz] | mean error [%] | sd error [%] |\n|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|");
-    let mut t = String::from("<table data-table=\"table2\"><tr><th>setup</th><th>mode</th><th>role</th><th>n</th><th>measured mean [Hz]</th><th>measured sd [Hz]</th><th>simulated mean [Hz]</th><th>simulated sd [Hz]</th><th>predictive sd [Hz]</th><th>mean error [%]</th><th>sd error [%]</th><th>own-board coverage</th><th>new-board coverage</th><th>held-out boards' coverage</th></tr>\n");
+    pg.p("Per mode: mean and standard deviation of every measurement of every board, each board weighted equally (a board measured n times gives each measurement 1/n of a board's weight), against the prediction for a new board from the posterior population (model frequency: mean and sd; predictive sd: with the prediction error). Errors are (simulated − measured) / measured. Validation modes were not used for updating.");
+    let _ = writeln!(md, "## Measured vs simulated (Table 2 analog)\n\n| setup | mode | role | n | boards | measured mean [Hz] | measured sd [Hz] | simulated mean [Hz] | simulated sd [Hz] | predictive sd [Hz] | mean error [%] | sd error [%] |\n|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let mut t = String::from("<table data-table=\"table2\"><tr><th>setup</th><th>mode</th><th>role</th><th>n</th><th>boards</th><th>measured mean [Hz]</th><th>measured sd [Hz]</th><th>simulated mean [Hz]</th><th>simulated sd [Hz]</th><th>predictive sd [Hz]</th><th>mean error [%]</th><th>sd error [%]</th><th>own-board coverage</th><th>new-board coverage</th><th>held-out boards' coverage</th></tr>\n");
     for r in &d.table2 {
         let role = if r.used_for_updating {
             "updating"
@@ -307,11 +307,12 @@ pub fn render(d: &ReportData) -> Rendered {
         };
         let _ = writeln!(
             t,
-            "<tr>{}{}{}{}{}{}{}{}{}{}{}{}{}{}</tr>",
+            "<tr>{}{}{}{}{}{}{}{}{}{}{}{}{}{}{}</tr>",
             txt("setup", &r.setup),
             txt("label", &r.label),
             txt("role", role),
             int("n_measured", r.n_measured),
+            int("n_boards", r.n_boards),
             num("measured_mean_hz", r.measured_mean_hz, 2),
             num("measured_sd_hz", r.measured_sd_hz, 3),
             num("simulated_mean_hz", r.simulated_mean_hz, 2),
@@ -325,10 +326,11 @@ pub fn render(d: &ReportData) -> Rendered {
         );
         let _ = writeln!(
             md,
-            "| {} | {} | {role} | {} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} | {:.3} | {:.1} |",
+            "| {} | {} | {role} | {} | {} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} | {:.3} | {:.1} |",
             r.setup,
             r.label,
             r.n_measured,
+            r.n_boards,
             r.measured_mean_hz,
             r.measured_sd_hz,
             r.simulated_mean_hz,

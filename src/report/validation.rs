@@ -92,6 +92,37 @@ pub fn mean_sd(x: &[f64]) -> (f64, f64) {
     (m, v.sqrt())
 }
 
+/// Mean and standard deviation of measurements grouped by board, every board weighted
+/// equally: a measurement of a board with n_b of them weighs 1/(n_b B) over B boards. These
+/// are the moments of "a measurement of a board picked at random", which is what a new
+/// board's predicted measurement stands for; the plain moments over all measurements let a
+/// board measured three times as often pull them three times as hard (the paper-like
+/// campaign measures two boards bolted 9 times and four boards 3 times). The variance is the
+/// reliability-weighted estimate Σ wᵢ (xᵢ − m)² / (1 − Σ wᵢ²) (Σ wᵢ = 1), the sample
+/// variance when every board has as many measurements. Returns (mean, sd, boards); sd is NaN
+/// below two measurements or when Σ wᵢ² = 1 (a single measurement).
+pub fn board_weighted_mean_sd<'a>(
+    x: impl IntoIterator<Item = (&'a str, f64)>,
+) -> (f64, f64, usize) {
+    let x: Vec<(&str, f64)> = x.into_iter().collect();
+    let mut count: BTreeMap<&str, usize> = BTreeMap::new();
+    for (b, _) in &x {
+        *count.entry(b).or_default() += 1;
+    }
+    let nb = count.len();
+    if x.is_empty() {
+        return (f64::NAN, f64::NAN, 0);
+    }
+    let w = |b: &str| 1.0 / (count[b] as f64 * nb as f64);
+    let m: f64 = x.iter().map(|(b, v)| w(b) * v).sum();
+    let sw2: f64 = x.iter().map(|(b, _)| w(b).powi(2)).sum();
+    if x.len() < 2 || sw2 >= 1.0 - 1e-12 {
+        return (m, f64::NAN, nb);
+    }
+    let v = x.iter().map(|(b, v)| w(b) * (v - m).powi(2)).sum::<f64>() / (1.0 - sw2);
+    (m, v.sqrt(), nb)
+}
+
 /// Intervals of every (scope, board, setup, label) of the predictions, sorted by key, with
 /// the coverage of the measurements: a board's own measurements for scope `board`; for a new
 /// board, every updated board's measurements of that setup and label, and apart from them
@@ -174,6 +205,10 @@ pub struct Table2Row {
     pub label: String,
     pub used_for_updating: bool,
     pub n_measured: usize,
+    /// Boards behind n_measured.
+    pub n_boards: usize,
+    /// Mean and sd of the measured frequencies, every board weighted equally
+    /// ([`board_weighted_mean_sd`]).
     pub measured_mean_hz: f64,
     pub measured_sd_hz: f64,
     /// New board: model mean and sd, and the sd of a predicted measurement.
@@ -195,7 +230,8 @@ pub struct Table2Row {
 }
 
 /// The Table-2 analog per setup and label with predictions for a new board: measured mean
-/// and sd over every measurement of every updated board against the new-board prediction,
+/// and sd over every measurement of every updated board, each board weighted equally
+/// ([`board_weighted_mean_sd`]), against the new-board prediction,
 /// and the held-out boards' coverage by it.
 pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Table2Row> {
     let mut newb: BTreeMap<(String, String), (Vec<f64>, Vec<f64>)> = BTreeMap::new();
@@ -213,8 +249,8 @@ pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Tab
             .iter()
             .filter(|m| m.setup == setup && m.label == label && !m.held_out)
             .collect();
-        let f: Vec<f64> = ms.iter().map(|m| m.freq_hz).collect();
-        let (mm, msd) = mean_sd(&f);
+        let (mm, msd, n_boards) =
+            board_weighted_mean_sd(ms.iter().map(|m| (m.board_id.as_str(), m.freq_hz)));
         let (sm, ssd) = mean_sd(&model);
         let (_, psd) = mean_sd(&obs);
         let board_iv = |b: &str| {
@@ -239,6 +275,7 @@ pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Tab
         out.push(Table2Row {
             used_for_updating: ms.first().is_some_and(|m| m.used_for_updating),
             n_measured: ms.len(),
+            n_boards,
             measured_mean_hz: mm,
             measured_sd_hz: msd,
             simulated_mean_hz: sm,
@@ -400,6 +437,46 @@ mod tests {
     /// The closed form against a seeded simulation of the classical setting: n exact draws
     /// of a normal population, interval x̄ ± t s √(1 + 1/n), the fraction of the n draws
     /// inside (and, as a check of the simulation, a new draw's coverage, 90 %).
+    #[test]
+    fn board_weighted_moments_weigh_boards_equally_and_are_unbiased_for_iid_values() {
+        // Equal counts: the plain sample moments.
+        let x = [("a", 1.0), ("a", 2.0), ("b", 4.0), ("b", 7.0)];
+        let (m, s, nb) = board_weighted_mean_sd(x);
+        let (pm, ps) = mean_sd(&[1.0, 2.0, 4.0, 7.0]);
+        assert_eq!(nb, 2);
+        assert!((m - pm).abs() < 1e-12 && (s - ps).abs() < 1e-12);
+        // A board measured nine times does not outweigh one measured once.
+        let mut x: Vec<(&str, f64)> = vec![("a", 10.0); 9];
+        x.push(("b", 0.0));
+        assert!((board_weighted_mean_sd(x).0 - 5.0).abs() < 1e-12);
+        // One measurement: no sd.
+        assert!(board_weighted_mean_sd([("a", 1.0)]).1.is_nan());
+        // Reliability weights: the variance is unbiased for iid values whatever the counts.
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, StandardNormal};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let boards = ["a", "b", "c", "d", "e", "f"];
+        let counts = [9usize, 9, 3, 3, 3, 1];
+        let reps = 40_000;
+        let mut v = 0.0;
+        for _ in 0..reps {
+            let mut x: Vec<(&str, f64)> = vec![];
+            for (b, n) in boards.iter().zip(counts) {
+                for _ in 0..n {
+                    x.push((b, StandardNormal.sample(&mut rng)));
+                }
+            }
+            v += board_weighted_mean_sd(x).1.powi(2);
+        }
+        v /= reps as f64;
+        // The sample variance of 28 normals has sd sqrt(2/27) per replication; the weighted
+        // one (fewer effective values) somewhat more: 5 of those over the replications.
+        assert!(
+            (v - 1.0).abs() < 5.0 * (2.0f64 / 6.0 / reps as f64).sqrt(),
+            "{v}"
+        );
+    }
+
     #[test]
     fn in_sample_coverage_matches_a_simulation() {
         use rand::SeedableRng;

@@ -29,15 +29,16 @@ const DIAGNOSIS_MODES_FILE: &str = "diagnosis_modes.parquet";
 
 pub const TABLE2: TableSpec = TableSpec {
     name: "table2",
-    doc: "The Table-2 analog of the validation report: per setup and mode, the measured mean and standard deviation over every measurement of every board against the prediction for a new board (model mean and sd, predictive sd with the prediction error), their relative errors, and the coverage of the predicted 90 % intervals. Null where undefined (fewer than two measurements).",
+    doc: "The Table-2 analog of the validation report: per setup and mode, the measured mean and standard deviation over every measurement of every board (each board weighted equally) against the prediction for a new board (model mean and sd, predictive sd with the prediction error), their relative errors, and the coverage of the predicted 90 % intervals. Null where undefined (fewer than two measurements).",
     open: false,
     columns: &[
         c("setup", Col::Utf8, false, "", "`free` or `bolted`."),
         c("label", Col::Utf8, false, "", "Mode label."),
         c("role", Col::Utf8, false, "", "`updating` or `validation` (not used for updating)."),
         c("n_measured", Col::Int32, false, "", "Measurements of the mode (all boards)."),
-        c("measured_mean_hz", Col::Float64, true, "Hz", "Mean of the measured frequencies."),
-        c("measured_sd_hz", Col::Float64, true, "Hz", "Sample standard deviation of the measured frequencies."),
+        c("n_boards", Col::Int32, false, "", "Boards behind n_measured."),
+        c("measured_mean_hz", Col::Float64, true, "Hz", "Mean of the measured frequencies, every board weighted equally (a measurement of a board measured n_b times weighs 1 / (n_b n_boards)): the mean of a measurement of a board picked at random, which the new-board prediction stands for."),
+        c("measured_sd_hz", Col::Float64, true, "Hz", "Standard deviation of the measured frequencies with the same weights w (reliability-weighted: sum w (f - mean)^2 / (1 - sum w^2)); the sample sd when every board has as many measurements."),
         c("simulated_mean_hz", Col::Float64, true, "Hz", "Mean model frequency of a new board."),
         c("simulated_sd_hz", Col::Float64, true, "Hz", "Standard deviation of the model frequency of a new board."),
         c("predictive_sd_hz", Col::Float64, true, "Hz", "Standard deviation of a predicted measurement of a new board."),
@@ -402,6 +403,9 @@ fn write_table2(
         }))),
         Arc::new(Int32Array::from_iter_values(
             rows.iter().map(|r| r.n_measured as i32),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            rows.iter().map(|r| r.n_boards as i32),
         )),
         f(|r| r.measured_mean_hz),
         f(|r| r.measured_sd_hz),
