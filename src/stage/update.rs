@@ -2817,6 +2817,51 @@ fn rom_box_check(model: &FeModel, rom: &Rom, box_rel: f64, n_modes: usize) -> an
     worst_frequency_error(model, rom, &points, n_modes)
 }
 
+/// The ROM against the full model where the posterior lies: at `n_points` particles spread
+/// evenly over every run's output (each at one unit, cycling through the units), the worst
+/// relative difference of the `n_modes` lowest frequencies, and the smallest relative
+/// frequency noise of the updated modes (half the posterior median of ε, which is relative on
+/// λ = ω²) it is to be compared with. The box checks ask whether the ROM holds over its box;
+/// this asks whether it holds where the answer is, at the accuracy the answer claims.
+fn rom_posterior_check(
+    model: &FeModel,
+    target: &ModalTarget,
+    results: &Results,
+    n_points: usize,
+    n_modes: usize,
+) -> anyhow::Result<(f64, f64)> {
+    let all = particles_of(results);
+    let n_units = target.units.len();
+    let mut worst = 0.0f64;
+    let sop = target.predictor.rom.shape_operator(model, &[[0.0, 0.0]])?;
+    for k in 0..n_points.min(all.len()) {
+        let (_, _, p) = all[k * all.len() / n_points.min(all.len())];
+        let b = k % n_units;
+        let mut params = model.nominal_params();
+        params.values = target.values(&p.aux, b, &p.x[b]);
+        let full = model.modes(&params, n_modes)?;
+        let red = target.predictor.rom.eval(&params, &sop)?;
+        for (a, f) in red.freq_hz.iter().zip(&full.freq_hz).take(n_modes) {
+            worst = worst.max((a - f).abs() / f);
+        }
+    }
+    let mut eps: Vec<Vec<f64>> = vec![vec![]; target.errors.n_modes];
+    for (_, _, p) in &all {
+        let ctx = smc::Target::ctx(target, &p.g);
+        for (m, e) in ctx.eps.iter().enumerate() {
+            eps[m].push(*e);
+        }
+    }
+    let noise = eps
+        .iter_mut()
+        .map(|v| {
+            v.sort_by(f64::total_cmp);
+            0.5 * v[v.len() / 2]
+        })
+        .fold(f64::INFINITY, f64::min);
+    Ok((worst, noise))
+}
+
 /// Step-1 posterior draws read back from boards.parquet.
 struct Step1 {
     /// Boards in the order of `values` blocks.
@@ -3680,6 +3725,19 @@ pub fn run_joints(
                 violations.join("\n  ")
             );
         }
+        let (rom_err, noise) = rom_posterior_check(&model, &target, &results, 4, need)?;
+        findings.push(Finding::new(
+            if rom_err > 0.25 * noise {
+                Severity::Warning
+            } else {
+                Severity::Info
+            },
+            "update.rom_posterior_check",
+            format!(
+                "the ROM's {need} lowest frequencies at 4 posterior draws differ from the full model's by at most {rom_err:.2e} (relative), against a measurement noise of {noise:.2e} (half the smallest posterior median of ε){}",
+                if rom_err > 0.25 * noise { ": above a quarter of the noise, the posterior is the ROM's more than the model's (raise --rom-basis)" } else { "" }
+            ),
+        ));
         let prov = provenance("update_joints", &prep.fingerprint);
         let mut outputs = vec![];
         // population.parquet (step 2).
