@@ -37,8 +37,15 @@ nboards=${HOLDOUT_N:-}
 group=${HOLDOUT_GROUP:-1}
 tag=null${nboards}
 holdout=holdout${HOLDOUT_LABEL:+-$HOLDOUT_LABEL}
-make -C "$root/pipelines" --no-print-directory build >/dev/null
-hbmu=$root/target/debug/hbmu
+# HBMU=binary runs that binary (e.g. a frozen copy while the tree is being edited; the
+# pipeline's make honours it too); otherwise the tree's debug build, built first.
+if [ -n "${HBMU:-}" ]; then
+  hbmu=$HBMU
+  export HBMU
+else
+  make -C "$root/pipelines" --no-print-directory build >/dev/null
+  hbmu=$root/target/debug/hbmu
+fi
 # The pipeline's model cache: the folds share the campaign's ROM instead of building it each.
 export HBMU_CACHE=${HBMU_CACHE-$root/target/cache}
 for s in "${seeds[@]}"; do
