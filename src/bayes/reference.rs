@@ -480,6 +480,33 @@ fn log_marginal_quadratic(m: &[f64], l: &[f64], x_hat: &[f64], h: &[f64], g: &[f
 /// fixed).
 fn log_marginal_quadratic_root(m: &[f64], l: &[f64], x_hat: &[f64], r: &[f64], g: &[f64]) -> f64 {
     let d = m.len();
+    // Where H is flat (a zero row of R: a direction of zero or, before clamping, negative
+    // curvature, or one 1e12 times below the largest), a gradient along it makes the quadratic an unbounded ramp, and its
+    // marginal grows linearly in m without end: the reference's random walk on g followed it
+    // (the paper demo's joint_rotation refit, a unit optimum at its box edge: μ of ln k_con at
+    // −1.1e3, sd 5e-10). The form is read as flat there: the gradient keeps only its part in
+    // H's range (R's rows are orthogonal, scaled eigenvectors). With H positive definite, g
+    // as given.
+    let row_sq: Vec<f64> = (0..d)
+        .map(|k| (0..d).map(|q| r[k * d + q] * r[k * d + q]).sum())
+        .collect();
+    // Flat: zero, or below 1e-12 of the largest curvature (the ramp's crest as far off as
+    // the gradient over that curvature).
+    let flat = 1e-12 * row_sq.iter().fold(0.0f64, |a, &b| a.max(b));
+    let projected: Vec<f64>;
+    let g = if row_sq.iter().any(|&n| n <= flat) {
+        let mut gp = vec![0.0; d];
+        for k in (0..d).filter(|&k| row_sq[k] > flat) {
+            let c = (0..d).map(|q| r[k * d + q] * g[q]).sum::<f64>() / row_sq[k];
+            for q in 0..d {
+                gp[q] += c * r[k * d + q];
+            }
+        }
+        projected = gp;
+        &projected[..]
+    } else {
+        g
+    };
     let u: Vec<f64> = m.iter().zip(x_hat).map(|(a, b)| a - b).collect();
     let w: Vec<f64> = (0..d)
         .map(|k| (0..d).map(|q| r[k * d + q] * u[q]).sum())
@@ -1131,17 +1158,52 @@ mod tests {
         assert!((got - want).abs() <= 1e-9, "{got} vs {want}");
     }
 
+    /// A unit quadratic flat along one direction (zero or negative curvature, clamped) with
+    /// a gradient along it is an unbounded ramp, whose marginal grows linearly as the prior's
+    /// mean m moves along the gradient: it is read as flat there, so the marginal equals the
+    /// one without that part of the gradient and stays bounded in m (it ran the demo's
+    /// joint_rotation reference to μ = −1.1e3). The part of g in H's range still counts.
+    #[test]
+    fn a_gradient_along_a_flat_direction_is_no_ramp() {
+        let l = [0.5, 0.0, 0.2, 0.4];
+        let h = [4.0, 0.0, 0.0, 0.0];
+        for h11 in [0.0, -3.0] {
+            let h = [h[0], h[1], h[2], h11];
+            let hp = make_positive(&h, 2, 0.0);
+            for m1 in [0.0, 10.0, -1e3] {
+                let m = [0.3, m1];
+                let with = log_marginal_quadratic(&m, &l, &[0.1, 0.0], &hp, &[1.5, 40.0]);
+                let without = log_marginal_quadratic(&m, &l, &[0.1, 0.0], &hp, &[1.5, 0.0]);
+                assert!(
+                    (with - without).abs() <= 1e-12 * (1.0 + without.abs()),
+                    "{with} vs {without}"
+                );
+                assert!(with.is_finite() && with < 10.0, "m1 = {m1}: {with}");
+            }
+        }
+        // The range's part: a gradient along the curved direction shifts the marginal.
+        let m = [0.3, 0.0];
+        let a = log_marginal_quadratic(&m, &l, &[0.1, 0.0], &h, &[1.5, 0.0]);
+        let b = log_marginal_quadratic(&m, &l, &[0.1, 0.0], &h, &[0.0, 0.0]);
+        assert!((a - b).abs() > 1e-3);
+    }
+
     /// The closed form against a brute-force 2-D quadrature of the same integral.
     #[test]
     fn marginal_of_a_quadratic_likelihood_matches_quadrature() {
         let m = [0.3, -0.2];
         // Σ = L Lᵀ with a correlation; H singular along one direction (an unidentified
-        // parameter), g non-zero.
+        // parameter), g non-zero and not in H's range.
         let l = [0.5, 0.0, 0.2, 0.3];
         let h = [4.0, 2.0, 2.0, 1.0];
         let g = [0.7, -0.4];
         let x_hat = [0.1, 0.25];
         let closed = log_marginal_quadratic(&m, &l, &x_hat, &h, &g);
+        // Along H's null direction the form is read as flat (no ramp, see
+        // `a_gradient_along_a_flat_direction_is_no_ramp`): the quadrature integrates the
+        // gradient's part in H's range, v = (2, 1)/√5.
+        let gv = (2.0 * g[0] + g[1]) / 5.0;
+        let g = [2.0 * gv, gv];
         let s = lower_times_upper(&l, 2);
         let p = spd_inverse(&s, 2);
         let det_s = s[0] * s[3] - s[1] * s[2];
