@@ -481,12 +481,12 @@ fn log_marginal_quadratic(m: &[f64], l: &[f64], x_hat: &[f64], h: &[f64], g: &[f
 fn log_marginal_quadratic_root(m: &[f64], l: &[f64], x_hat: &[f64], r: &[f64], g: &[f64]) -> f64 {
     let d = m.len();
     // Where H is flat (a zero row of R: a direction of zero or, before clamping, negative
-    // curvature, or one 1e12 times below the largest), a gradient along it makes the quadratic an unbounded ramp, and its
-    // marginal grows linearly in m without end: the reference's random walk on g followed it
-    // (the paper demo's joint_rotation refit, a unit optimum at its box edge: μ of ln k_con at
-    // −1.1e3, sd 5e-10). The form is read as flat there: the gradient keeps only its part in
-    // H's range (R's rows are orthogonal, scaled eigenvectors). With H positive definite, g
-    // as given.
+    // curvature, or one 1e12 times below the largest), a gradient along it makes the
+    // quadratic an unbounded ramp, and its marginal grows linearly in m without end: the
+    // reference's random walk on g followed it (the paper demo's joint_rotation refit, a unit
+    // optimum at its box edge: μ of ln k_con at −1.1e3, sd 5e-10). The form is read as flat
+    // there: the gradient keeps only its part in H's range (R's rows are orthogonal, scaled
+    // eigenvectors). With H positive definite, g as given.
     let row_sq: Vec<f64> = (0..d)
         .map(|k| (0..d).map(|q| r[k * d + q] * r[k * d + q]).sum())
         .collect();

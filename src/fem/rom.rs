@@ -372,15 +372,7 @@ impl Rom {
         if n_pod > 0 {
             // The POD vectors S U, one dense product.
             let u = Mat::from_fn(ns, n_pod, |i, k| se.vectors[k][i]);
-            let mut su = Mat::<f64>::zeros(n, n_pod);
-            faer::linalg::matmul::matmul(
-                su.as_mut(),
-                faer::Accum::Replace,
-                s_mat.as_ref(),
-                u.as_ref(),
-                1.0,
-                faer::Par::Seq,
-            );
+            let su = product_seq(s_mat.as_ref(), u.as_ref());
             crate::simd::clear_upper_vector_state();
             pod.extend((0..n_pod).map(|k| (0..n).map(|i| su[(i, k)]).collect::<Vec<f64>>()));
         }
@@ -991,25 +983,8 @@ impl Rom {
             .k_r
             .iter()
             .map(|k| {
-                // Sequential products: the same bits whatever the thread count.
-                let mut kw = Mat::<f64>::zeros(r, q);
-                faer::linalg::matmul::matmul(
-                    kw.as_mut(),
-                    faer::Accum::Replace,
-                    k.as_ref(),
-                    wm.as_ref(),
-                    1.0,
-                    faer::Par::Seq,
-                );
-                let mut ks = Mat::<f64>::zeros(q, q);
-                faer::linalg::matmul::matmul(
-                    ks.as_mut(),
-                    faer::Accum::Replace,
-                    wm.transpose(),
-                    kw.as_ref(),
-                    1.0,
-                    faer::Par::Seq,
-                );
+                let kw = product_seq(k.as_ref(), wm.as_ref());
+                let ks = product_seq(wm.transpose(), kw.as_ref());
                 (0..q)
                     .flat_map(|i| (0..q).map(move |j| (i, j)))
                     .map(|(i, j)| ks[(i, j)])
@@ -1063,6 +1038,20 @@ impl Rom {
             vectors,
         })
     }
+}
+
+/// A · B as one sequential faer product: the same bits whatever the thread count.
+fn product_seq(a: faer::MatRef<'_, f64>, b: faer::MatRef<'_, f64>) -> Mat<f64> {
+    let mut out = Mat::<f64>::zeros(a.nrows(), b.ncols());
+    faer::linalg::matmul::matmul(
+        out.as_mut(),
+        faer::Accum::Replace,
+        a,
+        b,
+        1.0,
+        faer::Par::Seq,
+    );
+    out
 }
 
 /// A unit eigenvector z of Kʳ/d₀ (Mʳ = d₀ I) as the mass-normalised vector `scale` · z

@@ -434,9 +434,8 @@ mod tests {
         assert!((t[0].held_out_coverage_90 - 2.0 / 3.0).abs() < 1e-12);
     }
 
-    /// The closed form against a seeded simulation of the classical setting: n exact draws
-    /// of a normal population, interval x̄ ± t s √(1 + 1/n), the fraction of the n draws
-    /// inside (and, as a check of the simulation, a new draw's coverage, 90 %).
+    /// Board-weighted moments against the plain ones at equal counts, a board measured nine
+    /// times against one measured once, and the variance's unbiasedness for iid values.
     #[test]
     fn board_weighted_moments_weigh_boards_equally_and_are_unbiased_for_iid_values() {
         // Equal counts: the plain sample moments.
@@ -477,6 +476,9 @@ mod tests {
         );
     }
 
+    /// The closed form against a seeded simulation of the classical setting: n exact draws
+    /// of a normal population, interval x̄ ± t s √(1 + 1/n), the fraction of the n draws
+    /// inside (and, as a check of the simulation, a new draw's coverage, 90 %).
     #[test]
     fn in_sample_coverage_matches_a_simulation() {
         use rand::SeedableRng;
