@@ -6,7 +6,8 @@ What it does
 ------------
 1. Step 1 with hbmu (unless --hbmu-out names an existing output directory): runs
    ``hbmu update boards WORK/ingest WORK/pair --extract WORK/extract --particles DRAWS
-   --runs CHAINS --rom-basis 30 --no-shapes --threads CORES --out OUT/hbmu --force``
+   --runs CHAINS --rom-basis 30 --no-shapes --board-coordinates natural --threads CORES
+   --out OUT/hbmu --force`` (the paper's coordinates, which the PyMC model below writes)
    under ``/usr/bin/time`` (wall, user, system seconds, max RSS).
 2. Builds the same step-1 posterior in PyMC 5 from what that run exported and read:
    ``rom.npz`` (the reduced K(θ) = Σ c_i(θ) K_i, M(θ) = Σ d_j(θ) M_j and the coefficient map in
@@ -746,7 +747,8 @@ def run_hbmu(hbmu, work, out, draws, chains, cores, rom_basis, seed):
         hbmu, "--threads", str(cores), "update", "boards",
         str(work / "ingest"), str(work / "pair"), "--extract", str(work / "extract"),
         "--particles", str(draws), "--runs", str(chains), "--rom-basis", str(rom_basis),
-        "--no-shapes", "--seed", str(seed), "--out", str(out), "--force",
+        "--no-shapes", "--board-coordinates", "natural",
+        "--seed", str(seed), "--out", str(out), "--force",
     ]
     print("$ " + " ".join(cmd), flush=True)
     load = os.getloadavg()

@@ -21,6 +21,7 @@ import json
 import math
 import sys
 
+import numpy as np
 import pandas as pd
 
 
@@ -53,9 +54,20 @@ def one(work):
             if len(r) == 1 and p in b:
                 out["board"].append((b["board_id"], p, inside(r.iloc[0], b[p]), b[p], r.iloc[0]["q05"], r.iloc[0]["q95"]))
     glob = s[s["board_id"].isna() & s["measurement_id"].isna()].set_index("parameter")
-    for i, p in enumerate(pop["parameters"]):
-        m = pop["mean"][i]
-        sd = pop["rel_std"][i] * m
+    # The population's coordinates: a modulus per unit mass scale (update's default
+    # `--board-coordinates per-mass`, column <m>_per_mass_scale_pa) has the truth's mean and
+    # sd of modulus / mass_scale, by Monte Carlo from the truth's normal population.
+    names = list(pop["parameters"])
+    rng = np.random.default_rng(0)
+    draws = rng.multivariate_normal(pop["mean"], pop["covariance"], size=400_000)
+    coords = [(p, pop["mean"][i], pop["rel_std"][i] * pop["mean"][i]) for i, p in enumerate(names)]
+    if "mass_scale" in names:
+        ms = draws[:, names.index("mass_scale")]
+        for i, p in enumerate(names):
+            if p.endswith("_pa"):
+                r = draws[:, i] / ms
+                coords.append((p[: -len("_pa")] + "_per_mass_scale_pa", r.mean(), r.std()))
+    for p, m, sd in coords:
         if f"mu_{p}" in glob.index:
             r = glob.loc[f"mu_{p}"]
             out["mu"].append((p, inside(r, m), m, r["q05"], r["q95"]))

@@ -308,9 +308,11 @@ enum UpdateCommand {
         /// log-normal's median is 0.6745 × it.
         #[arg(long, default_value_t = 0.05)]
         sigma_scale: f64,
-        /// Prior family of the population sds: half-normal, or log-normal (ln σ ~ N(ln of the
-        /// half-normal's median, 1.5²), locally the scale-invariant prior).
-        #[arg(long, value_enum, default_value = "half-normal")]
+        /// Prior family of the population sds: log-normal (ln σ ~ N(ln of the half-normal's
+        /// median, 1.5²), locally the scale-invariant prior, whose new-board prediction is
+        /// about the classical prediction interval: the default, since boards do differ), or
+        /// half-normal (more mass near σ = 0, wider new-board predictions from few boards).
+        #[arg(long, value_enum, default_value = "log-normal")]
         sigma_prior: hbmu::bayes::population::SigmaPrior,
         /// Refit with a board mechanism of the diagnosis's library: `temperature_stiffness`
         /// (the FR-4 moduli follow a sheet column, `--enrich-covariate`) or `added_mass` (a
@@ -327,6 +329,11 @@ enum UpdateCommand {
         /// new-board prediction on: `report` compares their measurements with it.
         #[arg(long, value_delimiter = ',', value_name = "BOARD,...")]
         hold_out: Vec<String>,
+        /// The board population's coordinates: `per-mass` (with mass_scale updated, every
+        /// modulus per unit mass scale, the combination free-free frequencies follow) or
+        /// `natural` (every parameter as it is).
+        #[arg(long, value_enum, default_value = "per-mass")]
+        board_coordinates: stage::update::BoardCoordinates,
     },
     /// Step 2: joint contact stiffness per bolted measurement and its population, from the
     /// bolted modes, carrying every step-1 draw (the modular, "cut", posterior).
@@ -413,6 +420,7 @@ impl UpdateArgs {
             enrich_location: None,
             model_error: !self.no_model_error,
             hold_out_boards: vec![],
+            board_coordinates: Default::default(),
         }
     }
 }
@@ -675,6 +683,7 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                     enrich_covariate,
                     enrich_location,
                     hold_out,
+                    board_coordinates,
                 },
         } => {
             use hbmu::diagnose::library::Mechanism;
@@ -682,6 +691,7 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             opts.sigma_prior = sigma_prior;
             opts.enrich = enrich;
             opts.hold_out_boards = hold_out;
+            opts.board_coordinates = board_coordinates;
             if enrich == Some(Mechanism::TemperatureStiffness) {
                 opts.enrich_covariate = Some(enrich_covariate);
             }

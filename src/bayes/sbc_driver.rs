@@ -96,6 +96,7 @@ pub fn build_target(p: &Problem) -> ModalTarget {
             updated,
             reference,
             log: vec![],
+            per_mass: None,
         },
         prior: PopulationPrior {
             mu_mean: vec![0.0; d],

@@ -145,6 +145,7 @@ fn the_subspace_is_an_upper_bound_exact_at_its_snapshots_and_within_tolerance_in
             updated,
             reference,
             log,
+            ..
         } = &t.compose
         else {
             panic!("a step-1 target");

@@ -142,6 +142,8 @@ pub enum Compose {
         updated: Vec<usize>,
         reference: Vec<f64>,
         log: Vec<bool>,
+        /// Moduli per unit mass ([`PerMass`]); `None`: every coordinate is its own parameter.
+        per_mass: Option<PerMass>,
     },
     /// Step 2: p[board_params[k]] = aux[unit_board[b] · board_params.len() + k] (the step-1
     /// draw of unit b's board, absolute values) and, log-linearly in the unit's coordinates,
@@ -157,6 +159,62 @@ pub enum Compose {
         /// A step-1 covariate effect carried into step 2 (`None`: none).
         covariate: Option<JointsCovariate>,
     },
+}
+
+/// Step-1 coordinates of the moduli per unit mass: coordinate k with `specific[k]` is the
+/// relative deviation of p_k / m from reference_k / reference_m, m the parameter of
+/// coordinate `mass` (the mass scale), so p_k = reference_k (1 + x_k) · m / reference_m.
+///
+/// Why: a free-free structure's eigenvalues are stiffness over mass, unchanged when every
+/// modulus and the mass scale move by the same factor, so the frequencies fix the moduli per
+/// unit mass and the balance fixes the mass. Boards whose stiffness and mass vary together
+/// (fibre and resin content move both) have strongly correlated moduli and mass, a
+/// correlation a handful of boards cannot pin down; the population's correlation prior then
+/// shrinks it towards zero and the predicted frequency spread of a new board, which follows
+/// modulus over mass, comes out too wide (1.4–1.6× the classical prediction interval on the
+/// lab's 7-board null campaign). In these coordinates the frequency-relevant spread is a
+/// population sd of its own, learnt from the boards as directly as a single quantity.
+#[derive(Clone, Debug)]
+pub struct PerMass {
+    /// Index (into the unit coordinates) of the mass parameter.
+    pub mass: usize,
+    /// Per unit coordinate: a modulus expressed per unit mass.
+    pub specific: Vec<bool>,
+}
+
+impl PerMass {
+    /// Whether coordinate k is a modulus per unit mass.
+    pub fn is_specific(&self, k: usize) -> bool {
+        self.specific.get(k).copied().unwrap_or(false)
+    }
+}
+
+impl Compose {
+    /// Step 1: a unit's parameters relative to their references, p_k / reference_k − 1 (ln
+    /// of it on a logarithmic coordinate), from its coordinates x: x itself unless moduli are
+    /// per unit mass. Step 2: x.
+    pub fn relative_params(&self, x: &[f64]) -> Vec<f64> {
+        match self {
+            Compose::Boards {
+                per_mass: Some(pm),
+                log,
+                ..
+            } => {
+                let m = 1.0 + x[pm.mass];
+                x.iter()
+                    .enumerate()
+                    .map(|(k, &v)| {
+                        if pm.is_specific(k) && !log.get(k).copied().unwrap_or(false) {
+                            (1.0 + v) * m - 1.0
+                        } else {
+                            v
+                        }
+                    })
+                    .collect()
+            }
+            _ => x.to_vec(),
+        }
+    }
 }
 
 /// A step-1 [`CovariateEffect`] in step 2: every board's block of aux holds its parameters
@@ -208,6 +266,7 @@ impl ModalTarget {
                 updated,
                 reference,
                 log,
+                per_mass,
             } => {
                 for (k, &i) in updated.iter().enumerate() {
                     v[i] = if log.get(k).copied().unwrap_or(false) {
@@ -215,6 +274,14 @@ impl ModalTarget {
                     } else {
                         reference[k] * (1.0 + x[k])
                     };
+                }
+                if let Some(pm) = per_mass {
+                    let m = 1.0 + x[pm.mass];
+                    for (k, &i) in updated.iter().enumerate() {
+                        if pm.is_specific(k) && !log.get(k).copied().unwrap_or(false) {
+                            v[i] *= m;
+                        }
+                    }
                 }
             }
             Compose::Joints {
@@ -430,6 +497,7 @@ mod tests {
                 updated: updated.clone(),
                 reference,
                 log: vec![],
+                per_mass: None,
             },
             prior: PopulationPrior {
                 mu_mean: vec![0.0; 4],
@@ -505,6 +573,53 @@ mod tests {
         };
         let (at, zero, near) = (ll(-0.004), ll(0.0), ll(-0.003));
         assert!(at - zero > 100.0 && at - near > 10.0, "{at} {zero} {near}");
+    }
+
+    /// Moduli per unit mass: p_k = reference_k (1 + x_k)(1 + x_m) for a modulus, the mass
+    /// scale itself as it is; so modulus over mass scale follows x_k alone (a move of x_m
+    /// leaves it), and `relative_params` is each parameter over its reference, minus 1.
+    #[test]
+    fn per_mass_coordinates_hold_modulus_over_mass_scale() {
+        let (_, _, rom) = crate::bayes::modal::tests::free_rom();
+        let names = rom.map.names.clone();
+        let pos = |n: &str| names.iter().position(|m| m == n).expect("parameter");
+        let updated = vec![pos("e_x_pa"), pos("g_xy_pa"), pos("mass_scale")];
+        let reference: Vec<f64> = updated.iter().map(|&i| rom.map.nominal[i]).collect();
+        let (mut t, _) = covariate_target();
+        t.covariate = None;
+        t.compose = Compose::Boards {
+            updated: updated.clone(),
+            reference: reference.clone(),
+            log: vec![],
+            per_mass: Some(PerMass {
+                mass: 2,
+                specific: vec![true, true, false],
+            }),
+        };
+        let ratio = |x: &[f64]| {
+            let v = t.values(&[], 0, x);
+            [v[updated[0]] / v[updated[2]], v[updated[1]] / v[updated[2]]]
+        };
+        let x = [0.02, -0.01, 0.03];
+        let v = t.values(&[], 0, &x);
+        assert_eq!(v[updated[2]], reference[2] * 1.03);
+        let e = reference[0] * 1.02 * 1.03;
+        assert!(
+            (v[updated[0]] - e).abs() <= 1e-12 * e,
+            "{} {e}",
+            v[updated[0]]
+        );
+        let (a, b) = (ratio(&x), ratio(&[0.02, -0.01, -0.05]));
+        for k in 0..2 {
+            assert!((a[k] - b[k]).abs() <= 1e-12 * a[k], "{a:?} {b:?}");
+            let want = reference[k] / reference[2] * (1.0 + x[k]);
+            assert!((a[k] - want).abs() <= 1e-12 * want, "{} {want}", a[k]);
+        }
+        let rel = t.compose.relative_params(&x);
+        for (k, &i) in updated.iter().enumerate() {
+            let r = v[i] / reference[k] - 1.0;
+            assert!((rel[k] - r).abs() < 1e-14, "{k}: {} {r}", rel[k]);
+        }
     }
 
     /// Step 2 carries a board's coefficient in aux after its parameters and scales the

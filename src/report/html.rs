@@ -851,14 +851,44 @@ fn posterior_section(pg: &mut Page, step: &StepData) {
         .filter_map(|(n, _)| n.strip_prefix("mu_").map(str::to_string))
         .collect();
     pg.body.push_str("<div class=\"grid\">");
-    for p in &params {
-        let (scale, unit) = display_unit(p);
-        let mut series: Vec<(String, Vec<f64>)> = step
-            .units
+    let draws_of = |q: &str, u: &str| {
+        step.units
             .iter()
-            .filter(|(q, _, _)| q == p)
-            .map(|(_, u, v)| (u.clone(), v.clone()))
-            .collect();
+            .find(|(n, v, _)| n == q && v == u)
+            .map(|(_, _, d)| d)
+    };
+    // A modulus per unit mass scale (step 1's population coordinate): each unit's draws of
+    // it are its modulus over its mass scale, draw by draw.
+    let unit_series = |p: &str| -> Vec<(String, Vec<f64>)> {
+        match crate::stage::update::per_mass_param(p) {
+            Some(q) => step
+                .units
+                .iter()
+                .filter(|(n, _, _)| *n == q)
+                .filter_map(|(_, u, v)| {
+                    let m = draws_of(crate::fem::params::names::MASS_SCALE, u)?;
+                    Some((u.clone(), v.iter().zip(m).map(|(a, b)| a / b).collect()))
+                })
+                .collect(),
+            None => step
+                .units
+                .iter()
+                .filter(|(q, _, _)| q == p)
+                .map(|(_, u, v)| (u.clone(), v.clone()))
+                .collect(),
+        }
+    };
+    // The units' own parameters that are no population coordinate (the moduli themselves,
+    // where the population takes them per unit mass): per-unit densities alone.
+    let mut own: Vec<String> = vec![];
+    for (q, _, _) in &step.units {
+        if !params.contains(q) && !own.contains(q) {
+            own.push(q.clone());
+        }
+    }
+    for p in params.iter().chain(&own) {
+        let (scale, unit) = display_unit(p);
+        let mut series = unit_series(p);
         if let Some((_, v)) = step
             .population
             .iter()
@@ -873,10 +903,14 @@ fn posterior_section(pg: &mut Page, step: &StepData) {
         };
         pg.figure(
             figures::density_svg(&format!("Posterior of {p}"), &xd, &series, scale),
-            &format!(
-                "Posterior density of <code>{}</code> per unit and of the population mean.",
-                esc(p)
-            ),
+            &if params.contains(p) {
+                format!(
+                    "Posterior density of <code>{}</code> per unit and of the population mean.",
+                    esc(p)
+                )
+            } else {
+                format!("Posterior density of <code>{}</code> per unit.", esc(p))
+            },
         );
     }
     // Population spreads as coefficients of variation.

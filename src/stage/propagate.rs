@@ -304,6 +304,34 @@ fn read_step1(
         );
     }
     let d = params.len();
+    // Moduli per unit mass scale (`update::BoardCoordinates::PerMass`): the population's
+    // coordinate `<p>_per_mass_scale_pa` is parameter p over the mass scale.
+    let pop_params = params;
+    let params: Vec<String> = pop_params
+        .iter()
+        .map(|c| crate::stage::update::per_mass_param(c).unwrap_or_else(|| c.clone()))
+        .collect();
+    let specific: Vec<bool> = pop_params
+        .iter()
+        .zip(&params)
+        .map(|(c, p)| c != p)
+        .collect();
+    let per_mass = if specific.iter().any(|&s| s) {
+        let m = params
+            .iter()
+            .position(|p| p == names::MASS_SCALE)
+            .ok_or_else(|| {
+                anyhow!(
+                    "{}: moduli per unit mass scale ({:?}) but no mu_{} column",
+                    pop_path.display(),
+                    pop_params,
+                    names::MASS_SCALE
+                )
+            })?;
+        Some((m, specific))
+    } else {
+        None
+    };
     let mut index = BTreeMap::new();
     let mut step1 = vec![];
     let mut warned = BTreeSet::new();
@@ -313,11 +341,11 @@ fn read_step1(
             path: &pop_path,
         };
         let (run, draw) = (c.i32("run")?, c.i32("draw")?);
-        let mu: Vec<&Float64Array> = params
+        let mu: Vec<&Float64Array> = pop_params
             .iter()
             .map(|p| f64_col(b, &format!("mu_{p}"), &pop_path))
             .collect::<Result<_, _>>()?;
-        let sg: Vec<&Float64Array> = params
+        let sg: Vec<&Float64Array> = pop_params
             .iter()
             .map(|p| f64_col(b, &format!("sigma_{p}"), &pop_path))
             .collect::<Result<_, _>>()?;
@@ -326,7 +354,11 @@ fn read_step1(
             for j in i + 1..d {
                 corr.push((
                     (i, j),
-                    f64_col(b, &format!("corr_{}_{}", params[i], params[j]), &pop_path)?,
+                    f64_col(
+                        b,
+                        &format!("corr_{}_{}", pop_params[i], pop_params[j]),
+                        &pop_path,
+                    )?,
                 ));
             }
         }
@@ -421,6 +453,7 @@ fn read_step1(
     Ok((
         Posterior {
             params,
+            per_mass,
             board_ids,
             step1,
             step2: None,

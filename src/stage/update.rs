@@ -12,7 +12,9 @@
 use crate::bayes::modal::{CovariateEffect, FreqObs, MassObs, ModalPredictor, ShapeObs, UnitData};
 use crate::bayes::population::PopulationPrior;
 use crate::bayes::smc::{self, Particle, SmcOptions, StageInfo};
-use crate::bayes::target::{Compose, ErrorModel, ErrorPrior, JointsCovariate, ModalTarget};
+use crate::bayes::target::{
+    Compose, ErrorModel, ErrorPrior, JointsCovariate, ModalTarget, PerMass,
+};
 use crate::diagnose::library::{
     board_enrichment, is_board_mechanism, joint_enrichment, BoardContext, BoardEffect,
     JointContext, Mechanism,
@@ -62,7 +64,7 @@ pub const POPULATION_JOINTS: TableSpec = TableSpec {
 
 pub const POPULATION: TableSpec = TableSpec {
     name: "population",
-    doc: "Posterior draws of the population (hyper-)parameters, one row per particle; run = independent SMC run (ArviZ: chain = run, draw = draw). Step 1 (boards): for every updated parameter <p> (unit in its name) `mu_<p>` (population mean, unit of <p>), `sigma_<p>` (population standard deviation, unit of <p>), `corr_<p>_<q>` (population correlation); a parameter on a logarithmic coordinate (added_mass_kg of `--enrich added_mass`) has `mu_<p>` = the population median (reference · e^μ, unit of <p>) and `sigma_<p>` in natural-log units. Prediction errors per mode label <l>: `eps_<l>` (relative standard deviation of the eigenvalue λ = ω², dimensionless) and `delta_<l>` (standard deviation of the unit-norm shape residual), when inferred.",
+    doc: "Posterior draws of the population (hyper-)parameters, one row per particle; run = independent SMC run (ArviZ: chain = run, draw = draw). Step 1 (boards): for every updated parameter <p> (unit in its name) `mu_<p>` (population mean, unit of <p>), `sigma_<p>` (population standard deviation, unit of <p>), `corr_<p>_<q>` (population correlation). By default (`--board-coordinates per-mass`), where mass_scale is updated, the population of every modulus <m>_pa is formed per unit mass scale: its coordinate is `<m>_per_mass_scale_pa` = <m>_pa / mass_scale (Pa; free-free frequencies follow it), so the columns are e.g. `mu_e_x_per_mass_scale_pa`, `sigma_e_x_per_mass_scale_pa`, `corr_e_x_per_mass_scale_pa_mass_scale`; boards.parquet keeps the moduli themselves. A parameter on a logarithmic coordinate (added_mass_kg of `--enrich added_mass`) has `mu_<p>` = the population median (reference · e^μ, unit of <p>) and `sigma_<p>` in natural-log units. Prediction errors per mode label <l>: `eps_<l>` (relative standard deviation of the eigenvalue λ = ω², dimensionless) and `delta_<l>` (standard deviation of the unit-norm shape residual), when inferred.",
     open: true,
     columns: &[
         c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
@@ -281,6 +283,46 @@ pub struct UpdateOptions {
     /// the new-board prediction can be validated on them (the report compares them with it).
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
     pub hold_out_boards: Vec<String>,
+    /// Step 1: the coordinates the board population is formed in.
+    #[serde(default)]
+    pub board_coordinates: BoardCoordinates,
+}
+
+/// The coordinates of step 1's board population (`bayes::target::PerMass` says why).
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum BoardCoordinates {
+    /// With the mass scale updated, every modulus (a parameter in Pa) per unit mass scale:
+    /// the population's coordinate `<modulus>_per_mass_scale_pa` is modulus / mass_scale.
+    #[default]
+    PerMass,
+    /// Every parameter as it is.
+    Natural,
+}
+
+/// The population coordinate's name of a modulus taken per unit mass scale:
+/// `e_x_pa` → `e_x_per_mass_scale_pa`.
+pub fn per_mass_name(param: &str) -> String {
+    let stem = param.strip_suffix("_pa").unwrap_or(param);
+    format!("{stem}_per_{}_pa", crate::fem::params::names::MASS_SCALE)
+}
+
+/// The parameter of a population coordinate named by [`per_mass_name`], if it is one.
+pub fn per_mass_param(coordinate: &str) -> Option<String> {
+    let suffix = format!("_per_{}_pa", crate::fem::params::names::MASS_SCALE);
+    coordinate
+        .strip_suffix(&suffix)
+        .map(|stem| format!("{stem}_pa"))
 }
 
 impl UpdateOptions {
@@ -1587,6 +1629,7 @@ fn box_violations(
     results: &[smc::RunResult<crate::bayes::modal::Terms>],
     unit_names: &[String],
     param_names: &[String],
+    relative: impl Fn(&[f64]) -> Vec<f64>,
     inside: impl Fn(usize, f64) -> bool,
     tolerance: f64,
 ) -> Vec<String> {
@@ -1599,8 +1642,9 @@ fn box_violations(
             for r in results {
                 for p in &r.particles {
                     n += 1;
-                    xs.push(p.x[b][k]);
-                    if !inside(k, p.x[b][k]) {
+                    let x = relative(&p.x[b])[k];
+                    xs.push(x);
+                    if !inside(k, x) {
                         bad += 1;
                     }
                 }
@@ -2530,12 +2574,36 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 prior.sigma_scale.push(0.2 * e.prior_sd);
             }
             let log: Vec<bool> = (0..d).map(|k| k >= d0).collect();
+            // Moduli per unit mass scale, where the mass scale is updated too.
+            let mass = param_names[..d0]
+                .iter()
+                .position(|p| p == crate::fem::params::names::MASS_SCALE);
+            let per_mass = match (opts.board_coordinates, mass) {
+                (BoardCoordinates::PerMass, Some(mass)) => Some(PerMass {
+                    mass,
+                    specific: (0..d)
+                        .map(|k| k < d0 && k != mass && param_names[k].ends_with("_pa"))
+                        .collect(),
+                }),
+                _ => None,
+            };
+            // The population's coordinates: names and the values x = 0 stands for.
+            let (pop_names, pop_reference): (Vec<String>, Vec<f64>) = (0..d)
+                .map(|k| match &per_mass {
+                    Some(pm) if pm.is_specific(k) => (
+                        per_mass_name(&param_names[k]),
+                        reference[k] / reference[pm.mass],
+                    ),
+                    _ => (param_names[k].clone(), reference[k]),
+                })
+                .unzip();
             let target = ModalTarget {
                 predictor,
                 compose: Compose::Boards {
                     updated: updated.clone(),
                     reference: reference.clone(),
                     log: log.clone(),
+                    per_mass,
                 },
                 prior,
                 errors: ErrorModel {
@@ -2560,6 +2628,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 &results,
                 &unit_names,
                 &param_names,
+                |x| target.compose.relative_params(x),
                 |k, x| match log_axes.get(k.wrapping_sub(d0)) {
                     Some((_, w)) if k >= d0 => x.abs() <= *w,
                     _ => x.abs() <= opts.rom_box,
@@ -2573,6 +2642,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 for r in &results {
                     for p in &r.particles {
                         for x in &p.x {
+                            let x = target.compose.relative_params(x);
                             for (k, v) in x.iter().enumerate() {
                                 if k < d0 || log_axes.get(k.wrapping_sub(d0)).is_none() {
                                     reach = reach.max(v.abs());
@@ -2595,7 +2665,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             let prov = provenance("update_boards", &prep.fingerprint);
             let mut outputs = vec![];
             let (pcols, pop_of) =
-                population_columns(&target, &param_names, &reference, &labels.labels);
+                population_columns(&target, &pop_names, &pop_reference, &labels.labels);
             let mut pop = DrawTable::new(&pcols);
             let mut bcols: Vec<(String, String)> = param_names
                 .iter()
@@ -3711,6 +3781,7 @@ pub fn run_joints(
             &results,
             &unit_names,
             &coord_names,
+            |x| x.to_vec(),
             |k, x| x >= bounds[k].0 && x <= bounds[k].1,
             opts.box_tolerance,
         );

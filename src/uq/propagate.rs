@@ -199,6 +199,10 @@ pub struct Step2Particle {
 pub struct Posterior {
     /// Updated parameter names (ROM parameter names), order of the particle vectors.
     pub params: Vec<String>,
+    /// Where step 1's population took moduli per unit mass (`bayes::target::PerMass`): the
+    /// index of the mass scale in `params`, and per parameter whether the population's
+    /// coordinate is it over the mass scale. `None`: the population is in `params` itself.
+    pub per_mass: Option<(usize, Vec<bool>)>,
     pub board_ids: Vec<String>,
     pub step1: Vec<Step1Particle>,
     /// Step 2 (bolted), when given.
@@ -390,7 +394,27 @@ fn cholesky(a: &[f64], d: usize) -> Option<Vec<f64>> {
     Some((0..d * d).map(|k| l[(k / d, k % d)]).collect())
 }
 
-fn new_board(pop: &Population, l: &[f64], rng: &mut ChaCha8Rng) -> Vec<f64> {
+/// A new board's parameters: a draw of the population's coordinates, moduli per unit mass
+/// turned back into moduli.
+fn new_board(
+    pop: &Population,
+    l: &[f64],
+    per_mass: Option<&(usize, Vec<bool>)>,
+    rng: &mut ChaCha8Rng,
+) -> Vec<f64> {
+    let mut theta = population_draw(pop, l, rng);
+    if let Some((m, specific)) = per_mass {
+        let mass = theta[*m];
+        for (t, &s) in theta.iter_mut().zip(specific) {
+            if s {
+                *t *= mass;
+            }
+        }
+    }
+    theta
+}
+
+fn population_draw(pop: &Population, l: &[f64], rng: &mut ChaCha8Rng) -> Vec<f64> {
     let d = pop.mu.len();
     let z: Vec<f64> = (0..d).map(|_| StandardNormal.sample(rng)).collect();
     (0..d)
@@ -529,7 +553,7 @@ fn one_draw(
     let free_nominal = free.rom.map.nominal.clone();
     let i = rng.random_range(0..post.step1.len());
     let p = &post.step1[i];
-    let theta = new_board(&p.population, &chol[i], rng);
+    let theta = new_board(&p.population, &chol[i], post.per_mass.as_ref(), rng);
     let inside = evaluate(
         free,
         &free_nominal,
@@ -569,7 +593,7 @@ fn one_draw(
             (q.mu_ln_k + q.sigma_ln_k * z).exp()
         };
         let k = joint(rng);
-        let theta = new_board(&p1.population, &chol[q.step1], rng);
+        let theta = new_board(&p1.population, &chol[q.step1], post.per_mass.as_ref(), rng);
         evaluate(
             bm,
             &bolted_nominal,
@@ -647,6 +671,7 @@ mod tests {
         // One updated parameter: mass_scale ~ N(1, 0.05²) in the population; one board at 1.1.
         Posterior {
             params: vec![names::MASS_SCALE.into()],
+            per_mass: None,
             board_ids: vec!["B1".into()],
             step1: vec![Step1Particle {
                 population: Population {
@@ -658,6 +683,27 @@ mod tests {
                 eps,
             }],
             step2: None,
+        }
+    }
+
+    /// With moduli per unit mass scale, a new board's modulus is the population coordinate's
+    /// draw times its mass scale's draw: their ratio is the coordinate, exactly.
+    #[test]
+    fn a_per_mass_coordinate_becomes_the_modulus_times_the_mass_scale() {
+        let pop = Population {
+            mu: vec![2.0e10, 1.0],
+            sigma: vec![4.0e8, 0.02],
+            corr: vec![1.0, 0.3, 0.3, 1.0],
+        };
+        let l = cholesky(&[1.0, 0.3, 0.3, 1.0], 2).expect("cholesky");
+        let pm = (1, vec![true, false]);
+        let mut a = ChaCha8Rng::seed_from_u64(5);
+        let mut b = ChaCha8Rng::seed_from_u64(5);
+        for _ in 0..50 {
+            let phi = population_draw(&pop, &l, &mut a);
+            let theta = new_board(&pop, &l, Some(&pm), &mut b);
+            assert_eq!(theta[1], phi[1]);
+            assert!((theta[0] / theta[1] - phi[0]).abs() <= 1e-12 * phi[0]);
         }
     }
 
