@@ -830,6 +830,14 @@ pub fn laplace_reference<T: Target>(
     let mut g_acc = f64::NAN;
     let mut g_chain: Vec<Vec<f64>> = vec![];
     let mut g_prec = vec![0.0; ng * ng];
+    let hg0: Vec<f64> = (0..ng)
+        .map(|k| {
+            let mut c: Vec<f64> = gs.iter().map(|v| v[k]).collect();
+            c.sort_by(f64::total_cmp);
+            let iqr = c[c.len() * 3 / 4] - c[c.len() / 4];
+            (iqr / 1.35 * 1e-2).max(1e-8)
+        })
+        .collect();
     for round in 0..opts.rounds.max(1) {
         let ctx = t.ctx(&g);
         // 2. Units.
@@ -860,19 +868,25 @@ pub fn laplace_reference<T: Target>(
         // Laplace on g first (its Hessian is the chain's proposal), then a random walk
         // with that proposal: the chain's moments carry what the Gaussian misses (skew in
         // ln σ, the weakly identified correlations).
+        // Finite-difference steps: a hundredth of the prior spread in round 0; then a fifth
+        // of the previous round's sd, never above the first (a round whose Newton search
+        // stopped short of the mode leaves a precision that can be near-singular; steps
+        // from it, hundreds of times the prior's hundredth, made every later Hessian
+        // garbage, and the reference collapsed to a hundredth of the posterior's spread: the
+        // paper campaign in moduli per unit mass, whose pilot run then took 68 stages).
         let hg: Vec<f64> = if round == 0 {
-            (0..ng)
-                .map(|k| {
-                    let mut c: Vec<f64> = gs.iter().map(|v| v[k]).collect();
-                    c.sort_by(f64::total_cmp);
-                    let iqr = c[c.len() * 3 / 4] - c[c.len() / 4];
-                    (iqr / 1.35 * 1e-2).max(1e-8)
-                })
-                .collect()
+            hg0.clone()
         } else {
             let inv = spd_inverse(&g_prec, ng);
             (0..ng)
-                .map(|i| (0.2 * inv[i * ng + i].max(0.0).sqrt()).max(1e-10))
+                .map(|i| {
+                    let h = 0.2 * inv[i * ng + i].max(0.0).sqrt();
+                    if h.is_finite() {
+                        h.clamp(1e-10_f64.min(hg0[i]), hg0[i])
+                    } else {
+                        hg0[i]
+                    }
+                })
                 .collect()
         };
         let mut fg = |v: &[f64]| log_g(v);
