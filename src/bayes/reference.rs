@@ -882,7 +882,8 @@ pub fn laplace_reference<T: Target>(
                 .map(|i| {
                     let h = 0.2 * inv[i * ng + i].max(0.0).sqrt();
                     if h.is_finite() {
-                        h.clamp(1e-10_f64.min(hg0[i]), hg0[i])
+                        // hg0 ≥ 1e-8: the range is never empty.
+                        h.clamp(1e-10, hg0[i])
                     } else {
                         hg0[i]
                     }

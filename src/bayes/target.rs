@@ -178,7 +178,8 @@ pub enum Compose {
 pub struct PerMass {
     /// Index (into the unit coordinates) of the mass parameter.
     pub mass: usize,
-    /// Per unit coordinate: a modulus expressed per unit mass.
+    /// Per unit coordinate: a modulus expressed per unit mass (relative coordinates only,
+    /// never a logarithmic one).
     pub specific: Vec<bool>,
 }
 
@@ -186,6 +187,12 @@ impl PerMass {
     /// Whether coordinate k is a modulus per unit mass.
     pub fn is_specific(&self, k: usize) -> bool {
         self.specific.get(k).copied().unwrap_or(false)
+    }
+
+    /// The factor a modulus per unit mass is multiplied by, m / reference_m = 1 + x_mass, at
+    /// unit coordinates x (relative ones: `specific` marks no logarithmic coordinate).
+    pub fn mass_factor(&self, x: &[f64]) -> f64 {
+        1.0 + x[self.mass]
     }
 }
 
@@ -196,15 +203,13 @@ impl Compose {
     pub fn relative_params(&self, x: &[f64]) -> Vec<f64> {
         match self {
             Compose::Boards {
-                per_mass: Some(pm),
-                log,
-                ..
+                per_mass: Some(pm), ..
             } => {
-                let m = 1.0 + x[pm.mass];
+                let m = pm.mass_factor(x);
                 x.iter()
                     .enumerate()
                     .map(|(k, &v)| {
-                        if pm.is_specific(k) && !log.get(k).copied().unwrap_or(false) {
+                        if pm.is_specific(k) {
                             (1.0 + v) * m - 1.0
                         } else {
                             v
@@ -276,9 +281,9 @@ impl ModalTarget {
                     };
                 }
                 if let Some(pm) = per_mass {
-                    let m = 1.0 + x[pm.mass];
+                    let m = pm.mass_factor(x);
                     for (k, &i) in updated.iter().enumerate() {
-                        if pm.is_specific(k) && !log.get(k).copied().unwrap_or(false) {
+                        if pm.is_specific(k) {
                             v[i] *= m;
                         }
                     }

@@ -39,6 +39,18 @@ pub mod names {
     pub const K_FIX: &str = "k_fix_n_per_m";
     /// Fixture mass, kg.
     pub const M_FIX: &str = "m_fix_kg";
+    /// Step 1's population coordinate of a modulus taken per unit mass scale
+    /// (`update boards --board-coordinates per-mass`): `e_x_pa` → `e_x_per_mass_scale_pa`.
+    pub fn per_mass_scale(param: &str) -> String {
+        let stem = param.strip_suffix("_pa").unwrap_or(param);
+        format!("{stem}_per_{MASS_SCALE}_pa")
+    }
+    /// The modulus of a coordinate named by [`per_mass_scale`], if it is one.
+    pub fn modulus_of_per_mass_scale(coordinate: &str) -> Option<String> {
+        coordinate
+            .strip_suffix(&format!("_per_{MASS_SCALE}_pa"))
+            .map(|stem| format!("{stem}_pa"))
+    }
     /// Contact stiffness of joint `j` (1-based) in the per-joint variant, N/m.
     pub fn k_con_joint(j: usize) -> String {
         format!("k_con_{j}_n_per_m")

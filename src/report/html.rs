@@ -860,7 +860,7 @@ fn posterior_section(pg: &mut Page, step: &StepData) {
     // A modulus per unit mass scale (step 1's population coordinate): each unit's draws of
     // it are its modulus over its mass scale, draw by draw.
     let unit_series = |p: &str| -> Vec<(String, Vec<f64>)> {
-        match crate::stage::update::per_mass_param(p) {
+        match crate::fem::params::names::modulus_of_per_mass_scale(p) {
             Some(q) => step
                 .units
                 .iter()

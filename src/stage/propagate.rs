@@ -309,7 +309,7 @@ fn read_step1(
     let pop_params = params;
     let params: Vec<String> = pop_params
         .iter()
-        .map(|c| crate::stage::update::per_mass_param(c).unwrap_or_else(|| c.clone()))
+        .map(|c| names::modulus_of_per_mass_scale(c).unwrap_or_else(|| c.clone()))
         .collect();
     let specific: Vec<bool> = pop_params
         .iter()
@@ -328,7 +328,7 @@ fn read_step1(
                     names::MASS_SCALE
                 )
             })?;
-        Some((m, specific))
+        Some(crate::bayes::target::PerMass { mass: m, specific })
     } else {
         None
     };

@@ -310,21 +310,6 @@ pub enum BoardCoordinates {
     Natural,
 }
 
-/// The population coordinate's name of a modulus taken per unit mass scale:
-/// `e_x_pa` → `e_x_per_mass_scale_pa`.
-pub fn per_mass_name(param: &str) -> String {
-    let stem = param.strip_suffix("_pa").unwrap_or(param);
-    format!("{stem}_per_{}_pa", crate::fem::params::names::MASS_SCALE)
-}
-
-/// The parameter of a population coordinate named by [`per_mass_name`], if it is one.
-pub fn per_mass_param(coordinate: &str) -> Option<String> {
-    let suffix = format!("_per_{}_pa", crate::fem::params::names::MASS_SCALE);
-    coordinate
-        .strip_suffix(&suffix)
-        .map(|stem| format!("{stem}_pa"))
-}
-
 impl UpdateOptions {
     /// The ROM box the tests verify the ROM over (relative half-width); step 1 widens it
     /// when the posterior presses against it ([`MAX_ROM_BOX`]).
@@ -1635,18 +1620,19 @@ fn box_violations(
 ) -> Vec<String> {
     let mut out = vec![];
     for (b, unit) in unit_names.iter().enumerate() {
+        // Each particle's coordinates, once per unit.
+        let rel: Vec<Vec<f64>> = results
+            .iter()
+            .flat_map(|r| r.particles.iter().map(|p| relative(&p.x[b])))
+            .collect();
         for (k, pn) in param_names.iter().enumerate() {
-            let mut n = 0usize;
+            let n = rel.len();
             let mut bad = 0usize;
-            let mut xs = vec![];
-            for r in results {
-                for p in &r.particles {
-                    n += 1;
-                    let x = relative(&p.x[b])[k];
-                    xs.push(x);
-                    if !inside(k, x) {
-                        bad += 1;
-                    }
+            let mut xs = Vec::with_capacity(n);
+            for x in rel.iter().map(|x| x[k]) {
+                xs.push(x);
+                if !inside(k, x) {
+                    bad += 1;
                 }
             }
             let frac = bad as f64 / n.max(1) as f64;
@@ -2587,11 +2573,18 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 }),
                 _ => None,
             };
+            if opts.board_coordinates == BoardCoordinates::PerMass && per_mass.is_none() {
+                findings.push(Finding::new(
+                    Severity::Info,
+                    "update.board_coordinates",
+                    format!("moduli per unit mass scale need {} among the updated parameters ({}): the population is formed in the parameters themselves", crate::fem::params::names::MASS_SCALE, param_names[..d0].join(", ")),
+                ));
+            }
             // The population's coordinates: names and the values x = 0 stands for.
             let (pop_names, pop_reference): (Vec<String>, Vec<f64>) = (0..d)
                 .map(|k| match &per_mass {
                     Some(pm) if pm.is_specific(k) => (
-                        per_mass_name(&param_names[k]),
+                        crate::fem::params::names::per_mass_scale(&param_names[k]),
                         reference[k] / reference[pm.mass],
                     ),
                     _ => (param_names[k].clone(), reference[k]),

@@ -199,10 +199,10 @@ pub struct Step2Particle {
 pub struct Posterior {
     /// Updated parameter names (ROM parameter names), order of the particle vectors.
     pub params: Vec<String>,
-    /// Where step 1's population took moduli per unit mass (`bayes::target::PerMass`): the
-    /// index of the mass scale in `params`, and per parameter whether the population's
-    /// coordinate is it over the mass scale. `None`: the population is in `params` itself.
-    pub per_mass: Option<(usize, Vec<bool>)>,
+    /// Where step 1's population took moduli per unit mass: the mass scale's index in
+    /// `params`, and per parameter whether the population's coordinate is it over the mass
+    /// scale. `None`: the population is in `params` itself.
+    pub per_mass: Option<crate::bayes::target::PerMass>,
     pub board_ids: Vec<String>,
     pub step1: Vec<Step1Particle>,
     /// Step 2 (bolted), when given.
@@ -399,14 +399,14 @@ fn cholesky(a: &[f64], d: usize) -> Option<Vec<f64>> {
 fn new_board(
     pop: &Population,
     l: &[f64],
-    per_mass: Option<&(usize, Vec<bool>)>,
+    per_mass: Option<&crate::bayes::target::PerMass>,
     rng: &mut ChaCha8Rng,
 ) -> Vec<f64> {
     let mut theta = population_draw(pop, l, rng);
-    if let Some((m, specific)) = per_mass {
-        let mass = theta[*m];
-        for (t, &s) in theta.iter_mut().zip(specific) {
-            if s {
+    if let Some(pm) = per_mass {
+        let mass = theta[pm.mass];
+        for (k, t) in theta.iter_mut().enumerate() {
+            if pm.is_specific(k) {
                 *t *= mass;
             }
         }
@@ -696,7 +696,10 @@ mod tests {
             corr: vec![1.0, 0.3, 0.3, 1.0],
         };
         let l = cholesky(&[1.0, 0.3, 0.3, 1.0], 2).expect("cholesky");
-        let pm = (1, vec![true, false]);
+        let pm = crate::bayes::target::PerMass {
+            mass: 1,
+            specific: vec![true, false],
+        };
         let mut a = ChaCha8Rng::seed_from_u64(5);
         let mut b = ChaCha8Rng::seed_from_u64(5);
         for _ in 0..50 {
