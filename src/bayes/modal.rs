@@ -363,7 +363,7 @@ impl ModalPredictor {
     /// Every tracked mode (not only the updated ones) at `values`, None where the parameters
     /// are inadmissible.
     pub fn tracked_modes(&self, values: &[f64]) -> Option<crate::fem::rom::ReducedModes> {
-        self.solve(values, |c| self.rom.eval_lowest(&c.k, &c.m, self.n_track))
+        self.solve(values, |ck, cm| self.rom.eval_lowest(ck, cm, self.n_track))
     }
 
     /// `eval` at the affine coefficients of `values`, None where they are inadmissible or it
@@ -371,14 +371,13 @@ impl ModalPredictor {
     fn solve(
         &self,
         values: &[f64],
-        eval: impl FnOnce(
-            &crate::fem::params::Coefficients,
-        ) -> Result<crate::fem::rom::ReducedModes, crate::fem::FemError>,
+        eval: impl FnOnce(&[f64], &[f64]) -> Result<crate::fem::rom::ReducedModes, crate::fem::FemError>,
     ) -> Option<crate::fem::rom::ReducedModes> {
         if !admissible(&self.rom.map, values) {
             return None;
         }
-        eval(&self.rom.map.coefficients_unchecked(values)).ok()
+        let (ck, cm) = self.rom.map.coefficient_values(values);
+        eval(&ck, &cm).ok()
     }
 
     /// As [`Self::predict`], the modes solved in the subspace `sub` of the ROM
@@ -389,8 +388,8 @@ impl ModalPredictor {
         sub: &crate::fem::rom::SubspaceRom,
         values: &[f64],
     ) -> Option<Prediction> {
-        let modes = self.solve(values, |c| {
-            self.rom.eval_lowest_in(sub, &c.k, &c.m, self.n_track)
+        let modes = self.solve(values, |ck, cm| {
+            self.rom.eval_lowest_in(sub, ck, cm, self.n_track)
         })?;
         self.label(modes, false).map(|(p, _)| p)
     }

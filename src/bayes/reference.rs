@@ -321,6 +321,12 @@ fn clamped_eigen(a: &[f64], d: usize, floor: f64) -> (Vec<f64>, Vec<f64>) {
     // NaN stays NaN (`f64::max` would return the floor), so a non-finite matrix gives a
     // NaN density, which the callers turn into −∞, not a finite one.
     let clamp = |v: f64| if v.is_nan() { v } else { v.max(floor) };
+    if d == 1 {
+        // One coordinate per unit (a joint's stiffness in step 2): the reference's random
+        // walk on g calls this per unit and step, and faer's decomposition of a 1 × 1 matrix
+        // (its allocations) was most of the reference's time there.
+        return (vec![clamp(a[0])], vec![1.0]);
+    }
     let m = faer::Mat::<f64>::from_fn(d, d, |i, j| 0.5 * (a[i * d + j] + a[j * d + i]));
     let Ok(evd) = m.as_ref().self_adjoint_eigen(faer::Side::Lower) else {
         // Not expected for finite input; fall back to the clamped diagonal.

@@ -241,9 +241,22 @@ fn sturm_counts(d: &[f64], e2: &[f64], pivmin: f64, sig: &[f64], cnt: &mut [usiz
     }
 }
 
-/// Σ_t c_t K_t over the upper triangle (j ≥ i) of row-major r × r matrices; the lower
-/// triangle stays 0 ([`lowest_eigenpairs`] reads only the upper). AVX2 where the CPU has it
-/// (as [`tridiagonalize`]; element by element, the same bits).
+/// The upper triangle (j ≥ i) of the r × r matrix `at(i, j)`, packed row after row (row i
+/// holds its r − i entries from the diagonal on): the storage [`upper_sum`] reads. Half
+/// the bytes of full storage: the sum streams every term's matrix once per evaluation, and
+/// at the bolted ROM's 50 terms the full-storage copies (2 MB at r = 72, 0.9 MB for each
+/// unit's subspace at q = 47) no longer stayed in a core's 1 MB L2 between evaluations.
+pub fn packed_upper(r: usize, at: impl Fn(usize, usize) -> f64) -> Vec<f64> {
+    (0..r)
+        .flat_map(|i| (i..r).map(move |j| (i, j)))
+        .map(|(i, j)| at(i, j))
+        .collect()
+}
+
+/// Σ_t c_t K_t over the upper triangle (j ≥ i), each K_t packed by [`packed_upper`], into a
+/// row-major r × r matrix whose lower triangle stays 0 ([`lowest_eigenpairs`] reads only
+/// the upper). AVX2 where the CPU has it (as [`tridiagonalize`]; element by element, the
+/// same bits).
 pub fn upper_sum(coefs: &[f64], terms: &[Vec<f64>], r: usize) -> Vec<f64> {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
@@ -262,13 +275,16 @@ unsafe fn upper_sum_avx2(coefs: &[f64], terms: &[Vec<f64>], r: usize) -> Vec<f64
 #[inline(always)]
 fn upper_sum_body(coefs: &[f64], terms: &[Vec<f64>], r: usize) -> Vec<f64> {
     let mut a = vec![0.0; r * r];
-    for (c, kf) in coefs.iter().zip(terms) {
+    for (c, kp) in coefs.iter().zip(terms) {
+        debug_assert_eq!(kp.len(), r * (r + 1) / 2);
+        let mut off = 0;
         for i in 0..r {
-            let row = i * r + i..(i + 1) * r;
-            a[row.clone()]
+            let n = r - i;
+            a[i * r + i..(i + 1) * r]
                 .iter_mut()
-                .zip(&kf[row])
+                .zip(&kp[off..off + n])
                 .for_each(|(x, y)| *x += c * y);
+            off += n;
         }
     }
     a
@@ -628,6 +644,35 @@ mod tests {
                     let want = if k == k2 { 1.0 } else { 0.0 };
                     assert!((dot - want).abs() < 1e-9, "r {r} {k} {k2}: {dot}");
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn upper_sum_of_packed_terms_is_the_upper_triangle_of_the_sum() {
+        let r = 7;
+        let full: Vec<Vec<f64>> = (0..3)
+            .map(|t| {
+                (0..r * r)
+                    .map(|k| ((k * 31 + t * 17) % 13) as f64 - 6.0)
+                    .collect()
+            })
+            .collect();
+        let coefs = [0.5, -1.25, 3.0];
+        let packed: Vec<Vec<f64>> = full
+            .iter()
+            .map(|m| packed_upper(r, |i, j| m[i * r + j]))
+            .collect();
+        assert_eq!(packed[0].len(), r * (r + 1) / 2);
+        let got = upper_sum(&coefs, &packed, r);
+        for i in 0..r {
+            for j in 0..r {
+                let want = if j >= i {
+                    (0..3).fold(0.0, |a, t| a + coefs[t] * full[t][i * r + j])
+                } else {
+                    0.0
+                };
+                assert_eq!(got[i * r + j], want, "({i}, {j})");
             }
         }
     }

@@ -108,6 +108,26 @@ fn comp(m: &M3) -> Comp4 {
     [m[0][0], m[1][1], m[0][1], m[2][2]]
 }
 
+/// G of [`coupling_kernel`] alone, for the sampler's hot path (the same operations, so
+/// the same bits).
+pub fn coupling_value(q_core: Comp4, h_m: f64, q_cu: Comp4, eps: f64, s_m: f64) -> Comp4 {
+    coupling_parts(q_core, h_m, q_cu, eps, s_m).0
+}
+
+/// (G, N⁻¹ Q_cu, Q_cu N⁻¹ Q_cu) of the coupling kernel.
+#[inline(always)]
+fn coupling_parts(q_core: Comp4, h_m: f64, q_cu: Comp4, eps: f64, s_m: f64) -> (Comp4, M3, M3) {
+    let qc = to_mat(q_cu);
+    let n = to_mat(std::array::from_fn(|k| {
+        h_m * q_core[k] + eps * s_m * q_cu[k]
+    }));
+    let ni = inv_block(&n);
+    let x = mul3(&ni, &qc); // N⁻¹ Q_cu
+    let qx = mul3(&qc, &x); // Q_cu N⁻¹ Q_cu
+    let g = comp(&qx).map(|v| eps * eps * v);
+    (g, x, qx)
+}
+
 /// The coupling kernel G(s; p) = ε² Q_cu (h Q_core + ε s Q_cu)⁻¹ Q_cu (N·m per m² of
 /// t², see the module doc) and its derivatives: returns `(G, ∂G/∂Q_core[j] for the four
 /// core components j, ∂G/∂ε)`, all as `[c11, c22, c12, c66]`.
@@ -118,14 +138,7 @@ pub fn coupling_kernel(
     eps: f64,
     s_m: f64,
 ) -> (Comp4, [Comp4; 4], Comp4) {
-    let qc = to_mat(q_cu);
-    let n = to_mat(std::array::from_fn(|k| {
-        h_m * q_core[k] + eps * s_m * q_cu[k]
-    }));
-    let ni = inv_block(&n);
-    let x = mul3(&ni, &qc); // N⁻¹ Q_cu
-    let qx = mul3(&qc, &x); // Q_cu N⁻¹ Q_cu
-    let g = comp(&qx).map(|v| eps * eps * v);
+    let (g, x, qx) = coupling_parts(q_core, h_m, q_cu, eps, s_m);
     // ∂G/∂Q_core[j] = −ε² h (N⁻¹ Q_cu)ᵀ E_j (N⁻¹ Q_cu), E_j the unit pattern of j.
     let d_core = std::array::from_fn(|j| {
         let mut e = [0.0; 4];

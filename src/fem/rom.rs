@@ -96,7 +96,7 @@ pub struct Rom {
     pub n_modes: usize,
     /// Setup label, `"free"` or `"bolted"`.
     pub setup: String,
-    /// Row-major copies of `k_r` for the hot path.
+    /// Upper triangles of `k_r`, packed ([`super::dense::packed_upper`]), for the hot path.
     pub(crate) k_flat: Vec<Vec<f64>>,
 }
 
@@ -430,12 +430,7 @@ impl Rom {
     ) -> Rom {
         let k_flat = k_r
             .iter()
-            .map(|m| {
-                (0..m.nrows())
-                    .flat_map(|i| (0..m.ncols()).map(move |j| (i, j)))
-                    .map(|(i, j)| m[(i, j)])
-                    .collect()
-            })
+            .map(|m| super::dense::packed_upper(m.nrows(), |i, j| m[(i, j)]))
             .collect();
         Rom {
             map,
@@ -595,10 +590,7 @@ impl Rom {
     fn eval_single_mass(&self, ck: &[f64], d0: f64, shapes: &RomShapeOperator) -> RomModes {
         let r = self.dim();
         let nm = self.n_modes;
-        let mut a = vec![0.0; r * r];
-        for (c, kf) in ck.iter().zip(&self.k_flat) {
-            a.iter_mut().zip(kf).for_each(|(x, y)| *x += c * y);
-        }
+        let mut a = super::dense::upper_sum(ck, &self.k_flat, r);
         let se = super::dense::wanted_eigenpairs(&mut a, r, self.n_rigid, nm);
         let lam: Vec<f64> = se.values[..nm].iter().map(|v| v / d0).collect();
         let scale = 1.0 / d0.sqrt();
@@ -910,7 +902,7 @@ pub struct SubspaceRom {
     q: usize,
     /// W, r × q, row-major.
     w: Vec<f64>,
-    /// Wᵀ Kᵢʳ W, q × q row-major each.
+    /// Wᵀ Kᵢʳ W, q × q each, upper triangle packed ([`super::dense::packed_upper`]).
     k_flat: Vec<Vec<f64>>,
 }
 
@@ -985,10 +977,7 @@ impl Rom {
             .map(|k| {
                 let kw = product_seq(k.as_ref(), wm.as_ref());
                 let ks = product_seq(wm.transpose(), kw.as_ref());
-                (0..q)
-                    .flat_map(|i| (0..q).map(move |j| (i, j)))
-                    .map(|(i, j)| ks[(i, j)])
-                    .collect()
+                super::dense::packed_upper(q, |i, j| ks[(i, j)])
             })
             .collect();
         Some(SubspaceRom { r, q, w, k_flat })

@@ -144,8 +144,8 @@ impl LabelModel {
         if !crate::bayes::modal::admissible(map, values) {
             return None;
         }
-        let c = map.coefficients_unchecked(values);
-        let modes = self.rom.eval_lowest(&c.k, &c.m, self.n_track).ok()?;
+        let (ck, cm) = map.coefficient_values(values);
+        let modes = self.rom.eval_lowest(&ck, &cm, self.n_track).ok()?;
         crate::bayes::modal::assign_labels(&self.refs, &modes.vectors)
             .into_iter()
             .map(|a| a.map(|j| modes.eigenvalues[j]))

@@ -78,6 +78,30 @@ fn rom_matches_full_model_bolted_over_latin_hypercube() {
 /// and across the box. The hot path takes the reduced mass as the coefficient times the
 /// identity; with the basis orthonormal in the centre's mass instead, every frequency was
 /// off by half the coefficient's offset (+0.39 % at mass_scale 0.992).
+/// The sampler's value-only coefficients are the coefficients' values to the bit, the
+/// copper coupling terms of the default board included, at the nominal and off it.
+#[test]
+fn coefficient_values_are_the_coefficients_without_gradients() {
+    let board = Board::default_board();
+    let model = FeModel::build(&board, Setup::bolted(), &board.mesh).unwrap();
+    let mut points = vec![model.nominal_params()];
+    points.extend(latin_hypercube_params(&model.map, 4, 0.2, 7));
+    for p in &points {
+        let c = model.map.coefficients(p).unwrap();
+        let (k, m) = model.map.coefficient_values(&p.values);
+        assert_eq!(k, c.k);
+        assert_eq!(m, c.m);
+    }
+    assert!(
+        model
+            .map
+            .k_coefs
+            .iter()
+            .any(|c| matches!(c, crate::fem::params::Coef::Coupling { .. })),
+        "the default board has copper coupling terms"
+    );
+}
+
 #[test]
 fn rom_centred_off_unit_mass_scale_matches_the_full_model() {
     use crate::fem::params::names;
