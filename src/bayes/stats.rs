@@ -162,7 +162,7 @@ pub fn lower_transpose_solve(l: &[f64], d: usize, b: &[f64]) -> Vec<f64> {
 }
 
 /// Forward substitution in place: b (length d) becomes L⁻¹ b.
-fn lower_solve_in_place(l: &[f64], d: usize, x: &mut [f64]) {
+pub(crate) fn lower_solve_in_place(l: &[f64], d: usize, x: &mut [f64]) {
     for i in 0..d {
         let s: f64 = (0..i).map(|k| l[i * d + k] * x[k]).sum();
         x[i] = (x[i] - s) / l[i * d + i];

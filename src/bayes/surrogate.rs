@@ -92,18 +92,18 @@ impl UnitSurrogate {
     }
     /// Whitened box coordinates u of the ROM parameter vector (|u_k| ≤ 1 inside the box).
     fn whiten(&self, v: &[f64]) -> Vec<f64> {
+        // In place, one allocation: the tempering's every proposal whitens once or twice.
         let d = self.inputs.len();
-        let w: Vec<f64> = self
+        let mut w: Vec<f64> = self
             .inputs
             .iter()
             .zip(&self.log_input)
             .zip(&self.centre)
             .map(|((&i, &lg), c)| to_box_axis(v[i], lg) - c)
             .collect();
-        lower_solve(&self.chol, d, &w)
-            .iter()
-            .map(|x| x / self.half_width)
-            .collect()
+        crate::bayes::stats::lower_solve_in_place(&self.chol, d, &mut w);
+        w.iter_mut().for_each(|x| *x /= self.half_width);
+        w
     }
     /// Whitened box coordinates of the ROM parameter vector, None outside the box.
     fn coords(&self, v: &[f64]) -> Option<Vec<f64>> {
@@ -159,13 +159,18 @@ impl UnitSurrogate {
             let row = &self.coef[t * n_out..(t + 1) * n_out];
             out.iter_mut().zip(row).for_each(|(o, c)| *o += ph * c);
         }
+        let mass_g = out[n_out - 1];
+        let one_minus_mac = out[self.n_modes..self.n_modes + self.n_shapes]
+            .iter()
+            .map(|v| v.max(0.0))
+            .collect();
+        // The output vector becomes λ (one allocation fewer).
+        out.truncate(self.n_modes);
+        out.iter_mut().for_each(|v| *v = v.exp());
         Terms {
-            lambda: out[..self.n_modes].iter().map(|v| v.exp()).collect(),
-            one_minus_mac: out[self.n_modes..self.n_modes + self.n_shapes]
-                .iter()
-                .map(|v| v.max(0.0))
-                .collect(),
-            mass_g: out[n_out - 1],
+            lambda: out,
+            one_minus_mac,
+            mass_g,
             suff: vec![],
         }
     }
