@@ -788,6 +788,25 @@ impl<'a, T: Target> GivenUnits<'a, T> {
     }
 }
 
+/// A later round's finite-difference steps on g: a fifth of the sd of the previous round's
+/// precision `g_prec` (ng × ng), but never above round 0's steps `hg0` (≥ 1e-8, so the
+/// range below is never empty) nor below 1e-10; `hg0` where that sd is not finite. See the
+/// round loop of [`laplace_reference`] for why the cap.
+fn later_round_steps(g_prec: &[f64], hg0: &[f64]) -> Vec<f64> {
+    let ng = hg0.len();
+    let inv = spd_inverse(g_prec, ng);
+    (0..ng)
+        .map(|i| {
+            let h = 0.2 * inv[i * ng + i].max(0.0).sqrt();
+            if h.is_finite() {
+                h.clamp(1e-10, hg0[i])
+            } else {
+                hg0[i]
+            }
+        })
+        .collect()
+}
+
 /// The Gaussian reference of `t` (see the module doc); `aux` = the auxiliary values the
 /// units are evaluated with (a representative draw for a modular step, empty otherwise).
 pub fn laplace_reference<T: Target>(
@@ -883,18 +902,7 @@ pub fn laplace_reference<T: Target>(
         let hg: Vec<f64> = if round == 0 {
             hg0.clone()
         } else {
-            let inv = spd_inverse(&g_prec, ng);
-            (0..ng)
-                .map(|i| {
-                    let h = 0.2 * inv[i * ng + i].max(0.0).sqrt();
-                    if h.is_finite() {
-                        // hg0 ≥ 1e-8: the range is never empty.
-                        h.clamp(1e-10, hg0[i])
-                    } else {
-                        hg0[i]
-                    }
-                })
-                .collect()
+            later_round_steps(&g_prec, &hg0)
         };
         let mut fg = |v: &[f64]| log_g(v);
         let (g_hat, prec, _) = newton_mode(&mut fg, &g, &hg, 4 * opts.newton_iterations);
@@ -1155,6 +1163,32 @@ mod tests {
     /// Σ_k −½ w_k² / (1/h_k + ρ²) − ½ ln(1 + ρ² h_k), w = Qᵀ u, each term exact in f64.
     /// The value is within 1e-9 of it; the whitened form as written (−½ uᵀ H u + ½ cᵀ B⁻¹ c,
     /// two ~1e16 terms) gave −31.16 here (run against the previous implementation).
+    /// The cap of 6ad6da6: a near-singular precision from a round whose Newton search
+    /// stopped short (one direction with curvature 1e-6 where round 0's steps were 1e-2)
+    /// gives a step of 0.2 / √1e-6 = 200 without it; with it, round 0's step. A
+    /// well-conditioned precision keeps its own fifth of an sd, and a singular one (an
+    /// infinite or NaN sd) falls back to round 0's.
+    #[test]
+    fn later_round_steps_never_exceed_round_zeros() {
+        let hg0 = [1e-2, 1e-2];
+        let near_singular = [1e-6, 0.0, 0.0, 1e4];
+        let h = later_round_steps(&near_singular, &hg0);
+        assert_eq!(h[0], 1e-2, "capped at round 0's step");
+        assert!((h[1] - 0.2 * 1e-2).abs() < 1e-15, "{h:?}");
+        let fine = [1e6, 0.0, 0.0, 4e6];
+        let h = later_round_steps(&fine, &hg0);
+        assert!(
+            (h[0] - 0.2e-3).abs() < 1e-15 && (h[1] - 0.1e-3).abs() < 1e-15,
+            "{h:?}"
+        );
+        let singular = [0.0, 0.0, 0.0, 0.0];
+        let h = later_round_steps(&singular, &hg0);
+        assert!(
+            h.iter().all(|v| v.is_finite() && *v > 0.0 && *v <= 1e-2),
+            "{h:?}"
+        );
+    }
+
     #[test]
     fn marginal_of_a_wide_prior_against_a_sharp_quadratic_is_exact() {
         let (c, s) = (0.6f64, 0.8f64);
