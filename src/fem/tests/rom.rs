@@ -496,13 +496,24 @@ fn bolted_step2_rom_error_against_the_basis_cap() {
             (p, m.freq_hz)
         })
         .collect();
-    for cap in [24, 32, 40, 48, 56, 64, 72] {
-        eprintln!("box ±{box_rel}, log axis ±{w}");
+    // HBMU_EXP_CAPS: the caps to try (comma-separated); HBMU_EXP_NRANDOM: the
+    // Latin-hypercube snapshots (the default's 32 otherwise).
+    let caps: Vec<usize> = std::env::var("HBMU_EXP_CAPS")
+        .ok()
+        .map(|v| v.split(',').filter_map(|c| c.trim().parse().ok()).collect())
+        .unwrap_or_else(|| vec![24, 32, 40, 48, 56, 64, 72]);
+    let n_random: usize = std::env::var("HBMU_EXP_NRANDOM")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(RomOptions::default().n_random);
+    for cap in caps {
+        eprintln!("box ±{box_rel}, log axis ±{w}, {n_random} random snapshots");
         let opts = RomOptions {
             n_modes: 7,
             log_axes: vec![(names::K_CON.to_string(), w)],
             max_basis: cap,
             box_rel,
+            n_random,
             ..RomOptions::default()
         };
         let t0 = std::time::Instant::now();
