@@ -3321,12 +3321,18 @@ fn levenberg_marquardt(
             .zip(&x)
             .map(|(a, b)| (a - b).abs())
             .fold(0.0, f64::max);
-        jac = jacobian(&r, neighbours)?;
         x = y;
         r0 = r;
         c0 = c;
         if c0 < 1e-14 || step < STEP_TOL {
             break;
+        }
+        // A neighbour the model cannot solve ends the search at the accepted point, the best
+        // one found (before, that Jacobian failed the whole step; the search now stops where
+        // the model stops being defined).
+        match jacobian(&r0, neighbours) {
+            Ok(j) => jac = j,
+            Err(_) => break,
         }
     }
     Ok((c0, x))
