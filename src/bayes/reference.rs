@@ -1158,11 +1158,6 @@ fn rwm(
 mod tests {
     use super::*;
 
-    /// A wide prior against a sharply pinned unit: H = Q diag(1e13, 1e7) Qᵀ, L = 50 I,
-    /// u = (100, −80), g = 0. With L isotropic the integral factors along H's eigenvectors:
-    /// Σ_k −½ w_k² / (1/h_k + ρ²) − ½ ln(1 + ρ² h_k), w = Qᵀ u, each term exact in f64.
-    /// The value is within 1e-9 of it; the whitened form as written (−½ uᵀ H u + ½ cᵀ B⁻¹ c,
-    /// two ~1e16 terms) gave −31.16 here (run against the previous implementation).
     /// The cap of 6ad6da6: a near-singular precision from a round whose Newton search
     /// stopped short (one direction with curvature 1e-6 where round 0's steps were 1e-2)
     /// gives a step of 0.2 / √1e-6 = 200 without it; with it, round 0's step. A
@@ -1189,6 +1184,11 @@ mod tests {
         );
     }
 
+    /// A wide prior against a sharply pinned unit: H = Q diag(1e13, 1e7) Qᵀ, L = 50 I,
+    /// u = (100, −80), g = 0. With L isotropic the integral factors along H's eigenvectors:
+    /// Σ_k −½ w_k² / (1/h_k + ρ²) − ½ ln(1 + ρ² h_k), w = Qᵀ u, each term exact in f64.
+    /// The value is within 1e-9 of it; the whitened form as written (−½ uᵀ H u + ½ cᵀ B⁻¹ c,
+    /// two ~1e16 terms) gave −31.16 here (run against the previous implementation).
     #[test]
     fn marginal_of_a_wide_prior_against_a_sharp_quadratic_is_exact() {
         let (c, s) = (0.6f64, 0.8f64);
