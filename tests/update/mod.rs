@@ -583,3 +583,58 @@ fn every_joint_refit_finds_the_loose_joint_of_each_measurement() {
         }
     }
 }
+
+const BOLTED: &str = r#"
+name = "bolted"
+description = "three boards, each free-free and bolted, no concealed effect"
+seed = 13
+
+[campaign]
+n_boards = 3
+free_per_board = 2
+
+[[campaign.bolted]]
+boards = [1, 2, 3]
+per_board = 2
+
+[truth]
+mesh_nx = 24
+mesh_ny = 15
+n_free_modes = 8
+n_bolted_modes = 8
+"#;
+
+/// A bolted measurement of a board that has no step-1 posterior (held out of step 1): a
+/// warning naming the measurement and the board, and step 2 goes through on the others.
+#[test]
+fn a_bolted_measurement_of_a_board_without_a_step1_posterior_is_reported_and_the_rest_used() {
+    let w = Work::with_scenario(BOLTED);
+    w.chain();
+    let ids = |path: &Path, col: &str| -> std::collections::BTreeSet<String> {
+        let mut out = std::collections::BTreeSet::new();
+        for b in hbmu::io::tables::read_parquet(path).unwrap() {
+            let c = hbmu::io::tables::Cols { batch: &b, path };
+            let v = c.str(col).unwrap();
+            out.extend((0..b.num_rows()).map(|i| v.value(i).to_string()));
+        }
+        out
+    };
+    let boards = ids(&w.p("ingest/measurements.parquet"), "board_id");
+    let held = boards.iter().next_back().unwrap().clone();
+    let o = w.update("u", "coarse.toml", PARAMS, &["--hold-out", &held]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let o = w.joints("j", "u", &["--particles", "100", "--runs", "1"]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let fs = w.findings("j");
+    let f = with_code(&fs, "update.no_step1_posterior");
+    assert_eq!(f.len(), 2, "one per bolted measurement of {held}: {fs:?}");
+    for x in &f {
+        assert_eq!(x["severity"], "warning");
+        assert!(x["message"].as_str().unwrap().contains(&held), "{x}");
+        assert!(x["measurement_id"].is_string(), "{x}");
+    }
+    let in_step2 = ids(&w.p("j/joints.parquet"), "board_id");
+    let expected: std::collections::BTreeSet<String> =
+        boards.iter().filter(|b| **b != held).cloned().collect();
+    assert_eq!(in_step2, expected);
+}
