@@ -6,7 +6,8 @@ What it does
 ------------
 1. Step 1 with hbmu (unless --hbmu-out names an existing output directory): runs
    ``hbmu update boards WORK/ingest WORK/pair --extract WORK/extract --particles DRAWS
-   --runs CHAINS --rom-basis 30 --no-shapes --board-coordinates natural --threads CORES
+   --runs CHAINS --rom-basis 30 --no-shapes --board-coordinates natural --sigma-prior half-normal
+   --no-model-error --threads CORES
    --out OUT/hbmu --force`` (the paper's coordinates, which the PyMC model below writes)
    under ``/usr/bin/time`` (wall, user, system seconds, max RSS).
 2. Builds the same step-1 posterior in PyMC 5 from what that run exported and read:
@@ -356,7 +357,16 @@ class Predictor:
 
 def load_config(hbmu_out):
     man = json.loads((hbmu_out / "update_boards.manifest.json").read_text())
-    return man["config"]
+    cfg = man["config"]
+    # The PyMC model has neither hbmu's model-error term nor its log-normal σ prior: an hbmu
+    # run with either is another posterior, so refuse it rather than compare the two.
+    if cfg.get("model_error", False):
+        raise SystemExit(f"{hbmu_out}: step 1 ran with the model-error term; rerun with --no-model-error")
+    if cfg.get("sigma_prior", "half_normal") != "half_normal":
+        raise SystemExit(f"{hbmu_out}: step 1 ran with sigma_prior {cfg['sigma_prior']}; rerun with --sigma-prior half-normal")
+    if cfg.get("board_coordinates", "natural") != "natural":
+        raise SystemExit(f"{hbmu_out}: step 1 ran in {cfg['board_coordinates']} coordinates; rerun with --board-coordinates natural")
+    return cfg
 
 
 def select_data(work, cfg, nominal_mass_g):
@@ -748,6 +758,9 @@ def run_hbmu(hbmu, work, out, draws, chains, cores, rom_basis, seed):
         str(work / "ingest"), str(work / "pair"), "--extract", str(work / "extract"),
         "--particles", str(draws), "--runs", str(chains), "--rom-basis", str(rom_basis),
         "--no-shapes", "--board-coordinates", "natural",
+        # The PyMC model below writes σ ~ HalfNormal and no model-error term: hbmu's
+        # defaults are a log-normal σ prior and a per-board model-error term.
+        "--sigma-prior", "half-normal", "--no-model-error",
         "--seed", str(seed), "--out", str(out), "--force",
     ]
     print("$ " + " ".join(cmd), flush=True)
