@@ -9,7 +9,10 @@ What it does
    --runs CHAINS --rom-basis 30 --no-shapes --board-coordinates natural --sigma-prior half-normal
    --no-model-error --threads CORES
    --out OUT/hbmu --force`` (the paper's coordinates, which the PyMC model below writes)
-   under ``/usr/bin/time`` (wall, user, system seconds, max RSS).
+   under ``/usr/bin/time`` (wall, user, system seconds, max RSS). ``--boards N`` updates the
+   first N boards only (``--hold-out`` the rest) and ``--eps-fixed V`` fixes ε of every mode
+   in both tools: smaller, wider posteriors, to find one that PyMC's SMC converges on, so that
+   the posteriors can be compared where it does.
 2. Builds the same step-1 posterior in PyMC 5 from what that run exported and read:
    ``rom.npz`` (the reduced K(θ) = Σ c_i(θ) K_i, M(θ) = Σ d_j(θ) M_j and the coefficient map in
    ``meta_json``: CoreQ, Linear and Coupling terms, src/fem/npz.rs, src/fem/params.rs,
@@ -369,7 +372,7 @@ def load_config(hbmu_out):
     return cfg
 
 
-def select_data(work, cfg, nominal_mass_g):
+def select_data(work, cfg, nominal_mass_g, held_out=()):
     pairs = pq.read_table(work / "pair" / "pairs.parquet").to_pandas()
     pairs = pairs[
         pairs.accepted & pairs["mode"].notna() & pairs.freq_hz.notna() & pairs.model_mode.notna()
@@ -388,7 +391,7 @@ def select_data(work, cfg, nominal_mass_g):
             labels.append(lab)
             model_mode.append(mm - 1)
     masses = pq.read_table(work / "ingest" / "masses.parquet").to_pandas().set_index("board_id")
-    board_ids = sorted(set(free.board_id) | set(masses.index))
+    board_ids = [b for b in sorted(set(free.board_id) | set(masses.index)) if b not in held_out]
     params = list(cfg["params"])
     mass_updated = "mass_scale" in params
     units, freq, mass = [], [], []
@@ -424,6 +427,8 @@ def select_data(work, cfg, nominal_mass_g):
         "mass_sd": np.array([m[2] for m in mass]),
         "nominal_mass_g": nominal_mass_g,
         "mass_idx": params.index("mass_scale") if mass_updated else None,
+        # ε fixed for every mode (hbmu --eps-fixed), or None: inferred per mode.
+        "eps_fixed": cfg["eps"]["value"] if cfg["eps"]["kind"] == "fixed" else None,
     }
 
 
@@ -529,8 +534,6 @@ def build_model(data, pred, cfg):
             outputs[1][0] = ok.astype(np.float64)
 
     eps_prior = cfg["eps"]
-    if eps_prior["kind"] != "inferred":
-        raise SystemExit("the peer model infers ε per mode (hbmu's default); run hbmu without --eps-fixed")
     if cfg.get("delta") is not None:
         raise SystemExit("hbmu ran with mode-shape terms; the peer needs --no-shapes (see the docstring)")
     nb, d, nl = len(data["units"]), len(data["params"]), len(data["labels"])
@@ -544,7 +547,10 @@ def build_model(data, pred, cfg):
             sd_dist=pm.HalfNormal.dist(cfg["sigma_scale"], shape=d),
             compute_corr=True,
         )
-        eps = pm.LogNormal("eps", math.log(eps_prior["median"]), eps_prior["log_sd"], dims="label")
+        if data["eps_fixed"] is None:
+            eps = pm.LogNormal("eps", math.log(eps_prior["median"]), eps_prior["log_sd"], dims="label")
+        else:
+            eps = np.full(nl, float(data["eps_fixed"]))
         z = pm.Normal("z", 0.0, 1.0, dims=("board", "param"))
         x = pm.Deterministic("x", mu[None, :] + z @ chol.T, dims=("board", "param"))
         lam, ok = ModalOp()(x)
@@ -609,7 +615,10 @@ def hbmu_natural(row, data, pred):
     for a in range(d):
         for b in range(a + 1, d):
             corr[a, b] = corr[b, a] = row[f"corr_{p[a]}_{p[b]}"]
-    eps = np.array([row[f"eps_{lab}"] for lab in data["labels"]])
+    if data["eps_fixed"] is None:
+        eps = np.array([row[f"eps_{lab}"] for lab in data["labels"]])
+    else:
+        eps = np.full(len(data["labels"]), float(data["eps_fixed"]))
     return mu, sigma, corr, eps
 
 
@@ -653,7 +662,7 @@ def check_mass(model, maker, data, pred, pop, keys, x, idata, n=400):
     pts = []
     for k in np.linspace(0, c * m - 1, min(n, c * m)).astype(int):
         ci, di = divmod(int(k), m)
-        nat = {v: post[v].values[ci, di] for v in ("mu", "chol", "eps", "z")}
+        nat = {v: post[v].values[ci, di] for v in ("mu", "chol", "eps", "z") if v in post}
         pts.append(maker(nat))
     out["pymc_particles"] = pts
     res = {}
@@ -673,7 +682,8 @@ def hyper_names(data):
     p, labs = data["params"], data["labels"]
     names = [f"mu_{q}" for q in p] + [f"sigma_{q}" for q in p]
     names += [f"corr_{p[a]}_{p[b]}" for a in range(len(p)) for b in range(a + 1, len(p))]
-    names += [f"eps_{lab}" for lab in labs]
+    if data["eps_fixed"] is None:
+        names += [f"eps_{lab}" for lab in labs]
     return names
 
 
@@ -699,7 +709,6 @@ def pymc_arrays(idata, data, pred):
     mu = post["mu"].values  # (c, n, d)
     chol_corr = post["chol_corr"].values
     stds = post["chol_stds"].values
-    eps = post["eps"].values
     x = post["x"].values  # (c, n, B, d)
     out = {}
     for k, q in enumerate(p):
@@ -709,8 +718,9 @@ def pymc_arrays(idata, data, pred):
     for a in range(len(p)):
         for b in range(a + 1, len(p)):
             out[f"corr_{p[a]}_{p[b]}"] = chol_corr[..., a, b]
-    for k, lab in enumerate(data["labels"]):
-        out[f"eps_{lab}"] = eps[..., k]
+    if data["eps_fixed"] is None:
+        for k, lab in enumerate(data["labels"]):
+            out[f"eps_{lab}"] = post["eps"].values[..., k]
     for j, b in enumerate(data["units"]):
         for k, q in enumerate(p):
             out[f"{q}[{b}]"] = ref[k] * (1.0 + x[..., j, k])
@@ -751,7 +761,7 @@ def slowest(diag, names):
 # Runs.
 
 
-def run_hbmu(hbmu, work, out, draws, chains, cores, rom_basis, seed):
+def run_hbmu(hbmu, work, out, draws, chains, cores, rom_basis, seed, hold_out=(), eps_fixed=None):
     cmd = [
         "/usr/bin/time", "-f", "TIME %e %U %S %M",
         hbmu, "--threads", str(cores), "update", "boards",
@@ -762,7 +772,8 @@ def run_hbmu(hbmu, work, out, draws, chains, cores, rom_basis, seed):
         # defaults are a log-normal σ prior and a per-board model-error term.
         "--sigma-prior", "half-normal", "--no-model-error",
         "--seed", str(seed), "--out", str(out), "--force",
-    ]
+    ] + (["--hold-out", ",".join(hold_out)] if hold_out else []) + (
+        ["--eps-fixed", repr(eps_fixed)] if eps_fixed is not None else [])
     print("$ " + " ".join(cmd), flush=True)
     load = os.getloadavg()
     p = subprocess.run(cmd, capture_output=True, text=True)
@@ -872,6 +883,12 @@ def main():
     ap.add_argument("--skip-pymc", action="store_true", help="checks only, no PyMC sampling")
     ap.add_argument("--scratch", type=Path, help="where hbmu writes (default: a temporary dir)")
     ap.add_argument("--progressbar", action="store_true")
+    ap.add_argument("--eps-fixed", type=float,
+                    help="fix ε (relative eigenvalue error) of every mode in both tools (hbmu "
+                         "--eps-fixed): a wider, lower-dimensional posterior")
+    ap.add_argument("--boards", type=int,
+                    help="update only the first N boards (sorted ids; hbmu --hold-out the rest): "
+                         "a smaller posterior, to find one PyMC's SMC converges on")
     a = ap.parse_args()
     work = a.work.resolve()
     result = {"work": str(work), "draws": a.draws, "chains": a.chains, "cores": a.cores}
@@ -880,8 +897,14 @@ def main():
     if a.hbmu:
         scratch = a.scratch or Path(tempfile.mkdtemp(prefix="hbmu-pymc-peer."))
         hbmu_out = scratch / "hbmu"
+        hold_out = []
+        if a.boards:
+            pairs = pq.read_table(work / "pair" / "pairs.parquet").to_pandas()
+            masses = pq.read_table(work / "ingest" / "masses.parquet").to_pandas()
+            every = sorted(set(pairs[pairs.setup == "free"].board_id) | set(masses.board_id))
+            hold_out = every[a.boards:]
         result["hbmu_run"] = run_hbmu(a.hbmu, work, hbmu_out, a.draws, a.chains, a.cores,
-                                      a.rom_basis, a.seed)
+                                      a.rom_basis, a.seed, hold_out, a.eps_fixed)
         hbmu_wall = result["hbmu_run"]["wall_s"]
     else:
         hbmu_out = a.hbmu_out.resolve()
@@ -896,7 +919,7 @@ def main():
     rom = Rom(hbmu_out / "rom.npz")
     pop, boards = hbmu_draws(hbmu_out)
     m_nom = nominal_mass_from(boards)
-    data = select_data(work, cfg, m_nom)
+    data = select_data(work, cfg, m_nom, rep.get("held_out_boards") or [])
     if data["labels"] != list(rep["labels"]):
         raise SystemExit(f"labels differ: peer {data['labels']} vs hbmu {rep['labels']}")
     pred = Predictor(rom, data["model_mode"], data["params"])
