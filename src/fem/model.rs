@@ -23,9 +23,7 @@
 use std::sync::Arc;
 
 use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, LltRef, SymbolicCholesky, SymmetricOrdering,
-};
+use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, LltRef, SymbolicCholesky};
 use faer::{Conj, Mat, MatMut, Par, Side};
 
 use super::board::{Board, MeshOptions, Side as LayerSide};
@@ -406,82 +404,6 @@ impl<'m> UnitMatrices<'m> {
     }
 }
 
-/// DOFs of a mesh node (w, ∂w/∂x, ∂w/∂y, ∂²w/∂x∂y: the Bogner–Fox–Schmit plate).
-const DOFS_PER_NODE: usize = 4;
-
-/// Fill-reducing elimination order of the DOFs for the sparse Cholesky factor: geometric
-/// nested dissection of the tensor-product node grid. Each rectangle of nodes is split by
-/// its middle node line across the longer side; the two halves are ordered first
-/// (recursively), the separator line last; rectangles of at most `ND_LEAF` nodes (or at
-/// most 2 × 2) keep row order. A node's DOFs stay together; DOFs on no node (the fixture's)
-/// come last. Returns (order, inverse): `order[i]` is the DOF eliminated i-th.
-///
-/// Written by hand because the mesh is a grid whose geometry gives the separators
-/// directly, where faer's default (approximate minimum degree) sees only the graph. On the
-/// default board's bolted mesh (80 × 50, 16 412 DOFs) the factor has 1.96 M entries
-/// against AMD's 2.27 M: the numeric factorisation takes 17 ms against 24 ms and a solve
-/// with one right-hand side 3.6 ms against 4.4 ms, and a Lanczos eigen-solve is about 35
-/// such solves.
-fn nested_dissection(mesh: &Mesh, n_dof: usize) -> (Vec<usize>, Vec<usize>) {
-    const ND_LEAF: usize = 4;
-    let nxn = mesh.nx + 1;
-    let nyn = mesh.ny + 1;
-    // Explicit stack instead of recursion: (i0, i1, j0, j1, separator after the halves?).
-    enum Job {
-        Rect(usize, usize, usize, usize),
-        Line(Vec<usize>),
-    }
-    let mut nodes = Vec::with_capacity(nxn * nyn);
-    let mut stack = vec![Job::Rect(0, nxn, 0, nyn)];
-    while let Some(job) = stack.pop() {
-        match job {
-            Job::Line(l) => nodes.extend(l),
-            Job::Rect(i0, i1, j0, j1) => {
-                let (w, h) = (i1 - i0, j1 - j0);
-                if w == 0 || h == 0 {
-                    continue;
-                }
-                if w * h <= ND_LEAF || (w < 3 && h < 3) {
-                    for j in j0..j1 {
-                        nodes.extend((i0..i1).map(|i| j * nxn + i));
-                    }
-                    continue;
-                }
-                // Pushed in reverse: first half, second half, then the separator.
-                if w >= h {
-                    let m = i0 + w / 2;
-                    stack.push(Job::Line((j0..j1).map(|j| j * nxn + m).collect()));
-                    stack.push(Job::Rect(m + 1, i1, j0, j1));
-                    stack.push(Job::Rect(i0, m, j0, j1));
-                } else {
-                    let m = j0 + h / 2;
-                    stack.push(Job::Line((i0..i1).map(|i| m * nxn + i).collect()));
-                    stack.push(Job::Rect(i0, i1, m + 1, j1));
-                    stack.push(Job::Rect(i0, i1, j0, m));
-                }
-            }
-        }
-    }
-    let mut order = Vec::with_capacity(n_dof);
-    let mut placed = vec![false; n_dof];
-    for n in nodes {
-        if let Some(d) = mesh.node_dof[n] {
-            for k in d..(d + DOFS_PER_NODE).min(n_dof) {
-                if !placed[k] {
-                    placed[k] = true;
-                    order.push(k);
-                }
-            }
-        }
-    }
-    order.extend((0..n_dof).filter(|&k| !placed[k]));
-    let mut inverse = vec![0; n_dof];
-    for (i, &k) in order.iter().enumerate() {
-        inverse[k] = i;
-    }
-    (order, inverse)
-}
-
 /// A numeric sparse Cholesky factor of K − σM, computed and applied with `Par::Seq`
 /// so that results do not depend on the thread count (faer's high-level solvers use
 /// its global parallelism setting).
@@ -643,7 +565,7 @@ impl FeModel {
         for (n, u) in used.iter().enumerate() {
             if *u {
                 node_dof[n] = Some(n_dof);
-                n_dof += DOFS_PER_NODE;
+                n_dof += 4;
             }
         }
         mesh_data.active = active;
@@ -1034,11 +956,10 @@ impl FeModel {
             }
             k_terms.extend(vals);
         }
-        let (order, inverse) = nested_dissection(&mesh_data, n_dof);
         let symbolic = factorize_symbolic_cholesky(
             pattern.symbolic.as_ref(),
             Side::Lower,
-            SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(&order, &inverse, n_dof)),
+            Default::default(),
             Default::default(),
         )
         .map_err(|e| FemError::Factorisation(format!("symbolic analysis: {e:?}")))?;
@@ -1542,57 +1463,5 @@ impl FeModel {
             },
             rigid,
         ))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The nested-dissection order is a permutation of every DOF (the fixture's included)
-    /// with its inverse, and its Cholesky factor has fewer entries than faer's default
-    /// (approximate minimum degree) on the default board's bolted mesh, holes and joints
-    /// included; on every setup of both shipped boards it is no more than 5 % larger.
-    #[test]
-    fn nested_dissection_is_a_permutation_with_less_fill_than_amd() {
-        let default = Board::default_board();
-        let realistic = crate::io::board_files::read_board(std::path::Path::new(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/data/boards/realistic.toml"
-        )))
-        .unwrap()
-        .0;
-        for (name, board) in [("default", &default), ("realistic", &realistic)] {
-            for setup in [Setup::Free, Setup::bolted()] {
-                let bolted = !matches!(setup, Setup::Free);
-                let model = FeModel::build(board, setup.clone(), board.mesh_for(&setup)).unwrap();
-                let n = model.n_dof;
-                let (order, inverse) = nested_dissection(&model.mesh, n);
-                let mut seen = vec![false; n];
-                for (i, &k) in order.iter().enumerate() {
-                    assert!(!seen[k], "{name}: DOF {k} twice");
-                    seen[k] = true;
-                    assert_eq!(inverse[k], i);
-                }
-                assert_eq!(order.len(), n);
-                let amd = factorize_symbolic_cholesky(
-                    model.pattern.symbolic.as_ref(),
-                    Side::Lower,
-                    SymmetricOrdering::Amd,
-                    Default::default(),
-                )
-                .unwrap()
-                .len_val();
-                let nd = model.symbolic.len_val();
-                eprintln!("{name} bolted {bolted}: {n} DOFs, factor entries ND {nd}, AMD {amd}");
-                assert!(
-                    nd as f64 <= 1.05 * amd as f64,
-                    "{name}: ND {nd} vs AMD {amd}"
-                );
-                if name == "default" && bolted {
-                    assert!(nd < amd, "ND {nd} vs AMD {amd}");
-                }
-            }
-        }
     }
 }
