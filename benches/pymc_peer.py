@@ -372,12 +372,22 @@ def load_config(hbmu_out):
     return cfg
 
 
-def select_data(work, cfg, nominal_mass_g, held_out=()):
+def free_pairs(work):
+    """The accepted free-free pairs with a mode, a frequency and a model mode (pairs.parquet)."""
     pairs = pq.read_table(work / "pair" / "pairs.parquet").to_pandas()
     pairs = pairs[
         pairs.accepted & pairs["mode"].notna() & pairs.freq_hz.notna() & pairs.model_mode.notna()
     ]
-    free = pairs[pairs.setup == "free"]
+    return pairs[pairs.setup == "free"]
+
+
+def step1_boards(free, masses):
+    """Every board with a free-free pair or a weighing, sorted: the boards step 1 can update."""
+    return sorted(set(free.board_id) | set(masses.index))
+
+
+def select_data(work, cfg, nominal_mass_g, held_out=()):
+    free = free_pairs(work)
     pres = pq.read_table(work / "pair" / "presence.parquet").to_pandas()
     chosen = list(cfg["modes"]) or list(pres[(pres.setup == "free") & pres.used_for_updating].label)
     labels, model_mode = [], []
@@ -391,7 +401,7 @@ def select_data(work, cfg, nominal_mass_g, held_out=()):
             labels.append(lab)
             model_mode.append(mm - 1)
     masses = pq.read_table(work / "ingest" / "masses.parquet").to_pandas().set_index("board_id")
-    board_ids = [b for b in sorted(set(free.board_id) | set(masses.index)) if b not in held_out]
+    board_ids = [b for b in step1_boards(free, masses) if b not in held_out]
     params = list(cfg["params"])
     mass_updated = "mass_scale" in params
     units, freq, mass = [], [], []
@@ -550,7 +560,7 @@ def build_model(data, pred, cfg):
         if data["eps_fixed"] is None:
             eps = pm.LogNormal("eps", math.log(eps_prior["median"]), eps_prior["log_sd"], dims="label")
         else:
-            eps = np.full(nl, float(data["eps_fixed"]))
+            eps = fixed_eps(data)
         z = pm.Normal("z", 0.0, 1.0, dims=("board", "param"))
         x = pm.Deterministic("x", mu[None, :] + z @ chol.T, dims=("board", "param"))
         lam, ok = ModalOp()(x)
@@ -618,8 +628,13 @@ def hbmu_natural(row, data, pred):
     if data["eps_fixed"] is None:
         eps = np.array([row[f"eps_{lab}"] for lab in data["labels"]])
     else:
-        eps = np.full(len(data["labels"]), float(data["eps_fixed"]))
+        eps = fixed_eps(data)
     return mu, sigma, corr, eps
+
+
+def fixed_eps(data):
+    """ε of every label when it is fixed (hbmu --eps-fixed)."""
+    return np.full(len(data["labels"]), float(data["eps_fixed"]))
 
 
 def check_likelihood(model, maker, data, pred, pop, keys, x, n_check=8):
@@ -899,10 +914,8 @@ def main():
         hbmu_out = scratch / "hbmu"
         hold_out = []
         if a.boards:
-            pairs = pq.read_table(work / "pair" / "pairs.parquet").to_pandas()
             masses = pq.read_table(work / "ingest" / "masses.parquet").to_pandas()
-            every = sorted(set(pairs[pairs.setup == "free"].board_id) | set(masses.board_id))
-            hold_out = every[a.boards:]
+            hold_out = step1_boards(free_pairs(work), masses.set_index("board_id"))[a.boards:]
         result["hbmu_run"] = run_hbmu(a.hbmu, work, hbmu_out, a.draws, a.chains, a.cores,
                                       a.rom_basis, a.seed, hold_out, a.eps_fixed)
         hbmu_wall = result["hbmu_run"]["wall_s"]

@@ -474,13 +474,11 @@ fn added_mass_refit_writes_the_mass_and_refuses_a_point_it_cannot_place() {
     assert!(!w.p("h/boards.parquet").exists());
 }
 
-/// Three boards, two bolted measurements each, every one with a bolt at 40 % of the others'
-/// contact stiffness (which bolt: the lab's draw, per measurement).
-const LOOSE: &str = r#"
-name = "loose"
-description = "three boards; one loose bolt in every bolted measurement"
-seed = 11
-
+/// The campaign of [`BOLTED`] and [`LOOSE`]: three boards, each measured free-free twice and
+/// bolted twice, on a coarse truth mesh.
+macro_rules! three_bolted_boards {
+    () => {
+        r#"
 [campaign]
 n_boards = 3
 free_per_board = 2
@@ -494,11 +492,25 @@ mesh_nx = 24
 mesh_ny = 15
 n_free_modes = 8
 n_bolted_modes = 8
+"#
+    };
+}
 
+/// Three boards, two bolted measurements each, every one with a bolt at 40 % of the others'
+/// contact stiffness (which bolt: the lab's draw, per measurement).
+const LOOSE: &str = concat!(
+    r#"
+name = "loose"
+description = "three boards; one loose bolt in every bolted measurement"
+seed = 11
+"#,
+    three_bolted_boards!(),
+    r#"
 [effects.loose_bolt]
 share = 1.0
 stiffness_factor = 0.4
-"#;
+"#
+);
 
 /// `update joints --enrich joint_stiffness_per_joint` without a joint: every joint gets its
 /// own stiffness in every measurement. joints.parquet reports each joint's stiffness over the
@@ -584,25 +596,15 @@ fn every_joint_refit_finds_the_loose_joint_of_each_measurement() {
     }
 }
 
-const BOLTED: &str = r#"
+/// Three boards, each free-free and bolted, no concealed effect.
+const BOLTED: &str = concat!(
+    r#"
 name = "bolted"
 description = "three boards, each free-free and bolted, no concealed effect"
 seed = 13
-
-[campaign]
-n_boards = 3
-free_per_board = 2
-
-[[campaign.bolted]]
-boards = [1, 2, 3]
-per_board = 2
-
-[truth]
-mesh_nx = 24
-mesh_ny = 15
-n_free_modes = 8
-n_bolted_modes = 8
-"#;
+"#,
+    three_bolted_boards!()
+);
 
 /// A bolted measurement of a board that has no step-1 posterior (held out of step 1): a
 /// warning naming the measurement and the board, and step 2 goes through on the others.
