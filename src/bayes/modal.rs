@@ -201,6 +201,14 @@ pub struct Prediction {
     pub vectors: Vec<Vec<f64>>,
 }
 
+/// One updated mode's subspace of the ROM ([`ModalPredictor::mode_subspaces`]) and the
+/// mode's reference vector projected into it.
+#[derive(Clone, Debug)]
+pub struct ModeSubspace {
+    pub sub: crate::fem::rom::SubspaceRom,
+    target: Vec<f64>,
+}
+
 /// Whether the ROM can be evaluated at `values` (its full parameter vector): every value finite,
 /// every one but Poisson's ratio positive, and the core's Poisson ratios admissible
 /// (ν_xy² E_y/E_x < 1).
@@ -380,18 +388,50 @@ impl ModalPredictor {
         eval(&ck, &cm).ok()
     }
 
-    /// As [`Self::predict`], the modes solved in the subspace `sub` of the ROM
-    /// ([`crate::fem::rom::Rom::subspace`]; its error against the ROM is the caller's to
-    /// verify).
-    pub fn predict_in(
+    /// One subspace of the ROM per updated mode, each spanned by that mode's vectors in
+    /// `snaps[m]` (reduced coordinates, e.g. [`Prediction::vectors`] at points of a box) to
+    /// within `rel_tol` ([`crate::fem::rom::Rom::subspace`]). None where the ROM has several
+    /// mass terms, a mode has no vector, or `snaps` does not hold one list per updated mode.
+    pub fn mode_subspaces(
         &self,
-        sub: &crate::fem::rom::SubspaceRom,
-        values: &[f64],
-    ) -> Option<Prediction> {
-        let modes = self.solve(values, |ck, cm| {
-            self.rom.eval_lowest_in(sub, ck, cm, self.n_track)
-        })?;
-        self.label(modes, false).map(|(p, _)| p)
+        snaps: &[Vec<Vec<f64>>],
+        rel_tol: f64,
+    ) -> Option<Vec<ModeSubspace>> {
+        if snaps.len() != self.refs.len() {
+            return None;
+        }
+        snaps
+            .iter()
+            .zip(&self.refs)
+            .map(|(s, r)| {
+                let sub = self.rom.subspace(s, rel_tol)?;
+                let target = sub.project(r);
+                Some(ModeSubspace { sub, target })
+            })
+            .collect()
+    }
+
+    /// As [`Self::predict`], each updated mode solved in its own subspace
+    /// ([`Self::mode_subspaces`]; their error against the ROM is the caller's to verify).
+    /// None where the parameters are inadmissible or a mode's nearest Ritz vector overlaps
+    /// its reference by less than 1/√2 (the caller then solves in the ROM, whose label
+    /// assignment also settles two modes that mix).
+    pub fn predict_in_modes(&self, subs: &[ModeSubspace], values: &[f64]) -> Option<Prediction> {
+        if subs.len() != self.refs.len() || !admissible(&self.rom.map, values) {
+            return None;
+        }
+        let (ck, cm) = self.rom.map.coefficient_values(values);
+        let mut lambda = Vec::with_capacity(subs.len());
+        let mut vectors = Vec::with_capacity(subs.len());
+        for s in subs {
+            let (l, y, o) = self.rom.eval_nearest_in(&s.sub, &ck, &cm, &s.target).ok()?;
+            if o < std::f64::consts::FRAC_1_SQRT_2 {
+                return None;
+            }
+            lambda.push(l);
+            vectors.push(y);
+        }
+        Some(Prediction { lambda, vectors })
     }
 
     fn assign(&self, values: &[f64], allow_lost: bool) -> Option<(Prediction, Vec<bool>)> {

@@ -13,9 +13,10 @@
 //! Exactness does not rest on the surrogate: the sampler's final correction stage weights
 //! every particle by L_ROM / L_surrogate (`smc::correct`), so the posterior and the evidence
 //! are the ROM's; the surrogate's error only costs effective sample size, which is reported.
-//! The correction prices each unit in a subspace of the ROM ([`fit_subspace`]) built over
-//! the same box: a Galerkin reduction, not a fit, verified to |Δ log L| ≤ 1e-3 per unit
-//! against the ROM; beyond the box the ROM itself answers.
+//! The correction prices each unit in subspaces of the ROM, one per updated mode
+//! ([`fit_subspace`]), built over the same box: a Galerkin reduction, not a fit, verified to
+//! |Δ log L| ≤ 1e-3 per unit against the ROM; beyond the box (or where a mode's Ritz vector
+//! strays from its reference) the ROM itself answers.
 
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -489,20 +490,29 @@ impl Target for SurrogateTarget<'_> {
     }
 }
 
-/// A unit's subspace of the ROM ([`crate::fem::rom::SubspaceRom`]) over its surrogate's box:
+/// A unit's subspaces of the ROM, one per updated mode ([`modal::ModeSubspace`]), over its
+/// surrogate's box:
 /// the exact model of the correction stage, where every final particle's units are priced
 /// (N × units evaluations a run, the sampler's largest fixed cost). Its error is measured the
 /// way the surrogate's is: |log L_subspace − log L_ROM| at fresh points all over the box, at
 /// the reference's error scales, held to [`SubspaceOptions::tolerance_dll`].
 #[derive(Clone, Debug)]
 pub struct UnitSubspace {
-    pub sub: crate::fem::rom::SubspaceRom,
+    /// One subspace per updated mode.
+    pub subs: Vec<modal::ModeSubspace>,
     /// The box it was built and verified in.
     pub region: Arc<UnitSurrogate>,
     /// Largest |log L_subspace − log L_ROM| on the verification points.
     pub max_abs_dll: f64,
     /// ROM evaluations spent building and verifying it.
     pub rom_evals: u64,
+}
+
+impl UnitSubspace {
+    /// The dimensions of its modes' subspaces, summed.
+    pub fn dim(&self) -> usize {
+        self.subs.iter().map(|s| s.sub.dim()).sum()
+    }
 }
 
 /// Tuning of the unit subspaces.
@@ -535,10 +545,11 @@ impl Default for SubspaceOptions {
     }
 }
 
-/// Build and verify unit b's subspace over `region` (the unit's surrogate): eigenvectors of
-/// the tracked modes at the box's centre and at ±½ and ±1 along each of its axes, then
-/// rounds of verification on fresh points, each adding the vectors of the points that
-/// failed. `eps`, `delta` = error scales at which the log-likelihood error is verified.
+/// Build and verify unit b's subspaces over `region` (the unit's surrogate), one per
+/// updated mode ([`modal::ModalPredictor::mode_subspaces`]): the mode's eigenvectors at the box's
+/// centre, at ±½ and ±1 along each of its axes and at (±½, ±½) in each pair of axes, then rounds of verification on fresh
+/// points, each adding the vectors of the points that failed. `eps`, `delta` = error scales
+/// at which the log-likelihood error is verified.
 pub fn fit_subspace(
     target: &ModalTarget,
     b: usize,
@@ -552,14 +563,22 @@ pub fn fit_subspace(
     let pred = &target.predictor;
     let r = pred.rom.dim();
     let d = region.inputs.len();
+    let nm = pred.refs.len();
     let mut rng = ChaCha8Rng::seed_from_u64(stream_key(&[seed, 0x5B5u64, b as u64]));
     let mut evals = 0u64;
-    let mut snaps: Vec<Vec<f64>> = vec![];
-    let vectors = |v: &[f64]| -> Result<Vec<Vec<f64>>, String> {
-        pred.tracked_modes(v)
-            .map(|m| m.vectors)
-            .ok_or_else(|| "the ROM has no modes at a point of the box".into())
+    let mut snaps: Vec<Vec<Vec<f64>>> = vec![vec![]; nm];
+    let add = |snaps: &mut Vec<Vec<Vec<f64>>>, v: &[f64]| -> Result<(), String> {
+        let p = pred
+            .predict(v)
+            .ok_or("the ROM cannot track the updated modes at a point of the box")?;
+        for (s, y) in snaps.iter_mut().zip(p.vectors) {
+            s.push(y);
+        }
+        Ok(())
     };
+    // Along each axis (a mode's vector sweeps its pure derivatives there) and at the corners
+    // of every axis pair's inner square (the mixed second derivatives, which a mode's own
+    // vectors along the axes do not span).
     let mut design = vec![vec![0.0; d]];
     for k in 0..d {
         for a in [-1.0, -0.5, 0.5, 1.0] {
@@ -567,21 +586,41 @@ pub fn fit_subspace(
             u[k] = a;
             design.push(u);
         }
+        for l in 0..k {
+            for (a, c) in [(-0.5, -0.5), (-0.5, 0.5), (0.5, -0.5), (0.5, 0.5)] {
+                let mut u = vec![0.0; d];
+                u[k] = a;
+                u[l] = c;
+                design.push(u);
+            }
+        }
+    }
+    // Every tracked mode's vector at the centre: a mode's first-order change is a
+    // combination of the others (modal expansion of its derivative), so its own vectors
+    // alone leave it short of the ROM's accuracy between the design points.
+    let centre = pred
+        .tracked_modes(&region.point(&vec![0.0; d]))
+        .ok_or("the ROM has no modes at the box's centre")?;
+    evals += 1;
+    for s in snaps.iter_mut() {
+        s.extend(centre.vectors.iter().cloned());
     }
     for u in &design {
-        snaps.extend(vectors(&region.point(u))?);
+        add(&mut snaps, &region.point(u))?;
         evals += 1;
     }
     let mut worst = f64::INFINITY;
     for _ in 0..=opts.max_rounds {
-        let sub = pred
-            .rom
-            .subspace(&snaps, opts.rel_tol)
+        let subs = pred
+            .mode_subspaces(&snaps, opts.rel_tol)
             .ok_or("the ROM has several mass terms")?;
-        if sub.dim() as f64 > opts.max_dim_fraction * r as f64 {
+        if let Some(q) = subs
+            .iter()
+            .map(|s| s.sub.dim())
+            .find(|&q| q as f64 > opts.max_dim_fraction * r as f64)
+        {
             return Err(format!(
-                "the subspace needs {} of the ROM's {r} dimensions",
-                sub.dim()
+                "a mode's subspace needs {q} of the ROM's {r} dimensions"
             ));
         }
         worst = 0.0f64;
@@ -594,7 +633,7 @@ pub fn fit_subspace(
                 .predict(&v)
                 .ok_or("the ROM cannot track the updated modes")?;
             let t_rom = pred.terms(&p_rom, data, &v);
-            let dll = match pred.predict_in(&sub, &v) {
+            let dll = match pred.predict_in_modes(&subs, &v) {
                 Some(p) => (modal::log_lik(data, &pred.terms(&p, data, &v), eps, delta)
                     - modal::log_lik(data, &t_rom, eps, delta))
                 .abs(),
@@ -608,14 +647,14 @@ pub fn fit_subspace(
         }
         if failed.is_empty() {
             return Ok(UnitSubspace {
-                sub,
+                subs,
                 region: Arc::clone(region),
                 max_abs_dll: worst,
                 rom_evals: evals,
             });
         }
         for v in failed.iter().take(4 * d.max(1)) {
-            snaps.extend(vectors(v)?);
+            add(&mut snaps, v)?;
             evals += 1;
         }
     }

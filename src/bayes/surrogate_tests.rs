@@ -84,12 +84,13 @@ fn a_tolerance_no_polynomial_meets_halves_the_box_to_its_floor_then_refuses() {
     assert!(!e.contains("1.25 sd"), "{e}");
 }
 
-/// The subspace of the ROM the correction solves in: verified on the unit's surrogate box,
-/// Rayleigh–Ritz (its eigenvalues never below the ROM's), exact where its eigenvectors were
-/// taken (the box's centre; to the square of its span tolerance), and within its verified tolerance of the ROM's log-likelihood
-/// on fresh points in the box, through [`ModalTarget::model`] itself.
+/// The subspaces of the ROM the correction solves in, one per updated mode: verified on the
+/// unit's surrogate box, each smaller than the ROM, exact where its eigenvectors were taken
+/// (the box's centre; to the square of its span tolerance), and within its verified
+/// tolerance of the ROM's log-likelihood on fresh points in the box, through
+/// [`ModalTarget::model`] itself.
 #[test]
-fn the_subspace_is_an_upper_bound_exact_at_its_snapshots_and_within_tolerance_in_its_box() {
+fn the_mode_subspaces_are_exact_at_their_snapshots_and_within_tolerance_in_their_box() {
     use super::surrogate::{fit_subspace, SubspaceOptions};
     use std::sync::Arc;
     let (t, samples, eps) = problem(0.004);
@@ -98,7 +99,7 @@ fn the_subspace_is_an_upper_bound_exact_at_its_snapshots_and_within_tolerance_in
             .expect("a surrogate"),
     );
     // This ROM is small (r = 14): a looser span tolerance than the default (1e-7) keeps the
-    // subspace a strict one, so the checks below are not trivially met.
+    // subspaces strict ones, so the checks below are not trivially met.
     let so = SubspaceOptions {
         rel_tol: 1e-5,
         max_dim_fraction: 1.0,
@@ -107,22 +108,25 @@ fn the_subspace_is_an_upper_bound_exact_at_its_snapshots_and_within_tolerance_in
     let sub = Arc::new(fit_subspace(&t, 0, &s, &eps, &[], &so, 11).expect("a subspace"));
     assert!(sub.max_abs_dll <= so.tolerance_dll, "{}", sub.max_abs_dll);
     let r = t.predictor.rom.dim();
-    assert!(sub.sub.dim() < r, "subspace {} of {r}", sub.sub.dim());
-    let rom = &t.predictor.rom;
-    let n = t.predictor.n_track;
+    assert_eq!(sub.subs.len(), t.predictor.refs.len());
+    for m in &sub.subs {
+        assert!(m.sub.dim() < r, "subspace {} of {r}", m.sub.dim());
+    }
     let at = |v: &[f64]| {
-        let c = rom.map.coefficients_unchecked(v);
-        let full = rom.eval_lowest(&c.k, &c.m, n).unwrap();
-        let local = rom.eval_lowest_in(&sub.sub, &c.k, &c.m, n).unwrap();
+        let full = t.predictor.predict(v).expect("ROM");
+        let local = t
+            .predictor
+            .predict_in_modes(&sub.subs, v)
+            .expect("subspaces");
         (full, local)
     };
     let (full, local) = at(&s.point(&[0.0, 0.0]));
-    for j in 0..n {
-        let rel = (local.eigenvalues[j] - full.eigenvalues[j]) / full.eigenvalues[j];
+    for (m, (a, b)) in local.lambda.iter().zip(&full.lambda).enumerate() {
+        let rel = (a - b) / b;
         // Vectors within rel_tol of the span add none: the error is of order rel_tol².
         assert!(
             rel.abs() < 100.0 * so.rel_tol.powi(2),
-            "centre, mode {j}: {rel:e}"
+            "centre, mode {m}: {rel:e}"
         );
     }
     let mut target = t.clone();
@@ -133,12 +137,12 @@ fn the_subspace_is_an_upper_bound_exact_at_its_snapshots_and_within_tolerance_in
         let u: Vec<f64> = (0..2).map(|_| 2.0 * rng.random::<f64>() - 1.0).collect();
         let v = s.point(&u);
         let (full, local) = at(&v);
-        for j in 0..n {
-            let rel = (local.eigenvalues[j] - full.eigenvalues[j]) / full.eigenvalues[j];
-            assert!(
-                rel > -1e-12,
-                "below the ROM's eigenvalue, mode {j}: {rel:e}"
-            );
+        for (m, (a, b)) in local.lambda.iter().zip(&full.lambda).enumerate() {
+            // Not an upper bound (the Ritz vector may lean on lower modes), but within what
+            // the verified tolerance allows (|Δ log L| ≤ 1e-3 at ε = 0.004 is a relative
+            // eigenvalue error of a few 1e-6).
+            let rel = (a - b) / b;
+            assert!(rel.abs() < 1e-4, "mode {m}: {rel:e}");
         }
         // The unit's coordinates of v, inverting `Compose::Boards`.
         let super::target::Compose::Boards {

@@ -423,11 +423,15 @@ impl Target for ModalTarget {
         let data = &self.units[b];
         let t = match self.condition_values(b, &v, x) {
             None => {
-                let pred = match self.subspaces.get(b) {
+                let local = match self.subspaces.get(b) {
                     Some(Some(s)) if s.region.box_position(&v) <= 1.0 => {
-                        self.predictor.predict_in(&s.sub, &v)?
+                        self.predictor.predict_in_modes(&s.subs, &v)
                     }
-                    _ => self.predictor.predict(&v)?,
+                    _ => None,
+                };
+                let pred = match local {
+                    Some(p) => p,
+                    None => self.predictor.predict(&v)?,
                 };
                 self.predictor.terms(&pred, data, &v)
             }

@@ -38,6 +38,43 @@ pub fn wanted_eigenpairs(a: &mut [f64], r: usize, first: usize, count: usize) ->
     solve(a, r, first, count, true)
 }
 
+/// The `count` eigenpairs of the symmetric matrix `a` (row-major r × r, upper triangle
+/// read, overwritten) whose eigenvalues lie nearest `target`, nearest first: all
+/// eigenvalues by QL, the vectors of only those by inverse iteration. For a Ritz problem
+/// that wants one mode among directions that mostly belong to others
+/// (`Rom::eval_nearest_in`): `target` is the Rayleigh quotient of the mode's reference.
+pub fn nearest_eigenpairs(a: &mut [f64], r: usize, target: f64, count: usize) -> SymEigen {
+    debug_assert_eq!(a.len(), r * r);
+    let (d, e, us) = tridiagonalize(a, r);
+    let norm_t = d
+        .iter()
+        .zip(e.iter().chain(std::iter::once(&0.0)))
+        .fold(0.0f64, |m, (x, y)| m.max(x.abs() + 2.0 * y.abs()));
+    let mut values = d.clone();
+    let mut off = e.clone();
+    tql_values(&mut values, &mut off);
+    values.sort_by(|a, b| (a - target).abs().total_cmp(&(b - target).abs()));
+    values.truncate(count.min(r));
+    let mut zs: Vec<Vec<f64>> = Vec::with_capacity(values.len());
+    for k in 0..values.len() {
+        let near = near_vectors(&zs, &values[..k], values[k], norm_t);
+        let z = inverse_iteration(&d, &e, values[k], norm_t, &near);
+        zs.push(z);
+    }
+    let vectors = zs
+        .into_iter()
+        .map(|mut y| {
+            for (k, u) in us.iter().enumerate().rev() {
+                let tail = &mut y[k + 1..];
+                let s: f64 = u.iter().zip(tail.iter()).map(|(a, b)| a * b).sum();
+                tail.iter_mut().zip(u).for_each(|(t, ui)| *t -= s * ui);
+            }
+            y
+        })
+        .collect();
+    SymEigen { values, vectors }
+}
+
 fn solve(a: &mut [f64], r: usize, first: usize, count: usize, few: bool) -> SymEigen {
     debug_assert_eq!(a.len(), r * r);
     let (d, e, us) = tridiagonalize(a, r);
@@ -674,6 +711,52 @@ mod tests {
                     let dot: f64 = y.iter().zip(y2).map(|(p, q)| p * q).sum();
                     let want = if k == k2 { 1.0 } else { 0.0 };
                     assert!((dot - want).abs() < 1e-9, "r {r} {k} {k2}: {dot}");
+                }
+            }
+        }
+    }
+
+    /// Against the known spectrum of Q diag(λ) Qᵀ: the `count` eigenvalues nearest the
+    /// target, nearest first, each vector satisfying A y = λ y.
+    #[test]
+    fn nearest_eigenpairs_are_the_ones_nearest_the_target() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let r = 14;
+        let lam: Vec<f64> = (0..r)
+            .map(|k| 1.0 + k as f64 + 0.3 * (k % 3) as f64)
+            .collect();
+        // A random orthogonal Q by Gram–Schmidt of random columns.
+        let mut q: Vec<Vec<f64>> = vec![];
+        while q.len() < r {
+            let mut v: Vec<f64> = (0..r).map(|_| rng.random::<f64>() - 0.5).collect();
+            for u in &q {
+                let c: f64 = u.iter().zip(&v).map(|(a, b)| a * b).sum();
+                v.iter_mut().zip(u).for_each(|(x, y)| *x -= c * y);
+            }
+            let n = v.iter().map(|a| a * a).sum::<f64>().sqrt();
+            q.push(v.iter().map(|a| a / n).collect());
+        }
+        let a0: Vec<f64> = (0..r * r)
+            .map(|k| (0..r).map(|j| q[j][k / r] * lam[j] * q[j][k % r]).sum())
+            .collect();
+        for target in [0.2, 6.4, 9.05, 30.0] {
+            let mut a = a0.clone();
+            let got = nearest_eigenpairs(&mut a, r, target, 3);
+            let mut want = lam.clone();
+            want.sort_by(|x, y| (x - target).abs().total_cmp(&(y - target).abs()));
+            assert_eq!(got.values.len(), 3);
+            for (k, (v, y)) in got.values.iter().zip(&got.vectors).enumerate() {
+                assert!(
+                    (v - want[k]).abs() < 1e-10,
+                    "target {target}, {k}: {v} vs {}",
+                    want[k]
+                );
+                for i in 0..r {
+                    let ay: f64 = (0..r).map(|j| a0[i * r + j] * y[j]).sum();
+                    assert!(
+                        (ay - v * y[i]).abs() < 1e-9,
+                        "target {target}, {k}, row {i}"
+                    );
                 }
             }
         }

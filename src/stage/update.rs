@@ -1098,8 +1098,9 @@ struct Acceleration {
     correction_max_abs_dlog_lik: Vec<f64>,
     /// Per run: mutation sweeps of the correction stage (0 when resampling kept ≥ 98 %).
     correction_sweeps: Vec<usize>,
-    /// Per unit: the dimension of the verified subspace of the ROM the correction solves in
-    /// inside the unit's surrogate box (`bayes::surrogate::fit_subspace`; None: the ROM).
+    /// Per unit: the dimensions, summed over its updated modes, of the verified per-mode
+    /// subspaces of the ROM the correction solves in inside the unit's surrogate box
+    /// (`bayes::surrogate::fit_subspace`; None: the ROM).
     subspace_dim: Vec<Option<usize>>,
     /// Per unit: its largest |log L_subspace − log L_ROM| on the verification points.
     subspace_max_abs_dlog_lik: Vec<Option<f64>>,
@@ -1350,7 +1351,7 @@ fn run_smc(
                 .enumerate()
                 .map(|(b, f)| match f {
                     Some(Ok(s)) => {
-                        acc.subspace_dim.push(Some(s.sub.dim()));
+                        acc.subspace_dim.push(Some(s.dim()));
                         acc.subspace_max_abs_dlog_lik.push(Some(s.max_abs_dll));
                         acc.subspace_rom_evals += s.rom_evals;
                         Some(Arc::new(s))
