@@ -538,7 +538,7 @@ impl Default for SubspaceOptions {
         SubspaceOptions {
             tolerance_dll: 1e-3,
             n_verify: 40,
-            max_rounds: 3,
+            max_rounds: 6,
             max_dim_fraction: 0.7,
             rel_tol: 1e-7,
         }

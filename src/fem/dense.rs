@@ -38,6 +38,100 @@ pub fn wanted_eigenpairs(a: &mut [f64], r: usize, first: usize, count: usize) ->
     solve(a, r, first, count, true)
 }
 
+/// Rayleigh-quotient iteration on the symmetric matrix `a` (row-major r × r, only its
+/// upper triangle read) from `start`: the eigenpair it converges to (the residual
+/// ‖A x − ρ x‖ within 1e-13 ‖A‖), None where it does not within 10 steps or `start` is 0.
+/// Converges cubically, usually to the eigenvector `start` leans on most; the caller checks
+/// which one it found (`Rom::eval_nearest_in` accepts it only where it overlaps the start by
+/// more than 1/√2, which no other eigenvector can). One pivoted elimination of r³/3 per
+/// step, against the 4r³/3 of a tridiagonalisation before any eigenvalue is known.
+pub fn rayleigh_quotient_iteration(a: &[f64], r: usize, start: &[f64]) -> Option<(f64, Vec<f64>)> {
+    debug_assert_eq!(a.len(), r * r);
+    let mut full = vec![0.0; r * r];
+    for i in 0..r {
+        for j in i..r {
+            full[i * r + j] = a[i * r + j];
+            full[j * r + i] = a[i * r + j];
+        }
+    }
+    let norm_a = (0..r)
+        .map(|i| {
+            full[i * r..(i + 1) * r]
+                .iter()
+                .map(|v| v.abs())
+                .sum::<f64>()
+        })
+        .fold(0.0f64, f64::max);
+    let n0 = start.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !(n0 > 0.0 && n0.is_finite() && norm_a.is_finite()) {
+        return None;
+    }
+    let mut x: Vec<f64> = start.iter().map(|v| v / n0).collect();
+    let mut ax = vec![0.0; r];
+    let mut m = vec![0.0; r * r];
+    for _ in 0..10 {
+        for i in 0..r {
+            ax[i] = full[i * r..(i + 1) * r]
+                .iter()
+                .zip(&x)
+                .map(|(p, q)| p * q)
+                .sum();
+        }
+        let rho: f64 = ax.iter().zip(&x).map(|(p, q)| p * q).sum();
+        let res = ax
+            .iter()
+            .zip(&x)
+            .map(|(p, q)| (p - rho * q).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        if res <= 1e-13 * norm_a {
+            return Some((rho, x));
+        }
+        // (A − ρ I) y = x by Gaussian elimination with partial pivoting; a pivot that
+        // vanishes (ρ an eigenvalue to working precision) is replaced by ε ‖A‖: the solve
+        // then blows up along the eigenvector, which is what inverse iteration wants.
+        m.copy_from_slice(&full);
+        for i in 0..r {
+            m[i * r + i] -= rho;
+        }
+        let mut y = x.clone();
+        for k in 0..r {
+            let p = (k..r)
+                .max_by(|&i, &j| m[i * r + k].abs().total_cmp(&m[j * r + k].abs()))
+                .unwrap_or(k);
+            if p != k {
+                for j in 0..r {
+                    m.swap(k * r + j, p * r + j);
+                }
+                y.swap(k, p);
+            }
+            if m[k * r + k].abs() < f64::EPSILON * norm_a {
+                m[k * r + k] = f64::EPSILON * norm_a;
+            }
+            let piv = m[k * r + k];
+            for i in k + 1..r {
+                let f = m[i * r + k] / piv;
+                if f != 0.0 {
+                    for j in k..r {
+                        m[i * r + j] -= f * m[k * r + j];
+                    }
+                    y[i] -= f * y[k];
+                }
+            }
+        }
+        for k in (0..r).rev() {
+            let s: f64 = (k + 1..r).map(|j| m[k * r + j] * y[j]).sum();
+            y[k] = (y[k] - s) / m[k * r + k];
+        }
+        let ny = y.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if !(ny > 0.0 && ny.is_finite()) {
+            return None;
+        }
+        x = y.iter().map(|v| v / ny).collect();
+    }
+    None
+}
+
 /// The `count` eigenpairs of the symmetric matrix `a` (row-major r × r, upper triangle
 /// read, overwritten) whose eigenvalues lie nearest `target`, nearest first: all
 /// eigenvalues by QL, the vectors of only those by inverse iteration. For a Ritz problem
@@ -760,6 +854,52 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// From a start that leans on one eigenvector of a known spectrum (overlap² ≈ 0.8), the
+    /// iteration returns that eigenpair, reading only the upper triangle.
+    #[test]
+    fn rayleigh_quotient_iteration_finds_the_eigenpair_its_start_leans_on() {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let r = 12;
+        let lam: Vec<f64> = (0..r).map(|k| 2.0 + 1.5 * k as f64).collect();
+        let mut q: Vec<Vec<f64>> = vec![];
+        while q.len() < r {
+            let mut v: Vec<f64> = (0..r).map(|_| rng.random::<f64>() - 0.5).collect();
+            for u in &q {
+                let c: f64 = u.iter().zip(&v).map(|(a, b)| a * b).sum();
+                v.iter_mut().zip(u).for_each(|(x, y)| *x -= c * y);
+            }
+            let n = v.iter().map(|a| a * a).sum::<f64>().sqrt();
+            q.push(v.iter().map(|a| a / n).collect());
+        }
+        let mut a: Vec<f64> = (0..r * r)
+            .map(|k| (0..r).map(|j| q[j][k / r] * lam[j] * q[j][k % r]).sum())
+            .collect();
+        // Only the upper triangle may be read.
+        for i in 0..r {
+            for j in 0..i {
+                a[i * r + j] = f64::NAN;
+            }
+        }
+        for want in [0usize, 5, 11] {
+            // 0.9 of the wanted vector, 0.3 of each of two others, 0.1 of a third.
+            let others = [(want + 1) % r, (want + 4) % r, (want + 7) % r];
+            let start: Vec<f64> = (0..r)
+                .map(|i| {
+                    0.9 * q[want][i] + 0.3 * q[others[0]][i] + 0.3 * q[others[1]][i]
+                        - 0.1 * q[others[2]][i]
+                })
+                .collect();
+            let (rho, x) = rayleigh_quotient_iteration(&a, r, &start).expect("converges");
+            assert!(
+                (rho - lam[want]).abs() < 1e-12 * lam[r - 1],
+                "{want}: {rho}"
+            );
+            let dot: f64 = x.iter().zip(&q[want]).map(|(p, q)| p * q).sum();
+            assert!((dot.abs() - 1.0).abs() < 1e-12, "{want}: {dot}");
+        }
+        assert!(rayleigh_quotient_iteration(&a, r, &vec![0.0; r]).is_none());
     }
 
     #[test]

@@ -1022,23 +1022,38 @@ impl Rom {
         }
         let d0 = cm[0];
         let mut a = super::dense::upper_sum(ck, &sub.k_flat, q);
-        // The target's Rayleigh quotient (upper triangle only): the mode's eigenvalue lies
-        // among the few nearest it, and only their vectors are formed.
-        let (mut num, mut den) = (0.0, 0.0);
-        for i in 0..q {
-            let row = &a[i * q + i + 1..(i + 1) * q];
-            let off: f64 = row.iter().zip(&target[i + 1..]).map(|(x, y)| x * y).sum();
-            num += target[i] * (a[i * q + i] * target[i] + 2.0 * off);
-            den += target[i] * target[i];
-        }
-        let se = super::dense::nearest_eigenpairs(&mut a, q, num / den, 3);
-        let (k, overlap) = se
-            .vectors
-            .iter()
-            .map(|z| z.iter().zip(target).map(|(a, b)| a * b).sum::<f64>().abs())
-            .enumerate()
-            .fold((0, -1.0f64), |a, b| if b.1 > a.1 { b } else { a });
-        let z = &se.vectors[k];
+        let overlap_of = |z: &[f64]| z.iter().zip(target).map(|(a, b)| a * b).sum::<f64>().abs();
+        // Rayleigh-quotient iteration from the reference: where it lands on a vector that
+        // overlaps the reference by more than 1/√2, that is the nearest Ritz pair (no other
+        // can overlap as much); otherwise the Ritz values nearest the reference's Rayleigh
+        // quotient, their vectors compared.
+        let (value, z, overlap) = match super::dense::rayleigh_quotient_iteration(&a, q, target)
+            .map(|(v, z)| {
+                let o = overlap_of(&z);
+                (v, z, o)
+            })
+            .filter(|t| t.2 > std::f64::consts::FRAC_1_SQRT_2)
+        {
+            Some(found) => found,
+            None => {
+                let (mut num, mut den) = (0.0, 0.0);
+                for i in 0..q {
+                    let row = &a[i * q + i + 1..(i + 1) * q];
+                    let off: f64 = row.iter().zip(&target[i + 1..]).map(|(x, y)| x * y).sum();
+                    num += target[i] * (a[i * q + i] * target[i] + 2.0 * off);
+                    den += target[i] * target[i];
+                }
+                let se = super::dense::nearest_eigenpairs(&mut a, q, num / den, 3);
+                let (k, o) = se
+                    .vectors
+                    .iter()
+                    .map(|z| overlap_of(z))
+                    .enumerate()
+                    .fold((0, -1.0f64), |a, b| if b.1 > a.1 { b } else { a });
+                (se.values[k], se.vectors[k].clone(), o)
+            }
+        };
+        let z = &z;
         let y = (0..r)
             .map(|i| {
                 sub.w[i * q..(i + 1) * q]
@@ -1048,11 +1063,7 @@ impl Rom {
                     .sum::<f64>()
             })
             .collect();
-        Ok((
-            se.values[k] / d0,
-            mass_normalised(y, 1.0 / d0.sqrt()),
-            overlap,
-        ))
+        Ok((value / d0, mass_normalised(y, 1.0 / d0.sqrt()), overlap))
     }
 }
 
