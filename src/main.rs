@@ -286,6 +286,13 @@ struct UpdateArgs {
     /// frequencies move on finer meshes).
     #[arg(long)]
     no_model_error: bool,
+    /// Step 1: floor of the balance term's standard deviation, relative to the weighed mass.
+    /// A balance's readability is not its accuracy: weighing a board against steel
+    /// calibration weights without the air-buoyancy correction shifts its reading by about
+    /// 0.05 %. 0 trusts the readings to their spread and readability (buoyancy-corrected
+    /// readings on a calibrated balance, or a virtual lab's)
+    #[arg(long, default_value_t = stage::update::UpdateOptions::DEFAULT_MASS_FLOOR_REL)]
+    mass_floor: f64,
 }
 
 #[derive(Subcommand)]
@@ -421,6 +428,7 @@ impl UpdateArgs {
             model_error: !self.no_model_error,
             hold_out_boards: vec![],
             board_coordinates: Default::default(),
+            mass_floor_rel: self.mass_floor,
         }
     }
 }

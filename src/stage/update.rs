@@ -286,6 +286,14 @@ pub struct UpdateOptions {
     /// Step 1: the coordinates the board population is formed in.
     #[serde(default)]
     pub board_coordinates: BoardCoordinates,
+    /// Step 1: the floor of the mass term's sd, relative to the weighed mass
+    /// ([`UpdateOptions::DEFAULT_MASS_FLOOR_REL`]; `mass_obs` says why).
+    #[serde(default = "default_mass_floor_rel")]
+    pub mass_floor_rel: f64,
+}
+
+fn default_mass_floor_rel() -> f64 {
+    UpdateOptions::DEFAULT_MASS_FLOOR_REL
 }
 
 /// The coordinates of step 1's board population (`bayes::target::PerMass` says why).
@@ -311,6 +319,8 @@ pub enum BoardCoordinates {
 }
 
 impl UpdateOptions {
+    /// Default floor of the mass term's sd, relative to the weighed mass (`mass_obs`).
+    pub const DEFAULT_MASS_FLOOR_REL: f64 = 2e-4;
     /// The ROM box the tests verify the ROM over (relative half-width); step 1 widens it
     /// when the posterior presses against it ([`MAX_ROM_BOX`]).
     pub const DEFAULT_ROM_BOX: f64 = 0.2;
@@ -639,7 +649,12 @@ fn unit_data(
     Ok((d, meta))
 }
 
-fn mass_obs(m: &MassRow, board_id: &str, findings: &mut Findings) -> Option<MassObs> {
+fn mass_obs(
+    m: &MassRow,
+    board_id: &str,
+    floor_rel: f64,
+    findings: &mut Findings,
+) -> Option<MassObs> {
     if m.n_stable < 1 || !m.mass_g.is_finite() {
         return None;
     }
@@ -654,12 +669,14 @@ fn mass_obs(m: &MassRow, board_id: &str, findings: &mut Findings) -> Option<Mass
     } else {
         m.std_g * m.std_g / m.n_stable as f64 + res2
     };
-    // A floor of 2e-4 of the mass: the balance's readability is not its accuracy. Weighing a
-    // board (ρ ≈ 1.9 g/cm³) against steel calibration weights (8 g/cm³) without the air-
-    // buoyancy correction alone shifts the reading by ≈ 0.05 % (ρ_air V (1 − ρ/ρ_ref));
-    // calibration adds to it. Without the floor a 0.1 mg readability pins mass_scale to
-    // 2e-6, a precision no other part of the model has.
-    let sd = sd2.sqrt().max(2e-4 * m.mass_g.abs()).max(1e-9);
+    // A floor of `floor_rel` (default 2e-4) of the mass: the balance's readability is not its
+    // accuracy. Weighing a board (ρ ≈ 1.9 g/cm³) against steel calibration weights (8 g/cm³)
+    // without the air-buoyancy correction alone shifts the reading by ≈ 0.05 %
+    // (ρ_air V (1 − ρ/ρ_ref)); calibration adds to it. Without the floor a 0.1 mg
+    // readability pins mass_scale to 2e-6, a precision no other part of the model has.
+    // Readings corrected for buoyancy against a calibrated balance (or a virtual lab's,
+    // which has neither error) need no floor: `--mass-floor 0`.
+    let sd = sd2.sqrt().max(floor_rel * m.mass_g.abs()).max(1e-9);
     Some(MassObs {
         mass_g: m.mass_g,
         sd_g: sd,
@@ -2303,6 +2320,12 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             m.id()
         );
     }
+    if !(opts.mass_floor_rel.is_finite() && opts.mass_floor_rel >= 0.0) {
+        bail!(
+            "--mass-floor: expected a finite relative value >= 0, found {}",
+            opts.mass_floor_rel
+        );
+    }
     let mut inputs = vec![
         pairs_path.clone(),
         presence_path.clone(),
@@ -2502,7 +2525,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                     &mut findings,
                 )?;
                 data.mass = match masses.get(b) {
-                    Some(m) if mass_updated => mass_obs(m, b, &mut findings),
+                    Some(m) if mass_updated => mass_obs(m, b, opts.mass_floor_rel, &mut findings),
                     Some(_) => None,
                     None => {
                         findings.push(Finding::new(
@@ -4168,5 +4191,46 @@ mod convergence_tests {
         let short = row("sigma_ln_k_con", &chains(4, &[0.0, 0.0], 30));
         let f = convergence_finding(&[short], 2).expect("a warning");
         assert!(f.message.contains("ESS below 100"), "{}", f.message);
+    }
+}
+
+#[cfg(test)]
+mod mass_term_tests {
+    use super::*;
+
+    /// The balance term's sd: the spread of the mean and the readability's uniform rounding
+    /// error, never below the floor (relative to the mass); with the floor at 0, the readings'
+    /// own sd; readings ingest flagged as inconsistent keep their full spread.
+    #[test]
+    fn the_mass_term_sd_is_the_readings_sd_floored() {
+        let row = MassRow {
+            mass_g: 12.5,
+            n_stable: 6,
+            std_g: 6e-5,
+            resolution_g: 1e-4,
+            inconsistent: false,
+        };
+        let own = (6e-5f64 * 6e-5 / 6.0 + 1e-4 * 1e-4 / 12.0).sqrt();
+        let mut f = Findings::default();
+        let floored = mass_obs(
+            &row,
+            "PCB-01",
+            UpdateOptions::DEFAULT_MASS_FLOOR_REL,
+            &mut f,
+        )
+        .expect("a mass term");
+        assert_eq!(floored.sd_g, 2e-4 * 12.5);
+        assert_eq!(floored.mass_g, 12.5);
+        let bare = mass_obs(&row, "PCB-01", 0.0, &mut f).expect("a mass term");
+        assert!((bare.sd_g - own).abs() < 1e-15, "{} vs {own}", bare.sd_g);
+        let spread = MassRow {
+            inconsistent: true,
+            ..row
+        };
+        let s = mass_obs(&spread, "PCB-01", 0.0, &mut f).expect("a mass term");
+        assert!((s.sd_g - (6e-5f64 * 6e-5 + 1e-4 * 1e-4 / 12.0).sqrt()).abs() < 1e-15);
+        assert_eq!(f.0.len(), 1, "the inconsistent readings are reported");
+        let none = MassRow { n_stable: 0, ..row };
+        assert!(mass_obs(&none, "PCB-01", 0.0, &mut f).is_none());
     }
 }
