@@ -155,18 +155,10 @@ pub fn nearest_eigenpairs(a: &mut [f64], r: usize, target: f64, count: usize) ->
         let z = inverse_iteration(&d, &e, values[k], norm_t, &near);
         zs.push(z);
     }
-    let vectors = zs
-        .into_iter()
-        .map(|mut y| {
-            for (k, u) in us.iter().enumerate().rev() {
-                let tail = &mut y[k + 1..];
-                let s: f64 = u.iter().zip(tail.iter()).map(|(a, b)| a * b).sum();
-                tail.iter_mut().zip(u).for_each(|(t, ui)| *t -= s * ui);
-            }
-            y
-        })
-        .collect();
-    SymEigen { values, vectors }
+    SymEigen {
+        values,
+        vectors: back_transform(zs, &us),
+    }
 }
 
 fn solve(a: &mut [f64], r: usize, first: usize, count: usize, few: bool) -> SymEigen {
@@ -203,9 +195,16 @@ fn solve(a: &mut [f64], r: usize, first: usize, count: usize, few: bool) -> SymE
             (values, zs)
         }
     };
-    // Back-transform: y = H₀ H₁ … z, applying the last reflector first.
-    let vectors = zs
-        .into_iter()
+    SymEigen {
+        values,
+        vectors: back_transform(zs, &us),
+    }
+}
+
+/// Eigenvectors `zs` of the tridiagonal form back in the matrix's coordinates:
+/// y = H₀ H₁ … z with the reflectors `us` of [`tridiagonalize`], the last applied first.
+fn back_transform(zs: Vec<Vec<f64>>, us: &[Vec<f64>]) -> Vec<Vec<f64>> {
+    zs.into_iter()
         .map(|mut y| {
             for (k, u) in us.iter().enumerate().rev() {
                 let tail = &mut y[k + 1..];
@@ -214,8 +213,7 @@ fn solve(a: &mut [f64], r: usize, first: usize, count: usize, few: bool) -> SymE
             }
             y
         })
-        .collect();
-    SymEigen { values, vectors }
+        .collect()
 }
 
 /// The vectors among `zs` whose eigenvalues (`values`, same order) lie within 1e-3 ‖T‖ of
@@ -695,6 +693,28 @@ mod tests {
     use rand::{RngExt, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
+    /// A random orthogonal matrix (Q of the QR of a uniform one).
+    fn random_orthogonal(r: usize, rng: &mut ChaCha8Rng) -> Mat<f64> {
+        let g = Mat::from_fn(r, r, |_, _| rng.random::<f64>() - 0.5);
+        g.qr().compute_Q()
+    }
+
+    /// Q diag(λ) Qᵀ (row-major) for a random orthogonal Q, and Q's columns.
+    fn with_spectrum(lam: &[f64], rng: &mut ChaCha8Rng) -> (Vec<f64>, Vec<Vec<f64>>) {
+        let r = lam.len();
+        let q = random_orthogonal(r, rng);
+        let a = (0..r * r)
+            .map(|ij| {
+                let (i, j) = (ij / r, ij % r);
+                (0..r).map(|k| q[(i, k)] * lam[k] * q[(j, k)]).sum()
+            })
+            .collect();
+        let cols = (0..r)
+            .map(|k| (0..r).map(|i| q[(i, k)]).collect())
+            .collect();
+        (a, cols)
+    }
+
     /// A·y = λ·y within ε·√r·‖A‖ and orthonormality, against faer's dense solver for
     /// the eigenvalues, on random symmetric matrices including a cluster.
     #[test]
@@ -747,10 +767,6 @@ mod tests {
     #[test]
     fn wanted_eigenpairs_match_the_ql_path_clusters_included() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
-        let random_orthogonal = |r: usize, rng: &mut ChaCha8Rng| {
-            let g = Mat::from_fn(r, r, |_, _| rng.random::<f64>() - 0.5);
-            g.qr().compute_Q()
-        };
         for (r, gaps) in [
             (30usize, vec![]),
             (47, vec![]),
@@ -774,13 +790,7 @@ mod tests {
                 lam[k + 1] = lam[k] * (1.0 + g);
             }
             lam.sort_by(f64::total_cmp);
-            let q = random_orthogonal(r, &mut rng);
-            let a: Vec<f64> = (0..r * r)
-                .map(|ij| {
-                    let (i, j) = (ij / r, ij % r);
-                    (0..r).map(|k| q[(i, k)] * lam[k] * q[(j, k)]).sum()
-                })
-                .collect();
+            let (a, _) = with_spectrum(&lam, &mut rng);
             let (first, count) = (3, 8);
             let ql = lowest_eigenpairs(&mut a.clone(), r, first, count);
             let got = wanted_eigenpairs(&mut a.clone(), r, first, count);
@@ -819,20 +829,7 @@ mod tests {
         let lam: Vec<f64> = (0..r)
             .map(|k| 1.0 + k as f64 + 0.3 * (k % 3) as f64)
             .collect();
-        // A random orthogonal Q by Gram–Schmidt of random columns.
-        let mut q: Vec<Vec<f64>> = vec![];
-        while q.len() < r {
-            let mut v: Vec<f64> = (0..r).map(|_| rng.random::<f64>() - 0.5).collect();
-            for u in &q {
-                let c: f64 = u.iter().zip(&v).map(|(a, b)| a * b).sum();
-                v.iter_mut().zip(u).for_each(|(x, y)| *x -= c * y);
-            }
-            let n = v.iter().map(|a| a * a).sum::<f64>().sqrt();
-            q.push(v.iter().map(|a| a / n).collect());
-        }
-        let a0: Vec<f64> = (0..r * r)
-            .map(|k| (0..r).map(|j| q[j][k / r] * lam[j] * q[j][k % r]).sum())
-            .collect();
+        let (a0, _) = with_spectrum(&lam, &mut rng);
         for target in [0.2, 6.4, 9.05, 30.0] {
             let mut a = a0.clone();
             let got = nearest_eigenpairs(&mut a, r, target, 3);
@@ -863,19 +860,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(21);
         let r = 12;
         let lam: Vec<f64> = (0..r).map(|k| 2.0 + 1.5 * k as f64).collect();
-        let mut q: Vec<Vec<f64>> = vec![];
-        while q.len() < r {
-            let mut v: Vec<f64> = (0..r).map(|_| rng.random::<f64>() - 0.5).collect();
-            for u in &q {
-                let c: f64 = u.iter().zip(&v).map(|(a, b)| a * b).sum();
-                v.iter_mut().zip(u).for_each(|(x, y)| *x -= c * y);
-            }
-            let n = v.iter().map(|a| a * a).sum::<f64>().sqrt();
-            q.push(v.iter().map(|a| a / n).collect());
-        }
-        let mut a: Vec<f64> = (0..r * r)
-            .map(|k| (0..r).map(|j| q[j][k / r] * lam[j] * q[j][k % r]).sum())
-            .collect();
+        let (mut a, q) = with_spectrum(&lam, &mut rng);
         // Only the upper triangle may be read.
         for i in 0..r {
             for j in 0..i {
