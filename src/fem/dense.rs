@@ -140,21 +140,13 @@ pub fn rayleigh_quotient_iteration(a: &[f64], r: usize, start: &[f64]) -> Option
 pub fn nearest_eigenpairs(a: &mut [f64], r: usize, target: f64, count: usize) -> SymEigen {
     debug_assert_eq!(a.len(), r * r);
     let (d, e, us) = tridiagonalize(a, r);
-    let norm_t = d
-        .iter()
-        .zip(e.iter().chain(std::iter::once(&0.0)))
-        .fold(0.0f64, |m, (x, y)| m.max(x.abs() + 2.0 * y.abs()));
+    let norm_t = tridiagonal_norm(&d, &e);
     let mut values = d.clone();
     let mut off = e.clone();
     tql_values(&mut values, &mut off);
     values.sort_by(|a, b| (a - target).abs().total_cmp(&(b - target).abs()));
     values.truncate(count.min(r));
-    let mut zs: Vec<Vec<f64>> = Vec::with_capacity(values.len());
-    for k in 0..values.len() {
-        let near = near_vectors(&zs, &values[..k], values[k], norm_t);
-        let z = inverse_iteration(&d, &e, values[k], norm_t, &near);
-        zs.push(z);
-    }
+    let zs = inverse_iterations(&d, &e, &values, norm_t);
     SymEigen {
         values,
         vectors: back_transform(zs, &us),
@@ -164,10 +156,7 @@ pub fn nearest_eigenpairs(a: &mut [f64], r: usize, target: f64, count: usize) ->
 fn solve(a: &mut [f64], r: usize, first: usize, count: usize, few: bool) -> SymEigen {
     debug_assert_eq!(a.len(), r * r);
     let (d, e, us) = tridiagonalize(a, r);
-    let norm_t = d
-        .iter()
-        .zip(e.iter().chain(std::iter::once(&0.0)))
-        .fold(0.0f64, |m, (x, y)| m.max(x.abs() + 2.0 * y.abs()));
+    let norm_t = tridiagonal_norm(&d, &e);
     let end = (first + count).min(r);
     let fast = if few && first < end && 5 * end <= r {
         bisect_rqi(&d, &e, first, end, norm_t)
@@ -181,14 +170,7 @@ fn solve(a: &mut [f64], r: usize, first: usize, count: usize, few: bool) -> SymE
             let mut off = e.clone();
             tql_values(&mut values, &mut off);
             values.sort_by(f64::total_cmp);
-            let mut zs: Vec<Vec<f64>> = Vec::with_capacity(end.saturating_sub(first));
-            for k in first..end {
-                // Orthogonalise only against vectors of nearby eigenvalues (a cluster, as in
-                // LAPACK's dstein); well-separated ones are orthogonal to working precision.
-                let near = near_vectors(&zs, &values[first..k], values[k], norm_t);
-                let z = inverse_iteration(&d, &e, values[k], norm_t, &near);
-                zs.push(z);
-            }
+            let zs = inverse_iterations(&d, &e, &values[first.min(end)..end], norm_t);
             if few {
                 values = values[first.min(end)..end].to_vec();
             }
@@ -199,6 +181,25 @@ fn solve(a: &mut [f64], r: usize, first: usize, count: usize, few: bool) -> SymE
         values,
         vectors: back_transform(zs, &us),
     }
+}
+
+/// ‖T‖∞ of the symmetric tridiagonal (d, e).
+fn tridiagonal_norm(d: &[f64], e: &[f64]) -> f64 {
+    d.iter()
+        .zip(e.iter().chain(std::iter::once(&0.0)))
+        .fold(0.0f64, |m, (x, y)| m.max(x.abs() + 2.0 * y.abs()))
+}
+
+/// The tridiagonal's eigenvectors at the eigenvalues `values`, by inverse iteration, each
+/// orthogonalised only against those of nearby eigenvalues (a cluster, as in LAPACK's
+/// dstein); well-separated ones are orthogonal to working precision.
+fn inverse_iterations(d: &[f64], e: &[f64], values: &[f64], norm_t: f64) -> Vec<Vec<f64>> {
+    let mut zs: Vec<Vec<f64>> = Vec::with_capacity(values.len());
+    for k in 0..values.len() {
+        let near = near_vectors(&zs, &values[..k], values[k], norm_t);
+        zs.push(inverse_iteration(d, e, values[k], norm_t, &near));
+    }
+    zs
 }
 
 /// Eigenvectors `zs` of the tridiagonal form back in the matrix's coordinates:
