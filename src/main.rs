@@ -291,8 +291,9 @@ struct UpdateArgs {
     /// calibration weights without the air-buoyancy correction shifts its reading by about
     /// 0.05 %. 0 trusts the readings to their spread and readability (buoyancy-corrected
     /// readings on a calibrated balance, or a virtual lab's)
-    #[arg(long, default_value_t = stage::update::UpdateOptions::DEFAULT_MASS_FLOOR_REL)]
-    mass_floor: f64,
+    /// [default: 2e-4]
+    #[arg(long)]
+    mass_floor: Option<f64>,
 }
 
 #[derive(Subcommand)]
@@ -365,6 +366,12 @@ enum UpdateCommand {
         /// stiffness ratio in every measurement.
         #[arg(long)]
         enrich_joint: Option<usize>,
+        /// With `--enrich`: modes the enriched model carries and the baseline lacks (a
+        /// fixture's own mode) join the updating where the campaign identified them but
+        /// pair left them unpaired (MAC ≥ 0.9 with the enriched model's mode at the fitted
+        /// centre, frequency within 5 %, in at least half of the bolted measurements).
+        #[arg(long)]
+        enrich_new_modes: bool,
     },
 }
 
@@ -425,10 +432,13 @@ impl UpdateArgs {
             enrich_joint: None,
             enrich_covariate: None,
             enrich_location: None,
+            enrich_new_modes: false,
             model_error: !self.no_model_error,
             hold_out_boards: vec![],
             board_coordinates: Default::default(),
-            mass_floor_rel: self.mass_floor,
+            mass_floor_rel: self
+                .mass_floor
+                .unwrap_or(stage::update::UpdateOptions::DEFAULT_MASS_FLOOR_REL),
         }
     }
 }
@@ -723,11 +733,23 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                     sigma_scale,
                     enrich,
                     enrich_joint,
+                    enrich_new_modes,
                 },
         } => {
+            // Step 2 has neither a balance term nor a model-error term: say so rather than
+            // ignore the step-1 options.
+            for (given, flag) in [
+                (common.mass_floor.is_some(), "--mass-floor"),
+                (common.no_model_error, "--no-model-error"),
+            ] {
+                if given {
+                    anyhow::bail!("update joints: {flag} is an option of update boards (step 1); step 2 has no balance term and no model-error term");
+                }
+            }
             let mut opts = common.options(vec![], prior_width, sigma_scale);
             opts.enrich = enrich;
             opts.enrich_joint = enrich_joint;
+            opts.enrich_new_modes = enrich_new_modes;
             // Step 2 has no model-error term (its manifest must not claim one).
             opts.model_error = false;
             let o = stage::update::run_joints(&opts, &boards, cli.verbose)?;

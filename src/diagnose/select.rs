@@ -94,6 +94,30 @@ pub struct Refit {
     /// others, per measurement.
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
     pub deviating_joints: Vec<DeviatingJoint>,
+    /// Modes the enriched model carries and the baseline lacks (a fixture's own), which the
+    /// campaign identified and pair left unpaired. The estimates then come from a second
+    /// refit that fits them too (`estimates_dir`); the Bayes factor and the held-out errors
+    /// stay this refit's, over the same data as the baseline's.
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub new_modes: Vec<NewModeNote>,
+}
+
+/// A mode an enrichment adds that the campaign shows ([`Refit::new_modes`]).
+#[derive(Clone, Debug, Serialize, PartialEq, schemars::JsonSchema)]
+pub struct NewModeNote {
+    /// Its label in the second refit, `<mechanism>-mode-<k>`.
+    pub label: String,
+    /// The enriched model's frequency at the refit's centre, Hz.
+    pub model_freq_hz: f64,
+    /// Median frequency of the identified modes it pairs with, Hz.
+    pub median_freq_hz: f64,
+    /// Bolted measurements where it paired, and those with identified modes.
+    pub n_paired: usize,
+    pub n_measurements: usize,
+    /// The second refit's directory (relative to the diagnosis directory), or why it gave
+    /// no estimates.
+    pub estimates_dir: Option<String>,
+    pub estimates_failed: Option<String>,
 }
 
 impl Refit {
@@ -352,6 +376,20 @@ pub fn sentence(c: &Compared) -> String {
     if !held.is_empty() {
         parts.push(held);
     }
+    for m in &c.refit.new_modes {
+        parts.push(format!(
+            "the enriched model also has a mode the baseline lacks, at {:.0} Hz, seen in {} of {} bolted measurements at {:.0} Hz{}",
+            m.model_freq_hz,
+            m.n_paired,
+            m.n_measurements,
+            m.median_freq_hz,
+            match (&m.estimates_dir, &m.estimates_failed) {
+                (Some(_), _) => ": the estimates are from the refit that fits it too".to_string(),
+                (None, Some(why)) => format!(" (the refit that fits it too gave no estimates: {why})"),
+                (None, None) => String::new(),
+            }
+        ));
+    }
     let mut s = parts.join("; ");
     s.push('.');
     s
@@ -388,6 +426,7 @@ mod tests {
             log_location_occam: None,
             remaining_share: None,
             deviating_joints: vec![],
+            new_modes: vec![],
         }
     }
 
@@ -407,6 +446,42 @@ mod tests {
         assert!(c[1].favoured);
         assert_eq!(verdict(true, &c), Verdict::MechanismFound);
         assert_eq!(verdict(true, &c[..1]), Verdict::UnexplainedMisfit);
+    }
+
+    /// The mode an enrichment adds shows in the sentence, with where the estimates come
+    /// from; the Bayes factor stays the refit's own (over the baseline's data).
+    #[test]
+    fn a_new_mode_is_named_in_the_sentence_and_leaves_the_bayes_factor_alone() {
+        let base = refit(None, &[100.0, 100.2], 0.2);
+        let mut fix = refit(Some(Mechanism::FixtureCompliance), &[300.0, 300.2], 0.02);
+        fix.remaining_share = Some(0.05);
+        let note = NewModeNote {
+            label: "fixture_compliance-mode-1".into(),
+            model_freq_hz: 2790.4,
+            median_freq_hz: 2764.8,
+            n_paired: 30,
+            n_measurements: 30,
+            estimates_dir: Some("refits/fixture_compliance/new_modes".into()),
+            estimates_failed: None,
+        };
+        fix.new_modes = vec![note.clone()];
+        let c = compare(&base, &[fix.clone()], &SelectOptions::default());
+        assert!((c[0].log_bayes_factor.unwrap() - 200.0).abs() < 1e-9);
+        let s = sentence(&c[0]);
+        assert!(
+            s.contains("a mode the baseline lacks, at 2790 Hz, seen in 30 of 30 bolted measurements at 2765 Hz: the estimates are from the refit that fits it too"),
+            "{s}"
+        );
+        fix.new_modes = vec![NewModeNote {
+            estimates_dir: None,
+            estimates_failed: Some("sampler not converged".into()),
+            ..note
+        }];
+        let s = sentence(&compare(&base, &[fix], &SelectOptions::default())[0]);
+        assert!(
+            s.contains("gave no estimates: sampler not converged"),
+            "{s}"
+        );
     }
 
     #[test]

@@ -862,6 +862,7 @@ mod tests {
             log_location_occam: None,
             remaining_share: None,
             deviating_joints: vec![],
+            new_modes: vec![],
         };
         let cand = |m: Mechanism| Candidate {
             mechanism: m,

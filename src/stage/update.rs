@@ -274,6 +274,11 @@ pub struct UpdateOptions {
     /// Step 1 with `added_mass`: the point (x_m, y_m) of the lumped mass.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub enrich_location: Option<[f64; 2]>,
+    /// Step 2 with an enrichment: the enriched model's modes that no baseline label
+    /// carries (a fixture's own mode) are paired with the identified modes pair left
+    /// unpaired, and join the updating as labels of their own ([`pair_new_modes`]).
+    #[serde(skip_serializing_if = "std::ops::Not::not", default)]
+    pub enrich_new_modes: bool,
     /// Step 1: a relative model-form error per updated mode, common to a board's
     /// measurements and independent between boards, integrated out; its prior sd from the
     /// model's discretization spread (`fem::convergence::mesh_spread`).
@@ -3109,6 +3114,182 @@ fn match_points(board: &Board) -> Vec<[f64; 2]> {
     out
 }
 
+/// One identified mode of modes.parquet.
+#[derive(Clone, Debug)]
+struct Identified {
+    measurement_id: String,
+    board_id: String,
+    mode: i32,
+    freq_hz: f64,
+}
+
+/// The identified modes of `setup` in modes.parquet.
+fn read_identified(path: &Path, setup: &str) -> anyhow::Result<Vec<Identified>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (mid, bid, st, mode, f) = (
+            c.str("measurement_id")?,
+            c.str("board_id")?,
+            c.str("setup")?,
+            c.i32("mode")?,
+            c.f64("freq_hz")?,
+        );
+        for i in 0..b.num_rows() {
+            if st.value(i) == setup && f.value(i).is_finite() {
+                out.push(Identified {
+                    measurement_id: mid.value(i).to_string(),
+                    board_id: bid.value(i).to_string(),
+                    mode: mode.value(i),
+                    freq_hz: f.value(i),
+                });
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Least MAC of an identified mode with an enriched model's new mode, and the largest
+/// relative frequency difference, for the two to pair (pair's own rule is MAC-based too).
+const NEW_MODE_MIN_MAC: f64 = 0.9;
+const NEW_MODE_MAX_REL_FREQ: f64 = 0.05;
+
+/// The modes of `model` at `p` that no label carries (`taken`), paired with the identified
+/// modes pair left unpaired (`identified` minus `paired`): per measurement the unpaired
+/// mode of largest MAC ≥ [`NEW_MODE_MIN_MAC`] within [`NEW_MODE_MAX_REL_FREQ`] of the
+/// model's frequency. A model mode becomes a label (`<mechanism>-mode-<k>`) where it pairs
+/// in at least half of the measurements: an enrichment that predicts a mode the baseline
+/// cannot have (a fixture's own resonance) is then held to that mode too.
+#[allow(clippy::too_many_arguments)]
+fn pair_new_modes(
+    model: &FeModel,
+    p: &crate::fem::Params,
+    n_track: usize,
+    taken: &[usize],
+    identified: &[Identified],
+    paired: &BTreeSet<(String, i32)>,
+    modes_path: &Path,
+    mechanism: &str,
+) -> anyhow::Result<Vec<NewMode>> {
+    let m = model.modes(p, n_track)?;
+    let key = |r: &Identified| (r.measurement_id.clone(), r.mode);
+    let unpaired: Vec<&Identified> = identified
+        .iter()
+        .filter(|r| !paired.contains(&key(r)))
+        .collect();
+    let measurements: BTreeSet<&str> = identified
+        .iter()
+        .map(|r| r.measurement_id.as_str())
+        .collect();
+    let (lo, hi) = identified
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(lo, hi), r| {
+            (lo.min(r.freq_hz), hi.max(r.freq_hz))
+        });
+    let wanted: BTreeSet<(String, i32)> = unpaired.iter().map(|r| key(r)).collect();
+    let shapes = read_shapes(modes_path, &wanted)?;
+    let mut used: BTreeSet<(String, i32)> = BTreeSet::new();
+    let mut out = vec![];
+    for c in 0..m.freq_hz.len() {
+        let fc = m.freq_hz[c];
+        if taken.contains(&c)
+            || fc < lo * (1.0 - NEW_MODE_MAX_REL_FREQ)
+            || fc > hi * (1.0 + NEW_MODE_MAX_REL_FREQ)
+        {
+            continue;
+        }
+        let mut best: BTreeMap<&str, (f64, &Identified)> = BTreeMap::new();
+        for r in &unpaired {
+            if (r.freq_hz / fc - 1.0).abs() > NEW_MODE_MAX_REL_FREQ || used.contains(&key(r)) {
+                continue;
+            }
+            let Some((s, xs, ys)) = shapes.get(&key(r)) else {
+                continue;
+            };
+            let mut pts = vec![];
+            let mut u = vec![];
+            for ((v, x), y) in s.iter().zip(xs).zip(ys) {
+                if v.is_finite() && model.shape_operator(&[[*x, *y]]).is_ok() {
+                    pts.push([*x, *y]);
+                    u.push(*v);
+                }
+            }
+            if pts.len() < 3 {
+                continue;
+            }
+            let w = model.w_at(&m, &pts)?;
+            let (mut uw, mut uu, mut ww) = (0.0, 0.0, 0.0);
+            for (i, ui) in u.iter().enumerate() {
+                uw += ui * w[(i, c)];
+                uu += ui * ui;
+                ww += w[(i, c)] * w[(i, c)];
+            }
+            let mac = uw * uw / (uu * ww).max(f64::MIN_POSITIVE);
+            let m = r.measurement_id.as_str();
+            if mac >= NEW_MODE_MIN_MAC && best.get(m).is_none_or(|b| mac > b.0) {
+                best.insert(m, (mac, *r));
+            }
+        }
+        if best.is_empty() || 2 * best.len() < measurements.len() {
+            continue;
+        }
+        let label = format!("{mechanism}-mode-{}", out.len() + 1);
+        let rows: Vec<PairRow> = best
+            .values()
+            .map(|(_, r)| {
+                used.insert(key(r));
+                PairRow {
+                    measurement_id: r.measurement_id.clone(),
+                    board_id: r.board_id.clone(),
+                    setup: "bolted".into(),
+                    mode: r.mode,
+                    freq_hz: r.freq_hz,
+                    model_mode: c as i32 + 1,
+                    label: label.clone(),
+                }
+            })
+            .collect();
+        out.push(NewMode {
+            model_mode: c,
+            model_freq_hz: fc,
+            label,
+            rows,
+            n_measurements: measurements.len(),
+        });
+    }
+    Ok(out)
+}
+
+/// A mode of an enriched model that no baseline label carries, with the identified modes it
+/// pairs with ([`pair_new_modes`]).
+#[derive(Clone, Debug)]
+struct NewMode {
+    /// 0-based mode of the enriched model at the ROM's centre.
+    model_mode: usize,
+    model_freq_hz: f64,
+    /// `<mechanism>-mode-<k>`.
+    label: String,
+    /// One pair per measurement where it paired.
+    rows: Vec<PairRow>,
+    /// Bolted measurements with an identified mode.
+    n_measurements: usize,
+}
+
+impl NewMode {
+    fn median_freq_hz(&self) -> f64 {
+        let mut f: Vec<f64> = self.rows.iter().map(|r| r.freq_hz).collect();
+        f.sort_by(f64::total_cmp);
+        let n = f.len();
+        if n == 0 {
+            f64::NAN
+        } else if n % 2 == 1 {
+            f[n / 2]
+        } else {
+            0.5 * (f[n / 2 - 1] + f[n / 2])
+        }
+    }
+}
+
 /// The modes of `model` at `p` matched to the reference shapes (columns of `w_ref`, w at
 /// `points`) by MAC, greedily from the best pair: per reference, the 0-based mode and its
 /// frequency. A joint enrichment can add modes (the fixture's) and reorder them, so labels
@@ -3600,14 +3781,71 @@ pub fn run_joints(
         let (label_modes, _) = match_modes(&model, &centre_p, n_track, &w_labels, &points)?;
         let (all_modes, _) =
             match_modes(&model, &centre_p, n_track, &pick(&all.model_mode), &points)?;
-        let labels = Labels {
+        let mut labels = Labels {
             labels: labels.labels.clone(),
             model_mode: label_modes,
         };
-        let all = Labels {
+        let mut all = Labels {
             labels: all.labels.clone(),
             model_mode: all_modes,
         };
+        // Modes the enrichment adds (a fixture's own) that the campaign identified and pair
+        // left unpaired: recorded in evidence.json (`new_modes`), and with
+        // --enrich-new-modes updated as labels of their own.
+        let new_modes = match opts.enrich.filter(|m| !is_board_mechanism(*m)) {
+            Some(mech) => {
+                let taken: Vec<usize> = labels
+                    .model_mode
+                    .iter()
+                    .chain(&all.model_mode)
+                    .copied()
+                    .collect();
+                let paired: BTreeSet<(String, i32)> = bolted_rows
+                    .iter()
+                    .map(|p| (p.measurement_id.clone(), p.mode))
+                    .collect();
+                pair_new_modes(
+                    &model,
+                    &centre_p,
+                    n_track,
+                    &taken,
+                    &read_identified(&modes_path, "bolted")?,
+                    &paired,
+                    &modes_path,
+                    mech.id(),
+                )?
+            }
+            None => vec![],
+        };
+        let mut new_rows = vec![];
+        for nm in &new_modes {
+            let used = opts.enrich_new_modes;
+            findings.push(Finding::new(
+                Severity::Info,
+                "update.new_mode_paired",
+                format!(
+                    "the enriched model's mode {} at {:.1} Hz (no baseline label) pairs with {} of {} bolted measurements' modes that pair left unpaired (median {:.1} Hz); {}",
+                    nm.model_mode + 1,
+                    nm.model_freq_hz,
+                    nm.rows.len(),
+                    nm.n_measurements,
+                    nm.median_freq_hz(),
+                    if used {
+                        format!("updated as {:?}", nm.label)
+                    } else {
+                        "not updated (--enrich-new-modes updates it)".to_string()
+                    }
+                ),
+            ));
+            if used {
+                labels.labels.push(nm.label.clone());
+                labels.model_mode.push(nm.model_mode);
+                all.labels.push(nm.label.clone());
+                all.model_mode.push(nm.model_mode);
+                new_rows.extend(nm.rows.iter().cloned());
+            }
+        }
+        let bolted_rows: Vec<&PairRow> = bolted_rows.into_iter().chain(&new_rows).collect();
         let need = modes_needed(&labels, &all);
         // ROM box: ±rom_box, and along every parameter an extra coordinate moves, the sum of
         // the ln half-widths of the coordinates acting on it.
@@ -4005,6 +4243,22 @@ pub fn run_joints(
         ev["note_cut"] = "log p(bolted data | step-1 posterior): the mean over the carried step-1 draws of each draw's evidence".into();
         ev["k_con_rom_centre_n_per_m"] = k_centre.into();
         ev["enrichment"] = serde_json::to_value(&enr)?;
+        ev["new_modes"] = serde_json::Value::Array(
+            new_modes
+                .iter()
+                .map(|nm| {
+                    serde_json::json!({
+                        "label": nm.label,
+                        "model_mode": nm.model_mode + 1,
+                        "model_freq_hz": nm.model_freq_hz,
+                        "median_freq_hz": nm.median_freq_hz(),
+                        "n_paired": nm.rows.len(),
+                        "n_measurements": nm.n_measurements,
+                        "updated": opts.enrich_new_modes,
+                    })
+                })
+                .collect(),
+        );
         if let Some(m) = board_mech {
             // The joints are the baseline's; the boards carry the mechanism (step 1's refit).
             ev["board_mechanism"] = serde_json::to_value(m)?;

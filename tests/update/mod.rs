@@ -423,6 +423,28 @@ fn unknown_params_are_an_error_and_unknown_modes_a_warning() {
     let r: serde_json::Value =
         serde_json::from_slice(&std::fs::read(w.p("u2/update_report.json")).unwrap()).unwrap();
     assert_eq!(r["labels"], serde_json::json!(["torsion-1", "bending-x-1"]));
+
+    // A mass floor that is no relative sd stops step 1 naming the option; step 2, which has
+    // no balance term (nor a model-error term), refuses the step-1 options instead of
+    // ignoring them.
+    let o = w.update("u3", "coarse.toml", PARAMS, &["--mass-floor=-0.1"]);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--mass-floor") && err.contains("-0.1"),
+        "{err}"
+    );
+    assert!(!w.p("u3/boards.parquet").exists());
+    for flag in [&["--mass-floor", "0"][..], &["--no-model-error"][..]] {
+        let o = w.joints("j", "u2", flag);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{flag:?}: {err}");
+        assert!(
+            err.contains(flag[0]) && err.contains("update boards"),
+            "{err}"
+        );
+        assert!(!w.p("j/joints.parquet").exists());
+    }
 }
 
 /// `--enrich added_mass` (the diagnosis's refit of a located point mass): boards.parquet gains
@@ -511,6 +533,125 @@ share = 1.0
 stiffness_factor = 0.4
 "#
 );
+
+/// Three boards, two bolted measurements each, on a compliant shaker fixture whose own
+/// resonance (0.1 kg on 3e7 N/m, 2.76 kHz alone) lies in the band.
+const FIXTURE: &str = concat!(
+    r#"
+name = "fixture"
+description = "three boards on a compliant fixture"
+seed = 13
+"#,
+    three_bolted_boards!(),
+    r#"
+[effects.compliant_fixture]
+k_fix_n_per_m = 3.0e7
+m_fix_kg = 0.1
+"#
+);
+
+/// `update joints --enrich fixture_compliance`: the enriched model's own fixture mode pairs
+/// with the mode the campaign shows in every bolted measurement and pair left unpaired (the
+/// baseline has no such mode). The refit records it in evidence.json (`new_modes`) without
+/// updating it, so that its evidence is over the baseline's data; with
+/// `--enrich-new-modes` it is a label of its own, with a residual row per measurement at the
+/// lab's fixture-mode frequency.
+#[test]
+fn fixture_refit_pairs_the_fixtures_own_mode_and_updates_it_on_request() {
+    let w = Work::with_scenario(FIXTURE);
+    w.chain();
+    let o = w.update("u", "coarse.toml", PARAMS, &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let truth: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(w.p("truth.json")).unwrap()).unwrap();
+    // The lab's fixture mode per bolted measurement: the in-band mode no mode of the
+    // counterfactual (rigid fixture) pairs with.
+    let mut fixture_hz = std::collections::BTreeMap::new();
+    for m in truth["measurements"].as_array().unwrap() {
+        for md in m["modes"].as_array().unwrap() {
+            if m["setup"] == "bolted"
+                && md["in_band"] == true
+                && md["freq_without_effects_hz"].is_null()
+            {
+                fixture_hz.insert(
+                    m["measurement_id"].as_str().unwrap().to_string(),
+                    md["freq_hz"].as_f64().unwrap(),
+                );
+            }
+        }
+    }
+    assert_eq!(fixture_hz.len(), 6, "{fixture_hz:?}");
+    let small = [
+        "--particles",
+        "100",
+        "--runs",
+        "1",
+        "--enrich",
+        "fixture_compliance",
+    ];
+    for (out, extra) in [("j", &[][..]), ("jn", &["--enrich-new-modes"][..])] {
+        let args: Vec<&str> = small.iter().chain(extra).copied().collect();
+        let o = w.joints(out, "u", &args);
+        assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+        let ev: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(w.p(out).join("evidence.json")).unwrap())
+                .unwrap();
+        let nm = ev["new_modes"].as_array().unwrap();
+        assert_eq!(nm.len(), 1, "{ev}");
+        assert_eq!(nm[0]["label"], "fixture_compliance-mode-1");
+        assert!(nm[0]["n_paired"].as_u64().unwrap() >= 3, "{nm:?}");
+        assert_eq!(nm[0]["updated"], !extra.is_empty());
+        let median = nm[0]["median_freq_hz"].as_f64().unwrap();
+        assert!(
+            fixture_hz.values().all(|f| (f / median - 1.0).abs() < 0.01),
+            "{median} vs {fixture_hz:?}"
+        );
+        assert_eq!(
+            with_code(&w.findings(out), "update.new_mode_paired").len(),
+            1
+        );
+        let r: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(w.p(out).join("update_report.json")).unwrap())
+                .unwrap();
+        let has_label = r["labels"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|l| l == "fixture_compliance-mode-1");
+        assert_eq!(has_label, !extra.is_empty(), "{}", r["labels"]);
+    }
+    // The updated fixture mode's residual rows: measured at the lab's fixture frequency.
+    let rows = residual_rows(&w.p("jn/residuals.parquet"), "fixture_compliance-mode-1");
+    assert!(rows.len() >= 3, "{rows:?}");
+    for (m, f, used) in rows {
+        assert!(used);
+        assert!(
+            (f / fixture_hz[&m] - 1.0).abs() < 1e-3,
+            "{m}: {f} vs {}",
+            fixture_hz[&m]
+        );
+    }
+}
+
+/// (measurement_id, freq_hz, used_for_updating) of a label's rows in residuals.parquet.
+fn residual_rows(path: &Path, label: &str) -> Vec<(String, f64, bool)> {
+    let mut out = vec![];
+    for b in hbmu::io::tables::read_parquet(path).unwrap() {
+        let c = hbmu::io::tables::Cols { batch: &b, path };
+        let (m, l, f, u) = (
+            c.str("measurement_id").unwrap(),
+            c.str("label").unwrap(),
+            c.f64("freq_hz").unwrap(),
+            c.bool("used_for_updating").unwrap(),
+        );
+        for i in 0..b.num_rows() {
+            if l.value(i) == label {
+                out.push((m.value(i).to_string(), f.value(i), u.value(i)));
+            }
+        }
+    }
+    out
+}
 
 /// `update joints --enrich joint_stiffness_per_joint` without a joint: every joint gets its
 /// own stiffness in every measurement. joints.parquet reports each joint's stiffness over the

@@ -18,7 +18,8 @@ use crate::diagnose::locate::{self, LocateOptions, Located, ModeCheck};
 use crate::diagnose::misfit::{MisfitParts, RefitShares};
 use crate::diagnose::screen::{self, Candidate};
 use crate::diagnose::select::{
-    self, Compared, DeviatingJoint, Estimate, Refit, SelectOptions, SetupError, Verdict,
+    self, Compared, DeviatingJoint, Estimate, NewModeNote, Refit, SelectOptions, SetupError,
+    Verdict,
 };
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::manifest::StageSpec;
@@ -524,6 +525,7 @@ fn summarize_refit(
         log_location_occam: None,
         remaining_share: None,
         deviating_joints: vec![],
+        new_modes: vec![],
     })
 }
 
@@ -706,6 +708,70 @@ fn run_gated(
     step(&o)
 }
 
+/// A joint refit's enriched model may carry modes the baseline lacks (a fixture's own) that
+/// the campaign identified and pair left unpaired (`new_modes` of its evidence.json). The
+/// refit itself leaves them out, so that its evidence is over the baseline's data; a second
+/// refit (`<refit>/new_modes`, `update joints --enrich-new-modes`) fits them too, and its
+/// population medians replace the estimates: the mode is the mechanism's most direct
+/// evidence (a fixture's own resonance pins its frequency).
+fn new_modes_refit(
+    opts: &DiagnoseOptions,
+    base2: Option<&UpdateOptions>,
+    cand: &Candidate,
+    out: &Path,
+    rel: &str,
+    r: &mut Refit,
+    verbose: bool,
+) -> anyhow::Result<()> {
+    let ev = read_json(&out.join("evidence.json"))?;
+    let found: Vec<&serde_json::Value> = ev["new_modes"]
+        .as_array()
+        .map(|a| a.iter().collect())
+        .unwrap_or_default();
+    let Some(base) = base2.filter(|_| !found.is_empty() && r.failed.is_none()) else {
+        return Ok(());
+    };
+    let mut o = refit_options(opts, base, cand);
+    o.out = out.join("new_modes");
+    o.enrich_new_modes = true;
+    let nm_rel = format!("{rel}/new_modes");
+    let step = run_gated(o.clone(), |o| {
+        crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose)
+    })
+    .and_then(|_| summarize_refit(&o.out, &nm_rel, Some(cand.mechanism), cand.joint, None, &[]));
+    let (dir, why) = match step {
+        Ok(nm) if nm.failed.is_none() && !nm.estimates.is_empty() => {
+            r.estimates = nm
+                .estimates
+                .into_iter()
+                .map(|mut e| {
+                    e.scope = format!("{}, fitted with the mechanism's own mode(s)", e.scope);
+                    e
+                })
+                .collect();
+            (Some(nm_rel), None)
+        }
+        Ok(nm) => (
+            None,
+            Some(nm.failed.unwrap_or_else(|| "no estimates".into())),
+        ),
+        Err(e) => (None, Some(format!("{e:#}").replace('\n', " "))),
+    };
+    r.new_modes = found
+        .iter()
+        .map(|m| NewModeNote {
+            label: m["label"].as_str().unwrap_or_default().to_string(),
+            model_freq_hz: m["model_freq_hz"].as_f64().unwrap_or(f64::NAN),
+            median_freq_hz: m["median_freq_hz"].as_f64().unwrap_or(f64::NAN),
+            n_paired: m["n_paired"].as_u64().unwrap_or(0) as usize,
+            n_measurements: m["n_measurements"].as_u64().unwrap_or(0) as usize,
+            estimates_dir: dir.clone(),
+            estimates_failed: why.clone(),
+        })
+        .collect();
+    Ok(())
+}
+
 /// Run (or find up to date) one candidate's refit.
 fn refit(
     opts: &DiagnoseOptions,
@@ -730,6 +796,9 @@ fn refit(
             let (est, dev) = every_joint_estimates(&out, board, outliers)?;
             r.estimates.extend(est);
             r.deviating_joints = dev;
+        }
+        if !is_board_mechanism(cand.mechanism) {
+            new_modes_refit(opts, bases.1, cand, &out, &rel, &mut r, verbose)?;
         }
         // The location was chosen from the data: its Occam factor joins the evidence, and
         // its uncertainty the mass's interval (the refit's is conditional on the point).
@@ -766,6 +835,7 @@ fn refit(
             log_location_occam: None,
             remaining_share: None,
             deviating_joints: vec![],
+            new_modes: vec![],
         },
     }
 }
