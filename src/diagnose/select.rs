@@ -280,6 +280,23 @@ fn fmt_num(v: f64) -> String {
     }
 }
 
+/// An estimate's median and 90 % interval as text: [`fmt_num`], with more decimals where the
+/// interval is too narrow for it to show (a fixture's resonance of 2757 Hz known to ±0.05 Hz
+/// is "2756.64 (2756.59–2756.69)", not "2757 (2757–2757)").
+fn fmt_estimate(median: f64, q05: f64, q95: f64) -> [String; 3] {
+    let plain = [fmt_num(median), fmt_num(q05), fmt_num(q95)];
+    let w = q95 - q05;
+    let fixed = [median, q05, q95]
+        .iter()
+        .all(|v| (1e-3..1e5).contains(&v.abs()));
+    if !(fixed && w > 0.0 && w.is_finite()) || (plain[1] != plain[0] && plain[2] != plain[0]) {
+        return plain;
+    }
+    // Two significant digits of the interval's width.
+    let decimals = (1 - w.log10().floor() as i32).clamp(0, 12) as usize;
+    [median, q05, q95].map(|v| format!("{v:.decimals$}"))
+}
+
 /// The sentence of a finding, e.g. "The bolted joints restrain …; k_rot_nm_per_rad = 1.52
 /// (90 % interval 1.31–1.77; population median); log Bayes factor 38.2 ± 0.4 over the
 /// baseline; held-out bolted error 0.130 % → 0.020 %."
@@ -321,13 +338,10 @@ pub fn sentence(c: &Compared) -> String {
         .estimates
         .iter()
         .map(|e| {
+            let [m, lo, hi] = fmt_estimate(e.median, e.q05, e.q95);
             format!(
-                "{} = {} (90 % interval {}–{}; {})",
-                e.parameter,
-                fmt_num(e.median),
-                fmt_num(e.q05),
-                fmt_num(e.q95),
-                e.scope,
+                "{} = {m} (90 % interval {lo}–{hi}; {})",
+                e.parameter, e.scope,
             )
         })
         .collect::<Vec<_>>()
@@ -407,6 +421,23 @@ mod tests {
         assert_eq!(fmt_num(38.24), "38.2");
         assert_eq!(fmt_num(1024.4), "1024");
         assert_eq!(fmt_num(2.5e-5), "2.500e-5");
+    }
+
+    #[test]
+    fn a_narrow_interval_gets_the_decimals_it_needs() {
+        assert_eq!(
+            fmt_estimate(2756.6375, 2756.5861, 2756.6908),
+            ["2756.64", "2756.59", "2756.69"].map(String::from)
+        );
+        // Wide enough as it is: unchanged.
+        assert_eq!(
+            fmt_estimate(1.5437, 1.4620, 1.5530),
+            ["1.544", "1.462", "1.553"].map(String::from)
+        );
+        assert_eq!(
+            fmt_estimate(35.0, 28.0, 43.0),
+            ["35.0", "28.0", "43.0"].map(String::from)
+        );
     }
 
     fn refit(m: Option<Mechanism>, z: &[f64], held: f64) -> Refit {
