@@ -1,5 +1,5 @@
 //! Small numerical helpers of the sampler: log-sum-exp, normal log-densities, the effective
-//! sample size of log weights. All weights stay in log space.
+//! sample size of log weights, the median. All weights stay in log space.
 
 /// ln(2π).
 pub const LN_2PI: f64 = 1.837_877_066_409_345_5;
@@ -16,6 +16,22 @@ pub fn log_sum_exp(a: &[f64]) -> f64 {
 /// log of the mean of exp(aᵢ).
 pub fn log_mean_exp(a: &[f64]) -> f64 {
     log_sum_exp(a) - (a.len() as f64).ln()
+}
+
+/// The median of `x`: the middle value, the mean of the two middle ones for an even count,
+/// NaN when empty.
+pub fn median(x: &[f64]) -> f64 {
+    let mut v = x.to_vec();
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
 }
 
 /// Normalised weights from log weights.
@@ -179,6 +195,13 @@ mod tests {
         assert!((log_sum_exp(&a) - (1000.0 + 2f64.ln())).abs() < 1e-12);
         assert_eq!(log_sum_exp(&[f64::NEG_INFINITY; 3]), f64::NEG_INFINITY);
         assert!((ess(&[0.0; 10]) - 10.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn median_of_odd_even_and_empty() {
+        assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(&[4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert!(median(&[]).is_nan());
     }
 
     #[test]

@@ -23,6 +23,7 @@
 //! Multiplicity: Benjamini–Hochberg within each family (modes, measurements, covariates) at
 //! [`LocateOptions::fdr`]; see there for the default and why.
 
+use crate::bayes::stats::median;
 use serde::Serialize;
 use statrs::distribution::{ChiSquared, ContinuousCDF, FisherSnedecor, Normal, StudentsT};
 use std::collections::{BTreeMap, BTreeSet};
@@ -565,20 +566,6 @@ fn sd(x: &[f64]) -> f64 {
     }
     let m = mean(x);
     (x.iter().map(|v| (v - m).powi(2)).sum::<f64>() / (x.len() - 1) as f64).sqrt()
-}
-
-fn median(x: &[f64]) -> f64 {
-    let mut v = x.to_vec();
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n == 0 {
-        return f64::NAN;
-    }
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
 }
 
 /// 1.4826 × median absolute deviation: a consistent estimate of the normal sd.

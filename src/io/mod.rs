@@ -11,6 +11,7 @@ pub mod gerber;
 pub mod ingest_outputs;
 pub mod manifest;
 pub mod mcap_writer;
+pub mod modes_table;
 pub mod sheet;
 pub mod tables;
 pub mod uff;

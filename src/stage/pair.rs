@@ -8,7 +8,8 @@
 use crate::fem::{Board, FeModel};
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::manifest::StageSpec;
-use crate::io::tables::{self, c, Col, Cols, TableSpec};
+use crate::io::modes_table::{read_modes_table, ModeRow};
+use crate::io::tables::{self, c, Col, TableSpec};
 use crate::modal::pair::{self, IdentifiedShape, ModelMode, PairParams, PresenceRecord, ScanPoint};
 use crate::stage::extract::sanitize;
 use crate::stage::fe::SetupArg;
@@ -16,7 +17,7 @@ use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::Context;
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 
 pub const PAIRS: TableSpec = TableSpec {
@@ -78,50 +79,37 @@ struct Identified {
     modes: Vec<(i32, f64, Vec<f64>)>,
 }
 
-fn read_modes(path: &Path) -> anyhow::Result<Vec<Identified>> {
+/// The rows of modes.parquet grouped per measurement (consecutive rows of one measurement),
+/// with the band and scan points of its first row.
+fn group_modes(rows: Vec<ModeRow>) -> Vec<Identified> {
     let mut out: Vec<Identified> = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (id, board, setup, mode, f, lo, hi) = (
-            c.str("measurement_id")?,
-            c.str("board_id")?,
-            c.str("setup")?,
-            c.i32("mode")?,
-            c.f64("freq_hz")?,
-            c.f64("band_lo_hz")?,
-            c.f64("band_hi_hz")?,
-        );
-        for i in 0..b.num_rows() {
-            let shape = c.list_f64("shape", i)?.unwrap_or_default();
-            if out.last().map(|m| m.measurement_id.as_str()) != Some(id.value(i)) {
-                let nodes = c.list_i64("node", i)?;
-                let xs = c.list_f64("x_m", i)?.unwrap_or_default();
-                let ys = c.list_f64("y_m", i)?.unwrap_or_default();
-                out.push(Identified {
-                    measurement_id: id.value(i).into(),
-                    board_id: board.value(i).into(),
-                    setup: setup.value(i).into(),
-                    band: (lo.value(i), hi.value(i)),
-                    points: nodes
-                        .iter()
-                        .zip(xs.iter().zip(&ys))
-                        .map(|(&n, (&x, &y))| ScanPoint {
-                            node_id: n,
-                            x_m: x,
-                            y_m: y,
-                            z_m: 0.0,
-                        })
-                        .collect(),
-                    modes: vec![],
-                });
-            }
-            out.last_mut()
-                .expect("pushed above")
-                .modes
-                .push((mode.value(i), f.value(i), shape));
+    for r in rows {
+        if out.last().map(|m| m.measurement_id.as_str()) != Some(r.measurement_id.as_str()) {
+            out.push(Identified {
+                points: r
+                    .node
+                    .iter()
+                    .zip(r.x_m.iter().zip(&r.y_m))
+                    .map(|(&n, (&x, &y))| ScanPoint {
+                        node_id: n,
+                        x_m: x,
+                        y_m: y,
+                        z_m: 0.0,
+                    })
+                    .collect(),
+                measurement_id: r.measurement_id,
+                board_id: r.board_id,
+                setup: r.setup,
+                band: (r.band_lo_hz, r.band_hi_hz),
+                modes: vec![],
+            });
         }
+        out.last_mut()
+            .expect("pushed above")
+            .modes
+            .push((r.mode, r.freq_hz, r.shape));
     }
-    Ok(out)
+    out
 }
 
 /// Run the stage.
@@ -152,7 +140,7 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
     };
     crate::stage::run(spec, opts.force, |prep| {
         let board = Board::from_toml_str(&board_text)?;
-        let ms = read_modes(&modes_path)?;
+        let ms = group_modes(read_modes_table(&modes_path)?);
         // One model per setup present.
         // Each model mode is labelled once per setup, on a grid over the whole board, so it
         // keeps its label in every measurement whatever part of the board was scanned.

@@ -12,6 +12,7 @@
 use crate::bayes::modal::{CovariateEffect, FreqObs, MassObs, ModalPredictor, ShapeObs, UnitData};
 use crate::bayes::population::PopulationPrior;
 use crate::bayes::smc::{self, Particle, SmcOptions, StageInfo};
+use crate::bayes::stats::median;
 use crate::bayes::target::{
     Compose, ErrorModel, ErrorPrior, JointsCovariate, ModalTarget, PerMass,
 };
@@ -23,7 +24,9 @@ use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Rom, RomOptions, Setup};
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::manifest::StageSpec;
+use crate::io::modes_table::{read_modes_table, ModeRow};
 use crate::io::tables::{self, c, Col, Cols, TableSpec};
+use crate::modal::mac::mac_real;
 use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::{anyhow, bail, Context};
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
@@ -409,23 +412,16 @@ fn read_presence(path: &Path, setup: &str) -> anyhow::Result<Vec<String>> {
 /// Identified shapes: (measurement, mode) → (shape, x, y).
 type ShapeMap = BTreeMap<(String, i32), (Vec<f64>, Vec<f64>, Vec<f64>)>;
 
-fn read_shapes(path: &Path, wanted: &BTreeSet<(String, i32)>) -> anyhow::Result<ShapeMap> {
+/// The shapes of the `wanted` (measurement, mode) keys among the rows of modes.parquet.
+fn shape_map(rows: &[ModeRow], wanted: &BTreeSet<(String, i32)>) -> ShapeMap {
     let mut out = BTreeMap::new();
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (mid, mode) = (c.str("measurement_id")?, c.i32("mode")?);
-        for i in 0..b.num_rows() {
-            let key = (mid.value(i).to_string(), mode.value(i));
-            if !wanted.contains(&key) {
-                continue;
-            }
-            let s = c.list_f64("shape", i)?.unwrap_or_default();
-            let x = c.list_f64("x_m", i)?.unwrap_or_default();
-            let y = c.list_f64("y_m", i)?.unwrap_or_default();
-            out.insert(key, (s, x, y));
+    for r in rows {
+        let key = (r.measurement_id.clone(), r.mode);
+        if wanted.contains(&key) {
+            out.insert(key, (r.shape.clone(), r.x_m.clone(), r.y_m.clone()));
         }
     }
-    Ok(out)
+    out
 }
 
 #[derive(Debug, Clone)]
@@ -529,6 +525,24 @@ fn select_labels(
     Ok(Labels { labels, model_mode })
 }
 
+/// The scan points of an identified shape (shape, x, y) where the shape is finite and the
+/// model can be evaluated, and the shape's values there.
+fn usable_points(
+    model: &FeModel,
+    shape: &(Vec<f64>, Vec<f64>, Vec<f64>),
+) -> (Vec<[f64; 2]>, Vec<f64>) {
+    let (s, xs, ys) = shape;
+    let mut pts = vec![];
+    let mut u = vec![];
+    for ((v, x), y) in s.iter().zip(xs).zip(ys) {
+        if v.is_finite() && model.shape_operator(&[[*x, *y]]).is_ok() {
+            pts.push([*x, *y]);
+            u.push(*v);
+        }
+    }
+    (pts, u)
+}
+
 /// A shape observation of one identified mode at its valid scan points, or `None` (with a
 /// finding) when fewer than 3 points remain.
 fn shape_obs(
@@ -540,19 +554,7 @@ fn shape_obs(
     grams: &mut Vec<Vec<f64>>,
     findings: &mut Findings,
 ) -> anyhow::Result<Option<ShapeObs>> {
-    let (s, xs, ys) = shape;
-    let mut pts = vec![];
-    let mut u = vec![];
-    for ((v, x), y) in s.iter().zip(xs).zip(ys) {
-        if !v.is_finite() {
-            continue;
-        }
-        if model.shape_operator(&[[*x, *y]]).is_err() {
-            continue;
-        }
-        pts.push([*x, *y]);
-        u.push(*v);
-    }
+    let (pts, u) = usable_points(model, shape);
     let nrm = u.iter().map(|v| v * v).sum::<f64>().sqrt();
     if pts.len() < 3 || nrm == 0.0 {
         findings.push(
@@ -2484,7 +2486,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 .filter(|p| p.setup == "free")
                 .map(|p| (p.measurement_id.clone(), p.mode))
                 .collect();
-            let shapes = read_shapes(&modes_path, &wanted)?;
+            let shapes = shape_map(&read_modes_table(&modes_path)?, &wanted);
             let mut board_ids: BTreeSet<String> = pairs
                 .iter()
                 .filter(|p| p.setup == "free")
@@ -3123,30 +3125,17 @@ struct Identified {
     freq_hz: f64,
 }
 
-/// The identified modes of `setup` in modes.parquet.
-fn read_identified(path: &Path, setup: &str) -> anyhow::Result<Vec<Identified>> {
-    let mut out = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (mid, bid, st, mode, f) = (
-            c.str("measurement_id")?,
-            c.str("board_id")?,
-            c.str("setup")?,
-            c.i32("mode")?,
-            c.f64("freq_hz")?,
-        );
-        for i in 0..b.num_rows() {
-            if st.value(i) == setup && f.value(i).is_finite() {
-                out.push(Identified {
-                    measurement_id: mid.value(i).to_string(),
-                    board_id: bid.value(i).to_string(),
-                    mode: mode.value(i),
-                    freq_hz: f.value(i),
-                });
-            }
-        }
-    }
-    Ok(out)
+/// The identified modes of `setup` among the rows of modes.parquet (finite frequency only).
+fn identified_modes(rows: &[ModeRow], setup: &str) -> Vec<Identified> {
+    rows.iter()
+        .filter(|r| r.setup == setup && r.freq_hz.is_finite())
+        .map(|r| Identified {
+            measurement_id: r.measurement_id.clone(),
+            board_id: r.board_id.clone(),
+            mode: r.mode,
+            freq_hz: r.freq_hz,
+        })
+        .collect()
 }
 
 /// Least MAC of an identified mode with an enriched model's new mode, and the largest
@@ -3168,7 +3157,7 @@ fn pair_new_modes(
     taken: &[usize],
     identified: &[Identified],
     paired: &BTreeSet<(String, i32)>,
-    modes_path: &Path,
+    rows: &[ModeRow],
     mechanism: &str,
 ) -> anyhow::Result<Vec<NewMode>> {
     let m = model.modes(p, n_track)?;
@@ -3187,44 +3176,45 @@ fn pair_new_modes(
             (lo.min(r.freq_hz), hi.max(r.freq_hz))
         });
     let wanted: BTreeSet<(String, i32)> = unpaired.iter().map(|r| key(r)).collect();
-    let shapes = read_shapes(modes_path, &wanted)?;
-    let mut used: BTreeSet<(String, i32)> = BTreeSet::new();
-    let mut out = vec![];
-    for c in 0..m.freq_hz.len() {
-        let fc = m.freq_hz[c];
-        if taken.contains(&c)
-            || fc < lo * (1.0 - NEW_MODE_MAX_REL_FREQ)
-            || fc > hi * (1.0 + NEW_MODE_MAX_REL_FREQ)
-        {
+    let shapes = shape_map(rows, &wanted);
+    // The model modes no label carries, within the identified band.
+    let candidates: Vec<usize> = (0..m.freq_hz.len())
+        .filter(|&c| {
+            let fc = m.freq_hz[c];
+            !(taken.contains(&c)
+                || fc < lo * (1.0 - NEW_MODE_MAX_REL_FREQ)
+                || fc > hi * (1.0 + NEW_MODE_MAX_REL_FREQ))
+        })
+        .collect();
+    let far = |f: f64, fc: f64| (f / fc - 1.0).abs() > NEW_MODE_MAX_REL_FREQ;
+    // Each unpaired mode near a candidate's frequency with a shape at ≥ 3 usable points: the
+    // shape there and the model's modes there, evaluated once.
+    let mut obs: Vec<(&Identified, Vec<f64>, faer::Mat<f64>)> = vec![];
+    for r in &unpaired {
+        if candidates.iter().all(|&c| far(r.freq_hz, m.freq_hz[c])) {
             continue;
         }
+        let Some(shape) = shapes.get(&key(r)) else {
+            continue;
+        };
+        let (pts, u) = usable_points(model, shape);
+        if pts.len() < 3 {
+            continue;
+        }
+        let w = model.w_at(&m, &pts)?;
+        obs.push((*r, u, w));
+    }
+    let mut used: BTreeSet<(String, i32)> = BTreeSet::new();
+    let mut out = vec![];
+    for &c in &candidates {
+        let fc = m.freq_hz[c];
         let mut best: BTreeMap<&str, (f64, &Identified)> = BTreeMap::new();
-        for r in &unpaired {
-            if (r.freq_hz / fc - 1.0).abs() > NEW_MODE_MAX_REL_FREQ || used.contains(&key(r)) {
+        for (r, u, w) in &obs {
+            if far(r.freq_hz, fc) || used.contains(&key(r)) {
                 continue;
             }
-            let Some((s, xs, ys)) = shapes.get(&key(r)) else {
-                continue;
-            };
-            let mut pts = vec![];
-            let mut u = vec![];
-            for ((v, x), y) in s.iter().zip(xs).zip(ys) {
-                if v.is_finite() && model.shape_operator(&[[*x, *y]]).is_ok() {
-                    pts.push([*x, *y]);
-                    u.push(*v);
-                }
-            }
-            if pts.len() < 3 {
-                continue;
-            }
-            let w = model.w_at(&m, &pts)?;
-            let (mut uw, mut uu, mut ww) = (0.0, 0.0, 0.0);
-            for (i, ui) in u.iter().enumerate() {
-                uw += ui * w[(i, c)];
-                uu += ui * ui;
-                ww += w[(i, c)] * w[(i, c)];
-            }
-            let mac = uw * uw / (uu * ww).max(f64::MIN_POSITIVE);
+            let wc: Vec<f64> = (0..u.len()).map(|i| w[(i, c)]).collect();
+            let mac = mac_real(u, &wc);
             let m = r.measurement_id.as_str();
             if mac >= NEW_MODE_MIN_MAC && best.get(m).is_none_or(|b| mac > b.0) {
                 best.insert(m, (mac, *r));
@@ -3277,16 +3267,8 @@ struct NewMode {
 
 impl NewMode {
     fn median_freq_hz(&self) -> f64 {
-        let mut f: Vec<f64> = self.rows.iter().map(|r| r.freq_hz).collect();
-        f.sort_by(f64::total_cmp);
-        let n = f.len();
-        if n == 0 {
-            f64::NAN
-        } else if n % 2 == 1 {
-            f[n / 2]
-        } else {
-            0.5 * (f[n / 2 - 1] + f[n / 2])
-        }
+        let f: Vec<f64> = self.rows.iter().map(|r| r.freq_hz).collect();
+        median(&f)
     }
 }
 
@@ -3789,6 +3771,8 @@ pub fn run_joints(
             labels: all.labels.clone(),
             model_mode: all_modes,
         };
+        // modes.parquet, read once for the new modes' pairing and the shape terms.
+        let mode_rows = read_modes_table(&modes_path)?;
         // Modes the enrichment adds (a fixture's own) that the campaign identified and pair
         // left unpaired: recorded in evidence.json (`new_modes`), and with
         // --enrich-new-modes updated as labels of their own.
@@ -3809,9 +3793,9 @@ pub fn run_joints(
                     &centre_p,
                     n_track,
                     &taken,
-                    &read_identified(&modes_path, "bolted")?,
+                    &identified_modes(&mode_rows, "bolted"),
                     &paired,
-                    &modes_path,
+                    &mode_rows,
                     mech.id(),
                 )?
             }
@@ -3897,7 +3881,7 @@ pub fn run_joints(
             .iter()
             .map(|p| (p.measurement_id.clone(), p.mode))
             .collect();
-        let shapes = read_shapes(&modes_path, &wanted)?;
+        let shapes = shape_map(&mode_rows, &wanted);
         let use_shapes = opts.delta.is_some();
         let measurement_ids: BTreeSet<String> = bolted_rows
             .iter()

@@ -18,6 +18,7 @@ use crate::diagnose::locate::{
     ResidualObs,
 };
 use crate::findings::{Finding, Findings, Severity};
+use crate::io::modes_table::read_modes_table;
 use crate::io::tables::{self, Cols};
 use anyhow::{bail, Context};
 use arrow::array::{Array, AsArray};
@@ -347,25 +348,15 @@ fn read_measurements(
 }
 
 fn read_modes(path: &Path) -> anyhow::Result<Vec<IdentifiedMode>> {
-    let mut out = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (mid, setup, mode, f) = (
-            c.str("measurement_id")?,
-            c.str("setup")?,
-            c.i32("mode")?,
-            c.f64("freq_hz")?,
-        );
-        for i in 0..b.num_rows() {
-            out.push(IdentifiedMode {
-                measurement_id: mid.value(i).to_string(),
-                setup: setup.value(i).to_string(),
-                mode: mode.value(i),
-                freq_hz: f.value(i),
-            });
-        }
-    }
-    Ok(out)
+    Ok(read_modes_table(path)?
+        .into_iter()
+        .map(|r| IdentifiedMode {
+            measurement_id: r.measurement_id,
+            setup: r.setup,
+            mode: r.mode,
+            freq_hz: r.freq_hz,
+        })
+        .collect())
 }
 
 fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairObs>> {
