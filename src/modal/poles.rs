@@ -26,6 +26,7 @@
 
 use super::mac::mac_complex;
 use super::stabilization::StabilizationDiagram;
+use crate::bayes::stats::median;
 use faer::c64;
 use serde::{Deserialize, Serialize};
 
@@ -89,19 +90,6 @@ struct Cluster {
     last_freq: f64,
     last_order: usize,
     first_order: usize,
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    let n = v.len();
-    if n == 0 {
-        return f64::NAN;
-    }
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
 }
 
 /// Select physical poles (sorted by frequency); see the module documentation for the rules.
@@ -190,10 +178,10 @@ pub fn select_physical_poles(
     let margin = params.edge_margin * (hi - lo);
     let mut result: Vec<(SelectedPole, usize)> = Vec::new();
     for c in kept {
-        let mut f: Vec<f64> = c.members.iter().map(|&i| poles[i].freq_hz).collect();
-        let mut z: Vec<f64> = c.members.iter().map(|&i| poles[i].damping_ratio).collect();
-        let f_med = median(&mut f);
-        let z_med = median(&mut z);
+        let f: Vec<f64> = c.members.iter().map(|&i| poles[i].freq_hz).collect();
+        let z: Vec<f64> = c.members.iter().map(|&i| poles[i].damping_ratio).collect();
+        let f_med = median(&f);
+        let z_med = median(&z);
         if f_med < lo + margin || f_med > hi - margin {
             continue;
         }
@@ -205,16 +193,16 @@ pub fn select_physical_poles(
         if dup {
             continue;
         }
-        let mut fd: Vec<f64> = f.iter().map(|v| (v - f_med).abs()).collect();
-        let mut zd: Vec<f64> = z.iter().map(|v| (v - z_med).abs()).collect();
+        let fd: Vec<f64> = f.iter().map(|v| (v - f_med).abs()).collect();
+        let zd: Vec<f64> = z.iter().map(|v| (v - z_med).abs()).collect();
         result.push((
             SelectedPole {
                 lambda: super::frf::pole(f_med, z_med),
                 freq_hz: f_med,
                 damping_ratio: z_med,
                 cluster_size: c.members.len(),
-                freq_mad_hz: median(&mut fd),
-                damping_mad: median(&mut zd),
+                freq_mad_hz: median(&fd),
+                damping_mad: median(&zd),
             },
             rep,
         ));
