@@ -392,7 +392,7 @@ pub fn sentence(c: &Compared) -> String {
     }
     for m in &c.refit.new_modes {
         parts.push(format!(
-            "the enriched model also has a mode the baseline lacks, at {:.0} Hz, seen in {} of {} bolted measurements at {:.0} Hz{}",
+            "the enriched model also has a mode the baseline lacks ({:.0} Hz where the refit started), seen in {} of {} bolted measurements at {:.0} Hz{}",
             m.model_freq_hz,
             m.n_paired,
             m.n_measurements,
@@ -500,7 +500,7 @@ mod tests {
         assert!((c[0].log_bayes_factor.unwrap() - 200.0).abs() < 1e-9);
         let s = sentence(&c[0]);
         assert!(
-            s.contains("a mode the baseline lacks, at 2790 Hz, seen in 30 of 30 bolted measurements at 2765 Hz: the estimates are from the refit that fits it too"),
+            s.contains("a mode the baseline lacks (2790 Hz where the refit started), seen in 30 of 30 bolted measurements at 2765 Hz: the estimates are from the refit that fits it too"),
             "{s}"
         );
         fix.new_modes = vec![NewModeNote {
