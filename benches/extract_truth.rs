@@ -15,9 +15,11 @@
 //! The board is the built-in one (`HBMU_BOARD=FILE` for another). Prints numbers; passes or
 //! fails nothing.
 
+use hbmu::bayes::stats::median;
 use hbmu::fem::Board;
-use hbmu::io::tables::{read_parquet, Cols};
+use hbmu::io::modes_table::read_modes_table;
 use hbmu::lab::{truth, Scenario};
+use hbmu::modal::mac::mac_real;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -72,82 +74,62 @@ fn main() {
         truths.insert(m.measurement_id.clone(), ms);
     }
     let n_points = models.points.len();
-    let path = work.join("extract/modes.parquet");
     let mut matched = vec![];
-    for b in read_parquet(&path).expect("modes.parquet") {
-        let c = Cols {
-            batch: &b,
-            path: &path,
+    for row in read_modes_table(&work.join("extract/modes.parquet")).expect("modes.parquet") {
+        let Some(ms) = truths.get(&row.measurement_id) else {
+            continue;
         };
-        let (mid, setup, f, z) = (
-            c.str("measurement_id").unwrap(),
-            c.str("setup").unwrap(),
-            c.f64("freq_hz").unwrap(),
-            c.f64("damping_ratio").unwrap(),
-        );
-        for i in 0..b.num_rows() {
-            let Some(ms) = truths.get(mid.value(i)) else {
-                continue;
-            };
-            let nodes = c.list_i64("node", i).unwrap();
-            let shape = c.list_f64("shape", i).unwrap().unwrap_or_default();
-            // Node ids are scan points 1..n in the lab's order.
-            let pts: Vec<(usize, f64)> = nodes
-                .iter()
-                .zip(&shape)
-                .filter(|(n, v)| v.is_finite() && **n >= 1 && (**n as usize) <= n_points)
-                .map(|(n, v)| (*n as usize - 1, *v))
-                .collect();
-            let un = pts.iter().map(|(_, v)| v * v).sum::<f64>().sqrt();
-            if pts.len() < 3 || un == 0.0 {
-                continue;
-            }
-            let mac = |s: &[f64]| {
-                let (mut us, mut ss) = (0.0, 0.0);
-                for (o, v) in &pts {
-                    us += v * s[*o];
-                    ss += s[*o] * s[*o];
-                }
-                us * us / (un * un * ss).max(f64::MIN_POSITIVE)
-            };
-            let Some((r, _)) = ms
-                .set
-                .shapes
-                .iter()
-                .enumerate()
-                .map(|(r, s)| (r, mac(s)))
-                .max_by(|a, b| a.1.total_cmp(&b.1))
-            else {
-                continue;
-            };
-            // The truth shape with a sign fixed by the shape itself (its largest entry
-            // positive), so that the residuals of different measurements can be averaged;
-            // the identified shape turned to agree with it.
-            let s = &ms.set.shapes[r];
-            let big = s
-                .iter()
-                .copied()
-                .max_by(|a, b| a.abs().total_cmp(&b.abs()))
-                .unwrap_or(1.0);
-            let sn = pts.iter().map(|(o, _)| s[*o] * s[*o]).sum::<f64>().sqrt() * big.signum();
-            let a: f64 = pts.iter().map(|(o, v)| v / un * s[*o] / sn).sum();
-            let mut residual = vec![f64::NAN; n_points];
-            let mut rr = 0.0;
-            for (o, v) in &pts {
-                let e = a.signum() * v / un - a.abs() * s[*o] / sn;
-                residual[*o] = e;
-                rr += e * e;
-            }
-            matched.push(Matched {
-                setup: setup.value(i).to_string(),
-                truth_mode: r,
-                truth_hz: ms.set.freq_hz[r],
-                freq_err_ppm: 1e6 * (f.value(i) / ms.set.freq_hz[r] - 1.0),
-                damping_err_percent: 100.0 * (z.value(i) / ms.damping[r] - 1.0),
-                residual,
-                residual_share: rr.sqrt(),
-            });
+        // Node ids are scan points 1..n in the lab's order.
+        let pts: Vec<(usize, f64)> = row
+            .node
+            .iter()
+            .zip(&row.shape)
+            .filter(|(n, v)| v.is_finite() && **n >= 1 && (**n as usize) <= n_points)
+            .map(|(n, v)| (*n as usize - 1, *v))
+            .collect();
+        let un = pts.iter().map(|(_, v)| v * v).sum::<f64>().sqrt();
+        if pts.len() < 3 || un == 0.0 {
+            continue;
         }
+        let u: Vec<f64> = pts.iter().map(|(_, v)| *v).collect();
+        let at_points = |s: &[f64]| -> Vec<f64> { pts.iter().map(|(o, _)| s[*o]).collect() };
+        let Some((r, _)) = ms
+            .set
+            .shapes
+            .iter()
+            .enumerate()
+            .map(|(r, s)| (r, mac_real(&u, &at_points(s))))
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+        else {
+            continue;
+        };
+        // The truth shape with a sign fixed by the shape itself (its largest entry
+        // positive), so that the residuals of different measurements can be averaged;
+        // the identified shape turned to agree with it.
+        let s = &ms.set.shapes[r];
+        let big = s
+            .iter()
+            .copied()
+            .max_by(|a, b| a.abs().total_cmp(&b.abs()))
+            .unwrap_or(1.0);
+        let sn = pts.iter().map(|(o, _)| s[*o] * s[*o]).sum::<f64>().sqrt() * big.signum();
+        let a: f64 = pts.iter().map(|(o, v)| v / un * s[*o] / sn).sum();
+        let mut residual = vec![f64::NAN; n_points];
+        let mut rr = 0.0;
+        for (o, v) in &pts {
+            let e = a.signum() * v / un - a.abs() * s[*o] / sn;
+            residual[*o] = e;
+            rr += e * e;
+        }
+        matched.push(Matched {
+            setup: row.setup.clone(),
+            truth_mode: r,
+            truth_hz: ms.set.freq_hz[r],
+            freq_err_ppm: 1e6 * (row.freq_hz / ms.set.freq_hz[r] - 1.0),
+            damping_err_percent: 100.0 * (row.damping_ratio / ms.damping[r] - 1.0),
+            residual,
+            residual_share: rr.sqrt(),
+        });
     }
     let mut groups: BTreeMap<(String, usize), Vec<&Matched>> = BTreeMap::new();
     for m in &matched {
@@ -173,9 +155,7 @@ fn main() {
             / (n - 1.0).max(1.0))
         .sqrt();
         let dz = mean(&|m| m.damping_err_percent);
-        let mut shares: Vec<f64> = v.iter().map(|m| m.residual_share).collect();
-        shares.sort_by(f64::total_cmp);
-        let med = shares[shares.len() / 2];
+        let med = median(&v.iter().map(|m| m.residual_share).collect::<Vec<_>>());
         // RMS over points of the mean residual, and per measurement.
         let (mut ms2, mut np) = (0.0, 0usize);
         let mut per = 0.0;

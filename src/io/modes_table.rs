@@ -16,6 +16,8 @@ pub struct ModeRow {
     /// Identified mode number in the measurement, 1-based.
     pub mode: i32,
     pub freq_hz: f64,
+    /// Viscous damping ratio (dimensionless).
+    pub damping_ratio: f64,
     pub band_lo_hz: f64,
     pub band_hi_hz: f64,
     /// Scan-point node labels.
@@ -33,12 +35,13 @@ pub fn read_modes_table(path: &Path) -> anyhow::Result<Vec<ModeRow>> {
     let mut out = vec![];
     for b in tables::read_parquet(path)? {
         let c = Cols { batch: &b, path };
-        let (id, board, setup, mode, f, lo, hi) = (
+        let (id, board, setup, mode, f, zeta, lo, hi) = (
             c.str("measurement_id")?,
             c.str("board_id")?,
             c.str("setup")?,
             c.i32("mode")?,
             c.f64("freq_hz")?,
+            c.f64("damping_ratio")?,
             c.f64("band_lo_hz")?,
             c.f64("band_hi_hz")?,
         );
@@ -49,6 +52,7 @@ pub fn read_modes_table(path: &Path) -> anyhow::Result<Vec<ModeRow>> {
                 setup: setup.value(i).to_string(),
                 mode: mode.value(i),
                 freq_hz: f.value(i),
+                damping_ratio: zeta.value(i),
                 band_lo_hz: lo.value(i),
                 band_hi_hz: hi.value(i),
                 node: c.list_i64("node", i)?,

@@ -409,19 +409,15 @@ fn read_presence(path: &Path, setup: &str) -> anyhow::Result<Vec<String>> {
     Ok(out)
 }
 
-/// Identified shapes: (measurement, mode) → (shape, x, y).
-type ShapeMap = BTreeMap<(String, i32), (Vec<f64>, Vec<f64>, Vec<f64>)>;
+/// Identified modes with their shapes: (measurement, mode) → its row of modes.parquet.
+type ShapeMap<'a> = BTreeMap<(String, i32), &'a ModeRow>;
 
-/// The shapes of the `wanted` (measurement, mode) keys among the rows of modes.parquet.
-fn shape_map(rows: &[ModeRow], wanted: &BTreeSet<(String, i32)>) -> ShapeMap {
-    let mut out = BTreeMap::new();
-    for r in rows {
-        let key = (r.measurement_id.clone(), r.mode);
-        if wanted.contains(&key) {
-            out.insert(key, (r.shape.clone(), r.x_m.clone(), r.y_m.clone()));
-        }
-    }
-    out
+/// The rows of the `wanted` (measurement, mode) keys among the rows of modes.parquet.
+fn shape_map<'a>(rows: &'a [ModeRow], wanted: &BTreeSet<(String, i32)>) -> ShapeMap<'a> {
+    rows.iter()
+        .map(|r| ((r.measurement_id.clone(), r.mode), r))
+        .filter(|(key, _)| wanted.contains(key))
+        .collect()
 }
 
 #[derive(Debug, Clone)]
@@ -525,16 +521,12 @@ fn select_labels(
     Ok(Labels { labels, model_mode })
 }
 
-/// The scan points of an identified shape (shape, x, y) where the shape is finite and the
-/// model can be evaluated, and the shape's values there.
-fn usable_points(
-    model: &FeModel,
-    shape: &(Vec<f64>, Vec<f64>, Vec<f64>),
-) -> (Vec<[f64; 2]>, Vec<f64>) {
-    let (s, xs, ys) = shape;
+/// The scan points of an identified mode's shape where the shape is finite and the model can
+/// be evaluated, and the shape's values there.
+fn usable_points(model: &FeModel, row: &ModeRow) -> (Vec<[f64; 2]>, Vec<f64>) {
     let mut pts = vec![];
     let mut u = vec![];
-    for ((v, x), y) in s.iter().zip(xs).zip(ys) {
+    for ((v, x), y) in row.shape.iter().zip(&row.x_m).zip(&row.y_m) {
         if v.is_finite() && model.shape_operator(&[[*x, *y]]).is_ok() {
             pts.push([*x, *y]);
             u.push(*v);
@@ -549,7 +541,7 @@ fn shape_obs(
     model: &FeModel,
     rom: &Rom,
     mode: usize,
-    shape: &(Vec<f64>, Vec<f64>, Vec<f64>),
+    shape: &ModeRow,
     measurement_id: &str,
     grams: &mut Vec<Vec<f64>>,
     findings: &mut Findings,
@@ -616,7 +608,7 @@ struct ObsMeta {
 fn unit_data(
     rows: &[&PairRow],
     labels: &[String],
-    shapes: Option<(&FeModel, &Rom, &ShapeMap)>,
+    shapes: Option<(&FeModel, &Rom, &ShapeMap<'_>)>,
     findings: &mut Findings,
 ) -> anyhow::Result<(UnitData, Vec<ObsMeta>)> {
     let mut d = UnitData::default();
@@ -2162,7 +2154,7 @@ fn unit_and_residual_data(
     labels: &Labels,
     all: &Labels,
     use_shapes: bool,
-    (model, rom, shapes): (&FeModel, &Rom, &ShapeMap),
+    (model, rom, shapes): (&FeModel, &Rom, &ShapeMap<'_>),
     covariate: Option<&BTreeMap<String, f64>>,
     findings: &mut Findings,
 ) -> anyhow::Result<(UnitData, (UnitData, Vec<ObsMeta>))> {
@@ -2486,7 +2478,8 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 .filter(|p| p.setup == "free")
                 .map(|p| (p.measurement_id.clone(), p.mode))
                 .collect();
-            let shapes = shape_map(&read_modes_table(&modes_path)?, &wanted);
+            let mode_rows = read_modes_table(&modes_path)?;
+            let shapes = shape_map(&mode_rows, &wanted);
             let mut board_ids: BTreeSet<String> = pairs
                 .iter()
                 .filter(|p| p.setup == "free")
@@ -3116,25 +3109,10 @@ fn match_points(board: &Board) -> Vec<[f64; 2]> {
     out
 }
 
-/// One identified mode of modes.parquet.
-#[derive(Clone, Debug)]
-struct Identified {
-    measurement_id: String,
-    board_id: String,
-    mode: i32,
-    freq_hz: f64,
-}
-
 /// The identified modes of `setup` among the rows of modes.parquet (finite frequency only).
-fn identified_modes(rows: &[ModeRow], setup: &str) -> Vec<Identified> {
+fn identified_modes<'a>(rows: &'a [ModeRow], setup: &str) -> Vec<&'a ModeRow> {
     rows.iter()
         .filter(|r| r.setup == setup && r.freq_hz.is_finite())
-        .map(|r| Identified {
-            measurement_id: r.measurement_id.clone(),
-            board_id: r.board_id.clone(),
-            mode: r.mode,
-            freq_hz: r.freq_hz,
-        })
         .collect()
 }
 
@@ -3155,15 +3133,15 @@ fn pair_new_modes(
     p: &crate::fem::Params,
     n_track: usize,
     taken: &[usize],
-    identified: &[Identified],
+    identified: &[&ModeRow],
     paired: &BTreeSet<(String, i32)>,
-    rows: &[ModeRow],
     mechanism: &str,
 ) -> anyhow::Result<Vec<NewMode>> {
     let m = model.modes(p, n_track)?;
-    let key = |r: &Identified| (r.measurement_id.clone(), r.mode);
-    let unpaired: Vec<&Identified> = identified
+    let key = |r: &ModeRow| (r.measurement_id.clone(), r.mode);
+    let unpaired: Vec<&ModeRow> = identified
         .iter()
+        .copied()
         .filter(|r| !paired.contains(&key(r)))
         .collect();
     let measurements: BTreeSet<&str> = identified
@@ -3175,8 +3153,6 @@ fn pair_new_modes(
         .fold((f64::INFINITY, 0.0f64), |(lo, hi), r| {
             (lo.min(r.freq_hz), hi.max(r.freq_hz))
         });
-    let wanted: BTreeSet<(String, i32)> = unpaired.iter().map(|r| key(r)).collect();
-    let shapes = shape_map(rows, &wanted);
     // The model modes no label carries, within the identified band.
     let candidates: Vec<usize> = (0..m.freq_hz.len())
         .filter(|&c| {
@@ -3189,26 +3165,23 @@ fn pair_new_modes(
     let far = |f: f64, fc: f64| (f / fc - 1.0).abs() > NEW_MODE_MAX_REL_FREQ;
     // Each unpaired mode near a candidate's frequency with a shape at ≥ 3 usable points: the
     // shape there and the model's modes there, evaluated once.
-    let mut obs: Vec<(&Identified, Vec<f64>, faer::Mat<f64>)> = vec![];
-    for r in &unpaired {
+    let mut obs: Vec<(&ModeRow, Vec<f64>, faer::Mat<f64>)> = vec![];
+    for &r in &unpaired {
         if candidates.iter().all(|&c| far(r.freq_hz, m.freq_hz[c])) {
             continue;
         }
-        let Some(shape) = shapes.get(&key(r)) else {
-            continue;
-        };
-        let (pts, u) = usable_points(model, shape);
+        let (pts, u) = usable_points(model, r);
         if pts.len() < 3 {
             continue;
         }
         let w = model.w_at(&m, &pts)?;
-        obs.push((*r, u, w));
+        obs.push((r, u, w));
     }
     let mut used: BTreeSet<(String, i32)> = BTreeSet::new();
     let mut out = vec![];
     for &c in &candidates {
         let fc = m.freq_hz[c];
-        let mut best: BTreeMap<&str, (f64, &Identified)> = BTreeMap::new();
+        let mut best: BTreeMap<&str, (f64, &ModeRow)> = BTreeMap::new();
         for (r, u, w) in &obs {
             if far(r.freq_hz, fc) || used.contains(&key(r)) {
                 continue;
@@ -3795,7 +3768,6 @@ pub fn run_joints(
                     &taken,
                     &identified_modes(&mode_rows, "bolted"),
                     &paired,
-                    &mode_rows,
                     mech.id(),
                 )?
             }
