@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 9's recovery check on campaigns whose measurement chain the step-1 likelihood
 # describes exactly: the lab's truth model on the updating model's own free-free mesh (the
-# board file's [mesh], 40 x 25 for the shipped board), so no discretization error is shared
+# board file's [mesh], 56 x 35 for the shipped board), so no discretization error is shared
 # by the boards, and the update told that the balance readings carry no buoyancy or
 # calibration error (`--mass-floor 0`; the virtual lab's balance has neither) and that the
 # model is exact (`--no-model-error`). On campaigns with the lab's finer truth mesh the

@@ -375,6 +375,115 @@ impl Board {
         }
     }
 
+    /// The axis-parallel edges of the copper, where the bending stiffness jumps: the
+    /// interfaces at x = const (edges running along y) and at y = const, for the mesh to
+    /// put node lines on ([`super::grading::snap_to_interfaces`]). Each edge of a
+    /// rectangle or polygon side (coverage or cut-out) is weighted by its length × the
+    /// copper fraction across it × the layer's membrane stiffness t·E; a density map gives
+    /// each cell boundary, weighted by the change of fraction across it summed over its
+    /// cells × their length × t·E (interfaces of zero weight are ignored). Slanted polygon
+    /// sides and Gerber layers give none: their jumps stay inside elements, converging O(h)
+    /// (see `fem::convergence`).
+    pub fn copper_interfaces(
+        &self,
+    ) -> (
+        Vec<super::grading::Interface>,
+        Vec<super::grading::Interface>,
+    ) {
+        use super::grading::Interface;
+        let (mut at_x, mut at_y) = (vec![], vec![]);
+        for layer in &self.copper {
+            // (corner, next corner, copper fraction across the side)
+            let mut sides: Vec<([f64; 2], [f64; 2], f64)> = vec![];
+            let rect = |x0: f64, y0: f64, x1: f64, y1: f64, frac: f64| {
+                let c = [[x0, y0], [x1, y0], [x1, y1], [x0, y1]];
+                (0..4).map(move |i| (c[i], c[(i + 1) % 4], frac))
+            };
+            for r in layer.coverage.iter().chain(&layer.cutouts) {
+                match r {
+                    Region::Rect {
+                        x0_m,
+                        y0_m,
+                        x1_m,
+                        y1_m,
+                        fraction,
+                    } => sides.extend(rect(*x0_m, *y0_m, *x1_m, *y1_m, *fraction)),
+                    Region::Polygon {
+                        vertices_m,
+                        fraction,
+                    } => {
+                        let n = vertices_m.len();
+                        sides.extend(
+                            (0..n).map(|i| (vertices_m[i], vertices_m[(i + 1) % n], *fraction)),
+                        );
+                    }
+                }
+            }
+            let stiff = layer.thickness_m * layer.e_pa;
+            for d in &layer.density_maps {
+                let Some(g) = &d.grid else {
+                    sides.extend(rect(d.x0_m, d.y0_m, d.x1_m, d.y1_m, 1.0));
+                    continue;
+                };
+                // Every cell boundary across which the fraction changes (the map's edge
+                // against no copper included), weighted by the change × its length.
+                let v = |i: usize, j: usize| g.values[j * g.nx + i];
+                let (dx, dy) = (
+                    (d.x1_m - d.x0_m) / g.nx as f64,
+                    (d.y1_m - d.y0_m) / g.ny as f64,
+                );
+                let at = |lo: f64, hi: f64, n: usize, k: usize| {
+                    if k == n {
+                        hi
+                    } else {
+                        lo + k as f64 * (hi - lo) / n as f64
+                    }
+                };
+                for i in 0..=g.nx {
+                    let jump: f64 = (0..g.ny)
+                        .map(|j| {
+                            let left = if i == 0 { 0.0 } else { v(i - 1, j) };
+                            let right = if i == g.nx { 0.0 } else { v(i, j) };
+                            (right - left).abs()
+                        })
+                        .sum();
+                    at_x.push(Interface {
+                        at_m: at(d.x0_m, d.x1_m, g.nx, i),
+                        weight: stiff * jump * dy,
+                    });
+                }
+                for j in 0..=g.ny {
+                    let jump: f64 = (0..g.nx)
+                        .map(|i| {
+                            let below = if j == 0 { 0.0 } else { v(i, j - 1) };
+                            let above = if j == g.ny { 0.0 } else { v(i, j) };
+                            (above - below).abs()
+                        })
+                        .sum();
+                    at_y.push(Interface {
+                        at_m: at(d.y0_m, d.y1_m, g.ny, j),
+                        weight: stiff * jump * dx,
+                    });
+                }
+            }
+            for (a, b, frac) in sides {
+                let w = stiff * frac.abs();
+                if a[0] == b[0] {
+                    at_x.push(Interface {
+                        at_m: a[0],
+                        weight: w * (b[1] - a[1]).abs(),
+                    });
+                } else if a[1] == b[1] {
+                    at_y.push(Interface {
+                        at_m: a[1],
+                        weight: w * (b[0] - a[0]).abs(),
+                    });
+                }
+            }
+        }
+        (at_x, at_y)
+    }
+
     /// Parse and validate a board from TOML text. A board with density maps needs
     /// their files: read it with `io::board_files::read_board` instead.
     pub fn from_toml_str(text: &str) -> Result<Board, FemError> {

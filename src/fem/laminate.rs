@@ -42,6 +42,14 @@ pub fn isotropic_q(e_pa: f64, nu: f64) -> Comp4 {
     [q, q, nu * q, e_pa / (2.0 * (1.0 + nu))]
 }
 
+/// The Q at which the core's stiffness terms are assembled: the nominal Q, except that a
+/// component that is zero there (Q12 of a core with ν_xy = 0) is assembled at ½(Q11 + Q22)
+/// instead, so that each term's coefficient Q_c(p) / scale_c stays finite.
+pub fn core_q_scale(q_nominal: Comp4) -> Comp4 {
+    let fallback = 0.5 * (q_nominal[0] + q_nominal[1]);
+    q_nominal.map(|v| if v == 0.0 { fallback } else { v })
+}
+
 /// A/B/D integrals of a layer between `z1_m < z2_m`: returns
 /// `(z₂ − z₁, (z₂² − z₁²)/2, (z₂³ − z₁³)/3)`, the factors multiplying Q.
 pub fn layer_factors(z1_m: f64, z2_m: f64) -> (f64, f64, f64) {

@@ -34,8 +34,8 @@ use super::geometry::{
 };
 use super::joints::{joint_terms, JointModel, Patch, Which};
 use super::laminate::{
-    chebyshev_nodes, coupling_correction, coupling_kernel, isotropic_q, lagrange_basis,
-    layer_factors, orthotropic_q, Comp4,
+    chebyshev_nodes, core_q_scale, coupling_correction, coupling_kernel, isotropic_q,
+    lagrange_basis, layer_factors, orthotropic_q, Comp4,
 };
 use super::params::{names, Coef, Coefficients, ParamMap, Params};
 use super::plate::{element_matrices, part_integrals, shape, ElementMatrices, NODE_IJ};
@@ -254,7 +254,9 @@ impl Mesh {
     /// field varies on the scale of the clamp: a small stiff support is resolved by the
     /// mesh's total element count rather than by a uniformly finer mesh (see
     /// `fem::tests::convergence`). The map does not depend on nx, ny: meshes n ⊂ 2n stay
-    /// nested.
+    /// nested. Then the lines nearest the copper's edges move onto them
+    /// ([`super::grading::snap_to_interfaces`]), so no stiffness jump lies inside an
+    /// element where a line can take it.
     pub fn lines(board: &Board, setup: &Setup, nx: usize, ny: usize) -> (Vec<f64>, Vec<f64>) {
         let (lx, ly) = (board.length_x_m, board.width_y_m);
         let (x_m, y_m) = match setup {
@@ -272,7 +274,11 @@ impl Mesh {
                 super::grading::uniform_lines(ly, ny),
             ),
         };
-        (x_m, y_m)
+        let (at_x, at_y) = board.copper_interfaces();
+        (
+            super::grading::snap_to_interfaces(&x_m, &at_x),
+            super::grading::snap_to_interfaces(&y_m, &at_y),
+        )
     }
 
     /// A mesh skeleton (element data left empty) on node lines over an `lx × ly` board.
@@ -503,7 +509,7 @@ impl FeModel {
         let mut mesh_data = Mesh::from_lines(x_m, y_m, board.length_x_m, board.width_y_m);
         // Cut cells: per element, the quadrature points of its part inside each hole
         // (holes do not overlap, see `Board::validate`), and its material fraction.
-        // An element with (almost) no material is dropped; below 1e-9 of its area the
+        // An element with (almost) no material is dropped; below 1e-12 of its area the
         // material it would carry changes no frequency by more than rounding, while its
         // DOFs would make K − σM singular to working precision.
         let mut active = vec![true; nx * ny];
@@ -525,6 +531,20 @@ impl FeModel {
                 }
                 let void: f64 = voids.iter().flat_map(|v| &v.1).map(|q| q.2).sum();
                 material_fraction[e] = (1.0 - void / rect.area()).clamp(0.0, 1.0);
+                // An element whose four corners lie in one hole lies in it whole (a disc
+                // is convex): decided exactly, since 1 − void/area leaves ~1e-11 of
+                // rounding there, which once kept such an element and its DOFs.
+                let inside = |h: &super::board::Hole| {
+                    let r2 = (0.5 * h.diameter_m).powi(2);
+                    [rect.x0, rect.x1].iter().all(|x| {
+                        [rect.y0, rect.y1]
+                            .iter()
+                            .all(|y| (x - h.x_m).powi(2) + (y - h.y_m).powi(2) <= r2)
+                    })
+                };
+                if board.holes.iter().any(inside) {
+                    material_fraction[e] = 0.0;
+                }
                 if material_fraction[e] < MIN_MATERIAL_FRACTION {
                     active[e] = false;
                     continue;
@@ -593,6 +613,7 @@ impl FeModel {
         let units = UnitMatrices::new(&mesh_data);
         let h = c.thickness_m;
         let q_core = orthotropic_q(c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy);
+        let q_core_scale = core_q_scale(q_core);
         let (a_core, _, d_core) = layer_factors(-h / 2.0, h / 2.0);
         let mut kb = TermBuilder::new();
         let mut mb = TermBuilder::new();
@@ -736,10 +757,11 @@ impl FeModel {
                         &cut
                     }
                 };
-                // Core: one term per Q component, assembled at the nominal Q.
+                // Core: one term per Q component, assembled at the nominal Q (or, where a
+                // component is zero there, at the scale its coefficient divides by).
                 for k in 0..4 {
                     let mut unit = [0.0; 4];
-                    unit[k] = q_core[k] * d_core;
+                    unit[k] = q_core_scale[k] * d_core;
                     add(&mut t_core[k], eme, &dofs, unit);
                 }
                 let cells = cells_of(ex, ey);

@@ -12,7 +12,8 @@
 //!
 //! The model at parameters p is K(p) = Σᵢ cᵢ(p) Kᵢʳ, M(p) = Σⱼ dⱼ(p) Mⱼʳ with each
 //! coefficient given in `k_coefs` / `m_coefs` as one of
-//! `{"CoreQ": {"comp": c}}` → Q_c(p)/Q_c(nominal), where with ν_yx = ν_xy E_y/E_x and
+//! `{"CoreQ": {"comp": c}}` → Q_c(p)/Q_c(nominal) (where Q_c(nominal) = 0, i.e. Q₂ of a
+//! core with ν_xy = 0: Q_c(p)/(½(Q₀ + Q₁)(nominal))), where with ν_yx = ν_xy E_y/E_x and
 //! δ = 1 − ν_xy ν_yx: Q₀ = E_x/δ, Q₁ = E_y/δ, Q₂ = ν_xy E_y/δ, Q₃ = G_xy
 //! (E_x, E_y, G_xy, ν_xy at the indices `core_idx`);
 //! `{"Linear": {"param": k, "scale": s}}` → p_k / s; `"Const"` → 1.

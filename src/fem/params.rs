@@ -12,7 +12,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::laminate::{coupling_kernel, coupling_value, orthotropic_q};
+use super::laminate::{core_q_scale, coupling_kernel, coupling_value, orthotropic_q};
 use super::FemError;
 
 /// Names of the standard parameters (units in the names).
@@ -90,7 +90,8 @@ impl Params {
 /// How one affine term's coefficient depends on the parameters.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Coef {
-    /// Q_c(E_x, E_y, G_xy, ν_xy) / Q_c(nominal), c ∈ {0: Q11, 1: Q22, 2: Q12, 3: Q66}.
+    /// Q_c(E_x, E_y, G_xy, ν_xy) / Q_c(nominal), c ∈ {0: Q11, 1: Q22, 2: Q12, 3: Q66}
+    /// (a component zero at nominal divides by [`super::laminate::core_q_scale`]).
     CoreQ {
         /// Component index.
         comp: usize,
@@ -207,12 +208,12 @@ impl ParamMap {
     /// a bolted step 2's profile).
     pub fn coefficient_values(&self, v: &[f64]) -> (Vec<f64>, Vec<f64>) {
         let [ix, iy, ig, inu] = self.core_idx;
-        let q_nom = orthotropic_q(
+        let q_nom = core_q_scale(orthotropic_q(
             self.nominal[ix],
             self.nominal[iy],
             self.nominal[ig],
             self.nominal[inu],
-        );
+        ));
         let (ex, ey, g, nu) = (v[ix], v[iy], v[ig], v[inu]);
         let den = 1.0 - nu * nu * ey / ex;
         let q = [ex / den, ey / den, nu * ey / den, g];
@@ -245,12 +246,12 @@ impl ParamMap {
     pub fn coefficients_unchecked(&self, v: &[f64]) -> Coefficients {
         let np = self.names.len();
         let [ix, iy, ig, inu] = self.core_idx;
-        let q_nom = orthotropic_q(
+        let q_nom = core_q_scale(orthotropic_q(
             self.nominal[ix],
             self.nominal[iy],
             self.nominal[ig],
             self.nominal[inu],
-        );
+        ));
         let (ex, ey, g, nu) = (v[ix], v[iy], v[ig], v[inu]);
         let den = 1.0 - nu * nu * ey / ex;
         // ∂den/∂(E_x, E_y, ν).

@@ -104,7 +104,10 @@ pub struct BoltedGroup {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TruthModel {
-    /// Truth mesh (finer than the board's default mesh), elements along x.
+    /// Truth mesh (finer than the board's default mesh), elements along x. Default
+    /// 80 × 50: on the built-in board within 3 ppm of 160 × 100 on the first 8 free
+    /// frequencies (its node lines on the copper's edges, as every mesh's), so the truth is
+    /// the converged plate, not one discretization of it.
     pub mesh_nx: usize,
     /// Elements along y.
     pub mesh_ny: usize,
@@ -126,8 +129,8 @@ pub struct TruthModel {
 impl Default for TruthModel {
     fn default() -> Self {
         TruthModel {
-            mesh_nx: 56,
-            mesh_ny: 35,
+            mesh_nx: 80,
+            mesh_ny: 50,
             n_free_modes: 12,
             n_bolted_modes: 11,
             joint_mass_kg: 0.0,
