@@ -439,27 +439,28 @@ impl Board {
                         lo + k as f64 * (hi - lo) / n as f64
                     }
                 };
-                for i in 0..=g.nx {
-                    let jump: f64 = (0..g.ny)
-                        .map(|j| {
-                            let left = if i == 0 { 0.0 } else { v(i - 1, j) };
-                            let right = if i == g.nx { 0.0 } else { v(i, j) };
-                            (right - left).abs()
+                // The change across boundary k of n cells along one axis, summed over the
+                // m cells across it (cell(k, l): k along, l across).
+                let jumps = |n: usize, m: usize, cell: &dyn Fn(usize, usize) -> f64| {
+                    (0..=n)
+                        .map(|k| {
+                            (0..m)
+                                .map(|l| {
+                                    let before = if k == 0 { 0.0 } else { cell(k - 1, l) };
+                                    let after = if k == n { 0.0 } else { cell(k, l) };
+                                    (after - before).abs()
+                                })
+                                .sum::<f64>()
                         })
-                        .sum();
+                        .collect::<Vec<f64>>()
+                };
+                for (i, jump) in jumps(g.nx, g.ny, &|i, j| v(i, j)).into_iter().enumerate() {
                     at_x.push(Interface {
                         at_m: at(d.x0_m, d.x1_m, g.nx, i),
                         weight: stiff * jump * dy,
                     });
                 }
-                for j in 0..=g.ny {
-                    let jump: f64 = (0..g.nx)
-                        .map(|i| {
-                            let below = if j == 0 { 0.0 } else { v(i, j - 1) };
-                            let above = if j == g.ny { 0.0 } else { v(i, j) };
-                            (above - below).abs()
-                        })
-                        .sum();
+                for (j, jump) in jumps(g.ny, g.nx, &|j, i| v(i, j)).into_iter().enumerate() {
                     at_y.push(Interface {
                         at_m: at(d.y0_m, d.y1_m, g.ny, j),
                         weight: stiff * jump * dx,
