@@ -221,6 +221,25 @@ pub enum Region {
 }
 
 impl Region {
+    /// The region's boundary as vertices in order (a rectangle's four corners).
+    pub fn outline(&self) -> Vec<[f64; 2]> {
+        match self {
+            Region::Rect {
+                x0_m,
+                y0_m,
+                x1_m,
+                y1_m,
+                ..
+            } => vec![
+                [*x0_m, *y0_m],
+                [*x1_m, *y0_m],
+                [*x1_m, *y1_m],
+                [*x0_m, *y1_m],
+            ],
+            Region::Polygon { vertices_m, .. } => vertices_m.clone(),
+        }
+    }
+
     /// The region's copper (or removal) fraction.
     pub fn fraction(&self) -> f64 {
         match self {
@@ -395,34 +414,24 @@ impl Board {
         for layer in &self.copper {
             // (corner, next corner, copper fraction across the side)
             let mut sides: Vec<([f64; 2], [f64; 2], f64)> = vec![];
-            let rect = |x0: f64, y0: f64, x1: f64, y1: f64, frac: f64| {
-                let c = [[x0, y0], [x1, y0], [x1, y1], [x0, y1]];
-                (0..4).map(move |i| (c[i], c[(i + 1) % 4], frac))
+            let mut add_outline = |v: Vec<[f64; 2]>, frac: f64| {
+                let n = v.len();
+                sides.extend((0..n).map(|i| (v[i], v[(i + 1) % n], frac)));
             };
             for r in layer.coverage.iter().chain(&layer.cutouts) {
-                match r {
-                    Region::Rect {
-                        x0_m,
-                        y0_m,
-                        x1_m,
-                        y1_m,
-                        fraction,
-                    } => sides.extend(rect(*x0_m, *y0_m, *x1_m, *y1_m, *fraction)),
-                    Region::Polygon {
-                        vertices_m,
-                        fraction,
-                    } => {
-                        let n = vertices_m.len();
-                        sides.extend(
-                            (0..n).map(|i| (vertices_m[i], vertices_m[(i + 1) % n], *fraction)),
-                        );
-                    }
-                }
+                add_outline(r.outline(), r.fraction());
             }
             let stiff = layer.thickness_m * layer.e_pa;
             for d in &layer.density_maps {
                 let Some(g) = &d.grid else {
-                    sides.extend(rect(d.x0_m, d.y0_m, d.x1_m, d.y1_m, 1.0));
+                    let extent = Region::Rect {
+                        x0_m: d.x0_m,
+                        y0_m: d.y0_m,
+                        x1_m: d.x1_m,
+                        y1_m: d.y1_m,
+                        fraction: 1.0,
+                    };
+                    add_outline(extent.outline(), 1.0);
                     continue;
                 };
                 // Every cell boundary across which the fraction changes (the map's edge

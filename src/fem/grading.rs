@@ -216,14 +216,16 @@ mod tests {
 
     #[test]
     fn snapping_puts_lines_on_interfaces_and_keeps_elements_sound() {
-        let l = uniform_lines(0.05, 25); // 2 mm
-                                         // 22 and 28 mm are on lines already: nothing moves.
+        let l = uniform_lines(0.05, 25);
+        // 2 mm elements; 22 and 28 mm are on lines already: nothing moves.
         let s = snap_to_interfaces(&l, &[iface(0.022, 1.0), iface(0.028, 1.0)]);
         assert_eq!(s, l);
         // 22.7 mm: the nearer line (22) moves onto it; 23 mm (a tie) takes the lower line.
         let s = snap_to_interfaces(&l, &[iface(0.0227, 1.0)]);
         assert_eq!(s[11], 0.0227);
         assert_eq!(s.iter().filter(|&&x| !l.contains(&x)).count(), 1);
+        let s = snap_to_interfaces(&l, &[iface(0.023, 1.0)]);
+        assert_eq!((s[11], s[12]), (0.023, l[12]));
         // Two interfaces in one element: the heavier takes the nearer line, the other
         // the farther one; a third has no line left and stays inside its element.
         let s = snap_to_interfaces(
