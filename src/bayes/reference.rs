@@ -105,9 +105,14 @@ pub struct GaussianReference {
 
 impl GaussianReference {
     /// Why this reference cannot start a tempering, if it cannot: a coordinate whose mean is
-    /// not finite, or whose sd is not finite or below 1e-8 (1 + |mean|), a spread no posterior
-    /// of measured data has. From such a q the log-weights span hundreds of orders of magnitude
-    /// and the tempering stalls (`smc::SmcError::Stalled`).
+    /// not finite, or whose sd is not finite, below 1e-8 (1 + |mean|) or above 1e3 (1 + |mean|),
+    /// spreads no posterior of measured data has in the sampler's coordinates (relative
+    /// parameters and logarithms of scales; a unit's spread is bounded by its population's).
+    /// From such a q the log-weights span hundreds of orders of magnitude and the tempering
+    /// stalls (`smc::SmcError::Stalled`), or no draw can be evaluated. The wide kind: a
+    /// re-formed quadratic (`ReferenceOptions::reform_curvature`) extrapolated to a curvature
+    /// of the wrong sign, measured on the blind rotation campaign's step 2 with its shape terms
+    /// down-weighted (unit sd 1.3e154).
     pub fn degeneracy(&self) -> Option<String> {
         let check = |what: &str, m: &Mvn| -> Option<String> {
             m.mean
@@ -115,7 +120,8 @@ impl GaussianReference {
                 .zip(m.sd())
                 .enumerate()
                 .find_map(|(k, (mu, sd))| {
-                    (!mu.is_finite() || !sd.is_finite() || sd <= 1e-8 * (1.0 + mu.abs()))
+                    let scale = 1.0 + mu.abs();
+                    (!mu.is_finite() || !sd.is_finite() || sd <= 1e-8 * scale || sd > 1e3 * scale)
                         .then(|| format!("{what} coordinate {k}: mean {mu:.4e}, sd {sd:.3e}"))
                 })
         };

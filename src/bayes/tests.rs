@@ -439,8 +439,8 @@ fn degenerate_weights_stop_the_tempering_with_a_clear_error() {
     }
 }
 
-/// A reference of near-zero spread (what a runaway ascent to ε → 0 leaves) is flagged, with
-/// the coordinate named; the Laplace reference of the closed-form problem is not.
+/// A reference of near-zero spread (what a runaway ascent to ε → 0 leaves) or of an absurd
+/// one is flagged, with the coordinate named; the Laplace reference of the closed-form problem is not.
 #[test]
 fn a_reference_of_zero_spread_is_flagged_degenerate() {
     use super::reference::{GaussianReference, Mvn};
@@ -457,6 +457,12 @@ fn a_reference_of_zero_spread_is_flagged_degenerate() {
     bad.units[2] = Mvn::new(vec![-75.0, 0.3], &[1e-30, 0.0, 0.0, 1e-2]);
     let why = bad.degeneracy().expect("degenerate");
     assert!(why.contains("unit 2 coordinate 0"), "{why}");
+    // The wide kind: a re-formed quadratic of the wrong curvature sign (unit sd 1.3e154 on
+    // the blind rotation campaign), far beyond any population's spread.
+    let mut wide: GaussianReference = q.clone();
+    wide.units[1] = Mvn::new(vec![0.1, 0.3], &[1e-2, 0.0, 0.0, 1.7e308]);
+    let why = wide.degeneracy().expect("degenerate");
+    assert!(why.contains("unit 1 coordinate 1"), "{why}");
     let mut nan = q;
     nan.global.mean[1] = f64::NAN;
     assert!(nan
