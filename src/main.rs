@@ -250,6 +250,12 @@ struct UpdateArgs {
     /// Leave the mode-shape terms out of the likelihood.
     #[arg(long)]
     no_shapes: bool,
+    /// The power of each mode's shape term: `auto` (1 over the design effect of the shape
+    /// residuals' agreement between measurements, evidence.json's shape_weights), `off`
+    /// (every measurement's shape independent), or an `update` evidence.json whose
+    /// shape_weights to take (a refit compared with that run by its evidence).
+    #[arg(long, default_value = "auto", value_parser = stage::update::ShapeWeighting::parse)]
+    shape_weights: stage::update::ShapeWeighting,
     /// Fix the mode-shape error δ instead of inferring it per mode.
     #[arg(long)]
     delta_fixed: Option<f64>,
@@ -439,6 +445,7 @@ impl UpdateArgs {
             mass_floor_rel: self
                 .mass_floor
                 .unwrap_or(stage::update::UpdateOptions::DEFAULT_MASS_FLOOR_REL),
+            shape_weights: self.shape_weights,
         }
     }
 }

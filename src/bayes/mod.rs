@@ -8,6 +8,8 @@
 //! - [`population`]: the MVN + LKJ population prior and its unconstrained transforms.
 //! - [`stats`]: log-space helpers, small dense Cholesky.
 //! - [`modal`]: the Vanik–Beck–Au modal likelihood over a ROM (eigenvalue, shape, mass terms).
+//! - [`shape_weight`]: the power of each mode's shape term, from how much its measurements'
+//!   residuals share (a design effect).
 //! - [`target`]: the hierarchical targets of step 1 (boards) and step 2 (joints).
 
 pub mod diagnostics;
@@ -15,6 +17,7 @@ pub mod modal;
 pub mod population;
 pub mod reference;
 pub mod resample;
+pub mod shape_weight;
 pub mod smc;
 pub mod stats;
 pub mod surrogate;

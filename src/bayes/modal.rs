@@ -99,6 +99,13 @@ pub struct ShapeObs {
     pub ln_n: f64,
     /// The measurement's condition (index into [`UnitData::conditions`]).
     pub cond: usize,
+    /// The power of this observation's term (1: an independent observation; below 1 where the
+    /// mode's shapes share an error between measurements, [`super::shape_weight`]).
+    pub weight: f64,
+    /// The shape at its scan points with the model's interpolation there (to estimate the
+    /// weight from the residuals; the likelihood uses `pt_u` and the Gram matrix); `None`
+    /// where not kept.
+    pub points: Option<std::sync::Arc<super::shape_weight::PointShape>>,
 }
 
 /// A balance observation of a board's mass.
@@ -142,7 +149,7 @@ pub struct Terms {
 
 impl Terms {
     /// These terms with the per-mode sufficient statistics of `data` for `n_modes`
-    /// updated modes: Σ u² and the count of eigenvalue terms, Σ n (1 − MAC) and Σ n of the
+    /// updated modes: Σ u² and the count of eigenvalue terms, Σ w n (1 − MAC) and Σ w n of the
     /// shape terms, Σ u v and Σ v² (u = (λ̂ − λ)/λ̂, v = λ/λ̂: with a model error b the
     /// residual is u − b v, so Σ (u − b v)² = Σu² − 2b Σuv + b² Σv², see [`log_lik_with`]),
     /// then everything else (normalising constants, the mass term).
@@ -161,7 +168,8 @@ impl Terms {
             rest += 0.5 * LN_2PI + f.ln_lambda_hat;
         }
         for (o, omm) in data.shapes.iter().zip(&self.one_minus_mac) {
-            let n = o.n_points as f64;
+            // n points of a term raised to the power w: w n in the sums, as in `log_lik_with`.
+            let n = o.weight * o.n_points as f64;
             s[2 * nm + o.mode] += n * omm;
             s[3 * nm + o.mode] += n;
             rest += 0.5 * n * (LN_2PI - o.ln_n);
@@ -615,7 +623,8 @@ pub fn log_lik_with(
         l -= 0.5 * (LN_2PI + z * z) + ln_eps[f.mode] + f.ln_lambda_hat;
     }
     for (s, omm) in data.shapes.iter().zip(&t.one_minus_mac) {
-        let n = s.n_points as f64;
+        // The term to the power w (`ShapeObs::weight`): w n in place of n.
+        let n = s.weight * s.n_points as f64;
         let d2 = delta[s.mode] * delta[s.mode];
         l -= 0.5 * n * (LN_2PI + ln_d2[s.mode] - s.ln_n) + n * omm / (2.0 * d2);
     }
@@ -752,6 +761,8 @@ pub(crate) mod tests {
                 n_points: n,
                 ln_n: (n as f64).ln(),
                 cond: 0,
+                weight: 1.0,
+                points: None,
             });
         }
         let v = p.values.clone();
@@ -796,7 +807,9 @@ pub(crate) mod tests {
             f.cond = k % 2;
             data.freq.push(f);
         }
-        for (mode, n) in [(0, 40usize), (2, 35), (2, 40)] {
+        // One shape term down-weighted (a power likelihood): the sums must carry it as the
+        // direct form does.
+        for (mode, n, weight) in [(0, 40usize, 1.0), (2, 35, 0.3), (2, 40, 1.0)] {
             data.shapes.push(ShapeObs {
                 mode,
                 pt_u: vec![],
@@ -804,6 +817,8 @@ pub(crate) mod tests {
                 n_points: n,
                 ln_n: (n as f64).ln(),
                 cond: 0,
+                weight,
+                points: None,
             });
         }
         data.mass = Some(MassObs {
@@ -824,6 +839,17 @@ pub(crate) mod tests {
         assert!(
             (got - direct).abs() <= 1e-12 * direct.abs(),
             "{got} vs {direct}"
+        );
+        // The down-weighted term is 0.3 of its Gaussian log density over its 35 points (each
+        // point's variance δ²/n, the residual's squared norm 1 − MAC).
+        let mut full = data.clone();
+        full.shapes[1].weight = 1.0;
+        let (n, d2) = (35.0f64, delta[2] * delta[2]);
+        let term = -0.5 * n * (LN_2PI + (d2 / n).ln()) - t.one_minus_mac[1] / (2.0 * d2 / n);
+        let lost = log_lik(&full, &t, &eps, &delta) - direct;
+        assert!(
+            (lost - 0.7 * term).abs() <= 1e-9 * term.abs(),
+            "{lost} vs 0.7 × {term}"
         );
         // With a model-error term: the closed form equals the likelihood integrated over b
         // numerically (λ (1 + b), b ~ N(0, s²); trapezoid over ±10 s), mode by mode.

@@ -11,6 +11,7 @@
 
 use crate::bayes::modal::{CovariateEffect, FreqObs, MassObs, ModalPredictor, ShapeObs, UnitData};
 use crate::bayes::population::PopulationPrior;
+use crate::bayes::shape_weight::{point_key, PointShape, ShapeWeight};
 use crate::bayes::smc::{self, Particle, SmcOptions, StageInfo};
 use crate::bayes::stats::median;
 use crate::bayes::target::{
@@ -298,6 +299,25 @@ pub struct UpdateOptions {
     /// ([`UpdateOptions::DEFAULT_MASS_FLOOR_REL`]; `mass_obs` says why).
     #[serde(default = "default_mass_floor_rel")]
     pub mass_floor_rel: f64,
+    /// The power of each mode's shape term ([`crate::bayes::shape_weight`]).
+    #[serde(default)]
+    pub shape_weights: ShapeWeighting,
+}
+
+/// How each mode's shape term is weighted against its measurements' shared error
+/// (`--shape-weights`).
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ShapeWeighting {
+    /// 1 / design effect of the residuals at the Laplace reference's centre
+    /// ([`crate::bayes::shape_weight`]).
+    #[default]
+    Auto,
+    /// Every shape term at full weight: the measurements' shape errors independent.
+    Off,
+    /// Given per mode label (a diagnosis's refit takes its baseline's, so that their
+    /// evidences are of the same likelihood); a label not given: 1.
+    Given(BTreeMap<String, f64>),
 }
 
 fn default_mass_floor_rel() -> f64 {
@@ -565,6 +585,15 @@ fn shape_obs(
     let op = rom.shape_operator(model, &pts)?;
     let r = rom.dim();
     let n = pts.len();
+    let points = PointShape {
+        mode,
+        keys: pts.iter().map(|q| point_key(q[0], q[1])).collect(),
+        u: u.iter().map(|v| v / nrm).collect(),
+        p: (0..n)
+            .flat_map(|i| (0..r).map(move |a| (i, a)))
+            .map(|(i, a)| op.p[(i, a)])
+            .collect(),
+    };
     let mut pt_u = vec![0.0; r];
     let mut gram = vec![0.0; r * r];
     for (i, ui) in u.iter().enumerate() {
@@ -590,7 +619,174 @@ fn shape_obs(
         n_points: n,
         ln_n: (n as f64).ln(),
         cond: 0,
+        weight: 1.0,
+        points: Some(Arc::new(points)),
     }))
+}
+
+impl ShapeWeighting {
+    /// `auto`, `off`, or the path of an `update` stage's evidence.json whose `shape_weights`
+    /// are taken (`--shape-weights`).
+    pub fn parse(arg: &str) -> Result<ShapeWeighting, String> {
+        match arg {
+            "auto" => Ok(ShapeWeighting::Auto),
+            "off" => Ok(ShapeWeighting::Off),
+            path => Self::from_evidence(Path::new(path)).map_err(|e| format!("{e:#}")),
+        }
+    }
+
+    /// The weights an `update` run used, from its evidence.json (`shape_weights`: one
+    /// {label, weight, …} per mode; absent or empty: a run without shape terms, `Off`).
+    pub fn from_evidence(path: &Path) -> anyhow::Result<ShapeWeighting> {
+        let ev = crate::io::read_json(path)?;
+        let Some(list) = ev.get("shape_weights").and_then(|v| v.as_array()) else {
+            return Ok(ShapeWeighting::Off);
+        };
+        let mut map = BTreeMap::new();
+        for (i, w) in list.iter().enumerate() {
+            let w: ShapeWeight = serde_json::from_value(w.clone()).with_context(|| {
+                format!(
+                    "{}: shape_weights[{i}]: expected {{label, weight, …}}",
+                    path.display()
+                )
+            })?;
+            if !(w.weight > 0.0 && w.weight <= 1.0) {
+                bail!(
+                    "{}: shape_weights[{i}] ({}): weight {} is not in (0, 1]",
+                    path.display(),
+                    w.label,
+                    w.weight
+                );
+            }
+            map.insert(w.label, w.weight);
+        }
+        Ok(ShapeWeighting::Given(map))
+    }
+}
+
+/// Set the power of every shape term of `target` as `how` says, and return each mode's
+/// weight with what it came from (empty without shape terms). `Auto` locates the units with
+/// the Laplace reference at full weight (from `start`, with the mean auxiliary values),
+/// takes each shape's residual against the model there, and weighs each mode by
+/// [`crate::bayes::shape_weight::design_weights`].
+fn weigh_shapes(
+    target: &mut ModalTarget,
+    how: &ShapeWeighting,
+    (aux_mean, start): (&[f64], Option<&[f64]>),
+    labels: &[String],
+    seed: u64,
+    what: &str,
+) -> anyhow::Result<Vec<ShapeWeight>> {
+    use crate::bayes::shape_weight::{design_weights, residual, ModeResidual};
+    use rayon::prelude::*;
+    if target.units.iter().all(|u| u.shapes.is_empty()) {
+        return Ok(vec![]);
+    }
+    let count = |m: usize| -> usize {
+        target
+            .units
+            .iter()
+            .flat_map(|u| &u.shapes)
+            .filter(|o| o.mode == m)
+            .count()
+    };
+    let given = |w: &dyn Fn(&str) -> f64| -> Vec<ShapeWeight> {
+        labels
+            .iter()
+            .enumerate()
+            .map(|(m, l)| ShapeWeight {
+                label: l.clone(),
+                n_observations: count(m),
+                n_pairs: 0,
+                correlation: None,
+                design_effect: 1.0 / w(l),
+                weight: w(l),
+            })
+            .collect()
+    };
+    let weights = match how {
+        ShapeWeighting::Off => given(&|_| 1.0),
+        ShapeWeighting::Given(map) => given(&|l| map.get(l).copied().unwrap_or(1.0)),
+        ShapeWeighting::Auto => {
+            let ropts = crate::bayes::reference::ReferenceOptions {
+                start: start.map(<[f64]>::to_vec),
+                ..Default::default()
+            };
+            let (q, _) =
+                crate::bayes::reference::laplace_reference(&*target, aux_mean, &ropts, seed)
+                    .map_err(|e| {
+                        anyhow!("{what}: locating the units to weigh the shape terms: {e}")
+                    })?;
+            let t = &*target;
+            let res: Vec<ModeResidual> = (0..t.units.len())
+                .into_par_iter()
+                .flat_map_iter(|b| {
+                    let pred = t
+                        .predictor
+                        .predict(&t.values(aux_mean, b, &q.units[b].mean));
+                    t.units[b]
+                        .shapes
+                        .iter()
+                        .filter_map(|o| {
+                            let (pred, ps) = (pred.as_ref()?, o.points.as_ref()?);
+                            Some(ModeResidual {
+                                mode: o.mode,
+                                keys: ps.keys.clone(),
+                                r: residual(ps, &pred.vectors[o.mode], &t.predictor.refs[o.mode])?,
+                            })
+                        })
+                        .collect::<Vec<_>>()
+                })
+                .collect();
+            design_weights(&res, labels)
+        }
+    };
+    for u in &mut target.units {
+        for o in &mut u.shapes {
+            o.weight = weights[o.mode].weight;
+        }
+    }
+    Ok(weights)
+}
+
+/// The shape terms' weights in the log (verbose) and, where a mode's measurements share
+/// most of their shape error, a finding: its shapes then count as few measurements.
+fn report_shape_weights(w: &[ShapeWeight], what: &str, verbose: bool, findings: &mut Findings) {
+    if verbose && !w.is_empty() {
+        let s: Vec<String> = w
+            .iter()
+            .map(|w| {
+                format!(
+                    "{} {:.3} (ρ {:.3}, J {})",
+                    w.label,
+                    w.weight,
+                    w.correlation.unwrap_or(f64::NAN),
+                    w.n_observations
+                )
+            })
+            .collect();
+        eprintln!("{what}: shape-term weights {}", s.join(", "));
+    }
+    let low: Vec<String> = w
+        .iter()
+        .filter(|w| w.weight < 0.5)
+        .map(|w| {
+            format!(
+                "{} (ρ = {:.2} over {} measurements: worth {:.1})",
+                w.label,
+                w.correlation.unwrap_or(f64::NAN),
+                w.n_observations,
+                w.n_observations as f64 * w.weight
+            )
+        })
+        .collect();
+    if !low.is_empty() {
+        findings.push(Finding::new(
+            Severity::Info,
+            "update.shape_weights",
+            format!("{what}: the shape residuals of {} agree between measurements (an error they share: extraction or model), so their shape terms count as fewer independent measurements (evidence.json shape_weights)", low.join(", ")),
+        ));
+    }
 }
 
 /// Where a frequency observation came from, and the index of its shape observation.
@@ -2620,7 +2816,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                     _ => (param_names[k].clone(), reference[k]),
                 })
                 .unzip();
-            let target = ModalTarget {
+            let mut target = ModalTarget {
                 predictor,
                 compose: Compose::Boards {
                     updated: updated.clone(),
@@ -2644,6 +2840,16 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             let mut sopts = opts.clone();
             sopts.surrogate &= target.covariate.is_none();
             clock.lap("unit_data");
+            let shape_weights = weigh_shapes(
+                &mut target,
+                &opts.shape_weights,
+                (&[], None),
+                &labels.labels,
+                opts.seed,
+                "boards",
+            )?;
+            report_shape_weights(&shape_weights, "boards", verbose, &mut findings);
+            clock.lap("shape_weights");
             let (results, acceleration) = run_smc(&target, &sopts, "boards", &[], None, verbose)?;
             let sampler_seconds = clock.lap("sampler");
             check_surrogate_edges(&acceleration, &mut findings);
@@ -2772,6 +2978,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 _ => {}
             }
             ev["model_error"] = serde_json::to_value(&model_error)?;
+            ev["shape_weights"] = serde_json::to_value(&shape_weights)?;
             let p = opts.out.join("evidence.json");
             crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
             outputs.push(p);
@@ -3962,7 +4169,7 @@ pub fn run_joints(
         if units.is_empty() {
             bail!("no bolted measurement has data for step 2 (no paired bolted mode of a board with a step-1 posterior)");
         }
-        let target = ModalTarget {
+        let mut target = ModalTarget {
             predictor,
             compose: Compose::Joints {
                 board_params: board_params.clone(),
@@ -4013,6 +4220,25 @@ pub fn run_joints(
             })
             .collect();
         clock.lap("unit_data");
+        // The units located for the weights with the step-1 posterior mean of the boards.
+        let draws_mean: Vec<f64> = match step1.draws.first() {
+            None => vec![],
+            Some((_, d0)) => (0..d0.len())
+                .map(|k| {
+                    step1.draws.iter().map(|(_, d)| d[k]).sum::<f64>() / step1.draws.len() as f64
+                })
+                .collect(),
+        };
+        let shape_weights = weigh_shapes(
+            &mut target,
+            &opts.shape_weights,
+            (&draws_mean, Some(&centre)),
+            &labels.labels,
+            opts.seed,
+            "joints",
+        )?;
+        report_shape_weights(&shape_weights, "joints", verbose, &mut findings);
+        clock.lap("shape_weights");
         let (results, acceleration) =
             run_smc(&target, &sopts, "joints", &aux, Some(&centre), verbose)?;
         let sampler_seconds = clock.lap("sampler");
@@ -4221,6 +4447,7 @@ pub fn run_joints(
             ev["boards_dir_evidence"] = step1_enrichment;
         }
         ev["rom_centre_coordinates"] = serde_json::to_value(&centre)?;
+        ev["shape_weights"] = serde_json::to_value(&shape_weights)?;
         let p = opts.out.join("evidence.json");
         crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
         outputs.push(p);

@@ -781,3 +781,92 @@ fn a_bolted_measurement_of_a_board_without_a_step1_posterior_is_reported_and_the
         boards.iter().filter(|b| **b != held).cloned().collect();
     assert_eq!(in_step2, expected);
 }
+
+/// The shape terms' weights (`--shape-weights`): `auto` records one per updated mode in
+/// evidence.json, each 1 over its design effect 1 + (J − 1) max(ρ, 0) with J the mode's shape
+/// observations; a run given that file takes the same weights and, with the same seed, gives
+/// the same evidence to the bit (the weights are all that estimating them changes); `off`
+/// weighs every shape 1; a file that is not an evidence.json is named.
+#[test]
+fn shape_weights_are_estimated_recorded_and_taken_from_another_run() {
+    let w = Work::new();
+    w.chain();
+    let run = |out: &str, extra: &[&str]| {
+        let mut args: Vec<String> = [
+            "update",
+            "boards",
+            &w.s("ingest"),
+            &w.s("pair"),
+            "--out",
+            &w.s(out),
+            "--model",
+            &w.s("coarse.toml"),
+            "--particles",
+            "60",
+            "--runs",
+            "1",
+            "--rom-basis",
+            "12",
+            "--modes",
+            "torsion-1,bending-x-1",
+            "--params",
+            PARAMS,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.extend(extra.iter().map(|s| s.to_string()));
+        hbmu(&args.iter().map(|s| s.as_str()).collect::<Vec<_>>())
+    };
+    let evidence = |out: &str| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(w.p(out).join("evidence.json")).unwrap()).unwrap()
+    };
+    let o = run("a", &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let a = evidence("a");
+    let sw = a["shape_weights"].as_array().expect("shape_weights");
+    let labels: Vec<&str> = sw.iter().map(|s| s["label"].as_str().unwrap()).collect();
+    assert_eq!(labels, ["torsion-1", "bending-x-1"]);
+    for s in sw {
+        let (wt, deff) = (
+            s["weight"].as_f64().unwrap(),
+            s["design_effect"].as_f64().unwrap(),
+        );
+        let j = s["n_observations"].as_f64().unwrap();
+        // Three boards × two measurements on one scan grid: every pair shares its points.
+        assert!((2.0..=6.0).contains(&j), "{s}");
+        assert_eq!(s["n_pairs"].as_f64(), Some(j * (j - 1.0) / 2.0), "{s}");
+        let rho = s["correlation"].as_f64().expect("estimated");
+        assert!(
+            (deff - (1.0 + (j - 1.0) * rho.max(0.0))).abs() < 1e-12,
+            "{s}"
+        );
+        assert!(
+            wt > 0.0 && wt <= 1.0 && (wt * deff - 1.0).abs() < 1e-12,
+            "{s}"
+        );
+    }
+    let o = run("b", &["--shape-weights", &w.s("a/evidence.json")]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let b = evidence("b");
+    for (x, y) in sw.iter().zip(b["shape_weights"].as_array().unwrap()) {
+        assert_eq!(x["weight"], y["weight"]);
+        assert!(y["correlation"].is_null());
+    }
+    assert_eq!(a["log_evidence_runs"], b["log_evidence_runs"]);
+    let o = run("c", &["--shape-weights", "off"]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let c = evidence("c");
+    assert!(c["shape_weights"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .all(|s| s["weight"] == 1.0));
+    let o = run("d", &["--shape-weights", &w.s("a/boards.parquet")]);
+    assert_ne!(o.status.code(), Some(0));
+    assert!(
+        stderr(&o).contains("boards.parquet") && stderr(&o).contains("not valid JSON"),
+        "{}",
+        stderr(&o)
+    );
+}

@@ -24,7 +24,7 @@ use crate::diagnose::select::{
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::manifest::StageSpec;
 use crate::io::tables::{self, c, Col, Cols, TableSpec};
-use crate::stage::update::UpdateOptions;
+use crate::stage::update::{ShapeWeighting, UpdateOptions};
 use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::{anyhow, Context};
 
@@ -204,13 +204,19 @@ fn step_options(work: &Path, dir: &str, manifest: &str) -> anyhow::Result<Update
         .get("config")
         .cloned()
         .ok_or_else(|| anyhow!("{}: no `config`: not a stage manifest", p.display()))?;
-    serde_json::from_value(cfg).with_context(|| {
+    let mut o: UpdateOptions = serde_json::from_value(cfg).with_context(|| {
         format!(
             "{}: config is not the options of `update {}` (written by another version?)",
             p.display(),
             dir.trim_start_matches("update_")
         )
-    })
+    })?;
+    // A refit's likelihood must be the baseline's: its shape terms take the weights the
+    // baseline estimated, not weights of its own (their evidences would not compare).
+    if o.shape_weights == ShapeWeighting::Auto {
+        o.shape_weights = ShapeWeighting::from_evidence(&work.join(dir).join("evidence.json"))?;
+    }
+    Ok(o)
 }
 
 /// Mean absolute relative error per setup of the held-out (`used == false`) or updated modes
