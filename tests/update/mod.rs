@@ -116,8 +116,15 @@ impl Work {
             assert_eq!(o.status.code(), Some(0), "{args:?}: {}", stderr(&o));
         }
     }
-    /// `update boards` at the small size with `params` updated, plus extra arguments.
+    /// `update boards` at the small size with `params` updated, shape terms off, plus extra
+    /// arguments.
     fn update(&self, out: &str, board: &str, params: &str, extra: &[&str]) -> Output {
+        let mut e = vec!["--no-shapes"];
+        e.extend_from_slice(extra);
+        self.update_shaped(out, board, params, &e)
+    }
+    /// `update boards` at the small size with `params` updated, plus extra arguments.
+    fn update_shaped(&self, out: &str, board: &str, params: &str, extra: &[&str]) -> Output {
         let mut args: Vec<String> = vec![
             "update".into(),
             "boards".into(),
@@ -135,7 +142,6 @@ impl Work {
             "1",
             "--rom-basis",
             "12",
-            "--no-shapes",
             "--modes",
             "torsion-1,bending-x-1",
             "--params",
@@ -791,33 +797,7 @@ fn a_bolted_measurement_of_a_board_without_a_step1_posterior_is_reported_and_the
 fn shape_weights_are_estimated_recorded_and_taken_from_another_run() {
     let w = Work::new();
     w.chain();
-    let run = |out: &str, extra: &[&str]| {
-        let mut args: Vec<String> = [
-            "update",
-            "boards",
-            &w.s("ingest"),
-            &w.s("pair"),
-            "--out",
-            &w.s(out),
-            "--model",
-            &w.s("coarse.toml"),
-            "--particles",
-            "60",
-            "--runs",
-            "1",
-            "--rom-basis",
-            "12",
-            "--modes",
-            "torsion-1,bending-x-1",
-            "--params",
-            PARAMS,
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        args.extend(extra.iter().map(|s| s.to_string()));
-        hbmu(&args.iter().map(|s| s.as_str()).collect::<Vec<_>>())
-    };
+    let run = |out: &str, extra: &[&str]| w.update_shaped(out, "coarse.toml", PARAMS, extra);
     let evidence = |out: &str| -> serde_json::Value {
         serde_json::from_slice(&std::fs::read(w.p(out).join("evidence.json")).unwrap()).unwrap()
     };
