@@ -943,6 +943,7 @@ mod tests {
                     chosen_by_shapes: false,
                     shapes_used: 0,
                     shapes_skipped: 0,
+                    combined_delta_chi2: None,
                     sentence: "A point mass.".into(),
                 }],
                 board_regions_note: "point-mass localisation".into(),

@@ -1112,29 +1112,57 @@ fn board_regions(
     (out, note.join("; "))
 }
 
-/// Where several signatures located the same misfit, the one that explains less of it is not
-/// located: the same residuals, the same number of fitted quantities (an amplitude and two
-/// coordinates), so the larger explained share (frequencies alone, for both) is the likelier
-/// mechanism. Its sentence says which one explains more.
+/// Where several signatures located the same misfit, the weaker one is not located: the
+/// same residuals, the same number of fitted quantities (an amplitude and two coordinates),
+/// so the larger Δχ² is the likelier mechanism. Where the updating had shape terms, the Δχ²
+/// is the frequencies' plus the shapes' at each located point (the sum each point was chosen
+/// by, and the refit's likelihood has both): on a board whose few free-free modes leave
+/// both signatures explaining 99 % of the frequency misfit, the shapes are what tells a
+/// point mass from a soft spot. Without shape terms, the frequencies' explained share.
+/// The weaker one's sentence says which one explains more, and by what.
 fn demote_weaker_regions(regions: &mut [regions::BoardRegion]) {
+    let with_shapes = regions
+        .iter()
+        .filter(|r| r.located)
+        .all(|r| r.combined_delta_chi2.is_some());
+    let key = |r: &regions::BoardRegion| {
+        if with_shapes {
+            r.combined_delta_chi2.unwrap_or(f64::NEG_INFINITY)
+        } else {
+            r.fit.explained_share
+        }
+    };
     let best = regions
         .iter()
         .enumerate()
         .filter(|(_, r)| r.located)
-        .max_by(|a, b| a.1.fit.explained_share.total_cmp(&b.1.fit.explained_share))
-        .map(|(i, r)| (i, r.mechanism, r.fit.explained_share));
-    let Some((bi, bm, bs)) = best else {
+        .max_by(|a, b| key(a.1).total_cmp(&key(b.1)))
+        .map(|(i, r)| (i, r.mechanism, key(r), r.fit.explained_share));
+    let Some((bi, bm, bk, bs)) = best else {
         return;
     };
     for (i, r) in regions.iter_mut().enumerate() {
         if i != bi && r.located {
             r.located = false;
+            let by = if with_shapes {
+                format!(
+                    "frequencies and mode shapes together, Δχ² {:.0} against {:.0}; of the frequencies alone {:.0} % against {:.0} %",
+                    bk,
+                    key(r),
+                    100.0 * bs,
+                    100.0 * r.fit.explained_share
+                )
+            } else {
+                format!(
+                    "{:.0} % against {:.0} %",
+                    100.0 * bs,
+                    100.0 * r.fit.explained_share
+                )
+            };
             r.sentence = format!(
-                "{} Not located: the {} signature explains more of the misfit ({:.0} % against {:.0} %).",
+                "{} Not located: the {} signature explains more of the misfit ({by}).",
                 r.sentence,
                 bm.id(),
-                100.0 * bs,
-                100.0 * r.fit.explained_share
             );
         }
     }
@@ -1485,4 +1513,76 @@ fn write_outputs(
         exit_code: exit::OK,
         summary: s,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::demote_weaker_regions;
+    use crate::diagnose::library::Mechanism;
+    use crate::diagnose::localize::LocalFit;
+    use crate::stage::diagnose::regions::BoardRegion;
+
+    fn region(mechanism: Mechanism, share: f64, combined: Option<f64>) -> BoardRegion {
+        BoardRegion {
+            mechanism,
+            amplitude_unit: String::new(),
+            located: true,
+            fit: LocalFit {
+                x_m: 0.05,
+                y_m: 0.03,
+                amplitude: 1.0,
+                amplitude_se: 0.1,
+                chi2_before: 100.0,
+                chi2_after: 100.0 * (1.0 - share),
+                dof_after: 2,
+                explained_share: share,
+                p_value: 1e-9,
+                region_radius_m: 0.01,
+                region_points: 10,
+                alternatives: vec![],
+                log_location_occam: -1.0,
+                location_ln_amplitude_sd: 0.0,
+                delta_chi2: vec![],
+                inflation: 1.0,
+                amplitude_at: vec![],
+            },
+            shape_scores: vec![],
+            chosen_by_shapes: false,
+            shapes_used: 0,
+            shapes_skipped: 0,
+            combined_delta_chi2: combined,
+            sentence: "Fit.".into(),
+        }
+    }
+
+    /// Two signatures that explain the frequencies alike: with shape terms the combined Δχ²
+    /// decides (here against the frequencies' slightly larger share), without them the share.
+    #[test]
+    fn the_shapes_decide_between_signatures_the_frequencies_cannot_tell_apart() {
+        let mut r = [
+            region(Mechanism::AddedMass, 0.9913, Some(187_842.0)),
+            region(Mechanism::LocalStiffnessLoss, 0.9926, Some(184_405.0)),
+        ];
+        demote_weaker_regions(&mut r);
+        assert!(r[0].located && !r[1].located);
+        assert!(r[1].sentence.contains("added_mass signature explains more"));
+        assert!(r[1].sentence.contains("Δχ² 187842 against 184405"));
+
+        let mut r = [
+            region(Mechanism::AddedMass, 0.9913, None),
+            region(Mechanism::LocalStiffnessLoss, 0.9926, None),
+        ];
+        demote_weaker_regions(&mut r);
+        assert!(!r[0].located && r[1].located);
+        assert!(r[0].sentence.contains("(99 % against 99 %)"));
+
+        // A region that was not located is neither compared nor changed.
+        let mut r = [
+            region(Mechanism::AddedMass, 0.9, Some(10.0)),
+            region(Mechanism::LocalStiffnessLoss, 0.4, Some(50.0)),
+        ];
+        r[1].located = false;
+        demote_weaker_regions(&mut r);
+        assert!(r[0].located && r[1].sentence == "Fit.");
+    }
 }

@@ -72,6 +72,11 @@ pub struct BoardRegion {
     /// length, scan points the model cannot evaluate).
     pub shapes_used: usize,
     pub shapes_skipped: usize,
+    /// The frequencies' Δχ² plus the shapes' at the located point, the sum the point was
+    /// chosen by (`None` where the updating had no shape terms, and the shapes only chose
+    /// among alternatives); what ranks two signatures of the same misfit. Not written out.
+    #[serde(skip)]
+    pub combined_delta_chi2: Option<f64>,
     pub sentence: String,
 }
 
@@ -288,6 +293,9 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         combined,
         best_open,
     } = decide_by_shapes(inp, fb, &loc_in, &fit, &|_| Coupling::PointMass)?;
+    let combined_delta_chi2 = best_open
+        .filter(|_| has_delta && !shapes.scores.is_empty())
+        .map(|k| combined[k]);
     let mut fit = chosen.unwrap_or(fit);
     if let (true, Some(k), false) = (has_delta, best_open, shapes.scores.is_empty()) {
         // The region and the location's Occam factor of the combined map (the refit's
@@ -363,6 +371,7 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         chosen_by_shapes,
         shapes_used: shapes.used,
         shapes_skipped: shapes.skipped,
+        combined_delta_chi2,
         sentence,
     })
 }
@@ -439,6 +448,9 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
                 .collect(),
         )
     })?;
+    let combined_delta_chi2 = best_open
+        .filter(|_| has_delta && !shapes.scores.is_empty())
+        .map(|k| combined[k]);
     let mut fit = chosen.unwrap_or(fit);
     if let (true, Some(k)) = (has_delta, best_open) {
         combined_region(&mut fit, &combined, k, &open, points);
@@ -491,6 +503,7 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
         chosen_by_shapes,
         shapes_used: shapes.used,
         shapes_skipped: shapes.skipped,
+        combined_delta_chi2,
         sentence,
     })
 }
