@@ -7,5 +7,6 @@ pub mod library;
 pub mod localize;
 pub mod locate;
 pub mod misfit;
+pub mod point_search;
 pub mod screen;
 pub mod select;

@@ -85,6 +85,14 @@ pub struct Refit {
     /// fixed the location the localisation chose; this accounts for having chosen it).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub log_location_occam: Option<f64>,
+    /// A point mechanism's point as refitted (m): the located point refined by the refits'
+    /// evidence ([`crate::diagnose::point_search`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub point_xy_m: Option<[f64; 2]>,
+    /// The refinement's probes: step-1 refits with the point fixed, their log evidence and
+    /// the mass each fitted.
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub location_probes: Vec<crate::diagnose::point_search::Probe>,
     /// Share of the baseline's located misfit the refit leaves: Σ |mean relative residual|
     /// over the located modes after the refit / before (a setup the refit does not touch
     /// keeps the baseline's). `None`: not computed (the baseline itself, a failed refit).
@@ -455,6 +463,8 @@ mod tests {
             estimates: vec![],
             failed: None,
             log_location_occam: None,
+            point_xy_m: None,
+            location_probes: vec![],
             remaining_share: None,
             deviating_joints: vec![],
             new_modes: vec![],

@@ -860,6 +860,8 @@ mod tests {
             },
             failed: failed.map(str::to_string),
             log_location_occam: None,
+            point_xy_m: None,
+            location_probes: vec![],
             remaining_share: None,
             deviating_joints: vec![],
             new_modes: vec![],
