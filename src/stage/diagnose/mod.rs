@@ -631,6 +631,20 @@ fn refit_options(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate)
     o
 }
 
+/// The step-1 options of a board mechanism's refit, its point at `xy_m` (`added_mass`).
+fn board_refit_options(
+    opts: &DiagnoseOptions,
+    base1: &UpdateOptions,
+    cand: &Candidate,
+    xy_m: Option<[f64; 2]>,
+) -> UpdateOptions {
+    let mut o = refit_options(opts, base1, cand);
+    o.enrich_joint = None;
+    o.enrich_covariate = cand.covariate.clone();
+    o.enrich_location = xy_m;
+    o
+}
+
 /// Run one candidate's refit: step 1 (`update boards --enrich`) for a board mechanism, on
 /// the step-1 options `base1`; step 2 (`update joints --enrich`) for a joint mechanism, on
 /// the step-2 options `base2`.
@@ -643,10 +657,7 @@ fn run_refit(
     if is_board_mechanism(cand.mechanism) {
         // Step 1 with the mechanism (refits/<id>/boards), then, where the campaign has a
         // step 2, step 2 on top of it carrying the boards' coefficients (refits/<id>).
-        let mut o = refit_options(opts, base1, cand);
-        o.enrich_joint = None;
-        o.enrich_covariate = cand.covariate.clone();
-        o.enrich_location = cand.point_xy_m;
+        let mut o = board_refit_options(opts, base1, cand, cand.point_xy_m);
         let boards = o.out.join("boards");
         o.out = boards.clone();
         let r1 = run_gated(o, |o| crate::stage::update::run_boards(o, verbose))?;
@@ -809,10 +820,7 @@ fn refine_point(
         max_probes: 24,
     };
     let probe = |p: [f64; 2]| -> anyhow::Result<point_search::Probe> {
-        let mut o = refit_options(opts, base1, cand);
-        o.enrich_joint = None;
-        o.enrich_covariate = cand.covariate.clone();
-        o.enrich_location = Some(p);
+        let mut o = board_refit_options(opts, base1, cand, Some(p));
         o.smc.n_particles = (o.smc.n_particles / 2).max(100);
         o.out = opts.out.join(format!(
             "refits/{}/location/x{:.3}_y{:.3}",
