@@ -117,6 +117,13 @@ pub trait Target: Sync {
     fn unit_prior_normal(&self, _ctx: &Self::Ctx, _b: usize) -> Option<(Vec<f64>, Vec<f64>)> {
         None
     }
+    /// Expensive model evaluations so far (e.g. the ROM's, where a surrogate could not
+    /// answer), for [`SmcOptions::max_expensive_evals_per_particle_unit`]; 0 (the default) where every
+    /// evaluation costs alike. The count must not depend on the thread count (count every
+    /// call, not the calls of one thread).
+    fn expensive_evals(&self) -> u64 {
+        0
+    }
     /// A cheap stand-in for [`Target::model`] where `model` is expensive at x (e.g. a
     /// surrogate extrapolated beyond its box, where `model` falls back to the ROM), for the
     /// first stage of a delayed-acceptance move; None (the default) where `model` is cheap
@@ -213,6 +220,14 @@ pub struct SmcOptions {
     /// mean over groups of each group's evidence.
     #[serde(default = "one")]
     pub groups: usize,
+    /// Give up (with an error) when a run has spent more than this many expensive model
+    /// evaluations ([`Target::expensive_evals`]) per particle and unit, checked between
+    /// stages. `None`: no limit.
+    /// A sampler whose cheap stand-ins fail everywhere (a surrogate refused for every unit)
+    /// tempers on the expensive model at every step; a caller that prefers an answer in
+    /// bounded time to an exact one at any cost (the diagnosis's refits) sets it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_expensive_evals_per_particle_unit: Option<f64>,
 }
 
 fn one() -> usize {
@@ -242,6 +257,7 @@ impl Default for SmcOptions {
             noncentred: 1,
             max_stages: 400,
             groups: 1,
+            max_expensive_evals_per_particle_unit: None,
         }
     }
 }
@@ -323,6 +339,13 @@ pub enum SmcError {
     GroupReferences { references: usize, groups: usize },
     #[error("tempering did not reach β = 1 within {stages} stages (β = {beta:.3e})")]
     TooManyStages { stages: usize, beta: f64 },
+    #[error("tempering spent {used} expensive model evaluations, over the limit of {max}, by stage {stage} (β = {beta:.3e})")]
+    OverBudget {
+        used: u64,
+        max: u64,
+        stage: usize,
+        beta: f64,
+    },
     /// The tempering has stalled: at [`STALLED_STAGES`] stages in a row even the smallest
     /// step the bisection resolves left the weights degenerate. It would creep on by
     /// Δβ ≈ 1e-12 a stage with one live particle, and never finish.
@@ -1629,6 +1652,7 @@ pub fn run_from<T: Target>(
     let mut scales = Scales::new(t);
     let mut stage = 0usize;
     let mut stalled = 0usize;
+    let expensive_at_start = t.expensive_evals();
     while beta < 1.0 {
         stage += 1;
         if stage > opts.max_stages {
@@ -1636,6 +1660,18 @@ pub fn run_from<T: Target>(
                 stages: opts.max_stages,
                 beta,
             });
+        }
+        if let Some(per) = opts.max_expensive_evals_per_particle_unit {
+            let max = (per * (n * t.n_units()) as f64) as u64;
+            let used = t.expensive_evals() - expensive_at_start;
+            if used > max {
+                return Err(SmcError::OverBudget {
+                    used,
+                    max,
+                    stage: stage - 1,
+                    beta,
+                });
+            }
         }
         let ratio: Vec<f64> = {
             let tp = Tempered { t, start, beta };

@@ -188,6 +188,38 @@ fn to_box_axis(v: f64, log: bool) -> f64 {
     }
 }
 
+/// Aᵀ A (nt × nt) and Aᵀ Y (nt × n_out), row-major, for the design rows A and outputs Y:
+/// sequential faer products (the caller runs units in parallel; a fixed order keeps the
+/// sums, and so the surrogate, the same whatever the thread count).
+fn normal_equations(
+    rows: &[Vec<f64>],
+    ys: &[Vec<f64>],
+    nt: usize,
+    n_out: usize,
+) -> (Vec<f64>, Vec<f64>) {
+    let a = faer::Mat::<f64>::from_fn(rows.len(), nt, |i, j| rows[i][j]);
+    let y = faer::Mat::<f64>::from_fn(ys.len(), n_out, |i, j| ys[i][j]);
+    let mut ata = faer::Mat::<f64>::zeros(nt, nt);
+    let mut aty = faer::Mat::<f64>::zeros(nt, n_out);
+    for (out, rhs) in [(&mut ata, a.as_ref()), (&mut aty, y.as_ref())] {
+        faer::linalg::matmul::matmul(
+            out.as_mut(),
+            faer::Accum::Replace,
+            a.transpose(),
+            rhs,
+            1.0,
+            faer::Par::Seq,
+        );
+    }
+    crate::simd::clear_upper_vector_state();
+    let flat = |m: &faer::Mat<f64>| -> Vec<f64> {
+        (0..m.nrows())
+            .flat_map(|i| (0..m.ncols()).map(move |j| m[(i, j)]))
+            .collect()
+    };
+    (flat(&ata), flat(&aty))
+}
+
 fn outputs(t: &Terms) -> Vec<f64> {
     let mut o: Vec<f64> = t.lambda.iter().map(|v| v.ln()).collect();
     o.extend(&t.one_minus_mac);
@@ -216,6 +248,10 @@ pub struct SurrogateOptions {
     /// paper demo's joint_rotation refit, max |Δ log L| over the final particles 4.5e-5
     /// with 0.5 here; 0.05 shrank 24 of 30 boxes to 2.5 sd and tripled the refit's time).
     pub tolerance_dll: f64,
+    /// Largest number of polynomial terms tried (a degree with more is skipped and the box
+    /// halved): fitting costs 2 × n_terms ROM evaluations and ~2 n_terms³ flops per unit
+    /// and box. 2000 admits degree 6 in up to 7 inputs and degree 4 in up to 12.
+    pub max_terms: usize,
 }
 
 impl Default for SurrogateOptions {
@@ -227,6 +263,7 @@ impl Default for SurrogateOptions {
             oversampling: 2.0,
             n_verify: 60,
             tolerance_dll: 0.5,
+            max_terms: 2000,
         }
     }
 }
@@ -297,9 +334,22 @@ pub fn fit_unit(
     let mut half_width = opts.half_width_sd;
     while half_width >= opts.min_half_width_sd {
         let mut last_err = String::new();
+        // The previous degree's worst error: a polynomial of a smooth map converges with its
+        // degree, so a degree that does not lower it means something in the box is not
+        // smooth (two modes crossing, a mode the ROM hands over to another), and higher
+        // degrees only cost (each one more ROM evaluations and ~2 n_terms³ flops): the box
+        // is halved instead.
+        let mut prev_worst = f64::INFINITY;
         'degrees: for &p in &opts.degrees {
             let exps = multi_indices(d, p);
             let nt = exps.len();
+            if nt > opts.max_terms {
+                last_err = format!(
+                    "degree {p}: {nt} terms in {d} inputs, over the limit of {}",
+                    opts.max_terms
+                );
+                break 'degrees;
+            }
             let n_fit = ((nt as f64) * opts.oversampling).ceil() as usize + 4;
             let mut s = UnitSurrogate {
                 inputs: inputs.clone(),
@@ -337,19 +387,10 @@ pub fn fit_unit(
                 ys.push(outputs(&t));
             }
             // Least squares by the normal equations (Legendre basis on uniform points: well
-            // conditioned at these degrees).
-            let mut ata = vec![0.0; nt * nt];
-            let mut aty = vec![0.0; nt * n_out];
-            for (r, y) in rows.iter().zip(&ys) {
-                for i in 0..nt {
-                    for j in 0..nt {
-                        ata[i * nt + j] += r[i] * r[j];
-                    }
-                    for o in 0..n_out {
-                        aty[i * n_out + o] += r[i] * y[o];
-                    }
-                }
-            }
+            // conditioned at these degrees), the products Aᵀ A and Aᵀ Y by faer: at 7 inputs
+            // and degree 6 (1716 terms, 3436 rows) the hand-written triple loop took ~10 s per
+            // unit and box, which made a 30-unit refit spend most of its time here.
+            let (ata, aty) = normal_equations(&rows, &ys, nt, n_out);
             let (l, _) = cholesky_jittered(&ata, nt);
             let mut coef = vec![0.0; nt * n_out];
             for o in 0..n_out {
@@ -389,6 +430,11 @@ pub fn fit_unit(
                 return Ok(s);
             }
             last_err = format!("degree {p}: max |Δ log L| {worst:.3e} on the verification points");
+            if worst >= prev_worst {
+                last_err.push_str(", no better than one degree lower");
+                break 'degrees;
+            }
+            prev_worst = worst;
         }
         errors.push(format!("{half_width} sd: {last_err}"));
         half_width *= 0.5;
@@ -413,9 +459,15 @@ pub struct SurrogateTarget<'a> {
     /// Proposals that fell outside a unit's box and went to the ROM (a count for the report;
     /// it does not influence any result).
     pub outside_box: std::sync::atomic::AtomicU64,
+    /// Every ROM evaluation `model` made (units without a surrogate, proposals beyond a box):
+    /// [`Target::expensive_evals`].
+    pub rom_evals: std::sync::atomic::AtomicU64,
 }
 
 impl Target for SurrogateTarget<'_> {
+    fn expensive_evals(&self) -> u64 {
+        self.rom_evals.load(std::sync::atomic::Ordering::Relaxed)
+    }
     type Cache = Terms;
     type Ctx = <ModalTarget as Target>::Ctx;
     fn n_global(&self) -> usize {
@@ -454,6 +506,8 @@ impl Target for SurrogateTarget<'_> {
             self.outside_box
                 .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         }
+        self.rom_evals
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         self.inner.model(aux, b, x)
     }
     fn log_lik(&self, ctx: &Self::Ctx, b: usize, x: &[f64], c: &Terms) -> f64 {

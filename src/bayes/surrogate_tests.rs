@@ -1,7 +1,8 @@
 //! The unit surrogates against the ROM they stand in for, on the small step-1 problem of the
 //! simulation-based calibration (coarse mesh, 3 modes, e_x and g_xy): the verified box holds
 //! the polynomial to its tolerance on fresh points, the box is in ln of positive inputs, and
-//! a tolerance no polynomial meets halves the box down to its floor and then refuses.
+//! a tolerance no polynomial meets halves the box down to its floor and then refuses, and a
+//! degree over the term limit is never fitted.
 
 use super::modal;
 use super::sbc_tests::ci_problem;
@@ -82,6 +83,31 @@ fn a_tolerance_no_polynomial_meets_halves_the_box_to_its_floor_then_refuses() {
         assert!(e.contains(hw), "{e}");
     }
     assert!(!e.contains("1.25 sd"), "{e}");
+}
+
+#[test]
+fn a_degree_over_the_term_limit_is_not_fitted_and_higher_ones_are_not_tried() {
+    let (t, samples, eps) = problem(0.004);
+    // Two inputs: degree 2 has 6 terms, degree 3 has 10. A limit of 8 stops at degree 3.
+    let opts = SurrogateOptions {
+        degrees: vec![2, 3, 4],
+        tolerance_dll: 1e-14,
+        max_terms: 8,
+        ..SurrogateOptions::default()
+    };
+    let e = fit_unit(&t, 0, &samples, &eps, &[], &opts, 11).expect_err("refused");
+    assert!(
+        e.contains("degree 3: 10 terms in 2 inputs, over the limit of 8"),
+        "{e}"
+    );
+    assert!(!e.contains("degree 4"), "{e}");
+    // Within the limit the same problem fits (the default tolerance).
+    let ok = SurrogateOptions {
+        max_terms: 8,
+        ..SurrogateOptions::default()
+    };
+    let s = fit_unit(&t, 0, &samples, &eps, &[], &ok, 11).expect("a degree-2 surrogate");
+    assert_eq!(s.degree, 2);
 }
 
 /// The subspaces of the ROM the correction solves in, one per updated mode: verified on the

@@ -15,11 +15,16 @@ struct LinearGaussian {
     s: Vec<f64>,
     /// y[b][r][k]
     y: Vec<Vec<Vec<f64>>>,
+    /// `model` calls (each one "expensive" for [`Target::expensive_evals`]).
+    calls: std::sync::atomic::AtomicU64,
 }
 
 impl Target for LinearGaussian {
     type Cache = Vec<f64>;
     type Ctx = Vec<f64>;
+    fn expensive_evals(&self) -> u64 {
+        self.calls.load(std::sync::atomic::Ordering::Relaxed)
+    }
     fn n_global(&self) -> usize {
         self.m.len()
     }
@@ -55,6 +60,8 @@ impl Target for LinearGaussian {
     /// The auxiliary value, when there is one, shifts every prediction (a first step's draw
     /// that moves the second step's units: the modular case).
     fn model(&self, aux: &[f64], _b: usize, x: &[f64]) -> Option<Vec<f64>> {
+        self.calls
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let shift = aux.first().copied().unwrap_or(0.0);
         Some(x.iter().map(|v| v + shift).collect())
     }
@@ -135,6 +142,7 @@ fn problem() -> LinearGaussian {
         tau: vec![0.5, 0.3],
         s: vec![0.08, 0.1],
         y,
+        calls: Default::default(),
     }
 }
 
@@ -149,6 +157,40 @@ fn smc_matches_the_closed_form_hierarchical_posterior_and_evidence() {
         .map(|r| smc::run(&t, &opts, 42, r, &|_| {}).expect("run"))
         .collect();
     assert_matches_exact(&t, &results);
+}
+
+/// A budget of expensive evaluations stops the tempering between stages with the count it
+/// reached; a budget the run stays within changes nothing (the same particles and evidence).
+#[test]
+fn a_budget_of_expensive_evaluations_stops_the_run_and_otherwise_changes_nothing() {
+    let t = problem();
+    let opts = SmcOptions {
+        n_particles: 200,
+        ..SmcOptions::default()
+    };
+    let free = smc::run(&t, &opts, 42, 0, &|_| {}).expect("run");
+    let used = free.stages.iter().map(|s| s.model_evals).sum::<u64>();
+    let per_unit = used as f64 / (200 * t.y.len()) as f64;
+    let within = SmcOptions {
+        max_expensive_evals_per_particle_unit: Some(2.0 * per_unit),
+        ..opts.clone()
+    };
+    let r = smc::run(&t, &within, 42, 0, &|_| {}).expect("within its budget");
+    assert_eq!(r.log_evidence, free.log_evidence);
+    assert_eq!(r.particles[0].g, free.particles[0].g);
+    let tight = SmcOptions {
+        max_expensive_evals_per_particle_unit: Some(0.25 * per_unit),
+        ..opts
+    };
+    match smc::run(&t, &tight, 42, 0, &|_| {}) {
+        Err(smc::SmcError::OverBudget {
+            used, max, stage, ..
+        }) => {
+            assert!(used > max, "{used} vs {max}");
+            assert!(stage >= 1 && stage < free.stages.len(), "stage {stage}");
+        }
+        other => panic!("expected the budget's error, got {:?}", other.map(|r| r.log_evidence)),
+    }
 }
 
 /// The same from the Laplace reference of `bayes::reference` instead of the prior: still

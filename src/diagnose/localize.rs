@@ -218,6 +218,7 @@ fn exact_fit(
 
 /// A located local change: a point mass, or a change of stiffness over a small disc.
 #[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
+#[cfg_attr(test, derive(Default))]
 pub struct LocalFit {
     /// Best point, m.
     pub x_m: f64,

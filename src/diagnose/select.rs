@@ -93,6 +93,12 @@ pub struct Refit {
     /// the mass each fitted.
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
     pub location_probes: Vec<crate::diagnose::point_search::Probe>,
+    /// Why a point mechanism's refit kept less than the refinement could give: the search
+    /// stopped (a probe off the board or a failed probe refit; the refit then keeps the
+    /// located point), or its last stencil had no interior maximum (the point moved, the
+    /// location's Occam factor and spread stay the localisation map's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub location_note: Option<String>,
     /// Share of the baseline's located misfit the refit leaves: Σ |mean relative residual|
     /// over the located modes after the refit / before (a setup the refit does not touch
     /// keeps the baseline's). `None`: not computed (the baseline itself, a failed refit).
@@ -465,6 +471,7 @@ mod tests {
             log_location_occam: None,
             point_xy_m: None,
             location_probes: vec![],
+            location_note: None,
             remaining_share: None,
             deviating_joints: vec![],
             new_modes: vec![],

@@ -1591,6 +1591,7 @@ fn run_smc(
         inner: target,
         surrogates,
         outside_box: Default::default(),
+        rom_evals: Default::default(),
     };
     // One start per run: the prior, the reference, or (groups carrying their own auxiliary
     // values: a modular step) one reference per group, found on the surrogates.

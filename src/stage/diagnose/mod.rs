@@ -532,6 +532,7 @@ fn summarize_refit(
         log_location_occam: None,
         point_xy_m: None,
         location_probes: vec![],
+        location_note: None,
         remaining_share: None,
         deviating_joints: vec![],
         new_modes: vec![],
@@ -628,8 +629,20 @@ fn refit_options(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate)
     o.force = opts.force;
     o.enrich = Some(cand.mechanism);
     o.enrich_joint = cand.joint;
+    o.smc.max_expensive_evals_per_particle_unit = Some(REFIT_ROM_EVALS_PER_PARTICLE_UNIT);
     o
 }
+
+/// A refit's budget of ROM evaluations in its tempering, per particle and unit and run
+/// (the sampler gives up beyond it, and the refit is reported failed: never favoured).
+/// Inside their verified boxes the surrogates answer and the ROM is rarely called (the blind
+/// underfill campaign's joint_mass refit: 0.7 per particle and unit over a whole run); a
+/// unit without a surrogate costs 6–75 a stage (2–25 sweeps of three moves). 50 lets a few
+/// units temper on the ROM through a run; an enrichment whose modes the surrogates cannot
+/// follow anywhere (the fixture's own mode swept across the band by its prior: every unit
+/// refused) spent 450 000 ROM evaluations, ~2.5 min on 2 cores, on each of hundreds of
+/// stages, and now stops after the first with its reason.
+const REFIT_ROM_EVALS_PER_PARTICLE_UNIT: f64 = 50.0;
 
 /// The step-1 options of a board mechanism's refit, its point at `xy_m` (`added_mass`).
 fn board_refit_options(
@@ -798,18 +811,20 @@ fn new_modes_refit(
 /// from the localisation's grid point, steps halving from 1 mm to 0.25 mm. Returns the candidate at the
 /// refined point, with the location's Laplace posterior in place of the map's Occam factor
 /// and ln(mass) spread, and every probe. Any other candidate, or a search that could not
-/// run (a probe off the board, a failed refit: said on stderr), is returned as it was.
+/// run (a probe off the board, a failed refit), is returned as it was; that, and a last
+/// stencil without a maximum, is the returned note (in the refit's `location_note` and a
+/// `diagnose.location_search` warning among the stage's findings).
 fn refine_point(
     opts: &DiagnoseOptions,
     board: &crate::fem::Board,
     base1: &UpdateOptions,
     cand: &Candidate,
     verbose: bool,
-) -> (Candidate, Vec<point_search::Probe>) {
+) -> (Candidate, Vec<point_search::Probe>, Option<String>) {
     let (Mechanism::AddedMass, Some(start), Some(_)) =
         (cand.mechanism, cand.point_xy_m, cand.point_located)
     else {
-        return (cand.clone(), vec![]);
+        return (cand.clone(), vec![], None);
     };
     // From half the map's grid step (its point is within one of the map's optimum) to an
     // eighth; each probe with half the refit's particles (the log evidence between probes
@@ -860,15 +875,19 @@ fn refine_point(
     } = match point_search::search(start, &plan, probe) {
         Ok(r) => r,
         Err(e) => {
-            eprintln!(
-                "diagnose: {}: the point's refinement stopped ({e:#}); the refit keeps the located point",
-                cand.id()
+            let note = format!(
+                "the point's refinement stopped ({}); the refit keeps the located point ({:.2}, {:.2}) mm and the localisation map's spread",
+                format!("{e:#}").replace('\n', " "),
+                start[0] * 1e3,
+                start[1] * 1e3
             );
-            return (cand.clone(), vec![]);
+            eprintln!("diagnose: {}: {note}", cand.id());
+            return (cand.clone(), vec![], Some(note));
         }
     };
     let mut c = cand.clone();
     c.point_xy_m = Some(end);
+    let mut note = None;
     if let Some(post) = last.laplace(board.length_x_m * board.width_y_m) {
         c.point_located = Some(screen::PointLocated {
             log_occam: post.log_occam,
@@ -882,8 +901,16 @@ fn refine_point(
             post.sd_m[0] * 1e3,
             post.sd_m[1] * 1e3
         );
+    } else {
+        note = Some(format!(
+            "the refinement's last stencil (step {:.3} mm) has no interior maximum of the log evidence: the point moved to the best probe ({:.2}, {:.2}) mm, the location's Occam factor and the mass's spread are the localisation map's",
+            last.h_m * 1e3,
+            end[0] * 1e3,
+            end[1] * 1e3
+        ));
+        eprintln!("diagnose: {}: {}", cand.id(), note.as_deref().unwrap_or(""));
     }
-    (c, probes)
+    (c, probes, note)
 }
 
 /// Run (or find up to date) one candidate's refit.
@@ -895,7 +922,7 @@ fn refit(
     (outliers, z1): (&[String], &[f64]),
     verbose: bool,
 ) -> Refit {
-    let (refined, probes) = refine_point(opts, board, bases.0, cand, verbose);
+    let (refined, probes, location_note) = refine_point(opts, board, bases.0, cand, verbose);
     let cand = &refined;
     let rel = format!("refits/{}", cand.id());
     let out = opts.out.join(&rel);
@@ -925,6 +952,7 @@ fn refit(
             r.log_location_occam = Some(pl.log_occam);
             r.point_xy_m = cand.point_xy_m;
             r.location_probes = probes.clone();
+            r.location_note = location_note.clone();
             for e in r.estimates.iter_mut() {
                 let z = 1.645 * pl.location_ln_mass_sd;
                 let lo = (e.median / e.q05).ln().hypot(z);
@@ -953,6 +981,7 @@ fn refit(
             log_location_occam: None,
             point_xy_m: None,
             location_probes: vec![],
+            location_note,
             remaining_share: None,
             deviating_joints: vec![],
             new_modes: vec![],
@@ -1005,7 +1034,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                 cands.iter().map(|c| c.id()).collect::<Vec<_>>().join(", ")
             )
         })?;
-        let (cand, _) = refine_point(opts, &board, &base1, cand, verbose);
+        let (cand, _, _) = refine_point(opts, &board, &base1, cand, verbose);
         return run_refit(opts, (&base1, base.as_ref()), &cand, verbose);
     }
     crate::stage::run(spec, opts.force, |_prep| {
@@ -1421,6 +1450,15 @@ fn write_outputs(
             format!("besides the mechanism(s) found, {p} remain(s) unexplained: {remaining}"),
         ));
     }
+    for c in compared {
+        if let Some(note) = &c.refit.location_note {
+            findings.push(Finding::new(
+                Severity::Warning,
+                "diagnose.location_search",
+                format!("{}: {note}", c.refit.dir),
+            ));
+        }
+    }
     for o in &located.identification_outliers {
         findings.push(Finding::new(
             Severity::Warning,
@@ -1642,35 +1680,25 @@ mod tests {
     use crate::stage::diagnose::regions::BoardRegion;
 
     fn region(mechanism: Mechanism, share: f64, combined: Option<f64>) -> BoardRegion {
+        let fit = LocalFit {
+            x_m: 0.05,
+            y_m: 0.03,
+            amplitude: 1.0,
+            amplitude_se: 0.1,
+            chi2_before: 100.0,
+            chi2_after: 100.0 * (1.0 - share),
+            dof_after: 2,
+            explained_share: share,
+            p_value: 1e-9,
+            region_radius_m: 0.01,
+            region_points: 10,
+            log_location_occam: -1.0,
+            inflation: 1.0,
+            ..LocalFit::default()
+        };
         BoardRegion {
-            mechanism,
-            amplitude_unit: String::new(),
-            located: true,
-            fit: LocalFit {
-                x_m: 0.05,
-                y_m: 0.03,
-                amplitude: 1.0,
-                amplitude_se: 0.1,
-                chi2_before: 100.0,
-                chi2_after: 100.0 * (1.0 - share),
-                dof_after: 2,
-                explained_share: share,
-                p_value: 1e-9,
-                region_radius_m: 0.01,
-                region_points: 10,
-                alternatives: vec![],
-                log_location_occam: -1.0,
-                location_ln_amplitude_sd: 0.0,
-                delta_chi2: vec![],
-                inflation: 1.0,
-                amplitude_at: vec![],
-            },
-            shape_scores: vec![],
-            chosen_by_shapes: false,
-            shapes_used: 0,
-            shapes_skipped: 0,
             combined_delta_chi2: combined,
-            sentence: "Fit.".into(),
+            ..BoardRegion::located_fit(mechanism, fit, "Fit.")
         }
     }
 

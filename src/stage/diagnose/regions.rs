@@ -80,6 +80,25 @@ pub struct BoardRegion {
     pub sentence: String,
 }
 
+#[cfg(test)]
+impl BoardRegion {
+    /// A located region of `fit` with no shape scores (tests' fixture).
+    pub fn located_fit(mechanism: Mechanism, fit: LocalFit, sentence: &str) -> Self {
+        BoardRegion {
+            mechanism,
+            amplitude_unit: String::new(),
+            located: true,
+            fit,
+            shape_scores: vec![],
+            chosen_by_shapes: false,
+            shapes_used: 0,
+            shapes_skipped: 0,
+            combined_delta_chi2: None,
+            sentence: sentence.into(),
+        }
+    }
+}
+
 /// What the localisations read: the work directory (step-1 posterior, measured shapes), the
 /// board, the updated parameters, locate's mode checks (the free-free ones are localised),
 /// each label's mean model frequency in the step-1 residuals, locate's options and the pairs.
