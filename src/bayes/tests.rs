@@ -189,7 +189,10 @@ fn a_budget_of_expensive_evaluations_stops_the_run_and_otherwise_changes_nothing
             assert!(used > max, "{used} vs {max}");
             assert!(stage >= 1 && stage < free.stages.len(), "stage {stage}");
         }
-        other => panic!("expected the budget's error, got {:?}", other.map(|r| r.log_evidence)),
+        other => panic!(
+            "expected the budget's error, got {:?}",
+            other.map(|r| r.log_evidence)
+        ),
     }
 }
 

@@ -629,20 +629,35 @@ fn refit_options(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate)
     o.force = opts.force;
     o.enrich = Some(cand.mechanism);
     o.enrich_joint = cand.joint;
+    o
+}
+
+/// The options of a refit's step 2 (the bolted joints): [`refit_options`] with the budget of
+/// ROM evaluations ([`REFIT_ROM_EVALS_PER_PARTICLE_UNIT`]).
+fn joint_refit_options(
+    opts: &DiagnoseOptions,
+    base: &UpdateOptions,
+    cand: &Candidate,
+) -> UpdateOptions {
+    let mut o = refit_options(opts, base, cand);
     o.smc.max_expensive_evals_per_particle_unit = Some(REFIT_ROM_EVALS_PER_PARTICLE_UNIT);
     o
 }
 
-/// A refit's budget of ROM evaluations in its tempering, per particle and unit and run
-/// (the sampler gives up beyond it, and the refit is reported failed: never favoured).
-/// Inside their verified boxes the surrogates answer and the ROM is rarely called (the blind
-/// underfill campaign's joint_mass refit: 0.7 per particle and unit over a whole run); a
-/// unit without a surrogate costs 6–75 a stage (2–25 sweeps of three moves). 50 lets a few
-/// units temper on the ROM through a run; an enrichment whose modes the surrogates cannot
-/// follow anywhere (the fixture's own mode swept across the band by its prior: every unit
-/// refused) spent 450 000 ROM evaluations, ~2.5 min on 2 cores, on each of hundreds of
-/// stages, and now stops after the first with its reason.
-const REFIT_ROM_EVALS_PER_PARTICLE_UNIT: f64 = 50.0;
+/// A joint refit's budget of bolted-ROM evaluations in its tempering, per particle and unit
+/// and run (the sampler gives up beyond it, and the refit is reported failed: never
+/// favoured). Inside their verified boxes the surrogates answer and the ROM is rarely called
+/// (the blind underfill campaign's joint_mass refit: 0.7 per particle and unit over a whole
+/// run); a unit without a surrogate costs 6–75 a stage (2–25 sweeps of three moves). 100
+/// lets a few units temper on the ROM through a run; an enrichment whose modes the
+/// surrogates cannot follow anywhere (the fixture's own mode swept across the band by its
+/// prior on the underfill campaign: every unit refused) spent 450 000 ROM evaluations
+/// (75 per particle and unit), ~2.5 min on 2 cores, on each of what would have been hundreds
+/// of stages, and now stops after the second with its reason. Step 1 has none: its
+/// free-free ROM is cheap (1.3 M evaluations in 19 s), and a covariate's refit runs it
+/// without surrogates by design (a board refit with the temperature coefficient spent 57
+/// per particle and unit in its first two stages, 45 s in all).
+const REFIT_ROM_EVALS_PER_PARTICLE_UNIT: f64 = 100.0;
 
 /// The step-1 options of a board mechanism's refit, its point at `xy_m` (`added_mass`).
 fn board_refit_options(
@@ -677,7 +692,7 @@ fn run_refit(
         let Some(base) = base2 else {
             return Ok(r1);
         };
-        let mut o2 = refit_options(opts, base, cand);
+        let mut o2 = joint_refit_options(opts, base, cand);
         o2.enrich_joint = None;
         run_gated(o2, |o| {
             crate::stage::update::run_joints(o, &boards, verbose)
@@ -689,7 +704,7 @@ fn run_refit(
                 opts.work_dir.display()
             )
         })?;
-        let o = refit_options(opts, base, cand);
+        let o = joint_refit_options(opts, base, cand);
         run_gated(o, |o| {
             crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose)
         })
@@ -764,7 +779,7 @@ fn new_modes_refit(
     let Some(base) = base2.filter(|_| !found.is_empty() && r.failed.is_none()) else {
         return Ok(());
     };
-    let mut o = refit_options(opts, base, cand);
+    let mut o = joint_refit_options(opts, base, cand);
     o.out = out.join("new_modes");
     o.enrich_new_modes = true;
     let nm_rel = format!("{rel}/new_modes");
