@@ -653,7 +653,8 @@ fn joint_refit_options(
 /// surrogates cannot follow anywhere (the fixture's own mode swept across the band by its
 /// prior on the underfill campaign: every unit refused) spent 450 000 ROM evaluations
 /// (75 per particle and unit), ~2.5 min on 2 cores, on each of what would have been hundreds
-/// of stages, and now stops after the second with its reason. Step 1 has none: its
+/// of stages; with a budget of 50 it stopped after the first with its reason (100 allows a
+/// second: 150 > 100 after it). Step 1 has none: its
 /// free-free ROM is cheap (1.3 M evaluations in 19 s), and a covariate's refit runs it
 /// without surrogates by design (a board refit with the temperature coefficient spent 57
 /// per particle and unit in its first two stages, 45 s in all).
