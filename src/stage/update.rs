@@ -19,7 +19,7 @@ use crate::bayes::target::{
 };
 use crate::diagnose::library::{
     board_enrichment, is_board_mechanism, joint_enrichment, BoardContext, BoardEffect,
-    JointContext, Mechanism,
+    JointContext, JointEnrichment, Mechanism,
 };
 use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Rom, RomOptions, Setup};
@@ -3492,6 +3492,96 @@ fn match_modes(
     Ok((idx, f))
 }
 
+/// The joint step's preparation that depends on nothing but its inputs and the options other
+/// than the sampler's (the fitted ROM centre and the ROM), remembered within the process for
+/// one key ([`joint_prep_key`]). The diagnosis's gate (`stage::diagnose`, `run_gated`) runs a
+/// refit's step 2 a second time with more particles and runs; on the paper campaign's rotation
+/// refit the centre fit and the ROM took 33 s of each attempt. Not a file cache: the stage's
+/// manifest already decides when a whole step is reused, and this only spares a re-run in the
+/// same process the identical work.
+#[derive(Clone)]
+struct JointPrep {
+    key: String,
+    centre: Vec<f64>,
+    rom: Rom,
+}
+
+static JOINT_PREP: std::sync::Mutex<Option<JointPrep>> = std::sync::Mutex::new(None);
+
+/// The key of [`JointPrep`]: the step's input files by content and its configuration without
+/// the sampler's options (`smc`, `runs`, `seed`).
+fn joint_prep_key(prep: &crate::io::manifest::Prepared) -> String {
+    let mut config = prep.spec.config.clone();
+    if let Some(o) = config.as_object_mut() {
+        for k in ["smc", "runs", "seed"] {
+            o.remove(k);
+        }
+    }
+    let mut h = blake3::Hasher::new();
+    for f in &prep.inputs {
+        h.update(f.path.as_bytes());
+        h.update(&[0]);
+        h.update(f.blake3.as_bytes());
+        h.update(&[0]);
+    }
+    h.update(config.to_string().as_bytes());
+    h.finalize().to_hex().to_string()
+}
+
+/// The ROM's centre in the enrichment's coordinates (ln, relative to the priors' centres).
+#[allow(clippy::too_many_arguments)]
+fn fit_centre(
+    model: &FeModel,
+    p_base: &crate::fem::Params,
+    coords: &[Vec<(usize, f64)>],
+    spans: &[f64],
+    enr: &JointEnrichment,
+    n_fit: usize,
+    (labels, bolted_rows): (&Labels, &[&PairRow]),
+    (w_labels, points): (&faer::Mat<f64>, &[[f64; 2]]),
+    n_track: usize,
+) -> anyhow::Result<Vec<f64>> {
+    let mut fit = fit_joint_centre(
+        model,
+        p_base,
+        &coords[..n_fit],
+        &spans[..n_fit],
+        labels,
+        bolted_rows,
+        (w_labels, points),
+        n_track,
+    )?;
+    fit.resize(coords.len(), 0.0);
+    let mut centre: Vec<f64> = fit
+        .iter()
+        .zip(&enr.coordinates)
+        .enumerate()
+        .map(|(k, (x, c))| match c.log_box {
+            Some(w) if k > 0 => x.clamp(-0.5 * w, 0.5 * w),
+            _ => *x,
+        })
+        .collect();
+    if centre != fit {
+        let mut p_held = p_base.clone();
+        for (k, acts) in coords.iter().enumerate().skip(1) {
+            for &(i, a) in acts {
+                p_held.values[i] *= (a * centre[k]).exp();
+            }
+        }
+        centre[0] = fit_joint_centre(
+            model,
+            &p_held,
+            &coords[..1],
+            &spans[..1],
+            labels,
+            bolted_rows,
+            (w_labels, points),
+            n_track,
+        )?[0];
+    }
+    Ok(centre)
+}
+
 /// The centre of a step-2 model's ROM: the unit coordinates that best fit the median
 /// bolted frequency of every label at the boards' posterior mean (`p_base`, reference
 /// values of the joint parameters), by Levenberg–Marquardt within ±`spans[k]`, with the
@@ -3878,49 +3968,32 @@ pub fn run_joints(
         // equal joints: fitted to the median frequencies they have no common direction the
         // data fix (their mean is the prior's alone), and a typical assembly has no loose
         // bolt.
+        let prep_key = joint_prep_key(prep);
+        let remembered = JOINT_PREP
+            .lock()
+            .ok()
+            .and_then(|m| m.clone())
+            .filter(|m| m.key == prep_key);
         let n_fit = if enr.every_joint() { 1 } else { coords.len() };
-        let mut fit = fit_joint_centre(
-            &model,
-            &p_base,
-            &coords[..n_fit],
-            &spans[..n_fit],
-            &labels,
-            &bolted_rows,
-            (&w_labels, &points),
-            n_track,
-        )?;
-        fit.resize(coords.len(), 0.0);
-        let mut centre: Vec<f64> = fit
-            .iter()
-            .zip(&enr.coordinates)
-            .enumerate()
-            .map(|(k, (x, c))| match c.log_box {
-                Some(w) if k > 0 => x.clamp(-0.5 * w, 0.5 * w),
-                _ => *x,
-            })
-            .collect();
-        if centre != fit {
-            let mut p_held = p_base.clone();
-            for (k, acts) in coords.iter().enumerate().skip(1) {
-                for &(i, a) in acts {
-                    p_held.values[i] *= (a * centre[k]).exp();
-                }
-            }
-            centre[0] = fit_joint_centre(
+        let centre = match &remembered {
+            Some(m) => m.centre.clone(),
+            None => fit_centre(
                 &model,
-                &p_held,
-                &coords[..1],
-                &spans[..1],
-                &labels,
-                &bolted_rows,
+                &p_base,
+                &coords,
+                &spans,
+                &enr,
+                n_fit,
+                (&labels, &bolted_rows),
                 (&w_labels, &points),
                 n_track,
-            )?[0];
-        }
+            )?,
+        };
         if verbose {
             eprintln!(
-                "joints: ROM centre {:?} = {centre:.4?} (ln, relative to the priors' centres), fitted in {:.1} s",
+                "joints: ROM centre {:?} = {centre:.4?} (ln, relative to the priors' centres), {} in {:.1} s",
                 enr.coordinates.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(),
+                if remembered.is_some() { "remembered from this process's previous run of the same step" } else { "fitted" },
                 t_centre.elapsed().as_secs_f64()
             );
         }
@@ -4045,7 +4118,17 @@ pub fn run_joints(
             point_masses.push(nominal.position(&pm.parameter)?);
         }
         clock.lap("centre_fit");
-        let rom = rom_for(&model, need, &log_axes, opts)?;
+        let rom = match remembered {
+            Some(m) => m.rom,
+            None => rom_for(&model, need, &log_axes, opts)?,
+        };
+        if let Ok(mut m) = JOINT_PREP.lock() {
+            *m = Some(JointPrep {
+                key: prep_key,
+                centre: centre.clone(),
+                rom: rom.clone(),
+            });
+        }
         rom_centre_check(&model, &rom, need, &mut findings)?;
         clock.lap("rom_build");
         let mut p_board = model.nominal_params();
@@ -4670,5 +4753,55 @@ mod mass_term_tests {
         assert_eq!(f.0.len(), 1, "the inconsistent readings are reported");
         let none = MassRow { n_stable: 0, ..row };
         assert!(mass_obs(&none, "PCB-01", 0.0, &mut f).is_none());
+    }
+}
+
+#[cfg(test)]
+mod joint_prep_tests {
+    use super::*;
+    use crate::io::manifest::{FileHash, Prepared};
+
+    fn prepared(config: serde_json::Value, input_blake3: &str) -> Prepared {
+        Prepared {
+            spec: StageSpec {
+                stage: "update_joints".into(),
+                inputs: vec![],
+                input_base: PathBuf::new(),
+                config,
+                seed: Some(1),
+                manifest_path: PathBuf::new(),
+            },
+            inputs: vec![FileHash {
+                path: "pairs.parquet".into(),
+                blake3: input_blake3.into(),
+                bytes: 1,
+            }],
+            config_blake3: String::new(),
+            fingerprint: String::new(),
+        }
+    }
+
+    fn config(particles: usize, runs: usize, seed: u64, rom_box: f64) -> serde_json::Value {
+        let smc = SmcOptions {
+            n_particles: particles,
+            ..SmcOptions::default()
+        };
+        serde_json::json!({
+            "smc": smc, "runs": runs, "seed": seed, "rom_box": rom_box, "enrich": "joint_rotation",
+        })
+    }
+
+    /// The remembered centre and ROM are reused across the sampler's options only: another
+    /// particle count, run count or seed keeps the key; another model option or input
+    /// content changes it.
+    #[test]
+    fn the_preparation_key_ignores_the_sampler_only() {
+        let key = joint_prep_key(&prepared(config(200, 2, 1, 0.2), "aa"));
+        assert_eq!(joint_prep_key(&prepared(config(400, 4, 2, 0.2), "aa")), key);
+        assert_ne!(joint_prep_key(&prepared(config(200, 2, 1, 0.3), "aa")), key);
+        let mut other = config(200, 2, 1, 0.2);
+        other["enrich"] = "joint_mass".into();
+        assert_ne!(joint_prep_key(&prepared(other, "aa")), key);
+        assert_ne!(joint_prep_key(&prepared(config(200, 2, 1, 0.2), "ab")), key);
     }
 }
