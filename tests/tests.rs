@@ -8,5 +8,6 @@ mod lab;
 mod layout;
 mod nightly;
 mod report;
+mod solid;
 mod stages;
 mod update;

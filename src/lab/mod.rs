@@ -20,6 +20,7 @@
 pub mod effects;
 pub mod measure;
 pub mod scenario;
+pub mod solid;
 pub mod truth;
 
 #[cfg(test)]
@@ -71,6 +72,9 @@ pub enum LabError {
     /// A UFF record could not be written.
     #[error("writing {file}: {message}")]
     Write { file: String, message: String },
+    /// The solid truth (its mesher, its solver or their outputs) failed.
+    #[error("solid truth: {0}")]
+    Solid(String),
     /// No built-in scenario of that name.
     #[error("built-in scenario: expected one of {expected:?}, found {found:?}")]
     UnknownBuiltin {
@@ -133,10 +137,21 @@ pub fn simulate(
     board: &Board,
     seed: u64,
 ) -> Result<SimulatedCampaign, LabError> {
+    simulate_with(scenario, board, seed, None)
+}
+
+/// [`simulate`] with the external programs a solid truth (`[truth] physics = "solid"`)
+/// needs; a scenario on the solid truth without them is an error.
+pub fn simulate_with(
+    scenario: &Scenario,
+    board: &Board,
+    seed: u64,
+    solver: Option<std::sync::Arc<dyn solid::Solver>>,
+) -> Result<SimulatedCampaign, LabError> {
     scenario.validate()?;
     board.validate()?;
     let plan = truth::plan(scenario, board, seed)?;
-    let models = truth::Models::build(scenario, board)?;
+    let models = truth::Models::build(scenario, board, solver)?;
     let free_cache = truth::free_board_modes(scenario, &plan, &models)?;
     let results: Vec<(truth::MeasurementTruth, Vec<u8>)> = plan
         .measurements

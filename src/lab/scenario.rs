@@ -124,6 +124,21 @@ pub struct TruthModel {
     /// Relative scatter of the four joints' contact stiffness around the measurement's
     /// K_con (the bolts are never tightened exactly alike).
     pub per_joint_k_rel_std: f64,
+    /// The truth's physics: `plate`, hbmu's own plate model on a finer mesh (the exact-model
+    /// check: does the updating recover its own model?), or `solid`, the layered 3D solid of
+    /// [`crate::lab::solid`] solved by CalculiX (independent of the updating model).
+    pub physics: Physics,
+    /// Options of the solid truth.
+    pub solid: crate::lab::solid::SolidOptions,
+}
+
+/// Which physics computes the truth.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Physics {
+    #[default]
+    Plate,
+    Solid,
 }
 
 impl Default for TruthModel {
@@ -135,6 +150,8 @@ impl Default for TruthModel {
             n_bolted_modes: 11,
             joint_mass_kg: 0.0,
             per_joint_k_rel_std: 0.02,
+            physics: Physics::Plate,
+            solid: crate::lab::solid::SolidOptions::default(),
         }
     }
 }
@@ -472,6 +489,25 @@ impl Scenario {
                 "at most 0.2",
                 t.per_joint_k_rel_std,
             ));
+        }
+        t.solid
+            .check()
+            .map_err(|(field, expected, found)| bad(&field, &expected, found))?;
+        if t.physics == Physics::Solid {
+            if self.effects.compliant_fixture.is_some() {
+                return Err(bad(
+                    "effects.compliant_fixture",
+                    "no compliant fixture with truth.physics = \"solid\" (the solid truth does not model the fixture yet)",
+                    "a compliant fixture",
+                ));
+            }
+            if t.joint_mass_kg > 0.0 {
+                return Err(bad(
+                    "truth.joint_mass_kg",
+                    "0 with truth.physics = \"solid\" (its riding mass is truth.solid.riding_mass_kg)",
+                    t.joint_mass_kg,
+                ));
+            }
         }
         let p = &self.population;
         for (i, s) in p.rel_std.iter().enumerate() {

@@ -22,7 +22,8 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use super::scenario::Scenario;
+use super::scenario::{Physics, Scenario};
+use super::solid::{SolidModel, Solver, State as SolidState};
 use super::{child_seed, LabError, Stream};
 use crate::fem::params::names;
 use crate::fem::{Board, FeModel, JointFeature, JointModel, MeshOptions, Modes, Params, Setup};
@@ -276,6 +277,105 @@ pub struct Models {
     pub bolted_cf: Option<FeModel>,
     /// Scan points, m (the board's default scan grid).
     pub points: Vec<[f64; 2]>,
+    /// The solid truth's meshes, when `[truth] physics = "solid"`: then the modes come from
+    /// them, and the plate models above serve only as the updating model's reference.
+    pub solid: Option<SolidTruth>,
+}
+
+/// The solid truth of both setups.
+pub struct SolidTruth {
+    pub free: SolidModel,
+    /// `None` when the campaign has no bolted measurement.
+    pub bolted: Option<SolidModel>,
+}
+
+/// Which model state a solve is of: a setup with the concealed effects that change the model,
+/// or without them (the counterfactual).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Variant {
+    Free,
+    FreeCf,
+    Bolted,
+    BoltedCf,
+}
+
+/// The modes of board `bd` in `variant`, FR-4 moduli scaled by `stiff`, joints per `bolted`
+/// (the loose joint softened when `loose`), from the plate or the solid truth.
+#[allow(clippy::too_many_arguments)]
+fn modes_of(
+    s: &Scenario,
+    models: &Models,
+    variant: Variant,
+    bd: &BoardDraw,
+    stiff: f64,
+    bolted: Option<&BoltedDraw>,
+    loose: bool,
+) -> Result<ModeSet, LabError> {
+    let n = match variant {
+        Variant::Free | Variant::FreeCf => s.truth.n_free_modes,
+        Variant::Bolted | Variant::BoltedCf => s.truth.n_bolted_modes,
+    };
+    let Some(solid) = &models.solid else {
+        let model = match variant {
+            Variant::Free => &models.free,
+            Variant::FreeCf => models.free_cf.as_ref().unwrap_or(&models.free),
+            Variant::Bolted => &models.bolted,
+            Variant::BoltedCf => models.bolted_cf.as_ref().unwrap_or(&models.bolted),
+        };
+        let p = params(s, model, bd, stiff, bolted, loose)?;
+        return mode_set(model, &p, n, &models.points);
+    };
+    let with = matches!(variant, Variant::Free | Variant::Bolted);
+    let e = &s.effects;
+    let k_joint_n_per_m = bolted.map_or_else(Vec::new, |bo| {
+        bo.k_joint_n_per_m
+            .iter()
+            .enumerate()
+            .map(|(j, k)| match (loose, bo.loose_joint, &e.loose_bolt) {
+                (true, Some(lj), Some(lb)) if lj == j => k * lb.stiffness_factor,
+                _ => *k,
+            })
+            .collect()
+    });
+    let st = SolidState {
+        e_x_pa: bd.e_x_pa * stiff,
+        e_y_pa: bd.e_y_pa * stiff,
+        g_xy_pa: bd.g_xy_pa * stiff,
+        mass_scale: bd.mass_scale,
+        k_joint_n_per_m,
+        k_rot_nm_per_rad: e
+            .rotational_restraint
+            .as_ref()
+            .filter(|_| with)
+            .map(|r| r.k_rot_nm_per_rad),
+        point_mass: e
+            .lumped_mass
+            .as_ref()
+            .filter(|_| with)
+            .map(|lm| ([lm.x_m, lm.y_m], lm.mass_kg)),
+        underfill_factor: e
+            .underfill
+            .as_ref()
+            .filter(|_| with)
+            .map(|u| u.stiffness_factor),
+        n_modes: n,
+    };
+    let model = match variant {
+        Variant::Free | Variant::FreeCf => &solid.free,
+        Variant::Bolted | Variant::BoltedCf => solid.bolted.as_ref().ok_or_else(|| {
+            LabError::Solid("a bolted measurement, but no bolted solid model was built".into())
+        })?,
+    };
+    let [xr, yr, _] = super::measure::SHAKER_REFERENCE_M;
+    let m = model.modes(&st, &models.points, [xr, yr])?;
+    Ok(ModeSet {
+        freq_hz: m.freq_hz,
+        shapes: m.shapes,
+        gamma: m.gamma,
+        gamma_rock: m.gamma_rock,
+        rigid: m.rigid,
+        total_mass_kg: m.total_mass_kg,
+    })
 }
 
 /// The truth joint model with or without the effect features.
@@ -324,7 +424,11 @@ pub fn truth_bolted_mesh(s: &Scenario, board: &Board) -> MeshOptions {
 
 impl Models {
     /// Build the truth models of `s` for `board`.
-    pub fn build(s: &Scenario, board: &Board) -> Result<Models, LabError> {
+    pub fn build(
+        s: &Scenario,
+        board: &Board,
+        solver: Option<std::sync::Arc<dyn Solver>>,
+    ) -> Result<Models, LabError> {
         let mesh = MeshOptions {
             nx: s.truth.mesh_nx,
             ny: s.truth.mesh_ny,
@@ -361,12 +465,42 @@ impl Models {
         let points = board.scan_points_m();
         // Fail early with a clear error if a scan point is off the board or in a hole.
         free.shape_operator(&points)?;
+        let solid = match s.truth.physics {
+            Physics::Plate => None,
+            Physics::Solid => {
+                let solver = solver.ok_or_else(|| {
+                    LabError::Solid(
+                        "truth.physics = \"solid\" needs gmsh and CalculiX, and none were given"
+                            .into(),
+                    )
+                })?;
+                let underfill = e.underfill.as_ref().map(|u| super::solid::geo::Disc {
+                    x_m: u.x_m,
+                    y_m: u.y_m,
+                    r_m: u.radius_m,
+                });
+                let opts = &s.truth.solid;
+                let free = SolidModel::build(board, opts, false, underfill, solver.clone())?;
+                let bolted = if s
+                    .campaign
+                    .bolted
+                    .iter()
+                    .any(|g| g.per_board > 0 && !g.boards.is_empty())
+                {
+                    Some(SolidModel::build(board, opts, true, underfill, solver)?)
+                } else {
+                    None
+                };
+                Some(SolidTruth { free, bolted })
+            }
+        };
         Ok(Models {
             free,
             free_cf,
             bolted,
             bolted_cf,
             points,
+            solid,
         })
     }
 }
@@ -540,13 +674,9 @@ pub fn free_board_modes(s: &Scenario, plan: &Plan, m: &Models) -> Result<FreeCac
         .boards
         .par_iter()
         .map(|bd| {
-            let p = params(s, &m.free, bd, 1.0, None, false)?;
-            let with = mode_set(&m.free, &p, s.truth.n_free_modes, &m.points)?;
+            let with = modes_of(s, m, Variant::Free, bd, 1.0, None, false)?;
             let without = match &m.free_cf {
-                Some(cf) => {
-                    let p = params(s, cf, bd, 1.0, None, false)?;
-                    Some(mode_set(cf, &p, s.truth.n_free_modes, &m.points)?)
-                }
+                Some(_) => Some(modes_of(s, m, Variant::FreeCf, bd, 1.0, None, false)?),
                 None => None,
             };
             Ok((with, without))
@@ -688,8 +818,7 @@ pub fn measurement_modes(
     let (mut set, cf): (ModeSet, Option<ModeSet>) = match m.setup {
         SetupKind::Free => {
             let with = if stiff != 1.0 {
-                let p = params(s, &models.free, bd, stiff, None, false)?;
-                mode_set(&models.free, &p, s.truth.n_free_modes, &models.points)?
+                modes_of(s, models, Variant::Free, bd, stiff, None, false)?
             } else {
                 cache.with[m.board].clone()
             };
@@ -702,22 +831,12 @@ pub fn measurement_modes(
         }
         SetupKind::Bolted => {
             let bo = m.bolted.as_ref();
-            let p = params(s, &models.bolted, bd, stiff, bo, true)?;
-            let with = mode_set(&models.bolted, &p, s.truth.n_bolted_modes, &models.points)?;
+            let with = modes_of(s, models, Variant::Bolted, bd, stiff, bo, true)?;
             let loose = bo.is_some_and(|b| b.loose_joint.is_some());
             let cf = match &models.bolted_cf {
-                Some(cfm) => {
-                    let p = params(s, cfm, bd, 1.0, bo, false)?;
-                    Some(mode_set(cfm, &p, s.truth.n_bolted_modes, &models.points)?)
-                }
+                Some(_) => Some(modes_of(s, models, Variant::BoltedCf, bd, 1.0, bo, false)?),
                 None if stiff != 1.0 || loose => {
-                    let p = params(s, &models.bolted, bd, 1.0, bo, false)?;
-                    Some(mode_set(
-                        &models.bolted,
-                        &p,
-                        s.truth.n_bolted_modes,
-                        &models.points,
-                    )?)
+                    Some(modes_of(s, models, Variant::Bolted, bd, 1.0, bo, false)?)
                 }
                 None => None,
             };
@@ -920,6 +1039,9 @@ pub struct ModelMisfit {
 /// The updating model's misfit to the truth model at the population mean (two
 /// eigen-solves of each).
 pub fn model_misfit(s: &Scenario, board: &Board, models: &Models) -> Result<ModelMisfit, LabError> {
+    if models.solid.is_some() {
+        return solid_model_misfit(s, board, models);
+    }
     let plain = models.bolted_cf.as_ref().unwrap_or(&models.bolted);
     let k_bar = s.population.k_con_mean_n_per_m;
     let mut pt = plain.nominal_params();
@@ -947,6 +1069,79 @@ pub fn model_misfit(s: &Scenario, board: &Board, models: &Models) -> Result<Mode
         .filter(|(_, b)| **b < s.measurement.free_max_hz)
         .map(|(a, b)| 100.0 * (a / b - 1.0))
         .collect();
+    Ok(ModelMisfit {
+        updating_mesh: [board.mesh.nx, board.mesh.ny],
+        updating_mesh_bolted: {
+            let m = board.mesh_for(&Setup::bolted());
+            [m.nx, m.ny]
+        },
+        bolted_misfit_percent,
+        free_misfit_percent,
+    })
+}
+
+/// [`model_misfit`] for the solid truth: both models' modes at the nominal board and K̄ on
+/// every joint, paired by MAC on the scan grid (the solid's mode order can differ from the
+/// plate's), one figure per in-band truth mode (`NaN` where no updating mode pairs).
+fn solid_model_misfit(
+    s: &Scenario,
+    board: &Board,
+    models: &Models,
+) -> Result<ModelMisfit, LabError> {
+    let c = &board.core;
+    let nominal = BoardDraw {
+        board_id: "nominal".into(),
+        e_x_pa: c.e_x_pa,
+        e_y_pa: c.e_y_pa,
+        g_xy_pa: c.g_xy_pa,
+        mass_scale: 1.0,
+        deviation_rel: [0.0; 4],
+    };
+    let k_bar = s.population.k_con_mean_n_per_m;
+    let misfit = |truth: &ModeSet, upd: &ModeSet, max_hz: f64| -> Vec<f64> {
+        let pairs = pair(truth, upd);
+        truth
+            .freq_hz
+            .iter()
+            .zip(pairs)
+            .filter(|(f, _)| **f < max_hz)
+            .map(|(f, p)| p.map_or(f64::NAN, |(j, _)| 100.0 * (upd.freq_hz[j] / f - 1.0)))
+            .collect()
+    };
+    let uf = FeModel::build(board, Setup::Free, &board.mesh)?;
+    let upd_free = mode_set(
+        &uf,
+        &uf.nominal_params(),
+        s.truth.n_free_modes + 2,
+        &models.points,
+    )?;
+    let truth_free = modes_of(s, models, Variant::FreeCf, &nominal, 1.0, None, false)?;
+    let free_misfit_percent = misfit(&truth_free, &upd_free, s.measurement.free_max_hz);
+    let bolted_misfit_percent = match models.solid.as_ref().and_then(|m| m.bolted.as_ref()) {
+        Some(_) => {
+            let bo = BoltedDraw {
+                k_con_n_per_m: k_bar,
+                k_joint_n_per_m: vec![k_bar; board.holes.len()],
+                loose_joint: None,
+                bolt_set: String::new(),
+            };
+            let truth = modes_of(
+                s,
+                models,
+                Variant::BoltedCf,
+                &nominal,
+                1.0,
+                Some(&bo),
+                false,
+            )?;
+            let upd = FeModel::build(board, Setup::bolted(), board.mesh_for(&Setup::bolted()))?;
+            let mut p = upd.nominal_params();
+            p.set(names::K_CON, k_bar)?;
+            let um = mode_set(&upd, &p, s.truth.n_bolted_modes + 2, &models.points)?;
+            misfit(&truth, &um, s.measurement.bolted_max_hz)
+        }
+        None => vec![],
+    };
     Ok(ModelMisfit {
         updating_mesh: [board.mesh.nx, board.mesh.ny],
         updating_mesh_bolted: {
@@ -994,7 +1189,8 @@ pub fn assemble(
         scenario_name: s.name.clone(),
         seed: plan.seed,
         board_name: board.name.clone(),
-        truth_model: format!(
+        truth_model: match s.truth.physics {
+            Physics::Plate => format!(
             "board on a {}x{} BFS mesh, bolted {}x{} (updating {}x{}, bolted {}x{}), holes as cut cells; \
              bolted: one contact stiffness per joint (K_con of the measurement scattered by {:.1} % per joint) \
              as a spring layer over each clamped annulus, {:.2} g of each bolt spread over the annulus; copper pattern as in the board file",
@@ -1009,6 +1205,17 @@ pub fn assemble(
             100.0 * s.truth.per_joint_k_rel_std,
             1e3 * s.truth.joint_mass_kg
         ),
+            Physics::Solid => format!(
+                "layered 3D solid (CalculiX C3D20, {} brick(s) through the FR-4 core, one per copper layer where copper lies) on a gmsh quadrilateral mesh of {:.2} mm conforming to the outline, holes, copper regions and clamped annuli; FR-4 through-thickness E_z {:.1} GPa, G_xz/G_yz {:.2}/{:.2} GPa; bolted: each clamped annulus's bottom face on z springs (the joint's stiffness spread by area; K_con of the measurement scattered by {:.1} % per joint) and on in-plane springs (Mindlin's tangential share), {:.2} g of screw head and washer on its top face",
+                s.truth.solid.core_layers,
+                1e3 * s.truth.solid.element_size_m,
+                1e-9 * s.truth.solid.e_z_pa,
+                1e-9 * s.truth.solid.g_xz_pa,
+                1e-9 * s.truth.solid.g_yz_pa,
+                100.0 * s.truth.per_joint_k_rel_std,
+                1e3 * s.truth.solid.riding_mass_kg
+            ),
+        },
         population: PopulationTruth {
             parameters: [
                 names::E_X.to_string(),

@@ -81,7 +81,13 @@ pub fn run(opts: &SimulateOptions) -> anyhow::Result<StageOutcome> {
     };
     crate::stage::run(spec, opts.force, |_prep| {
         let board = Board::from_toml_str(&board_text)?;
-        let sim = lab::simulate(&scenario, &board, seed)?;
+        let solver: Option<std::sync::Arc<dyn lab::solid::Solver>> = match scenario.truth.physics {
+            lab::scenario::Physics::Plate => None,
+            lab::scenario::Physics::Solid => Some(std::sync::Arc::new(
+                crate::io::external::Calculix::locate().map_err(anyhow::Error::msg)?,
+            )),
+        };
+        let sim = lab::simulate_with(&scenario, &board, seed, solver)?;
         std::fs::create_dir_all(&opts.out)
             .with_context(|| format!("cannot create {}", opts.out.display()))?;
         // Files of an earlier simulation that this one does not write would be ingested as
