@@ -108,6 +108,8 @@ pub struct Planned {
     pub notes: String,
     pub torque_nm: Option<f64>,
     pub bolted: Option<BoltedDraw>,
+    /// What the lab's habits changed (`super::habits`); default: nothing.
+    pub habits: super::habits::MeasurementHabits,
 }
 
 /// The drawn campaign.
@@ -254,6 +256,7 @@ pub fn plan(s: &Scenario, board: &Board, seed: u64) -> Result<Plan, LabError> {
             notes,
             torque_nm: torque,
             bolted,
+            habits: Default::default(),
         });
     }
     let n_days = measurements.len().div_ceil(PER_DAY).max(1) as u64;
@@ -685,6 +688,18 @@ pub fn measurement_modes(
 ) -> Result<MeasurementModes, LabError> {
     let bd = &plan.boards[m.board];
     let stiff = stiffness_factor(s, m.temperature_c);
+    // The measurement's own scan points on the board (habit `scan_grids`, bolted only: the
+    // free modes are cached per board on the board's grid); points off it come last.
+    let grid = m.habits.grid.as_ref();
+    let points: &[[f64; 2]] = grid.map_or(&models.points, |g| &g.board);
+    let n_off = grid.map_or(0, |g| g.off_board.len());
+    if grid.is_some() && m.setup == SetupKind::Free {
+        return Err(LabError::ScenarioInvalid {
+            field: "habits".into(),
+            expected: "own scan grids for bolted measurements only".into(),
+            found: format!("a grid for free measurement {}", m.measurement_id),
+        });
+    }
     let (mut set, cf): (ModeSet, Option<ModeSet>) = match m.setup {
         SetupKind::Free => {
             let with = if stiff != 1.0 {
@@ -703,12 +718,12 @@ pub fn measurement_modes(
         SetupKind::Bolted => {
             let bo = m.bolted.as_ref();
             let p = params(s, &models.bolted, bd, stiff, bo, true)?;
-            let with = mode_set(&models.bolted, &p, s.truth.n_bolted_modes, &models.points)?;
+            let with = mode_set(&models.bolted, &p, s.truth.n_bolted_modes, points)?;
             let loose = bo.is_some_and(|b| b.loose_joint.is_some());
             let cf = match &models.bolted_cf {
                 Some(cfm) => {
                     let p = params(s, cfm, bd, 1.0, bo, false)?;
-                    Some(mode_set(cfm, &p, s.truth.n_bolted_modes, &models.points)?)
+                    Some(mode_set(cfm, &p, s.truth.n_bolted_modes, points)?)
                 }
                 None if stiff != 1.0 || loose => {
                     let p = params(s, &models.bolted, bd, 1.0, bo, false)?;
@@ -716,7 +731,7 @@ pub fn measurement_modes(
                         &models.bolted,
                         &p,
                         s.truth.n_bolted_modes,
-                        &models.points,
+                        points,
                     )?)
                 }
                 None => None,
@@ -748,7 +763,7 @@ pub fn measurement_modes(
         SetupKind::Free => HAMMER_POINT as i64 + 1,
         SetupKind::Bolted => SHAKER_REFERENCE_NODE,
     };
-    for o in 0..models.points.len() {
+    for o in 0..points.len() + n_off {
         let (u1, u2): (f64, f64) = (rng.random(), rng.random());
         let node = o as i64 + 1;
         if node == reference_node {
@@ -773,9 +788,13 @@ pub fn measurement_modes(
         for (g, gr) in set.gamma.iter_mut().zip(&set.gamma_rock) {
             *g += ax * gr[0] + ay * gr[1];
         }
-        base_motion = models
-            .points
+        base_motion = points
             .iter()
+            .copied()
+            .chain(
+                grid.iter()
+                    .flat_map(|g| g.off_board.iter().map(|p| [p[0], p[1]])),
+            )
             .map(|p| 1.0 + ax * (p[0] - xr) + ay * (p[1] - yr))
             .collect();
         rocking = Some([ax, ay]);
@@ -839,6 +858,11 @@ pub fn measurement_modes(
         reference_node,
         base_rocking_rad_per_m: rocking,
     };
+    // Points off the board (a bolt head, the fixture) have no board mode in them: they move
+    // with the base only.
+    for sh in &mut set.shapes {
+        sh.extend(std::iter::repeat_n(0.0, n_off));
+    }
     Ok(MeasurementModes {
         truth,
         set,
@@ -898,6 +922,9 @@ pub struct Truth {
     pub model_misfit: ModelMisfit,
     /// The scenario as simulated.
     pub scenario: Scenario,
+    /// Where the lab's habits left their marks (absent when none is on).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub habits: Option<super::habits::HabitsTruth>,
 }
 
 /// How far the truth model lies from the updating model (the board's default mesh,
@@ -1030,5 +1057,6 @@ pub fn assemble(
         garbled_balance_lines: Vec::new(),
         model_misfit,
         scenario: s.clone(),
+        habits: None,
     }
 }
