@@ -18,7 +18,9 @@
 //!   no sheet board at all: not a board (a check weight, a tray), info `balance.not_a_board`
 //!   (warning `balance.unknown_board` when it looks like a board ID: same letters as a sheet
 //!   board's). Its lines stay in `scale_readings.parquet` with no `sheet_board_id`; it has no
-//!   row in `masses.parquet`.
+//!   row in `masses.parquet`. A check weight named by its mass (`REF-10G`) whose mean stable
+//!   reading is off its nominal by more than the readings' allowed spread: warning
+//!   `balance.check_weight_off`.
 //!
 //! A row the lab marked invalid is quarantined (`sheet.marked_invalid`): its notes start with
 //! `invalid` (any case, e.g. `INVALID - double hit, repeated as M013`), or an extra column
@@ -311,7 +313,7 @@ pub fn read_campaign(
         readings.extend(rs);
         findings.extend(f);
     }
-    resolve_balance_ids(&mut readings, &boards, &mut findings);
+    resolve_balance_ids(&mut readings, &boards, cfg.mass_max_std_in_d, &mut findings);
     // Masses of the sheet's boards only, from the lines resolved to them.
     let joined: Vec<Reading> = readings
         .iter()
@@ -843,6 +845,24 @@ fn key_shape(key: &str) -> String {
         .join("|")
 }
 
+/// The nominal mass of a check weight named `REF-<number><unit>` (`REF-10G`, `ref_200mg`), g.
+fn check_weight_nominal_g(id: &str) -> Option<f64> {
+    let u = id.to_ascii_uppercase();
+    let rest = u.strip_prefix("REF")?.trim_start_matches(['-', '_', ' ']);
+    let split = rest.find(|c: char| !(c.is_ascii_digit() || c == '.'))?;
+    let (num, unit) = rest.split_at(split);
+    let factor = match unit {
+        "G" => 1.0,
+        "MG" => 1e-3,
+        "KG" => 1e3,
+        _ => return None,
+    };
+    num.parse::<f64>()
+        .ok()
+        .filter(|v| *v > 0.0)
+        .map(|v| v * factor)
+}
+
 /// Why a sheet row is marked invalid by the lab, if it is: notes starting with `invalid`
 /// (any case), or an extra column `valid` saying no.
 fn invalid_mark(row: &SheetRow) -> Option<String> {
@@ -993,6 +1013,7 @@ fn resolve_sheet_boards(ms: &mut [Measurement], findings: &mut Findings) -> BTre
 fn resolve_balance_ids(
     readings: &mut [Reading],
     boards: &BTreeSet<String>,
+    max_std_in_d: f64,
     findings: &mut Findings,
 ) {
     let mut by_key: BTreeMap<String, Vec<&str>> = BTreeMap::new();
@@ -1000,8 +1021,17 @@ fn resolve_balance_ids(
         by_key.entry(board_key(b)).or_default().push(b);
     }
     let shapes: BTreeSet<String> = by_key.keys().map(|k| key_shape(k)).collect();
-    // Not a board: (file, id) → (first line, lines, stable readings in g).
-    let mut others: BTreeMap<(String, String), (u64, usize, Vec<f64>)> = BTreeMap::new();
+    // The lines of an ID that is not a board, per (file, id).
+    #[derive(Default)]
+    struct NotABoard {
+        first_line: u64,
+        lines: usize,
+        /// Stable readings, g.
+        stable: Vec<f64>,
+        /// Their coarsest resolution, g.
+        d: f64,
+    }
+    let mut others: BTreeMap<(String, String), NotABoard> = BTreeMap::new();
     for r in readings.iter_mut() {
         let Some(id) = r.board_id.clone() else {
             continue;
@@ -1036,16 +1066,46 @@ fn resolve_balance_ids(
             None => {
                 let e = others
                     .entry((r.file.clone(), id))
-                    .or_insert((r.line, 0, vec![]));
-                e.1 += 1;
+                    .or_insert_with(|| NotABoard {
+                        first_line: r.line,
+                        ..Default::default()
+                    });
+                e.lines += 1;
                 if let (balance_log::Status::Stable, Some(g)) = (r.status, r.mass_g) {
-                    e.2.push(g);
+                    e.stable.push(g);
+                    e.d = e.d.max(r.resolution_g.unwrap_or(0.0));
                 }
             }
         }
     }
-    for ((file, id), (line, n, stable)) in others {
+    for ((file, id), nb) in others {
+        let NotABoard {
+            first_line: line,
+            lines: n,
+            stable,
+            d,
+        } = nb;
         let looks_like_board = shapes.contains(&key_shape(&board_key(&id)));
+        // A check weight named by its nominal mass checks the balance: its mean reading
+        // should lie within the spread allowed for a board's readings.
+        if let (Some(nominal), false) = (check_weight_nominal_g(&id), stable.is_empty()) {
+            let mean = stable.iter().sum::<f64>() / stable.len() as f64;
+            if (mean - nominal).abs() > max_std_in_d * d.max(f64::MIN_POSITIVE) {
+                findings.push(
+                    Finding::new(
+                        Severity::Warning,
+                        "balance.check_weight_off",
+                        format!(
+                            "check weight {id:?} reads {mean:.5} g on average over {} stable reading(s), {:+.2} mg from its nominal {nominal} g (expected within {max_std_in_d} x the resolution {d} g): the balance may be off; board masses kept as read",
+                            stable.len(),
+                            (mean - nominal) * 1e3
+                        ),
+                    )
+                    .file(file.clone())
+                    .line(line),
+                );
+            }
+        }
         let stable = if stable.is_empty() {
             "no stable reading".to_string()
         } else {

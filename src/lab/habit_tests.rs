@@ -190,6 +190,8 @@ fn check_weight_and_tray_are_not_boards() {
         assert!(!rs.is_empty());
         assert!(rs.iter().all(|r| r.sheet_board_id.is_none()));
     }
+    // The balance is right: no check-weight warning.
+    assert!(find(&ing, "balance.check_weight_off").is_empty());
     // The check weight reads 10 g within the balance's repeatability.
     let ref_g: Vec<f64> = ing
         .readings
@@ -215,6 +217,32 @@ fn check_weight_and_tray_are_not_boards() {
         ids.extend((0..b.num_rows()).map(|i| s.value(i).to_string()));
     }
     assert_eq!(ids, sheet_boards(&c));
+}
+
+#[test]
+fn a_check_weight_off_its_nominal_is_warned() {
+    let mut files = BTreeMap::new();
+    files.insert(
+        "campaign.csv".to_string(),
+        b"measurement_id,board_id,setup,file\nM1,PCB-01,free,m.uff\n".to_vec(),
+    );
+    files.insert(
+        "scale/a.log".to_string(),
+        b"# check\n2025-03-03T08:00:00 REF-10G S S 10.0012 g\n2025-03-03T08:00:05 REF-10G S S 10.0011 g\n\
+          2025-03-03T08:01:00 ref_200mg S S 0.2000 g\n2025-03-03T08:02:00 PCB-01 S S 13.0000 g\n"
+            .to_vec(),
+    );
+    let ing = read_campaign(&InMemory(&files), &IngestConfig::default(), &|| {}).unwrap();
+    let f = find(&ing, "balance.check_weight_off");
+    assert_eq!(f.len(), 1, "{:#?}", ing.findings);
+    assert_eq!(
+        (f[0].file.as_deref(), f[0].line),
+        (Some("scale/a.log"), Some(2))
+    );
+    assert!(f[0].message.contains("REF-10G"));
+    // Neither check weight is a board.
+    assert_eq!(ing.masses.len(), 1);
+    assert_eq!(find(&ing, "balance.not_a_board").len(), 2);
 }
 
 #[test]
