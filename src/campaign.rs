@@ -751,7 +751,7 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
         .collect();
     // The contract's frame has the board in z = 0: a scan point well off that plane is not
     // on the board (a bolt head, the fixture). Kept in scan_points.parquet; pair, which knows
-    // the board's outline, leaves points off the board out of the shapes.
+    // the board's outline, names points off it and leaves them out of the MAC.
     for p in m.points.iter().filter(|p| !p.is_reference) {
         if p.xyz_m[2].abs() > OFF_PLANE_M {
             fd.push(
@@ -759,7 +759,7 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                     Severity::Warning,
                     "uff.point_off_plane",
                     format!(
-                        "scan point node {} at z = {:.2} mm lies off the board's plane (expected |z| <= {:.1} mm for a point on the board): not a board point (a bolt head, the fixture?); kept, pair leaves it out of the shapes if it is off the board outline",
+                        "scan point node {} at z = {:.2} mm lies off the board's plane (expected |z| <= {:.1} mm for a point on the board): not a board point (a bolt head, the fixture?); kept; if it lies off the board's outline, pair leaves it out of the MAC and update out of its shape terms",
                         p.node,
                         p.xyz_m[2] * 1e3,
                         OFF_PLANE_M * 1e3
