@@ -67,13 +67,13 @@ fn main() {
     let seed = t["seed"].as_u64().expect("truth.json: seed");
     let plan = truth::plan(&scenario, &board, seed).expect("plan");
     // A solid-truth scenario recomputes its modes with gmsh and CalculiX.
-    let solver: Option<std::sync::Arc<dyn hbmu::lab::solid::Solver>> =
-        match scenario.truth.physics {
-            hbmu::lab::scenario::Physics::Plate => None,
-            hbmu::lab::scenario::Physics::Solid => Some(std::sync::Arc::new(
-                hbmu::io::external::Calculix::locate().expect("gmsh and ccx"),
-            )),
-        };
+    let solver: Option<std::sync::Arc<dyn hbmu::lab::solid::Solver>> = match scenario.truth.physics
+    {
+        hbmu::lab::scenario::Physics::Plate => None,
+        hbmu::lab::scenario::Physics::Solid => Some(std::sync::Arc::new(
+            hbmu::io::external::Calculix::locate().expect("gmsh and ccx"),
+        )),
+    };
     let models = truth::Models::build(&scenario, &board, solver).expect("truth models");
     let cache = truth::free_board_modes(&scenario, &plan, &models).expect("free modes");
     let mut truths = BTreeMap::new();

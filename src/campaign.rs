@@ -6,6 +6,26 @@
 //! campaign: it is quarantined with its reason. Nothing is silently dropped: every dropped
 //! record and every ignored file is a [`Finding`]. The writers of the ingest outputs are in
 //! `io::ingest_outputs`; the stage that wires both is `stage::ingest`.
+//!
+//! The board population is exactly the sheet's boards. IDs are compared by [`board_key`]
+//! (case, spaces and separators, zero padding of numbers ignored):
+//! - sheet rows spelling one board differently (`PCB-3` among `PCB-03`): resolved to the
+//!   spelling most rows use, warning `sheet.board_id_variant`; if no spelling is the most
+//!   used, each stays a board of its own, warning `sheet.board_id_ambiguous`;
+//! - a balance-log ID equal to a sheet board: that board; one that matches exactly one sheet
+//!   board by key: resolved to it, warning `balance.board_id_variant`; by key more than one:
+//!   not joined to any, `balance.board_id_ambiguous` (record dropped from the masses);
+//!   no sheet board at all: not a board (a check weight, a tray), info `balance.not_a_board`
+//!   (warning `balance.unknown_board` when it looks like a board ID: same letters as a sheet
+//!   board's). Its lines stay in `scale_readings.parquet` with no `sheet_board_id`; it has no
+//!   row in `masses.parquet`. A check weight named by its mass (`REF-10G`) whose mean stable
+//!   reading is off its nominal by more than the readings' allowed spread: warning
+//!   `balance.check_weight_off`.
+//!
+//! A row the lab marked invalid is quarantined (`sheet.marked_invalid`): its notes start with
+//! `invalid` (any case, e.g. `INVALID - double hit, repeated as M013`), or an extra column
+//! `valid` says `no`/`false`/`0`/`n`/`invalid`. A note `repeat of <id>` is checked against
+//! the sheet (`sheet.repeat_of_unknown`, `sheet.repeat_of_valid`: both rows then kept).
 
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::balance_log::{self, BoardMass, MassParams, Reading};
@@ -33,6 +53,10 @@ pub trait Source: Sync {
     /// The file's bytes.
     fn read(&self, rel: &str) -> std::io::Result<Vec<u8>>;
 }
+
+/// A scan point further than this from the board's plane z = 0 is not on the board, m (the
+/// board is 1.6 mm thick and its top face may be the plane; a bolt head stands 2 mm or more).
+const OFF_PLANE_M: f64 = 1.0e-3;
 
 /// Tunable checks of the ingest stage (part of the fingerprint).
 #[derive(Debug, Clone, Serialize)]
@@ -202,7 +226,12 @@ pub fn read_campaign(
                 ),
             ))
         } else {
-            None
+            invalid_mark(row).map(|why| {
+                f(
+                    "sheet.marked_invalid",
+                    format!("the lab marked this measurement invalid ({why}); not ingested, its UFF {:?} is left unread", row.file),
+                )
+            })
         };
         if !row.measurement_id.is_empty() {
             first_line
@@ -214,6 +243,9 @@ pub fn read_campaign(
             findings.push(fd);
         }
     }
+
+    check_repeats(&measurements, &mut findings);
+    let boards = resolve_sheet_boards(&mut measurements, &mut findings);
 
     // UFF files, in parallel; results collected in sheet order (deterministic).
     let per_meas: Vec<Findings> = measurements
@@ -281,20 +313,26 @@ pub fn read_campaign(
         readings.extend(rs);
         findings.extend(f);
     }
+    resolve_balance_ids(&mut readings, &boards, cfg.mass_max_std_in_d, &mut findings);
+    // Masses of the sheet's boards only, from the lines resolved to them.
+    let joined: Vec<Reading> = readings
+        .iter()
+        .filter_map(|r| {
+            r.sheet_board_id.as_ref().map(|b| Reading {
+                board_id: Some(b.clone()),
+                ..r.clone()
+            })
+        })
+        .collect();
     let masses = balance_log::board_masses(
-        &readings,
+        &joined,
         MassParams {
             max_std_in_d: cfg.mass_max_std_in_d,
         },
     );
     let weighed: BTreeSet<&str> = masses.iter().map(|m| m.board_id.as_str()).collect();
-    let boards: BTreeSet<&str> = measurements
-        .iter()
-        .map(|m| m.row.board_id.as_str())
-        .filter(|b| !b.is_empty())
-        .collect();
     for b in &boards {
-        if !weighed.contains(b) {
+        if !weighed.contains(b.as_str()) {
             findings.push(Finding::new(
                 Severity::Warning,
                 "balance.board_not_weighed",
@@ -303,13 +341,13 @@ pub fn read_campaign(
         }
     }
     for m in &masses {
-        if !boards.contains(m.board_id.as_str()) {
+        if m.n_days > 1 && m.day_spread_g > cfg.mass_max_std_in_d * m.resolution_g {
             findings.push(Finding::new(
-                Severity::Info,
-                "balance.unknown_board",
+                Severity::Warning,
+                "balance.mass_changed_between_days",
                 format!(
-                    "board {} was weighed but has no measurement in the sheet",
-                    m.board_id
+                    "board {}: weighed on {} days whose means differ by {:.4} g, more than {} x the balance resolution {:.4} g (expected the same board to weigh the same); all {} stable readings averaged",
+                    m.board_id, m.n_days, m.day_spread_g, cfg.mass_max_std_in_d, m.resolution_g, m.n_stable
                 ),
             ));
         }
@@ -711,6 +749,28 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             has_record: with_record.contains(&node),
         })
         .collect();
+    // The contract's frame has the board in z = 0: a scan point well off that plane is not
+    // on the board (a bolt head, the fixture). Kept in scan_points.parquet; pair, which knows
+    // the board's outline, names points off it and leaves them out of the MAC.
+    for p in m.points.iter().filter(|p| !p.is_reference) {
+        if p.xyz_m[2].abs() > OFF_PLANE_M {
+            fd.push(
+                Finding::new(
+                    Severity::Warning,
+                    "uff.point_off_plane",
+                    format!(
+                        "scan point node {} at z = {:.2} mm lies off the board's plane (expected |z| <= {:.1} mm for a point on the board): not a board point (a bolt head, the fixture?); kept; if it lies off the board's outline, pair leaves it out of the MAC and update out of its shape terms",
+                        p.node,
+                        p.xyz_m[2] * 1e3,
+                        OFF_PLANE_M * 1e3
+                    ),
+                )
+                .file(file.clone())
+                .record(format!("node {}", p.node))
+                .measurement(mid.clone()),
+            );
+        }
+    }
     let no_record = m
         .points
         .iter()
@@ -728,6 +788,356 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
         );
     }
     fd
+}
+
+/// The key two spellings of one board ID share: letters upper-cased, numbers without their
+/// leading zeros, anything else (spaces, `-`, `_`, `.`) only a separator. `PCB-03`, `pcb-3`,
+/// ` PCB 03` and `PCB03` share the key `PCB|3`; `PCB-1-2` (`PCB|1|2`) and `PCB-12` do not.
+pub fn board_key(id: &str) -> String {
+    let mut parts: Vec<String> = vec![];
+    let mut cur = String::new();
+    let mut digits = false;
+    let flush = |cur: &mut String, digits: bool, parts: &mut Vec<String>| {
+        if !cur.is_empty() {
+            let t = if digits {
+                let t = cur.trim_start_matches('0');
+                if t.is_empty() { "0" } else { t }.to_string()
+            } else {
+                cur.clone()
+            };
+            parts.push(t);
+            cur.clear();
+        }
+    };
+    for c in id.chars() {
+        if c.is_ascii_digit() {
+            if !digits {
+                flush(&mut cur, digits, &mut parts);
+                digits = true;
+            }
+            cur.push(c);
+        } else if c.is_alphanumeric() {
+            if digits {
+                flush(&mut cur, digits, &mut parts);
+                digits = false;
+            }
+            cur.extend(c.to_uppercase());
+        } else {
+            flush(&mut cur, digits, &mut parts);
+        }
+    }
+    flush(&mut cur, digits, &mut parts);
+    parts.join("|")
+}
+
+/// The key's letters only (`PCB|3` → `PCB|#`): an ID with the letters of a sheet board but
+/// another number looks like a board ID.
+fn key_shape(key: &str) -> String {
+    key.split('|')
+        .map(|p| {
+            if p.chars().all(|c| c.is_ascii_digit()) {
+                "#"
+            } else {
+                p
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("|")
+}
+
+/// The nominal mass of a check weight named `REF-<number><unit>` (`REF-10G`, `ref_200mg`), g.
+fn check_weight_nominal_g(id: &str) -> Option<f64> {
+    let u = id.to_ascii_uppercase();
+    let rest = u.strip_prefix("REF")?.trim_start_matches(['-', '_', ' ']);
+    let split = rest.find(|c: char| !(c.is_ascii_digit() || c == '.'))?;
+    let (num, unit) = rest.split_at(split);
+    let factor = match unit {
+        "G" => 1.0,
+        "MG" => 1e-3,
+        "KG" => 1e3,
+        _ => return None,
+    };
+    num.parse::<f64>()
+        .ok()
+        .filter(|v| *v > 0.0)
+        .map(|v| v * factor)
+}
+
+/// Why a sheet row is marked invalid by the lab, if it is: notes starting with `invalid`
+/// (any case), or an extra column `valid` saying no.
+fn invalid_mark(row: &SheetRow) -> Option<String> {
+    for (col, v) in &row.extra {
+        if col.trim().eq_ignore_ascii_case("valid")
+            && ["no", "n", "false", "0", "invalid"]
+                .contains(&v.trim().to_ascii_lowercase().as_str())
+        {
+            return Some(format!("column {col} = {v:?}"));
+        }
+    }
+    let note = row.notes.as_deref()?.trim_start();
+    note.to_ascii_lowercase()
+        .starts_with("invalid")
+        .then(|| format!("notes {:?}", note.lines().next().unwrap_or(note)))
+}
+
+/// The measurement id a note says the row repeats (`repeat of M012 ...`), if any.
+fn repeat_of(notes: &str) -> Option<String> {
+    let lower = notes.to_ascii_lowercase();
+    let at = lower.find("repeat of ")? + "repeat of ".len();
+    let id: String = notes[at..]
+        .chars()
+        .take_while(|c| c.is_alphanumeric() || *c == '-' || *c == '_')
+        .collect();
+    (!id.is_empty()).then_some(id)
+}
+
+/// Cross-check the notes about invalid and repeated measurements: a repeat of a row that is
+/// not on the sheet or not marked invalid, and a note mentioning `invalid` that marks nothing.
+fn check_repeats(ms: &[Measurement], findings: &mut Findings) {
+    let by_id: HashMap<&str, &Measurement> = ms
+        .iter()
+        .map(|m| (m.row.measurement_id.as_str(), m))
+        .collect();
+    for m in ms {
+        let row = &m.row;
+        let Some(notes) = row.notes.as_deref() else {
+            continue;
+        };
+        let f = |code: &str, msg: String| {
+            Finding::new(Severity::Warning, code, msg)
+                .file("campaign.csv")
+                .line(row.line)
+                .measurement(row.measurement_id.clone())
+        };
+        match repeat_of(notes) {
+            Some(id) => match by_id.get(id.as_str()) {
+                None => findings.push(f(
+                    "sheet.repeat_of_unknown",
+                    format!("notes say this repeats {id:?}, which no row of the sheet is; kept"),
+                )),
+                Some(o) if invalid_mark(&o.row).is_none() => findings.push(f(
+                    "sheet.repeat_of_valid",
+                    format!(
+                        "notes say this repeats {id:?} (line {}), which is not marked invalid (expected its notes to start with `invalid`, or valid = no); both kept",
+                        o.row.line
+                    ),
+                )),
+                Some(_) => {}
+            },
+            None => {
+                if invalid_mark(row).is_none() && notes.to_ascii_lowercase().contains("invalid") {
+                    findings.push(f(
+                        "sheet.note_mentions_invalid",
+                        format!("notes mention `invalid` ({:?}) but do not mark the row (notes starting with `invalid`, or valid = no); kept", notes.lines().next().unwrap_or(notes)),
+                    ));
+                }
+            }
+        }
+    }
+}
+
+/// The sheet's boards: rows spelling one board differently are resolved to the spelling most
+/// rows use (`sheet.board_id_variant`); spellings used equally often stay apart
+/// (`sheet.board_id_ambiguous`). Rewrites the rows' board_id; returns the boards.
+fn resolve_sheet_boards(ms: &mut [Measurement], findings: &mut Findings) -> BTreeSet<String> {
+    // key → spelling → (rows, first line)
+    let mut spellings: BTreeMap<String, BTreeMap<String, (usize, u64)>> = BTreeMap::new();
+    for m in ms.iter() {
+        let b = &m.row.board_id;
+        if b.is_empty() {
+            continue;
+        }
+        let e = spellings
+            .entry(board_key(b))
+            .or_default()
+            .entry(b.clone())
+            .or_insert((0, m.row.line));
+        e.0 += 1;
+    }
+    let mut canonical: HashMap<String, String> = HashMap::new();
+    for sp in spellings.values() {
+        if sp.len() < 2 {
+            continue;
+        }
+        let mut by_count: Vec<(&String, &(usize, u64))> = sp.iter().collect();
+        by_count.sort_by_key(|(s, (n, line))| (std::cmp::Reverse(*n), *line, (*s).clone()));
+        if by_count[0].1 .0 > by_count[1].1 .0 {
+            for (s, _) in &by_count[1..] {
+                canonical.insert((*s).clone(), by_count[0].0.clone());
+            }
+        } else {
+            let list = by_count
+                .iter()
+                .map(|(s, (n, line))| format!("{s:?} ({n} row(s), first on line {line})"))
+                .collect::<Vec<_>>()
+                .join(", ");
+            for (s, (_, line)) in &by_count {
+                findings.push(
+                    Finding::new(
+                        Severity::Warning,
+                        "sheet.board_id_ambiguous",
+                        format!("board_id {s:?} differs from another board_id only in case, separators or zero padding, and neither is used more often: {list}; kept as separate boards (expected one spelling per board)"),
+                    )
+                    .file("campaign.csv")
+                    .line(*line),
+                );
+            }
+        }
+    }
+    for m in ms.iter_mut() {
+        if let Some(c) = canonical.get(&m.row.board_id) {
+            findings.push(
+                Finding::new(
+                    Severity::Warning,
+                    "sheet.board_id_variant",
+                    format!(
+                        "board_id {:?} is spelled otherwise than on the other rows of that board; resolved to {c:?}",
+                        m.row.board_id
+                    ),
+                )
+                .file("campaign.csv")
+                .line(m.row.line)
+                .measurement(m.row.measurement_id.clone()),
+            );
+            m.row.board_id = c.clone();
+        }
+    }
+    ms.iter()
+        .map(|m| m.row.board_id.clone())
+        .filter(|b| !b.is_empty())
+        .collect()
+}
+
+/// Resolve every balance line's ID against the sheet's boards (see the module doc) and fill
+/// [`Reading::sheet_board_id`].
+fn resolve_balance_ids(
+    readings: &mut [Reading],
+    boards: &BTreeSet<String>,
+    max_std_in_d: f64,
+    findings: &mut Findings,
+) {
+    let mut by_key: BTreeMap<String, Vec<&str>> = BTreeMap::new();
+    for b in boards {
+        by_key.entry(board_key(b)).or_default().push(b);
+    }
+    let shapes: BTreeSet<String> = by_key.keys().map(|k| key_shape(k)).collect();
+    // The lines of an ID that is not a board, per (file, id).
+    #[derive(Default)]
+    struct NotABoard {
+        first_line: u64,
+        lines: usize,
+        /// Stable readings, g.
+        stable: Vec<f64>,
+        /// Their coarsest resolution, g.
+        d: f64,
+    }
+    let mut others: BTreeMap<(String, String), NotABoard> = BTreeMap::new();
+    for r in readings.iter_mut() {
+        let Some(id) = r.board_id.clone() else {
+            continue;
+        };
+        if boards.contains(&id) {
+            r.sheet_board_id = Some(id);
+            continue;
+        }
+        let key = board_key(&id);
+        match by_key.get(&key).map(Vec::as_slice) {
+            Some([b]) => {
+                findings.push(
+                    Finding::new(
+                        Severity::Warning,
+                        "balance.board_id_variant",
+                        format!("ID {id:?} is not spelled as on the sheet; resolved to board {b:?}"),
+                    )
+                    .file(r.file.clone())
+                    .line(r.line),
+                );
+                r.sheet_board_id = Some(b.to_string());
+            }
+            Some(bs) => findings.push(
+                Finding::new(
+                    Severity::RecordDropped,
+                    "balance.board_id_ambiguous",
+                    format!("ID {id:?} could be any of the sheet's boards {bs:?}; joined to none (the line stays in scale_readings.parquet)"),
+                )
+                .file(r.file.clone())
+                .line(r.line),
+            ),
+            None => {
+                let e = others
+                    .entry((r.file.clone(), id))
+                    .or_insert_with(|| NotABoard {
+                        first_line: r.line,
+                        ..Default::default()
+                    });
+                e.lines += 1;
+                if let (balance_log::Status::Stable, Some(g)) = (r.status, r.mass_g) {
+                    e.stable.push(g);
+                    e.d = e.d.max(r.resolution_g.unwrap_or(0.0));
+                }
+            }
+        }
+    }
+    for ((file, id), nb) in others {
+        let NotABoard {
+            first_line: line,
+            lines: n,
+            stable,
+            d,
+        } = nb;
+        let looks_like_board = shapes.contains(&key_shape(&board_key(&id)));
+        // A check weight named by its nominal mass checks the balance: its mean reading
+        // should lie within the spread allowed for a board's readings.
+        if let (Some(nominal), false) = (check_weight_nominal_g(&id), stable.is_empty()) {
+            let mean = stable.iter().sum::<f64>() / stable.len() as f64;
+            if (mean - nominal).abs() > max_std_in_d * d.max(f64::MIN_POSITIVE) {
+                findings.push(
+                    Finding::new(
+                        Severity::Warning,
+                        "balance.check_weight_off",
+                        format!(
+                            "check weight {id:?} reads {mean:.5} g on average over {} stable reading(s), {:+.2} mg from its nominal {nominal} g (expected within {max_std_in_d} x the resolution {d} g): the balance may be off; board masses kept as read",
+                            stable.len(),
+                            (mean - nominal) * 1e3
+                        ),
+                    )
+                    .file(file.clone())
+                    .line(line),
+                );
+            }
+        }
+        let stable = if stable.is_empty() {
+            "no stable reading".to_string()
+        } else {
+            format!(
+                "{} stable reading(s), mean {:.4} g",
+                stable.len(),
+                stable.iter().sum::<f64>() / stable.len() as f64
+            )
+        };
+        let (sev, code, what) = if looks_like_board {
+            (
+                Severity::Warning,
+                "balance.unknown_board",
+                "looks like a board ID, but no row of the sheet names that board",
+            )
+        } else {
+            (
+                Severity::Info,
+                "balance.not_a_board",
+                "is not a board of the sheet (a check weight, a tray)",
+            )
+        };
+        findings.push(
+            Finding::new(
+                sev,
+                code,
+                format!("ID {id:?} {what}: its {n} line(s) ({stable}) stay in scale_readings.parquet and give no board mass"),
+            )
+            .file(file)
+            .line(line),
+        );
+    }
 }
 
 /// Within one setup, the same node id must sit at the same place in every measurement, and the

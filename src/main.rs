@@ -458,7 +458,8 @@ enum LabCommand {
     Simulate {
         /// Scenario file (TOML, schemas/lab_scenario.schema.json) or a built-in name:
         /// paper (default campaign), null, rotational, loose_bolt, temperature, lumped_mass,
-        /// fixture, underfill (a local stiffening, outside the diagnosis's library).
+        /// fixture, underfill (a local stiffening, outside the diagnosis's library). A file's
+        /// `preset = "realistic"` (or its `[habits]`) adds the habits of a real lab.
         scenario: String,
         /// Campaign directory to write.
         #[arg(long)]

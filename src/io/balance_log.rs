@@ -6,6 +6,10 @@
 //! spread, and flags a board whose stable readings disagree more than the balance resolution
 //! suggests. The resolution `d` is inferred from the number of decimals the balance printed
 //! (MT-SICS prints the value to the readability of the balance).
+//!
+//! Which board a line's ID names is not decided here: the campaign resolves the IDs against
+//! the sheet (`campaign::resolve_balance_ids`) and fills [`Reading::sheet_board_id`]; an ID
+//! that is not a board of the sheet (a check weight `REF-10G`, a `TRAY`) stays a reading.
 
 use crate::findings::{Finding, Findings, Severity};
 use std::collections::BTreeMap;
@@ -64,6 +68,9 @@ pub struct Reading {
     pub timestamp: Option<String>,
     pub time_unix_ns: Option<i64>,
     pub board_id: Option<String>,
+    /// The sheet board the line counts for, as the campaign resolved `board_id` against the
+    /// sheet (`None`: not a board, or not resolvable). The parser leaves it `None`.
+    pub sheet_board_id: Option<String>,
     /// The MT-SICS response as written (after the board id).
     pub response: String,
     pub status: Status,
@@ -159,6 +166,7 @@ pub fn parse(bytes: &[u8], file: &str) -> (Vec<Reading>, Findings) {
             timestamp,
             time_unix_ns: time_ns,
             board_id: None,
+            sheet_board_id: None,
             response: String::new(),
             status: Status::Unparsed,
             value: None,
@@ -234,6 +242,10 @@ pub struct BoardMass {
     pub resolution_g: f64,
     /// True when the stable readings disagree more than the resolution suggests.
     pub inconsistent: bool,
+    /// Days (the timestamps' dates) with a stable reading.
+    pub n_days: usize,
+    /// Largest minus smallest of the per-day means, grams (0 for one day).
+    pub day_spread_g: f64,
 }
 
 /// Parameters of the mass summary.
@@ -277,6 +289,20 @@ pub fn board_masses(readings: &[Reading], params: MassParams) -> Vec<BoardMass> 
                 .iter()
                 .filter_map(|r| r.resolution_g)
                 .fold(0.0f64, f64::max);
+            // Per-day means (the date part of the timestamp; lines without one count apart).
+            let mut by_day: BTreeMap<&str, (f64, usize)> = BTreeMap::new();
+            for r in &rs {
+                let day = r
+                    .timestamp
+                    .as_deref()
+                    .map_or("", |t| t.get(..10).unwrap_or(t));
+                let e = by_day.entry(day).or_default();
+                e.0 += r.mass_g.unwrap_or(0.0);
+                e.1 += 1;
+            }
+            let day_means: Vec<f64> = by_day.values().map(|(s, k)| s / *k as f64).collect();
+            let day_spread = day_means.iter().copied().fold(f64::MIN, f64::max)
+                - day_means.iter().copied().fold(f64::MAX, f64::min);
             BoardMass {
                 board_id: board.to_string(),
                 mass_g: mean,
@@ -284,6 +310,8 @@ pub fn board_masses(readings: &[Reading], params: MassParams) -> Vec<BoardMass> 
                 std_g: std,
                 resolution_g: d,
                 inconsistent: n > 1 && std > params.max_std_in_d * d.max(f64::MIN_POSITIVE),
+                n_days: by_day.len(),
+                day_spread_g: day_spread,
             }
         })
         .collect()

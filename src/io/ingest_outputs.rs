@@ -220,6 +220,7 @@ pub fn write_outputs(c: &Campaign, out: &Path, fingerprint: &str) -> anyhow::Res
             strs(rs.iter().map(|r| r.timestamp.as_deref())),
             i64s(rs.iter().map(|r| r.time_unix_ns)),
             strs(rs.iter().map(|r| r.board_id.as_deref())),
+            strs(rs.iter().map(|r| r.sheet_board_id.as_deref())),
             strs(rs.iter().map(|r| Some(r.response.as_str()))),
             strs(rs.iter().map(|r| Some(r.status.as_str()))),
             f64s(rs.iter().map(|r| r.value)),
@@ -243,6 +244,7 @@ pub fn write_outputs(c: &Campaign, out: &Path, fingerprint: &str) -> anyhow::Res
             f64s(ms.iter().map(|m| Some(m.std_g))),
             f64s(ms.iter().map(|m| Some(m.resolution_g))),
             bools(ms.iter().map(|m| Some(m.inconsistent))),
+            i32s(ms.iter().map(|m| Some(m.n_days as i32))),
         ],
     )?;
 
@@ -398,6 +400,7 @@ fn write_mcap(c: &Campaign, path: &Path, prov: &BTreeMap<String, String>) -> any
                     line: r.line,
                     timestamp: r.timestamp.clone(),
                     board_id: r.board_id.clone(),
+                    sheet_board_id: r.sheet_board_id.clone(),
                     response: r.response.clone(),
                     status: r.status.as_str().into(),
                     value: r.value,

@@ -151,7 +151,10 @@ pub struct BalanceMsg {
     pub file: String,
     pub line: u64,
     pub timestamp: Option<String>,
+    /// The ID as written in the log.
     pub board_id: Option<String>,
+    /// The sheet's board the line counts for (null: not a board of the sheet).
+    pub sheet_board_id: Option<String>,
     pub response: String,
     pub status: String,
     pub value: Option<f64>,

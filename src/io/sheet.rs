@@ -5,6 +5,10 @@
 //! (`torque_nm`, `temperature_c`, `date`), extra columns kept verbatim, and row-level findings
 //! naming the file line. A missing required column or an unreadable header is fatal for the
 //! sheet (nothing can be matched without it); a bad row only affects its own measurement.
+//!
+//! Fields are trimmed; a board_id with spaces around it is a warning (`sheet.board_id_whitespace`:
+//! the trimmed ID is used). An empty temperature or date cell in a column that other rows fill
+//! is an info finding (`sheet.missing_value`): the value is unknown, the row is kept.
 
 use crate::findings::{Finding, Findings, Severity};
 use std::collections::BTreeMap;
@@ -21,6 +25,9 @@ pub const OPTIONAL: [&str; 6] = [
     "operator",
     "notes",
 ];
+
+/// Optional columns whose empty cells are reported when other rows fill them.
+const GAP_COLUMNS: [&str; 2] = ["temperature_c", "date"];
 
 #[derive(Debug, Error)]
 pub enum SheetError {
@@ -197,6 +204,9 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
         extra_columns,
         ..Default::default()
     };
+    // Empty cells of the columns checked for gaps: (column, line, measurement_id).
+    let mut empties: Vec<(usize, u64, String)> = vec![];
+    let mut filled = [0usize; GAP_COLUMNS.len()];
     let mut rec = csv::ByteRecord::new();
     let (mut counted_to, mut counted_lines) = (0usize, 1u64);
     let mut line_at = |byte: usize| -> u64 {
@@ -333,6 +343,34 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
                 .measurement(measurement_id.clone()),
             );
         }
+        let board_raw = idx("board_id")
+            .and_then(|i| fields.get(i))
+            .cloned()
+            .unwrap_or_default();
+        if board_raw.trim() != board_raw && !board_raw.trim().is_empty() {
+            sheet.findings.push(
+                Finding::new(
+                    Severity::Warning,
+                    "sheet.board_id_whitespace",
+                    format!(
+                        "board_id {board_raw:?} has spaces around it (expected the bare ID); taken as {:?}",
+                        board_raw.trim()
+                    ),
+                )
+                .file(file)
+                .line(line)
+                .measurement(measurement_id.clone()),
+            );
+        }
+        for (k, col) in GAP_COLUMNS.iter().enumerate() {
+            if idx(col).is_some() {
+                if get(col).is_empty() {
+                    empties.push((k, line, measurement_id.clone()));
+                } else {
+                    filled[k] += 1;
+                }
+            }
+        }
         let setup_raw = get("setup");
         let extra = sheet
             .extra_columns
@@ -355,6 +393,26 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
             notes: non_empty(&get("notes")),
             extra,
         });
+    }
+    // Gaps: a column the lab fills, left empty on some rows.
+    for (k, col) in GAP_COLUMNS.iter().enumerate() {
+        if filled[k] == 0 {
+            continue;
+        }
+        for (kk, line, mid) in &empties {
+            if *kk == k {
+                sheet.findings.push(
+                    Finding::new(
+                        Severity::Info,
+                        "sheet.missing_value",
+                        format!("column {col} is empty on this row (other rows fill it); taken as unknown"),
+                    )
+                    .file(file)
+                    .line(*line)
+                    .measurement(mid.clone()),
+                );
+            }
+        }
     }
     Ok(sheet)
 }

@@ -355,7 +355,8 @@ pub const SCALE_READINGS: TableSpec = TableSpec {
         c("line", Col::Int64, false, "", "1-based line."),
         c("timestamp", Col::Utf8, true, "", "Timestamp as written."),
         c("time_unix_ns", Col::Int64, true, "ns", "Timestamp as ns since the Unix epoch, UTC."),
-        c("board_id", Col::Utf8, true, "", "Board weighed."),
+        c("board_id", Col::Utf8, true, "", "ID as written in the log (a board, or a check weight, a tray...)."),
+        c("sheet_board_id", Col::Utf8, true, "", "The sheet's board the line counts for (its board_id resolved against the sheet); null when the ID is not a board of the sheet or is ambiguous."),
         c("response", Col::Utf8, false, "", "MT-SICS response as written."),
         c("status", Col::Utf8, false, "", "stable, dynamic, busy, overload, underload, zeroed, tared, syntax_error, transmission_error, logic_error, unparsed."),
         c("value", Col::Float64, true, "", "Value as printed, in `unit`."),
@@ -367,7 +368,7 @@ pub const SCALE_READINGS: TableSpec = TableSpec {
 
 pub const MASSES: TableSpec = TableSpec {
     name: "masses",
-    doc: "Board masses from stable balance readings only.",
+    doc: "Masses of the sheet's boards from their stable balance readings only; an ID that is not a board of the sheet has no row.",
     open: false,
     columns: &[
         c("board_id", Col::Utf8, false, "", "Board."),
@@ -405,6 +406,13 @@ pub const MASSES: TableSpec = TableSpec {
             false,
             "",
             "True when the readings disagree more than the resolution suggests (std > 3 d).",
+        ),
+        c(
+            "n_days",
+            Col::Int32,
+            false,
+            "",
+            "Days (timestamp dates) with a stable reading.",
         ),
     ],
 };

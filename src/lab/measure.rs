@@ -136,10 +136,11 @@ fn axis(spec: i64, length_exp: i64, force_exp: i64, label: &str, units: &str) ->
     }
 }
 
-/// The UFF bytes of one measurement.
+/// The UFF bytes of one measurement; `points` are its scan points (x, y, z in m), node id =
+/// position + 1.
 pub fn measurement_uff(
     s: &Scenario,
-    points: &[[f64; 2]],
+    points: &[[f64; 3]],
     m: &Planned,
     mm: &MeasurementModes,
     seed: u64,
@@ -193,7 +194,7 @@ pub fn measurement_uff(
             def_cs: 1,
             disp_cs: 1,
             color: 11,
-            xyz_file_units: [p[0] * scale, p[1] * scale, 0.0],
+            xyz_file_units: [p[0] * scale, p[1] * scale, p[2] * scale],
         })
         .collect();
     if m.setup == SetupKind::Bolted {
@@ -236,7 +237,10 @@ pub fn measurement_uff(
     let mut coherence = Vec::new();
     for (o, h0) in clean.iter().enumerate() {
         let node = o as i64 + 1;
-        let (u_sig, u_floor) = if mm.truth.dropout_nodes.contains(&node) {
+        let (u_sig, u_floor) = if m.habits.invalid {
+            // A bad measurement (hammer double hit, overload): mostly noise everywhere.
+            (0.02, 300.0)
+        } else if mm.truth.dropout_nodes.contains(&node) {
             (0.03, 10.0)
         } else {
             (1.0, 1.0)
@@ -339,17 +343,28 @@ pub fn sheet_csv(ms: &[Planned]) -> Result<Vec<u8>, LabError> {
     ])
     .map_err(werr)?;
     for m in ms {
+        let h = &m.habits;
         w.write_record([
             m.measurement_id.clone(),
-            m.board_id.clone(),
+            h.sheet_board_id
+                .clone()
+                .unwrap_or_else(|| m.board_id.clone()),
             m.setup.as_str().to_string(),
             m.file.clone(),
             m.bolted
                 .as_ref()
                 .map_or(String::new(), |b| b.bolt_set.clone()),
             m.torque_nm.map_or(String::new(), |t| format!("{t}")),
-            format!("{:.1}", m.temperature_c),
-            m.date.clone(),
+            if h.temperature_blank {
+                String::new()
+            } else {
+                format!("{:.1}", m.temperature_c)
+            },
+            if h.date_blank {
+                String::new()
+            } else {
+                m.date.clone()
+            },
             m.operator.clone(),
             m.notes.clone(),
         ])
@@ -361,18 +376,84 @@ pub fn sheet_csv(ms: &[Planned]) -> Result<Vec<u8>, LabError> {
     })
 }
 
+/// The balance logs and where their deliberate imperfections are.
+#[derive(Clone, Debug, Default)]
+pub struct BalanceLogs {
+    /// (path relative to the campaign, bytes).
+    pub files: Vec<(String, Vec<u8>)>,
+    /// Garbled stable readings, `file:line` (1-based).
+    pub garbled: Vec<String>,
+    /// Habit `id_variants`: the stable reading logged under another spelling of its board,
+    /// [`file:line`, spelling].
+    pub id_variants: Vec<[String; 2]>,
+    /// Habit `reweighed_board`: [board_id, file] of the weighing on a later day.
+    pub reweighed: Option<[String; 2]>,
+}
+
+/// Append `<timestamp> <id> <text>` to a log after advancing the clock by 1–3 s; returns
+/// where the line went, `file:line` (1-based).
+fn log_line(
+    file: &mut (String, String),
+    day: &str,
+    clock: &mut usize,
+    id: &str,
+    text: &str,
+) -> String {
+    *clock += 1 + (*clock % 3);
+    let t = *clock;
+    file.1.push_str(&format!(
+        "{}T{:02}:{:02}:{:02} {} {}\n",
+        day,
+        t / 3600,
+        (t / 60) % 60,
+        t % 60,
+        id,
+        text
+    ));
+    format!("{}:{}", file.0, file.1.lines().count())
+}
+
+/// Habit `reference_weights`: the check weight on the zeroed pan at the start of a
+/// session, one unsettled and two stable readings in g (its true mass within ±0.05 mg of
+/// 10 g, class E2, plus the balance's repeatability), then taken off and the pan zeroed.
+fn check_weight(
+    file: &mut (String, String),
+    day: &str,
+    clock: &mut usize,
+    bal: &super::scenario::Balance,
+    rng: &mut ChaCha8Rng,
+) {
+    use super::habits::{CHECK_WEIGHT_G, CHECK_WEIGHT_ID};
+    let dec = (-bal.resolution_g.log10()).round() as usize;
+    let id = CHECK_WEIGHT_ID;
+    log_line(file, day, clock, id, "Z A");
+    let true_g = CHECK_WEIGHT_G + 5e-5 * (2.0 * rng.random::<f64>() - 1.0);
+    log_line(
+        file,
+        day,
+        clock,
+        id,
+        &format!("S D {:>12.*} g", dec, true_g + 2e-3),
+    );
+    for _ in 0..2 {
+        let z: f64 = StandardNormal.sample(rng);
+        let v = true_g + bal.repeatability_d * bal.resolution_g * z;
+        let v = (v / bal.resolution_g).round() * bal.resolution_g;
+        log_line(file, day, clock, id, &format!("S S {:>12.*} g", dec, v));
+    }
+    *clock += 20;
+}
+
 /// Balance logs: one file per weighing day; per board and session a tare, unsettled
 /// (`S D`) readings converging on the weight, occasional busy/error lines, then stable
 /// readings (`S S`) of the weighed mass with the balance's repeatability, rounded to its
 /// readability, in g, mg or kg by turns. Now and then a stable reading arrives garbled
-/// (a digit replaced by `?`): the ingest reports and drops that line. Returns the files
-/// and the garbled lines as `file:line`.
-pub fn balance_logs(
-    s: &Scenario,
-    plan: &Plan,
-    boards: &[BoardTruth],
-) -> (Vec<(String, Vec<u8>)>, Vec<String>) {
+/// (a digit replaced by `?`): the ingest reports and drops that line. The habits
+/// (`super::habits`) add the check weight and the tray, one misspelt board ID and a board
+/// weighed again on a later day.
+pub fn balance_logs(s: &Scenario, plan: &Plan, boards: &[BoardTruth]) -> BalanceLogs {
     let bal = &s.balance;
+    let hb = s.habits();
     let days = [plan.first_day.clone(), plan.last_day.clone()];
     let mut files: Vec<(String, String)> = days
         .iter()
@@ -395,10 +476,23 @@ pub fn balance_logs(
         })
         .collect();
     let dec_g = (-bal.resolution_g.log10()).round() as usize;
-    let mut garbled = Vec::new();
+    let mut out = BalanceLogs::default();
+    // The habits draw from their own stream; the tray weighs 2.5–3.5 g.
+    let mut hrng = ChaCha8Rng::seed_from_u64(child_seed(plan.seed, Stream::Habits, 1));
+    let tray_g = 2.5 + hrng.random::<f64>();
+    // The board with the most measurements gets the misspelt line (as on the sheet).
+    let variant_board = (0..boards.len()).max_by_key(|&b| {
+        (
+            plan.measurements.iter().filter(|m| m.board == b).count(),
+            usize::MAX - b,
+        )
+    });
     for sess in 0..bal.sessions_per_board {
         let fi = sess % 2;
         let mut clock = 8 * 3600 + 600 * (sess / 2);
+        if hb.reference_weights {
+            check_weight(&mut files[fi], &days[fi], &mut clock, bal, &mut hrng);
+        }
         for (b, bt) in boards.iter().enumerate() {
             let mut rng = ChaCha8Rng::seed_from_u64(child_seed(
                 seed_of(plan),
@@ -411,34 +505,40 @@ pub fn balance_logs(
                 1 => ("mg", 1e3, dec_g.saturating_sub(3)),
                 _ => ("kg", 1e-3, dec_g + 3),
             };
-            let mut line = |text: String, clock: &mut usize| {
-                *clock += 1 + (*clock % 3);
-                let t = *clock;
-                files[fi].1.push_str(&format!(
-                    "{}T{:02}:{:02}:{:02} {} {}\n",
-                    days[fi],
-                    t / 3600,
-                    (t / 60) % 60,
-                    t % 60,
-                    bt.draw.board_id,
-                    text
-                ));
-                // Where the line went, `file:line` (1-based).
-                format!("{}:{}", files[fi].0, files[fi].1.lines().count())
-            };
+            let id = bt.draw.board_id.as_str();
+            let day = days[fi].clone();
+            let file = &mut files[fi];
             let fmt = |v_g: f64| format!("{:>12.*} {unit}", dec, v_g * factor);
-            line("Z A".into(), &mut clock);
-            line(format!("T S {}", fmt(0.0)), &mut clock);
+            if hb.reference_weights {
+                // The empty pan zeroed between boards, the tray put on and tared.
+                log_line(file, &day, &mut clock, super::habits::TRAY_ID, "Z A");
+                log_line(
+                    file,
+                    &day,
+                    &mut clock,
+                    super::habits::TRAY_ID,
+                    &format!("T S {}", fmt(tray_g)),
+                );
+            } else {
+                log_line(file, &day, &mut clock, id, "Z A");
+                log_line(file, &day, &mut clock, id, &format!("T S {}", fmt(0.0)));
+            }
             for k in 0..bal.stable_per_session {
                 if rng.random::<f64>() < bal.glitch_prob {
                     let g = ["S I", "ES", "S I", "EL"][(rng.random::<f64>() * 4.0) as usize % 4];
-                    line(g.into(), &mut clock);
+                    log_line(file, &day, &mut clock, id, g);
                 }
                 let n_dyn = if k == 0 { 3 } else { 1 };
                 for j in 0..n_dyn {
                     let off = 1e-3 * (1.0 + 20.0 * rng.random::<f64>()) * 0.25f64.powi(j);
                     let sign = if rng.random::<f64>() < 0.5 { -1.0 } else { 1.0 };
-                    line(format!("S D {}", fmt(true_g + sign * off)), &mut clock);
+                    log_line(
+                        file,
+                        &day,
+                        &mut clock,
+                        id,
+                        &format!("S D {}", fmt(true_g + sign * off)),
+                    );
                 }
                 let z: f64 = StandardNormal.sample(&mut rng);
                 let v = true_g + bal.repeatability_d * bal.resolution_g * z;
@@ -448,20 +548,61 @@ pub fn balance_logs(
                     let text = fmt(v);
                     let k = text.rfind(|c: char| c.is_ascii_digit()).unwrap_or(0);
                     let bad = format!("{}?{}", &text[..k], &text[k + 1..]);
-                    garbled.push(line(format!("S S {bad}"), &mut clock));
+                    out.garbled
+                        .push(log_line(file, &day, &mut clock, id, &format!("S S {bad}")));
                 }
-                line(format!("S S {}", fmt(v)), &mut clock);
+                if hb.id_variants && sess == 0 && k == 0 && Some(b) == variant_board {
+                    let v_id = super::habits::variant_spelling(id);
+                    let at = log_line(file, &day, &mut clock, &v_id, &format!("S S {}", fmt(v)));
+                    out.id_variants.push([at, v_id]);
+                } else {
+                    log_line(file, &day, &mut clock, id, &format!("S S {}", fmt(v)));
+                }
             }
             clock += 40;
         }
     }
-    (
-        files
-            .into_iter()
-            .map(|(n, t)| (n, t.into_bytes()))
-            .collect(),
-        garbled,
-    )
+    if hb.reweighed_board && !boards.is_empty() {
+        // One board weighed again two days after the last measurement day, in grams.
+        let b = ((hrng.random::<f64>() * boards.len() as f64) as usize).min(boards.len() - 1);
+        let bt = &boards[b];
+        let day = chrono::NaiveDate::parse_from_str(&plan.last_day, "%Y-%m-%d")
+            .map(|d| (d + chrono::Days::new(2)).format("%Y-%m-%d").to_string())
+            .unwrap_or_else(|_| plan.last_day.clone());
+        let mut file = (
+            format!("scale/balance_{day}_recheck.log"),
+            format!(
+                "# balance XPR205 (readability {} g), re-weighing on {day}\n",
+                bal.resolution_g
+            ),
+        );
+        let mut clock = 14 * 3600;
+        if hb.reference_weights {
+            check_weight(&mut file, &day, &mut clock, bal, &mut hrng);
+        }
+        let id = bt.draw.board_id.as_str();
+        log_line(&mut file, &day, &mut clock, id, "Z A");
+        let true_g = bt.weighed_mass_kg * 1e3;
+        for _ in 0..bal.stable_per_session {
+            let z: f64 = StandardNormal.sample(&mut hrng);
+            let v = true_g + bal.repeatability_d * bal.resolution_g * z;
+            let v = (v / bal.resolution_g).round() * bal.resolution_g;
+            log_line(
+                &mut file,
+                &day,
+                &mut clock,
+                id,
+                &format!("S S {:>12.*} g", dec_g, v),
+            );
+        }
+        out.reweighed = Some([id.to_string(), file.0.clone()]);
+        files.push(file);
+    }
+    out.files = files
+        .into_iter()
+        .map(|(n, t)| (n, t.into_bytes()))
+        .collect();
+    out
 }
 
 fn seed_of(plan: &Plan) -> u64 {

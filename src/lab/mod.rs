@@ -15,14 +15,19 @@
 //!   stiffness and loose bolts, lab temperature) and the truth FE models and modes;
 //! - [`effects`]: the concealed effects in plain words and their expected diagnosis;
 //! - [`measure`]: the instruments: FRF synthesis by modal superposition, noise, coherence,
-//!   drop-outs, the UFF files, the sheet and the balance logs.
+//!   drop-outs, the UFF files, the sheet and the balance logs;
+//! - [`habits`]: the habits of a real lab in those files (check weights, spellings, a
+//!   repeated measurement, scan grids, gaps), off unless the scenario asks for them.
 
 pub mod effects;
+pub mod habits;
 pub mod measure;
 pub mod scenario;
 pub mod solid;
 pub mod truth;
 
+#[cfg(test)]
+mod habit_tests;
 #[cfg(test)]
 mod tests;
 
@@ -113,6 +118,8 @@ pub(crate) enum Stream {
     Temperature = 3,
     Measurement = 4,
     Balance = 5,
+    /// The lab habits' draws (a stream of their own: switching them leaves the others alone).
+    Habits = 6,
 }
 
 /// Child seed for `stream` and `index`: SplitMix64 finalisers over (seed, stream, index),
@@ -150,7 +157,8 @@ pub fn simulate_with(
 ) -> Result<SimulatedCampaign, LabError> {
     scenario.validate()?;
     board.validate()?;
-    let plan = truth::plan(scenario, board, seed)?;
+    let mut plan = truth::plan(scenario, board, seed)?;
+    let habits = habits::apply(scenario, board, &mut plan)?;
     let models = truth::Models::build(scenario, board, solver)?;
     let free_cache = truth::free_board_modes(scenario, &plan, &models)?;
     let results: Vec<(truth::MeasurementTruth, Vec<u8>)> = plan
@@ -158,7 +166,11 @@ pub fn simulate_with(
         .par_iter()
         .map(|m| {
             let ms = truth::measurement_modes(scenario, &plan, &models, &free_cache, m)?;
-            let bytes = measure::measurement_uff(scenario, &models.points, m, &ms, seed)?;
+            let points: Vec<[f64; 3]> = match &m.habits.grid {
+                Some(g) => g.all_points(),
+                None => models.points.iter().map(|p| [p[0], p[1], 0.0]).collect(),
+            };
+            let bytes = measure::measurement_uff(scenario, &points, m, &ms, seed)?;
             Ok((ms.truth, bytes))
         })
         .collect::<Result<_, LabError>>()?;
@@ -174,10 +186,16 @@ pub fn simulate_with(
     );
     let misfit = truth::model_misfit(scenario, board, &models)?;
     let mut truth = truth::assemble(scenario, board, &plan, &free_cache, meas_truth, misfit);
-    let (logs, garbled) = measure::balance_logs(scenario, &plan, &truth.boards);
-    for (name, bytes) in logs {
+    let logs = measure::balance_logs(scenario, &plan, &truth.boards);
+    for (name, bytes) in logs.files {
         files.insert(name, bytes);
     }
-    truth.garbled_balance_lines = garbled;
+    truth.garbled_balance_lines = logs.garbled;
+    if scenario.habits().any() {
+        let mut h = habits;
+        h.balance_id_variants = logs.id_variants;
+        h.reweighed = logs.reweighed;
+        truth.habits = Some(h);
+    }
     Ok(SimulatedCampaign { files, truth })
 }

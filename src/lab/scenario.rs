@@ -39,6 +39,87 @@ pub struct Scenario {
     pub balance: Balance,
     #[serde(default)]
     pub effects: Effects,
+    /// `exact` (default): the lab writes tidy files. `realistic`: every habit of a real lab
+    /// is on unless `[habits]` switches it off.
+    #[serde(default, skip_serializing_if = "Preset::is_exact")]
+    pub preset: Preset,
+    /// The habits of a real lab, each switchable; unset ones follow `preset`.
+    #[serde(default, skip_serializing_if = "Habits::is_unset")]
+    pub habits: Habits,
+}
+
+/// The scenario's preset for the lab habits.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Preset {
+    /// Tidy files: every habit off unless switched on.
+    #[default]
+    Exact,
+    /// A real lab's files: every habit on unless switched off.
+    Realistic,
+}
+
+impl Preset {
+    fn is_exact(&self) -> bool {
+        *self == Preset::Exact
+    }
+}
+
+/// The habits of a real lab in the campaign files (`[habits]`). Each is `true`/`false`, or
+/// unset to follow the scenario's `preset`. What each does: `super::habits`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Habits {
+    /// Balance logs: a check weight `REF-10G` read at the start of each weighing day, the
+    /// board tray zeroed (`Z A`) and tared (`T S`) under the ID `TRAY` before every board.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reference_weights: Option<bool>,
+    /// One board weighed once more on a later day, in a log file of its own.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reweighed_board: Option<bool>,
+    /// One board ID spelled differently on one sheet row and one balance line (`PCB-3` for
+    /// `PCB-03`), and a trailing space on another sheet row's board_id.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub id_variants: Option<bool>,
+    /// One free-free measurement repeated after a bad one (mostly noise): both rows on the
+    /// sheet, the bad one's note starting `INVALID`, the repeat's note `repeat of <id>`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub repeated_measurement: Option<bool>,
+    /// Bolted measurements on a coarser grid than the free ones, shifted by 1 mm in x on
+    /// every bolted day after the first.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scan_grids: Option<bool>,
+    /// Two scan points off the board in bolted measurements: a bolt head and the fixture.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub off_board_points: Option<bool>,
+    /// Empty temperature and date cells on a few sheet rows.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sheet_gaps: Option<bool>,
+}
+
+impl Habits {
+    fn is_unset(&self) -> bool {
+        *self == Habits::default()
+    }
+}
+
+/// The habits after the preset: plain switches.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct HabitSwitches {
+    pub reference_weights: bool,
+    pub reweighed_board: bool,
+    pub id_variants: bool,
+    pub repeated_measurement: bool,
+    pub scan_grids: bool,
+    pub off_board_points: bool,
+    pub sheet_gaps: bool,
+}
+
+impl HabitSwitches {
+    /// Whether any habit is on.
+    pub fn any(&self) -> bool {
+        *self != HabitSwitches::default()
+    }
 }
 
 fn d_seed() -> u64 {
@@ -379,6 +460,22 @@ pub struct CompliantFixture {
 }
 
 impl Scenario {
+    /// The habits in force: each as set in `[habits]`, else on under the `realistic` preset.
+    pub fn habits(&self) -> HabitSwitches {
+        let on = self.preset == Preset::Realistic;
+        let h = &self.habits;
+        let r = |v: Option<bool>| v.unwrap_or(on);
+        HabitSwitches {
+            reference_weights: r(h.reference_weights),
+            reweighed_board: r(h.reweighed_board),
+            id_variants: r(h.id_variants),
+            repeated_measurement: r(h.repeated_measurement),
+            scan_grids: r(h.scan_grids),
+            off_board_points: r(h.off_board_points),
+            sheet_gaps: r(h.sheet_gaps),
+        }
+    }
+
     /// Parse and validate a scenario from TOML text.
     pub fn from_toml_str(text: &str) -> Result<Scenario, LabError> {
         let s: Scenario =

@@ -756,6 +756,17 @@ fn schema_describes_every_scenario_field_and_no_other() {
     s.effects.lumped_mass = other.effects.lumped_mass;
     s.effects.compliant_fixture = other.effects.compliant_fixture;
     s.effects.underfill = other.effects.underfill;
+    // The preset and every habit set, so that they are serialised too.
+    s.preset = scenario::Preset::Realistic;
+    s.habits = scenario::Habits {
+        reference_weights: Some(true),
+        reweighed_board: Some(false),
+        id_variants: Some(true),
+        repeated_measurement: Some(true),
+        scan_grids: Some(true),
+        off_board_points: Some(true),
+        sheet_gaps: Some(true),
+    };
     let v = serde_json::to_value(&s).unwrap();
     fn walk(v: &serde_json::Value, sch: &serde_json::Value, path: &str) {
         let sch = if sch["type"] == "array" {

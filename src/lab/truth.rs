@@ -109,6 +109,8 @@ pub struct Planned {
     pub notes: String,
     pub torque_nm: Option<f64>,
     pub bolted: Option<BoltedDraw>,
+    /// What the lab's habits changed (`super::habits`); default: nothing.
+    pub habits: super::habits::MeasurementHabits,
 }
 
 /// The drawn campaign.
@@ -255,6 +257,7 @@ pub fn plan(s: &Scenario, board: &Board, seed: u64) -> Result<Plan, LabError> {
             notes,
             torque_nm: torque,
             bolted,
+            habits: Default::default(),
         });
     }
     let n_days = measurements.len().div_ceil(PER_DAY).max(1) as u64;
@@ -300,7 +303,8 @@ enum Variant {
 }
 
 /// The modes of board `bd` in `variant`, FR-4 moduli scaled by `stiff`, joints per `bolted`
-/// (the loose joint softened when `loose`), from the plate or the solid truth.
+/// (the loose joint softened when `loose`), shapes at `points`, from the plate or the solid
+/// truth.
 #[allow(clippy::too_many_arguments)]
 fn modes_of(
     s: &Scenario,
@@ -310,6 +314,7 @@ fn modes_of(
     stiff: f64,
     bolted: Option<&BoltedDraw>,
     loose: bool,
+    points: &[[f64; 2]],
 ) -> Result<ModeSet, LabError> {
     let n = match variant {
         Variant::Free | Variant::FreeCf => s.truth.n_free_modes,
@@ -323,7 +328,7 @@ fn modes_of(
             Variant::BoltedCf => models.bolted_cf.as_ref().unwrap_or(&models.bolted),
         };
         let p = params(s, model, bd, stiff, bolted, loose)?;
-        return mode_set(model, &p, n, &models.points);
+        return mode_set(model, &p, n, points);
     };
     let with = matches!(variant, Variant::Free | Variant::Bolted);
     let e = &s.effects;
@@ -367,7 +372,7 @@ fn modes_of(
         })?,
     };
     let [xr, yr, _] = super::measure::SHAKER_REFERENCE_M;
-    let m = model.modes(&st, &models.points, [xr, yr])?;
+    let m = model.modes(&st, points, [xr, yr])?;
     Ok(ModeSet {
         freq_hz: m.freq_hz,
         shapes: m.shapes,
@@ -674,9 +679,18 @@ pub fn free_board_modes(s: &Scenario, plan: &Plan, m: &Models) -> Result<FreeCac
         .boards
         .par_iter()
         .map(|bd| {
-            let with = modes_of(s, m, Variant::Free, bd, 1.0, None, false)?;
+            let with = modes_of(s, m, Variant::Free, bd, 1.0, None, false, &m.points)?;
             let without = match &m.free_cf {
-                Some(_) => Some(modes_of(s, m, Variant::FreeCf, bd, 1.0, None, false)?),
+                Some(_) => Some(modes_of(
+                    s,
+                    m,
+                    Variant::FreeCf,
+                    bd,
+                    1.0,
+                    None,
+                    false,
+                    &m.points,
+                )?),
                 None => None,
             };
             Ok((with, without))
@@ -815,10 +829,31 @@ pub fn measurement_modes(
 ) -> Result<MeasurementModes, LabError> {
     let bd = &plan.boards[m.board];
     let stiff = stiffness_factor(s, m.temperature_c);
+    // The measurement's own scan points on the board (habit `scan_grids`, bolted only: the
+    // free modes are cached per board on the board's grid); points off it come last.
+    let grid = m.habits.grid.as_ref();
+    let points: &[[f64; 2]] = grid.map_or(&models.points, |g| &g.board);
+    let n_off = grid.map_or(0, |g| g.off_board.len());
+    if grid.is_some() && m.setup == SetupKind::Free {
+        return Err(LabError::ScenarioInvalid {
+            field: "habits".into(),
+            expected: "own scan grids for bolted measurements only".into(),
+            found: format!("a grid for free measurement {}", m.measurement_id),
+        });
+    }
     let (mut set, cf): (ModeSet, Option<ModeSet>) = match m.setup {
         SetupKind::Free => {
             let with = if stiff != 1.0 {
-                modes_of(s, models, Variant::Free, bd, stiff, None, false)?
+                modes_of(
+                    s,
+                    models,
+                    Variant::Free,
+                    bd,
+                    stiff,
+                    None,
+                    false,
+                    &models.points,
+                )?
             } else {
                 cache.with[m.board].clone()
             };
@@ -831,13 +866,29 @@ pub fn measurement_modes(
         }
         SetupKind::Bolted => {
             let bo = m.bolted.as_ref();
-            let with = modes_of(s, models, Variant::Bolted, bd, stiff, bo, true)?;
+            let with = modes_of(s, models, Variant::Bolted, bd, stiff, bo, true, points)?;
             let loose = bo.is_some_and(|b| b.loose_joint.is_some());
             let cf = match &models.bolted_cf {
-                Some(_) => Some(modes_of(s, models, Variant::BoltedCf, bd, 1.0, bo, false)?),
-                None if stiff != 1.0 || loose => {
-                    Some(modes_of(s, models, Variant::Bolted, bd, 1.0, bo, false)?)
-                }
+                Some(_) => Some(modes_of(
+                    s,
+                    models,
+                    Variant::BoltedCf,
+                    bd,
+                    1.0,
+                    bo,
+                    false,
+                    points,
+                )?),
+                None if stiff != 1.0 || loose => Some(modes_of(
+                    s,
+                    models,
+                    Variant::Bolted,
+                    bd,
+                    1.0,
+                    bo,
+                    false,
+                    points,
+                )?),
                 None => None,
             };
             (with, cf)
@@ -867,7 +918,7 @@ pub fn measurement_modes(
         SetupKind::Free => HAMMER_POINT as i64 + 1,
         SetupKind::Bolted => SHAKER_REFERENCE_NODE,
     };
-    for o in 0..models.points.len() {
+    for o in 0..points.len() + n_off {
         let (u1, u2): (f64, f64) = (rng.random(), rng.random());
         let node = o as i64 + 1;
         if node == reference_node {
@@ -892,9 +943,13 @@ pub fn measurement_modes(
         for (g, gr) in set.gamma.iter_mut().zip(&set.gamma_rock) {
             *g += ax * gr[0] + ay * gr[1];
         }
-        base_motion = models
-            .points
+        base_motion = points
             .iter()
+            .copied()
+            .chain(
+                grid.iter()
+                    .flat_map(|g| g.off_board.iter().map(|p| [p[0], p[1]])),
+            )
             .map(|p| 1.0 + ax * (p[0] - xr) + ay * (p[1] - yr))
             .collect();
         rocking = Some([ax, ay]);
@@ -958,6 +1013,11 @@ pub fn measurement_modes(
         reference_node,
         base_rocking_rad_per_m: rocking,
     };
+    // Points off the board (a bolt head, the fixture) have no board mode in them: they move
+    // with the base only.
+    for sh in &mut set.shapes {
+        sh.extend(std::iter::repeat_n(0.0, n_off));
+    }
     Ok(MeasurementModes {
         truth,
         set,
@@ -1017,6 +1077,9 @@ pub struct Truth {
     pub model_misfit: ModelMisfit,
     /// The scenario as simulated.
     pub scenario: Scenario,
+    /// Where the lab's habits left their marks (absent when none is on).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub habits: Option<super::habits::HabitsTruth>,
 }
 
 /// How far the truth model lies from the updating model (the board's default mesh,
@@ -1115,7 +1178,16 @@ fn solid_model_misfit(
         s.truth.n_free_modes + 2,
         &models.points,
     )?;
-    let truth_free = modes_of(s, models, Variant::FreeCf, &nominal, 1.0, None, false)?;
+    let truth_free = modes_of(
+        s,
+        models,
+        Variant::FreeCf,
+        &nominal,
+        1.0,
+        None,
+        false,
+        &models.points,
+    )?;
     let free_misfit_percent = misfit(&truth_free, &upd_free, s.measurement.free_max_hz);
     let bolted_misfit_percent = match models.solid.as_ref().and_then(|m| m.bolted.as_ref()) {
         Some(_) => {
@@ -1133,6 +1205,7 @@ fn solid_model_misfit(
                 1.0,
                 Some(&bo),
                 false,
+                &models.points,
             )?;
             let upd = FeModel::build(board, Setup::bolted(), board.mesh_for(&Setup::bolted()))?;
             let mut p = upd.nominal_params();
@@ -1237,5 +1310,6 @@ pub fn assemble(
         garbled_balance_lines: Vec::new(),
         model_misfit,
         scenario: s.clone(),
+        habits: None,
     }
 }

@@ -150,3 +150,91 @@ fn default_campaign_through_the_pipeline_matches_its_truth() {
         );
     }
 }
+
+/// A small campaign of the realistic preset (every lab habit on) through `ingest`, `extract`
+/// and `pair`: the invalid measurement is quarantined and the others come through, the board
+/// population is the sheet's boards, and the scan points off the board (a bolt head, the
+/// fixture) are named by ingest (file, node) and left out of the shapes by pair.
+#[test]
+fn realistic_campaign_keeps_the_sheet_boards_and_names_points_off_the_board() {
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
+    std::fs::write(
+        t.path().join("realistic.toml"),
+        "name = \"realistic-small\"\nseed = 7\npreset = \"realistic\"\n\
+         [campaign]\nn_boards = 2\nfree_per_board = 3\n\
+         bolted = [{ boards = [1], per_board = 1, purpose = \"updating\" }]\n",
+    )
+    .unwrap();
+    let o = hbmu(&[
+        "lab",
+        "simulate",
+        &p("realistic.toml"),
+        "--out",
+        &p("campaign"),
+        "--truth",
+        &p("truth.json"),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let truth = json(&t.path().join("truth.json"));
+    let habits = &truth["habits"];
+
+    // Ingest: exit 3, the one quarantined measurement being the one the lab marked invalid.
+    let o = hbmu(&["ingest", &p("campaign"), "--out", &p("ingest")]);
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    let report = json(&t.path().join("ingest/ingest_report.json"));
+    let bad = habits["invalid_measurements"][0][0].as_str().unwrap();
+    let quarantined: Vec<&str> = report["quarantined"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|q| q["measurement_id"].as_str().unwrap())
+        .collect();
+    assert_eq!(quarantined, vec![bad]);
+    let findings = report["findings"].as_array().unwrap();
+    let off: Vec<(String, i64)> = habits["off_board_nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| (v[0].as_str().unwrap().to_string(), v[1].as_i64().unwrap()))
+        .collect();
+    assert!(!off.is_empty());
+    for (mid, node) in &off {
+        assert!(
+            findings.iter().any(|f| f["code"] == "uff.point_off_plane"
+                && f["measurement_id"] == mid.as_str()
+                && f["file"] == format!("vibrometer/{mid}.uff")
+                && f["record"] == format!("node {node}")),
+            "{mid} node {node}"
+        );
+    }
+    // masses.parquet: the sheet's boards, nothing else.
+    let mut ids = BTreeSet::new();
+    for b in hbmu::io::tables::read_parquet(&t.path().join("ingest/masses.parquet")).unwrap() {
+        let c = hbmu::io::tables::Cols {
+            batch: &b,
+            path: Path::new("masses.parquet"),
+        };
+        let s = c.str("board_id").unwrap();
+        ids.extend((0..b.num_rows()).map(|i| s.value(i).to_string()));
+    }
+    assert_eq!(
+        ids,
+        BTreeSet::from(["PCB-01".to_string(), "PCB-02".to_string()])
+    );
+
+    // Extract skips the quarantined measurement; pair names the points off the board.
+    let o = hbmu(&["extract", &p("ingest"), "--out", &p("extract")]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let o = hbmu(&["--verbose", "pair", &p("extract"), "--out", &p("pair")]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let err = stderr(&o);
+    for (mid, node) in &off {
+        assert!(
+            err.lines().any(|l| l.contains("pair.point_outside_model")
+                && l.contains(&format!("[{mid}]"))
+                && l.contains(&format!("node {node} "))),
+            "{mid} node {node}: {err}"
+        );
+    }
+}
