@@ -54,6 +54,7 @@ fn main() {
                 k_rot_nm_per_rad: None,
                 point_mass: None,
                 underfill_factor: None,
+                fixture: None,
                 n_modes,
             };
             let setup = if bolted { "bolted" } else { "free" };
@@ -66,7 +67,7 @@ fn main() {
                 let t0 = Instant::now();
                 let m = SolidModel::build(&board, &opts, bolted, None, solver.clone()).unwrap();
                 let t1 = Instant::now();
-                let modes = m.modes(&st, &points, [-0.012, 0.025]).unwrap();
+                let modes = m.modes(&st, &points, [-0.012, 0.025, -0.008]).unwrap();
                 let t2 = Instant::now();
                 let (n3, nb) = m.size();
                 println!(

@@ -40,8 +40,9 @@ use crate::fem::{Board, FemError};
 pub use scenario::Scenario;
 pub use truth::Truth;
 
-/// Built-in scenario files, by name (`paper` is the default campaign).
-pub const BUILTIN_SCENARIOS: [(&str, &str); 8] = [
+/// Built-in scenario files, by name (`paper` is the exact-model default campaign;
+/// `realistic_*` are their counterparts on the solid truth with a real lab's habits).
+pub const BUILTIN_SCENARIOS: [(&str, &str); 17] = [
     ("paper", include_str!("../../data/lab/paper.toml")),
     ("null", include_str!("../../data/lab/null.toml")),
     ("rotational", include_str!("../../data/lab/rotational.toml")),
@@ -56,6 +57,42 @@ pub const BUILTIN_SCENARIOS: [(&str, &str); 8] = [
     ),
     ("fixture", include_str!("../../data/lab/fixture.toml")),
     ("underfill", include_str!("../../data/lab/underfill.toml")),
+    (
+        "realistic_paper",
+        include_str!("../../data/lab/realistic_paper.toml"),
+    ),
+    (
+        "realistic_null",
+        include_str!("../../data/lab/realistic_null.toml"),
+    ),
+    (
+        "realistic_rotational",
+        include_str!("../../data/lab/realistic_rotational.toml"),
+    ),
+    (
+        "realistic_loose_bolt",
+        include_str!("../../data/lab/realistic_loose_bolt.toml"),
+    ),
+    (
+        "realistic_temperature",
+        include_str!("../../data/lab/realistic_temperature.toml"),
+    ),
+    (
+        "realistic_lumped_mass",
+        include_str!("../../data/lab/realistic_lumped_mass.toml"),
+    ),
+    (
+        "realistic_fixture",
+        include_str!("../../data/lab/realistic_fixture.toml"),
+    ),
+    (
+        "realistic_underfill",
+        include_str!("../../data/lab/realistic_underfill.toml"),
+    ),
+    (
+        "realistic_mass_and_temperature",
+        include_str!("../../data/lab/realistic_mass_and_temperature.toml"),
+    ),
 ];
 
 /// Errors of the virtual lab.

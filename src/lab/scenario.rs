@@ -590,21 +590,12 @@ impl Scenario {
         t.solid
             .check()
             .map_err(|(field, expected, found)| bad(&field, &expected, found))?;
-        if t.physics == Physics::Solid {
-            if self.effects.compliant_fixture.is_some() {
-                return Err(bad(
-                    "effects.compliant_fixture",
-                    "no compliant fixture with truth.physics = \"solid\" (the solid truth does not model the fixture yet)",
-                    "a compliant fixture",
-                ));
-            }
-            if t.joint_mass_kg > 0.0 {
-                return Err(bad(
-                    "truth.joint_mass_kg",
-                    "0 with truth.physics = \"solid\" (its riding mass is truth.solid.riding_mass_kg)",
-                    t.joint_mass_kg,
-                ));
-            }
+        if t.physics == Physics::Solid && t.joint_mass_kg > 0.0 {
+            return Err(bad(
+                "truth.joint_mass_kg",
+                "0 with truth.physics = \"solid\" (its riding mass is truth.solid.riding_mass_kg)",
+                t.joint_mass_kg,
+            ));
         }
         let p = &self.population;
         for (i, s) in p.rel_std.iter().enumerate() {

@@ -363,6 +363,11 @@ fn modes_of(
             .as_ref()
             .filter(|_| with)
             .map(|u| u.stiffness_factor),
+        fixture: e
+            .compliant_fixture
+            .as_ref()
+            .filter(|_| with)
+            .map(|f| (f.k_fix_n_per_m, f.m_fix_kg)),
         n_modes: n,
     };
     let model = match variant {
@@ -371,8 +376,7 @@ fn modes_of(
             LabError::Solid("a bolted measurement, but no bolted solid model was built".into())
         })?,
     };
-    let [xr, yr, _] = super::measure::SHAKER_REFERENCE_M;
-    let m = model.modes(&st, points, [xr, yr])?;
+    let m = model.modes(&st, points, super::measure::SHAKER_REFERENCE_M)?;
     Ok(ModeSet {
         freq_hz: m.freq_hz,
         shapes: m.shapes,

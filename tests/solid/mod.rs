@@ -67,6 +67,7 @@ fn free_state(board: &Board, n_modes: usize) -> State {
         k_rot_nm_per_rad: None,
         point_mass: None,
         underfill_factor: None,
+        fixture: None,
         n_modes,
     }
 }
@@ -93,7 +94,7 @@ fn thin_free_square_plate_matches_leissa() {
     )
     .unwrap();
     let modes = m
-        .modes(&free_state(&board, 5), &[[0.01, 0.01]], [0.0, 0.0])
+        .modes(&free_state(&board, 5), &[[0.01, 0.01]], [0.0, 0.0, 0.0])
         .unwrap();
     let d = e * h.powi(3) / (12.0 * (1.0 - nu * nu));
     let leissa = [13.468, 19.596, 24.270, 34.801, 34.801];
@@ -256,7 +257,7 @@ fn free_plate_with_a_hole_matches_the_plate_model() {
     )
     .unwrap();
     let solid = m
-        .modes(&free_state(&board, 5), &[[0.01, 0.01]], [0.0, 0.0])
+        .modes(&free_state(&board, 5), &[[0.01, 0.01]], [0.0, 0.0, 0.0])
         .unwrap();
     let plate = FeModel::build(&board, Setup::Free, &board.mesh).unwrap();
     let pm = plate.modes(&plate.nominal_params(), 5).unwrap();

@@ -34,12 +34,23 @@ impl Material {
     }
 }
 
-/// A grounded spring on one node's translation `dof` (1 | 2 | 3 for x | y | z), N/mm.
+/// A spring on one node's translation `dof` (1 | 2 | 3 for x | y | z), N/mm, to the ground or,
+/// when `to_fixture`, to the fixture's node in the same direction.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Spring {
     pub node: usize,
     pub dof: u8,
     pub k_n_per_mm: f64,
+    pub to_fixture: bool,
+}
+
+/// A compliant fixture: one node at `at_mm` moving in z only, of mass `mass_t`, on a spring
+/// `k_n_per_mm` to the shaker's armature (the ground of the relative motion).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Fixture {
+    pub at_mm: [f64; 3],
+    pub k_n_per_mm: f64,
+    pub mass_t: f64,
 }
 
 /// A point mass on one node, t.
@@ -58,6 +69,8 @@ pub struct Loading {
     pub masses: Vec<PointMass>,
     /// Held degrees of freedom: (node, 1 | 2 | 3 for x | y | z).
     pub fixed: Vec<(usize, u8)>,
+    /// The compliant fixture the springs marked `to_fixture` attach to.
+    pub fixture: Option<Fixture>,
     /// Eigenmodes to compute.
     pub n_modes: usize,
 }
@@ -73,6 +86,17 @@ pub fn deck(mesh: &Mesh3, load: &Loading) -> String {
     s.push_str("*HEADING\nhbmu virtual lab: solid truth\n*NODE, NSET=NALL\n");
     for (i, p) in mesh.xyz_mm.iter().enumerate() {
         let _ = writeln!(s, "{}, {}, {}, {}", i + 1, num(p[0]), num(p[1]), num(p[2]));
+    }
+    // The fixture's node follows the mesh's.
+    let fixture_node = mesh.xyz_mm.len() + 1;
+    if let Some(f) = &load.fixture {
+        let _ = writeln!(
+            s,
+            "{fixture_node}, {}, {}, {}",
+            num(f.at_mm[0]),
+            num(f.at_mm[1]),
+            num(f.at_mm[2])
+        );
     }
     let n_classes = load.materials.len();
     let mut eid = 1usize;
@@ -127,15 +151,37 @@ pub fn deck(mesh: &Mesh3, load: &Loading) -> String {
     }
     // One element set per spring and per mass: CalculiX takes one value per set.
     for (i, sp) in load.springs.iter().enumerate() {
+        if sp.to_fixture && load.fixture.is_some() {
+            let _ = writeln!(
+                s,
+                "*ELEMENT, TYPE=SPRING2, ELSET=S{i}\n{}, {}, {fixture_node}\n*SPRING, ELSET=S{i}\n{},{}\n{}",
+                eid,
+                sp.node + 1,
+                sp.dof,
+                sp.dof,
+                num(sp.k_n_per_mm)
+            );
+        } else {
+            let _ = writeln!(
+                s,
+                "*ELEMENT, TYPE=SPRING1, ELSET=S{i}\n{}, {}\n*SPRING, ELSET=S{i}\n{}\n{}",
+                eid,
+                sp.node + 1,
+                sp.dof,
+                num(sp.k_n_per_mm)
+            );
+        }
+        eid += 1;
+    }
+    if let Some(f) = &load.fixture {
         let _ = writeln!(
             s,
-            "*ELEMENT, TYPE=SPRING1, ELSET=S{i}\n{}, {}\n*SPRING, ELSET=S{i}\n{}\n{}",
-            eid,
-            sp.node + 1,
-            sp.dof,
-            num(sp.k_n_per_mm)
+            "*ELEMENT, TYPE=SPRING1, ELSET=SFIX\n{eid}, {fixture_node}\n*SPRING, ELSET=SFIX\n3\n{}\n*ELEMENT, TYPE=MASS, ELSET=MFIX\n{}, {fixture_node}\n*MASS, ELSET=MFIX\n{}",
+            num(f.k_n_per_mm),
+            eid + 1,
+            num(f.mass_t)
         );
-        eid += 1;
+        eid += 2;
     }
     for (i, m) in load.masses.iter().enumerate() {
         let _ = writeln!(
@@ -147,10 +193,13 @@ pub fn deck(mesh: &Mesh3, load: &Loading) -> String {
         );
         eid += 1;
     }
-    if !load.fixed.is_empty() {
+    if !load.fixed.is_empty() || load.fixture.is_some() {
         s.push_str("*BOUNDARY\n");
         for (n, dof) in &load.fixed {
             let _ = writeln!(s, "{}, {dof}, {dof}", n + 1);
+        }
+        if load.fixture.is_some() {
+            let _ = writeln!(s, "{fixture_node}, 1, 2");
         }
     }
     for c in used {

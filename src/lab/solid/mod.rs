@@ -35,7 +35,7 @@ use std::sync::Arc;
 use serde::{Deserialize, Serialize};
 
 use crate::fem::Board;
-use ccx::{Loading, Material, PointMass, Spring};
+use ccx::{Fixture, Loading, Material, PointMass, Spring};
 use geo::Disc;
 use mesh::{Layer, Mesh2, Mesh3};
 
@@ -173,6 +173,8 @@ pub struct State {
     pub point_mass: Option<([f64; 2], f64)>,
     /// Core stiffness factor inside the underfill disc (when the model has one).
     pub underfill_factor: Option<f64>,
+    /// A compliant fixture between the joints and the shaker: (k N/m, mass kg).
+    pub fixture: Option<(f64, f64)>,
     /// Elastic modes wanted.
     pub n_modes: usize,
 }
@@ -483,7 +485,11 @@ impl SolidModel {
     }
 
     /// The loading of a solve in state `st`.
-    fn loading(&self, st: &State) -> Result<Loading, super::LabError> {
+    fn loading(
+        &self,
+        st: &State,
+        shaker_reference_m: [f64; 3],
+    ) -> Result<Loading, super::LabError> {
         let mut load = Loading {
             materials: self.materials(st),
             n_modes: st.n_modes + if self.bolted { 0 } else { 6 },
@@ -497,6 +503,16 @@ impl SolidModel {
                     st.k_joint_n_per_m.len()
                 )));
             }
+            // The fixture moves in z under the joints, at the shaker's reference point.
+            load.fixture = st.fixture.map(|(k, m)| Fixture {
+                at_mm: [
+                    1e3 * shaker_reference_m[0],
+                    1e3 * shaker_reference_m[1],
+                    1e3 * shaker_reference_m[2],
+                ],
+                k_n_per_mm: 1e-3 * k,
+                mass_t: 1e-3 * m,
+            });
             for (p, &k) in self.patches.iter().zip(&st.k_joint_n_per_m) {
                 let w: f64 = p.bottom.iter().map(|(_, w)| w).sum();
                 for &(node, wi) in &p.bottom {
@@ -505,12 +521,14 @@ impl SolidModel {
                         node,
                         dof: 3,
                         k_n_per_mm: kz,
+                        to_fixture: true,
                     });
                     for dof in [1, 2] {
                         load.springs.push(Spring {
                             node,
                             dof,
                             k_n_per_mm: TANGENTIAL_OVER_NORMAL * kz,
+                            to_fixture: false,
                         });
                     }
                 }
@@ -524,6 +542,7 @@ impl SolidModel {
                             node,
                             dof: 3,
                             k_n_per_mm: 1e-3 * k_ring / p.edge.len() as f64,
+                            to_fixture: true,
                         });
                     }
                 }
@@ -556,12 +575,13 @@ impl SolidModel {
     }
 
     /// Solve for the modes in state `st`, with shapes at `points_m` (on the board, not in a
-    /// hole). `shaker_reference_m`: the point the rocking participations are taken about.
+    /// hole). `shaker_reference_m`: the point the rocking participations are taken about,
+    /// where a compliant fixture's mass sits.
     pub fn modes(
         &self,
         st: &State,
         points_m: &[[f64; 2]],
-        shaker_reference_m: [f64; 2],
+        shaker_reference_m: [f64; 3],
     ) -> Result<SolidModes, super::LabError> {
         let located: Vec<(usize, [f64; 2])> = points_m
             .iter()
@@ -575,7 +595,7 @@ impl SolidModel {
                 })
             })
             .collect::<Result<_, _>>()?;
-        let load = self.loading(st)?;
+        let load = self.loading(st, shaker_reference_m)?;
         let deck = ccx::deck(&self.mesh3, &load);
         let dat = self.solver.solve(&deck).map_err(solid_err)?;
         let res = ccx::parse_dat(&dat).map_err(solid_err)?;
