@@ -159,8 +159,26 @@ fn checkable(t: &MeasurementTruth) -> Vec<(usize, f64)> {
 fn builtin_scenarios_parse_and_differ_from_null_only_in_their_effect() {
     let null = builtin_scenario("null").unwrap();
     assert!(!null.effects.any());
+    // The realistic counterparts: the null on the solid truth with the habits on, nothing else.
+    let rnull = builtin_scenario("realistic_null").unwrap();
+    let mut back = rnull.clone();
+    assert_eq!(back.truth.physics, super::scenario::Physics::Solid);
+    assert_eq!(back.preset, super::scenario::Preset::Realistic);
+    back.truth.physics = null.truth.physics;
+    back.preset = null.preset;
+    back.name = null.name.clone();
+    back.description = null.description.clone();
+    assert_eq!(
+        back, null,
+        "realistic_null differs from null beyond truth and habits"
+    );
     for (name, _) in BUILTIN_SCENARIOS {
         let s = builtin_scenario(name).unwrap();
+        let base = if name.starts_with("realistic_") {
+            &rnull
+        } else {
+            &null
+        };
         let n_on = [
             s.effects.rotational_restraint.is_some(),
             s.effects.loose_bolt.is_some(),
@@ -172,15 +190,23 @@ fn builtin_scenarios_parse_and_differ_from_null_only_in_their_effect() {
         .iter()
         .filter(|b| **b)
         .count();
-        assert_eq!(n_on, usize::from(name != "null"), "{name}");
+        let expected = match name {
+            "null" | "realistic_null" => 0,
+            "realistic_mass_and_temperature" => 2,
+            _ => 1,
+        };
+        assert_eq!(n_on, expected, "{name}");
         let mut stripped = s.clone();
         stripped.effects = Default::default();
-        stripped.name = null.name.clone();
-        stripped.description = null.description.clone();
-        if name == "temperature" {
-            stripped.lab = null.lab.clone();
+        stripped.name = base.name.clone();
+        stripped.description = base.description.clone();
+        if name.ends_with("temperature") {
+            stripped.lab = base.lab.clone();
         }
-        assert_eq!(stripped, null, "{name} differs from null beyond its effect");
+        assert_eq!(
+            stripped, *base,
+            "{name} differs from null beyond its effect"
+        );
     }
     // The default campaign is the paper's plan.
     let p = builtin_scenario("paper").unwrap();

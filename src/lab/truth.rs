@@ -376,15 +376,7 @@ fn modes_of(
             LabError::Solid("a bolted measurement, but no bolted solid model was built".into())
         })?,
     };
-    let m = model.modes(&st, points, super::measure::SHAKER_REFERENCE_M)?;
-    Ok(ModeSet {
-        freq_hz: m.freq_hz,
-        shapes: m.shapes,
-        gamma: m.gamma,
-        gamma_rock: m.gamma_rock,
-        rigid: m.rigid,
-        total_mass_kg: m.total_mass_kg,
-    })
+    model.modes(&st, points, super::measure::SHAKER_REFERENCE_M)
 }
 
 /// The truth joint model with or without the effect features.

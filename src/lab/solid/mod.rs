@@ -34,6 +34,7 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
+use super::truth::ModeSet;
 use crate::fem::Board;
 use ccx::{Fixture, Loading, Material, PointMass, Spring};
 use geo::Disc;
@@ -192,23 +193,6 @@ pub struct SolidModel {
     solver: Arc<dyn Solver>,
 }
 
-/// One solve's modes, SI: what the lab's instruments need.
-#[derive(Clone, Debug)]
-pub struct SolidModes {
-    pub freq_hz: Vec<f64>,
-    /// `shapes[r][o]`: z displacement of the top face at point o, mass-normalised, 1/√kg.
-    pub shapes: Vec<Vec<f64>>,
-    /// φᵀ M e_z, √kg.
-    pub gamma: Vec<f64>,
-    /// φᵀ M r for w = x − x_ref and w = y − y_ref, √kg·m (HRZ-lumped nodal masses).
-    pub gamma_rock: Vec<[f64; 2]>,
-    /// Free only: rigid-body shapes at the points (translation, and the two rotations about
-    /// the centre of gravity, mass-orthonormal), 1/√kg.
-    pub rigid: Vec<Vec<f64>>,
-    /// Mass of the board's bricks plus any point mass on it (not the riding screw heads), kg.
-    pub total_mass_kg: f64,
-}
-
 fn solid_err(msg: impl Into<String>) -> super::LabError {
     super::LabError::Solid(msg.into())
 }
@@ -294,40 +278,39 @@ impl SolidModel {
             .collect();
         let in_disc = |d: &Disc, p: [f64; 2]| (p[0] - d.x_m).hypot(p[1] - d.y_m) < d.r_m;
         let h_mm = 1e3 * board.core.thickness_m;
-        let mut layers: Vec<Layer> = Vec::new();
+        // Each copper layer's bricks: the class of its coverage over each element, if any.
+        let copper_classes = |l: usize, classes: &mut Vec<ClassKind>| -> Vec<Option<usize>> {
+            centroids_m
+                .iter()
+                .map(|&p| {
+                    let fraction = coverage_at(board, l, p);
+                    (fraction > 0.0)
+                        .then(|| class_of(ClassKind::Copper { layer: l, fraction }, classes))
+                })
+                .collect()
+        };
+        let side_layers = |side: crate::fem::board::Side| {
+            board
+                .copper
+                .iter()
+                .enumerate()
+                .filter(move |(_, c)| c.side == side)
+                .map(|(l, c)| (l, 1e3 * c.thickness_m))
+        };
         // Bottom copper: the board file's first bottom layer lies on the core, later ones
         // further out; listed here bottom-up.
         let mut z = -0.5 * h_mm;
         let mut below: Vec<Layer> = Vec::new();
-        for (l, layer) in board.copper.iter().enumerate() {
-            if layer.side != crate::fem::board::Side::Bottom {
-                continue;
-            }
-            let t = 1e3 * layer.thickness_m;
-            let class = centroids_m
-                .iter()
-                .map(|&p| {
-                    let f = coverage_at(board, l, p);
-                    (f > 0.0).then(|| {
-                        class_of(
-                            ClassKind::Copper {
-                                layer: l,
-                                fraction: f,
-                            },
-                            &mut classes,
-                        )
-                    })
-                })
-                .collect();
+        for (l, t) in side_layers(crate::fem::board::Side::Bottom) {
             below.push(Layer {
                 z0_mm: z - t,
                 z1_mm: z,
-                class,
+                class: copper_classes(l, &mut classes),
             });
             z -= t;
         }
         below.reverse();
-        layers.extend(below);
+        let mut layers: Vec<Layer> = below;
         let core_class: Vec<Option<usize>> = centroids_m
             .iter()
             .map(|&p| Some(usize::from(underfill.is_some_and(|d| in_disc(&d, p)))))
@@ -341,30 +324,11 @@ impl SolidModel {
             });
         }
         let mut z = 0.5 * h_mm;
-        for (l, layer) in board.copper.iter().enumerate() {
-            if layer.side != crate::fem::board::Side::Top {
-                continue;
-            }
-            let t = 1e3 * layer.thickness_m;
-            let class = centroids_m
-                .iter()
-                .map(|&p| {
-                    let f = coverage_at(board, l, p);
-                    (f > 0.0).then(|| {
-                        class_of(
-                            ClassKind::Copper {
-                                layer: l,
-                                fraction: f,
-                            },
-                            &mut classes,
-                        )
-                    })
-                })
-                .collect();
+        for (l, t) in side_layers(crate::fem::board::Side::Top) {
             layers.push(Layer {
                 z0_mm: z,
                 z1_mm: z + t,
-                class,
+                class: copper_classes(l, &mut classes),
             });
             z += t;
         }
@@ -575,14 +539,17 @@ impl SolidModel {
     }
 
     /// Solve for the modes in state `st`, with shapes at `points_m` (on the board, not in a
-    /// hole). `shaker_reference_m`: the point the rocking participations are taken about,
+    /// hole), in SI: the top face's z displacement, mass-normalised; free: the rigid-body
+    /// shapes (translation and the two rotations about the centre of gravity); bolted: the
+    /// rocking participations from HRZ-lumped nodal masses; the mass of the board's bricks
+    /// plus any point mass on it (not the riding screw heads). `shaker_reference_m`: the point the rocking participations are taken about,
     /// where a compliant fixture's mass sits.
     pub fn modes(
         &self,
         st: &State,
         points_m: &[[f64; 2]],
         shaker_reference_m: [f64; 3],
-    ) -> Result<SolidModes, super::LabError> {
+    ) -> Result<ModeSet, super::LabError> {
         let located: Vec<(usize, [f64; 2])> = points_m
             .iter()
             .map(|p| {
@@ -622,7 +589,7 @@ impl SolidModel {
         // Nodal masses (HRZ over each element's areal density) for the rocking terms.
         let node_mass_t = self.node_masses(&load);
         let (xr, yr) = (1e3 * shaker_reference_m[0], 1e3 * shaker_reference_m[1]);
-        let mut out = SolidModes {
+        let mut out = ModeSet {
             freq_hz: vec![],
             shapes: vec![],
             gamma: vec![],
