@@ -93,6 +93,47 @@ fn extrusion_puts_copper_bricks_only_where_copper_lies() {
     assert!(deck.contains("*FREQUENCY\n3\n"));
     // No data line longer than CalculiX's 132 characters.
     assert!(deck.lines().all(|l| l.len() <= 132));
+
+    // A compliant fixture: its node follows the mesh's, the joint springs marked for it are
+    // two-node springs to it, and it moves in z only on its own spring with its mass.
+    let n = m3.xyz_mm.len();
+    let load = Loading {
+        materials: vec![Material::isotropic(1e3, 0.3, 1e-9); 2],
+        springs: vec![
+            ccx::Spring {
+                node: 0,
+                dof: 3,
+                k_n_per_mm: 5.0,
+                to_fixture: true,
+            },
+            ccx::Spring {
+                node: 0,
+                dof: 1,
+                k_n_per_mm: 4.0,
+                to_fixture: false,
+            },
+        ],
+        fixture: Some(ccx::Fixture {
+            at_mm: [-12.0, 25.0, -8.0],
+            k_n_per_mm: 3e4,
+            mass_t: 1e-4,
+        }),
+        n_modes: 3,
+        ..Loading::default()
+    };
+    let deck = ccx::deck(&m3, &load);
+    let f = n + 1;
+    assert!(deck.contains(&format!(
+        "\n{f}, -1.2000000000e1, 2.5000000000e1, -8.0000000000e0\n"
+    )));
+    assert!(deck.contains(&format!(
+        "*ELEMENT, TYPE=SPRING2, ELSET=S0\n{}, 1, {f}\n*SPRING, ELSET=S0\n3,3\n",
+        3 + 1
+    )));
+    assert!(deck.contains("*ELEMENT, TYPE=SPRING1, ELSET=S1\n"));
+    assert!(deck.contains("*SPRING, ELSET=SFIX\n3\n3.0000000000e4"));
+    assert!(deck.contains("*MASS, ELSET=MFIX\n1.0000000000e-4"));
+    assert!(deck.contains(&format!("*BOUNDARY\n{f}, 1, 2\n")));
 }
 
 /// The reader against an excerpt of a real CalculiX 2.20 `.dat` (two modes, two nodes).
