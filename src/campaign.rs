@@ -1194,37 +1194,39 @@ fn check_scan_point_consistency(ms: &[Measurement], cfg: &IngestConfig, fd: &mut
     }
 }
 
+/// A campaign held in memory, for tests: the checks need nothing but names and bytes.
+#[cfg(test)]
+pub(crate) struct InMemory<'a>(pub &'a std::collections::BTreeMap<String, Vec<u8>>);
+
+#[cfg(test)]
+impl Source for InMemory<'_> {
+    fn name(&self) -> String {
+        "in-memory".into()
+    }
+    fn describe(&self) -> String {
+        "in-memory campaign".into()
+    }
+    fn list(&self) -> std::io::Result<Vec<String>> {
+        Ok(self.0.keys().cloned().collect())
+    }
+    fn is_file(&self, rel: &str) -> bool {
+        self.0.contains_key(rel)
+    }
+    fn identity(&self, rel: &str) -> String {
+        rel.into()
+    }
+    fn read(&self, rel: &str) -> std::io::Result<Vec<u8>> {
+        self.0
+            .get(rel)
+            .cloned()
+            .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::NotFound, rel.to_string()))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::collections::BTreeMap;
-
-    /// A campaign held in memory: the checks need nothing but names and bytes.
-    struct InMemory(BTreeMap<String, Vec<u8>>);
-
-    impl Source for InMemory {
-        fn name(&self) -> String {
-            "in-memory".into()
-        }
-        fn describe(&self) -> String {
-            "in-memory campaign".into()
-        }
-        fn list(&self) -> std::io::Result<Vec<String>> {
-            Ok(self.0.keys().cloned().collect())
-        }
-        fn is_file(&self, rel: &str) -> bool {
-            self.0.contains_key(rel)
-        }
-        fn identity(&self, rel: &str) -> String {
-            rel.into()
-        }
-        fn read(&self, rel: &str) -> std::io::Result<Vec<u8>> {
-            self.0
-                .get(rel)
-                .cloned()
-                .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::NotFound, rel.to_string()))
-        }
-    }
 
     /// The example campaign (written by pyuff) from memory, and with one UFF missing: the
     /// same checks as from disk, the missing file quarantines its measurement only.
@@ -1249,13 +1251,13 @@ mod tests {
             }
         }
         let cfg = IngestConfig::default();
-        let c = read_campaign(&InMemory(files.clone()), &cfg, &|| {}).unwrap();
+        let c = read_campaign(&InMemory(&files), &cfg, &|| {}).unwrap();
         assert!(!c.measurements.is_empty());
         assert!(c.measurements.iter().all(|m| m.quarantine.is_none()));
         assert!(c.measurements.iter().all(|m| !m.records.is_empty()));
         let gone = c.measurements[0].row.file.clone();
         files.remove(&gone);
-        let c2 = read_campaign(&InMemory(files), &cfg, &|| {}).unwrap();
+        let c2 = read_campaign(&InMemory(&files), &cfg, &|| {}).unwrap();
         assert!(c2.measurements[0].quarantine.is_some());
         assert!(c2.measurements[1..].iter().all(|m| m.quarantine.is_none()));
         assert!(c2

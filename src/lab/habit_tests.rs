@@ -8,35 +8,8 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use super::scenario::{Habits, Preset};
 use super::*;
-use crate::campaign::{read_campaign, IngestConfig, Source};
+use crate::campaign::{read_campaign, InMemory, IngestConfig};
 use crate::findings::{Finding, Severity};
-
-/// A campaign held in memory: the checks need nothing but names and bytes.
-struct InMemory<'a>(&'a BTreeMap<String, Vec<u8>>);
-
-impl Source for InMemory<'_> {
-    fn name(&self) -> String {
-        "habits".into()
-    }
-    fn describe(&self) -> String {
-        "in-memory campaign".into()
-    }
-    fn list(&self) -> std::io::Result<Vec<String>> {
-        Ok(self.0.keys().cloned().collect())
-    }
-    fn is_file(&self, rel: &str) -> bool {
-        self.0.contains_key(rel)
-    }
-    fn identity(&self, rel: &str) -> String {
-        rel.into()
-    }
-    fn read(&self, rel: &str) -> std::io::Result<Vec<u8>> {
-        self.0
-            .get(rel)
-            .cloned()
-            .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::NotFound, rel.to_string()))
-    }
-}
 
 /// Three boards, 5 free measurements each, then bolted 2 of board 1 and 1 of board 2: 16
 /// measurements a day puts the first bolted one on day one, the other two on day two (a
