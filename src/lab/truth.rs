@@ -330,43 +330,28 @@ fn modes_of(
         let p = params(s, model, bd, stiff, bolted, loose)?;
         return mode_set(model, &p, n, points);
     };
-    let with = matches!(variant, Variant::Free | Variant::Bolted);
-    let e = &s.effects;
-    let k_joint_n_per_m = bolted.map_or_else(Vec::new, |bo| {
-        bo.k_joint_n_per_m
-            .iter()
-            .enumerate()
-            .map(|(j, k)| match (loose, bo.loose_joint, &e.loose_bolt) {
-                (true, Some(lj), Some(lb)) if lj == j => k * lb.stiffness_factor,
-                _ => *k,
-            })
-            .collect()
-    });
+    // The model-changing effects only in the states with effects.
+    let none = super::scenario::Effects::default();
+    let e = if matches!(variant, Variant::Free | Variant::Bolted) {
+        &s.effects
+    } else {
+        &none
+    };
     let st = SolidState {
         e_x_pa: bd.e_x_pa * stiff,
         e_y_pa: bd.e_y_pa * stiff,
         g_xy_pa: bd.g_xy_pa * stiff,
         mass_scale: bd.mass_scale,
-        k_joint_n_per_m,
-        k_rot_nm_per_rad: e
-            .rotational_restraint
-            .as_ref()
-            .filter(|_| with)
-            .map(|r| r.k_rot_nm_per_rad),
+        k_joint_n_per_m: bolted.map_or_else(Vec::new, |bo| joint_stiffnesses(s, bo, loose)),
+        k_rot_nm_per_rad: e.rotational_restraint.as_ref().map(|r| r.k_rot_nm_per_rad),
         point_mass: e
             .lumped_mass
             .as_ref()
-            .filter(|_| with)
             .map(|lm| ([lm.x_m, lm.y_m], lm.mass_kg)),
-        underfill_factor: e
-            .underfill
-            .as_ref()
-            .filter(|_| with)
-            .map(|u| u.stiffness_factor),
+        underfill_factor: e.underfill.as_ref().map(|u| u.stiffness_factor),
         fixture: e
             .compliant_fixture
             .as_ref()
-            .filter(|_| with)
             .map(|f| (f.k_fix_n_per_m, f.m_fix_kg)),
         n_modes: n,
     };
@@ -529,15 +514,26 @@ fn params(
     p.set(names::G_XY, bd.g_xy_pa * stiff)?;
     p.set(names::MASS_SCALE, bd.mass_scale)?;
     if let Some(bo) = bolted {
-        for (j, k) in bo.k_joint_n_per_m.iter().enumerate() {
-            let f = match (loose, bo.loose_joint, &s.effects.loose_bolt) {
-                (true, Some(lj), Some(lb)) if lj == j => lb.stiffness_factor,
-                _ => 1.0,
-            };
-            p.set(&names::k_con_joint(j + 1), k * f)?;
+        for (j, k) in joint_stiffnesses(s, bo, loose).into_iter().enumerate() {
+            p.set(&names::k_con_joint(j + 1), k)?;
         }
     }
     Ok(p)
+}
+
+/// Each joint's stiffness in a bolted measurement, N/m: the drawn ones, the loose joint's
+/// softened by the loose-bolt effect when `loose`.
+fn joint_stiffnesses(s: &Scenario, bo: &BoltedDraw, loose: bool) -> Vec<f64> {
+    bo.k_joint_n_per_m
+        .iter()
+        .enumerate()
+        .map(
+            |(j, k)| match (loose, bo.loose_joint, &s.effects.loose_bolt) {
+                (true, Some(lj), Some(lb)) if lj == j => k * lb.stiffness_factor,
+                _ => *k,
+            },
+        )
+        .collect()
 }
 
 /// Modes of one model state evaluated on the scan grid.
@@ -1141,7 +1137,8 @@ pub fn model_misfit(s: &Scenario, board: &Board, models: &Models) -> Result<Mode
 
 /// [`model_misfit`] for the solid truth: both models' modes at the nominal board and K̄ on
 /// every joint, paired by MAC on the scan grid (the solid's mode order can differ from the
-/// plate's), one figure per in-band truth mode (`NaN` where no updating mode pairs).
+/// plate's), one figure per in-band truth mode (`NaN`, `null` in the JSON, where no updating
+/// mode pairs).
 fn solid_model_misfit(
     s: &Scenario,
     board: &Board,

@@ -140,6 +140,9 @@ impl SolidOptions {
 /// normal stiffness, not rigidly.
 const TANGENTIAL_OVER_NORMAL: f64 = 2.0 * (1.0 - 0.3) / (2.0 - 0.3);
 
+/// A free solid's rigid-body modes, below its elastic ones: three in-plane, three out of it.
+const FREE_RIGID_MODES: usize = 6;
+
 /// What a brick class is made of.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum ClassKind {
@@ -456,7 +459,7 @@ impl SolidModel {
     ) -> Result<Loading, super::LabError> {
         let mut load = Loading {
             materials: self.materials(st),
-            n_modes: st.n_modes + if self.bolted { 0 } else { 6 },
+            n_modes: st.n_modes + if self.bolted { 0 } else { FREE_RIGID_MODES },
             ..Loading::default()
         };
         if self.bolted {
@@ -577,8 +580,7 @@ impl SolidModel {
         // ccx normalises to unit modal mass in t·mm²: ψ_SI = φ / √1000 (1/√kg);
         // Γ_SI = √1000 Γ (√kg).
         let to_si = 1.0 / 1000f64.sqrt();
-        // Free: the six lowest modes are rigid (3 in-plane, 3 out-of-plane).
-        let first = if self.bolted { 0 } else { 6 };
+        let first = if self.bolted { 0 } else { FREE_RIGID_MODES };
         if res.freq_hz.len() < first + st.n_modes {
             return Err(solid_err(format!(
                 "CalculiX returned {} modes, expected {}",
@@ -587,7 +589,11 @@ impl SolidModel {
             )));
         }
         // Nodal masses (HRZ over each element's areal density) for the rocking terms.
-        let node_mass_t = self.node_masses(&load);
+        let node_mass_t = if self.bolted {
+            self.node_masses(&load)
+        } else {
+            vec![]
+        };
         let (xr, yr) = (1e3 * shaker_reference_m[0], 1e3 * shaker_reference_m[1]);
         let mut out = ModeSet {
             freq_hz: vec![],
