@@ -2,6 +2,7 @@
 //! the library on real files (ripgrep's layout).
 
 mod common;
+mod dag;
 mod ingest;
 mod interop;
 mod lab;
