@@ -292,6 +292,12 @@ struct UpdateArgs {
     /// frequencies move on finer meshes).
     #[arg(long)]
     no_model_error: bool,
+    /// The model's stated fidelity, in % of frequency: the prior median of the scale of the
+    /// model-form discrepancy, a per-mode bias common to every unit that the parameters
+    /// cannot absorb (bayes::discrepancy). 0 takes the model as exact
+    /// [default: 0.5 for boards (free-free), 1.5 for joints (bolted)]
+    #[arg(long, value_name = "PCT")]
+    discrepancy_pct: Option<f64>,
     /// Step 1: floor of the balance term's standard deviation, relative to the weighed mass.
     /// A balance's readability is not its accuracy: weighing a board against steel
     /// calibration weights without the air-buoyancy correction shifts its reading by about
@@ -440,6 +446,7 @@ impl UpdateArgs {
             enrich_location: None,
             enrich_new_modes: false,
             model_error: !self.no_model_error,
+            discrepancy_freq: self.discrepancy_pct.map(|p| p / 100.0),
             hold_out_boards: vec![],
             board_coordinates: Default::default(),
             mass_floor_rel: self

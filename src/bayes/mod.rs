@@ -10,9 +10,12 @@
 //! - [`modal`]: the Vanik–Beck–Au modal likelihood over a ROM (eigenvalue, shape, mass terms).
 //! - [`shape_weight`]: the power of each mode's shape term, from how much its measurements'
 //!   residuals share (a design effect).
+//! - [`discrepancy`]: the model-form discrepancy shared by the units, orthogonal to what
+//!   the parameters absorb.
 //! - [`target`]: the hierarchical targets of step 1 (boards) and step 2 (joints).
 
 pub mod diagnostics;
+pub mod discrepancy;
 pub mod modal;
 pub mod population;
 pub mod reference;

@@ -543,6 +543,7 @@ pub struct ErrorLogs {
     ln_eps: Vec<f64>,
     ln_d2: Vec<f64>,
     model_var: Vec<f64>,
+    bias: Vec<f64>,
 }
 
 impl ErrorLogs {
@@ -551,7 +552,14 @@ impl ErrorLogs {
             ln_eps: eps.iter().map(|e| e.ln()).collect(),
             ln_d2: delta.iter().map(|d| 2.0 * d.ln()).collect(),
             model_var: vec![],
+            bias: vec![],
         }
+    }
+    /// These logs with a discrepancy d per mode shared by the units
+    /// ([`super::discrepancy`]): the model eigenvalue λ (1 + d_m) (empty: none).
+    pub fn with_bias(mut self, d: &[f64]) -> ErrorLogs {
+        self.bias = d.to_vec();
+        self
     }
     /// These logs with the model-error term's prior sd s per mode (empty: none).
     pub fn with_model_error(mut self, sd: &[f64]) -> ErrorLogs {
@@ -583,8 +591,22 @@ pub fn log_lik_with(
         for m in 0..nm {
             if s[nm + m] > 0.0 {
                 let e2 = eps[m] * eps[m];
+                // With a discrepancy d the model eigenvalue is λ' = λ (1 + d): the residual
+                // u − d v and v' = (1 + d) v, so Σu'² = q − 2da + d²c,
+                // Σu'v' = (1 + d)(a − dc), Σv'² = (1 + d)² c.
+                let (q, a, c) = {
+                    let (q, a, c) = (s[m], s[4 * nm + m], s[5 * nm + m]);
+                    match logs.bias.get(m) {
+                        Some(&d) if d != 0.0 => (
+                            (q - 2.0 * d * a + d * d * c).max(0.0),
+                            (1.0 + d) * (a - d * c),
+                            (1.0 + d) * (1.0 + d) * c,
+                        ),
+                        _ => (q, a, c),
+                    }
+                };
                 match logs.model_var.get(m).filter(|v| **v > 0.0) {
-                    None => l -= 0.5 * s[m] / e2 + s[nm + m] * ln_eps[m],
+                    None => l -= 0.5 * q / e2 + s[nm + m] * ln_eps[m],
                     Some(&v) => {
                         // The closed form rearranged so that nothing cancels: with
                         // W = q c − a² ≥ 0 (Cauchy–Schwarz; the spread of the unit's
@@ -594,7 +616,6 @@ pub fn log_lik_with(
                         // (−q/(2ε²) + …), the two large terms cancel as ε → 0 and their
                         // round-off ran the reference's ε to zero on a mode measured once
                         // per unit (W = 0: ε is then free, not rewarded).
-                        let (q, a, c) = (s[m], s[4 * nm + m], s[5 * nm + m]);
                         let w = (q * c - a * a).max(0.0);
                         let dd = e2 + v * c;
                         l -= 0.5 * q / dd
@@ -610,7 +631,7 @@ pub fn log_lik_with(
         }
         return l;
     }
-    if !logs.model_var.is_empty() {
+    if !logs.model_var.is_empty() || !logs.bias.is_empty() {
         // The eigenvalue terms no longer factor by measurement: through the statistics.
         let fast = t.clone().with_sufficient(data, nm);
         return log_lik_with(data, &fast, eps, delta, logs);
@@ -888,6 +909,36 @@ pub(crate) mod tests {
             "closed form {closed} vs quadrature {integrated}"
         );
         assert!((closed - direct).abs() > 0.1);
+
+        // A discrepancy d shared by the units: the statistics' shift equals the direct
+        // likelihood at λ (1 + d); with the model-error term too, the closed form at the
+        // shifted eigenvalues.
+        let d = [0.003, -0.02, 0.011];
+        let shifted = {
+            let mut s = t.clone();
+            for (k, l) in s.lambda.iter_mut().enumerate() {
+                *l *= 1.0 + d[k % nm];
+            }
+            s
+        };
+        let want = log_lik(&data, &shifted, &eps, &delta);
+        let logs = ErrorLogs::new(&eps, &delta).with_bias(&d);
+        for terms in [&t, &fast] {
+            let got = log_lik_with(&data, terms, &eps, &delta, &logs);
+            assert!((got - want).abs() <= 1e-9 * want.abs(), "{got} vs {want}");
+        }
+        let logs = ErrorLogs::new(&eps, &delta)
+            .with_model_error(&sd)
+            .with_bias(&d);
+        let want = log_lik_with(
+            &data,
+            &shifted,
+            &eps,
+            &delta,
+            &ErrorLogs::new(&eps, &delta).with_model_error(&sd),
+        );
+        let got = log_lik_with(&data, &t, &eps, &delta, &logs);
+        assert!((got - want).abs() <= 1e-9 * want.abs(), "{got} vs {want}");
     }
 
     #[test]

@@ -110,6 +110,7 @@ pub fn build_target(p: &Problem) -> ModalTarget {
             eps: p.eps,
             delta: None,
             model_error_sd: None,
+            discrepancy: None,
         },
         units: vec![unit; p.boards],
         covariate: None,

@@ -54,6 +54,9 @@ pub struct ErrorModel {
     /// Prior sd s_m of each mode's relative eigenvalue model error b_m ~ N(0, s_m²),
     /// integrated out per unit (`None`: the model is taken as exact).
     pub model_error_sd: Option<Vec<f64>>,
+    /// The model-form discrepancy shared by the units (`None`: none), its block after ε's
+    /// and δ's.
+    pub discrepancy: Option<super::discrepancy::Discrepancy>,
 }
 
 impl ErrorModel {
@@ -65,8 +68,24 @@ impl ErrorModel {
     }
     /// Coordinates in the global vector.
     pub fn dim(&self) -> usize {
+        self.scales_dim() + self.discrepancy.as_ref().map_or(0, |d| d.dim())
+    }
+    /// Coordinates of ε's and δ's blocks (where the discrepancy's block starts).
+    fn scales_dim(&self) -> usize {
         Self::block(&self.eps, self.n_modes)
             + self.delta.map_or(0, |d| Self::block(&d, self.n_modes))
+    }
+    /// The discrepancy d per mode of the error block h (empty without one).
+    pub fn bias(&self, h: &[f64]) -> Vec<f64> {
+        match &self.discrepancy {
+            Some(d) => d.bias(&h[self.scales_dim()..]),
+            None => vec![],
+        }
+    }
+    /// The discrepancy's scale τ of the error block h (`None` without one).
+    pub fn discrepancy_scale(&self, h: &[f64]) -> Option<f64> {
+        let d = self.discrepancy.as_ref()?;
+        Some(d.scale(&h[self.scales_dim()..]))
     }
     /// Names of the coordinates given the mode labels.
     pub fn names(&self, labels: &[String]) -> Vec<String> {
@@ -76,6 +95,9 @@ impl ErrorModel {
         }
         if let Some(ErrorPrior::Inferred { .. }) = self.delta {
             out.extend(labels.iter().map(|l| format!("log_delta_{l}")));
+        }
+        if let Some(d) = &self.discrepancy {
+            out.extend(d.names());
         }
         out
     }
@@ -113,7 +135,11 @@ impl ErrorModel {
             Some(d) => Self::lp_one(d, &h[n..]).0,
             None => 0.0,
         };
-        a + b
+        let c = match &self.discrepancy {
+            Some(d) => d.log_prior(&h[self.scales_dim()..]),
+            None => 0.0,
+        };
+        a + b + c
     }
     /// A prior draw of the error block.
     pub fn sample(&self, rng: &mut ChaCha8Rng) -> Vec<f64> {
@@ -125,6 +151,9 @@ impl ErrorModel {
                     out.push(median.ln() + log_sd * z);
                 }
             }
+        }
+        if let Some(d) = &self.discrepancy {
+            out.extend(d.sample(rng));
         }
         out
     }
@@ -257,6 +286,8 @@ pub struct Ctx {
     pub lp_pop: f64,
     pub eps: Vec<f64>,
     pub delta: Vec<f64>,
+    /// The discrepancy d per mode (empty without one).
+    pub bias: Vec<f64>,
     /// ln ε and 2 ln δ per mode, formed once per global vector (not per unit).
     pub logs: modal::ErrorLogs,
 }
@@ -327,13 +358,16 @@ impl ModalTarget {
     /// The context of a population (with its log prior) and the error block `h` of g.
     fn ctx_of(&self, pop: Population, lp_pop: f64, h: &[f64]) -> Ctx {
         let (eps, delta) = self.errors.unpack(h);
+        let bias = self.errors.bias(h);
         Ctx {
             pop,
             lp_pop,
             logs: modal::ErrorLogs::new(&eps, &delta)
-                .with_model_error(self.errors.model_error_sd.as_deref().unwrap_or(&[])),
+                .with_model_error(self.errors.model_error_sd.as_deref().unwrap_or(&[]))
+                .with_bias(&bias),
             eps,
             delta,
+            bias,
         }
     }
 
@@ -520,6 +554,7 @@ mod tests {
                 eps: ErrorPrior::Fixed { value: 1e-4 },
                 delta: None,
                 model_error_sd: None,
+                discrepancy: None,
             },
             units: vec![unit],
             covariate: Some(CovariateEffect {

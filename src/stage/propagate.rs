@@ -36,8 +36,9 @@ pub const PREDICTIONS: TableSpec = TableSpec {
         c("setup", Col::Utf8, false, "", "`free` or `bolted`."),
         c("label", Col::Utf8, false, "", "Mode label (from pair)."),
         c("freq_hz", Col::Float64, false, "Hz", "Model eigenfrequency at the drawn parameters."),
-        c("freq_obs_hz", Col::Float64, false, "Hz", "Predicted measurement: eigenvalue with the relative prediction error ε z, z ~ N(0,1)."),
+        c("freq_obs_hz", Col::Float64, false, "Hz", "Predicted measurement: eigenvalue λ (1 + d)(1 + ε z), z ~ N(0,1), d the model-form discrepancy (discrepancy_rel)."),
         c("eps_pooled", Col::Bool, false, "", "True when the label was not updated: its ε is drawn per row from the log-normal fitted to ln ε of the setup's updated labels at that particle, or (free-free) is its measurement repeatability when that is larger (2 × the pooled within-board sd of its relative frequency residuals in the step-1 residuals; the info finding propagate.validation_repeatability lists the values)."),
+        c("discrepancy_rel", Col::Float64, false, "", "The model-form discrepancy in freq_obs_hz, relative to the frequency (√(1 + d) − 1): the step's posterior draw d of the label (common to every board), or for a label the step did not update a draw from N(0, τ²) at the draw's scale τ; 0 where the step ran without a discrepancy."),
     ],
 };
 
@@ -216,6 +217,48 @@ fn eps_columns(
         .collect()
 }
 
+/// The model-form discrepancy columns of a population table (`discrepancy_scale`,
+/// `discrepancy_<label>` of the updated labels); both `None` where the step ran without one.
+struct DiscrepancyCols<'a> {
+    scale: Option<&'a Float64Array>,
+    d: Vec<Option<&'a Float64Array>>,
+}
+
+impl<'a> DiscrepancyCols<'a> {
+    fn read(
+        b: &'a arrow::array::RecordBatch,
+        labels: &[String],
+        path: &'a Path,
+    ) -> anyhow::Result<DiscrepancyCols<'a>> {
+        if b.column_by_name("discrepancy_scale").is_none() {
+            return Ok(DiscrepancyCols {
+                scale: None,
+                d: vec![None; labels.len()],
+            });
+        }
+        Ok(DiscrepancyCols {
+            scale: Some(f64_col(b, "discrepancy_scale", path)?),
+            d: labels
+                .iter()
+                .map(|l| {
+                    let n = format!("discrepancy_{l}");
+                    b.column_by_name(&n)
+                        .is_some()
+                        .then(|| f64_col(b, &n, path))
+                        .transpose()
+                })
+                .collect::<Result<_, _>>()?,
+        })
+    }
+
+    fn at(&self, r: usize) -> uq::Discrepancy {
+        uq::Discrepancy {
+            d: self.d.iter().map(|c| c.map(|a| a.value(r))).collect(),
+            scale: self.scale.map(|a| a.value(r)),
+        }
+    }
+}
+
 /// Per free label not used for updating, the relative eigenvalue error its repeat
 /// measurements show ([`crate::uq::propagate::repeatability_eps`], boards as groups), from
 /// the step-1 residuals; `None` for updated labels and where there are too few repeats. The
@@ -376,6 +419,7 @@ fn read_step1(
                 ));
             }
         }
+        let disc = DiscrepancyCols::read(b, labels, &pop_path)?;
         for r in 0..b.num_rows() {
             let mut om = vec![0.0; d * d];
             for i in 0..d {
@@ -402,6 +446,7 @@ fn read_step1(
                         None => None,
                     })
                     .collect(),
+                discrepancy: disc.at(r),
             });
         }
     }
@@ -494,6 +539,7 @@ fn read_step2(
                 ));
             }
         }
+        let disc = DiscrepancyCols::read(&b, labels, &pop_path)?;
         for r in 0..b.num_rows() {
             let key = (br.value(r), bd.value(r));
             let step1 = *index.get(&key).ok_or_else(|| {
@@ -515,6 +561,7 @@ fn read_step2(
                         None => None,
                     })
                     .collect(),
+                discrepancy: disc.at(r),
             });
         }
     }
@@ -827,6 +874,9 @@ pub fn run(opts: &PropagateOptions, verbose: bool) -> anyhow::Result<StageOutcom
             )),
             Arc::new(BooleanArray::from_iter(
                 preds.iter().map(|p| Some(p.eps_pooled)),
+            )),
+            Arc::new(Float64Array::from_iter_values(
+                preds.iter().map(|p| p.discrepancy_rel),
             )),
         ];
         let schema = PREDICTIONS.schema(&[], &tables::table_metadata(&PREDICTIONS, &prov));

@@ -54,7 +54,7 @@ pub const JOINTS: TableSpec = TableSpec {
 
 pub const POPULATION_JOINTS: TableSpec = TableSpec {
     name: "population_joints",
-    doc: "Step-2 (joints) population draws, one row per particle, written as population.parquet in the step-2 directory: the step-1 draw the particle carries, the population of ln k_con (natural log of N/m), with an enrichment (`--enrich`) `mu_<coord>`/`sigma_<coord>` of every extra coordinate (natural logs of the parameter in its unit, e.g. mu_ln_k_rot), and the bolted modes' prediction errors `eps_<label>`, `delta_<label>` (when inferred).",
+    doc: "Step-2 (joints) population draws, one row per particle, written as population.parquet in the step-2 directory: the step-1 draw the particle carries, the population of ln k_con (natural log of N/m), with an enrichment (`--enrich`) `mu_<coord>`/`sigma_<coord>` of every extra coordinate (natural logs of the parameter in its unit, e.g. mu_ln_k_rot), and the bolted modes' prediction errors `eps_<label>`, `delta_<label>` (when inferred); with the model-form discrepancy (the default, `--discrepancy-pct`), `discrepancy_scale` (its scale τ, relative eigenvalue) and `discrepancy_<label>` (the bolted mode's discrepancy d: the model eigenvalue is λ (1 + d) for every measurement).",
     open: true,
     columns: &[
         c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
@@ -68,7 +68,7 @@ pub const POPULATION_JOINTS: TableSpec = TableSpec {
 
 pub const POPULATION: TableSpec = TableSpec {
     name: "population",
-    doc: "Posterior draws of the population (hyper-)parameters, one row per particle; run = independent SMC run (ArviZ: chain = run, draw = draw). Step 1 (boards): for every updated parameter <p> (unit in its name) `mu_<p>` (population mean, unit of <p>), `sigma_<p>` (population standard deviation, unit of <p>), `corr_<p>_<q>` (population correlation). By default (`--board-coordinates per-mass`), where mass_scale is updated, the population of every modulus <m>_pa is formed per unit mass scale: its coordinate is `<m>_per_mass_scale_pa` = <m>_pa / mass_scale (Pa; free-free frequencies follow it), so the columns are e.g. `mu_e_x_per_mass_scale_pa`, `sigma_e_x_per_mass_scale_pa`, `corr_e_x_per_mass_scale_pa_mass_scale`; boards.parquet keeps the moduli themselves. A parameter on a logarithmic coordinate (added_mass_kg of `--enrich added_mass`) has `mu_<p>` = the population median (reference · e^μ, unit of <p>) and `sigma_<p>` in natural-log units. Prediction errors per mode label <l>: `eps_<l>` (relative standard deviation of the eigenvalue λ = ω², dimensionless) and `delta_<l>` (standard deviation of the unit-norm shape residual), when inferred.",
+    doc: "Posterior draws of the population (hyper-)parameters, one row per particle; run = independent SMC run (ArviZ: chain = run, draw = draw). Step 1 (boards): for every updated parameter <p> (unit in its name) `mu_<p>` (population mean, unit of <p>), `sigma_<p>` (population standard deviation, unit of <p>), `corr_<p>_<q>` (population correlation). By default (`--board-coordinates per-mass`), where mass_scale is updated, the population of every modulus <m>_pa is formed per unit mass scale: its coordinate is `<m>_per_mass_scale_pa` = <m>_pa / mass_scale (Pa; free-free frequencies follow it), so the columns are e.g. `mu_e_x_per_mass_scale_pa`, `sigma_e_x_per_mass_scale_pa`, `corr_e_x_per_mass_scale_pa_mass_scale`; boards.parquet keeps the moduli themselves. A parameter on a logarithmic coordinate (added_mass_kg of `--enrich added_mass`) has `mu_<p>` = the population median (reference · e^μ, unit of <p>) and `sigma_<p>` in natural-log units. Prediction errors per mode label <l>: `eps_<l>` (relative standard deviation of the eigenvalue λ = ω², dimensionless) and `delta_<l>` (standard deviation of the unit-norm shape residual), when inferred. With the model-form discrepancy (the default, `--discrepancy-pct`): `discrepancy_scale` (its scale τ, relative eigenvalue) and `discrepancy_<l>` (the updated mode's discrepancy d, common to every board: the model eigenvalue is λ (1 + d); orthogonal to what the board parameters can absorb).",
     open: true,
     columns: &[
         c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
@@ -288,6 +288,12 @@ pub struct UpdateOptions {
     /// model's discretization spread (`fem::convergence::mesh_spread`).
     #[serde(default)]
     pub model_error: bool,
+    /// The model's stated fidelity: the prior median of the model-form discrepancy's scale,
+    /// a relative frequency ([`crate::bayes::discrepancy`]); `None`: the setup's default
+    /// (free-free [`crate::bayes::discrepancy::FREE_FIDELITY_FREQ`], bolted
+    /// [`crate::bayes::discrepancy::BOLTED_FIDELITY_FREQ`]); 0: no discrepancy term.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub discrepancy_freq: Option<f64>,
     /// Step 1: boards whose measurements and masses are left out of the updating, so that
     /// the new-board prediction can be validated on them (the report compares them with it).
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
@@ -1263,6 +1269,21 @@ fn no_bolted_data(
 }
 
 /// Evidence of the runs: each run's log evidence, their mean and standard error.
+/// evidence.json's `discrepancy`: the prior of the model-form discrepancy (null without one).
+fn discrepancy_json(target: &ModalTarget, labels: &[String]) -> serde_json::Value {
+    match &target.errors.discrepancy {
+        None => serde_json::Value::Null,
+        Some(d) => serde_json::json!({
+            "labels": labels,
+            "fidelity_freq": crate::bayes::discrepancy::freq_of_eigenvalue(d.scale_median),
+            "scale_median": d.scale_median,
+            "scale_log_sd": d.scale_log_sd,
+            "k": d.k,
+            "basis": d.basis,
+        }),
+    }
+}
+
 fn evidence_json(log_z: &[f64], posterior: &str) -> serde_json::Value {
     let n = log_z.len() as f64;
     let mean = log_z.iter().sum::<f64>() / n;
@@ -1938,6 +1959,15 @@ fn population_columns<'a>(
     if infer_delta {
         cols.extend(labels.iter().map(|l| (format!("delta_{l}"), String::new())));
     }
+    let with_discrepancy = target.errors.discrepancy.is_some();
+    if with_discrepancy {
+        cols.push(("discrepancy_scale".into(), String::new()));
+        cols.extend(
+            labels
+                .iter()
+                .map(|l| (format!("discrepancy_{l}"), String::new())),
+        );
+    }
     // The covariate coefficient (absolute, the unit coordinate after the parameters).
     if let Some(c) = &target.covariate {
         let unit = format!("1/(unit of {})", c.covariate);
@@ -1973,6 +2003,16 @@ fn population_columns<'a>(
         }
         if infer_delta {
             v.extend(&ctx.delta);
+        }
+        if with_discrepancy {
+            let pd = target.prior.dim();
+            v.push(
+                target
+                    .errors
+                    .discrepancy_scale(&g[pd..])
+                    .unwrap_or(f64::NAN),
+            );
+            v.extend(&ctx.bias);
         }
         if with_beta {
             v.push(ctx.pop.mu[d]);
@@ -2225,6 +2265,46 @@ fn model_error_prior(
         sd_updated: updated.model_mode.iter().map(|&mm| sd_of(mm)).collect(),
         spread,
     })
+}
+
+/// The model-form discrepancy of `target`'s updated modes ([`crate::bayes::discrepancy`]),
+/// orthogonal to the relative eigenvalue sensitivities of unit 0's coordinates at x = 0 (the
+/// reference point; step 2 with the auxiliary values `aux`, the step-1 posterior mean), its
+/// scale's prior median `fidelity_freq` (relative frequency). `None` (with an info finding)
+/// where the fidelity is 0, or where the units' coordinates span every mode.
+fn discrepancy_for(
+    target: &ModalTarget,
+    aux: &[f64],
+    fidelity_freq: f64,
+    what: &str,
+    findings: &mut Findings,
+) -> anyhow::Result<Option<crate::bayes::discrepancy::Discrepancy>> {
+    use crate::bayes::discrepancy::{sensitivities, Discrepancy};
+    if fidelity_freq == 0.0 {
+        return Ok(None);
+    }
+    if !(fidelity_freq.is_finite() && fidelity_freq > 0.0) {
+        bail!("{what}: the model's fidelity (--discrepancy-pct) must be a finite share ≥ 0, found {fidelity_freq}");
+    }
+    let nm = target.errors.n_modes;
+    let d = smc::Target::unit_dim(target);
+    let lambda = |x: &[f64]| -> Option<Vec<f64>> {
+        let t = smc::Target::model(target, aux, 0, x)?;
+        let l = t.lambda[..nm].to_vec();
+        l.iter().all(|v| v.is_finite() && *v > 0.0).then_some(l)
+    };
+    let sens = sensitivities(lambda, &vec![0.0; d], nm, 1e-3)
+        .filter(|s| s.iter().all(|v| v.is_finite()))
+        .ok_or_else(|| anyhow!("{what}: the model-form discrepancy: the model is undefined (or a label lost) within 0.1 % of the reference point"))?;
+    let disc = Discrepancy::new(&sens, nm, d, fidelity_freq);
+    if disc.is_none() {
+        findings.push(Finding::new(
+            Severity::Info,
+            "update.discrepancy_none",
+            format!("{what}: the units' {d} coordinate(s) span all {nm} updated modes: no discrepancy is left that the parameters cannot absorb, so none is inferred"),
+        ));
+    }
+    Ok(disc)
 }
 
 /// Model modes a ROM must carry for the updated labels and every paired label.
@@ -2831,11 +2911,20 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                     eps: opts.eps,
                     delta: opts.delta,
                     model_error_sd: model_error.as_ref().map(|m| m.sd_updated.clone()),
+                    discrepancy: None,
                 },
                 units,
                 covariate: covariate.clone(),
                 subspaces: vec![],
             };
+            target.errors.discrepancy = discrepancy_for(
+                &target,
+                &[],
+                opts.discrepancy_freq
+                    .unwrap_or(crate::bayes::discrepancy::FREE_FIDELITY_FREQ),
+                "boards",
+                &mut findings,
+            )?;
             // The surrogates model a unit's terms as a function of its ROM parameters alone; with
             // a covariate the terms also follow the unit's coefficient, so the ROM runs directly.
             let mut sopts = opts.clone();
@@ -2980,6 +3069,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             }
             ev["model_error"] = serde_json::to_value(&model_error)?;
             ev["shape_weights"] = serde_json::to_value(&shape_weights)?;
+            ev["discrepancy"] = discrepancy_json(&target, &labels.labels);
             let p = opts.out.join("evidence.json");
             crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
             outputs.push(p);
@@ -4277,6 +4367,7 @@ pub fn run_joints(
                 eps: opts.eps,
                 delta: opts.delta,
                 model_error_sd: None,
+                discrepancy: None,
             },
             units,
             covariate: None,
@@ -4316,6 +4407,14 @@ pub fn run_joints(
                 })
                 .collect(),
         };
+        target.errors.discrepancy = discrepancy_for(
+            &target,
+            &draws_mean,
+            opts.discrepancy_freq
+                .unwrap_or(crate::bayes::discrepancy::BOLTED_FIDELITY_FREQ),
+            "joints",
+            &mut findings,
+        )?;
         let shape_weights = weigh_shapes(
             &mut target,
             &opts.shape_weights,
@@ -4414,6 +4513,16 @@ pub fn run_joints(
                     .map(|l| (format!("delta_{l}"), String::new())),
             );
         }
+        let with_discrepancy = target.errors.discrepancy.is_some();
+        if with_discrepancy {
+            pcols.push(("discrepancy_scale".into(), String::new()));
+            pcols.extend(
+                labels
+                    .labels
+                    .iter()
+                    .map(|l| (format!("discrepancy_{l}"), String::new())),
+            );
+        }
         let mut pop = DrawTable::new(&pcols);
         let jcols: Vec<(String, String)> = enr
             .coordinates
@@ -4435,6 +4544,16 @@ pub fn run_joints(
             }
             if infer_delta {
                 row.extend(&ctx.delta);
+            }
+            if with_discrepancy {
+                let pd = target.prior.dim();
+                row.push(
+                    target
+                        .errors
+                        .discrepancy_scale(&p.g[pd..])
+                        .unwrap_or(f64::NAN),
+                );
+                row.extend(&ctx.bias);
             }
             pop.push(r, i, None, &row);
             let g = i / group;
@@ -4535,6 +4654,7 @@ pub fn run_joints(
         }
         ev["rom_centre_coordinates"] = serde_json::to_value(&centre)?;
         ev["shape_weights"] = serde_json::to_value(&shape_weights)?;
+        ev["discrepancy"] = discrepancy_json(&target, &labels.labels);
         let p = opts.out.join("evidence.json");
         crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
         outputs.push(p);

@@ -33,6 +33,11 @@
 //! updated label keeps b = 0: its own measurements have fixed b together with the board's
 //! parameters, and b's prior spread added again would widen what the data already settled.
 //!
+//! The model-form discrepancy of each step ([`Discrepancy`], `bayes::discrepancy`): every
+//! evaluation's eigenvalue of a label is λ (1 + d), d the particle's discrepancy of the label
+//! (common to every board, new or measured), or for a label the step did not update a draw
+//! from N(0, τ²) at the particle's scale τ. It enters f_obs only; f stays the model's.
+//!
 //! Parameters outside the admissible region (non-positive moduli, ν² E_y/E_x ≥ 1) or where a
 //! label cannot be tracked give no row; they are counted in [`Counts`], never dropped
 //! silently. Draws outside the ROM's verified box are evaluated and counted.
@@ -181,6 +186,28 @@ pub struct Step1Particle {
     /// Relative eigenvalue error ε per free label (order of the free [`LabelModel`]'s
     /// labels); `None` where the label was not updated.
     pub eps: Vec<Option<f64>>,
+    /// The model-form discrepancy of step 1 ([`Discrepancy`]).
+    pub discrepancy: Discrepancy,
+}
+
+/// A particle's model-form discrepancy of one setup (`bayes::discrepancy`): d per label
+/// (relative eigenvalue, common to every board; `None` where the label was not updated) and
+/// its scale τ (`None`: the step ran without one; every d is then 0). A label without its own
+/// d (a validation mode) draws d ~ N(0, τ²) per evaluation: the data have not fixed it.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Discrepancy {
+    pub d: Vec<Option<f64>>,
+    pub scale: Option<f64>,
+}
+
+impl Discrepancy {
+    /// No discrepancy for `n` labels.
+    pub fn none(n: usize) -> Discrepancy {
+        Discrepancy {
+            d: vec![None; n],
+            scale: None,
+        }
+    }
 }
 
 /// One step-2 particle: the carried step-1 particle and the joint population.
@@ -192,6 +219,8 @@ pub struct Step2Particle {
     pub sigma_ln_k: f64,
     /// ε per bolted label (order of the bolted [`LabelModel`]'s labels).
     pub eps: Vec<Option<f64>>,
+    /// The model-form discrepancy of step 2 (bolted labels).
+    pub discrepancy: Discrepancy,
 }
 
 /// The posterior to propagate.
@@ -253,8 +282,10 @@ pub struct Prediction {
     pub label: usize,
     /// Model frequency, Hz.
     pub freq_hz: f64,
-    /// Predicted measurement (model and prediction error), Hz.
+    /// Predicted measurement (model, its discrepancy and prediction error), Hz.
     pub freq_obs_hz: f64,
+    /// The model-form discrepancy in freq_obs_hz, relative frequency (0 without one).
+    pub discrepancy_rel: f64,
     /// The label's ε was borrowed from an updated label (validation mode).
     pub eps_pooled: bool,
 }
@@ -313,6 +344,7 @@ pub fn propagate(
             || p.boards.len() != post.board_ids.len()
             || p.boards.iter().any(|b| b.len() != d)
             || p.eps.len() != models.free.labels.len()
+            || p.discrepancy.d.len() != models.free.labels.len()
         {
             return Err(PropagateError::Input(format!(
                 "step-1 particle {i}: expected {d} parameters, {} boards and {} labels",
@@ -342,7 +374,10 @@ pub fn propagate(
                 ));
             }
             for (j, p) in s.iter().enumerate() {
-                if p.step1 >= post.step1.len() || p.eps.len() != bm.labels.len() {
+                if p.step1 >= post.step1.len()
+                    || p.eps.len() != bm.labels.len()
+                    || p.discrepancy.d.len() != bm.labels.len()
+                {
                     return Err(PropagateError::Input(format!(
                         "step-2 particle {j}: carries step-1 particle {} of {} and {} of {} bolted labels' errors",
                         p.step1,
@@ -432,7 +467,7 @@ fn evaluate(
     idx: &[usize],
     theta: &[f64],
     k_con: Option<(usize, f64)>,
-    eps: &[Option<f64>],
+    (eps, disc): (&[Option<f64>], &Discrepancy),
     head: (u32, Scope, Option<usize>, SetupKind),
     rng: &mut ChaCha8Rng,
     out: &mut Vec<Prediction>,
@@ -462,6 +497,11 @@ fn evaluate(
             )
         })
         .collect();
+    // Drawn only with a discrepancy, so that a posterior without one keeps its streams.
+    let z_disc: Vec<f64> = match disc.scale {
+        Some(_) => (0..eps.len()).map(|_| StandardNormal.sample(rng)).collect(),
+        None => vec![],
+    };
     let Some(lambda) = model.eigenvalues(&v) else {
         counts.inadmissible_or_untracked += 1;
         return inside;
@@ -485,6 +525,11 @@ fn evaluate(
         } else {
             0.0
         };
+        let d = match (disc.d.get(l).copied().flatten(), disc.scale) {
+            (Some(d), _) => d,
+            (None, Some(tau)) => tau * z_disc[l],
+            (None, None) => 0.0,
+        };
         out.push(Prediction {
             draw,
             scope,
@@ -492,7 +537,8 @@ fn evaluate(
             setup,
             label: l,
             freq_hz: to_hz(*lam),
-            freq_obs_hz: to_hz(lam * (1.0 + b) * (1.0 + e * z)),
+            freq_obs_hz: to_hz(lam * (1.0 + d) * (1.0 + b) * (1.0 + e * z)),
+            discrepancy_rel: crate::bayes::discrepancy::freq_of_eigenvalue(d),
             eps_pooled: pooled,
         });
     }
@@ -560,7 +606,7 @@ fn one_draw(
         &models.free_idx,
         &theta,
         None,
-        &p.eps,
+        (&p.eps, &p.discrepancy),
         (draw, Scope::NewBoard, None, SetupKind::Free),
         rng,
         &mut out,
@@ -576,7 +622,7 @@ fn one_draw(
             &models.free_idx,
             th,
             None,
-            &p.eps,
+            (&p.eps, &p.discrepancy),
             (draw, Scope::Board, Some(b), SetupKind::Free),
             rng,
             &mut out,
@@ -600,7 +646,7 @@ fn one_draw(
             bidx,
             &theta,
             Some((*kidx, k)),
-            &q.eps,
+            (&q.eps, &q.discrepancy),
             (draw, Scope::NewBoard, None, SetupKind::Bolted),
             rng,
             &mut out,
@@ -614,7 +660,7 @@ fn one_draw(
                 bidx,
                 th,
                 Some((*kidx, k)),
-                &q.eps,
+                (&q.eps, &q.discrepancy),
                 (draw, Scope::Board, Some(b), SetupKind::Bolted),
                 rng,
                 &mut out,
@@ -680,6 +726,7 @@ mod tests {
                     corr: vec![1.0],
                 },
                 boards: vec![vec![1.1]],
+                discrepancy: Discrepancy::none(eps.len()),
                 eps,
             }],
             step2: None,
@@ -753,6 +800,46 @@ mod tests {
                 p.freq_hz
             );
             assert_eq!(p.freq_obs_hz, p.freq_hz);
+        }
+    }
+
+    /// The discrepancy multiplies every board's eigenvalue of an updated label by exactly
+    /// 1 + d (new and measured boards alike), and gives a label without its own d a spread
+    /// N(0, τ²) on the eigenvalue; freq_hz stays the model's.
+    #[test]
+    fn the_discrepancy_shifts_updated_labels_and_spreads_the_others() {
+        let lm = model();
+        let models = mass_scale_models(&lm);
+        let mut post = posterior(vec![None, None]);
+        post.step1[0].discrepancy = Discrepancy {
+            d: vec![Some(0.01), None],
+            scale: Some(0.02),
+        };
+        let n = 4000;
+        let (preds, _) = propagate(&post, &models, n, 3).unwrap();
+        let r = |label: usize, scope: Scope| -> Vec<f64> {
+            preds
+                .iter()
+                .filter(|p| p.scope == scope && p.label == label)
+                .map(|p| (p.freq_obs_hz / p.freq_hz).powi(2) - 1.0)
+                .collect()
+        };
+        for scope in [Scope::Board, Scope::NewBoard] {
+            for v in r(0, scope) {
+                assert!((v - 0.01).abs() < 1e-12, "{scope:?}: {v}");
+            }
+            let (m, sd) = crate::report::validation::mean_sd(&r(1, scope));
+            assert!(
+                m.abs() < 4.0 * 0.02 / (n as f64).sqrt(),
+                "{scope:?}: mean {m}"
+            );
+            assert!(
+                (sd - 0.02).abs() < 4.0 * 0.02 / (2.0 * n as f64).sqrt(),
+                "{scope:?}: sd {sd}"
+            );
+        }
+        for p in preds.iter().filter(|p| p.label == 0) {
+            assert!((p.discrepancy_rel - (1.01f64.sqrt() - 1.0)).abs() < 1e-15);
         }
     }
 
@@ -900,6 +987,7 @@ mod tests {
             "{e}"
         );
         post.step1[0].eps = vec![None, None];
+        post.step1[0].discrepancy = Discrepancy::none(2);
         post.step1[0].population.corr = vec![-1.0];
         let e = propagate(&post, &models, 10, 1).unwrap_err().to_string();
         assert!(e.contains("not positive definite"), "{e}");
