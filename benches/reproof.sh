@@ -6,14 +6,16 @@
 # and sampler diagnostics of both steps, benches/recovery.py (the solid truth's drawn values
 # inside the 90 % intervals, the Table-2 analog), the 90 % coverage per setup and mode (own
 # board and new board), and the diagnosis's verdict. Needs gmsh and ccx.
-# Usage: benches/reproof.sh [SCENARIO...]
+# Usage: benches/reproof.sh [SCENARIO|SCENARIO_FILE...]
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 hbmu=${HBMU:-$root/target/debug/hbmu}
 names=("$@")
 if [ ${#names[@]} -eq 0 ]; then names=(realistic_null realistic_paper); fi
+mkdir -p "$root/target/work"
 for s in "${names[@]}"; do
-  w=$root/target/work/reproof-$s
+  # A built-in name or a scenario file (e.g. a null under another seed).
+  w=$root/target/work/reproof-$(basename "$s" .toml)
   echo "== $s ($w)"
   make -C "$root/pipelines" --no-print-directory prepare SCENARIO="$s" WORK="$w" > "$w.prepare.log" 2>&1 \
     || { echo "prepare failed, see $w.prepare.log"; continue; }

@@ -158,6 +158,11 @@ enum Command {
         /// and stop: refits are independent, a cluster runs them side by side.
         #[arg(long)]
         only: Option<String>,
+        /// The practical threshold, in % of a frequency: a misfit smaller than this is no
+        /// finding, however significant, and a mechanism must remove at least this much
+        /// (argued in diagnose::select::DEFAULT_PRACTICAL_THRESHOLD_REL) [default: 0.3]
+        #[arg(long, value_name = "PCT")]
+        practical_threshold_pct: Option<f64>,
         #[arg(long)]
         force: bool,
     },
@@ -776,8 +781,18 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             model,
             max_refits,
             only,
+            practical_threshold_pct,
             force,
         } => {
+            let mut select = hbmu::diagnose::select::SelectOptions::default();
+            if let Some(p) = practical_threshold_pct {
+                if !(p.is_finite() && p >= 0.0) {
+                    anyhow::bail!(
+                        "--practical-threshold-pct: expected a percentage ≥ 0, found {p}"
+                    );
+                }
+                select.practical_threshold_rel = p / 100.0;
+            }
             let opts = stage::diagnose::DiagnoseOptions {
                 work_dir,
                 out,
@@ -785,7 +800,7 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                 force,
                 only,
                 locate: Default::default(),
-                select: Default::default(),
+                select,
                 max_refits,
             };
             let o = stage::diagnose::run(&opts, cli.verbose)?;

@@ -28,22 +28,91 @@ pub fn mean_shift_modes(located: &Located) -> Vec<&locate::LocatedMode> {
 /// (`after`) over the same before; a located mode the refit has no row for (a setup it did
 /// not refit) keeps its baseline value. `None` without such a mode.
 pub fn remaining_share(located: &Located, after: &[ModeCheck]) -> Option<f64> {
-    let (mut before, mut left) = (0.0, 0.0);
-    for l in mean_shift_modes(located) {
-        let Some(b) = located
-            .mode_checks
-            .iter()
-            .find(|m| m.setup == l.setup && m.label == l.label)
-        else {
-            continue;
-        };
-        before += b.mean_rel_residual.abs();
-        left += after
-            .iter()
-            .find(|m| m.setup == l.setup && m.label == l.label)
-            .map_or(b.mean_rel_residual.abs(), |m| m.mean_rel_residual.abs());
-    }
+    remaining_share_in(located, after, None)
+}
+
+/// Per mean-shift mode ([`mean_shift_modes`]) of `setup` (`None`: every setup), its
+/// |mean relative residual| in the baseline and after a refit (`after`; a mode the refit has
+/// no row for, a setup it did not refit, keeps its baseline value).
+fn before_after(located: &Located, after: &[ModeCheck], setup: Option<&str>) -> Vec<(f64, f64)> {
+    mean_shift_modes(located)
+        .into_iter()
+        .filter(|l| setup.is_none_or(|s| l.setup == s))
+        .filter_map(|l| {
+            let same = |m: &&ModeCheck| m.setup == l.setup && m.label == l.label;
+            let b = located
+                .mode_checks
+                .iter()
+                .find(same)?
+                .mean_rel_residual
+                .abs();
+            let a = after
+                .iter()
+                .find(same)
+                .map_or(b, |m| m.mean_rel_residual.abs());
+            Some((b, a))
+        })
+        .collect()
+}
+
+/// [`remaining_share`] over the mean-shift modes of one setup (`None`: every setup).
+fn remaining_share_in(located: &Located, after: &[ModeCheck], setup: Option<&str>) -> Option<f64> {
+    let (before, left) = before_after(located, after, setup)
+        .into_iter()
+        .fold((0.0, 0.0), |(b, l), (x, y)| (b + x, l + y));
     (before > 0.0).then(|| left / before)
+}
+
+/// The largest reduction of a mean-shift mode's |mean relative residual| by a refit
+/// (`after`): how much misfit the refit explains in its best-explained mode, for the
+/// practical threshold. `None` without such a mode.
+pub fn largest_reduction(located: &Located, after: &[ModeCheck]) -> Option<f64> {
+    before_after(located, after, None)
+        .into_iter()
+        .map(|(b, a)| b - a)
+        .reduce(f64::max)
+}
+
+/// The largest located structured misfit, relative: the largest |mean relative residual| of
+/// a located mode and the largest effect of a located covariate trend, with where it is
+/// (`setup/label` or `setup/covariate`). `None` when nothing of either kind is located.
+pub fn largest_structured(located: &Located) -> Option<(String, f64)> {
+    let modes = located.modes.iter().map(|m| {
+        (
+            format!("{} {}", m.setup, m.label),
+            m.mean_rel_residual.abs(),
+        )
+    });
+    let covs = located
+        .covariate_tests
+        .iter()
+        .filter(|t| t.significant)
+        .map(|t| {
+            (
+                format!("{} trend with {}", t.setup, t.covariate),
+                t.effect_rel,
+            )
+        });
+    modes
+        .chain(covs)
+        .filter(|(_, v)| v.is_finite())
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+/// The largest |mean relative residual| over every checked mode, located or not: how far
+/// the model is from the boards at worst (`setup label`, value). `None` without a check.
+pub fn largest_mode_misfit(located: &Located) -> Option<(String, f64)> {
+    located
+        .mode_checks
+        .iter()
+        .filter(|m| m.mean_rel_residual.is_finite())
+        .map(|m| {
+            (
+                format!("{} {}", m.setup, m.label),
+                m.mean_rel_residual.abs(),
+            )
+        })
+        .max_by(|a, b| a.1.total_cmp(&b.1))
 }
 
 /// The share of a located covariate's trend a refit leaves: Σ over the setups where the trend
@@ -108,8 +177,14 @@ pub struct MisfitParts {
 pub struct RefitShares {
     /// Of the mean shifts (`None`: none located).
     modes: Option<f64>,
-    /// Of each located covariate's trend.
-    covariates: BTreeMap<String, Option<f64>>,
+    /// Of the bolted modes' mean shifts, the part a joint mechanism acts on: a joint cannot
+    /// move a free-free mode, so the free-free misfit (the model's form, a board mechanism)
+    /// is not its to explain (`None`: no bolted mode located).
+    bolted_modes: Option<f64>,
+    /// The largest reduction of a mean-shift mode's misfit ([`largest_reduction`]).
+    modes_reduction: Option<f64>,
+    /// Of each located covariate's trend: the share left, and the effect before (relative).
+    covariates: BTreeMap<String, (Option<f64>, f64)>,
 }
 
 impl RefitShares {
@@ -119,24 +194,50 @@ impl RefitShares {
         after: &[ResidualObs],
         lopts: &LocateOptions,
     ) -> Self {
+        let means = locate::mode_means(after, lopts);
         RefitShares {
-            modes: remaining_share(located, &locate::mode_means(after, lopts)),
+            modes: remaining_share(located, &means),
+            bolted_modes: remaining_share_in(located, &means, Some("bolted")),
+            modes_reduction: largest_reduction(located, &means),
             covariates: located
                 .covariates
                 .iter()
                 .map(|c| {
                     let share = covariate_share(located, input, after, &c.covariate, lopts);
-                    (c.covariate.clone(), share)
+                    let before: f64 = located
+                        .covariate_tests
+                        .iter()
+                        .filter(|t| t.covariate == c.covariate && t.significant)
+                        .map(|t| t.effect_rel)
+                        .fold(0.0, f64::max);
+                    (c.covariate.clone(), (share, before))
                 })
                 .collect(),
         }
     }
 
-    /// The candidate's own share: of its covariate's trend, or of the mean shifts.
+    /// The candidate's own share: of its covariate's trend, of the bolted modes' mean shifts
+    /// for a joint mechanism, or of the mean shifts.
     pub fn own(&self, cand: &Candidate) -> Option<f64> {
         match &cand.covariate {
-            Some(c) => self.covariates.get(c).copied().flatten(),
+            Some(c) => self.covariates.get(c).and_then(|v| v.0),
+            None if !super::library::is_board_mechanism(cand.mechanism) => {
+                self.bolted_modes.or(self.modes)
+            }
             None => self.modes,
+        }
+    }
+
+    /// How much misfit the candidate explains, relative (for the practical threshold): of its
+    /// covariate's trend, the effect it removes; else the largest reduction of a mean-shift
+    /// mode's misfit.
+    pub fn explained(&self, cand: &Candidate) -> Option<f64> {
+        match &cand.covariate {
+            Some(c) => self
+                .covariates
+                .get(c)
+                .and_then(|(share, before)| share.map(|s| (1.0 - s) * before)),
+            None => self.modes_reduction,
         }
     }
 }
@@ -159,7 +260,7 @@ impl MisfitParts {
             v.push(s);
         }
         for (c, v) in self.covariates.iter_mut() {
-            if let Some(s) = shares.covariates.get(c).copied().flatten() {
+            if let Some(s) = shares.covariates.get(c).and_then(|x| x.0) {
                 v.push(s);
             }
         }

@@ -104,6 +104,11 @@ pub struct Refit {
     /// keeps the baseline's). `None`: not computed (the baseline itself, a failed refit).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub remaining_share: Option<f64>,
+    /// How much of the located misfit the refit removes, relative frequency: the largest
+    /// reduction of a located mode's |mean residual|, or for a covariate mechanism the part of
+    /// its trend's effect it removes (`crate::diagnose::misfit`). `None`: not computed.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub explained_rel: Option<f64>,
     /// The every-joint refit of `joint_stiffness_per_joint`: the joints that differ from the
     /// others, per measurement.
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
@@ -158,8 +163,9 @@ impl Refit {
 }
 
 /// The decision rule. A candidate is favoured when its log Bayes factor exceeds `min_log_bf`
-/// and `min_z` standard errors, its held-out error is not worse, and it explains the misfit:
-/// it leaves at most `max_remaining_share` of the located misfit. The last is what keeps a
+/// and `min_z` standard errors, its held-out error is not worse, it removes at least
+/// `practical_threshold_rel` of misfit, and it explains the misfit: it leaves at most
+/// `max_remaining_share` of the located misfit. The last is what keeps a
 /// wrong mechanism out: with a misfit far above the noise, any added flexibility raises the
 /// evidence by a lot (a point mass somewhere absorbs part of a local stiffening), but only
 /// the right one removes most of the misfit. One half is the localisation's own rule (a
@@ -170,6 +176,27 @@ pub struct SelectOptions {
     pub min_z: f64,
     #[serde(default = "default_max_remaining_share")]
     pub max_remaining_share: f64,
+    /// The practical threshold, relative frequency: the smallest misfit worth a finding. With
+    /// hundreds of measurements every discrepancy is statistically significant; a misfit is a
+    /// finding only when it is also this large, and a mechanism only when it removes this
+    /// much. Below it the verdict is `no_missing_physics`, with the model's discrepancy
+    /// quantified. Default 0.3 % ([`DEFAULT_PRACTICAL_THRESHOLD_REL`]).
+    #[serde(default = "default_practical_threshold_rel")]
+    pub practical_threshold_rel: f64,
+}
+
+/// The default practical threshold, 0.3 % of a frequency. The paper this tool grows from
+/// calls its updated free-free model in good agreement with the measurements: its Table 2
+/// mean errors are within 0.14 % in seven of eight modes, and it singles out the eighth, at
+/// 0.56 %, as "a higher deviation of about 0.5 %"; its bolted model's 1.5 % it attributes to
+/// model inadequacy. 0.3 % lies between the agreement it accepts and the deviation it
+/// notes. It is also the median frequency fidelity a thin-plate model of a PCB has
+/// ([`crate::bayes::discrepancy::FREE_FIDELITY_FREQ`] is 0.5 %; its lower modes, with
+/// transverse shear below 0.3 %, are the ones a practical model must get right).
+pub const DEFAULT_PRACTICAL_THRESHOLD_REL: f64 = 3e-3;
+
+fn default_practical_threshold_rel() -> f64 {
+    DEFAULT_PRACTICAL_THRESHOLD_REL
 }
 
 fn default_max_remaining_share() -> f64 {
@@ -182,6 +209,7 @@ impl Default for SelectOptions {
             min_log_bf: 5.0,
             min_z: 3.0,
             max_remaining_share: default_max_remaining_share(),
+            practical_threshold_rel: DEFAULT_PRACTICAL_THRESHOLD_REL,
         }
     }
 }
@@ -196,6 +224,9 @@ pub struct Compared {
     /// It leaves at most [`SelectOptions::max_remaining_share`] of its part of the located
     /// misfit (true where the share was not computed).
     pub explains: bool,
+    /// It removes at least [`SelectOptions::practical_threshold_rel`] of misfit (true where
+    /// that was not computed).
+    pub practical: bool,
     /// Held-out mean absolute error before → after, per setup present in both.
     pub held_out_before_after: Vec<(String, f64, f64)>,
 }
@@ -231,10 +262,17 @@ pub fn compare(baseline: &Refit, candidates: &[Refit], opts: &SelectOptions) -> 
             let explains = c
                 .remaining_share
                 .is_none_or(|r| r <= opts.max_remaining_share);
+            let practical = c
+                .explained_rel
+                .is_none_or(|e| e >= opts.practical_threshold_rel);
             let favoured = match (lbf, se) {
                 (Some(l), Some(s)) => {
                     let s = if s.is_finite() { s } else { 0.0 };
-                    l > opts.min_log_bf && l - opts.min_z * s > 0.0 && not_worse && explains
+                    l > opts.min_log_bf
+                        && l - opts.min_z * s > 0.0
+                        && not_worse
+                        && explains
+                        && practical
                 }
                 _ => false,
             };
@@ -244,6 +282,7 @@ pub fn compare(baseline: &Refit, candidates: &[Refit], opts: &SelectOptions) -> 
                 log_bayes_factor_se: se,
                 favoured,
                 explains,
+                practical,
                 held_out_before_after: held,
             }
         })
@@ -263,13 +302,19 @@ pub enum Verdict {
     NoMissingPhysics,
     MechanismFound,
     UnexplainedMisfit,
+    /// A structured misfit above the practical threshold that no mechanism explains, common
+    /// to every board in the free-free modes and not localised, with no covariate trend,
+    /// outlier measurement or recurring unpaired mode: the model's form, not a concealed
+    /// effect (the stage decides it from the located evidence, `stage::diagnose`).
+    ModelForm,
 }
 
-/// The verdict from whether a misfit was located and the compared candidates.
-pub fn verdict(misfit_located: bool, compared: &[Compared]) -> Verdict {
+/// The verdict from whether a structured misfit above the practical threshold was located
+/// and the compared candidates.
+pub fn verdict(misfit_above_threshold: bool, compared: &[Compared]) -> Verdict {
     if compared.iter().any(|c| c.favoured) {
         Verdict::MechanismFound
-    } else if misfit_located {
+    } else if misfit_above_threshold {
         Verdict::UnexplainedMisfit
     } else {
         Verdict::NoMissingPhysics
@@ -401,6 +446,12 @@ pub fn sentence(c: &Compared) -> String {
             )
         });
     }
+    if let (Some(e), false) = (c.refit.explained_rel, c.practical) {
+        parts.push(format!(
+            "it removes at most {:.3} % of misfit in any mode: below the practical threshold",
+            100.0 * e
+        ));
+    }
     if !held.is_empty() {
         parts.push(held);
     }
@@ -473,6 +524,7 @@ mod tests {
             location_probes: vec![],
             location_note: None,
             remaining_share: None,
+            explained_rel: None,
             deviating_joints: vec![],
             new_modes: vec![],
         }
@@ -494,6 +546,26 @@ mod tests {
         assert!(c[1].favoured);
         assert_eq!(verdict(true, &c), Verdict::MechanismFound);
         assert_eq!(verdict(true, &c[..1]), Verdict::UnexplainedMisfit);
+    }
+
+    /// A decisive Bayes factor over a mechanism that removes less misfit than the practical
+    /// threshold (a point mass absorbing 0.05 % of a model's ordinary imperfection) is no
+    /// finding; the same refit removing 1 % is.
+    #[test]
+    fn a_mechanism_must_remove_a_practical_amount_of_misfit() {
+        let base = refit(None, &[100.0, 100.2], 0.2);
+        let mut small = refit(Some(Mechanism::AddedMass), &[300.0, 300.4], 0.2);
+        small.explained_rel = Some(5e-4);
+        let c = compare(&base, &[small.clone()], &SelectOptions::default());
+        assert!(
+            !c[0].favoured && !c[0].practical,
+            "ln B 200, 0.05 % removed"
+        );
+        assert!(sentence(&c[0]).contains("below the practical threshold"));
+        assert_eq!(verdict(false, &c), Verdict::NoMissingPhysics);
+        small.explained_rel = Some(0.01);
+        let c = compare(&base, &[small], &SelectOptions::default());
+        assert!(c[0].favoured && c[0].practical);
     }
 
     /// The mode an enrichment adds shows in the sentence, with where the estimates come

@@ -752,7 +752,10 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
 /// The verdict in plain language, for a test engineer.
 pub fn verdict_statement(doc: &DiagnosisView) -> String {
     match doc.verdict.as_str() {
-        "no_missing_physics" => "No missing physics: the updated model fits every setup, mode and measurement within the tolerance; nothing to change in the model or the test.".to_string(),
+        "no_missing_physics" => match doc.remaining_discrepancy.strip_prefix("none: ") {
+            Some(q) if q.starts_with("the model differs") => format!("No missing physics: {q}. Nothing to change in the model or the test."),
+            _ => "No missing physics: the updated model fits every setup, mode and measurement within the tolerance; nothing to change in the model or the test.".to_string(),
+        },
         "mechanism_found" => {
             let s: Vec<&str> = doc.findings.iter().map(|f| f.sentence.as_str()).collect();
             format!(
@@ -761,6 +764,7 @@ pub fn verdict_statement(doc: &DiagnosisView) -> String {
             )
         }
         "unexplained_misfit" => "The model misfits the measurements where located below, and no refitted mechanism of the library explains it: check the test set-up (fixture, bolts, sensors) at the located setups and modes before trusting predictions there.".to_string(),
+        "model_form" => format!("The model's form limits its fit, not a concealed effect: {}", doc.remaining_discrepancy.strip_prefix("model form: ").unwrap_or(&doc.remaining_discrepancy)),
         v => format!("Unknown verdict `{v}` in diagnosis.json."),
     }
 }
@@ -864,6 +868,7 @@ mod tests {
             location_probes: vec![],
             location_note: None,
             remaining_share: None,
+            explained_rel: None,
             deviating_joints: vec![],
             new_modes: vec![],
         };
@@ -883,6 +888,7 @@ mod tests {
             log_bayes_factor_se: Some(1.8878265146718618),
             favoured,
             explains: true,
+            practical: true,
             held_out_before_after: vec![(
                 "bolted".into(),
                 0.12947891045305393,
@@ -898,12 +904,15 @@ mod tests {
             log_bayes_factor_se: None,
             favoured: false,
             explains: true,
+            practical: true,
             held_out_before_after: vec![],
         };
         DiagnosisDoc {
             verdict,
             located: LocatedSummary {
                 any: true,
+                above_practical_threshold: true,
+                largest_mode_misfit: Some(("bolted plate-0-0".into(), 0.00367165366012717)),
                 setups: vec!["bolted".into()],
                 modes,
                 measurements: vec!["B03-bolted-2".into()],

@@ -578,3 +578,86 @@ mod tests {
         assert_eq!(t.matches("<circle").count(), 3);
     }
 }
+
+/// One mode of the model-form discrepancy figure: the posterior median and 90 % interval of
+/// its relative frequency discrepancy, in percent.
+#[derive(Clone, Debug)]
+pub struct DiscrepancyBar {
+    pub label: String,
+    pub q05_pct: f64,
+    pub q50_pct: f64,
+    pub q95_pct: f64,
+}
+
+/// Per mode, the model-form discrepancy as a bar from zero to its posterior median with the
+/// 90 % interval as a whisker, in percent of the frequency.
+pub fn discrepancy_svg(title: &str, items: &[DiscrepancyBar]) -> Result<String, PlotError> {
+    const P: &str = "discrepancy";
+    let mut lo = 0.0f64;
+    let mut hi = 0.0f64;
+    for it in items {
+        for v in [it.q05_pct, it.q50_pct, it.q95_pct] {
+            if v.is_finite() {
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+        }
+    }
+    if hi - lo <= 0.0 {
+        (lo, hi) = (-0.1, 0.1);
+    }
+    let pad = 0.1 * (hi - lo);
+    let (lo, hi) = (lo - pad, hi + pad);
+    let n = items.len().max(1);
+    let mut out = String::new();
+    {
+        let w = (160 + 80 * n as u32).max(480);
+        let root = SVGBackend::with_string(&mut out, (w, 360)).into_drawing_area();
+        root.fill(&WHITE).map_err(perr(P))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 17))
+            .margin(12)
+            .x_label_area_size(70)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0.0..n as f64, lo..hi)
+            .map_err(perr(P))?;
+        let labels: Vec<String> = items.iter().map(|i| i.label.clone()).collect();
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .x_labels(n * 2 + 1)
+            .x_label_formatter(&|x| pick(&labels, *x, false))
+            .label_style(("sans-serif", 13))
+            .y_desc("discrepancy [% of frequency]")
+            .x_desc("mode")
+            .axis_desc_style(("sans-serif", 14))
+            .draw()
+            .map_err(perr(P))?;
+        chart
+            .draw_series(LineSeries::new(
+                vec![(0.0, 0.0), (n as f64, 0.0)],
+                BLACK.stroke_width(1),
+            ))
+            .map_err(perr(P))?;
+        for (k, it) in items.iter().enumerate() {
+            let x = k as f64 + 0.5;
+            chart
+                .draw_series(std::iter::once(Rectangle::new(
+                    [(x - 0.25, 0.0), (x + 0.25, it.q50_pct)],
+                    colour(0).mix(0.6).filled(),
+                )))
+                .map_err(perr(P))?;
+            for seg in [
+                vec![(x, it.q05_pct), (x, it.q95_pct)],
+                vec![(x - 0.1, it.q05_pct), (x + 0.1, it.q05_pct)],
+                vec![(x - 0.1, it.q95_pct), (x + 0.1, it.q95_pct)],
+            ] {
+                chart
+                    .draw_series(LineSeries::new(seg, BLACK.stroke_width(2)))
+                    .map_err(perr(P))?;
+            }
+        }
+        root.present().map_err(perr(P))?;
+    }
+    Ok(out)
+}

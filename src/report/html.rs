@@ -296,9 +296,9 @@ pub fn render(d: &ReportData) -> Rendered {
         "table2",
         "Measured vs simulated frequencies (Table 2 analog)",
     );
-    pg.p("Per mode: mean and standard deviation of every measurement of every board, each board weighted equally (a board measured n times gives each measurement 1/n of a board's weight), against the prediction for a new board from the posterior population (model frequency: mean and sd; predictive sd: with the prediction error). Errors are (simulated − measured) / measured. Validation modes were not used for updating.");
-    let _ = writeln!(md, "## Measured vs simulated (Table 2 analog)\n\n| setup | mode | role | n | boards | measured mean [Hz] | measured sd [Hz] | simulated mean [Hz] | simulated sd [Hz] | predictive sd [Hz] | mean error [%] | sd error [%] |\n|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
-    let mut t = String::from("<table data-table=\"table2\"><tr><th>setup</th><th>mode</th><th>role</th><th>n</th><th>boards</th><th>measured mean [Hz]</th><th>measured sd [Hz]</th><th>simulated mean [Hz]</th><th>simulated sd [Hz]</th><th>predictive sd [Hz]</th><th>mean error [%]</th><th>sd error [%]</th><th>own-board coverage</th><th>new-board coverage</th><th>held-out boards' coverage</th></tr>\n");
+    pg.p("Per mode: mean and standard deviation of every measurement of every board, each board weighted equally (a board measured n times gives each measurement 1/n of a board's weight), against the prediction for a new board from the posterior population (model frequency: mean and sd, the parameters' spread; model discrepancy: the model-form discrepancy's mean and sd in % of the frequency, common to every board; predictive sd: with the discrepancy and the prediction error). Errors are (simulated − measured) / measured, without and with the discrepancy. Validation modes were not used for updating.");
+    let _ = writeln!(md, "## Measured vs simulated (Table 2 analog)\n\n| setup | mode | role | n | boards | measured mean [Hz] | measured sd [Hz] | simulated mean [Hz] | simulated sd [Hz] | predictive sd [Hz] | model discrepancy [%] | mean error [%] | mean error with discrepancy [%] | sd error [%] |\n|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let mut t = String::from("<table data-table=\"table2\"><tr><th>setup</th><th>mode</th><th>role</th><th>n</th><th>boards</th><th>measured mean [Hz]</th><th>measured sd [Hz]</th><th>simulated mean [Hz]</th><th>simulated sd [Hz]</th><th>predictive sd [Hz]</th><th>model discrepancy [%]</th><th>discrepancy sd [%]</th><th>mean error [%]</th><th>mean error with discrepancy [%]</th><th>sd error [%]</th><th>own-board coverage</th><th>new-board coverage</th><th>held-out boards' coverage</th></tr>\n");
     for r in &d.table2 {
         let role = if r.used_for_updating {
             "updating"
@@ -307,7 +307,7 @@ pub fn render(d: &ReportData) -> Rendered {
         };
         let _ = writeln!(
             t,
-            "<tr>{}{}{}{}{}{}{}{}{}{}{}{}{}{}{}</tr>",
+            "<tr>{}{}{}{}{}{}{}{}{}{}{}{}{}{}{}{}{}{}</tr>",
             txt("setup", &r.setup),
             txt("label", &r.label),
             txt("role", role),
@@ -318,7 +318,14 @@ pub fn render(d: &ReportData) -> Rendered {
             num("simulated_mean_hz", r.simulated_mean_hz, 2),
             num("simulated_sd_hz", r.simulated_sd_hz, 3),
             num("predictive_sd_hz", r.predictive_sd_hz, 3),
+            num("discrepancy_mean_pct", r.discrepancy_mean_pct, 3),
+            num("discrepancy_sd_pct", r.discrepancy_sd_pct, 3),
             num("mean_error_pct", r.mean_error_pct, 3),
+            num(
+                "mean_error_with_discrepancy_pct",
+                r.mean_error_with_discrepancy_pct,
+                3,
+            ),
             num("sd_error_pct", r.sd_error_pct, 1),
             num("board_coverage_90", r.board_coverage_90, 3),
             num("new_board_coverage_90", r.new_board_coverage_90, 3),
@@ -326,7 +333,7 @@ pub fn render(d: &ReportData) -> Rendered {
         );
         let _ = writeln!(
             md,
-            "| {} | {} | {role} | {} | {} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} | {:.3} | {:.1} |",
+            "| {} | {} | {role} | {} | {} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} | {:.3} ± {:.3} | {:.3} | {:.3} | {:.1} |",
             r.setup,
             r.label,
             r.n_measured,
@@ -336,7 +343,10 @@ pub fn render(d: &ReportData) -> Rendered {
             r.simulated_mean_hz,
             r.simulated_sd_hz,
             r.predictive_sd_hz,
+            r.discrepancy_mean_pct,
+            r.discrepancy_sd_pct,
             r.mean_error_pct,
+            r.mean_error_with_discrepancy_pct,
             r.sd_error_pct
         );
     }
@@ -733,7 +743,7 @@ fn diagnosis_section(pg: &mut Page, md: &mut String, d: Option<&super::diagnosis
         "**Diagnosis — verdict `{}`:** {statement}\n",
         doc.verdict
     );
-    if doc.verdict == "unexplained_misfit" {
+    if doc.verdict == "unexplained_misfit" || doc.verdict == "model_form" {
         pg.p(&format!(
             "<strong>Remaining discrepancy:</strong> {}",
             esc(&doc.remaining_discrepancy)
@@ -836,6 +846,32 @@ fn diagnosis_section(pg: &mut Page, md: &mut String, d: Option<&super::diagnosis
         &caption,
     );
     diagnosis_table(pg, "Misfit per mode, before and after the best refit", ba);
+}
+
+/// Per updated mode, the posterior median and 90 % interval of the model-form discrepancy
+/// (the step's `discrepancy_<label>` draws, relative eigenvalue) in % of the frequency; empty
+/// where the step ran without one.
+pub fn discrepancy_bars(step: &StepData) -> Vec<figures::DiscrepancyBar> {
+    use super::validation::quantile_sorted;
+    step.population
+        .iter()
+        .filter(|(n, _)| n != "discrepancy_scale" && n != "discrepancy_unit_scale")
+        .filter_map(|(n, v)| {
+            let label = n.strip_prefix("discrepancy_")?;
+            let mut f: Vec<f64> = v
+                .iter()
+                .map(|d| 100.0 * crate::bayes::discrepancy::freq_of_eigenvalue(*d))
+                .filter(|x| x.is_finite())
+                .collect();
+            f.sort_by(f64::total_cmp);
+            (!f.is_empty()).then(|| figures::DiscrepancyBar {
+                label: label.to_string(),
+                q05_pct: quantile_sorted(&f, 0.05),
+                q50_pct: quantile_sorted(&f, 0.5),
+                q95_pct: quantile_sorted(&f, 0.95),
+            })
+        })
+        .collect()
 }
 
 fn posterior_section(pg: &mut Page, step: &StepData) {
@@ -955,6 +991,16 @@ fn posterior_section(pg: &mut Page, step: &StepData) {
                 1e-3,
             ),
             "Posterior of the relative eigenvalue prediction error of each updated mode.",
+        );
+    }
+    let bars = discrepancy_bars(step);
+    if !bars.is_empty() {
+        pg.figure(
+            figures::discrepancy_svg(&format!("Model-form discrepancy, {}", step.name), &bars),
+            &format!(
+                "The model-form discrepancy of each updated mode, common to every unit of {}: posterior median (bar) and 90 % interval (whisker), in % of the frequency. It is what no parameter of the model can absorb; the predicted measurements include it.",
+                esc(&step.name)
+            ),
         );
     }
     pg.body.push_str("</div>");

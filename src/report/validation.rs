@@ -19,6 +19,8 @@ pub struct Pred {
     pub label: String,
     pub freq_hz: f64,
     pub freq_obs_hz: f64,
+    /// The model-form discrepancy in freq_obs_hz, relative frequency (0 without one).
+    pub discrepancy_rel: f64,
 }
 
 /// One measured frequency of a paired mode.
@@ -215,6 +217,12 @@ pub struct Table2Row {
     pub simulated_mean_hz: f64,
     pub simulated_sd_hz: f64,
     pub predictive_sd_hz: f64,
+    /// The model-form discrepancy of a new board's predicted measurement (relative
+    /// frequency, %): its mean and sd over the draws (0 without one).
+    pub discrepancy_mean_pct: f64,
+    pub discrepancy_sd_pct: f64,
+    /// (simulated mean with the discrepancy − measured) / measured, %.
+    pub mean_error_with_discrepancy_pct: f64,
     /// (simulated − measured) / measured, %.
     pub mean_error_pct: f64,
     /// (predictive sd − measured sd) / measured sd, %.
@@ -234,17 +242,19 @@ pub struct Table2Row {
 /// ([`board_weighted_mean_sd`]), against the new-board prediction,
 /// and the held-out boards' coverage by it.
 pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Table2Row> {
-    let mut newb: BTreeMap<(String, String), (Vec<f64>, Vec<f64>)> = BTreeMap::new();
+    type Draws = (Vec<f64>, Vec<f64>, Vec<f64>);
+    let mut newb: BTreeMap<(String, String), Draws> = BTreeMap::new();
     for p in preds.iter().filter(|p| p.scope == "new_board") {
         let g = newb.entry((p.setup.clone(), p.label.clone())).or_default();
         g.0.push(p.freq_hz);
         g.1.push(p.freq_obs_hz);
+        g.2.push(p.discrepancy_rel);
     }
     let mut out = vec![];
     // Free-free first, then bolted; labels in order within a setup.
     let mut newb: Vec<_> = newb.into_iter().collect();
     newb.sort_by(|a, b| (a.0 .0 != "free", &a.0 .1).cmp(&(b.0 .0 != "free", &b.0 .1)));
-    for ((setup, label), (model, obs)) in newb {
+    for ((setup, label), (model, obs, disc)) in newb {
         let ms: Vec<&Measured> = measured
             .iter()
             .filter(|m| m.setup == setup && m.label == label && !m.held_out)
@@ -253,6 +263,13 @@ pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Tab
             board_weighted_mean_sd(ms.iter().map(|m| (m.board_id.as_str(), m.freq_hz)));
         let (sm, ssd) = mean_sd(&model);
         let (_, psd) = mean_sd(&obs);
+        let (dm, dsd) = mean_sd(&disc);
+        let with_disc: Vec<f64> = model
+            .iter()
+            .zip(&disc)
+            .map(|(f, d)| f * (1.0 + d))
+            .collect();
+        let (swd, _) = mean_sd(&with_disc);
         let board_iv = |b: &str| {
             iv.iter().find(|i| {
                 i.scope == "board"
@@ -281,6 +298,9 @@ pub fn table2(preds: &[Pred], measured: &[Measured], iv: &[Interval]) -> Vec<Tab
             simulated_mean_hz: sm,
             simulated_sd_hz: ssd,
             predictive_sd_hz: psd,
+            discrepancy_mean_pct: 100.0 * dm,
+            discrepancy_sd_pct: 100.0 * dsd,
+            mean_error_with_discrepancy_pct: 100.0 * (swd - mm) / mm,
             mean_error_pct: 100.0 * (sm - mm) / mm,
             sd_error_pct: 100.0 * (psd - msd) / msd,
             board_coverage_90: if ms.is_empty() {
@@ -385,6 +405,7 @@ mod tests {
                     label: "m1".into(),
                     freq_hz: f,
                     freq_obs_hz: f,
+                    discrepancy_rel: 0.0,
                 });
             }
         }

@@ -42,6 +42,9 @@ pub const TABLE2: TableSpec = TableSpec {
         c("simulated_mean_hz", Col::Float64, true, "Hz", "Mean model frequency of a new board."),
         c("simulated_sd_hz", Col::Float64, true, "Hz", "Standard deviation of the model frequency of a new board."),
         c("predictive_sd_hz", Col::Float64, true, "Hz", "Standard deviation of a predicted measurement of a new board."),
+        c("discrepancy_mean_pct", Col::Float64, true, "%", "Model-form discrepancy of a new board's predicted measurement (predictions.parquet discrepancy_rel, in % of the frequency): its mean over the draws, 0 where the updating ran without one. Beside simulated_sd_hz (the parameters' spread), the model's own error."),
+        c("discrepancy_sd_pct", Col::Float64, true, "%", "Standard deviation of that discrepancy over the draws (its posterior spread; for a validation mode, its prior at the inferred scale)."),
+        c("mean_error_with_discrepancy_pct", Col::Float64, true, "%", "(simulated mean with the discrepancy - measured mean) / measured mean."),
         c("mean_error_pct", Col::Float64, true, "%", "(simulated mean - measured mean) / measured mean."),
         c("sd_error_pct", Col::Float64, true, "%", "(predictive sd - measured sd) / measured sd."),
         c("board_coverage_90", Col::Float64, true, "", "Fraction of the measurements inside their own board's predicted 90 % interval."),
@@ -99,6 +102,12 @@ fn read_preds(path: &Path) -> anyhow::Result<Vec<Pred>> {
             c.f64("freq_hz")?,
             c.f64("freq_obs_hz")?,
         );
+        // Absent from the predictions of a posterior without a discrepancy (older outputs).
+        let disc = b
+            .column_by_name("discrepancy_rel")
+            .is_some()
+            .then(|| c.f64("discrepancy_rel"))
+            .transpose()?;
         for i in 0..b.num_rows() {
             out.push(Pred {
                 scope: sc.value(i).into(),
@@ -107,6 +116,7 @@ fn read_preds(path: &Path) -> anyhow::Result<Vec<Pred>> {
                 label: l.value(i).into(),
                 freq_hz: f.value(i),
                 freq_obs_hz: fo.value(i),
+                discrepancy_rel: disc.map_or(0.0, |d| d.value(i)),
             });
         }
     }
@@ -412,6 +422,9 @@ fn write_table2(
         f(|r| r.simulated_mean_hz),
         f(|r| r.simulated_sd_hz),
         f(|r| r.predictive_sd_hz),
+        f(|r| r.discrepancy_mean_pct),
+        f(|r| r.discrepancy_sd_pct),
+        f(|r| r.mean_error_with_discrepancy_pct),
         f(|r| r.mean_error_pct),
         f(|r| r.sd_error_pct),
         f(|r| r.board_coverage_90),

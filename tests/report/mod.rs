@@ -565,14 +565,28 @@ fn diagnose_writes_a_verdict_and_the_same_bytes_in_another_directory() {
         [
             "no_missing_physics",
             "mechanism_found",
-            "unexplained_misfit"
+            "unexplained_misfit",
+            "model_form"
         ]
         .contains(&verdict),
         "{verdict}"
     );
-    // Without a misfit located the verdict is the null one, and the other way round.
+    // Without a structured misfit above the practical threshold the verdict is the null one
+    // (whatever the tests located), and the other way round; below it the sentence
+    // quantifies how far the model is from the boards.
     let any = doc["located"]["any"].as_bool().unwrap();
-    assert_eq!(any, verdict != "no_missing_physics", "{doc:#}");
+    let above = doc["located"]["above_practical_threshold"]
+        .as_bool()
+        .unwrap();
+    assert!(any || !above, "{doc:#}");
+    assert_eq!(above, verdict != "no_missing_physics", "{doc:#}");
+    if !above {
+        let s = doc["remaining_discrepancy"].as_str().unwrap();
+        assert!(
+            s.contains("the model differs from these boards by at most"),
+            "{s}"
+        );
+    }
     // No refit (--max-refits 0): nothing favoured, every candidate unrefitted; when step 2
     // did not run, that is reported, not fatal.
     assert!(doc["findings"].as_array().unwrap().is_empty());

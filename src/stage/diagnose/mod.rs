@@ -148,7 +148,15 @@ pub struct DiagnosisDoc {
 /// The located evidence in short.
 #[derive(Debug, Clone, serde::Serialize, schemars::JsonSchema)]
 pub struct LocatedSummary {
+    /// Anything located by the statistical tests (at the tolerance of `options.locate`).
     pub any: bool,
+    /// A structured misfit at or above the practical threshold (`options.select`): a located
+    /// mode's mean shift or covariate trend that large, an outlier measurement or a recurring
+    /// unpaired mode. Only then are candidates refitted and a misfit reported.
+    pub above_practical_threshold: bool,
+    /// The largest |mean relative residual| of any checked mode (`setup label`) and its
+    /// value: how far the model is from these boards at worst.
+    pub largest_mode_misfit: Option<(String, f64)>,
     pub setups: Vec<String>,
     pub modes: Vec<crate::diagnose::locate::LocatedMode>,
     pub measurements: Vec<String>,
@@ -534,6 +542,7 @@ fn summarize_refit(
         location_probes: vec![],
         location_note: None,
         remaining_share: None,
+        explained_rel: None,
         deviating_joints: vec![],
         new_modes: vec![],
     })
@@ -999,6 +1008,7 @@ fn refit(
             location_probes: vec![],
             location_note,
             remaining_share: None,
+            explained_rel: None,
             deviating_joints: vec![],
             new_modes: vec![],
         },
@@ -1087,7 +1097,9 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             None
         };
         let mut parts = MisfitParts::new(&located);
-        {
+        let above = above_practical_threshold(&located, opts.select.practical_threshold_rel);
+        // Below the practical threshold nothing is refitted: no finding could be claimed.
+        if above {
             // Joint mechanisms need step 2; board mechanisms only step 1. The refits stop
             // once every part of the located misfit (the mean shifts, each covariate trend)
             // has a favoured refit that leaves at most STOP_REMAINING_SHARE of it: the rest
@@ -1116,6 +1128,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                     let after = refit_residuals(&opts.out.join(&r.dir))?;
                     let shares = RefitShares::new(&located, &input, &after, &opts.locate);
                     r.remaining_share = shares.own(cand);
+                    r.explained_rel = shares.explained(cand);
                     Some(shares)
                 } else {
                     None
@@ -1149,10 +1162,16 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             &refits,
             &opts.select,
         );
-        let verdict = select::verdict(located.any, &compared);
+        let mut verdict = select::verdict(above, &compared);
+        let region_limit_m = board.length_x_m.min(board.width_y_m) / 4.0;
+        if verdict == Verdict::UnexplainedMisfit
+            && model_form_pattern(&located, &regions.0, region_limit_m)
+        {
+            verdict = Verdict::ModelForm;
+        }
         write_outputs(
             opts,
-            &located,
+            (&located, above),
             regions,
             &candidates,
             &compared,
@@ -1162,6 +1181,40 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             verbose,
         )
     })
+}
+
+/// Whether the located misfit holds a structured part at or above the practical threshold
+/// (relative frequency): a located mode's mean shift or a located covariate trend that large
+/// ([`crate::diagnose::misfit::largest_structured`]), an outlier measurement (several modes
+/// off together) or a recurring unpaired mode.
+fn above_practical_threshold(located: &Located, threshold: f64) -> bool {
+    located.any
+        && (crate::diagnose::misfit::largest_structured(located)
+            .is_some_and(|(_, v)| v >= threshold)
+            || !located.measurements.is_empty()
+            || !located.unpaired_clusters.is_empty())
+}
+
+/// Whether an unexplained misfit has the pattern of the model's form rather than of a
+/// concealed effect: it is in the free-free modes (the board itself, whatever its mounting),
+/// the localisation places it nowhere on the board (no located region whose 90 % radius is
+/// within `region_limit_m`: a region spanning the board is no place), and nothing singles out
+/// a measurement, a covariate or an unpaired mode. A concealed effect leaves one of those
+/// marks: a joint's only in bolted modes, a mass or a local stiffening a region, a drift a
+/// covariate trend, a loose bolt its measurements, a fixture its own mode. The stage's limit
+/// is a quarter of the board's shorter side (12.5 mm on the 80 × 50 mm board).
+fn model_form_pattern(
+    located: &Located,
+    regions: &[regions::BoardRegion],
+    region_limit_m: f64,
+) -> bool {
+    located.modes.iter().any(|m| m.setup == "free")
+        && !regions
+            .iter()
+            .any(|r| r.located && r.fit.region_radius_m <= region_limit_m)
+        && located.covariates.is_empty()
+        && located.measurements.is_empty()
+        && located.unpaired_clusters.is_empty()
 }
 
 /// A favoured refit that leaves at most this share of the located misfit explains it, and the
@@ -1331,7 +1384,7 @@ fn demote_weaker_regions(regions: &mut [regions::BoardRegion]) {
 #[allow(clippy::too_many_arguments)]
 fn write_outputs(
     opts: &DiagnoseOptions,
-    located: &Located,
+    (located, above): (&Located, bool),
     (board_regions, board_regions_note): (Vec<regions::BoardRegion>, String),
     candidates: &[Candidate],
     compared: &[Compared],
@@ -1428,12 +1481,36 @@ fn write_outputs(
             })
         })
         .collect();
+    let threshold = opts.select.practical_threshold_rel;
+    let largest = crate::diagnose::misfit::largest_mode_misfit(located);
     let remaining = match verdict {
-        Verdict::NoMissingPhysics => "none: no setup, mode, measurement or covariate misfits beyond the tolerance".to_string(),
+        Verdict::NoMissingPhysics => match &largest {
+            Some((at, v)) => format!(
+                "none: the model differs from these boards by at most {:.3} % ({at}){}; below the {:.2} % practical threshold, and included in the predicted intervals as the model-form discrepancy",
+                100.0 * v,
+                if located.any {
+                    " (statistically located, practically small)"
+                } else {
+                    ""
+                },
+                100.0 * threshold
+            ),
+            None => "none: no setup, mode, measurement or covariate misfits beyond the tolerance".to_string(),
+        },
         Verdict::MechanismFound => match &unexplained {
             Some(p) => format!("{p}: no favoured mechanism explains this part of the located misfit (none leaves at most {:.0} % of it); the favoured refits' residuals are in refits/<id>/residuals.parquet, the located evidence below is the baseline's", 100.0 * STOP_REMAINING_SHARE),
             None => "see the best candidate's refit residuals (refits/<id>/residuals.parquet); the located evidence below is the baseline's".to_string(),
         },
+        Verdict::ModelForm => {
+            let (at, v) = crate::diagnose::misfit::largest_structured(located)
+                .unwrap_or_else(|| ("?".into(), f64::NAN));
+            format!(
+                "model form: the model differs from every board alike by up to {:.3} % ({at}), above the {:.2} % practical threshold, in the free-free modes (the board itself, whatever its mounting), placed nowhere on the board, and with no covariate trend, outlier measurement or unpaired mode: the form of the model (a thin plate without transverse shear and rotary inertia, copper homogenised into the laminate), not a concealed effect. It is in the predicted intervals as the model-form discrepancy; a richer model would narrow them. Located modes: {:?}",
+                100.0 * v,
+                100.0 * threshold,
+                located.modes.iter().map(|m| format!("{}/{}", m.setup, m.label)).collect::<Vec<_>>(),
+            )
+        }
         Verdict::UnexplainedMisfit => format!(
             "located but not explained by any refitted mechanism: setups {:?}, modes {:?}, measurements {:?}, covariates {:?}{}",
             located.setups,
@@ -1452,11 +1529,16 @@ fn write_outputs(
             Severity::Warning,
             match verdict {
                 Verdict::MechanismFound => "diagnose.mechanism_found",
+                Verdict::ModelForm => "diagnose.model_form",
                 _ => "diagnose.unexplained_misfit",
             },
-            rows.first()
-                .map(sentence)
-                .unwrap_or_else(|| remaining.clone()),
+            if verdict == Verdict::ModelForm {
+                remaining.clone()
+            } else {
+                rows.first()
+                    .map(sentence)
+                    .unwrap_or_else(|| remaining.clone())
+            },
         ));
     }
     if let (Verdict::MechanismFound, Some(p)) = (verdict, &unexplained) {
@@ -1496,6 +1578,8 @@ fn write_outputs(
         verdict,
         located: LocatedSummary {
             any: located.any,
+            above_practical_threshold: above,
+            largest_mode_misfit: largest.clone(),
             setups: located.setups.clone(),
             modes: located.modes.clone(),
             measurements: located.measurements.clone(),
@@ -1690,9 +1774,10 @@ fn write_outputs(
 
 #[cfg(test)]
 mod tests {
-    use super::demote_weaker_regions;
+    use super::{above_practical_threshold, demote_weaker_regions, model_form_pattern};
     use crate::diagnose::library::Mechanism;
     use crate::diagnose::localize::LocalFit;
+    use crate::diagnose::locate::{self, LocateInput, LocateOptions, LocatedMode};
     use crate::stage::diagnose::regions::BoardRegion;
 
     fn region(mechanism: Mechanism, share: f64, combined: Option<f64>) -> BoardRegion {
@@ -1716,6 +1801,44 @@ mod tests {
             combined_delta_chi2: combined,
             ..BoardRegion::located_fit(mechanism, fit, "Fit.")
         }
+    }
+
+    /// A located mean shift counts as a finding only at or above the practical threshold;
+    /// an unexplained free-free misfit placed nowhere on the board is the model's form, and a
+    /// located region, an outlier measurement or a bolted-only misfit is not.
+    #[test]
+    fn the_practical_threshold_and_the_model_form_pattern() {
+        let mut loc = locate::locate(&LocateInput::default(), &LocateOptions::default());
+        let shift = |setup: &str, r: f64| LocatedMode {
+            setup: setup.into(),
+            label: "plate-2-2".into(),
+            mean_rel_residual: r,
+            reasons: vec!["mean_shift".into()],
+        };
+        assert!(!above_practical_threshold(&loc, 3e-3), "nothing located");
+        loc.any = true;
+        loc.modes = vec![shift("free", -0.0011)];
+        assert!(!above_practical_threshold(&loc, 3e-3), "0.11 % < 0.3 %");
+        assert!(above_practical_threshold(&loc, 1e-3));
+        loc.modes.push(shift("bolted", 0.007));
+        assert!(above_practical_threshold(&loc, 3e-3));
+        assert!(model_form_pattern(&loc, &[], 0.0125));
+        // A region of 10 mm places the misfit; one spanning the board does not.
+        let placed = region(Mechanism::AddedMass, 0.9, None);
+        assert!(!model_form_pattern(
+            &loc,
+            std::slice::from_ref(&placed),
+            0.0125
+        ));
+        let mut wide = placed;
+        wide.fit.region_radius_m = 0.055;
+        assert!(model_form_pattern(&loc, &[wide], 0.0125));
+        let mut one = loc.clone();
+        one.measurements = vec!["M040".into()];
+        assert!(!model_form_pattern(&one, &[], 0.0125));
+        let mut bolted = loc.clone();
+        bolted.modes.remove(0);
+        assert!(!model_form_pattern(&bolted, &[], 0.0125));
     }
 
     /// Two signatures that explain the frequencies alike: with shape terms the combined Δχ²
