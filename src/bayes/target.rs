@@ -87,6 +87,22 @@ impl ErrorModel {
         let d = self.discrepancy.as_ref()?;
         Some(d.scale(&h[self.scales_dim()..]))
     }
+    /// The discrepancy's per-unit scale σ_u of the error block h (`None` without one).
+    pub fn discrepancy_unit_scale(&self, h: &[f64]) -> Option<f64> {
+        let d = self.discrepancy.as_ref()?;
+        Some(d.unit_scale(&h[self.scales_dim()..]))
+    }
+    /// The sd per mode of the per-unit model error integrated out ([`modal::log_lik_with`]):
+    /// the fixed `model_error_sd` and the discrepancy's σ_u together (empty: none).
+    pub fn unit_model_error_sd(&self, h: &[f64]) -> Vec<f64> {
+        let u2 = self.discrepancy_unit_scale(h).map(|s| s * s);
+        match (&self.model_error_sd, u2) {
+            (Some(sd), Some(v)) => sd.iter().map(|s| (s * s + v).sqrt()).collect(),
+            (Some(sd), None) => sd.clone(),
+            (None, Some(v)) => vec![v.sqrt(); self.n_modes],
+            (None, None) => vec![],
+        }
+    }
     /// Names of the coordinates given the mode labels.
     pub fn names(&self, labels: &[String]) -> Vec<String> {
         let mut out = vec![];
@@ -363,7 +379,7 @@ impl ModalTarget {
             pop,
             lp_pop,
             logs: modal::ErrorLogs::new(&eps, &delta)
-                .with_model_error(self.errors.model_error_sd.as_deref().unwrap_or(&[]))
+                .with_model_error(&self.errors.unit_model_error_sd(h))
                 .with_bias(&bias),
             eps,
             delta,

@@ -221,6 +221,7 @@ fn eps_columns(
 /// `discrepancy_<label>` of the updated labels); both `None` where the step ran without one.
 struct DiscrepancyCols<'a> {
     scale: Option<&'a Float64Array>,
+    unit_scale: Option<&'a Float64Array>,
     d: Vec<Option<&'a Float64Array>>,
 }
 
@@ -233,11 +234,17 @@ impl<'a> DiscrepancyCols<'a> {
         if b.column_by_name("discrepancy_scale").is_none() {
             return Ok(DiscrepancyCols {
                 scale: None,
+                unit_scale: None,
                 d: vec![None; labels.len()],
             });
         }
         Ok(DiscrepancyCols {
             scale: Some(f64_col(b, "discrepancy_scale", path)?),
+            unit_scale: b
+                .column_by_name("discrepancy_unit_scale")
+                .is_some()
+                .then(|| f64_col(b, "discrepancy_unit_scale", path))
+                .transpose()?,
             d: labels
                 .iter()
                 .map(|l| {
@@ -255,6 +262,7 @@ impl<'a> DiscrepancyCols<'a> {
         uq::Discrepancy {
             d: self.d.iter().map(|c| c.map(|a| a.value(r))).collect(),
             scale: self.scale.map(|a| a.value(r)),
+            unit_scale: self.unit_scale.map(|a| a.value(r)),
         }
     }
 }
@@ -495,6 +503,12 @@ fn read_step1(
             p.boards.push(v);
         }
     }
+    // With a per-unit discrepancy, each measured board's own offset per updated label.
+    let board_offsets = if step1.iter().any(|p| p.discrepancy.unit_scale.is_some()) {
+        board_offsets(&dir.join("residuals.parquet"), &board_ids, labels, &updated)?
+    } else {
+        vec![]
+    };
     Ok((
         Posterior {
             params,
@@ -502,9 +516,47 @@ fn read_step1(
             board_ids,
             step1,
             step2: None,
+            board_offsets,
         },
         index,
     ))
+}
+
+/// Per board (order of `board_ids`) and free label: the mean measured eigenvalue (2π f̂)²
+/// over the board's measurements in the step-1 residuals and their number; `None` for a
+/// label not updated or without a measurement of the board.
+fn board_offsets(
+    path: &Path,
+    board_ids: &[String],
+    labels: &[String],
+    updated: &BTreeSet<String>,
+) -> anyhow::Result<Vec<Vec<Option<uq::BoardMean>>>> {
+    let rows = crate::stage::diagnose::inputs::read_residuals(path)
+        .with_context(|| format!("reading {}", path.display()))?;
+    let mut acc: BTreeMap<(&str, &str), (f64, usize)> = BTreeMap::new();
+    let two_pi = 2.0 * std::f64::consts::PI;
+    for r in rows
+        .iter()
+        .filter(|r| r.setup == "free" && r.freq_hz.is_finite())
+    {
+        let e = acc
+            .entry((r.board_id.as_str(), r.label.as_str()))
+            .or_default();
+        e.0 += (two_pi * r.freq_hz).powi(2);
+        e.1 += 1;
+    }
+    Ok(board_ids
+        .iter()
+        .map(|b| {
+            labels
+                .iter()
+                .map(|l| {
+                    let (sum, n) = acc.get(&(b.as_str(), l.as_str())).copied()?;
+                    (updated.contains(l) && n > 0).then(|| (sum / n as f64, n))
+                })
+                .collect()
+        })
+        .collect())
 }
 
 fn read_step2(

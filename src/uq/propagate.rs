@@ -36,7 +36,11 @@
 //! The model-form discrepancy of each step ([`Discrepancy`], `bayes::discrepancy`): every
 //! evaluation's eigenvalue of a label is λ (1 + d), d the particle's discrepancy of the label
 //! (common to every board, new or measured), or for a label the step did not update a draw
-//! from N(0, τ²) at the particle's scale τ. It enters f_obs only; f stays the model's.
+//! from N(0, τ²) at the particle's scale τ. It enters f_obs only; f stays the model's. Its
+//! per-unit part σ_u joins the model-error term b where b is drawn: a new board, a validation
+//! label, and (with σ_u) every bolted prediction, whose mounting is new. A measured board's
+//! updated label takes the board's own offset from the model instead, where the stage gives
+//! it ([`Posterior::board_offsets`]): its measurements fixed both parts.
 //!
 //! Parameters outside the admissible region (non-positive moduli, ν² E_y/E_x ≥ 1) or where a
 //! label cannot be tracked give no row; they are counted in [`Counts`], never dropped
@@ -198,6 +202,9 @@ pub struct Step1Particle {
 pub struct Discrepancy {
     pub d: Vec<Option<f64>>,
     pub scale: Option<f64>,
+    /// The sd σ_u of the part that differs between units (boards, or bolted measurements):
+    /// added to the model-error term where that is drawn (`None`: none).
+    pub unit_scale: Option<f64>,
 }
 
 impl Discrepancy {
@@ -206,6 +213,7 @@ impl Discrepancy {
         Discrepancy {
             d: vec![None; n],
             scale: None,
+            unit_scale: None,
         }
     }
 }
@@ -236,7 +244,16 @@ pub struct Posterior {
     pub step1: Vec<Step1Particle>,
     /// Step 2 (bolted), when given.
     pub step2: Option<Vec<Step2Particle>>,
+    /// Per measured board (order of `board_ids`), per free label: the board's measured mean
+    /// eigenvalue λ̄ (rad²/s²) and its number of measurements, for the labels step 1 updated
+    /// with a per-unit discrepancy; empty or `None`: none. With them a measured board's
+    /// prediction of an updated label is conditioned on what its measurements fixed of the
+    /// model error (see [`evaluate`]).
+    pub board_offsets: Vec<Vec<Option<BoardMean>>>,
 }
+
+/// A measured board's mean eigenvalue of a label (rad²/s²) and its number of measurements.
+pub type BoardMean = (f64, usize);
 
 /// Which population the prediction is for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
@@ -467,7 +484,7 @@ fn evaluate(
     idx: &[usize],
     theta: &[f64],
     k_con: Option<(usize, f64)>,
-    (eps, disc): (&[Option<f64>], &Discrepancy),
+    (eps, disc, offsets): (&[Option<f64>], &Discrepancy, &[Option<BoardMean>]),
     head: (u32, Scope, Option<usize>, SetupKind),
     rng: &mut ChaCha8Rng,
     out: &mut Vec<Prediction>,
@@ -520,7 +537,12 @@ fn evaluate(
         let to_hz = |x: f64| x.max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
         // The model error: drawn where the data have not fixed it (module doc).
         let s = model.model_error_sd.get(l).copied().unwrap_or(0.0);
-        let b = if scope == Scope::NewBoard || eps[l].is_none() {
+        let s = s.hypot(disc.unit_scale.unwrap_or(0.0));
+        // A new unit: a new board, or bolted with a new joint when the per-unit part is
+        // inferred (a bolted unit is a measurement, a mounting: the next one is new).
+        let new_unit =
+            scope == Scope::NewBoard || (setup == SetupKind::Bolted && disc.unit_scale.is_some());
+        let b = if new_unit || eps[l].is_none() {
             s * z_b
         } else {
             0.0
@@ -529,6 +551,18 @@ fn evaluate(
             (Some(d), _) => d,
             (None, Some(tau)) => tau * z_disc[l],
             (None, None) => 0.0,
+        };
+        // A measured board's own offset, where its measurements fixed it (common and per-unit
+        // part at once): the model error t of this draw's λ against the board's measured mean
+        // λ̄, given the n measurements, is normal with mean k (λ̄/λ − 1), k = s²/(s² + ε²/n)
+        // the shrinkage of its N(0, s²) prior (s: the per-unit sd), and sd √(k ε²/n).
+        let (d, b) = match (offsets.get(l).copied().flatten(), eps[l]) {
+            (Some((mean, n)), Some(e)) if !new_unit && n > 0 => {
+                let v = e * e / n as f64;
+                let k = s * s / (s * s + v);
+                (k * (mean / lam - 1.0) + (k * v).sqrt() * z_b, 0.0)
+            }
+            _ => (d, b),
         };
         out.push(Prediction {
             draw,
@@ -606,7 +640,7 @@ fn one_draw(
         &models.free_idx,
         &theta,
         None,
-        (&p.eps, &p.discrepancy),
+        (&p.eps, &p.discrepancy, &[]),
         (draw, Scope::NewBoard, None, SetupKind::Free),
         rng,
         &mut out,
@@ -622,7 +656,11 @@ fn one_draw(
             &models.free_idx,
             th,
             None,
-            (&p.eps, &p.discrepancy),
+            (
+                &p.eps,
+                &p.discrepancy,
+                post.board_offsets.get(b).map_or(&[][..], |v| v.as_slice()),
+            ),
             (draw, Scope::Board, Some(b), SetupKind::Free),
             rng,
             &mut out,
@@ -646,7 +684,7 @@ fn one_draw(
             bidx,
             &theta,
             Some((*kidx, k)),
-            (&q.eps, &q.discrepancy),
+            (&q.eps, &q.discrepancy, &[]),
             (draw, Scope::NewBoard, None, SetupKind::Bolted),
             rng,
             &mut out,
@@ -660,7 +698,7 @@ fn one_draw(
                 bidx,
                 th,
                 Some((*kidx, k)),
-                (&q.eps, &q.discrepancy),
+                (&q.eps, &q.discrepancy, &[]),
                 (draw, Scope::Board, Some(b), SetupKind::Bolted),
                 rng,
                 &mut out,
@@ -730,6 +768,7 @@ mod tests {
                 eps,
             }],
             step2: None,
+            board_offsets: vec![],
         }
     }
 
@@ -814,6 +853,7 @@ mod tests {
         post.step1[0].discrepancy = Discrepancy {
             d: vec![Some(0.01), None],
             scale: Some(0.02),
+            unit_scale: None,
         };
         let n = 4000;
         let (preds, _) = propagate(&post, &models, n, 3).unwrap();
@@ -841,6 +881,42 @@ mod tests {
         for p in preds.iter().filter(|p| p.label == 0) {
             assert!((p.discrepancy_rel - (1.01f64.sqrt() - 1.0)).abs() < 1e-15);
         }
+    }
+
+    /// A measured board's updated label with a per-unit discrepancy is conditioned on what
+    /// its measurements fixed: its predicted measurement centres on the board's measured mean
+    /// (shrunk by s²/(s² + ε²/n)), whatever the draw's parameters; a new board draws the
+    /// per-unit part from N(0, s²).
+    #[test]
+    fn a_measured_board_is_predicted_from_its_own_offset() {
+        let lm = model();
+        let models = mass_scale_models(&lm);
+        let mut post = posterior(vec![Some(1e-4), None]);
+        post.step1[0].discrepancy = Discrepancy {
+            d: vec![Some(0.0), None],
+            scale: Some(1e-9),
+            unit_scale: Some(0.01),
+        };
+        let lam = lm.eigenvalues(&lm.rom.map.nominal).unwrap()[0] / 1.1;
+        let mean = lam * 1.004;
+        post.board_offsets = vec![vec![Some((mean, 5)), None]];
+        let n = 2000;
+        let (preds, _) = propagate(&post, &models, n, 5).unwrap();
+        let two_pi = 2.0 * std::f64::consts::PI;
+        let obs = |scope: Scope| -> Vec<f64> {
+            preds
+                .iter()
+                .filter(|p| p.scope == scope && p.label == 0)
+                .map(|p| (two_pi * p.freq_obs_hz).powi(2) / mean - 1.0)
+                .collect()
+        };
+        let k = 1e-4 / (1e-4 + 1e-8 / 5.0);
+        let (m, sd) = crate::report::validation::mean_sd(&obs(Scope::Board));
+        // Centred on k λ̄ + (1 − k) λ; spread ε (1 + k/n)^½ ≈ 1.1e-4.
+        assert!((m - (k - 1.0) * 0.004 / 1.004).abs() < 2e-5, "mean {m}");
+        assert!(sd < 2e-4, "sd {sd}");
+        let (_, sd_new) = crate::report::validation::mean_sd(&obs(Scope::NewBoard));
+        assert!(sd_new > 0.009, "a new board's spread {sd_new}");
     }
 
     #[test]
