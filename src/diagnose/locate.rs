@@ -124,6 +124,9 @@ pub struct LocateInput {
     pub pairs: Vec<PairObs>,
 }
 
+/// The sheet column naming the board, tested as a covariate (boards that differ).
+pub const BOARD_COVARIATE: &str = "board_id";
+
 /// Tuning knobs of [`locate`].
 #[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
 pub struct LocateOptions {
@@ -1304,7 +1307,7 @@ fn covariate_tests(
                     .map(|l| xcat.iter().map(|x| f64::from(u8::from(&x == l))).collect())
                     .collect()
             };
-            let is_board = cov.name == "board_id";
+            let is_board = cov.name == BOARD_COVARIATE;
             let intercept = vec![vec![1.0; n]];
             let blocked = (!is_board)
                 .then(|| {

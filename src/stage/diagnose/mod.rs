@@ -1199,7 +1199,9 @@ fn above_practical_threshold(located: &Located, threshold: f64) -> bool {
 /// concealed effect: it is in the free-free modes (the board itself, whatever its mounting),
 /// the localisation places it nowhere on the board (no located region whose 90 % radius is
 /// within `region_limit_m`: a region spanning the board is no place), and nothing singles out
-/// a measurement, a covariate or an unpaired mode. A concealed effect leaves one of those
+/// a measurement, a covariate or an unpaired mode. Boards that differ from one another (the
+/// `board_id` covariate) do not count against it: the discrepancy's per-unit part is the
+/// model's form erring differently on each board. A concealed effect leaves one of those
 /// marks: a joint's only in bolted modes, a mass or a local stiffening a region, a drift a
 /// covariate trend, a loose bolt its measurements, a fixture its own mode. The stage's limit
 /// is a quarter of the board's shorter side (12.5 mm on the 80 × 50 mm board).
@@ -1212,7 +1214,10 @@ fn model_form_pattern(
         && !regions
             .iter()
             .any(|r| r.located && r.fit.region_radius_m <= region_limit_m)
-        && located.covariates.is_empty()
+        && located
+            .covariates
+            .iter()
+            .all(|c| c.covariate == crate::diagnose::locate::BOARD_COVARIATE)
         && located.measurements.is_empty()
         && located.unpaired_clusters.is_empty()
 }
@@ -1836,6 +1841,19 @@ mod tests {
         let mut one = loc.clone();
         one.measurements = vec!["M040".into()];
         assert!(!model_form_pattern(&one, &[], 0.0125));
+        // Boards that differ are the per-unit discrepancy's; a temperature trend is not.
+        let cov = |name: &str| locate::LocatedCovariate {
+            setup: "free".into(),
+            covariate: name.into(),
+            q_value: 1e-6,
+            slope_rel_per_unit: None,
+            unit: String::new(),
+        };
+        let mut boards = loc.clone();
+        boards.covariates = vec![cov("board_id")];
+        assert!(model_form_pattern(&boards, &[], 0.0125));
+        boards.covariates.push(cov("temperature_c"));
+        assert!(!model_form_pattern(&boards, &[], 0.0125));
         let mut bolted = loc.clone();
         bolted.modes.remove(0);
         assert!(!model_form_pattern(&bolted, &[], 0.0125));
