@@ -160,7 +160,7 @@ enum Command {
         only: Option<String>,
         /// The practical threshold, in % of a frequency: a misfit smaller than this is no
         /// finding, however significant, and a mechanism must remove at least this much
-        /// (argued in diagnose::select::DEFAULT_PRACTICAL_THRESHOLD_REL) [default: 0.3]
+        /// (argued in diagnose::select::DEFAULT_PRACTICAL_THRESHOLD_REL) [default: 0.1]
         #[arg(long, value_name = "PCT")]
         practical_threshold_pct: Option<f64>,
         #[arg(long)]
@@ -300,7 +300,8 @@ struct UpdateArgs {
     /// The model's stated fidelity, in % of frequency: the prior median of the scale of the
     /// model-form discrepancy, a per-mode bias common to every unit that the parameters
     /// cannot absorb (bayes::discrepancy). 0 takes the model as exact
-    /// [default: 0.5 for boards (free-free), 1.5 for joints (bolted)]
+    /// [default: 0.5 for boards (free-free); none for joints (bolted), where the bolted
+    /// model's stated fidelity is 1.5]
     #[arg(long, value_name = "PCT")]
     discrepancy_pct: Option<f64>,
     /// Step 1: floor of the balance term's standard deviation, relative to the weighed mass.

@@ -180,20 +180,19 @@ pub struct SelectOptions {
     /// hundreds of measurements every discrepancy is statistically significant; a misfit is a
     /// finding only when it is also this large, and a mechanism only when it removes this
     /// much. Below it the verdict is `no_missing_physics`, with the model's discrepancy
-    /// quantified. Default 0.3 % ([`DEFAULT_PRACTICAL_THRESHOLD_REL`]).
+    /// quantified. Default 0.1 % ([`DEFAULT_PRACTICAL_THRESHOLD_REL`]).
     #[serde(default = "default_practical_threshold_rel")]
     pub practical_threshold_rel: f64,
 }
 
-/// The default practical threshold, 0.3 % of a frequency. The paper this tool grows from
-/// calls its updated free-free model in good agreement with the measurements: its Table 2
-/// mean errors are within 0.14 % in seven of eight modes, and it singles out the eighth, at
-/// 0.56 %, as "a higher deviation of about 0.5 %"; its bolted model's 1.5 % it attributes to
-/// model inadequacy. 0.3 % lies between the agreement it accepts and the deviation it
-/// notes. It is also the median frequency fidelity a thin-plate model of a PCB has
-/// ([`crate::bayes::discrepancy::FREE_FIDELITY_FREQ`] is 0.5 %; its lower modes, with
-/// transverse shear below 0.3 %, are the ones a practical model must get right).
-pub const DEFAULT_PRACTICAL_THRESHOLD_REL: f64 = 3e-3;
+/// The default practical threshold, 0.1 % of a frequency: the paper this tool grows from
+/// calls its updated free-free model in good agreement with the measurements, and its
+/// Table 2 mean errors are within 0.14 % in seven of eight modes (median 0.04 %); it singles
+/// out the eighth, at 0.56 %, as "a higher deviation". A misfit the calibrated model leaves
+/// below 0.1 % is at the level the reference calls good agreement. It is not larger because
+/// a joint or board effect is largely absorbed by the calibration: what it leaves in the
+/// modes is a fraction of its shift of them.
+pub const DEFAULT_PRACTICAL_THRESHOLD_REL: f64 = 1e-3;
 
 fn default_practical_threshold_rel() -> f64 {
     DEFAULT_PRACTICAL_THRESHOLD_REL
