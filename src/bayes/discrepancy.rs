@@ -183,14 +183,6 @@ impl Discrepancy {
         }
         out
     }
-
-    /// The block's prior centre (ln τ₀, ln σ_u0, 0, …, 0).
-    pub fn prior_centre(&self) -> Vec<f64> {
-        [self.scale_median.ln(), self.unit_scale_median.ln()]
-            .into_iter()
-            .chain(std::iter::repeat_n(0.0, self.k))
-            .collect()
-    }
 }
 
 /// Relative sensitivities ∂λ_m/λ_m per coordinate at x0 by central differences of step
@@ -330,7 +322,6 @@ mod tests {
         taus.sort_by(f64::total_cmp);
         let median = taus[n / 2];
         assert!((median / disc.scale_median - 1.0).abs() < 0.05, "{median}");
-        assert_eq!(disc.prior_centre().len(), disc.dim());
         let mut units: Vec<f64> = (0..2001)
             .map(|_| disc.unit_scale(&disc.sample(&mut rng)))
             .collect();

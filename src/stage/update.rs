@@ -1270,6 +1270,36 @@ fn no_bolted_data(
 }
 
 /// Evidence of the runs: each run's log evidence, their mean and standard error.
+/// The population columns of a step's discrepancy: its scale, its per-unit scale and d per
+/// label (relative eigenvalue), in the order of [`discrepancy_values`].
+fn discrepancy_columns(labels: &[String]) -> Vec<(String, String)> {
+    [
+        "discrepancy_scale".to_string(),
+        "discrepancy_unit_scale".to_string(),
+    ]
+    .into_iter()
+    .chain(labels.iter().map(|l| format!("discrepancy_{l}")))
+    .map(|n| (n, String::new()))
+    .collect()
+}
+
+/// The values of [`discrepancy_columns`] at the global vector g (its context `ctx`).
+fn discrepancy_values(
+    target: &ModalTarget,
+    g: &[f64],
+    ctx: &crate::bayes::target::Ctx,
+) -> Vec<f64> {
+    let h = &g[target.prior.dim()..];
+    let e = &target.errors;
+    [
+        e.discrepancy_scale(h).unwrap_or(f64::NAN),
+        e.discrepancy_unit_scale(h).unwrap_or(f64::NAN),
+    ]
+    .into_iter()
+    .chain(ctx.bias.iter().copied())
+    .collect()
+}
+
 /// evidence.json's `discrepancy`: the prior of the model-form discrepancy (null without one).
 fn discrepancy_json(target: &ModalTarget, labels: &[String]) -> serde_json::Value {
     match &target.errors.discrepancy {
@@ -1964,13 +1994,7 @@ fn population_columns<'a>(
     }
     let with_discrepancy = target.errors.discrepancy.is_some();
     if with_discrepancy {
-        cols.push(("discrepancy_scale".into(), String::new()));
-        cols.push(("discrepancy_unit_scale".into(), String::new()));
-        cols.extend(
-            labels
-                .iter()
-                .map(|l| (format!("discrepancy_{l}"), String::new())),
-        );
+        cols.extend(discrepancy_columns(labels));
     }
     // The covariate coefficient (absolute, the unit coordinate after the parameters).
     if let Some(c) = &target.covariate {
@@ -2009,11 +2033,7 @@ fn population_columns<'a>(
             v.extend(&ctx.delta);
         }
         if with_discrepancy {
-            let pd = target.prior.dim();
-            let e = &target.errors;
-            v.push(e.discrepancy_scale(&g[pd..]).unwrap_or(f64::NAN));
-            v.push(e.discrepancy_unit_scale(&g[pd..]).unwrap_or(f64::NAN));
-            v.extend(&ctx.bias);
+            v.extend(discrepancy_values(target, g, &ctx));
         }
         if with_beta {
             v.push(ctx.pop.mu[d]);
@@ -4585,14 +4605,7 @@ pub fn run_joints(
         }
         let with_discrepancy = target.errors.discrepancy.is_some();
         if with_discrepancy {
-            pcols.push(("discrepancy_scale".into(), String::new()));
-            pcols.push(("discrepancy_unit_scale".into(), String::new()));
-            pcols.extend(
-                labels
-                    .labels
-                    .iter()
-                    .map(|l| (format!("discrepancy_{l}"), String::new())),
-            );
+            pcols.extend(discrepancy_columns(&labels.labels));
         }
         let mut pop = DrawTable::new(&pcols);
         let jcols: Vec<(String, String)> = enr
@@ -4617,11 +4630,7 @@ pub fn run_joints(
                 row.extend(&ctx.delta);
             }
             if with_discrepancy {
-                let pd = target.prior.dim();
-                let e = &target.errors;
-                row.push(e.discrepancy_scale(&p.g[pd..]).unwrap_or(f64::NAN));
-                row.push(e.discrepancy_unit_scale(&p.g[pd..]).unwrap_or(f64::NAN));
-                row.extend(&ctx.bias);
+                row.extend(discrepancy_values(&target, &p.g, &ctx));
             }
             pop.push(r, i, None, &row);
             let g = i / group;
