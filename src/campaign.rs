@@ -22,6 +22,11 @@
 //!   reading is off its nominal by more than the readings' allowed spread: warning
 //!   `balance.check_weight_off`.
 //!
+//! Beyond the contract's mobility scans, a response record measured as accelerance or
+//! receptance (or a transmissibility of other motions) is converted by (iω)^q and keeps what
+//! it was in `measured_as`; a roving hammer (one response node, the reference moving) is read
+//! by reciprocity; mode sets (dataset 55) are named in a finding but not used.
+//!
 //! A row the lab marked invalid is quarantined (`sheet.marked_invalid`): its notes start with
 //! `invalid` (any case, e.g. `INVALID - double hit, repeated as M013`), or an extra column
 //! `valid` says `no`/`false`/`0`/`n`/`invalid`. A note `repeat of <id>` is checked against
@@ -85,6 +90,10 @@ pub struct Record {
     pub response_direction: i32,
     pub reference_node: i64,
     pub reference_direction: i32,
+    /// What the record measured, numerator/denominator (`acceleration/force`, `velocity/velocity`,
+    /// `coherence`, or `unspecified` when the file names no motion): the ordinate is converted
+    /// to the contract's quantity (`ordinate_unit`).
+    pub measured_as: String,
     pub ordinate_unit: &'static str,
     pub freq_start_hz: f64,
     pub freq_step_hz: f64,
@@ -383,6 +392,98 @@ fn ordinate_factor(f: &uff::Function58, units: Option<&uff::Units164>) -> f64 {
     1.0 / (u.length_factor.powi(le) * u.force_factor.powi(fe))
 }
 
+/// Order of the time derivative a dataset-58 axis measures (UFF specific data type, record 9
+/// or 10 field 1): 8 displacement 0, 11 velocity 1, 12 acceleration 2. `None` for anything
+/// else (0 unknown, 1 general, 13 force, ...).
+fn motion_order(spec_data_type: i64) -> Option<i32> {
+    match spec_data_type {
+        8 => Some(0),
+        11 => Some(1),
+        12 => Some(2),
+        _ => None,
+    }
+}
+
+fn motion_name(order: i32) -> &'static str {
+    match order {
+        0 => "displacement",
+        1 => "velocity",
+        _ => "acceleration",
+    }
+}
+
+/// What a response record measured, and the power q of iω that turns it into the contract's
+/// quantity (mobility for an FRF, a velocity ratio for a transmissibility): the stored value is
+/// the measured one times (iω)^q. An accelerance (acceleration/force) has q = -1, a receptance
+/// q = +1. A numerator that names no motion (specific data type 0 unknown, 1 general) is
+/// taken as the contract's quantity and called `unspecified`.
+fn measured_as(f: &uff::Function58) -> (String, i32) {
+    let num = motion_order(f.ordinate_axis.spec_data_type);
+    match f.function_type {
+        FunctionType::Transmissibility => {
+            let den = motion_order(f.denominator_axis.spec_data_type);
+            match (num, den) {
+                (Some(n), Some(d)) => (format!("{}/{}", motion_name(n), motion_name(d)), d - n),
+                // One side named: the other is taken as the same quantity (a plain ratio).
+                (Some(n), None) | (None, Some(n)) => {
+                    (format!("{}/{}", motion_name(n), motion_name(n)), 0)
+                }
+                (None, None) => ("unspecified".to_owned(), 0),
+            }
+        }
+        _ => match num {
+            Some(n) => (format!("{}/force", motion_name(n)), 1 - n),
+            None => ("unspecified".to_owned(), 0),
+        },
+    }
+}
+
+/// Multiplies a spectrum by (iω)^q, ω = 2π f_k, in place. The lines at 0 Hz, where a division
+/// by iω has no value, are set to 0; returns how many.
+fn times_i_omega_pow(q: i32, f0_hz: f64, df_hz: f64, re: &mut [f64], im: &mut [f64]) -> usize {
+    let mut zeroed = 0;
+    if q == 0 {
+        return 0;
+    }
+    for (k, (r, i)) in re.iter_mut().zip(im.iter_mut()).enumerate() {
+        let w = std::f64::consts::TAU * (f0_hz + k as f64 * df_hz);
+        if w == 0.0 && q < 0 {
+            (*r, *i) = (0.0, 0.0);
+            zeroed += 1;
+            continue;
+        }
+        // (iω)^q = ω^q · i^q, and i^q cycles through 1, i, -1, -i.
+        let m = w.powi(q);
+        let (a, b) = (*r * m, *i * m);
+        (*r, *i) = match q.rem_euclid(4) {
+            0 => (a, b),
+            1 => (-b, a),
+            2 => (-a, -b),
+            _ => (b, -a),
+        };
+    }
+    zeroed
+}
+
+/// A roving hammer: every response record of the setup's function type shares one response
+/// node (the fixed accelerometer) and they move the reference over several nodes. By Maxwell's
+/// reciprocity H(a, b) = H(b, a), so each record is read as the response at its reference node
+/// to an excitation at the fixed node. Returns the fixed node.
+fn roving_response_node(datasets: &[Dataset], expected_type: i32) -> Option<i64> {
+    let recs: Vec<&uff::Function58> = datasets
+        .iter()
+        .filter_map(|d| match d {
+            Dataset::Function(f) if f.function_type.code() as i32 == expected_type => Some(f),
+            _ => None,
+        })
+        .collect();
+    let responses: BTreeSet<i64> = recs.iter().map(|f| f.response_node).collect();
+    let references: BTreeSet<i64> = recs.iter().map(|f| f.reference_node).collect();
+    // Only an FRF can rove: a base-excited transmissibility has one physical reference.
+    (expected_type == 4 && responses.len() == 1 && references.len() >= 2)
+        .then(|| *responses.first().expect("one response node"))
+}
+
 /// Parse one measurement's UFF and fill `m`; returns its findings. Quarantines on fatal issues.
 fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
     let mut fd = Findings::default();
@@ -493,10 +594,38 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
     let mut axis: Option<(f64, f64, usize)> = None;
     let mut seen: BTreeSet<(i64, i32)> = BTreeSet::new();
     let mut ref_count: BTreeMap<i64, usize> = BTreeMap::new();
+    let roving = roving_response_node(&parsed.datasets, expected_type);
+    if let Some(fixed) = roving {
+        fd.push(
+            Finding::new(
+                Severity::Info,
+                "uff.roving_reference",
+                format!("every response record has response node {fixed} and the reference moves over several nodes (a roving hammer): by reciprocity each record is read as the response at its reference node to an excitation at node {fixed}"),
+            )
+            .file(file.clone())
+            .measurement(mid.clone()),
+        );
+    }
+    let mut converted: BTreeMap<String, (i32, usize, usize)> = BTreeMap::new();
     for d in &parsed.datasets {
         let Dataset::Function(f) = d else { continue };
         let ft = f.function_type.code() as i32;
-        let loc = format!("dataset 58 at line {} (node {})", f.line, f.response_node);
+        // The scan point a record belongs to, and its excitation (swapped for a roving hammer).
+        let (node, node_dir, reference, reference_dir) = match roving {
+            Some(fixed) if f.response_node == fixed => (
+                f.reference_node,
+                f.reference_direction,
+                f.response_node,
+                f.response_direction,
+            ),
+            _ => (
+                f.response_node,
+                f.response_direction,
+                f.reference_node,
+                f.reference_direction,
+            ),
+        };
+        let loc = format!("dataset 58 at line {} (node {node})", f.line);
         let mut drop = |fd: &mut Findings, code: &str, msg: String| {
             fd.push(
                 Finding::new(
@@ -528,7 +657,7 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             continue;
         }
         let mut sign = 1.0;
-        match f.response_direction {
+        match node_dir {
             3 => {}
             -3 => {
                 sign = -1.0;
@@ -553,14 +682,11 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                 continue;
             }
         }
-        if !nodes.contains_key(&f.response_node) {
+        if !nodes.contains_key(&node) {
             drop(
                 &mut fd,
                 "uff.unknown_node",
-                format!(
-                    "response node {} has no coordinates in dataset 2411/15",
-                    f.response_node
-                ),
+                format!("response node {node} has no coordinates in dataset 2411/15"),
             );
             continue;
         }
@@ -602,14 +728,11 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                 }
             }
         }
-        if !seen.insert((f.response_node, ft)) {
+        if !seen.insert((node, ft)) {
             drop(
                 &mut fd,
                 "uff.duplicate_record",
-                format!(
-                    "second record of function type {ft} for node {} (the first is kept)",
-                    f.response_node
-                ),
+                format!("second record of function type {ft} for node {node} (the first is kept)"),
             );
             continue;
         }
@@ -619,11 +742,32 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             } else {
                 ordinate_factor(f, units.as_ref())
             };
+        let spec = f.ordinate_axis.spec_data_type;
+        if !is_coh && !matches!(spec, 0 | 1 | 8 | 11 | 12) {
+            drop(
+                &mut fd,
+                "uff.ordinate_quantity",
+                format!("ordinate specific data type {spec} names no motion (expected 8 displacement, 11 velocity or 12 acceleration, or 0/1 unknown/general for the contract's quantity)"),
+            );
+            continue;
+        }
+        let (measured, q) = if is_coh {
+            ("coherence".to_owned(), 0)
+        } else {
+            measured_as(f)
+        };
         let (re, im) = match (&f.ordinate, is_coh) {
-            (Ordinate::Complex { re, im }, false) => (
-                re.iter().map(|v| v * factor).collect(),
-                Some(im.iter().map(|v| v * factor).collect()),
-            ),
+            (Ordinate::Complex { re, im }, false) => {
+                let mut re: Vec<f64> = re.iter().map(|v| v * factor).collect();
+                let mut im: Vec<f64> = im.iter().map(|v| v * factor).collect();
+                let zeroed = times_i_omega_pow(q, min, inc, &mut re, &mut im);
+                if q != 0 {
+                    let e = converted.entry(measured.clone()).or_insert((q, 0, 0));
+                    e.1 += 1;
+                    e.2 += zeroed;
+                }
+                (re, Some(im))
+            }
             (Ordinate::Real(v), true) => (v.clone(), None),
             (Ordinate::Real(_), false) => {
                 drop(
@@ -652,14 +796,15 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             }
         };
         if !is_coh {
-            *ref_count.entry(f.reference_node).or_default() += 1;
+            *ref_count.entry(reference).or_default() += 1;
         }
         let rec = Record {
-            node: f.response_node,
+            node,
             function_type: ft,
             response_direction: 3,
-            reference_node: f.reference_node,
-            reference_direction: f.reference_direction as i32,
+            reference_node: reference,
+            reference_direction: reference_dir as i32,
+            measured_as: measured,
             ordinate_unit: match ft {
                 4 => "m/s/N",
                 _ => "1",
@@ -675,16 +820,77 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             m.records.push(rec);
         }
     }
+    for (measured, (q, n, zeroed)) in &converted {
+        let how = match q {
+            -1 => "divided by iω",
+            1 => "multiplied by iω",
+            -2 => "divided by -ω²",
+            2 => "multiplied by -ω²",
+            _ => "multiplied by (iω)^q",
+        };
+        let target = if expected_type == 4 {
+            "mobility (m/s)/N"
+        } else {
+            "a velocity ratio"
+        };
+        let zero_note = if *zeroed > 0 {
+            format!("; {zeroed} line(s) at 0 Hz have no value and are set to 0")
+        } else {
+            String::new()
+        };
+        fd.push(
+            Finding::new(
+                Severity::Info,
+                "uff.converted_ordinate",
+                format!("{n} record(s) measured as {measured}: {how} to {target} (q = {q}){zero_note}; frf.parquet keeps what was measured in `measured_as`"),
+            )
+            .file(file.clone())
+            .measurement(mid.clone()),
+        );
+    }
+    // Mode sets (dataset 55, one per mode) as modal-analysis software exports them: read,
+    // named in a finding, not used: modes come from the FRFs' identification (extract).
+    let vendor: Vec<String> = parsed
+        .datasets
+        .iter()
+        .filter_map(|d| match d {
+            Dataset::NodalData(n) => Some(match n.mode() {
+                Some(p) => format!("{:.1} Hz at line {}", p.freq_hz, n.line),
+                None => format!("analysis type {} at line {}", n.analysis_type, n.line),
+            }),
+            _ => None,
+        })
+        .collect();
+    let vendor_note = if vendor.is_empty() {
+        String::new()
+    } else {
+        format!(
+            "; its {} dataset-55 set(s) ({}) are read but not used: hbmu identifies modes from FRFs (dataset 58) only",
+            vendor.len(),
+            vendor.join(", ")
+        )
+    };
     if m.records.is_empty() {
         quarantine(
             m,
             &mut fd,
             "uff.no_records",
             format!(
-                "no usable response record (expected dataset 58 records of function type {expected_type})"
+                "no usable response record (expected dataset 58 records of function type {expected_type}){vendor_note}"
             ),
         );
         return fd;
+    }
+    if !vendor.is_empty() {
+        fd.push(
+            Finding::new(
+                Severity::Warning,
+                "uff.mode_sets_not_used",
+                format!("the measurement holds FRFs{vendor_note}"),
+            )
+            .file(file.clone())
+            .measurement(mid.clone()),
+        );
     }
     // Coherence on another axis than the response records is of no use.
     if let Some((a0, da, na)) = axis {
@@ -1264,5 +1470,231 @@ mod tests {
             .findings
             .iter()
             .any(|f| f.code == "sheet.missing_file" && f.message.contains(&gone)));
+    }
+
+    /// One free-free measurement in memory: nodes 1..=4 on the board, records from `recs`.
+    fn one_measurement(recs: &[uff::Function58]) -> Campaign {
+        one_measurement_with(recs, b"")
+    }
+
+    /// [`one_measurement`] with `extra` datasets appended to its UFF.
+    fn one_measurement_with(recs: &[uff::Function58], extra: &[u8]) -> Campaign {
+        use crate::io::uff::{write_2411, write_58, Format, Node};
+        let mut bytes = Vec::new();
+        let nodes: Vec<Node> = (1..=4)
+            .map(|k| Node {
+                id: k,
+                def_cs: 1,
+                disp_cs: 1,
+                color: 11,
+                xyz_file_units: [10.0 * k as f64, 20.0, 0.0],
+            })
+            .collect();
+        write_2411(&nodes, &mut bytes).unwrap();
+        for r in recs {
+            write_58(r, Format::Ascii, &mut bytes).unwrap();
+        }
+        bytes.extend_from_slice(extra);
+        let files = BTreeMap::from([
+            (
+                "campaign.csv".to_owned(),
+                b"measurement_id,board_id,setup,file\nM1,B-1,free,v/m1.uff\n".to_vec(),
+            ),
+            ("v/m1.uff".to_owned(), bytes),
+            (
+                "scale/b.log".to_owned(),
+                b"2026-11-01T08:00:00 B-1 S S 13.0312 g\n".to_vec(),
+            ),
+        ]);
+        read_campaign(&InMemory(&files), &IngestConfig::default(), &|| {}).unwrap()
+    }
+
+    /// A double-precision FRF record: response `node`, reference `reference`, numerator
+    /// specific data type `spec` (8, 11, 12), ordinate `h` on 0, 10, 20, ... Hz.
+    fn frf(node: i64, reference: i64, spec: i64, h: &[(f64, f64)]) -> uff::Function58 {
+        use crate::io::uff::{AxisSpec, Function58, OrdinateDataType};
+        Function58 {
+            id_lines: [
+                "t".into(),
+                "NONE".into(),
+                "NONE".into(),
+                "NONE".into(),
+                "NONE".into(),
+            ],
+            function_type: FunctionType::Frf,
+            function_id: 0,
+            version: 0,
+            load_case: 0,
+            response_entity: "B".into(),
+            response_node: node,
+            response_direction: 3,
+            reference_entity: "H".into(),
+            reference_node: reference,
+            reference_direction: 3,
+            ordinate_data_type: OrdinateDataType::ComplexDouble,
+            num_points: h.len(),
+            z_axis_value: 0.0,
+            abscissa_axis: AxisSpec {
+                spec_data_type: 18,
+                ..Default::default()
+            },
+            ordinate_axis: AxisSpec {
+                spec_data_type: spec,
+                length_exp: 1,
+                ..Default::default()
+            },
+            denominator_axis: AxisSpec {
+                spec_data_type: 13,
+                force_exp: 1,
+                ..Default::default()
+            },
+            z_axis: AxisSpec::default(),
+            abscissa: Abscissa::Even {
+                min: 0.0,
+                increment: 10.0,
+            },
+            ordinate: Ordinate::Complex {
+                re: h.iter().map(|v| v.0).collect(),
+                im: h.iter().map(|v| v.1).collect(),
+            },
+            binary: false,
+            line: 0,
+        }
+    }
+
+    /// An accelerance A = iω·Y and a receptance X = Y/(iω) of one mobility Y come out of ingest
+    /// as Y (the closed forms), labelled with what was measured, with the 0 Hz line of the
+    /// accelerance named in a finding; a mobility passes unchanged.
+    #[test]
+    fn accelerance_and_receptance_are_converted_to_mobility() {
+        let mob: Vec<(f64, f64)> = (0..6).map(|k| (1.0 + k as f64, 0.5 - k as f64)).collect();
+        let w = |k: usize| std::f64::consts::TAU * 10.0 * k as f64;
+        // iω(a + ib) = -ωb + iωa; (a + ib)/(iω) = b/ω - ia/ω.
+        let acc: Vec<(f64, f64)> = mob
+            .iter()
+            .enumerate()
+            .map(|(k, &(a, b))| (-w(k) * b, w(k) * a))
+            .collect();
+        let rec: Vec<(f64, f64)> = mob
+            .iter()
+            .enumerate()
+            .map(|(k, &(a, b))| {
+                if k == 0 {
+                    (0.0, 0.0)
+                } else {
+                    (b / w(k), -a / w(k))
+                }
+            })
+            .collect();
+        let c = one_measurement(&[frf(1, 4, 11, &mob), frf(2, 4, 12, &acc), frf(3, 4, 8, &rec)]);
+        let m = &c.measurements[0];
+        assert!(m.quarantine.is_none(), "{:?}", m.quarantine);
+        let by_node: BTreeMap<i64, &Record> = m.records.iter().map(|r| (r.node, r)).collect();
+        assert_eq!(by_node[&1].measured_as, "velocity/force");
+        assert_eq!(by_node[&2].measured_as, "acceleration/force");
+        assert_eq!(by_node[&3].measured_as, "displacement/force");
+        for node in [1, 2, 3] {
+            let r = by_node[&node];
+            let im = r.im.as_ref().unwrap();
+            // At 0 Hz an accelerance has no mobility (set to 0) and a receptance's is 0.
+            for k in usize::from(node != 1)..mob.len() {
+                let tol = 1e-9 * (1.0 + mob[k].0.abs() + mob[k].1.abs());
+                assert!(
+                    (r.re[k] - mob[k].0).abs() < tol,
+                    "node {node} line {k}: {}",
+                    r.re[k]
+                );
+                assert!(
+                    (im[k] - mob[k].1).abs() < tol,
+                    "node {node} line {k}: {}",
+                    im[k]
+                );
+            }
+        }
+        assert_eq!(
+            (by_node[&2].re[0], by_node[&2].im.as_ref().unwrap()[0]),
+            (0.0, 0.0)
+        );
+        let conv: Vec<&Finding> = c
+            .findings
+            .iter()
+            .filter(|f| f.code == "uff.converted_ordinate")
+            .collect();
+        assert_eq!(conv.len(), 2, "{conv:?}");
+        assert!(conv.iter().any(|f| f.message.contains("acceleration/force")
+            && f.message.contains("divided by iω")
+            && f.message.contains("1 line(s) at 0 Hz")));
+        assert!(conv
+            .iter()
+            .any(|f| f.message.contains("displacement/force")
+                && f.message.contains("multiplied by iω")));
+    }
+
+    /// A roving hammer (one response node, the reference moving) is read by reciprocity: one
+    /// record per excited node, all referenced to the fixed response node, said in a finding;
+    /// a fixed-reference measurement is not mistaken for one.
+    #[test]
+    fn a_roving_hammer_is_read_by_reciprocity() {
+        let h: Vec<(f64, f64)> = (0..4).map(|k| (k as f64, 1.0)).collect();
+        let c = one_measurement(&[frf(4, 1, 11, &h), frf(4, 2, 11, &h), frf(4, 3, 11, &h)]);
+        let m = &c.measurements[0];
+        assert!(m.quarantine.is_none(), "{:?}", m.quarantine);
+        let nodes: Vec<(i64, i64)> = m
+            .records
+            .iter()
+            .map(|r| (r.node, r.reference_node))
+            .collect();
+        assert_eq!(nodes, vec![(1, 4), (2, 4), (3, 4)]);
+        assert_eq!(m.reference_node(), Some(4));
+        assert!(m.points.iter().any(|p| p.node == 4 && p.is_reference));
+        assert!(c.findings.iter().any(|f| f.code == "uff.roving_reference"));
+        assert!(!c.findings.iter().any(|f| f.code == "uff.mixed_reference"));
+        // Bad input: a reference without coordinates loses its record only (named), and a
+        // record whose ordinate is no motion (a stress) is dropped with what was expected.
+        let mut bad = frf(4, 9, 11, &h);
+        bad.line = 0;
+        let mut stress = frf(4, 3, 11, &h);
+        stress.ordinate_axis.spec_data_type = 2;
+        let c = one_measurement(&[frf(4, 1, 11, &h), frf(4, 2, 11, &h), bad, stress]);
+        let nodes: Vec<i64> = c.measurements[0].records.iter().map(|r| r.node).collect();
+        assert_eq!(nodes, vec![1, 2]);
+        assert!(c.findings.iter().any(|f| f.code == "uff.unknown_node"
+            && f.message.contains("response node 9")
+            && f.severity == Severity::RecordDropped));
+        assert!(c.findings.iter().any(|f| f.code == "uff.ordinate_quantity"
+            && f.message.contains("specific data type 2 names no motion")));
+        // A fixed reference over several response nodes: the ordinary scan.
+        let c = one_measurement(&[frf(1, 4, 11, &h), frf(2, 4, 11, &h)]);
+        assert!(!c.findings.iter().any(|f| f.code == "uff.roving_reference"));
+        let nodes: Vec<i64> = c.measurements[0].records.iter().map(|r| r.node).collect();
+        assert_eq!(nodes, vec![1, 2]);
+    }
+
+    /// Mode sets (dataset 55) are read and named, never silently skipped: beside FRFs a
+    /// warning says they are not used; alone they quarantine the measurement saying so.
+    #[test]
+    fn mode_sets_are_named_and_not_silently_used_or_dropped() {
+        let ds55 = b"    -1\n    55\nNONE\nNONE\nNONE\nNONE\nNONE\n         1         2         2         8         2         3\n         2         4         1         1\n  4.12500e+02  0.00000e+00  1.10000e-02  0.00000e+00\n         1\n  0.00000e+00  0.00000e+00  1.00000e+00\n    -1\n";
+        let h: Vec<(f64, f64)> = (0..4).map(|k| (k as f64, 1.0)).collect();
+        let c = one_measurement_with(&[frf(1, 4, 11, &h), frf(2, 4, 11, &h)], ds55);
+        assert!(c.measurements[0].quarantine.is_none());
+        assert_eq!(c.measurements[0].records.len(), 2);
+        let w = c
+            .findings
+            .iter()
+            .find(|f| f.code == "uff.mode_sets_not_used")
+            .unwrap();
+        assert_eq!(w.severity, Severity::Warning);
+        assert!(
+            w.message.contains("1 dataset-55 set(s) (412.5 Hz at line "),
+            "{}",
+            w.message
+        );
+        let c = one_measurement_with(&[], ds55);
+        let q = c.measurements[0].quarantine.as_deref().unwrap();
+        assert!(
+            q.contains("no usable response record") && q.contains("412.5 Hz"),
+            "{q}"
+        );
     }
 }

@@ -69,6 +69,9 @@ pub struct FunctionMsg<'a> {
     pub reference_node: i64,
     pub reference_direction: i32,
     pub ordinate_unit: &'a str,
+    /// What the lab measured, numerator/denominator (`acceleration/force`, ...; see
+    /// frf.parquet): the ordinates are converted to `ordinate_unit`.
+    pub measured_as: &'a str,
     pub freq_start_hz: f64,
     pub freq_step_hz: f64,
     /// Real parts, one per spectral line: a CBOR byte string of little-endian IEEE 754
@@ -322,6 +325,7 @@ mod tests {
                 reference_node: 1,
                 reference_direction: 3,
                 ordinate_unit: "(m/s)/N",
+                measured_as: "velocity/force",
                 freq_start_hz: 0.0,
                 freq_step_hz: 2.5,
                 re: F64Le(&re),

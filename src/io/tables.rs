@@ -328,7 +328,7 @@ pub const SCAN_POINTS: TableSpec = TableSpec {
 
 pub const FRF: TableSpec = TableSpec {
     name: "frf",
-    doc: "One row per function record (scan point x function type), spectra as list columns: one row per record keeps the table at thousands of rows instead of millions, and each cell becomes a numpy array in pandas. The frequency axis is evenly spaced and stored once per record, not per line: line k of `re`/`im` lies at `freq_start_hz + k * freq_step_hz`, k = 0..n_lines-1 (pandas: `frf[\"freq_hz\"] = [r.freq_start_hz + r.freq_step_hz * np.arange(r.n_lines) for r in frf.itertuples()]`, then `frf[frf.function_type != 6].explode([\"freq_hz\",\"re\",\"im\"])` gives the long form of the responses). Ordinates in SI: mobility (m/s)/N for type 4, dimensionless for 5 (transmissibility) and 6 (coherence, `im` null). Tables written before layout 2 had a `freq_hz` list column instead of the three axis columns; readers refuse them with a message to re-run ingest.",
+    doc: "One row per function record (scan point x function type), spectra as list columns: one row per record keeps the table at thousands of rows instead of millions, and each cell becomes a numpy array in pandas. The frequency axis is evenly spaced and stored once per record, not per line: line k of `re`/`im` lies at `freq_start_hz + k * freq_step_hz`, k = 0..n_lines-1 (pandas: `frf[\"freq_hz\"] = [r.freq_start_hz + r.freq_step_hz * np.arange(r.n_lines) for r in frf.itertuples()]`, then `frf[frf.function_type != 6].explode([\"freq_hz\",\"re\",\"im\"])` gives the long form of the responses). Ordinates in SI: mobility (m/s)/N for type 4, a velocity ratio for 5 (transmissibility), whatever was measured (`measured_as`: an accelerance is divided by iω), and 6 (coherence, `im` null). Tables written before layout 2 had a `freq_hz` list column instead of the three axis columns; readers refuse them with a message to re-run ingest.",
     open: false,
     columns: &[
         c("measurement_id", Col::Utf8, false, "", "Measurement id."),
@@ -338,6 +338,7 @@ pub const FRF: TableSpec = TableSpec {
         c("reference_node", Col::Int64, false, "", "Reference node."),
         c("reference_direction", Col::Int32, false, "", "UFF direction code of the reference."),
         c("ordinate_unit", Col::Utf8, false, "", "Unit of re/im: `m/s/N`, `1`."),
+        c("measured_as", Col::Utf8, false, "", "What the lab measured, numerator/denominator (`velocity/force` mobility, `acceleration/force` accelerance, `displacement/force` receptance, `acceleration/acceleration`, ...; `coherence`; `unspecified` when the file names no motion and the contract's quantity is assumed). re/im are converted to ordinate_unit by (iω)^q, ω = 2πf."),
         c("freq_start_hz", Col::Float64, false, "Hz", "Frequency of the first spectral line."),
         c("freq_step_hz", Col::Float64, false, "Hz", "Spacing of the spectral lines."),
         c("n_lines", Col::Int32, false, "", "Number of spectral lines (length of re and im)."),

@@ -91,7 +91,7 @@ fn read_spectra(bytes: &[u8]) -> Spectra {
                     other => panic!("unexpected record {:?}", other.1),
                 }
             }
-            Dataset::Units(_) => {}
+            Dataset::Units(_) | Dataset::NodalData(_) => {}
         }
     }
     sp

@@ -21,8 +21,9 @@ use std::path::PathBuf;
 
 pub const MANIFEST: &str = "ingest.manifest.json";
 /// Version of the output layout (2: frf.parquet's axis as start + step, not a list per row;
-/// 3: the MCAP's spectra as CBOR with float64 byte strings, not JSON text).
-pub const OUTPUT_LAYOUT: u32 = 3;
+/// 3: the MCAP's spectra as CBOR with float64 byte strings, not JSON text; 4: what each record
+/// measured, `measured_as`, in frf.parquet and on `/frf`).
+pub const OUTPUT_LAYOUT: u32 = 4;
 
 /// Options of `hbmu ingest`.
 #[derive(Debug, Clone)]

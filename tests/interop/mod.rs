@@ -45,4 +45,32 @@ fn pandas_and_mcap_read_ingest_outputs() {
     assert_eq!(v["mcap_metadata"][0], "campaign");
 }
 
+/// Few-point hammer tests as pyuff writes them (accelerance at three points, a roving hammer,
+/// receptance): ingest gives each record as the mobility at its (response, reference) pair,
+/// against the script's closed form, and keeps what was measured in `measured_as`.
+#[test]
+fn pyuff_few_point_accelerance_and_roving_hammer_campaign_is_read_as_mobility() {
+    if !python_has(&["pyuff", "pandas", "pyarrow", "numpy"]) {
+        return;
+    }
+    let t = tempfile::tempdir().unwrap();
+    let c = t.path().join("campaign");
+    let out = t.path().join("ingest");
+    let script = "pyuff_few_point_campaign.py";
+    python(script, &["write", c.to_str().unwrap()]);
+    let o = hbmu(&[
+        "ingest",
+        c.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let s = python(
+        script,
+        &["check", c.to_str().unwrap(), out.to_str().unwrap()],
+    );
+    let v: serde_json::Value = serde_json::from_str(s.trim()).unwrap();
+    assert_eq!(v["records"], 10, "{v}");
+}
+
 mod gerber;

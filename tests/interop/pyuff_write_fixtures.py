@@ -210,6 +210,45 @@ def main():
     files[name] = {"rel_tol": 5e-12, "node_rel_tol": 5e-6,
                    "datasets": [e15, expect58(dt, 5, 6, True)]}
 
+    # 6. A mode set as modal-analysis software hands it over: nodes, then one dataset 55 per
+    #    mode: two normal modes (real shapes, X Y Z per node) and a complex mode.
+    name = "modes.uff"
+    path = os.path.join(out, name)
+    u = pyuff.UFF(path)
+    ids, x, y, z = nodes(6)
+    d2411 = pyuff.prepare_2411(node_nums=ids, def_cs=np.zeros(6, int), disp_cs=np.zeros(6, int),
+                               color=np.full(6, 11), x=x, y=y, z=z)
+    exp = [{"type": 2411, "node_nums": [int(i) for i in ids], "color": [11] * 6,
+            "x": list(map(float, x)), "y": list(map(float, y)), "z": list(map(float, z))}]
+    dsets = [d2411]
+    for mode_n, (freq_hz, zeta) in enumerate([(412.5, 0.011), (1033.75, 0.0085)], start=1):
+        r = [values(6) for _ in range(3)]
+        d = pyuff.prepare_55(model_type=1, id1="NONE", id2="NONE", id3="NONE", id4="NONE",
+                             id5="NONE", analysis_type=2, data_ch=2, spec_data_type=8,
+                             data_type=2, n_data_per_node=3, node_nums=ids, r1=r[0], r2=r[1],
+                             r3=r[2], load_case=1, mode_n=mode_n, freq=freq_hz, modal_m=0.0,
+                             modal_damp_vis=zeta, modal_damp_his=0.0)
+        dsets.append(d)
+        exp.append({"type": 55, "analysis_type": 2, "complex": False, "ndv": 3,
+                    "mode_n": mode_n, "freq": freq_hz, "damp": zeta,
+                    "node_nums": [int(i) for i in ids],
+                    "re": [float(v) for k in range(6) for v in (r[0][k], r[1][k], r[2][k])]})
+    sigma, wd = -25.0, 2 * np.pi * 1630.0
+    c = [values(6) + 1j * values(6) for _ in range(3)]
+    d = pyuff.prepare_55(model_type=1, id1="NONE", id2="NONE", id3="NONE", id4="NONE", id5="NONE",
+                         analysis_type=3, data_ch=2, spec_data_type=8, data_type=5,
+                         n_data_per_node=3, node_nums=ids, r1=c[0], r2=c[1], r3=c[2], load_case=1,
+                         mode_n=3, eig=sigma + 1j * wd, modal_a=0j, modal_b=0j)
+    dsets.append(d)
+    wn = float(np.hypot(sigma, wd))
+    exp.append({"type": 55, "analysis_type": 3, "complex": True, "ndv": 3, "mode_n": 3,
+                "freq": wn / (2 * np.pi), "damp": -sigma / wn,
+                "node_nums": [int(i) for i in ids],
+                "re": [float(v.real) for k in range(6) for v in (c[0][k], c[1][k], c[2][k])],
+                "im": [float(v.imag) for k in range(6) for v in (c[0][k], c[1][k], c[2][k])]})
+    u.write_sets(dsets, mode="overwrite")
+    files[name] = {"rel_tol": 5e-6, "datasets": exp}
+
     with open(os.path.join(out, "expected.json"), "w") as fh:
         json.dump({"files": files}, fh)
 

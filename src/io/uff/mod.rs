@@ -1,5 +1,5 @@
 //! Universal File Format (UFF) reading and writing: the types of the datasets a modal-test
-//! campaign uses (58/58b functions at nodal DOF, 2411/15 nodes, 164 units), the byte-level
+//! campaign uses (58/58b functions at nodal DOF, 55 mode sets, 2411/15 nodes, 164 units), the byte-level
 //! parser [`parse`] that returns every good dataset plus a list of issues for the bad ones, and
 //! the fixed-width writers [`write_58`], [`write_2411`], [`write_15`], [`write_164`].
 //!
@@ -11,6 +11,7 @@
 
 mod ascii;
 mod binary;
+mod ds55;
 mod read;
 mod write;
 
@@ -39,6 +40,7 @@ pub enum Dataset {
     Units(Units164),
     Nodes(NodeSet),
     Function(Function58),
+    NodalData(NodalData55),
 }
 
 /// A dataset of a number this reader does not decode (listed, never fatal).
@@ -330,6 +332,60 @@ impl Function58 {
             Abscissa::Uneven(x) => x.get(k).copied(),
         }
     }
+}
+
+/// Dataset 55, data at nodes: in a modal test, one identified mode (its frequency and damping
+/// in records 7–8, its shape at the nodes in records 9–10). Values are in the file's units.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodalData55 {
+    /// Records 1–5, trailing blanks removed.
+    pub id_lines: [String; 5],
+    /// Record 6: 1 structural, ...
+    pub model_type: i64,
+    /// 2 normal mode, 3 complex eigenvalue first order, 7 second order, 5 frequency
+    /// response, ...
+    pub analysis_type: i64,
+    /// 1 scalar, 2 three translations, 3 three translations and three rotations, ...
+    pub data_characteristic: i64,
+    /// 8 displacement, 11 velocity, 12 acceleration, ...
+    pub specific_data_type: i64,
+    /// Data type 5 (complex) rather than 2 (real).
+    pub complex: bool,
+    /// NDV: values per node (3 for translations X, Y, Z; 6 with rotations).
+    pub values_per_node: usize,
+    /// Record 7 after NINT and NRVAL: for a mode, the load case and the mode number.
+    pub int_params: Vec<i64>,
+    /// Record 8: for a normal mode frequency (Hz), modal mass, viscous and hysteretic damping
+    /// ratios; for a complex mode the eigenvalue's real and imaginary parts (rad/s) and the
+    /// modal A and B.
+    pub real_params: Vec<f64>,
+    /// Records 9–10, one per node, in file order.
+    pub nodes: Vec<NodeValues>,
+    /// 1-based line of the opening `-1`.
+    pub line: usize,
+}
+
+/// The values of a dataset 55 at one node.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodeValues {
+    pub node: i64,
+    /// NDV real parts (X, Y, Z[, RX, RY, RZ] for a vector).
+    pub re: Vec<f64>,
+    /// NDV imaginary parts, for complex data.
+    pub im: Option<Vec<f64>>,
+}
+
+/// A mode's parameters from a dataset 55 ([`NodalData55::mode`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModeParams {
+    /// Record 7's mode number, when given.
+    pub mode_number: Option<i64>,
+    /// Undamped natural frequency, Hz.
+    pub freq_hz: f64,
+    /// Viscous damping ratio.
+    pub damping_ratio: f64,
+    /// Modal mass, when the file gives one (0 is "not given").
+    pub modal_mass: Option<f64>,
 }
 
 /// The bytes are not a UFF at all (nothing in them could be read as a dataset).

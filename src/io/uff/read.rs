@@ -1,5 +1,5 @@
 //! The UFF reader: splits a file's bytes into `-1`-delimited datasets and decodes 58 (ASCII),
-//! 58b (via `binary`), 2411, 15 and 164; lists every other dataset as skipped; turns every
+//! 58b (via `binary`), 55 (via `ds55`), 2411, 15 and 164; lists every other dataset as skipped; turns every
 //! malformed dataset into an [`UffIssue`] and carries on with the next one.
 
 use super::ascii::{
@@ -148,6 +148,7 @@ pub fn parse(bytes: &[u8]) -> Result<UffFile, UffError> {
             2411 => parse_nodes(body, body_line, ctx, NodeSource::Ds2411).map(Dataset::Nodes),
             15 => parse_nodes(body, body_line, ctx, NodeSource::Ds15).map(Dataset::Nodes),
             164 => parse_164(body, body_line, ctx).map(Dataset::Units),
+            55 => super::ds55::parse_55(body, body_line, ctx).map(Dataset::NodalData),
             _ => {
                 out.skipped.push(SkippedDataset {
                     number,

@@ -563,6 +563,69 @@ fn other_datasets_are_skipped_and_listed() {
     );
 }
 
+/// A normal mode as I-DEAS writes it (record 8 wrapped at six values is the same stream).
+const DS55_MODE: &str = "    -1
+    55
+mode 2
+NONE
+NONE
+NONE
+NONE
+         1         2         2         8         2         3
+         2         4         1         2
+  1.03375e+03  0.00000e+00  8.50000e-03  0.00000e+00
+         7
+  0.00000e+00  0.00000e+00  1.00000e+00
+        14
+  1.00000e-03 -2.00000e-03 -5.00000e-01
+    -1
+";
+
+#[test]
+fn mode_sets_are_read_and_a_bad_one_is_an_issue_naming_its_record() {
+    let f = parse(DS55_MODE.as_bytes()).unwrap();
+    assert!(f.issues.is_empty(), "{:?}", f.issues);
+    let Dataset::NodalData(m) = &f.datasets[0] else {
+        panic!("{:?}", f.datasets)
+    };
+    let p = m.mode().unwrap();
+    assert_eq!(
+        (p.mode_number, p.freq_hz, p.damping_ratio),
+        (Some(2), 1033.75, 0.0085)
+    );
+    assert_eq!(m.nodes.len(), 2);
+    assert_eq!(m.nodes[1].node, 14);
+    assert_eq!(m.nodes[1].re, vec![1e-3, -2e-3, -0.5]);
+    // A value that is no number, and a node cut short: each an issue with its line and
+    // record; the good mode set and the function after them come through.
+    let bad = DS55_MODE.replace("-5.00000e-01", "-5.0000Xe-01");
+    let cut = DS55_MODE.replace(
+        "  1.00000e-03 -2.00000e-03 -5.00000e-01\n",
+        "  1.00000e-03\n",
+    );
+    let text = format!("{bad}{cut}{DS55_MODE}{DS58_COMPLEX}");
+    let f = parse(text.as_bytes()).unwrap();
+    assert_eq!(f.issues.len(), 2, "{:?}", f.issues);
+    assert_eq!(f.issues[0].line, 14);
+    assert!(
+        f.issues[0].to_string().contains(
+            "record 10, data value at the node: expected a number, found \"-5.0000Xe-01\""
+        ),
+        "{}",
+        f.issues[0]
+    );
+    assert!(
+        f.issues[1]
+            .to_string()
+            .contains("truncated: expected record 10"),
+        "{}",
+        f.issues[1]
+    );
+    assert_eq!(f.datasets.len(), 2);
+    assert!(matches!(f.datasets[0], Dataset::NodalData(_)));
+    assert!(matches!(f.datasets[1], Dataset::Function(_)));
+}
+
 #[test]
 fn empty_and_non_uff_inputs_are_errors() {
     assert_eq!(parse(b""), Err(UffError::Empty));
@@ -640,6 +703,7 @@ fn check_invariants(b: &[u8]) -> Result<(), TestCaseError> {
                 Dataset::Units(u) => u.line,
                 Dataset::Nodes(n) => n.line,
                 Dataset::Function(f) => f.line,
+                Dataset::NodalData(m) => m.line,
             });
             for l in lines {
                 prop_assert!(l >= 1 && l <= last_line);
@@ -765,7 +829,7 @@ fn reads_every_value_pyuff_wrote() {
     let exp: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("expected.json")).unwrap()).unwrap();
     let files = exp["files"].as_object().unwrap();
-    assert_eq!(files.len(), 5);
+    assert_eq!(files.len(), 6);
     let mut n_checked = 0;
     for (name, spec) in files {
         let bytes = std::fs::read(dir.path().join(name)).unwrap();
@@ -921,12 +985,53 @@ fn reads_every_value_pyuff_wrote() {
                         }
                     }
                 }
+                (Dataset::NodalData(m), 55) => {
+                    assert_eq!(
+                        m.analysis_type,
+                        w["analysis_type"].as_i64().unwrap(),
+                        "{tag}"
+                    );
+                    assert_eq!(m.complex, w["complex"].as_bool().unwrap(), "{tag}");
+                    assert_eq!(
+                        m.values_per_node as u64,
+                        w["ndv"].as_u64().unwrap(),
+                        "{tag}"
+                    );
+                    let mode = m.mode().unwrap();
+                    assert_eq!(mode.mode_number, w["mode_n"].as_i64(), "{tag}");
+                    // Record 8 is printed as E13.5 (6 significant digits; ζ of a complex mode
+                    // carries the rounding of both parts of its eigenvalue).
+                    check_array(
+                        &format!("{tag} freq, damping"),
+                        &[mode.freq_hz, mode.damping_ratio],
+                        &[w["freq"].clone(), w["damp"].clone()],
+                        1e-5,
+                    );
+                    let ids: Vec<i64> = m.nodes.iter().map(|n| n.node).collect();
+                    let want_ids: Vec<i64> = w["node_nums"]
+                        .as_array()
+                        .unwrap()
+                        .iter()
+                        .map(|v| v.as_i64().unwrap())
+                        .collect();
+                    assert_eq!(ids, want_ids, "{tag}");
+                    let re: Vec<f64> = m.nodes.iter().flat_map(|n| n.re.clone()).collect();
+                    check_array(&format!("{tag} re"), &re, w["re"].as_array().unwrap(), tol);
+                    match w.get("im") {
+                        Some(want) => {
+                            let im: Vec<f64> =
+                                m.nodes.iter().flat_map(|n| n.im.clone().unwrap()).collect();
+                            check_array(&format!("{tag} im"), &im, want.as_array().unwrap(), tol);
+                        }
+                        None => assert!(m.nodes.iter().all(|n| n.im.is_none()), "{tag}"),
+                    }
+                }
                 (d, t) => panic!("{tag}: expected dataset type {t}, found {d:?}"),
             }
             n_checked += 1;
         }
     }
-    assert_eq!(n_checked, 14);
+    assert_eq!(n_checked, 18);
 }
 
 /// A deterministic pseudo-random sequence over many decades (no RNG crate needed here).
