@@ -415,11 +415,16 @@ fn motion_name(order: i32) -> &'static str {
 /// What a response record measured, and the power q of iω that turns it into the contract's
 /// quantity (mobility for an FRF, a velocity ratio for a transmissibility): the stored value is
 /// the measured one times (iω)^q. An accelerance (acceleration/force) has q = -1, a receptance
-/// q = +1. A numerator that names no motion (specific data type 0 unknown, 1 general) is
-/// taken as the contract's quantity and called `unspecified`.
-fn measured_as(f: &uff::Function58) -> (String, i32) {
-    let num = motion_order(f.ordinate_axis.spec_data_type);
-    match f.function_type {
+/// q = +1. A numerator that names no quantity (specific data type 0 unknown, 1 general) is
+/// taken as the contract's quantity and called `unspecified`; one that names another quantity
+/// than a motion (2 stress, 13 force, ...) is `None`.
+fn measured_as(f: &uff::Function58) -> Option<(String, i32)> {
+    let spec = f.ordinate_axis.spec_data_type;
+    let num = motion_order(spec);
+    if num.is_none() && !matches!(spec, 0 | 1) {
+        return None;
+    }
+    Some(match f.function_type {
         FunctionType::Transmissibility => {
             let den = motion_order(f.denominator_axis.spec_data_type);
             match (num, den) {
@@ -435,16 +440,16 @@ fn measured_as(f: &uff::Function58) -> (String, i32) {
             Some(n) => (format!("{}/force", motion_name(n)), 1 - n),
             None => ("unspecified".to_owned(), 0),
         },
-    }
+    })
 }
 
 /// Multiplies a spectrum by (iω)^q, ω = 2π f_k, in place. The lines at 0 Hz, where a division
 /// by iω has no value, are set to 0; returns how many.
 fn times_i_omega_pow(q: i32, f0_hz: f64, df_hz: f64, re: &mut [f64], im: &mut [f64]) -> usize {
-    let mut zeroed = 0;
     if q == 0 {
         return 0;
     }
+    let mut zeroed = 0;
     for (k, (r, i)) in re.iter_mut().zip(im.iter_mut()).enumerate() {
         let w = std::f64::consts::TAU * (f0_hz + k as f64 * df_hz);
         if w == 0.0 && q < 0 {
@@ -742,19 +747,17 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             } else {
                 ordinate_factor(f, units.as_ref())
             };
-        let spec = f.ordinate_axis.spec_data_type;
-        if !is_coh && !matches!(spec, 0 | 1 | 8 | 11 | 12) {
+        let (measured, q) = if is_coh {
+            ("coherence".to_owned(), 0)
+        } else if let Some(m) = measured_as(f) {
+            m
+        } else {
             drop(
                 &mut fd,
                 "uff.ordinate_quantity",
-                format!("ordinate specific data type {spec} names no motion (expected 8 displacement, 11 velocity or 12 acceleration, or 0/1 unknown/general for the contract's quantity)"),
+                format!("ordinate specific data type {} names no motion (expected 8 displacement, 11 velocity or 12 acceleration, or 0/1 unknown/general for the contract's quantity)", f.ordinate_axis.spec_data_type),
             );
             continue;
-        }
-        let (measured, q) = if is_coh {
-            ("coherence".to_owned(), 0)
-        } else {
-            measured_as(f)
         };
         let (re, im) = match (&f.ordinate, is_coh) {
             (Ordinate::Complex { re, im }, false) => {

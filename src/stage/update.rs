@@ -1269,7 +1269,6 @@ fn no_bolted_data(
     })
 }
 
-/// Evidence of the runs: each run's log evidence, their mean and standard error.
 /// The population columns of a step's discrepancy: its scale, its per-unit scale and d per
 /// label (relative eigenvalue), in the order of [`discrepancy_values`].
 fn discrepancy_columns(labels: &[String]) -> Vec<(String, String)> {
@@ -1317,6 +1316,7 @@ fn discrepancy_json(target: &ModalTarget, labels: &[String]) -> serde_json::Valu
     }
 }
 
+/// Evidence of the runs: each run's log evidence, their mean and standard error.
 fn evidence_json(log_z: &[f64], posterior: &str) -> serde_json::Value {
     let n = log_z.len() as f64;
     let mean = log_z.iter().sum::<f64>() / n;
@@ -4497,10 +4497,11 @@ pub fn run_joints(
             &target,
             &draws_mean,
             // Off unless asked for (`--discrepancy-pct`): bolted, the joint stiffness of each
-            // measurement is already free, and a discrepancy of the bolted model's fidelity
-            // (1.5 %) is as large as the joint effects the diagnosis must find; on the exact
-            // model's joint-rotation campaign it took the effect and the refit's sampler
-            // ran out of evaluations.
+            // measurement is already free, and a per-mode bias common to every assembly at the
+            // bolted model's fidelity (1.5 %) spans every shift a common joint effect makes
+            // (a rotational restraint, a joint mass, a compliant fixture move the same few
+            // bolted modes in every assembly): with it, such an effect is by construction
+            // indistinguishable from the model's form, and no refit could be told from it.
             opts.discrepancy_freq.unwrap_or(0.0),
             "joints",
             &mut findings,

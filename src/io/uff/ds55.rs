@@ -64,19 +64,23 @@ pub(super) fn parse_55(body: &[u8], body_line: usize, ctx: Ctx) -> Result<NodalD
             ))
         }
     };
-    if !(1..=1000).contains(&ndv) {
+    // The standard sets no maximum (its note 13); a count the file cannot hold ends in a
+    // truncation issue below, nothing is allocated for it up front.
+    if ndv < 1 {
         return Err(ctx.issue(
             rest_line,
             IssueKind::BadField {
                 record: 6,
                 field: "number of data values per node",
-                expected: "1 to 1000",
+                expected: "at least 1",
                 found: ndv.to_string(),
             },
         ));
     }
     let nint = st.number("number of integer data values", 7, true)? as i64;
     let nreal = st.number("number of real data values", 7, true)? as i64;
+    // The standard's general form has at most 10 and 12; writers that add parameters are
+    // read up to 100.
     if !(0..=100).contains(&nint) || !(0..=100).contains(&nreal) {
         return Err(ctx.issue(
             rest_line + 1,
@@ -97,11 +101,11 @@ pub(super) fn parse_55(body: &[u8], body_line: usize, ctx: Ctx) -> Result<NodalD
     let real_params = (0..nreal)
         .map(|_| st.number("type-specific real parameter", 8, false))
         .collect::<Result<Vec<_>, _>>()?;
-    let per_node = ndv as usize * if complex { 2 } else { 1 };
+    let per_node = (ndv as usize).saturating_mul(if complex { 2 } else { 1 });
     let mut nodes = vec![];
     while !st.at_end() {
         let node = st.number("node number", 9, true)? as i64;
-        let mut vals = Vec::with_capacity(per_node);
+        let mut vals = vec![];
         for _ in 0..per_node {
             vals.push(st.number("data value at the node", 10, false)?);
         }

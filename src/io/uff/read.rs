@@ -1,6 +1,6 @@
 //! The UFF reader: splits a file's bytes into `-1`-delimited datasets and decodes 58 (ASCII),
-//! 58b (via `binary`), 55 (via `ds55`), 2411, 15 and 164; lists every other dataset as skipped; turns every
-//! malformed dataset into an [`UffIssue`] and carries on with the next one.
+//! 58b (via `binary`), 55 (via `ds55`), 2411, 15 and 164; lists every other dataset as
+//! skipped; turns every malformed dataset into an [`UffIssue`] and carries on with the next.
 
 use super::ascii::{
     excerpt, field, int_field, is_delimiter, line_at, next_number, parse_int, text_field, trim,
