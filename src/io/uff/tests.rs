@@ -802,6 +802,15 @@ fn close(got: f64, want: f64, rel_tol: f64, scale: f64) -> bool {
     (got - want).abs() <= rel_tol * want.abs() + rel_tol * 1e-6 * scale || got == want
 }
 
+/// A JSON array of integers (the fixtures' node labels, colours).
+fn json_i64s(v: &serde_json::Value) -> Vec<i64> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_i64().unwrap())
+        .collect()
+}
+
 fn check_array(what: &str, got: &[f64], want: &[serde_json::Value], rel_tol: f64) {
     assert_eq!(got.len(), want.len(), "{what}: length");
     let want: Vec<f64> = want.iter().map(|v| v.as_f64().unwrap()).collect();
@@ -862,20 +871,10 @@ fn reads_every_value_pyuff_wrote() {
                 (Dataset::Nodes(n), t @ (2411 | 15)) => {
                     assert_eq!(u64::from(n.source.number()), t, "{tag}");
                     let ids: Vec<i64> = n.nodes.iter().map(|n| n.id).collect();
-                    let want_ids: Vec<i64> = w["node_nums"]
-                        .as_array()
-                        .unwrap()
-                        .iter()
-                        .map(|v| v.as_i64().unwrap())
-                        .collect();
+                    let want_ids = json_i64s(&w["node_nums"]);
                     assert_eq!(ids, want_ids, "{tag}");
                     let colors: Vec<i64> = n.nodes.iter().map(|n| n.color).collect();
-                    let want_c: Vec<i64> = w["color"]
-                        .as_array()
-                        .unwrap()
-                        .iter()
-                        .map(|v| v.as_i64().unwrap())
-                        .collect();
+                    let want_c = json_i64s(&w["color"]);
                     assert_eq!(colors, want_c, "{tag}");
                     let ntol = if t == 15 {
                         spec["node_rel_tol"].as_f64().unwrap()
@@ -1008,12 +1007,7 @@ fn reads_every_value_pyuff_wrote() {
                         1e-5,
                     );
                     let ids: Vec<i64> = m.nodes.iter().map(|n| n.node).collect();
-                    let want_ids: Vec<i64> = w["node_nums"]
-                        .as_array()
-                        .unwrap()
-                        .iter()
-                        .map(|v| v.as_i64().unwrap())
-                        .collect();
+                    let want_ids = json_i64s(&w["node_nums"]);
                     assert_eq!(ids, want_ids, "{tag}");
                     let re: Vec<f64> = m.nodes.iter().flat_map(|n| n.re.clone()).collect();
                     check_array(&format!("{tag} re"), &re, w["re"].as_array().unwrap(), tol);
