@@ -25,7 +25,9 @@
 //! Beyond the contract's mobility scans, a response record measured as accelerance or
 //! receptance (or a transmissibility of other motions) is converted by (iω)^q and keeps what
 //! it was in `measured_as`; a roving hammer (one response node, the reference moving) is read
-//! by reciprocity; mode sets (dataset 55) are named in a finding but not used.
+//! by reciprocity. Mode sets (dataset 55: the modes a lab's modal software identified) are
+//! read as [`VendorMode`]s: a measurement with no response record takes them as its modes
+//! (extract passes them through); beside FRFs they are kept for comparison, with a warning.
 //!
 //! A row the lab marked invalid is quarantined (`sheet.marked_invalid`): its notes start with
 //! `invalid` (any case, e.g. `INVALID - double hit, repeated as M013`), or an extra column
@@ -110,6 +112,28 @@ pub struct Point {
     pub has_record: bool,
 }
 
+/// One mode of a mode set (dataset 55) as the lab's modal software identified it: its shape
+/// along the response direction (+Z, or the set's scalar) at the nodes that have coordinates,
+/// real-normalised like extract's (largest |component| = +1; a complex shape projected on
+/// its principal direction first).
+#[derive(Debug, Clone, PartialEq)]
+pub struct VendorMode {
+    /// 1-based line of the dataset's opening `-1` in its file.
+    pub line: usize,
+    /// The file's mode number (record 7), when given.
+    pub mode_number: Option<i64>,
+    /// 2 normal mode, 3 or 7 complex mode.
+    pub analysis_type: i64,
+    pub freq_hz: f64,
+    pub damping_ratio: f64,
+    /// Modal phase collinearity and mean phase deviation of the shape (1 and 0 for a real one).
+    pub mpc: f64,
+    pub mpd_deg: f64,
+    /// Nodes ascending, aligned with `shape`.
+    pub nodes: Vec<i64>,
+    pub shape: Vec<f64>,
+}
+
 /// One measurement after ingest.
 #[derive(Debug, Clone)]
 pub struct Measurement {
@@ -120,6 +144,10 @@ pub struct Measurement {
     pub points: Vec<Point>,
     pub records: Vec<Record>,
     pub coherence: Vec<Record>,
+    /// Modes the lab's software identified (dataset 55), ascending in frequency. Extract
+    /// passes them through for a measurement without response records; beside FRFs they are
+    /// kept for comparison and extract identifies from the FRFs.
+    pub vendor_modes: Vec<VendorMode>,
     pub dropped: usize,
 }
 
@@ -132,6 +160,7 @@ impl Measurement {
             points: vec![],
             records: vec![],
             coherence: vec![],
+            vendor_modes: vec![],
             dropped: 0,
         }
     }
@@ -851,37 +880,59 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             .measurement(mid.clone()),
         );
     }
-    // Mode sets (dataset 55, one per mode) as modal-analysis software exports them: read,
-    // named in a finding, not used: modes come from the FRFs' identification (extract).
-    let vendor: Vec<String> = parsed
-        .datasets
+    // Mode sets (dataset 55, one per mode) as modal-analysis software exports them.
+    m.vendor_modes = read_vendor_modes(&parsed.datasets, &nodes, &mut fd, &file, &mid);
+    m.dropped += fd
         .iter()
-        .filter_map(|d| match d {
-            Dataset::NodalData(n) => Some(match n.mode() {
-                Some(p) => format!("{:.1} Hz at line {}", p.freq_hz, n.line),
-                None => format!("analysis type {} at line {}", n.analysis_type, n.line),
-            }),
-            _ => None,
-        })
+        .filter(|f| f.severity == Severity::RecordDropped && f.code.starts_with("uff.mode_set"))
+        .count();
+    let vendor: Vec<String> = m
+        .vendor_modes
+        .iter()
+        .map(|v| format!("{:.1} Hz at line {}", v.freq_hz, v.line))
         .collect();
-    let vendor_note = if vendor.is_empty() {
-        String::new()
-    } else {
-        format!(
-            "; its {} dataset-55 set(s) ({}) are read but not used: hbmu identifies modes from FRFs (dataset 58) only",
-            vendor.len(),
-            vendor.join(", ")
-        )
-    };
     if m.records.is_empty() {
-        quarantine(
-            m,
-            &mut fd,
-            "uff.no_records",
-            format!(
-                "no usable response record (expected dataset 58 records of function type {expected_type}){vendor_note}"
-            ),
+        if vendor.is_empty() {
+            quarantine(
+                m,
+                &mut fd,
+                "uff.no_records",
+                format!(
+                    "no usable response record (expected dataset 58 records of function type {expected_type}) and no mode set (dataset 55)"
+                ),
+            );
+            return fd;
+        }
+        // A measurement of modes only: the lab identified them; its scan points are the
+        // nodes with coordinates, with a record where a mode has a value.
+        let with_value: BTreeSet<i64> = m
+            .vendor_modes
+            .iter()
+            .flat_map(|v| v.nodes.iter().copied())
+            .collect();
+        m.points = nodes
+            .iter()
+            .map(|(&node, &xyz_m)| Point {
+                node,
+                xyz_m,
+                is_reference: false,
+                has_record: with_value.contains(&node),
+            })
+            .collect();
+        fd.push(
+            Finding::new(
+                Severity::Info,
+                "uff.vendor_modes",
+                format!(
+                    "no response record; {} mode(s) identified by the lab's modal software (dataset 55: {}) are the measurement's modes: extract passes them through, `source = uff55` in modes.parquet",
+                    vendor.len(),
+                    vendor.join(", ")
+                ),
+            )
+            .file(file.clone())
+            .measurement(mid.clone()),
         );
+        note_points(m, &mut fd, &file, &mid, "no value in any mode set");
         return fd;
     }
     if !vendor.is_empty() {
@@ -889,7 +940,11 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             Finding::new(
                 Severity::Warning,
                 "uff.mode_sets_not_used",
-                format!("the measurement holds FRFs{vendor_note}"),
+                format!(
+                    "the measurement holds FRFs and {} dataset-55 mode(s) ({}): extract identifies the modes from the FRFs; the lab's modes are kept in vendor_modes.parquet for comparison",
+                    vendor.len(),
+                    vendor.join(", ")
+                ),
             )
             .file(file.clone())
             .measurement(mid.clone()),
@@ -958,6 +1013,19 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             has_record: with_record.contains(&node),
         })
         .collect();
+    note_points(
+        m,
+        &mut fd,
+        &file,
+        &mid,
+        "no response record (marked invalid by the vibrometer, or dropped)",
+    );
+    fd
+}
+
+/// The findings on a measurement's scan points: points off the board's plane, and points
+/// without data (`missing` says why there is none).
+fn note_points(m: &Measurement, fd: &mut Findings, file: &str, mid: &str, missing: &str) {
     // The contract's frame has the board in z = 0: a scan point well off that plane is not
     // on the board (a bolt head, the fixture). Kept in scan_points.parquet; pair, which knows
     // the board's outline, names points off it and leaves them out of the MAC.
@@ -974,9 +1042,9 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                         OFF_PLANE_M * 1e3
                     ),
                 )
-                .file(file.clone())
+                .file(file.to_string())
                 .record(format!("node {}", p.node))
-                .measurement(mid.clone()),
+                .measurement(mid.to_string()),
             );
         }
     }
@@ -990,13 +1058,105 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             Finding::new(
                 Severity::Info,
                 "uff.points_without_record",
-                format!("{no_record} scan point(s) have no response record (marked invalid by the vibrometer, or dropped)"),
+                format!("{no_record} scan point(s) have {missing}"),
             )
-            .file(file)
-            .measurement(mid),
+            .file(file.to_string())
+            .measurement(mid.to_string()),
         );
     }
-    fd
+}
+
+/// The modes of a file's mode sets (dataset 55), ascending in frequency. A set that is no
+/// mode (another analysis type), whose frequency or damping is unusable, whose data are no
+/// scalar or translation, or that has no finite value at a node with coordinates is dropped
+/// with a finding naming its line; nodes without coordinates are named and left out.
+fn read_vendor_modes(
+    datasets: &[Dataset],
+    nodes: &BTreeMap<i64, [f64; 3]>,
+    fd: &mut Findings,
+    file: &str,
+    mid: &str,
+) -> Vec<VendorMode> {
+    use faer::c64;
+    let finding = |severity, code: &str, line: usize, msg: String| {
+        Finding::new(severity, code, msg)
+            .file(file.to_string())
+            .line(line as u64)
+            .record("dataset 55".to_string())
+            .measurement(mid.to_string())
+    };
+    let mut out = vec![];
+    for d in datasets {
+        let Dataset::NodalData(n) = d else { continue };
+        let drop = |fd: &mut Findings, code: &str, what: String| {
+            fd.push(finding(
+                Severity::RecordDropped,
+                code,
+                n.line,
+                format!("{what}; mode set dropped"),
+            ))
+        };
+        let Some(p) = n.mode() else {
+            drop(fd, "uff.mode_set_type", format!("analysis type {}: expected a mode (2, a normal mode with frequency, modal mass and damping in record 8; 3 or 7, a complex mode with its eigenvalue)", n.analysis_type));
+            continue;
+        };
+        if !(p.freq_hz.is_finite() && p.freq_hz > 0.0 && p.damping_ratio.is_finite()) {
+            drop(fd, "uff.mode_set_values", format!("frequency {} Hz, damping ratio {}: expected a positive frequency and a finite damping ratio", p.freq_hz, p.damping_ratio));
+            continue;
+        }
+        // The component along the response direction: the scalar, or Z of the translations.
+        let comp = match n.data_characteristic {
+            1 => 0,
+            2 | 3 => 2,
+            dc => {
+                drop(fd, "uff.mode_set_component", format!("data characteristic {dc}: expected 1 (a scalar, taken as the response direction) or 2/3 (translations, of which Z is used)"));
+                continue;
+            }
+        };
+        let mut vals: BTreeMap<i64, c64> = BTreeMap::new();
+        let (mut no_geometry, mut repeated, mut not_finite) = (0usize, 0usize, 0usize);
+        for v in &n.nodes {
+            let re = v.re.get(comp).copied().unwrap_or(f64::NAN);
+            let im = v.im.as_ref().map_or(Some(0.0), |i| i.get(comp).copied());
+            let z = c64::new(re, im.unwrap_or(f64::NAN));
+            if !nodes.contains_key(&v.node) {
+                no_geometry += 1;
+            } else if !(z.re.is_finite() && z.im.is_finite()) {
+                not_finite += 1;
+            } else if vals.insert(v.node, z).is_some() {
+                repeated += 1;
+            }
+        }
+        let zs: Vec<c64> = vals.values().copied().collect();
+        let mask = vec![true; zs.len()];
+        let shape = crate::modal::lsfd::real_normalise(&zs, &mask);
+        if shape.is_empty() || shape.iter().any(|v| !v.is_finite()) {
+            drop(fd, "uff.mode_set_no_points", format!("{:.1} Hz: no nonzero finite value at a node with coordinates (dataset 2411/15); {} node(s) without coordinates, {} not finite", p.freq_hz, no_geometry, not_finite));
+            continue;
+        }
+        if no_geometry + repeated + not_finite > 0 {
+            fd.push(finding(
+                Severity::Warning,
+                "uff.mode_set_nodes",
+                n.line,
+                format!("{:.1} Hz: {no_geometry} node(s) without coordinates in dataset 2411/15, {not_finite} with a value that is not finite, {repeated} given twice (the later value kept); the mode is used at its other {} node(s)", p.freq_hz, vals.len()),
+            ));
+        }
+        let (mpc, mpd_deg) = crate::modal::lsfd::mpc_mpd(&zs, &mask);
+        out.push(VendorMode {
+            line: n.line,
+            mode_number: p.mode_number,
+            analysis_type: n.analysis_type,
+            freq_hz: p.freq_hz,
+            damping_ratio: p.damping_ratio,
+            mpc,
+            mpd_deg,
+            nodes: vals.keys().copied().collect(),
+            shape,
+        });
+    }
+    out.sort_by(|a, b| a.freq_hz.total_cmp(&b.freq_hz));
+    out
 }
 
 /// The key two spellings of one board ID share: letters upper-cased, numbers without their
@@ -1676,12 +1836,13 @@ mod tests {
     /// Mode sets (dataset 55) are read and named, never silently skipped: beside FRFs a
     /// warning says they are not used; alone they quarantine the measurement saying so.
     #[test]
-    fn mode_sets_are_named_and_not_silently_used_or_dropped() {
+    fn mode_sets_are_kept_beside_frfs_and_are_the_modes_of_a_measurement_without_records() {
         let ds55 = b"    -1\n    55\nNONE\nNONE\nNONE\nNONE\nNONE\n         1         2         2         8         2         3\n         2         4         1         1\n  4.12500e+02  0.00000e+00  1.10000e-02  0.00000e+00\n         1\n  0.00000e+00  0.00000e+00  1.00000e+00\n    -1\n";
         let h: Vec<(f64, f64)> = (0..4).map(|k| (k as f64, 1.0)).collect();
         let c = one_measurement_with(&[frf(1, 4, 11, &h), frf(2, 4, 11, &h)], ds55);
-        assert!(c.measurements[0].quarantine.is_none());
-        assert_eq!(c.measurements[0].records.len(), 2);
+        let m = &c.measurements[0];
+        assert!(m.quarantine.is_none());
+        assert_eq!((m.records.len(), m.vendor_modes.len()), (2, 1));
         let w = c
             .findings
             .iter()
@@ -1689,14 +1850,65 @@ mod tests {
             .unwrap();
         assert_eq!(w.severity, Severity::Warning);
         assert!(
-            w.message.contains("1 dataset-55 set(s) (412.5 Hz at line "),
+            w.message
+                .contains("1 dataset-55 mode(s) (412.5 Hz at line ")
+                && w.message.contains("vendor_modes.parquet"),
             "{}",
             w.message
         );
-        let c = one_measurement_with(&[], ds55);
+
+        // Modes only: a normal mode, a complex one (analysis type 3, eigenvalue of 800 Hz at
+        // 2 % damping; one of its nodes has no coordinates), and a frequency response (type
+        // 5), which is no mode. The measurement is not quarantined; its modes ascend.
+        let wn = std::f64::consts::TAU * 800.0;
+        let (sigma, wd) = (-0.02 * wn, wn * (1.0f64 - 0.0004).sqrt());
+        let complex = format!("    -1\n    55\nNONE\nNONE\nNONE\nNONE\nNONE\n         1         3         2         8         5         3\n         2         6         1         2\n {sigma:.10e} {wd:.10e} 0.0 0.0 0.0 0.0\n         2\n 0.0 0.0 0.0 0.0 1.0 0.1\n         3\n 0.0 0.0 0.0 0.0 -0.5 -0.05\n         9\n 0.0 0.0 0.0 0.0 1.0 0.0\n    -1\n");
+        let response = b"    -1\n    55\nNONE\nNONE\nNONE\nNONE\nNONE\n         1         5         2         8         2         3\n         2         1         1         1\n  1.00000e+02\n         1\n  0.00000e+00  0.00000e+00  1.00000e+00\n    -1\n";
+        let bytes = [complex.as_bytes(), ds55, response].concat();
+        let c = one_measurement_with(&[], &bytes);
+        let m = &c.measurements[0];
+        assert!(m.quarantine.is_none(), "{:?}", m.quarantine);
+        assert_eq!(m.vendor_modes.len(), 2, "{:?}", c.findings);
+        let (a, b) = (&m.vendor_modes[0], &m.vendor_modes[1]);
+        assert_eq!(
+            (a.freq_hz, a.damping_ratio, a.analysis_type),
+            (412.5, 0.011, 2)
+        );
+        assert_eq!(
+            (a.nodes.clone(), a.shape.clone(), a.mpc),
+            (vec![1], vec![1.0], 1.0)
+        );
+        assert!((b.freq_hz - 800.0).abs() < 1e-6 && (b.damping_ratio - 0.02).abs() < 1e-9);
+        assert_eq!((b.analysis_type, b.mode_number), (3, Some(2)));
+        assert_eq!(b.nodes, vec![2, 3]);
+        assert!((b.shape[0] - 1.0).abs() < 1e-12 && (b.shape[1] + 0.5).abs() < 1e-12);
+        assert!((b.mpc - 1.0).abs() < 1e-12, "{}", b.mpc);
+        let has: Vec<(i64, bool)> = m.points.iter().map(|p| (p.node, p.has_record)).collect();
+        assert_eq!(has, vec![(1, true), (2, true), (3, true), (4, false)]);
+        let code = |code: &str| c.findings.iter().find(|f| f.code == code).unwrap();
+        assert!(code("uff.vendor_modes").message.contains("2 mode(s)"));
+        let nodes = code("uff.mode_set_nodes");
+        assert!(
+            nodes.message.contains("1 node(s) without coordinates"),
+            "{}",
+            nodes.message
+        );
+        assert!(nodes.line.is_some());
+        let dropped = code("uff.mode_set_type");
+        assert_eq!(dropped.severity, Severity::RecordDropped);
+        assert!(
+            dropped.message.contains("analysis type 5"),
+            "{}",
+            dropped.message
+        );
+        assert!(dropped.line > nodes.line, "{:?}", dropped.line);
+        assert_eq!(m.dropped, 1);
+
+        // Neither records nor modes: quarantined, saying what was expected.
+        let c = one_measurement_with(&[], response);
         let q = c.measurements[0].quarantine.as_deref().unwrap();
         assert!(
-            q.contains("no usable response record") && q.contains("412.5 Hz"),
+            q.contains("no usable response record") && q.contains("no mode set"),
             "{q}"
         );
     }

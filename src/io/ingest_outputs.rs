@@ -1,12 +1,13 @@
-//! Writers of the ingest stage's outputs: the five Parquet tables, `campaign.mcap` and
+//! Writers of the ingest stage's outputs: the six Parquet tables, `campaign.mcap` and
 //! `ingest_report.json`, from a checked [`Campaign`]. Same campaign → same bytes, whatever the
 //! thread count.
 
-use crate::campaign::{Campaign, Measurement, Point, Record};
+use crate::campaign::{Campaign, Measurement, Point, Record, VendorMode};
 use crate::findings::{Finding, Findings};
 use crate::io::manifest;
 use crate::io::mcap_writer::{
     encoding_of, BalanceMsg, CampaignMcap, F64Le, FunctionMsg, PointMsg, ScanPointsMsg, SheetMsg,
+    VendorModeMsg,
 };
 use crate::io::tables::{self, TableSpec};
 use anyhow::Context;
@@ -21,10 +22,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// Names of the files the stage writes into its output directory.
-pub const OUTPUTS: [&str; 7] = [
+pub const OUTPUTS: [&str; 8] = [
     "measurements.parquet",
     "scan_points.parquet",
     "frf.parquet",
+    "vendor_modes.parquet",
     "scale_readings.parquet",
     "masses.parquet",
     "campaign.mcap",
@@ -207,6 +209,38 @@ pub fn write_outputs(c: &Campaign, out: &Path, fingerprint: &str) -> anyhow::Res
                 .map(move |r| (m.row.measurement_id.as_str(), r))
         })
         .collect();
+    // vendor modes
+    let vm: Vec<(&str, usize, &VendorMode)> = c
+        .measurements
+        .iter()
+        .filter(|m| m.quarantine.is_none())
+        .flat_map(|m| {
+            m.vendor_modes
+                .iter()
+                .enumerate()
+                .map(move |(k, v)| (m.row.measurement_id.as_str(), k, v))
+        })
+        .collect();
+    write_table(
+        &p("vendor_modes.parquet"),
+        &tables::VENDOR_MODES,
+        &prov,
+        &[],
+        vec![
+            strs(vm.iter().map(|(m, _, _)| Some(*m))),
+            i32s(vm.iter().map(|(_, k, _)| Some(*k as i32 + 1))),
+            i64s(vm.iter().map(|(_, _, v)| v.mode_number)),
+            i32s(vm.iter().map(|(_, _, v)| Some(v.analysis_type as i32))),
+            i64s(vm.iter().map(|(_, _, v)| Some(v.line as i64))),
+            f64s(vm.iter().map(|(_, _, v)| Some(v.freq_hz))),
+            f64s(vm.iter().map(|(_, _, v)| Some(v.damping_ratio))),
+            f64s(vm.iter().map(|(_, _, v)| Some(v.mpc))),
+            f64s(vm.iter().map(|(_, _, v)| Some(v.mpd_deg))),
+            tables::list_i64_col(vm.iter().map(|(_, _, v)| v.nodes.clone())),
+            tables::list_f64_col(vm.iter().map(|(_, _, v)| v.shape.clone())),
+        ],
+    )?;
+
     // scale readings
     let rs = &c.readings;
     write_table(
@@ -391,6 +425,25 @@ fn write_mcap(c: &Campaign, path: &Path, prov: &BTreeMap<String, String>) -> any
                     )?;
                     w.write_encoded(topic, t, &buf)?;
                 }
+            }
+            for (k, v) in m.vendor_modes.iter().enumerate() {
+                w.write(
+                    "/vendor_modes",
+                    t,
+                    &VendorModeMsg {
+                        measurement_id: id,
+                        mode: k as i32 + 1,
+                        mode_number: v.mode_number,
+                        analysis_type: v.analysis_type,
+                        uff_line: v.line as u64,
+                        freq_hz: v.freq_hz,
+                        damping_ratio: v.damping_ratio,
+                        mpc: v.mpc,
+                        mpd_deg: v.mpd_deg,
+                        node: &v.nodes,
+                        shape: &v.shape,
+                    },
+                )?;
             }
         }
         for r in &c.readings {

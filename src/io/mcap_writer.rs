@@ -58,6 +58,23 @@ pub struct ScanPointsMsg {
     pub points: Vec<PointMsg>,
 }
 
+/// `/vendor_modes`: one mode a lab's modal software identified (UFF dataset 55); see
+/// vendor_modes.parquet.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct VendorModeMsg<'a> {
+    pub measurement_id: &'a str,
+    pub mode: i32,
+    pub mode_number: Option<i64>,
+    pub analysis_type: i64,
+    pub uff_line: u64,
+    pub freq_hz: f64,
+    pub damping_ratio: f64,
+    pub mpc: f64,
+    pub mpd_deg: f64,
+    pub node: &'a [i64],
+    pub shape: &'a [f64],
+}
+
 /// `/frf` and `/coherence` (CBOR): one function record on an evenly spaced frequency axis
 /// `f_k = freq_start_hz + k · freq_step_hz`, ordinates in SI (`ordinate_unit`).
 #[derive(Debug, Clone, Serialize, JsonSchema)]
@@ -190,6 +207,7 @@ pub fn channel_schemas() -> Vec<ChannelSpec> {
         c("/scan_points", "hbmu.ScanPoints", s::<ScanPointsMsg>()),
         c("/frf", "hbmu.FunctionRecord", s::<FunctionMsg>()),
         c("/coherence", "hbmu.FunctionRecord", s::<FunctionMsg>()),
+        c("/vendor_modes", "hbmu.VendorMode", s::<VendorModeMsg>()),
         c("/balance", "hbmu.BalanceReading", s::<BalanceMsg>()),
         c(
             "/ingest/findings",

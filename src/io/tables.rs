@@ -326,6 +326,25 @@ pub const SCAN_POINTS: TableSpec = TableSpec {
     ],
 };
 
+pub const VENDOR_MODES: TableSpec = TableSpec {
+    name: "vendor_modes",
+    doc: "Modes a lab's modal software identified and exported as UFF dataset 55 (one set per mode), one row per mode, ascending in frequency within a measurement. For a measurement with no response record these are its modes (extract passes them through, `source = uff55` in modes.parquet); beside FRFs they are kept for comparison and extract identifies from the FRFs. The shape is the component along the response direction (Z of the translations, or the scalar) at the nodes with coordinates, real-normalised like extract's (largest |component| = +1).",
+    open: false,
+    columns: &[
+        c("measurement_id", Col::Utf8, false, "", "Measurement id."),
+        c("mode", Col::Int32, false, "", "Mode number in this measurement, 1-based, ascending frequency."),
+        c("mode_number", Col::Int64, true, "", "The file's mode number (record 7), when given."),
+        c("analysis_type", Col::Int32, false, "", "Dataset 55 analysis type: 2 normal mode, 3 or 7 complex mode."),
+        c("uff_line", Col::Int64, false, "", "1-based line of the dataset in its UFF file."),
+        c("freq_hz", Col::Float64, false, "Hz", "Undamped natural frequency (type 2: record 8; types 3/7: |lambda|/(2 pi))."),
+        c("damping_ratio", Col::Float64, false, "", "Viscous damping ratio (type 2: record 8; types 3/7: -Re(lambda)/|lambda|)."),
+        c("mpc", Col::Float64, false, "", "Modal phase collinearity of the shape, 0..1 (1 for a real shape)."),
+        c("mpd_deg", Col::Float64, false, "deg", "Mean phase deviation of the shape."),
+        c("node", Col::ListI64, false, "", "Nodes with a value and coordinates, ascending."),
+        c("shape", Col::ListF64, false, "", "Real-normalised shape at `node`."),
+    ],
+};
+
 pub const FRF: TableSpec = TableSpec {
     name: "frf",
     doc: "One row per function record (scan point x function type), spectra as list columns: one row per record keeps the table at thousands of rows instead of millions, and each cell becomes a numpy array in pandas. The frequency axis is evenly spaced and stored once per record, not per line: line k of `re`/`im` lies at `freq_start_hz + k * freq_step_hz`, k = 0..n_lines-1 (pandas: `frf[\"freq_hz\"] = [r.freq_start_hz + r.freq_step_hz * np.arange(r.n_lines) for r in frf.itertuples()]`, then `frf[frf.function_type != 6].explode([\"freq_hz\",\"re\",\"im\"])` gives the long form of the responses). Ordinates in SI: mobility (m/s)/N for type 4 and a velocity ratio for 5 (transmissibility), whatever the lab measured (`measured_as`; an accelerance is divided by iω); type 6 is coherence (`im` null). Tables written before layout 2 had a `freq_hz` list column instead of the three axis columns; readers refuse them with a message to re-run ingest.",
@@ -424,6 +443,7 @@ pub fn all_tables() -> Vec<&'static TableSpec> {
         &MEASUREMENTS,
         &SCAN_POINTS,
         &FRF,
+        &VENDOR_MODES,
         &SCALE_READINGS,
         &MASSES,
         &FE_MODES,

@@ -206,6 +206,36 @@ pub fn real_normalise(v: &[c64], mask: &[bool]) -> Vec<f64> {
         .collect()
 }
 
+/// Each mode's share of the fitted response at its own natural frequency `|lambda_r|`, the
+/// largest over the points with `mask[o] == true`: the magnitude of its term over the sum of
+/// every mode term's and the residual terms' magnitudes there, in [0, 1]. A mode a point
+/// shows dominates there (share near 1); two close modes share it; a pole whose term is a
+/// small share is no resonance of these spectra. `NaN` when no point is masked in.
+pub fn peak_shares(lambdas: &[c64], fit: &LsfdFit, powers: &[i32], mask: &[bool]) -> Vec<f64> {
+    let term = |a: c64, lam: c64, s: c64| a * (s - lam).inv() + a.conj() * (s - lam.conj()).inv();
+    (0..lambdas.len())
+        .map(|r| {
+            let s = c64::new(0.0, lambdas[r].norm());
+            let mut best: Option<f64> = None;
+            for (o, _) in mask.iter().enumerate().filter(|(_, &m)| m) {
+                let own = term(fit.residues[o][r], lambdas[r], s).norm();
+                let modes: f64 = (0..lambdas.len())
+                    .map(|q| term(fit.residues[o][q], lambdas[q], s).norm())
+                    .sum();
+                let residual: c64 = powers
+                    .iter()
+                    .zip(&fit.residual_coeffs[o])
+                    .map(|(&p, &c)| s.powi(p) * c)
+                    .sum();
+                let total = modes + residual.norm();
+                let share = if total > 0.0 { own / total } else { 0.0 };
+                best = Some(best.map_or(share, |b: f64| b.max(share)));
+            }
+            best.unwrap_or(f64::NAN)
+        })
+        .collect()
+}
+
 /// Modal phase collinearity and mean phase deviation (degrees) of a complex shape over the
 /// masked-in points.
 ///

@@ -208,6 +208,9 @@ pub struct IdentifiedMode {
     pub mpd_deg: f64,
     /// Number of stabilization-diagram poles in this mode's cluster.
     pub cluster_size: usize,
+    /// The mode's share of the fitted response at its natural frequency, the largest over
+    /// the used points ([`lsfd::peak_shares`]); `NaN` for a mode identified elsewhere.
+    pub peak_share: f64,
     /// Spread (median absolute deviation) of the cluster's frequencies in Hz and damping
     /// ratios: a cheap uncertainty indicator.
     pub freq_mad_hz: f64,
@@ -229,6 +232,63 @@ pub struct Extraction {
     pub fit_error: Vec<f64>,
     /// Fit error over all used points together.
     pub overall_fit_error: f64,
+}
+
+/// Below this many used response points a mode's MPC cannot judge it (one point's is 1,
+/// two points' is a single phase difference): pole selection then asks for the mode's share
+/// of the response at its own frequency instead ([`SelectionParams::min_peak_share`]).
+pub const FEW_POINTS: usize = 3;
+
+/// A mode identified elsewhere (a lab's modal software, UFF dataset 55), its shape already
+/// real-normalised at the measurement's scan points (`NaN` where it has no value).
+#[derive(Debug, Clone, PartialEq)]
+pub struct GivenMode {
+    pub freq_hz: f64,
+    pub damping_ratio: f64,
+    pub mpc: f64,
+    pub mpd_deg: f64,
+    pub shape: Vec<f64>,
+}
+
+/// The [`Extraction`] of a measurement whose modes were identified elsewhere: the modes
+/// ascending in frequency as given, no stabilization diagram (no pole support:
+/// `cluster_size` 0, spreads and fit errors `NaN`), no point excluded, and the band the modes span (the lab's band is not in a mode set; the modes' span is
+/// the part of it they vouch for).
+pub fn pass_through(modes: &[GivenMode]) -> Extraction {
+    let mut modes = modes.to_vec();
+    modes.sort_by(|a, b| a.freq_hz.total_cmp(&b.freq_hz));
+    let n_points = modes.first().map_or(0, |m| m.shape.len());
+    let band_hz = (
+        modes.first().map_or(f64::NAN, |m| m.freq_hz),
+        modes.last().map_or(f64::NAN, |m| m.freq_hz),
+    );
+    Extraction {
+        modes: modes
+            .into_iter()
+            .map(|m| IdentifiedMode {
+                freq_hz: m.freq_hz,
+                damping_ratio: m.damping_ratio,
+                residue_re: vec![f64::NAN; m.shape.len()],
+                residue_im: vec![f64::NAN; m.shape.len()],
+                shape: m.shape,
+                mpc: m.mpc,
+                mpd_deg: m.mpd_deg,
+                cluster_size: 0,
+                peak_share: f64::NAN,
+                freq_mad_hz: f64::NAN,
+                damping_mad: f64::NAN,
+            })
+            .collect(),
+        band_hz,
+        stabilization: StabilizationDiagram {
+            band_hz,
+            orders: vec![],
+            poles: vec![],
+        },
+        point_flags: vec![vec![]; n_points],
+        fit_error: vec![f64::NAN; n_points],
+        overall_fit_error: f64::NAN,
+    }
 }
 
 /// Validated complex view of the spectra restricted to the analysis band.
@@ -327,7 +387,9 @@ pub(crate) fn band_data(
 
 /// Identify the modes of one measurement: see the module documentation for the steps.
 ///
-/// Errors if the spectra are malformed or fewer than 2 scan points survive screening.
+/// Errors if the spectra are malformed or no scan point survives screening. With fewer than
+/// [`FEW_POINTS`] used points the modes are kept on their share of the response at their own
+/// frequency rather than on their MPC.
 pub fn extract(
     spectra: &MeasurementSpectra,
     params: &ExtractParams,
@@ -345,9 +407,9 @@ pub fn extract(
     let mut pass = 0;
     loop {
         let used: Vec<usize> = (0..n_points).filter(|&i| flags[i].is_empty()).collect();
-        if used.len() < 2 {
+        if used.is_empty() {
             return Err(ModalError::TooFewPoints {
-                expected: 2,
+                expected: 1,
                 found: used.len(),
                 excluded: n_points - used.len(),
             });
@@ -393,6 +455,7 @@ pub fn extract(
             continue;
         }
         let used_mask: Vec<bool> = flags.iter().map(|f| f.is_empty()).collect();
+        let shares = lsfd::peak_shares(&lambdas, &fit, &lsfd_params.residual_powers, &used_mask);
         let mut modes = Vec::with_capacity(selected.len());
         for (r, sel) in selected.iter().enumerate() {
             let residues: Vec<c64> = (0..n_points).map(|o| fit.residues[o][r]).collect();
@@ -417,13 +480,23 @@ pub fn extract(
                 mpc,
                 mpd_deg,
                 cluster_size: sel.cluster_size,
+                peak_share: shares[r],
                 freq_mad_hz: sel.freq_mad_hz,
                 damping_mad: sel.damping_mad,
             });
         }
+        // Many points: the residues' phase collinearity tells a mode from noise. Few: it
+        // cannot (one point's MPC is 1), and the mode must stand out of the response instead.
+        let few = used.len() < FEW_POINTS;
         let keep: Vec<bool> = modes
             .iter()
-            .map(|m| m.mpc >= params.selection.min_mpc)
+            .map(|m| {
+                if few {
+                    m.peak_share >= params.selection.min_peak_share
+                } else {
+                    m.mpc >= params.selection.min_mpc
+                }
+            })
             .collect();
         let modes: Vec<IdentifiedMode> = modes
             .into_iter()

@@ -50,6 +50,20 @@ pub struct PairParams {
     /// Coordinates closer than this fraction of the point cloud's extent belong to the same
     /// row/column (default 0.02).
     pub grid_tol_fraction: f64,
+    /// Frequency pairing ([`pair_modes_by_frequency`], for points too sparse for the MAC):
+    /// the prior predictive sd of ln f of an un-updated model mode (default 0.05: f goes as
+    /// √stiffness, and the updating's prior gives each modulus's population mean a 10 % sd,
+    /// `update boards --prior-width`).
+    pub freq_sd_rel: f64,
+    /// A pair further apart than this many `freq_sd_rel` is not accepted (default 3).
+    pub freq_gate_sd: f64,
+    /// Visibility at which a mode is surely seen at the measured points: its largest amplitude
+    /// there over its largest on the board (default 0.1: its peak then lies within 20 dB of
+    /// what it shows elsewhere, as extract's `min_peak_share`). A less visible model mode may
+    /// still show (a lightly damped peak rises ~1/(2ζ) over the response), so it stays a
+    /// candidate at a log-likelihood penalty ln(v / min_visibility), and is not reported
+    /// missing when no partner is found.
+    pub min_visibility: f64,
 }
 
 impl Default for PairParams {
@@ -59,6 +73,9 @@ impl Default for PairParams {
             max_freq_deviation: 0.5,
             label_amp_fraction: 0.1,
             grid_tol_fraction: 0.02,
+            freq_sd_rel: 0.05,
+            freq_gate_sd: 3.0,
+            min_visibility: 0.1,
         }
     }
 }
@@ -343,18 +360,7 @@ pub fn pair_modes_labelled(
                 && accepted_model[j].is_none()
         })
         .collect();
-    let mut swaps = Vec::new();
-    for a in 0..model.len() {
-        for b in 0..model.len() {
-            if model[a].freq_hz < model[b].freq_hz {
-                if let (Some(ia), Some(ib)) = (accepted_model[a], accepted_model[b]) {
-                    if identified[ia].freq_hz > identified[ib].freq_hz {
-                        swaps.push((a, b));
-                    }
-                }
-            }
-        }
-    }
+    let swaps = swaps_of(identified, model, &accepted_model);
     Ok(Pairing {
         mac,
         pairs,
@@ -362,6 +368,173 @@ pub fn pair_modes_labelled(
         missing,
         swaps,
     })
+}
+
+/// The largest MAC between two different model modes at the measured points, over the model
+/// modes whose frequency lies in `band_hz` widened by the relative `margin` (the candidates of
+/// a pairing). The points tell the model's modes apart by MAC only when this stays below the
+/// pairing's `mac_min`; otherwise two model modes look alike there and the MAC cannot choose
+/// (one point: every MAC is 1). 0 with fewer than two candidates.
+pub fn model_mac_max(model: &[ModelMode], band_hz: (f64, f64), margin: f64) -> f64 {
+    let near: Vec<Vec<f64>> = model
+        .iter()
+        .filter(|m| {
+            m.freq_hz >= band_hz.0 * (1.0 - margin) && m.freq_hz <= band_hz.1 * (1.0 + margin)
+        })
+        .map(|m| m.shape.clone())
+        .collect();
+    let mac = mac_matrix(&near, &near);
+    let mut worst = 0.0f64;
+    for (a, row) in mac.iter().enumerate() {
+        for (b, &v) in row.iter().enumerate() {
+            if a != b && v.is_finite() {
+                worst = worst.max(v);
+            }
+        }
+    }
+    worst
+}
+
+/// Pair identified modes with model modes by frequency and visibility, for scan points too
+/// sparse for the MAC ([`model_mac_max`]). `visibility[j]` is model mode j's largest
+/// |amplitude| at the measured points over its largest on the board.
+///
+/// A model mode is a candidate for an identified one when it moves at the points at all and its
+/// frequency lies within `freq_gate_sd` prior predictive sds (`freq_sd_rel` in ln f). Among
+/// candidates the assignment maximises, over all pairs at once, the prior predictive log
+/// density of the frequency ratio plus the log probability that the mode is seen there,
+/// ln min(1, v / `min_visibility`), where each identified mode may instead be none of the
+/// model's (a mode the model lacks, or a spurious pole: a density uniform in ln f over the
+/// identified modes' span). A common sd on ln f makes the optimal one-to-one assignment keep
+/// the modes' order; a mode near a node of its shape at the points loses to one seen well;
+/// an identified mode far from every candidate is left unpaired rather than forced, and one
+/// forced pair never displaces a close one; a model mode in the band seen surely (v ≥ `min_visibility`) without a partner is
+/// missing; a less visible one is not. Labels and the `Pairing` are those of
+/// [`pair_modes_labelled`] (the MAC matrix still reported), so that later stages cannot tell
+/// the difference.
+pub fn pair_modes_by_frequency(
+    identified: &[IdentifiedShape],
+    model: &[ModelMode],
+    model_labels: Vec<String>,
+    visibility: &[f64],
+    band_hz: (f64, f64),
+    params: &PairParams,
+) -> Result<Pairing, ModalError> {
+    for (context, n) in [
+        (
+            "pair_modes_by_frequency (labels vs model modes)",
+            model_labels.len(),
+        ),
+        (
+            "pair_modes_by_frequency (visibility vs model modes)",
+            visibility.len(),
+        ),
+    ] {
+        if n != model.len() {
+            return Err(ModalError::ShapeLength {
+                context,
+                expected: model.len(),
+                found: n,
+            });
+        }
+    }
+    let id_shapes: Vec<Vec<f64>> = identified.iter().map(|m| m.shape.clone()).collect();
+    let mo_shapes: Vec<Vec<f64>> = model.iter().map(|m| m.shape.clone()).collect();
+    let mac = mac_matrix(&id_shapes, &mo_shapes);
+    // Log-likelihood of "identified mode i is model mode j": the prior predictive density of
+    // its ln f, times the probability that j is seen at the points.
+    let ln_norm = (params.freq_sd_rel * (2.0 * std::f64::consts::PI).sqrt()).ln();
+    let score = |i: usize, j: usize| -> Option<f64> {
+        let z = (identified[i].freq_hz / model[j].freq_hz).ln() / params.freq_sd_rel;
+        let seen = (visibility[j] / params.min_visibility).min(1.0);
+        (z.is_finite() && z.abs() <= params.freq_gate_sd && seen > 0.0)
+            .then(|| -0.5 * z * z - ln_norm + seen.ln())
+    };
+    // ... against "it is none of them" (a mode the model lacks, or a spurious one): a density
+    // uniform in ln f over the span the identified modes occupy (at least the gate's width).
+    let (lo, hi) = identified
+        .iter()
+        .map(|m| m.freq_hz)
+        .filter(|f| f.is_finite() && *f > 0.0)
+        .fold((f64::INFINITY, 0.0f64), |(a, b), f| (a.min(f), b.max(f)));
+    let span = if hi > lo { (hi / lo).ln() } else { 0.0 };
+    let unpaired = -span
+        .max(2.0 * params.freq_gate_sd * params.freq_sd_rel)
+        .ln();
+    // Costs: every identified mode has its own "unpaired" column; a pair that is no candidate
+    // costs more than any assignment of candidates, and is never taken.
+    let (n, m) = (identified.len(), model.len());
+    let forbidden = 1e6;
+    let cost: Vec<Vec<f64>> = (0..n)
+        .map(|i| {
+            (0..m)
+                .map(|j| score(i, j).map_or(forbidden, |s| -s))
+                .chain((0..n).map(|k| if k == i { -unpaired } else { forbidden }))
+                .collect()
+        })
+        .collect();
+    let assignment: Vec<Option<usize>> = super::assign::hungarian_min(&cost)
+        .into_iter()
+        .map(|a| a.filter(|&j| j < m))
+        .collect();
+    let pairs: Vec<ModePair> = assignment
+        .iter()
+        .enumerate()
+        .map(|(i, a)| {
+            let accepted = a.is_some_and(|j| score(i, j).is_some());
+            ModePair {
+                mode: i,
+                model_mode: *a,
+                label: a.map_or(String::new(), |j| model_labels[j].clone()),
+                mac: a.map_or(0.0, |j| mac[i][j]),
+                accepted,
+            }
+        })
+        .collect();
+    let mut partner = vec![None; model.len()];
+    for p in pairs.iter().filter(|p| p.accepted) {
+        if let Some(j) = p.model_mode {
+            partner[j] = Some(p.mode);
+        }
+    }
+    let missing = (0..model.len())
+        .filter(|&j| {
+            model[j].freq_hz >= band_hz.0
+                && model[j].freq_hz <= band_hz.1
+                && visibility[j] >= params.min_visibility
+                && partner[j].is_none()
+        })
+        .collect();
+    let swaps = swaps_of(identified, model, &partner);
+    Ok(Pairing {
+        mac,
+        pairs,
+        model_labels,
+        missing,
+        swaps,
+    })
+}
+
+/// Pairs of model modes `(a, b)`, `f(a) < f(b)`, whose accepted partners come in the
+/// opposite frequency order.
+fn swaps_of(
+    identified: &[IdentifiedShape],
+    model: &[ModelMode],
+    partner: &[Option<usize>],
+) -> Vec<(usize, usize)> {
+    let mut swaps = Vec::new();
+    for a in 0..model.len() {
+        for b in 0..model.len() {
+            if model[a].freq_hz < model[b].freq_hz {
+                if let (Some(ia), Some(ib)) = (partner[a], partner[b]) {
+                    if identified[ia].freq_hz > identified[ib].freq_hz {
+                        swaps.push((a, b));
+                    }
+                }
+            }
+        }
+    }
+    swaps
 }
 
 /// Accepted mode labels of one measurement, for the presence rule.

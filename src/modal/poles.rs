@@ -55,6 +55,16 @@ pub struct SelectionParams {
     /// with noticeable non-proportional damping still have MPC well above this, noise
     /// poles have random-phase residues).
     pub min_mpc: f64,
+    /// With fewer than [`super::FEW_POINTS`] response points the MPC cannot judge a mode (one
+    /// point's is always 1); a mode is then kept when its term is at least this share of the
+    /// fitted response at its own natural frequency, at some point (|its term| over the sum
+    /// of every term's and the residual terms' magnitudes). Default 0.1: a lightly damped
+    /// mode seen at a point rises to 1/(2ζ) ≈ 25–100 times its off-resonance level and
+    /// dominates there (share near 1) unless another mode lies within a few half-power
+    /// bandwidths (two equal modes share about half each); a term under a tenth of the
+    /// response at its own peak (−20 dB) is one a single FRF cannot tell from the other modes'
+    /// tails and the out-of-band residuals.
+    pub min_peak_share: f64,
 }
 
 impl Default for SelectionParams {
@@ -68,6 +78,7 @@ impl Default for SelectionParams {
             duplicate_mac: 0.9,
             edge_margin: 0.01,
             min_mpc: 0.5,
+            min_peak_share: 0.1,
         }
     }
 }

@@ -735,3 +735,197 @@ fn other_noise_and_damping_levels() {
         }
     }
 }
+
+/// The synthetic measurement cut down to the scan points `keep` (indices into its grid).
+fn few_points(s: &Synthetic, keep: &[usize]) -> MeasurementSpectra {
+    MeasurementSpectra {
+        freq_hz: s.spectra.freq_hz.clone(),
+        points: keep.iter().map(|&i| s.spectra.points[i].clone()).collect(),
+        kind: s.spectra.kind,
+    }
+}
+
+/// An impact test with one or two accelerometers: from one response point (a corner, an
+/// antinode of every mode), and from two, every mode is identified (the close pair 0.6 %
+/// apart, which a single FRF cannot split, excepted: at least one of the two), nothing else,
+/// with the full scan's median frequency error (under 0.05 %), each mode within 0.2 % and
+/// 10 % in damping: the share of the response at its own frequency stands in for the MPC.
+#[test]
+fn one_or_two_response_points_give_the_modes_they_see() {
+    let s = build(&free_free_case(11));
+    for keep in [vec![0usize], vec![0, 40]] {
+        let sp = few_points(&s, &keep);
+        let ex = extract(&sp, &ExtractParams::default()).unwrap();
+        let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
+        let mut ferrs = vec![];
+        for m in &ex.modes {
+            let t = s
+                .freq_hz
+                .iter()
+                .position(|f| (m.freq_hz - f).abs() / f < 0.02)
+                .unwrap_or_else(|| {
+                    panic!("{keep:?}: spurious mode at {} Hz: {freqs:?}", m.freq_hz)
+                });
+            let ferr = (m.freq_hz - s.freq_hz[t]).abs() / s.freq_hz[t];
+            let derr = (m.damping_ratio - s.damping[t]).abs() / s.damping[t];
+            if t == 3 || t == 4 {
+                continue; // the close pair, which one FRF may merge
+            }
+            ferrs.push(ferr);
+            assert!(ferr < 2e-3, "{keep:?}: {} Hz off by {ferr}", s.freq_hz[t]);
+            assert!(
+                derr < 0.10,
+                "{keep:?}: damping of {} Hz off by {derr}",
+                s.freq_hz[t]
+            );
+            assert!(
+                m.peak_share >= 0.1 && m.peak_share <= 1.0,
+                "{}",
+                m.peak_share
+            );
+        }
+        // The full scan's acceptance on the median; each mode within 0.2 %.
+        ferrs.sort_by(|a, b| a.total_cmp(b));
+        assert!(
+            ferrs[ferrs.len() / 2] < 5e-4,
+            "{keep:?}: median {:?}",
+            ferrs
+        );
+        for f in &s.freq_hz {
+            let found = freqs.iter().any(|g| (g - f).abs() / f < 0.02);
+            assert!(found, "{keep:?}: the mode at {f} Hz was missed: {freqs:?}");
+        }
+    }
+}
+
+/// One response point of pure noise: no mode (the share test, not the MPC, rejects poles).
+#[test]
+fn one_point_of_noise_gives_no_mode() {
+    let mut s = few_points(&build(&free_free_case(17)), &[0]);
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    for p in s.points.iter_mut() {
+        let mut row = vec![faer::c64::new(0.0, 0.0); p.re.len()];
+        frf::add_white_noise(&mut row, 1.0, &mut rng);
+        p.re = row.iter().map(|v| v.re).collect();
+        p.im = row.iter().map(|v| v.im).collect();
+    }
+    let ex = extract(&s, &ExtractParams::default()).unwrap();
+    let freqs: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
+    assert!(ex.modes.is_empty(), "spurious modes from noise: {freqs:?}");
+}
+
+/// Modes identified elsewhere are passed through ascending, with no pole support.
+#[test]
+fn given_modes_pass_through_sorted_without_support() {
+    let given = |f: f64| GivenMode {
+        freq_hz: f,
+        damping_ratio: 0.01,
+        mpc: 1.0,
+        mpd_deg: 0.0,
+        shape: vec![1.0, f64::NAN, -0.5],
+    };
+    let ex = pass_through(&[given(900.0), given(400.0)]);
+    let f: Vec<f64> = ex.modes.iter().map(|m| m.freq_hz).collect();
+    assert_eq!(f, vec![400.0, 900.0]);
+    assert_eq!(ex.band_hz, (400.0, 900.0));
+    assert!(ex
+        .modes
+        .iter()
+        .all(|m| m.cluster_size == 0 && m.peak_share.is_nan()));
+    assert_eq!(ex.point_flags.len(), 3);
+    assert!(ex.overall_fit_error.is_nan());
+}
+
+/// Frequency-and-visibility pairing at one point: each identified mode goes to the visible
+/// model mode nearest in ln f, in order; a model mode with a node at the point is neither
+/// paired nor missing; an identified mode with no model mode within the gate stays unpaired.
+#[test]
+fn one_point_pairs_on_frequency_and_visibility() {
+    let mm = |f: f64, a: f64| ModelMode {
+        freq_hz: f,
+        shape: vec![a],
+    };
+    let id = |f: f64| IdentifiedShape {
+        freq_hz: f,
+        shape: vec![1.0],
+    };
+    let names = |n: usize| -> Vec<String> { (0..n).map(|k| format!("m{k}")).collect() };
+    let p = PairParams::default();
+    let pairs = |ids: &[f64], model: &[ModelMode], vis: &[f64], band| {
+        let ids: Vec<IdentifiedShape> = ids.iter().map(|&f| id(f)).collect();
+        pair::pair_modes_by_frequency(&ids, model, names(model.len()), vis, band, &p).unwrap()
+    };
+    // 200 Hz has a node at the point; 210 Hz is seen.
+    let model = vec![
+        mm(100.0, 1.0),
+        mm(200.0, 0.0),
+        mm(210.0, -0.8),
+        mm(300.0, 0.5),
+    ];
+    assert_eq!(pair::model_mac_max(&model, (90.0, 320.0), 0.15), 1.0);
+    let r = pairs(
+        &[104.0, 203.0, 290.0, 500.0],
+        &model,
+        &[1.0, 0.0, 0.8, 0.5],
+        (90.0, 320.0),
+    );
+    let got: Vec<(Option<usize>, bool)> =
+        r.pairs.iter().map(|q| (q.model_mode, q.accepted)).collect();
+    assert_eq!(got[0], (Some(0), true));
+    assert_eq!(
+        got[1],
+        (Some(2), true),
+        "203 Hz goes to the visible 210, not the node's 200"
+    );
+    assert_eq!(got[2], (Some(3), true));
+    assert_eq!(
+        got[3],
+        (None, false),
+        "500 Hz has no model mode within 3 sd"
+    );
+    assert_eq!(r.pairs[1].label, "m2");
+    assert!(r.missing.is_empty(), "{:?}", r.missing);
+    assert!(r.swaps.is_empty());
+
+    // Two identified modes between two model modes within the gate of both: order kept.
+    let model = vec![mm(100.0, 1.0), mm(110.0, 1.0)];
+    let r = pairs(&[108.0, 103.0], &model, &[1.0, 1.0], (90.0, 120.0));
+    assert_eq!(r.pairs[0].model_mode, Some(1));
+    assert_eq!(r.pairs[1].model_mode, Some(0));
+    assert!(r.pairs.iter().all(|q| q.accepted));
+    // A visible model mode in the band with no partner is missing.
+    assert_eq!(
+        pairs(&[100.0], &model, &[1.0, 1.0], (90.0, 120.0)).missing,
+        vec![1]
+    );
+
+    // A mode barely seen (visibility 0.02) near its model frequency wins over a well-seen
+    // one 12 % off (ln 0.2 = -1.6 against -(0.12/0.05)^2/2 = -2.8), and is not missing when
+    // nothing pairs with it.
+    let model = vec![mm(800.0, 1.0), mm(3111.0, 1.0), mm(3527.0, 0.02)];
+    let vis = [1.0, 1.0, 0.02];
+    let r = pairs(&[805.0, 3500.0], &model, &vis, (700.0, 4000.0));
+    assert_eq!(r.pairs[1].model_mode, Some(2));
+    assert_eq!(r.missing, vec![1]);
+    let r = pairs(&[805.0, 3100.0], &model, &vis, (700.0, 4000.0));
+    assert_eq!(r.pairs[1].model_mode, Some(1));
+    assert!(r.missing.is_empty(), "{:?}", r.missing);
+
+    // A mode above the model's list (3943 Hz, 12 % over its last mode) does not push the mode
+    // at 3490 Hz off its close partner (3527 Hz) onto one 10 % away: it stays unpaired.
+    let model = vec![
+        mm(765.0, 1.0),
+        mm(2427.0, 1.0),
+        mm(3157.0, 1.0),
+        mm(3527.0, 1.0),
+    ];
+    let r = pairs(
+        &[765.0, 2426.0, 3490.0, 3943.0],
+        &model,
+        &[1.0; 4],
+        (700.0, 4000.0),
+    );
+    let got: Vec<Option<usize>> = r.pairs.iter().map(|q| q.model_mode).collect();
+    assert_eq!(got, vec![Some(0), Some(1), Some(3), None]);
+    assert_eq!(r.missing, vec![2]);
+}

@@ -2,11 +2,14 @@
 //! scan points excluded from each fit with their reason (`point_flags.parquet`), and a
 //! stabilization diagram per measurement (`plots/<measurement>_stabilization.svg`).
 //!
-//! Reads `measurements.parquet`, `scan_points.parquet` and `frf.parquet` of an ingest
-//! directory; runs the modal kernel ([`crate::modal::extract`]) on every measurement whose
-//! ingest status is `ok`, in parallel, collecting results in sheet order so the outputs are
-//! byte-identical whatever the thread count. A measurement the kernel cannot identify is
-//! reported (finding + exit code 3) and the others proceed.
+//! Reads `measurements.parquet`, `scan_points.parquet`, `frf.parquet` and
+//! `vendor_modes.parquet` of an ingest directory; runs the modal kernel
+//! ([`crate::modal::extract`]) on every measurement whose ingest status is `ok` and that has
+//! response records, in parallel, collecting results in sheet order so the outputs are
+//! byte-identical whatever the thread count. A measurement without response records whose
+//! lab exported its modes (dataset 55) has them passed through
+//! ([`crate::modal::pass_through`], `source = uff55`). A measurement the kernel cannot
+//! identify is reported (finding + exit code 3) and the others proceed.
 
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::manifest::StageSpec;
@@ -35,13 +38,14 @@ pub const MODES: TableSpec = TableSpec {
         c("mpd_deg", Col::Float64, false, "deg", "Mean phase deviation."),
         c("cluster_size", Col::Int32, false, "", "Model orders in which the pole was stable (support in the stabilization diagram)."),
         c("fit_error", Col::Float64, false, "", "Relative residual of the LSFD fit over the used scan points of the measurement."),
-        c("n_points_used", Col::Int32, false, "", "Scan points used in the fit."),
+        c("n_points_used", Col::Int32, false, "", "Scan points used in the fit (for `uff55`: with a value in the shape)."),
         c("band_lo_hz", Col::Float64, false, "Hz", "Identification band, lower edge."),
         c("band_hi_hz", Col::Float64, false, "Hz", "Identification band, upper edge."),
         c("node", Col::ListI64, false, "", "Scan-point node labels."),
         c("x_m", Col::ListF64, false, "m", "Scan-point x coordinates."),
         c("y_m", Col::ListF64, false, "m", "Scan-point y coordinates."),
         c("shape", Col::ListF64, false, "", "Real-normalised mode shape at the scan points."),
+        c("source", Col::Utf8, false, "", "Who identified the mode: `lscf` (hbmu's extraction from the FRFs) or `uff55` (the lab's modal software, its UFF dataset 55 passed through: no stabilization support, `cluster_size` 0, `fit_error` NaN, band = the span of its modes)."),
     ],
 };
 
@@ -66,6 +70,9 @@ pub struct MeasurementInput {
     pub setup: String,
     pub points: Vec<tables::ScanPointRow>,
     pub spectra: MeasurementSpectra,
+    /// The lab's modes at `points` (dataset 55) for a measurement without response records:
+    /// passed through instead of identified.
+    pub given: Option<Vec<modal::GivenMode>>,
 }
 
 /// Read the ok measurements of an ingest directory, in sheet order.
@@ -132,9 +139,44 @@ pub fn read_ingest(dir: &Path) -> anyhow::Result<Vec<MeasurementInput>> {
             }
         }
     }
+    let mut vendor = read_vendor_modes(&dir.join("vendor_modes.parquet"))?;
     let mut out = vec![];
     for (id, board, setup) in meta {
         let Some(recs) = resp.remove(&id) else {
+            // No response record: the lab's modes, at the scan points any of them covers.
+            if let Some(vm) = vendor.remove(&id) {
+                let pts: Vec<tables::ScanPointRow> = points
+                    .remove(&id)
+                    .unwrap_or_default()
+                    .into_iter()
+                    .filter(|p| p.has_record)
+                    .collect();
+                let given = vm
+                    .into_iter()
+                    .map(|v| modal::GivenMode {
+                        freq_hz: v.freq_hz,
+                        damping_ratio: v.damping_ratio,
+                        mpc: v.mpc,
+                        mpd_deg: v.mpd_deg,
+                        shape: pts
+                            .iter()
+                            .map(|p| v.shape_at.get(&p.node).copied().unwrap_or(f64::NAN))
+                            .collect(),
+                    })
+                    .collect();
+                out.push(MeasurementInput {
+                    measurement_id: id,
+                    board_id: board,
+                    setup,
+                    points: pts,
+                    spectra: MeasurementSpectra {
+                        freq_hz: vec![],
+                        points: vec![],
+                        kind: FunctionKind::Other,
+                    },
+                    given: Some(given),
+                });
+            }
             continue;
         };
         let pts_all = points.remove(&id).unwrap_or_default();
@@ -173,7 +215,57 @@ pub fn read_ingest(dir: &Path) -> anyhow::Result<Vec<MeasurementInput>> {
                 points: spectra,
                 kind,
             },
+            given: None,
         });
+    }
+    Ok(out)
+}
+
+/// A row of `vendor_modes.parquet`, its shape by node.
+struct VendorRow {
+    freq_hz: f64,
+    damping_ratio: f64,
+    mpc: f64,
+    mpd_deg: f64,
+    shape_at: BTreeMap<i64, f64>,
+}
+
+/// `vendor_modes.parquet` by measurement (rows in file order); none when an ingest directory
+/// written before the table existed lacks it.
+fn read_vendor_modes(path: &Path) -> anyhow::Result<BTreeMap<String, Vec<VendorRow>>> {
+    let mut out: BTreeMap<String, Vec<VendorRow>> = BTreeMap::new();
+    if !path.exists() {
+        return Ok(out);
+    }
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (id, f, z, mpc, mpd) = (
+            c.str("measurement_id")?,
+            c.f64("freq_hz")?,
+            c.f64("damping_ratio")?,
+            c.f64("mpc")?,
+            c.f64("mpd_deg")?,
+        );
+        for i in 0..b.num_rows() {
+            let nodes = c.list_i64("node", i)?;
+            let shape = c.list_f64("shape", i)?.unwrap_or_default();
+            anyhow::ensure!(
+                nodes.len() == shape.len(),
+                "{}: row {i}: {} nodes but {} shape values; expected one value per node",
+                path.display(),
+                nodes.len(),
+                shape.len()
+            );
+            out.entry(id.value(i).to_string())
+                .or_default()
+                .push(VendorRow {
+                    freq_hz: f.value(i),
+                    damping_ratio: z.value(i),
+                    mpc: mpc.value(i),
+                    mpd_deg: mpd.value(i),
+                    shape_at: nodes.into_iter().zip(shape).collect(),
+                });
+        }
     }
     Ok(out)
 }
@@ -196,10 +288,15 @@ pub struct ExtractOptions {
 
 /// Run the stage.
 pub fn run(opts: &ExtractOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
-    let inputs: Vec<PathBuf> = ["measurements.parquet", "scan_points.parquet", "frf.parquet"]
+    let mut inputs: Vec<PathBuf> = ["measurements.parquet", "scan_points.parquet", "frf.parquet"]
         .iter()
         .map(|n| opts.ingest_dir.join(n))
         .collect();
+    // Written by ingest since mode sets are passed through; an older ingest directory has none.
+    let vendor = opts.ingest_dir.join("vendor_modes.parquet");
+    if vendor.exists() {
+        inputs.push(vendor);
+    }
     let spec = StageSpec {
         stage: "extract".into(),
         inputs,
@@ -214,9 +311,12 @@ pub fn run(opts: &ExtractOptions, verbose: bool) -> anyhow::Result<StageOutcome>
         let done: Vec<Done> = ms
             .into_par_iter()
             .map(|input| {
-                let result = modal::extract(&input.spectra, &opts.params);
+                let result = match &input.given {
+                    Some(given) => Ok(modal::pass_through(given)),
+                    None => modal::extract(&input.spectra, &opts.params),
+                };
                 let svg = match (&result, opts.plots) {
-                    (Ok(x), true) => {
+                    (Ok(x), true) if input.given.is_none() => {
                         let sel: Vec<f64> = x.modes.iter().map(|m| m.freq_hz).collect();
                         crate::report::plots::stabilization_svg(
                             &x.stabilization,
@@ -263,6 +363,48 @@ fn write_outputs(
                     for f in fl {
                         flags.push((&d.input.measurement_id, d.input.points[i].node, f.reason()));
                     }
+                }
+                let used = x.point_flags.iter().filter(|f| f.is_empty()).count();
+                if d.input.given.is_none() && used < modal::FEW_POINTS {
+                    let each: Vec<String> = x
+                        .modes
+                        .iter()
+                        .map(|m| {
+                            format!(
+                                "{:.1} Hz ({} orders, share {:.2}{})",
+                                m.freq_hz,
+                                m.cluster_size,
+                                m.peak_share,
+                                if m.peak_share < 0.5 { ", weak" } else { "" }
+                            )
+                        })
+                        .collect();
+                    findings.push(
+                        Finding::new(
+                            Severity::Info,
+                            "extract.few_points",
+                            format!(
+                                "identified from {used} response point(s): with fewer than {} the residues' phase collinearity (MPC) cannot tell a mode from noise, so each mode was kept on its stabilization support (orders) and its share of the response at its own frequency (at least {}): {}. A weak mode (share under 0.5) shares its peak with another mode or lies near a node of its shape at these points: its frequency and damping are less certain",
+                                modal::FEW_POINTS,
+                                opts.params.selection.min_peak_share,
+                                if each.is_empty() { "none".to_string() } else { each.join(", ") }
+                            ),
+                        )
+                        .measurement(d.input.measurement_id.clone()),
+                    );
+                }
+                if d.input.given.is_some() {
+                    findings.push(
+                        Finding::new(
+                            Severity::Info,
+                            "extract.vendor_modes",
+                            format!(
+                                "{} mode(s) passed through from the lab's mode sets (UFF dataset 55, see ingest's vendor_modes.parquet): identified by the lab's software, not by hbmu; no stabilization support, `source = uff55`",
+                                x.modes.len()
+                            ),
+                        )
+                        .measurement(d.input.measurement_id.clone()),
+                    );
                 }
                 if x.modes.is_empty() {
                     findings.push(
@@ -348,6 +490,13 @@ fn write_outputs(
                 .map(|r| r.0.input.points.iter().map(|p| p.xyz_m[1]).collect()),
         ),
         tables::list_f64_col(rows.iter().map(|r| r.2.shape.clone())),
+        Arc::new(StringArray::from_iter_values(rows.iter().map(|r| {
+            if r.0.input.given.is_some() {
+                "uff55"
+            } else {
+                "lscf"
+            }
+        }))),
     ];
     let p = out.join("modes.parquet");
     let schema = MODES.schema(&[], &tables::table_metadata(&MODES, &prov));

@@ -2,6 +2,11 @@
 //! optimal one-to-one assignment, with labels from the model shapes, missing and swapped
 //! modes, and the paper's presence rule made explicit (`presence.parquet`).
 //!
+//! Where a measurement's points cannot tell the model's modes apart by MAC (fewer than 3, or
+//! two model modes near the band alike there, [`pair::model_mac_max`]: a hammer test with one
+//! or two accelerometers), its modes are paired on frequency, visibility and order instead
+//! ([`pair::pair_modes_by_frequency`], finding `pair.by_frequency`), with the same labels.
+//!
 //! The model is the full FE model of a board description (default: the compiled-in board) at
 //! its nominal parameters, one per setup, evaluated at each measurement's own scan points.
 
@@ -144,16 +149,16 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
         // One model per setup present.
         // Each model mode is labelled once per setup, on a grid over the whole board, so it
         // keeps its label in every measurement whatever part of the board was scanned.
-        let mut models: BTreeMap<String, (FeModel, crate::fem::Modes, Vec<String>)> =
-            BTreeMap::new();
+        type SetupModel = (FeModel, crate::fem::Modes, Vec<String>, Vec<f64>);
+        let mut models: BTreeMap<String, SetupModel> = BTreeMap::new();
         for setup in [SetupArg::Free, SetupArg::Bolted] {
             if ms.iter().any(|m| m.setup == setup.as_str()) {
                 let fe_setup = setup.to_setup();
                 let model = FeModel::build(&board, fe_setup.clone(), board.mesh_for(&fe_setup))?;
                 let p = model.nominal_params();
                 let modes = model.modes(&p, opts.n_model_modes)?;
-                let labels = board_grid_labels(&board, &model, &modes, &opts.params)?;
-                models.insert(setup.as_str().into(), (model, modes, labels));
+                let (labels, board_max) = board_grid_labels(&board, &model, &modes, &opts.params)?;
+                models.insert(setup.as_str().into(), (model, modes, labels, board_max));
             }
         }
         let mut findings = Findings::default();
@@ -161,7 +166,7 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
         let mut presence: Vec<PresenceRecord> = vec![];
         let mut outputs = vec![];
         for m in &ms {
-            let Some((model, fe_modes, labels)) = models.get(&m.setup) else {
+            let Some((model, fe_modes, labels, board_max)) = models.get(&m.setup) else {
                 continue;
             };
             // Scan points the model cannot evaluate (outside the outline, inside a hole) are
@@ -184,15 +189,12 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
                     );
                 }
             }
-            if keep.len() < 3 {
+            if keep.is_empty() {
                 findings.push(
                     Finding::new(
                         Severity::Quarantined,
                         "pair.points",
-                        format!(
-                            "only {} scan points lie on the model board (expected at least 3)",
-                            keep.len()
-                        ),
+                        "no scan point lies on the model board (expected at least 1)",
                     )
                     .measurement(m.measurement_id.clone()),
                 );
@@ -208,13 +210,50 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
                     shape: keep.iter().map(|&i| s[i]).collect(),
                 })
                 .collect();
-            let pairing = match pair::pair_modes_labelled(
-                &identified,
-                &model_modes,
-                labels.clone(),
-                m.band,
-                &opts.params,
-            ) {
+            // The MAC pairs modes only where these points tell the model's own modes apart.
+            let p = &opts.params;
+            let alike = pair::model_mac_max(&model_modes, m.band, p.freq_gate_sd * p.freq_sd_rel);
+            let by_mac = points.len() >= 3 && alike < p.mac_min;
+            let paired = if by_mac {
+                pair::pair_modes_labelled(&identified, &model_modes, labels.clone(), m.band, p)
+            } else {
+                let visibility: Vec<f64> = model_modes
+                    .iter()
+                    .zip(board_max)
+                    .map(|(mm, &big)| {
+                        let here = mm.shape.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+                        if big > 0.0 {
+                            (here / big).min(1.0)
+                        } else {
+                            0.0
+                        }
+                    })
+                    .collect();
+                findings.push(
+                    Finding::new(
+                        Severity::Info,
+                        "pair.by_frequency",
+                        format!(
+                            "{} scan point(s) cannot tell the model's modes apart by MAC (two model modes near the band have MAC {alike:.2} at them, against {} for a pair); paired on frequency (prior predictive sd {} of ln f, at most {} sd apart), on each model mode's amplitude at the points (under {} of its largest on the board: near a node there, less likely seen, not missing when unseen) and on the modes' order",
+                            points.len(),
+                            p.mac_min,
+                            p.freq_sd_rel,
+                            p.freq_gate_sd,
+                            p.min_visibility
+                        ),
+                    )
+                    .measurement(m.measurement_id.clone()),
+                );
+                pair::pair_modes_by_frequency(
+                    &identified,
+                    &model_modes,
+                    labels.clone(),
+                    &visibility,
+                    m.band,
+                    p,
+                )
+            };
+            let pairing = match paired {
                 Ok(p) => p,
                 Err(e) => {
                     findings.push(
@@ -404,13 +443,14 @@ const LABEL_GRID_POINTS: usize = 25;
 
 /// Labels of the model's modes from their shapes on a regular grid over the whole board
 /// (cell centres of a `LABEL_GRID_POINTS`-per-longer-side grid; points in holes or off the
-/// outline are left out), made unique ([`pair::label_modes`]).
+/// outline are left out), made unique ([`pair::label_modes`]); and each mode's largest
+/// |amplitude| on that grid (the scale of its visibility at a measurement's points).
 fn board_grid_labels(
     board: &Board,
     model: &FeModel,
     modes: &crate::fem::Modes,
     params: &PairParams,
-) -> anyhow::Result<Vec<String>> {
+) -> anyhow::Result<(Vec<String>, Vec<f64>)> {
     let (lx, ly) = (board.length_x_m, board.width_y_m);
     let step = lx.max(ly) / LABEL_GRID_POINTS as f64;
     let (nx, ny) = (
@@ -435,7 +475,11 @@ fn board_grid_labels(
         }
     }
     let shapes = modes_at(model, modes, &points)?;
-    Ok(pair::label_modes(&shapes, &points, params))
+    let board_max = shapes
+        .iter()
+        .map(|m| m.shape.iter().fold(0.0f64, |a, v| a.max(v.abs())))
+        .collect();
+    Ok((pair::label_modes(&shapes, &points, params), board_max))
 }
 
 /// The model's modes as shapes at `points`.

@@ -47,7 +47,9 @@ fn pandas_and_mcap_read_ingest_outputs() {
 
 /// Few-point hammer tests as pyuff writes them (accelerance at three points, a roving hammer,
 /// receptance): ingest gives each record as the mobility at its (response, reference) pair,
-/// against the script's closed form, and keeps what was measured in `measured_as`.
+/// against the script's closed form, and keeps what was measured in `measured_as`. A
+/// measurement of modes only (dataset 55, a normal and a complex mode) comes out of extract
+/// as the written modes, `source = uff55`.
 #[test]
 fn pyuff_few_point_accelerance_and_roving_hammer_campaign_is_read_as_mobility() {
     if !python_has(&["pyuff", "pandas", "pyarrow", "numpy"]) {
@@ -71,6 +73,18 @@ fn pyuff_few_point_accelerance_and_roving_hammer_campaign_is_read_as_mobility() 
     );
     let v: serde_json::Value = serde_json::from_str(s.trim()).unwrap();
     assert_eq!(v["records"], 10, "{v}");
+    // M4 holds only the lab's modes (dataset 55): extract passes them through.
+    let ex = t.path().join("extract");
+    let o = hbmu(&[
+        "extract",
+        out.to_str().unwrap(),
+        "--out",
+        ex.to_str().unwrap(),
+    ]);
+    assert!(matches!(o.status.code(), Some(0 | 3)), "{}", stderr(&o));
+    let s = python(script, &["check-modes", ex.to_str().unwrap()]);
+    let v: serde_json::Value = serde_json::from_str(s.trim()).unwrap();
+    assert_eq!(v["modes"], 2, "{v}");
 }
 
 mod gerber;
