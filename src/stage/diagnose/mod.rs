@@ -33,7 +33,7 @@ use anyhow::{anyhow, Context};
 /// convergence level).
 use crate::stage::update::MAX_R_HAT;
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -1200,14 +1200,15 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         );
         let mut verdict = select::verdict(above, &compared);
         let region_limit_m = board.length_x_m.min(board.width_y_m) / 4.0;
+        let boards_off = whole_board_outliers(&located, &input.measurements);
         if verdict == Verdict::UnexplainedMisfit
-            && model_form_pattern(&located, &regions.0, region_limit_m)
+            && model_form_pattern(&located, &regions.0, region_limit_m, boards_off.is_some())
         {
             verdict = Verdict::ModelForm;
         }
         write_outputs(
             opts,
-            (&located, above),
+            (&located, above, &boards_off.unwrap_or_default()),
             regions,
             &candidates,
             &compared,
@@ -1239,12 +1240,16 @@ fn above_practical_threshold(located: &Located, threshold: f64) -> bool {
 /// `board_id` covariate) do not count against it: the discrepancy's per-unit part is the
 /// model's form erring differently on each board. A concealed effect leaves one of those
 /// marks: a joint's only in bolted modes, a mass or a local stiffening a region, a drift a
-/// covariate trend, a loose bolt its measurements, a fixture its own mode. The stage's limit
-/// is a quarter of the board's shorter side (12.5 mm on the 80 × 50 mm board).
+/// covariate trend, a loose bolt its measurements, a fixture its own mode. Outlier
+/// measurements that are every measurement of their boards in a setup
+/// (`boards_only_outliers`, [`whole_board_outliers`]) are those boards differing from the
+/// others, the same per-unit part. The stage's limit is a quarter of the board's shorter
+/// side (12.5 mm on the 80 × 50 mm board).
 fn model_form_pattern(
     located: &Located,
     regions: &[regions::BoardRegion],
     region_limit_m: f64,
+    boards_only_outliers: bool,
 ) -> bool {
     located.modes.iter().any(|m| m.setup == "free")
         && !regions
@@ -1254,8 +1259,46 @@ fn model_form_pattern(
             .covariates
             .iter()
             .all(|c| c.covariate == crate::diagnose::locate::BOARD_COVARIATE)
-        && located.measurements.is_empty()
+        && (located.measurements.is_empty() || boards_only_outliers)
         && located.unpaired_clusters.is_empty()
+}
+
+/// `Some(boards)` when every outlier measurement is one of all the measurements (at least two)
+/// of its board in its setup, and those boards differ from the others (`board_id` located in
+/// that setup): the repeat measurements of a board agree with each other, the board itself is
+/// off the population, as `(setup, board)` pairs. `Some(empty)` without outliers; `None` when
+/// some outlier stands apart from its board's other measurements (a measurement's own
+/// problem: a loose bolt, a drift, a slip).
+fn whole_board_outliers(
+    located: &Located,
+    measurements: &[locate::MeasurementInfo],
+) -> Option<Vec<(String, String)>> {
+    let off: BTreeSet<&str> = located.measurements.iter().map(|m| m.as_str()).collect();
+    let mut per_board: BTreeMap<(&str, &str), (usize, usize)> = BTreeMap::new();
+    for m in measurements {
+        let e = per_board
+            .entry((m.setup.as_str(), m.board_id.as_str()))
+            .or_default();
+        e.0 += 1;
+        e.1 += usize::from(off.contains(m.measurement_id.as_str()));
+    }
+    let board_located = |setup: &str| {
+        located
+            .covariates
+            .iter()
+            .any(|c| c.setup == setup && c.covariate == crate::diagnose::locate::BOARD_COVARIATE)
+    };
+    let mut boards = vec![];
+    for ((setup, board), (n, n_off)) in per_board {
+        if n_off == 0 {
+            continue;
+        }
+        if n_off < n || n < 2 || !board_located(setup) {
+            return None;
+        }
+        boards.push((setup.to_string(), board.to_string()));
+    }
+    Some(boards)
 }
 
 /// A favoured refit that leaves at most this share of the located misfit explains it, and the
@@ -1425,7 +1468,7 @@ fn demote_weaker_regions(regions: &mut [regions::BoardRegion]) {
 #[allow(clippy::too_many_arguments)]
 fn write_outputs(
     opts: &DiagnoseOptions,
-    (located, above): (&Located, bool),
+    (located, above, boards_off): (&Located, bool, &[(String, String)]),
     (board_regions, board_regions_note): (Vec<regions::BoardRegion>, String),
     candidates: &[Candidate],
     compared: &[Compared],
@@ -1545,8 +1588,20 @@ fn write_outputs(
         Verdict::ModelForm => {
             let (at, v) = crate::diagnose::misfit::largest_structured(located)
                 .unwrap_or_else(|| ("?".into(), f64::NAN));
+            let boards = if boards_off.is_empty() {
+                "with no covariate trend, outlier measurement or unpaired mode".to_string()
+            } else {
+                format!(
+                    "with no covariate trend or unpaired mode; the outlier measurements are every measurement of {} (their repeat measurements agree, the boards themselves differ from the others beyond the model's parameters: the per-board part of the same form)",
+                    boards_off
+                        .iter()
+                        .map(|(s, b)| format!("{b} ({s})"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )
+            };
             format!(
-                "model form: the model differs from every board alike by up to {:.3} % ({at}), above the {:.2} % practical threshold, in the free-free modes (the board itself, whatever its mounting), placed nowhere on the board, and with no covariate trend, outlier measurement or unpaired mode: the form of the model (a thin plate without transverse shear and rotary inertia, copper homogenised into the laminate), not a concealed effect. It is in the predicted intervals as the model-form discrepancy; a richer model would narrow them. Located modes: {:?}",
+                "model form: the model differs from every board alike by up to {:.3} % ({at}), above the {:.2} % practical threshold, in the free-free modes (the board itself, whatever its mounting), placed nowhere on the board, and {boards}: the form of the model (a thin plate without transverse shear and rotary inertia, copper homogenised into the laminate), not a concealed effect. It is in the predicted intervals as the model-form discrepancy; a richer model would narrow them. Located modes: {:?}",
                 100.0 * v,
                 100.0 * threshold,
                 located.modes.iter().map(|m| format!("{}/{}", m.setup, m.label)).collect::<Vec<_>>(),
@@ -1815,7 +1870,9 @@ fn write_outputs(
 
 #[cfg(test)]
 mod tests {
-    use super::{above_practical_threshold, demote_weaker_regions, model_form_pattern};
+    use super::{
+        above_practical_threshold, demote_weaker_regions, model_form_pattern, whole_board_outliers,
+    };
     use crate::diagnose::library::Mechanism;
     use crate::diagnose::localize::LocalFit;
     use crate::diagnose::locate::{self, LocateInput, LocateOptions, LocatedMode};
@@ -1863,20 +1920,21 @@ mod tests {
         assert!(above_practical_threshold(&loc, 1e-3));
         loc.modes.push(shift("bolted", 0.007));
         assert!(above_practical_threshold(&loc, 3e-3));
-        assert!(model_form_pattern(&loc, &[], 0.0125));
+        assert!(model_form_pattern(&loc, &[], 0.0125, false));
         // A region of 10 mm places the misfit; one spanning the board does not.
         let placed = region(Mechanism::AddedMass, 0.9, None);
         assert!(!model_form_pattern(
             &loc,
             std::slice::from_ref(&placed),
-            0.0125
+            0.0125,
+            false
         ));
         let mut wide = placed;
         wide.fit.region_radius_m = 0.055;
-        assert!(model_form_pattern(&loc, &[wide], 0.0125));
+        assert!(model_form_pattern(&loc, &[wide], 0.0125, false));
         let mut one = loc.clone();
         one.measurements = vec!["M040".into()];
-        assert!(!model_form_pattern(&one, &[], 0.0125));
+        assert!(!model_form_pattern(&one, &[], 0.0125, false));
         // Boards that differ are the per-unit discrepancy's; a temperature trend is not.
         let cov = |name: &str| locate::LocatedCovariate {
             setup: "free".into(),
@@ -1887,12 +1945,45 @@ mod tests {
         };
         let mut boards = loc.clone();
         boards.covariates = vec![cov("board_id")];
-        assert!(model_form_pattern(&boards, &[], 0.0125));
+        assert!(model_form_pattern(&boards, &[], 0.0125, false));
         boards.covariates.push(cov("temperature_c"));
-        assert!(!model_form_pattern(&boards, &[], 0.0125));
+        assert!(!model_form_pattern(&boards, &[], 0.0125, false));
         let mut bolted = loc.clone();
         bolted.modes.remove(0);
-        assert!(!model_form_pattern(&bolted, &[], 0.0125));
+        assert!(!model_form_pattern(&bolted, &[], 0.0125, false));
+
+        // Outliers that are all of a board's measurements (with boards located as differing)
+        // are the board; one that stands apart from its board's other measurements is not.
+        let info = |m: &str, b: &str| locate::MeasurementInfo {
+            measurement_id: m.into(),
+            board_id: b.into(),
+            setup: "free".into(),
+        };
+        let ms = [
+            info("M1", "B1"),
+            info("M2", "B1"),
+            info("M3", "B2"),
+            info("M4", "B2"),
+        ];
+        let mut whole = loc.clone();
+        whole.covariates = vec![cov("board_id")];
+        whole.measurements = vec!["M1".into(), "M2".into()];
+        assert_eq!(
+            whole_board_outliers(&whole, &ms),
+            Some(vec![("free".to_string(), "B1".to_string())])
+        );
+        assert!(model_form_pattern(&whole, &[], 0.0125, true));
+        whole.measurements = vec!["M1".into()];
+        assert_eq!(whole_board_outliers(&whole, &ms), None);
+        whole.measurements = vec!["M1".into(), "M2".into()];
+        whole.covariates.clear();
+        assert_eq!(
+            whole_board_outliers(&whole, &ms),
+            None,
+            "boards not located as differing"
+        );
+        whole.measurements.clear();
+        assert_eq!(whole_board_outliers(&whole, &ms), Some(vec![]));
     }
 
     /// A refit whose runs disagree a little keeps its Bayes factor (its estimates are said
