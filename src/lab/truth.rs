@@ -276,7 +276,8 @@ pub fn plan(s: &Scenario, board: &Board, seed: u64) -> Result<Plan, LabError> {
 pub struct Models {
     pub free: FeModel,
     pub free_cf: Option<FeModel>,
-    pub bolted: FeModel,
+    /// `None` when the campaign has no bolted measurement (a board without holes is fine).
+    pub bolted: Option<FeModel>,
     pub bolted_cf: Option<FeModel>,
     /// Scan points, m (the board's default scan grid).
     pub points: Vec<[f64; 2]>,
@@ -324,8 +325,15 @@ fn modes_of(
         let model = match variant {
             Variant::Free => &models.free,
             Variant::FreeCf => models.free_cf.as_ref().unwrap_or(&models.free),
-            Variant::Bolted => &models.bolted,
-            Variant::BoltedCf => models.bolted_cf.as_ref().unwrap_or(&models.bolted),
+            Variant::Bolted | Variant::BoltedCf => {
+                let plain = models.bolted.as_ref().ok_or_else(|| {
+                    LabError::Solid("a bolted measurement, but no bolted model was built".into())
+                })?;
+                match variant {
+                    Variant::BoltedCf => models.bolted_cf.as_ref().unwrap_or(plain),
+                    _ => plain,
+                }
+            }
         };
         let p = params(s, model, bd, stiff, bolted, loose)?;
         return mode_set(model, &p, n, points);
@@ -422,9 +430,18 @@ impl Models {
         let bolted_mesh = truth_bolted_mesh(s, board);
         let e = &s.effects;
         let free_plain = FeModel::build(board, Setup::Free, &mesh)?;
-        let bolted_plain =
-            FeModel::build(board, Setup::Bolted(joint_model(s, false)), &bolted_mesh)?;
-        let (free, free_cf, bolted, bolted_cf) = {
+        let mut free = free_plain.clone();
+        if let Some(lm) = &e.lumped_mass {
+            free.add_point_mass(lm.x_m, lm.y_m, lm.mass_kg)?;
+        }
+        if let Some(d) = &e.underfill {
+            free.add_core_stiffness_change(d.x_m, d.y_m, d.radius_m, d.stiffness_factor)?;
+        }
+        let free_cf = (e.lumped_mass.is_some() || e.underfill.is_some()).then_some(free_plain);
+        // The bolted models only where something is measured bolted.
+        let (bolted, bolted_cf) = if has_bolted(s) {
+            let bolted_plain =
+                FeModel::build(board, Setup::Bolted(joint_model(s, false)), &bolted_mesh)?;
             let model_changes_bolted = e.rotational_restraint.is_some()
                 || e.compliant_fixture.is_some()
                 || e.lumped_mass.is_some()
@@ -434,19 +451,15 @@ impl Models {
             } else {
                 bolted_plain.clone()
             };
-            let mut free = free_plain.clone();
             if let Some(lm) = &e.lumped_mass {
-                free.add_point_mass(lm.x_m, lm.y_m, lm.mass_kg)?;
                 bolted.add_point_mass(lm.x_m, lm.y_m, lm.mass_kg)?;
             }
             if let Some(d) = &e.underfill {
-                for m in [&mut free, &mut bolted] {
-                    m.add_core_stiffness_change(d.x_m, d.y_m, d.radius_m, d.stiffness_factor)?;
-                }
+                bolted.add_core_stiffness_change(d.x_m, d.y_m, d.radius_m, d.stiffness_factor)?;
             }
-            let free_cf = (e.lumped_mass.is_some() || e.underfill.is_some()).then_some(free_plain);
-            let bolted_cf = model_changes_bolted.then_some(bolted_plain);
-            (free, free_cf, bolted, bolted_cf)
+            (Some(bolted), model_changes_bolted.then_some(bolted_plain))
+        } else {
+            (None, None)
         };
         let points = board.scan_points_m();
         // Fail early with a clear error if a scan point is off the board or in a hole.
@@ -467,12 +480,7 @@ impl Models {
                 });
                 let opts = &s.truth.solid;
                 let free = SolidModel::build(board, opts, false, underfill, solver.clone())?;
-                let bolted = if s
-                    .campaign
-                    .bolted
-                    .iter()
-                    .any(|g| g.per_board > 0 && !g.boards.is_empty())
-                {
+                let bolted = if has_bolted(s) {
                     Some(SolidModel::build(board, opts, true, underfill, solver)?)
                 } else {
                     None
@@ -489,6 +497,14 @@ impl Models {
             solid,
         })
     }
+}
+
+/// Whether the campaign measures any board bolted.
+fn has_bolted(s: &Scenario) -> bool {
+    s.campaign
+        .bolted
+        .iter()
+        .any(|g| g.per_board > 0 && !g.boards.is_empty())
 }
 
 /// Stiffness factor of the temperature effect at `temperature_c` (1 without the effect).
@@ -1085,7 +1101,8 @@ pub struct ModelMisfit {
     pub updating_mesh: [usize; 2],
     /// The updating model's bolted mesh (the board's `mesh_bolted`, else its mesh).
     pub updating_mesh_bolted: [usize; 2],
-    /// Relative misfit of the bolted in-band frequencies, updating vs truth, %.
+    /// Relative misfit of the bolted in-band frequencies, updating vs truth, % (empty when
+    /// nothing is measured bolted).
     pub bolted_misfit_percent: Vec<f64>,
     /// Relative misfit of the free-free in-band frequencies, updating vs truth, %.
     pub free_misfit_percent: Vec<f64>,
@@ -1097,23 +1114,27 @@ pub fn model_misfit(s: &Scenario, board: &Board, models: &Models) -> Result<Mode
     if models.solid.is_some() {
         return solid_model_misfit(s, board, models);
     }
-    let plain = models.bolted_cf.as_ref().unwrap_or(&models.bolted);
-    let k_bar = s.population.k_con_mean_n_per_m;
-    let mut pt = plain.nominal_params();
-    for j in 0..board.holes.len() {
-        pt.set(&names::k_con_joint(j + 1), k_bar)?;
-    }
-    let truth = plain.modes(&pt, s.truth.n_bolted_modes)?;
-    let upd = FeModel::build(board, Setup::bolted(), board.mesh_for(&Setup::bolted()))?;
-    let mut p = upd.nominal_params();
-    p.set(names::K_CON, k_bar)?;
-    let fu = upd.modes(&p, s.truth.n_bolted_modes)?.freq_hz;
-    let bolted_misfit_percent = fu
-        .iter()
-        .zip(&truth.freq_hz)
-        .filter(|(_, b)| **b < s.measurement.bolted_max_hz)
-        .map(|(a, b)| 100.0 * (a / b - 1.0))
-        .collect();
+    let bolted_misfit_percent = match &models.bolted {
+        None => vec![],
+        Some(bolted) => {
+            let plain = models.bolted_cf.as_ref().unwrap_or(bolted);
+            let k_bar = s.population.k_con_mean_n_per_m;
+            let mut pt = plain.nominal_params();
+            for j in 0..board.holes.len() {
+                pt.set(&names::k_con_joint(j + 1), k_bar)?;
+            }
+            let truth = plain.modes(&pt, s.truth.n_bolted_modes)?;
+            let upd = FeModel::build(board, Setup::bolted(), board.mesh_for(&Setup::bolted()))?;
+            let mut p = upd.nominal_params();
+            p.set(names::K_CON, k_bar)?;
+            let fu = upd.modes(&p, s.truth.n_bolted_modes)?.freq_hz;
+            fu.iter()
+                .zip(&truth.freq_hz)
+                .filter(|(_, b)| **b < s.measurement.bolted_max_hz)
+                .map(|(a, b)| 100.0 * (a / b - 1.0))
+                .collect()
+        }
+    };
     let uf = FeModel::build(board, Setup::Free, &board.mesh)?;
     let fu = uf.modes(&uf.nominal_params(), 8)?.freq_hz;
     let ftf = models.free_cf.as_ref().unwrap_or(&models.free);

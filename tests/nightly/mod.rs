@@ -699,3 +699,52 @@ fn a_stage_killed_while_writing_is_redone_with_the_same_bytes() {
         );
     }
 }
+
+/// Another specimen through the whole DAG: a 300 × 200 × 3 mm orthotropic plate without copper
+/// or holes (`data/boards/plate_300x200x3.toml`), measured free-free only. The DAG builds no
+/// bolted model (the board has no holes), step 2 says there is nothing to update, and the
+/// report predicts the free-free modes; step 1 gives every board's moduli.
+#[test]
+fn a_plate_of_another_size_without_holes_runs_free_free_only() {
+    let t = tempfile::tempdir().unwrap();
+    let scenario = t.path().join("plate.toml");
+    std::fs::write(
+        &scenario,
+        "name = \"plate_free\"\nseed = 7\n[campaign]\nn_boards = 4\nfree_per_board = 2\nbolted = []\n[truth]\nphysics = \"plate\"\n[measurement]\nfree_max_hz = 1500.0\nfree_lines = 1500\n",
+    )
+    .unwrap();
+    let w = t.path().join("work");
+    let board = repo().join("data/boards/plate_300x200x3.toml");
+    let o = make(
+        &[
+            "all".into(),
+            format!("SCENARIO={}", scenario.display()),
+            format!("BOARD={}", board.display()),
+            format!("WORK={}", w.display()),
+            format!("HBMU={}", env!("CARGO_BIN_EXE_hbmu")),
+            "UPDATE_PARTICLES=100".into(),
+            "PROPAGATE_DRAWS=400".into(),
+        ],
+        &[],
+    );
+    assert_ok(&o, "make all on the 300 x 200 x 3 mm plate");
+    assert!(w.join("fe/rom_free.npz").is_file());
+    assert!(
+        !w.join("fe/rom_bolted.npz").exists(),
+        "a bolted ROM for a board without holes"
+    );
+    let joints = std::fs::read_to_string(w.join("update_joints/update_report.json")).unwrap();
+    assert!(joints.contains("update.no_bolted_data"), "{joints}");
+    assert!(w.join("report/report.html").is_file());
+    use parquet::file::reader::{FileReader, SerializedFileReader};
+    let summary = std::fs::File::open(w.join("update_boards/summary.parquet")).unwrap();
+    let rows = SerializedFileReader::new(summary)
+        .unwrap()
+        .metadata()
+        .file_metadata()
+        .num_rows();
+    assert!(
+        rows > 4 * 4,
+        "step 1's summary has {rows} rows for 4 boards x 4 parameters"
+    );
+}

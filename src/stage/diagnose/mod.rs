@@ -891,8 +891,8 @@ fn refine_point(
     // eighth; each probe with half the refit's particles (the log evidence between probes
     // differs by tens to hundreds, its error across runs is a few).
     let plan = point_search::SearchPlan {
-        first_step_m: 0.5 * regions::GRID_STEP_M,
-        last_step_m: 0.125 * regions::GRID_STEP_M,
+        first_step_m: 0.5 * regions::grid_step_m(board),
+        last_step_m: 0.125 * regions::grid_step_m(board),
         max_probes: 24,
     };
     let probe = |p: [f64; 2]| -> anyhow::Result<point_search::Probe> {

@@ -26,13 +26,22 @@ use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Setup};
 use crate::io::tables::{read_parquet, Cols};
 
-/// Grid step of the candidate points, m. 2 mm: a tenth of the shortest bending half-wave of
-/// the modes a free-free test identifies on a board of a few centimetres, and 5× finer than
-/// the 10 mm a located region must be within.
-pub const GRID_STEP_M: f64 = 2e-3;
+/// Grid cells along the board's shorter side for the candidate points: 25 (2 mm on a 50 mm
+/// board). The shortest bending half-wave of the first eight or so modes a free-free test
+/// identifies spans about a quarter of the shorter side whatever the board's size, so the
+/// step is a tenth of it; it follows the board rather than being a length.
+pub const GRID_CELLS_SHORT_SIDE: f64 = 25.0;
 
-/// Alternatives closer than this to the best point are the same region.
-pub const MIN_SEPARATION_M: f64 = 10e-3;
+/// Grid step of the candidate points on `board`, m ([`GRID_CELLS_SHORT_SIDE`]).
+pub fn grid_step_m(board: &Board) -> f64 {
+    board.length_x_m.min(board.width_y_m) / GRID_CELLS_SHORT_SIDE
+}
+
+/// Alternatives closer than this to the best point are the same region, m: five grid steps
+/// (10 mm on a 50 mm board, the distance within which a located region counts as found).
+pub fn min_separation_m(board: &Board) -> f64 {
+    5.0 * grid_step_m(board)
+}
 
 /// A point-mass fit is reported as located when its Δχ² is significant at the locate step's
 /// FDR level and it explains at least this share of the free-free misfit off the parameters'
@@ -294,7 +303,7 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         }),
         positive_only: true,
     };
-    let fit = localize_point_mass(&loc_in, MIN_SEPARATION_M).ok_or_else(|| {
+    let fit = localize_point_mass(&loc_in, min_separation_m(inp.board)).ok_or_else(|| {
         anyhow!(
             "no point mass fits the free-free residuals ({} modes, {} parameters)",
             modes.len(),
@@ -436,7 +445,7 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
         exact: None,
         positive_only: false,
     };
-    let fit = localize_point_mass(&loc_in, MIN_SEPARATION_M).ok_or_else(|| {
+    let fit = localize_point_mass(&loc_in, min_separation_m(inp.board)).ok_or_else(|| {
         anyhow!(
             "no stiffness change fits the free-free residuals ({} modes, {} parameters)",
             modes.len(),
@@ -490,7 +499,7 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
             if fit.region_radius_m > 0.0 {
                 format!("radius {:.0} mm", fit.region_radius_m * 1e3)
             } else {
-                format!("within the {:.0} mm grid step", GRID_STEP_M * 1e3)
+                format!("within the {:.0} mm grid step", grid_step_m(inp.board) * 1e3)
             },
             1.0 + fit.amplitude,
             fit.amplitude_se,
@@ -582,7 +591,7 @@ fn decide_by_shapes(
     let chosen = best_open
         .map(|k| open[k])
         .filter(|&i| points[i] != [fit.x_m, fit.y_m])
-        .and_then(|i| localize_point_mass_at(loc_in, MIN_SEPARATION_M, Some(i)));
+        .and_then(|i| localize_point_mass_at(loc_in, min_separation_m(inp.board), Some(i)));
     let shape_scores: Vec<[f64; 3]> = std::iter::once([fit.x_m, fit.y_m])
         .chain(fit.alternatives.iter().map(|a| [a[0], a[1]]))
         .chain(best_open.map(|k| points[open[k]]))
@@ -929,11 +938,12 @@ fn posterior_centre(path: &Path, params: &[String]) -> anyhow::Result<Vec<f64>> 
         .collect()
 }
 
-/// Grid points over the board at [`GRID_STEP_M`], none inside a hole (nor within a grid step
+/// Grid points over the board at [`grid_step_m`], none inside a hole (nor within a grid step
 /// of its edge, where the clamp or the drill sits).
 fn grid(board: &Board) -> Vec<[f64; 2]> {
-    let nx = (board.length_x_m / GRID_STEP_M).round() as usize;
-    let ny = (board.width_y_m / GRID_STEP_M).round() as usize;
+    let step = grid_step_m(board);
+    let nx = (board.length_x_m / step).round() as usize;
+    let ny = (board.width_y_m / step).round() as usize;
     let mut out = vec![];
     for i in 0..=nx {
         for k in 0..=ny {
@@ -942,7 +952,7 @@ fn grid(board: &Board) -> Vec<[f64; 2]> {
             if board
                 .holes
                 .iter()
-                .all(|h| (x - h.x_m).hypot(y - h.y_m) > 0.5 * h.diameter_m + GRID_STEP_M)
+                .all(|h| (x - h.x_m).hypot(y - h.y_m) > 0.5 * h.diameter_m + step)
             {
                 out.push([x, y]);
             }
