@@ -37,7 +37,7 @@ fn main() {
     for (name, text) in boards {
         let board = Board::from_toml_str(text).unwrap();
         let points = board.scan_points_m();
-        let k_bar = board.joint.k_con_n_per_m;
+        let k_bar = board.joint().k_con_n_per_m;
         for bolted in [false, true] {
             let n_modes = if bolted { 11 } else { 12 };
             let max_hz = if bolted { 4000.0 } else { 5000.0 };

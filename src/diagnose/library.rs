@@ -317,7 +317,7 @@ pub fn joint_enrichment(
     joint: Option<usize>,
     ctx: JointContext,
 ) -> Result<JointEnrichment, String> {
-    let k0 = board.joint.k_con_n_per_m;
+    let k0 = board.joint().k_con_n_per_m;
     let mut reference = vec![(names::K_CON.to_string(), k0)];
     let mut coords = vec![k_con_coordinate(
         vec![(names::K_CON.into(), 1.0)],
@@ -328,7 +328,7 @@ pub fn joint_enrichment(
     match mechanism {
         None => {}
         Some(Mechanism::JointRotation) => {
-            let r_o = 0.5 * board.joint.clamp_diameter_m;
+            let r_o = 0.5 * board.joint().clamp_diameter_m;
             let r_i = board
                 .holes
                 .first()
@@ -351,8 +351,8 @@ pub fn joint_enrichment(
             });
         }
         Some(Mechanism::JointMass) => {
-            let m = if board.joint.bolt_mass_kg > 0.0 {
-                board.joint.bolt_mass_kg
+            let m = if board.joint().bolt_mass_kg > 0.0 {
+                board.joint().bolt_mass_kg
             } else {
                 1e-3
             };
@@ -560,7 +560,7 @@ mod tests {
         let mean_ln = k.iter().sum::<f64>() / n as f64;
         assert!((mean_ln - 0.3).abs() < 1e-12);
         let r = e.report_values(&x);
-        assert!((r[0] - b.joint.k_con_n_per_m * 0.3f64.exp()).abs() < 1e-6 * r[0]);
+        assert!((r[0] - b.joint().k_con_n_per_m * 0.3f64.exp()).abs() < 1e-6 * r[0]);
         let kk: Vec<f64> = k.iter().map(|v| v.exp()).collect();
         for j in 0..n {
             let others: f64 = kk

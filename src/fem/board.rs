@@ -33,8 +33,10 @@ pub struct Board {
     /// Bolt holes (through holes of the bolted joints).
     #[serde(default)]
     pub holes: Vec<Hole>,
-    /// Bolted-joint data shared by all holes.
-    pub joint: JointData,
+    /// Bolted-joint data shared by all holes (`[joint]`): required where the board has holes,
+    /// optional for a board without (it has no bolted setup).
+    #[serde(default)]
+    pub joint: Option<JointData>,
     /// Default mesh density.
     pub mesh: MeshOptions,
     /// Mesh of the bolted setups, where one differs from `mesh` (`[mesh_bolted]`): the
@@ -386,6 +388,14 @@ pub struct ScanGrid {
 }
 
 impl Board {
+    /// The bolted-joint data, for the bolted setup. A bolted model needs holes, and a valid
+    /// board with holes has `[joint]` ([`Board::validate`]), so every bolted path has it.
+    pub fn joint(&self) -> &JointData {
+        self.joint
+            .as_ref()
+            .expect("a board with holes has [joint] (Board::validate), and only a board with holes is bolted")
+    }
+
     /// The mesh of a setup: `mesh_bolted` for bolted setups where the board has one.
     pub fn mesh_for(&self, setup: &crate::fem::model::Setup) -> &MeshOptions {
         match (setup, &self.mesh_bolted) {
@@ -613,13 +623,24 @@ impl Board {
         if let Some(g) = &self.gerber {
             pos("gerber.resolution_m", g.resolution_m)?;
         }
-        pos("joint.clamp_diameter_m", self.joint.clamp_diameter_m)?;
-        pos("joint.k_con_n_per_m", self.joint.k_con_n_per_m)?;
-        if !(self.joint.bolt_mass_kg >= 0.0) {
-            return Err(FemError::BoardInvalid(format!(
-                "joint.bolt_mass_kg: expected >= 0, found {}",
-                self.joint.bolt_mass_kg
-            )));
+        match &self.joint {
+            None if !self.holes.is_empty() => {
+                return Err(FemError::BoardInvalid(format!(
+                    "{} holes but no [joint] section: expected the bolted joints' clamp_diameter_m, k_con_n_per_m and bolt_mass_kg",
+                    self.holes.len()
+                )))
+            }
+            None => {}
+            Some(joint) => {
+                pos("joint.clamp_diameter_m", joint.clamp_diameter_m)?;
+                pos("joint.k_con_n_per_m", joint.k_con_n_per_m)?;
+                if !(joint.bolt_mass_kg >= 0.0) {
+                    return Err(FemError::BoardInvalid(format!(
+                        "joint.bolt_mass_kg: expected >= 0, found {}",
+                        joint.bolt_mass_kg
+                    )));
+                }
+            }
         }
         for (what, m) in [
             ("mesh", Some(&self.mesh)),

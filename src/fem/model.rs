@@ -261,7 +261,7 @@ impl Mesh {
         let (lx, ly) = (board.length_x_m, board.width_y_m);
         let (x_m, y_m) = match setup {
             Setup::Bolted(_) => {
-                let w = JOINT_GRADING_WIDTH * 0.5 * board.joint.clamp_diameter_m;
+                let w = JOINT_GRADING_WIDTH * 0.5 * board.joint().clamp_diameter_m;
                 let cx: Vec<f64> = board.holes.iter().map(|h| h.x_m).collect();
                 let cy: Vec<f64> = board.holes.iter().map(|h| h.y_m).collect();
                 (
@@ -826,7 +826,7 @@ impl FeModel {
         let mut patches = Vec::new();
         let mut fixture_dof = None;
         if let Setup::Bolted(jm) = &setup {
-            let r_clamp = 0.5 * board.joint.clamp_diameter_m;
+            let r_clamp = 0.5 * board.joint().clamp_diameter_m;
             let mut jpatches = Vec::new();
             for (hi, hole) in board.holes.iter().enumerate() {
                 let r_hole = 0.5 * hole.diameter_m;
@@ -870,7 +870,7 @@ impl FeModel {
                 fixture_dof = Some(n_dof);
                 n_dof += 1;
             }
-            for t in joint_terms(jm, &jpatches, fixture_dof, board.joint.k_con_n_per_m) {
+            for t in joint_terms(jm, &jpatches, fixture_dof, board.joint().k_con_n_per_m) {
                 let param = match pnames.iter().position(|n| *n == t.param) {
                     Some(i) => i,
                     None => {

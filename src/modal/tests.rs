@@ -929,3 +929,24 @@ fn one_point_pairs_on_frequency_and_visibility() {
     assert_eq!(got, vec![Some(0), Some(1), Some(3), None]);
     assert_eq!(r.missing, vec![2]);
 }
+
+/// A one-point measurement whose only record is dead (the accelerometer's cable off): a typed
+/// error saying what was expected, for the stage to quarantine that measurement alone.
+#[test]
+fn a_dead_single_point_is_a_typed_error() {
+    let mut s = few_points(&build(&free_free_case(3)), &[0]);
+    s.points[0].re.iter_mut().for_each(|v| *v = 0.0);
+    s.points[0].im.iter_mut().for_each(|v| *v = 0.0);
+    match extract(&s, &ExtractParams::default()) {
+        Err(
+            e @ ModalError::TooFewPoints {
+                expected: 1,
+                found: 0,
+                excluded: 1,
+            },
+        ) => assert!(e
+            .to_string()
+            .contains("expected at least 1 usable scan points, found 0")),
+        other => panic!("expected TooFewPoints, got {other:?}"),
+    }
+}

@@ -3475,7 +3475,7 @@ fn read_step1(path: &Path) -> anyhow::Result<Step1> {
 /// by 4 % of the outline, without the points inside a hole's clamped disc.
 fn match_points(board: &Board) -> Vec<[f64; 2]> {
     let (lx, ly) = (board.length_x_m, board.width_y_m);
-    let r_clamp = 0.5 * board.joint.clamp_diameter_m;
+    let r_clamp = 0.5 * board.joint().clamp_diameter_m;
     let mut out = vec![];
     for j in 0..9 {
         for i in 0..13 {

@@ -56,6 +56,18 @@ fn bad_boards_are_rejected_with_the_field_named() {
         .unwrap_err()
         .to_string()
         .contains("holes[3]"));
+    // Holes need the joints' data; a board without holes does not.
+    let start = good.find("[joint]").unwrap();
+    let end = start + good[start..].find("\n\n").unwrap();
+    let no_joint = format!("{}{}", &good[..start], &good[end..]);
+    let err = Board::from_toml_str(&no_joint).unwrap_err().to_string();
+    assert!(err.contains("4 holes but no [joint] section"), "{err}");
+    let plate = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/boards/plate_300x200x3.toml"),
+    )
+    .unwrap();
+    let b = Board::from_toml_str(&plate).unwrap();
+    assert!(b.joint.is_none() && b.holes.is_empty());
 }
 
 #[test]

@@ -29,11 +29,11 @@ pub fn plain_board(lx: f64, ly: f64, h: f64, ex: f64, ey: f64, g: f64, nu: f64, 
         },
         copper: vec![],
         holes: vec![],
-        joint: JointData {
+        joint: Some(JointData {
             clamp_diameter_m: 1e-3,
             k_con_n_per_m: 1e6,
             bolt_mass_kg: 0.0,
-        },
+        }),
         mesh: MeshOptions { nx: 8, ny: 8 },
         mesh_bolted: None,
         scan_grid: ScanGrid {

@@ -272,7 +272,7 @@ fn joint_totals_are_exact_on_every_mesh() {
         let pj = m.nominal_params();
         let r = m.rigid_z_vector();
         let e_t = energy(&r, &pj);
-        let k_con = b.joint.k_con_n_per_m;
+        let k_con = b.joint().k_con_n_per_m;
         assert!(
             (e_t - n_j * k_con).abs() < 1e-9 * n_j * k_con,
             "{nx} × {ny}: rᵀKr = {e_t}, expected {}",
@@ -291,7 +291,7 @@ fn joint_totals_are_exact_on_every_mesh() {
         // Translational part: K_con ∫ x² dA / A per joint; rotational part n_j k_rot.
         let e_r = energy(&rx, &pj);
         let r_h = 0.5 * b.holes[0].diameter_m;
-        let r_c = 0.5 * b.joint.clamp_diameter_m;
+        let r_c = 0.5 * b.joint().clamp_diameter_m;
         let area = std::f64::consts::PI * (r_c * r_c - r_h * r_h);
         let i_xx = std::f64::consts::PI * (r_c.powi(4) - r_h.powi(4)) / 4.0;
         let want: f64 = b
@@ -424,7 +424,7 @@ fn sliver_free_joint_board() -> (Board, MeshOptions) {
     for h in &mut b.holes {
         h.diameter_m = 1.0e-3;
     }
-    b.joint.clamp_diameter_m = 9.6e-3;
+    b.joint.as_mut().unwrap().clamp_diameter_m = 9.6e-3;
     let mesh = MeshOptions { nx: 16, ny: 10 };
     let (a, bb) = (b.length_x_m / 16.0, b.width_y_m / 10.0);
     for h in &b.holes {
@@ -433,7 +433,7 @@ fn sliver_free_joint_board() -> (Board, MeshOptions) {
             (i - i.round()).abs() < 1e-9 && (j - j.round()).abs() < 1e-9,
             "hole off the nodes"
         );
-        assert!(0.5 * b.joint.clamp_diameter_m < a.min(bb));
+        assert!(0.5 * b.joint().clamp_diameter_m < a.min(bb));
     }
     (b, mesh)
 }

@@ -249,7 +249,7 @@ impl SolidModel {
                 discs.push(Disc {
                     x_m: h.x_m,
                     y_m: h.y_m,
-                    r_m: 0.5 * board.joint.clamp_diameter_m,
+                    r_m: 0.5 * board.joint().clamp_diameter_m,
                 });
             }
         }
@@ -341,7 +341,7 @@ impl SolidModel {
         if bolted {
             for h in &board.holes {
                 let (cx, cy) = (1e3 * h.x_m, 1e3 * h.y_m);
-                let r_clamp_mm = 0.5e3 * board.joint.clamp_diameter_m;
+                let r_clamp_mm = 0.5e3 * board.joint().clamp_diameter_m;
                 let mut w2 = vec![0.0; mesh2.xy_mm.len()];
                 for e in 0..mesh2.quads.len() {
                     let c = mesh2.centroid(e);
