@@ -881,11 +881,9 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
         );
     }
     // Mode sets (dataset 55, one per mode) as modal-analysis software exports them.
-    m.vendor_modes = read_vendor_modes(&parsed.datasets, &nodes, &mut fd, &file, &mid);
-    m.dropped += fd
-        .iter()
-        .filter(|f| f.severity == Severity::RecordDropped && f.code.starts_with("uff.mode_set"))
-        .count();
+    let (vendor_modes, dropped) = read_vendor_modes(&parsed.datasets, &nodes, &mut fd, &file, &mid);
+    m.vendor_modes = vendor_modes;
+    m.dropped += dropped;
     let vendor: Vec<String> = m
         .vendor_modes
         .iter()
@@ -1066,7 +1064,8 @@ fn note_points(m: &Measurement, fd: &mut Findings, file: &str, mid: &str, missin
     }
 }
 
-/// The modes of a file's mode sets (dataset 55), ascending in frequency. A set that is no
+/// The modes of a file's mode sets (dataset 55), ascending in frequency, and how many sets were
+/// dropped. A set that is no
 /// mode (another analysis type), whose frequency or damping is unusable, whose data are no
 /// scalar or translation, or that has no finite value at a node with coordinates is dropped
 /// with a finding naming its line; nodes without coordinates are named and left out.
@@ -1076,7 +1075,7 @@ fn read_vendor_modes(
     fd: &mut Findings,
     file: &str,
     mid: &str,
-) -> Vec<VendorMode> {
+) -> (Vec<VendorMode>, usize) {
     use faer::c64;
     let finding = |severity, code: &str, line: usize, msg: String| {
         Finding::new(severity, code, msg)
@@ -1085,10 +1084,11 @@ fn read_vendor_modes(
             .record("dataset 55".to_string())
             .measurement(mid.to_string())
     };
-    let mut out = vec![];
+    let (mut out, mut dropped) = (vec![], 0);
     for d in datasets {
         let Dataset::NodalData(n) = d else { continue };
-        let drop = |fd: &mut Findings, code: &str, what: String| {
+        let mut drop = |fd: &mut Findings, code: &str, what: String| {
+            dropped += 1;
             fd.push(finding(
                 Severity::RecordDropped,
                 code,
@@ -1156,7 +1156,7 @@ fn read_vendor_modes(
         });
     }
     out.sort_by(|a, b| a.freq_hz.total_cmp(&b.freq_hz));
-    out
+    (out, dropped)
 }
 
 /// The key two spellings of one board ID share: letters upper-cased, numbers without their
@@ -1834,7 +1834,8 @@ mod tests {
     }
 
     /// Mode sets (dataset 55) are read and named, never silently skipped: beside FRFs a
-    /// warning says they are not used; alone they quarantine the measurement saying so.
+    /// warning says the FRFs are identified and the sets kept for comparison; alone they are
+    /// the measurement's modes; a set that is no mode is dropped naming its line.
     #[test]
     fn mode_sets_are_kept_beside_frfs_and_are_the_modes_of_a_measurement_without_records() {
         let ds55 = b"    -1\n    55\nNONE\nNONE\nNONE\nNONE\nNONE\n         1         2         2         8         2         3\n         2         4         1         1\n  4.12500e+02  0.00000e+00  1.10000e-02  0.00000e+00\n         1\n  0.00000e+00  0.00000e+00  1.00000e+00\n    -1\n";

@@ -344,15 +344,7 @@ pub fn pair_modes_labelled(
             },
         })
         .collect();
-    let accepted_model: Vec<Option<usize>> = {
-        let mut v = vec![None; model.len()];
-        for p in pairs.iter().filter(|p| p.accepted) {
-            if let Some(j) = p.model_mode {
-                v[j] = Some(p.mode);
-            }
-        }
-        v
-    };
+    let accepted_model = accepted_partners(&pairs, model.len());
     let missing = (0..model.len())
         .filter(|&j| {
             model[j].freq_hz >= band_hz.0
@@ -491,12 +483,7 @@ pub fn pair_modes_by_frequency(
             }
         })
         .collect();
-    let mut partner = vec![None; model.len()];
-    for p in pairs.iter().filter(|p| p.accepted) {
-        if let Some(j) = p.model_mode {
-            partner[j] = Some(p.mode);
-        }
-    }
+    let partner = accepted_partners(&pairs, model.len());
     let missing = (0..model.len())
         .filter(|&j| {
             model[j].freq_hz >= band_hz.0
@@ -513,6 +500,17 @@ pub fn pair_modes_by_frequency(
         missing,
         swaps,
     })
+}
+
+/// Per model mode, the identified mode accepted as its partner.
+fn accepted_partners(pairs: &[ModePair], n_model: usize) -> Vec<Option<usize>> {
+    let mut v = vec![None; n_model];
+    for p in pairs.iter().filter(|p| p.accepted) {
+        if let Some(j) = p.model_mode {
+            v[j] = Some(p.mode);
+        }
+    }
+    v
 }
 
 /// Pairs of model modes `(a, b)`, `f(a) < f(b)`, whose accepted partners come in the
