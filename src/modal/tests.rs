@@ -951,3 +951,29 @@ fn a_dead_single_point_is_a_typed_error() {
         other => panic!("expected TooFewPoints, got {other:?}"),
     }
 }
+
+/// The few-point share test at work: at one point, a mode excited 20 times more weakly than
+/// the others is stable in the diagram and kept when the share test is off (its share of the
+/// response at its own frequency is 0.06), and set aside by the default share of 0.1: one
+/// FRF cannot tell a term that small from the other modes' tails. (At 1/10 its share is 0.11
+/// and it is kept; at 1/50 the stabilization no longer finds it.)
+#[test]
+fn one_point_sets_aside_a_pole_with_a_small_share() {
+    let mut case = free_free_case(11);
+    case.modes.push((2, 2, 1300.0, 0.01, 1.0 / 20.0));
+    let sp = few_points(&build(&case), &[0]);
+    let near = |ex: &Extraction| {
+        ex.modes
+            .iter()
+            .find(|m| (m.freq_hz / 1300.0 - 1.0).abs() < 0.01)
+            .map(|m| m.peak_share)
+    };
+    let mut off = ExtractParams::default();
+    off.selection.min_peak_share = 0.0;
+    let kept = near(&extract(&sp, &off).unwrap());
+    assert!(kept.is_some_and(|s| s < 0.1), "{kept:?}");
+    assert_eq!(
+        near(&extract(&sp, &ExtractParams::default()).unwrap()),
+        None
+    );
+}
