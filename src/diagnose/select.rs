@@ -236,6 +236,73 @@ fn errors_of(v: &[SetupError], setup: &str) -> Option<f64> {
         .map(|e| e.mean_abs_error_percent)
 }
 
+/// The bars of the decision rule besides the evidence, for one refit against the baseline:
+/// held-out error per setup before → after and whether it is not worse, whether the refit
+/// explains its part of the located misfit, and whether it removes a practical amount.
+struct Bars {
+    held: Vec<(String, f64, f64)>,
+    not_worse: bool,
+    explains: bool,
+    practical: bool,
+}
+
+impl Bars {
+    fn of(baseline: &Refit, c: &Refit, opts: &SelectOptions) -> Bars {
+        let held: Vec<(String, f64, f64)> = baseline
+            .held_out
+            .iter()
+            .filter_map(|e| {
+                let after = errors_of(&c.held_out, &e.setup)?;
+                (e.n > 0).then(|| (e.setup.clone(), e.mean_abs_error_percent, after))
+            })
+            .collect();
+        Bars {
+            not_worse: held.iter().all(|(_, b, a)| *a <= *b * 1.05),
+            held,
+            explains: c
+                .remaining_share
+                .is_none_or(|r| r <= opts.max_remaining_share),
+            practical: c
+                .explained_rel
+                .is_none_or(|e| e >= opts.practical_threshold_rel),
+        }
+    }
+}
+
+/// Why a refit cannot be favoured whatever its Bayes factor: a bar of the decision rule
+/// besides the evidence that it misses (its held-out error worse, its share of the located
+/// misfit left above [`SelectOptions::max_remaining_share`], or less than the practical
+/// threshold removed). None: only the evidence decides. These bars are posterior means of the
+/// refit's predictions, which more particles move by their Monte Carlo error alone, so a
+/// refit that misses one needs no second, larger run to settle its Bayes factor.
+pub fn cannot_be_favoured(baseline: &Refit, c: &Refit, opts: &SelectOptions) -> Option<String> {
+    let bars = Bars::of(baseline, c, opts);
+    let mut why = vec![];
+    if !bars.not_worse {
+        why.extend(
+            bars.held
+                .iter()
+                .filter(|(_, b, a)| *a > *b * 1.05)
+                .map(|(s, b, a)| format!("held-out {s} error {b:.3} % → {a:.3} %")),
+        );
+    }
+    if let (false, Some(r)) = (bars.explains, c.remaining_share) {
+        why.push(format!(
+            "it leaves {:.0} % of the located misfit (more than {:.0} %)",
+            100.0 * r,
+            100.0 * opts.max_remaining_share
+        ));
+    }
+    if let (false, Some(e)) = (bars.practical, c.explained_rel) {
+        why.push(format!(
+            "it removes {:.3} % of misfit (less than the practical threshold, {:.3} %)",
+            100.0 * e,
+            100.0 * opts.practical_threshold_rel
+        ));
+    }
+    (!why.is_empty()).then(|| why.join("; "))
+}
+
 /// Compare every candidate with the baseline; sorted by log Bayes factor, strongest first
 /// (failed refits last).
 pub fn compare(baseline: &Refit, candidates: &[Refit], opts: &SelectOptions) -> Vec<Compared> {
@@ -249,21 +316,12 @@ pub fn compare(baseline: &Refit, candidates: &[Refit], opts: &SelectOptions) -> 
                 }
                 _ => (None, None),
             };
-            let held: Vec<(String, f64, f64)> = baseline
-                .held_out
-                .iter()
-                .filter_map(|e| {
-                    let after = errors_of(&c.held_out, &e.setup)?;
-                    (e.n > 0).then(|| (e.setup.clone(), e.mean_abs_error_percent, after))
-                })
-                .collect();
-            let not_worse = held.iter().all(|(_, b, a)| *a <= *b * 1.05);
-            let explains = c
-                .remaining_share
-                .is_none_or(|r| r <= opts.max_remaining_share);
-            let practical = c
-                .explained_rel
-                .is_none_or(|e| e >= opts.practical_threshold_rel);
+            let Bars {
+                held,
+                not_worse,
+                explains,
+                practical,
+            } = Bars::of(baseline, c, opts);
             let favoured = match (lbf, se) {
                 (Some(l), Some(s)) => {
                     let s = if s.is_finite() { s } else { 0.0 };
@@ -545,6 +603,42 @@ mod tests {
         assert!(c[1].favoured);
         assert_eq!(verdict(true, &c), Verdict::MechanismFound);
         assert_eq!(verdict(true, &c[..1]), Verdict::UnexplainedMisfit);
+    }
+
+    /// The bars besides the evidence say when a refit cannot be favoured whatever its Bayes
+    /// factor (the diagnosis then runs no larger second attempt): each missed bar is named,
+    /// and a refit that clears them all is left to its evidence, even a failed one.
+    #[test]
+    fn a_refit_that_misses_a_bar_besides_the_evidence_cannot_be_favoured() {
+        let opts = SelectOptions::default();
+        let base = refit(None, &[100.0, 100.2], 1.27);
+        let mut r = refit(Some(Mechanism::JointRotation), &[], 1.63);
+        r.failed = Some("sampler not converged".into());
+        r.remaining_share = Some(0.71);
+        let why = cannot_be_favoured(&base, &r, &opts).expect("two bars missed");
+        assert!(
+            why.contains("held-out bolted error 1.270 % → 1.630 %"),
+            "{why}"
+        );
+        assert!(
+            why.contains("it leaves 71 % of the located misfit"),
+            "{why}"
+        );
+        r.held_out[0].mean_abs_error_percent = 1.30;
+        r.remaining_share = Some(0.3);
+        r.explained_rel = Some(5e-4);
+        let why = cannot_be_favoured(&base, &r, &opts).expect("too little removed");
+        assert!(why.contains("less than the practical threshold"), "{why}");
+        assert!(
+            !why.contains("held-out"),
+            "1.30 is within 5 % of 1.27: {why}"
+        );
+        r.explained_rel = Some(0.005);
+        assert_eq!(cannot_be_favoured(&base, &r, &opts), None);
+        // Where they agree, compare's decision is the evidence's alone.
+        r.failed = None;
+        r.log_evidence_runs = vec![300.0, 300.2];
+        assert!(compare(&base, &[r], &opts)[0].favoured);
     }
 
     /// A decisive Bayes factor over a mechanism that removes less misfit than the practical

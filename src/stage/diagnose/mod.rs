@@ -722,10 +722,13 @@ fn board_refit_options(
 /// Run one candidate's refit: step 1 (`update boards --enrich`) for a board mechanism, on
 /// the step-1 options `base1`; step 2 (`update joints --enrich`) for a joint mechanism, on
 /// the step-2 options `base2`.
+///
+/// `decided` is asked before the last step is rerun for its convergence ([`run_gated`]).
 fn run_refit(
     opts: &DiagnoseOptions,
     (base1, base2): (&UpdateOptions, Option<&UpdateOptions>),
     cand: &Candidate,
+    decided: &dyn Fn() -> Option<String>,
     verbose: bool,
 ) -> anyhow::Result<StageOutcome> {
     if is_board_mechanism(cand.mechanism) {
@@ -734,15 +737,19 @@ fn run_refit(
         let mut o = board_refit_options(opts, base1, cand, cand.point_xy_m);
         let boards = o.out.join("boards");
         o.out = boards.clone();
-        let r1 = run_gated(o, |o| crate::stage::update::run_boards(o, verbose))?;
         let Some(base) = base2 else {
-            return Ok(r1);
+            return run_gated(o, |o| crate::stage::update::run_boards(o, verbose), decided);
         };
+        run_gated(o, |o| crate::stage::update::run_boards(o, verbose), &|| {
+            None
+        })?;
         let mut o2 = joint_refit_options(opts, base, cand);
         o2.enrich_joint = None;
-        run_gated(o2, |o| {
-            crate::stage::update::run_joints(o, &boards, verbose)
-        })
+        run_gated(
+            o2,
+            |o| crate::stage::update::run_joints(o, &boards, verbose),
+            decided,
+        )
     } else {
         let base = base2.ok_or_else(|| {
             anyhow!(
@@ -751,9 +758,11 @@ fn run_refit(
             )
         })?;
         let o = joint_refit_options(opts, base, cand);
-        run_gated(o, |o| {
-            crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose)
-        })
+        run_gated(
+            o,
+            |o| crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose),
+            decided,
+        )
     }
 }
 
@@ -776,9 +785,15 @@ const MIN_ESS_PER_RUN: f64 = 100.0;
 /// other) stay apart however many particles each has, and R-hat from two runs is itself
 /// too noisy to tell; four runs of 400 agreed there (R-hat 1.02). The retry replaces the
 /// first attempt's outputs; if it still disagrees, the gate reports it.
+///
+/// The retry is for the Bayes factor. Before it, `decided` says whether the first attempt
+/// already misses a bar of the decision rule that the evidence does not set
+/// ([`select::cannot_be_favoured`]); then the refit cannot be favoured whatever its Bayes
+/// factor, and the retry (four times the first attempt's work) is not run.
 fn run_gated(
     mut o: UpdateOptions,
     step: impl Fn(&UpdateOptions) -> anyhow::Result<StageOutcome>,
+    decided: &dyn Fn() -> Option<String>,
 ) -> anyhow::Result<StageOutcome> {
     let r = step(&o)?;
     let summary = o.out.join("summary.parquet");
@@ -791,6 +806,13 @@ fn run_gated(
     } else {
         return Ok(r);
     };
+    if let Some(not) = decided() {
+        eprintln!(
+            "diagnose: {}: {why}; not rerun: it cannot be favoured whatever its Bayes factor ({not})",
+            o.out.display()
+        );
+        return Ok(r);
+    }
     o.smc.n_particles *= 2;
     o.runs = (2 * o.runs).max(4);
     eprintln!(
@@ -829,9 +851,11 @@ fn new_modes_refit(
     o.out = out.join("new_modes");
     o.enrich_new_modes = true;
     let nm_rel = format!("{rel}/new_modes");
-    let step = run_gated(o.clone(), |o| {
-        crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose)
-    })
+    let step = run_gated(
+        o.clone(),
+        |o| crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose),
+        &|| None,
+    )
     .and_then(|_| summarize_refit(&o.out, &nm_rel, Some(cand.mechanism), cand.joint, None, &[]));
     let (dir, why) = match step {
         Ok(nm) if nm.failed.is_none() && !nm.estimates.is_empty() => {
@@ -974,20 +998,54 @@ fn refine_point(
     (c, probes, note)
 }
 
+/// What the decision rule compares a refit with: the located misfit, the locate step's
+/// input, the baseline's summary and step-1 log evidence per run.
+struct Against<'a> {
+    located: &'a Located,
+    input: &'a locate::LocateInput,
+    baseline: &'a Refit,
+    z1: &'a [f64],
+}
+
+/// Why the refit of `cand` as it stands in its directory cannot be favoured whatever its
+/// Bayes factor ([`select::cannot_be_favoured`]); None where it could be, or where its
+/// outputs cannot be read (then the evidence is left to decide).
+fn cannot_be_favoured(opts: &DiagnoseOptions, cand: &Candidate, a: &Against) -> Option<String> {
+    let rel = format!("refits/{}", cand.id());
+    let out = opts.out.join(&rel);
+    let outliers = &a.located.measurements_after_covariates;
+    let mut r = summarize_refit(
+        &out,
+        &rel,
+        Some(cand.mechanism),
+        cand.joint,
+        Some(a.z1),
+        outliers,
+    )
+    .ok()?;
+    let after = refit_residuals(&out).ok()?;
+    let shares = RefitShares::new(a.located, a.input, &after, &opts.locate);
+    r.remaining_share = shares.own(cand);
+    r.explained_rel = shares.explained(cand);
+    select::cannot_be_favoured(a.baseline, &r, &opts.select)
+}
+
 /// Run (or find up to date) one candidate's refit.
 fn refit(
     opts: &DiagnoseOptions,
     board: &crate::fem::Board,
     bases: (&UpdateOptions, Option<&UpdateOptions>),
     cand: &Candidate,
-    (outliers, z1): (&[String], &[f64]),
+    against: &Against,
     verbose: bool,
 ) -> Refit {
+    let (outliers, z1) = (&against.located.measurements_after_covariates, against.z1);
     let (refined, probes, location_note) = refine_point(opts, board, bases.0, cand, verbose);
     let cand = &refined;
     let rel = format!("refits/{}", cand.id());
     let out = opts.out.join(&rel);
-    let r = run_refit(opts, bases, cand, verbose).and_then(|_| {
+    let decided = || cannot_be_favoured(opts, cand, against);
+    let r = run_refit(opts, bases, cand, &decided, verbose).and_then(|_| {
         let mut r = summarize_refit(
             &out,
             &rel,
@@ -1097,7 +1155,15 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             )
         })?;
         let (cand, _, _) = refine_point(opts, &board, &base1, cand, verbose);
-        return run_refit(opts, (&base1, base.as_ref()), &cand, verbose);
+        let (baseline1, baseline) = baselines(w, step2)?;
+        let against = Against {
+            located: &located,
+            input: &input,
+            baseline: baseline.as_ref().unwrap_or(&baseline1),
+            z1: &baseline1.log_evidence_runs,
+        };
+        let decided = || cannot_be_favoured(opts, &cand, &against);
+        return run_refit(opts, (&base1, base.as_ref()), &cand, &decided, verbose);
     }
     crate::stage::run(spec, opts.force, |_prep| {
         let mut findings = Findings::default();
@@ -1108,30 +1174,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         let (regions, candidates) =
             screen_candidates(w, &board, &base1, &input, &located, &opts.locate);
         let mut refits: Vec<Refit> = vec![];
-        let baseline1 = summarize_refit(
-            &w.join("update_boards"),
-            "../update_boards",
-            None,
-            None,
-            None,
-            &[],
-        )?;
-        let baseline = if step2 {
-            // Step 2's baseline with step 1's free-free errors (a board mechanism changes both).
-            let mut b = summarize_refit(
-                &w.join("update_joints"),
-                "../update_joints",
-                None,
-                None,
-                None,
-                &[],
-            )?;
-            b.held_out.extend(baseline1.held_out.iter().cloned());
-            b.updated.extend(baseline1.updated.iter().cloned());
-            Some(b)
-        } else {
-            None
-        };
+        let (baseline1, baseline) = baselines(w, step2)?;
         let mut parts = MisfitParts::new(&located);
         let above = above_practical_threshold(&located, opts.select.practical_threshold_rel);
         // Below the practical threshold nothing is refitted: no finding could be claimed.
@@ -1143,6 +1186,12 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             // would cost a sampler's run (the per-joint refits of a campaign whose joints
             // fit are the slowest); they are reported as not refitted.
             let base_ref = baseline.as_ref().unwrap_or(&baseline1);
+            let against = Against {
+                located: &located,
+                input: &input,
+                baseline: base_ref,
+                z1: &baseline1.log_evidence_runs,
+            };
             for cand in candidates
                 .iter()
                 .filter(|c| c.refittable() && (step2 || is_board_mechanism(c.mechanism)))
@@ -1154,10 +1203,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
                     &board,
                     (&base1, base.as_ref()),
                     cand,
-                    (
-                        &located.measurements_after_covariates,
-                        &baseline1.log_evidence_runs,
-                    ),
+                    &against,
                     verbose,
                 );
                 let shares = if r.failed.is_none() {
@@ -1218,6 +1264,35 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             verbose,
         )
     })
+}
+
+/// The baselines' summaries: step 1's, and where the campaign has a step 2, step 2's with
+/// step 1's free-free errors (a board mechanism changes both).
+fn baselines(w: &Path, step2: bool) -> anyhow::Result<(Refit, Option<Refit>)> {
+    let baseline1 = summarize_refit(
+        &w.join("update_boards"),
+        "../update_boards",
+        None,
+        None,
+        None,
+        &[],
+    )?;
+    let baseline = if step2 {
+        let mut b = summarize_refit(
+            &w.join("update_joints"),
+            "../update_joints",
+            None,
+            None,
+            None,
+            &[],
+        )?;
+        b.held_out.extend(baseline1.held_out.iter().cloned());
+        b.updated.extend(baseline1.updated.iter().cloned());
+        Some(b)
+    } else {
+        None
+    };
+    Ok((baseline1, baseline))
 }
 
 /// Whether the located misfit holds a structured part at or above the practical threshold
