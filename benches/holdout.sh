@@ -36,7 +36,21 @@ draws=${HOLDOUT_DRAWS:-2000}
 nboards=${HOLDOUT_N:-}
 group=${HOLDOUT_GROUP:-1}
 tag=null${nboards}
+scenario=${HOLDOUT_SCENARIO:-}
+campaign=${HOLDOUT_CAMPAIGN:-}
+if [ -n "$scenario" ]; then tag=$(basename "$scenario" .toml); fi
+if [ -n "$campaign" ]; then
+  campaign=$(cd "$campaign" && pwd)
+  tag=$(basename "$(dirname "$campaign")"); seeds=(given)
+fi
 holdout=holdout${HOLDOUT_LABEL:+-$HOLDOUT_LABEL}
+# HOLDOUT_SCENARIO=FILE runs a lab scenario file instead of the null's (its seed and name
+# replaced per seed, e.g. data/lab/realistic_null.toml, the independent truth; work
+# directories target/work/<file's name>-<seed>), and HOLDOUT_CAMPAIGN=DIR a campaign
+# already written (one "seed", `given`: the DAG runs on it as on a user's campaign). Only the
+# free-free modes are held out: step 1 predicts a new board, whatever the campaign's bolted
+# measurements.
+#
 # HBMU=binary runs that binary (e.g. a frozen copy while the tree is being edited; the
 # pipeline's make honours it too); otherwise the tree's debug build, built first.
 if [ -n "${HBMU:-}" ]; then
@@ -51,7 +65,12 @@ export HBMU_CACHE=${HBMU_CACHE-$root/target/cache}
 for s in "${seeds[@]}"; do
   work=$root/target/work/$tag-$s
   mkdir -p "$work"
-  if [ -z "$nboards" ]; then
+  input=(SCENARIO="$work/scenario.toml")
+  if [ -n "$campaign" ]; then
+    input=(CAMPAIGN="$campaign")
+  elif [ -n "$scenario" ]; then
+    sed -E "s/^seed = .*/seed = $s/; s/^name = .*/name = \"$tag-$s\"/" "$scenario" > "$work/scenario.toml"
+  elif [ -z "$nboards" ]; then
     sed -E "s/^seed = .*/seed = $s/; s/^name = .*/name = \"null-$s\"/" "$root/data/lab/null.toml" > "$work/scenario.toml"
   else
     cat > "$work/scenario.toml" <<EOF
@@ -65,7 +84,7 @@ free_per_board = 5
 bolted = []
 EOF
   fi
-  make -C "$root/pipelines" --no-print-directory all SCENARIO="$work/scenario.toml" WORK="$work" > "$work/make-holdout.log" 2>&1 || {
+  make -C "$root/pipelines" --no-print-directory all "${input[@]}" WORK="$work" > "$work/make-holdout.log" 2>&1 || {
     echo "seed $s: pipeline failed (see $work/make-holdout.log)"; tail -5 "$work/make-holdout.log"; continue; }
   boards=$(python3 -c "import pandas as pd, sys; print(' '.join(sorted(pd.read_parquet(sys.argv[1]).query('setup == \"free\"').board_id.unique())))" "$work/pair/pairs.parquet")
   # Folds of $group boards each, in id order.
