@@ -829,7 +829,11 @@ fn run_gated(
 /// refit itself leaves them out, so that its evidence is over the baseline's data; a second
 /// refit (`<refit>/new_modes`, `update joints --enrich-new-modes`) fits them too, and its
 /// population medians replace the estimates: the mode is the mechanism's most direct
-/// evidence (a fixture's own resonance pins its frequency).
+/// evidence (a fixture's own resonance pins its frequency). It is not run for a refit that
+/// cannot be favoured whatever its Bayes factor (`not_favourable` is then why): better estimates
+/// of a mechanism the diagnosis will not claim are not worth a second sampler's run; the
+/// modes are still named.
+#[allow(clippy::too_many_arguments)]
 fn new_modes_refit(
     opts: &DiagnoseOptions,
     base2: Option<&UpdateOptions>,
@@ -837,6 +841,7 @@ fn new_modes_refit(
     out: &Path,
     rel: &str,
     r: &mut Refit,
+    not_favourable: Option<String>,
     verbose: bool,
 ) -> anyhow::Result<()> {
     let ev = read_json(&out.join("evidence.json"))?;
@@ -847,16 +852,24 @@ fn new_modes_refit(
     let Some(base) = base2.filter(|_| !found.is_empty() && r.failed.is_none()) else {
         return Ok(());
     };
-    let mut o = joint_refit_options(opts, base, cand);
-    o.out = out.join("new_modes");
-    o.enrich_new_modes = true;
+    let step = match not_favourable {
+        Some(why) => Err(anyhow!(
+            "not refitted: the refit cannot be favoured whatever its Bayes factor ({why})"
+        )),
+        None => Ok(()),
+    };
     let nm_rel = format!("{rel}/new_modes");
-    let step = run_gated(
-        o.clone(),
-        |o| crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose),
-        &|| None,
-    )
-    .and_then(|_| summarize_refit(&o.out, &nm_rel, Some(cand.mechanism), cand.joint, None, &[]));
+    let step = step.and_then(|_| {
+        let mut o = joint_refit_options(opts, base, cand);
+        o.out = out.join("new_modes");
+        o.enrich_new_modes = true;
+        run_gated(
+            o.clone(),
+            |o| crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose),
+            &|| None,
+        )
+        .and_then(|_| summarize_refit(&o.out, &nm_rel, Some(cand.mechanism), cand.joint, None, &[]))
+    });
     let (dir, why) = match step {
         Ok(nm) if nm.failed.is_none() && !nm.estimates.is_empty() => {
             r.estimates = nm
@@ -1060,7 +1073,17 @@ fn refit(
             r.deviating_joints = dev;
         }
         if !is_board_mechanism(cand.mechanism) {
-            new_modes_refit(opts, bases.1, cand, &out, &rel, &mut r, verbose)?;
+            let not_favourable = cannot_be_favoured(opts, cand, against);
+            new_modes_refit(
+                opts,
+                bases.1,
+                cand,
+                &out,
+                &rel,
+                &mut r,
+                not_favourable,
+                verbose,
+            )?;
         }
         // The location was chosen from the data: its Occam factor joins the evidence, and
         // its uncertainty the mass's interval (the refit's is conditional on the point).
