@@ -1269,15 +1269,15 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         );
         let mut verdict = select::verdict(above, &compared);
         let region_limit_m = board.length_x_m.min(board.width_y_m) / 4.0;
-        let form_off = form_outliers(&located, &input.measurements, joints_cleared(&compared));
+        let boards_off = whole_board_outliers(&located, &input.measurements);
         if verdict == Verdict::UnexplainedMisfit
-            && model_form_pattern(&located, &regions.0, region_limit_m, form_off.is_some())
+            && model_form_pattern(&located, &regions.0, region_limit_m, boards_off.is_some())
         {
             verdict = Verdict::ModelForm;
         }
         write_outputs(
             opts,
-            (&located, above, &form_off.unwrap_or_default()),
+            (&located, above, &boards_off.unwrap_or_default()),
             regions,
             &candidates,
             &compared,
@@ -1361,40 +1361,24 @@ fn model_form_pattern(
         && located.unpaired_clusters.is_empty()
 }
 
-/// Outlier measurements read as the per-unit part of the model's form ([`form_outliers`]).
-#[derive(Clone, Debug, Default, PartialEq)]
-struct FormOutliers {
-    /// `(setup, board)`: every measurement of the board in the setup is an outlier.
-    boards: Vec<(String, String)>,
-    /// Bolted mountings (measurement IDs) off on their own, in none of which a joint differs
-    /// from the others ([`joints_cleared`]).
-    mountings: Vec<String>,
-}
-
-/// The outlier measurements as the model's form, or None when some outlier is a
-/// measurement's own problem (a loose bolt, a drift, a slip) as far as the evidence tells.
-/// - A board whose every measurement (at least two) in a setup is an outlier, with boards
-///   located as differing (`board_id` in that setup): its repeat measurements agree, the
-///   board itself is off the population.
-/// - With `joints_cleared`, a bolted mounting off on its own: each assembly re-makes its
-///   joints' contact (patch, preload, the washer's edge), which one contact stiffness per
-///   mounting does not carry; the one library mechanism that acts on single mountings, a
-///   joint differing from the others, was refitted and found in none of them.
-fn form_outliers(
+/// `Some(boards)` when every outlier measurement is one of all the measurements (at least two)
+/// of its board in its setup, and those boards differ from the others (`board_id` located in
+/// that setup): the repeat measurements of a board agree with each other, the board itself is
+/// off the population, as `(setup, board)` pairs. `Some(empty)` without outliers; `None` when
+/// some outlier stands apart from its board's other measurements (a measurement's own
+/// problem: a loose bolt, a drift, a slip).
+fn whole_board_outliers(
     located: &Located,
     measurements: &[locate::MeasurementInfo],
-    joints_cleared: bool,
-) -> Option<FormOutliers> {
+) -> Option<Vec<(String, String)>> {
     let off: BTreeSet<&str> = located.measurements.iter().map(|m| m.as_str()).collect();
-    let mut per_board: BTreeMap<(&str, &str), (usize, Vec<&str>)> = BTreeMap::new();
+    let mut per_board: BTreeMap<(&str, &str), (usize, usize)> = BTreeMap::new();
     for m in measurements {
         let e = per_board
             .entry((m.setup.as_str(), m.board_id.as_str()))
             .or_default();
         e.0 += 1;
-        if off.contains(m.measurement_id.as_str()) {
-            e.1.push(m.measurement_id.as_str());
-        }
+        e.1 += usize::from(off.contains(m.measurement_id.as_str()));
     }
     let board_located = |setup: &str| {
         located
@@ -1402,37 +1386,17 @@ fn form_outliers(
             .iter()
             .any(|c| c.setup == setup && c.covariate == crate::diagnose::locate::BOARD_COVARIATE)
     };
-    let mut form = FormOutliers::default();
-    for ((setup, board), (n, ids)) in per_board {
-        if ids.is_empty() {
+    let mut boards = vec![];
+    for ((setup, board), (n, n_off)) in per_board {
+        if n_off == 0 {
             continue;
         }
-        if ids.len() == n && n >= 2 && board_located(setup) {
-            form.boards.push((setup.to_string(), board.to_string()));
-        } else if setup == "bolted" && joints_cleared {
-            form.mountings.extend(ids.iter().map(|m| m.to_string()));
-        } else {
+        if n_off < n || n < 2 || !board_located(setup) {
             return None;
         }
+        boards.push((setup.to_string(), board.to_string()));
     }
-    form.mountings.sort();
-    Some(form)
-}
-
-/// Whether an every-joint refit (`joint_stiffness_per_joint` with no joint named: each
-/// joint's stiffness over the others' in every bolted measurement) ran, found no joint that
-/// deviates in any measurement ([`select::DeviatingJoint`]: its ratio's 90 % interval beyond
-/// 0.8 or 1/0.8) and explains none of the misfit: the joints of the outlier mountings differ
-/// by no more than contact-stiffness scatter, so none holds a loose bolt.
-fn joints_cleared(compared: &[select::Compared]) -> bool {
-    compared.iter().any(|c| {
-        c.refit.mechanism == Some(Mechanism::JointStiffnessPerJoint)
-            && c.refit.joint.is_none()
-            && c.refit.failed.is_none()
-            && c.refit.deviating_joints.is_empty()
-            && !c.explains
-            && !c.favoured
-    })
+    Some(boards)
 }
 
 /// A favoured refit that leaves at most this share of the located misfit explains it, and the
@@ -1602,7 +1566,7 @@ fn demote_weaker_regions(regions: &mut [regions::BoardRegion]) {
 #[allow(clippy::too_many_arguments)]
 fn write_outputs(
     opts: &DiagnoseOptions,
-    (located, above, form_off): (&Located, bool, &FormOutliers),
+    (located, above, boards_off): (&Located, bool, &[(String, String)]),
     (board_regions, board_regions_note): (Vec<regions::BoardRegion>, String),
     candidates: &[Candidate],
     compared: &[Compared],
@@ -1722,28 +1686,18 @@ fn write_outputs(
         Verdict::ModelForm => {
             let (at, v) = crate::diagnose::misfit::largest_structured(located)
                 .unwrap_or_else(|| ("?".into(), f64::NAN));
-            let mut boards = if *form_off == FormOutliers::default() {
+            let boards = if boards_off.is_empty() {
                 "with no covariate trend, outlier measurement or unpaired mode".to_string()
             } else {
-                "with no covariate trend or unpaired mode".to_string()
-            };
-            if !form_off.boards.is_empty() {
-                boards += &format!(
-                    "; the outlier measurements are every measurement of {} (their repeat measurements agree, the boards themselves differ from the others beyond the model's parameters: the per-board part of the same form)",
-                    form_off
-                        .boards
+                format!(
+                    "with no covariate trend or unpaired mode; the outlier measurements are every measurement of {} (their repeat measurements agree, the boards themselves differ from the others beyond the model's parameters: the per-board part of the same form)",
+                    boards_off
                         .iter()
                         .map(|(s, b)| format!("{b} ({s})"))
                         .collect::<Vec<_>>()
                         .join(", ")
-                );
-            }
-            if !form_off.mountings.is_empty() {
-                boards += &format!(
-                    "; the outlier bolted mountings {} differ from the others, and the every-joint refit finds no joint in them that differs from its assembly's others (no loose bolt): the joint's form, which one contact stiffness per mounting does not carry (each assembly re-makes its contact patch and preload)",
-                    form_off.mountings.join(", ")
-                );
-            }
+                )
+            };
             format!(
                 "model form: the model differs from every board alike by up to {:.3} % ({at}), above the {:.2} % practical threshold, in the free-free modes (the board itself, whatever its mounting), placed nowhere on the board, and {boards}: the form of the model (a thin plate without transverse shear and rotary inertia, copper homogenised into the laminate), not a concealed effect. It is in the predicted intervals as the model-form discrepancy; a richer model would narrow them. Located modes: {:?}",
                 100.0 * v,
@@ -2015,8 +1969,7 @@ fn write_outputs(
 #[cfg(test)]
 mod tests {
     use super::{
-        above_practical_threshold, demote_weaker_regions, form_outliers, model_form_pattern,
-        FormOutliers,
+        above_practical_threshold, demote_weaker_regions, model_form_pattern, whole_board_outliers,
     };
     use crate::diagnose::library::Mechanism;
     use crate::diagnose::localize::LocalFit;
@@ -2113,110 +2066,22 @@ mod tests {
         let mut whole = loc.clone();
         whole.covariates = vec![cov("board_id")];
         whole.measurements = vec!["M1".into(), "M2".into()];
-        let boards = |b: &[(&str, &str)]| FormOutliers {
-            boards: b
-                .iter()
-                .map(|(s, b)| (s.to_string(), b.to_string()))
-                .collect(),
-            mountings: vec![],
-        };
         assert_eq!(
-            form_outliers(&whole, &ms, false),
-            Some(boards(&[("free", "B1")]))
+            whole_board_outliers(&whole, &ms),
+            Some(vec![("free".to_string(), "B1".to_string())])
         );
         assert!(model_form_pattern(&whole, &[], 0.0125, true));
         whole.measurements = vec!["M1".into()];
-        assert_eq!(form_outliers(&whole, &ms, false), None);
-        assert_eq!(
-            form_outliers(&whole, &ms, true),
-            None,
-            "a free-free measurement off on its own is no joint's"
-        );
+        assert_eq!(whole_board_outliers(&whole, &ms), None);
         whole.measurements = vec!["M1".into(), "M2".into()];
         whole.covariates.clear();
         assert_eq!(
-            form_outliers(&whole, &ms, false),
+            whole_board_outliers(&whole, &ms),
             None,
             "boards not located as differing"
         );
         whole.measurements.clear();
-        assert_eq!(form_outliers(&whole, &ms, false), Some(boards(&[])));
-        // A bolted mounting off on its own is the joint's form only once the every-joint
-        // refit found no joint differing in it.
-        let mut ms = ms.to_vec();
-        ms.push(locate::MeasurementInfo {
-            setup: "bolted".into(),
-            ..info("M5", "B1")
-        });
-        ms.push(locate::MeasurementInfo {
-            setup: "bolted".into(),
-            ..info("M6", "B1")
-        });
-        whole.covariates = vec![cov("board_id")];
-        whole.measurements = vec!["M1".into(), "M2".into(), "M6".into()];
-        assert_eq!(form_outliers(&whole, &ms, false), None);
-        assert_eq!(
-            form_outliers(&whole, &ms, true),
-            Some(FormOutliers {
-                mountings: vec!["M6".into()],
-                ..boards(&[("free", "B1")])
-            })
-        );
-    }
-
-    /// Only an every-joint refit that ran, found no deviating joint and explains nothing
-    /// clears the outlier mountings of a loose bolt.
-    #[test]
-    fn the_every_joint_refit_clears_mountings_only_when_it_finds_no_joint() {
-        use crate::diagnose::select::{Compared, DeviatingJoint, Refit};
-        let refit = Refit {
-            mechanism: Some(Mechanism::JointStiffnessPerJoint),
-            joint: None,
-            dir: "refits/joint_stiffness_per_joint".into(),
-            log_evidence_runs: vec![1.0, 2.0],
-            held_out: vec![],
-            updated: vec![],
-            estimates: vec![],
-            failed: None,
-            log_location_occam: None,
-            point_xy_m: None,
-            location_probes: vec![],
-            location_note: None,
-            remaining_share: Some(1.0),
-            explained_rel: None,
-            deviating_joints: vec![],
-            new_modes: vec![],
-        };
-        let c = Compared {
-            refit,
-            log_bayes_factor: Some(-7.7),
-            log_bayes_factor_se: Some(3.5),
-            favoured: false,
-            explains: false,
-            practical: true,
-            held_out_before_after: vec![],
-        };
-        assert!(super::joints_cleared(std::slice::from_ref(&c)));
-        let mut loose = c.clone();
-        loose.refit.deviating_joints = vec![DeviatingJoint {
-            measurement_id: "M6".into(),
-            joint: 2,
-            x_m: 0.075,
-            y_m: 0.005,
-            ratio_median: 0.4,
-            ratio_q05: 0.3,
-            ratio_q95: 0.5,
-        }];
-        assert!(!super::joints_cleared(&[loose]));
-        let mut failed = c.clone();
-        failed.refit.failed = Some("sampler not converged".into());
-        assert!(!super::joints_cleared(&[failed]));
-        let mut one = c.clone();
-        one.refit.joint = Some(2);
-        assert!(!super::joints_cleared(&[one]));
-        let mut explains = c;
-        explains.explains = true;
-        assert!(!super::joints_cleared(&[explains]));
+        assert_eq!(whole_board_outliers(&whole, &ms), Some(vec![]));
     }
 
     /// A refit whose runs disagree a little keeps its Bayes factor (its estimates are said
