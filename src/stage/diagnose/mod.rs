@@ -1037,10 +1037,22 @@ fn cannot_be_favoured(opts: &DiagnoseOptions, cand: &Candidate, a: &Against) -> 
     )
     .ok()?;
     let after = refit_residuals(&out).ok()?;
-    let shares = RefitShares::new(a.located, a.input, &after, &opts.locate);
+    with_shares(opts, cand, a, &mut r, &after);
+    select::cannot_be_favoured(a.baseline, &r, &opts.select)
+}
+
+/// Set a refit's share of the located misfit it leaves and the misfit it removes, from its
+/// residuals `after`.
+fn with_shares(
+    opts: &DiagnoseOptions,
+    cand: &Candidate,
+    a: &Against,
+    r: &mut Refit,
+    after: &[locate::ResidualObs],
+) {
+    let shares = RefitShares::new(a.located, a.input, after, &opts.locate);
     r.remaining_share = shares.own(cand);
     r.explained_rel = shares.explained(cand);
-    select::cannot_be_favoured(a.baseline, &r, &opts.select)
 }
 
 /// Run (or find up to date) one candidate's refit.
@@ -1073,7 +1085,12 @@ fn refit(
             r.deviating_joints = dev;
         }
         if !is_board_mechanism(cand.mechanism) {
-            let not_favourable = cannot_be_favoured(opts, cand, against);
+            // The refit as summarized here, not read again from its directory.
+            let not_favourable = refit_residuals(&out).ok().and_then(|after| {
+                let mut judged = r.clone();
+                with_shares(opts, cand, against, &mut judged, &after);
+                select::cannot_be_favoured(against.baseline, &judged, &opts.select)
+            });
             new_modes_refit(
                 opts,
                 bases.1,
