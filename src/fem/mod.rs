@@ -47,7 +47,7 @@ pub const MODEL_REVISION: &str = "3: copper integrated per convex piece";
 
 pub use board::{Board, MeshOptions};
 pub use joints::{JointFeature, JointModel};
-pub use model::{FeModel, Modes, Setup, ShapeOperator};
+pub use model::{FeModel, ModelOptions, Modes, Setup, ShapeOperator};
 pub use params::Params;
 pub use rom::{Rom, RomDerivatives, RomModes, RomOptions, RomShapeOperator};
 

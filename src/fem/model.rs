@@ -174,9 +174,25 @@ struct Stack {
     a: Comp4,
     b: Comp4,
     d_cu: Comp4,
+    /// D_cu split by powers of the core thickness h, the factors h₀^k included: a layer at
+    /// the surface (z from h/2 to h/2 + t) has (z₂³ − z₁³)/3 = h² t/4 + h t²/2 + t³/3.
+    d_cu_pow: [Comp4; 3],
     rho_h_cu: f64,
     s: f64,
     t: f64,
+    /// t = h u + v: the coupling variable's parts, u = Σ ±f t_l/2 and v = Σ ±f t_l²/2.
+    t_pow: [f64; 2],
+}
+
+/// What a model takes as parameters beyond the standard ones.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ModelOptions {
+    /// The FR-4 core thickness as a parameter (`core_thickness_m`, nominal: the board
+    /// file's), for specimens whose measured thickness differs: every term that depends on
+    /// it is split into its powers of h (core bending h³; a surface copper layer's h², h,
+    /// 1; the coupling correction's t² = (h u + v)²; the core's mass h), so the model
+    /// stays affine and exact in h. Needs copper of one material, if any.
+    pub core_thickness: bool,
 }
 
 /// Quadrature of the part of the convex piece `poly` outside every hole: directly
@@ -460,6 +476,16 @@ impl FeModel {
     /// Free boards get a uniform mesh, bolted ones a mesh graded towards the joints
     /// ([`JOINT_GRADING`]).
     pub fn build(board: &Board, setup: Setup, mesh: &MeshOptions) -> Result<FeModel, FemError> {
+        Self::build_with(board, setup, mesh, ModelOptions::default())
+    }
+
+    /// [`Self::build`] with the parameters `opts` adds.
+    pub fn build_with(
+        board: &Board,
+        setup: Setup,
+        mesh: &MeshOptions,
+        opts: ModelOptions,
+    ) -> Result<FeModel, FemError> {
         if mesh.nx < 2 || mesh.ny < 2 {
             return Err(FemError::Mesh(format!(
                 "expected at least 2 × 2 elements, found {} × {}",
@@ -467,7 +493,7 @@ impl FeModel {
             )));
         }
         let (x_m, y_m) = Mesh::lines(board, &setup, mesh.nx, mesh.ny);
-        Self::build_on_lines(board, setup, x_m, y_m)
+        Self::build_on_lines_with(board, setup, x_m, y_m, opts)
     }
 
     /// Build the model of `board` in `setup` on the tensor-product mesh with node lines
@@ -478,6 +504,17 @@ impl FeModel {
         setup: Setup,
         x_m: Vec<f64>,
         y_m: Vec<f64>,
+    ) -> Result<FeModel, FemError> {
+        Self::build_on_lines_with(board, setup, x_m, y_m, ModelOptions::default())
+    }
+
+    /// [`Self::build_on_lines`] with the parameters `opts` adds.
+    pub fn build_on_lines_with(
+        board: &Board,
+        setup: Setup,
+        x_m: Vec<f64>,
+        y_m: Vec<f64>,
+        opts: ModelOptions,
     ) -> Result<FeModel, FemError> {
         board.validate()?;
         for (axis, l, len) in [("x", &x_m, board.length_x_m), ("y", &y_m, board.width_y_m)] {
@@ -608,6 +645,22 @@ impl FeModel {
         pnames.push(names::MASS_SCALE.into());
         nominal.push(1.0);
         let i_mass = pnames.len() - 1;
+        // The core thickness's index, when it is a parameter.
+        let i_h = opts.core_thickness.then(|| {
+            pnames.push(names::CORE_THICKNESS.into());
+            nominal.push(c.thickness_m);
+            pnames.len() - 1
+        });
+        // A term's coefficient times (h/h₀)^power where h is a parameter.
+        let h_pow = |base: Coef, power: i32| match i_h {
+            Some(param) => Coef::ThicknessPower {
+                base: Box::new(base),
+                param,
+                nominal_m: c.thickness_m,
+                power,
+            },
+            None => base,
+        };
 
         // Per-element laminate data.
         let units = UnitMatrices::new(&mesh_data);
@@ -619,8 +672,10 @@ impl FeModel {
         let mut mb = TermBuilder::new();
         let mut t_core: [Vec<(usize, usize, f64)>; 4] = Default::default();
         let mut t_cu = Vec::new();
+        let mut t_cu_pow: [Vec<(usize, usize, f64)>; 3] = Default::default();
         let mut t_corr = Vec::new();
         let mut t_mass = Vec::new();
+        let mut t_mass_core = Vec::new();
         let mut any_corr = false;
         // Exact coupling expansion when all copper is one material (see `laminate`).
         let uniform_cu = board
@@ -633,6 +688,12 @@ impl FeModel {
                     .all(|l| l.e_pa == l0.e_pa && l.nu == l0.nu)
             })
             .map(|l0| (l0.e_pa, isotropic_q(l0.e_pa, l0.nu)));
+        if i_h.is_some() && has_cu && uniform_cu.is_none() {
+            return Err(FemError::Param(format!(
+                "{}: the core thickness as a parameter needs every copper layer of one material (the exact coupling expansion), found layers of different moduli",
+                names::CORE_THICKNESS
+            )));
+        }
         // Elements with B ≠ 0 somewhere, for the exact expansion.
         let mut coupled: Vec<(usize, usize)> = Vec::new();
         let add = |t: &mut Vec<(usize, usize, f64)>,
@@ -688,9 +749,11 @@ impl FeModel {
                 a: q_core.map(|q| q * a_core),
                 b: [0.0; 4],
                 d_cu: [0.0; 4],
+                d_cu_pow: [[0.0; 4]; 3],
                 rho_h_cu: 0.0,
                 s: 0.0,
                 t: 0.0,
+                t_pow: [0.0; 2],
             };
             for (l, frac) in board.copper.iter().zip(cov) {
                 if *frac == 0.0 {
@@ -702,14 +765,22 @@ impl FeModel {
                 };
                 let (fa, fb, fd) = layer_factors(z1, z2);
                 let q = isotropic_q(l.e_pa, l.nu);
+                let tl = l.thickness_m;
+                let fd_pow = [tl.powi(3) / 3.0, h * tl * tl / 2.0, h * h * tl / 4.0];
+                let sign = if fb < 0.0 { -1.0 } else { 1.0 };
                 for k in 0..4 {
                     st.a[k] += frac * q[k] * fa;
                     st.b[k] += frac * q[k] * fb;
                     st.d_cu[k] += frac * q[k] * fd;
+                    for (pw, f) in fd_pow.iter().enumerate() {
+                        st.d_cu_pow[pw][k] += frac * q[k] * f;
+                    }
                 }
                 st.rho_h_cu += frac * l.density_kg_per_m3 * l.thickness_m;
                 st.s += frac * fa;
                 st.t += frac * fb;
+                st.t_pow[0] += sign * frac * tl / 2.0;
+                st.t_pow[1] += sign * frac * tl * tl / 2.0;
             }
             st
         };
@@ -765,7 +836,12 @@ impl FeModel {
                     add(&mut t_core[k], eme, &dofs, unit);
                 }
                 let cells = cells_of(ex, ey);
-                if has_cu {
+                if has_cu && i_h.is_some() {
+                    for (pw, t) in t_cu_pow.iter_mut().enumerate() {
+                        let k_cu = combine(&cells, eme, &|c| stack(&c.coverage).d_cu_pow[pw]);
+                        push16(t, &dofs, &k_cu);
+                    }
+                } else if has_cu {
                     let k_cu = combine(&cells, eme, &|c| stack(&c.coverage).d_cu);
                     push16(&mut t_cu, &dofs, &k_cu);
                 }
@@ -794,9 +870,20 @@ impl FeModel {
                         }
                     }
                 }
-                for r in 0..16 {
-                    for cc in 0..16 {
-                        mass[r][cc] += rho_core_h * eme.m[r][cc];
+                if i_h.is_some() {
+                    // The core's mass in a term of its own (∝ h).
+                    let mut core = [[0.0; 16]; 16];
+                    for r in 0..16 {
+                        for cc in 0..16 {
+                            core[r][cc] = rho_core_h * eme.m[r][cc];
+                        }
+                    }
+                    push16(&mut t_mass_core, &dofs, &core);
+                } else {
+                    for r in 0..16 {
+                        for cc in 0..16 {
+                            mass[r][cc] += rho_core_h * eme.m[r][cc];
+                        }
                     }
                 }
                 push16(&mut t_mass, &dofs, &mass);
@@ -804,23 +891,39 @@ impl FeModel {
         }
         let core_names = ["core_q11", "core_q22", "core_q12", "core_q66"];
         for (k, t) in t_core.into_iter().enumerate() {
-            kb.push(core_names[k], Coef::CoreQ { comp: k }, t);
+            kb.push(core_names[k], h_pow(Coef::CoreQ { comp: k }, 3), t);
         }
-        if has_cu {
+        if has_cu && i_h.is_some() {
+            let scale = board.copper[0].e_pa;
+            for (pw, t) in t_cu_pow.into_iter().enumerate() {
+                let coef = h_pow(Coef::Linear { param: 4, scale }, pw as i32);
+                kb.push(&format!("copper_h{pw}"), coef, t);
+            }
+        } else if has_cu {
             let scale = board.copper[0].e_pa;
             kb.push("copper", Coef::Linear { param: 4, scale }, t_cu);
         }
         if any_corr {
             kb.push("coupling_correction", Coef::Const, t_corr);
         }
-        mb.push(
-            "board_mass",
-            Coef::Linear {
+        // Without copper, a thickness parameter leaves the core's mass term alone.
+        if !(i_h.is_some() && !has_cu) {
+            mb.push(
+                "board_mass",
+                Coef::Linear {
+                    param: i_mass,
+                    scale: 1.0,
+                },
+                t_mass,
+            );
+        }
+        if i_h.is_some() {
+            let coef = Coef::Linear {
                 param: i_mass,
                 scale: 1.0,
-            },
-            t_mass,
-        );
+            };
+            mb.push("core_mass", h_pow(coef, 1), t_mass_core);
+        }
 
         // Joints.
         let mut patches = Vec::new();
@@ -919,7 +1022,11 @@ impl FeModel {
                 .unwrap_or_else(|| unreachable!("copper without e_cu_pa"));
             let s_max: f64 = board.copper.iter().map(|l| l.thickness_m).sum();
             let nodes = chebyshev_nodes(coupling_nodes(&q_core, h, &q_cu, s_max), s_max);
-            let mut vals = vec![vec![0.0; pattern.row_idx.len()]; 4 * nodes.len()];
+            // With the thickness a parameter, t² = h² u² + 2 h u v + v²: one set of terms
+            // per power of h (highest last), each with its h₀ factors.
+            let n_pow = if i_h.is_some() { 3 } else { 1 };
+            let n_set = 4 * nodes.len();
+            let mut vals = vec![vec![0.0; pattern.row_idx.len()]; n_pow * n_set];
             let scales: Vec<[f64; 4]> = nodes
                 .iter()
                 .map(|sk| {
@@ -951,29 +1058,45 @@ impl FeModel {
                     }
                     let m = cell.matrices.as_ref().unwrap_or(eme);
                     let l = lagrange_basis(&nodes, st.s);
-                    for (k, lk) in l.iter().enumerate() {
-                        for comp in 0..4 {
-                            let w = -st.t * st.t * lk * scales[k][comp];
-                            let v = &mut vals[4 * k + comp];
-                            for (q, &iq) in idx.iter().enumerate() {
-                                v[iq] += w * m.k[comp][q / 16][q % 16];
+                    let t2: Vec<f64> = if i_h.is_some() {
+                        let (hu, v) = (h * st.t_pow[0], st.t_pow[1]);
+                        vec![v * v, 2.0 * hu * v, hu * hu]
+                    } else {
+                        vec![st.t * st.t]
+                    };
+                    for (pw, t2) in t2.iter().enumerate() {
+                        for (k, lk) in l.iter().enumerate() {
+                            for comp in 0..4 {
+                                let w = -t2 * lk * scales[k][comp];
+                                let v = &mut vals[pw * n_set + 4 * k + comp];
+                                for (q, &iq) in idx.iter().enumerate() {
+                                    v[iq] += w * m.k[comp][q / 16][q % 16];
+                                }
                             }
                         }
                     }
                 }
             }
-            for (k, sk) in nodes.iter().enumerate() {
-                for comp in 0..4 {
-                    kb.names.push(format!("coupling_s{k}_c{comp}"));
-                    kb.coefs.push(Coef::Coupling {
-                        s_node_m: *sk,
-                        comp,
-                        scale: scales[k][comp],
-                        h_core_m: h,
-                        q_cu_pa: q_cu,
-                        e_cu_param: i_cu,
-                        e_cu_nominal_pa: e_cu0,
-                    });
+            for pw in 0..n_pow {
+                for (k, sk) in nodes.iter().enumerate() {
+                    for comp in 0..4 {
+                        let coupling = Coef::Coupling {
+                            s_node_m: *sk,
+                            comp,
+                            scale: scales[k][comp],
+                            h_core_m: h,
+                            q_cu_pa: q_cu,
+                            e_cu_param: i_cu,
+                            e_cu_nominal_pa: e_cu0,
+                            h_param: i_h,
+                        };
+                        if i_h.is_some() {
+                            kb.names.push(format!("coupling_s{k}_c{comp}_h{pw}"));
+                        } else {
+                            kb.names.push(format!("coupling_s{k}_c{comp}"));
+                        }
+                        kb.coefs.push(h_pow(coupling, pw as i32));
+                    }
                 }
             }
             k_terms.extend(vals);

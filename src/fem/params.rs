@@ -39,6 +39,9 @@ pub mod names {
     pub const K_FIX: &str = "k_fix_n_per_m";
     /// Fixture mass, kg.
     pub const M_FIX: &str = "m_fix_kg";
+    /// Thickness of the FR-4 core, m: a parameter only in a model built with
+    /// [`crate::fem::ModelOptions::core_thickness`] (a specimen's measured thickness).
+    pub const CORE_THICKNESS: &str = "core_thickness_m";
     /// Step 1's population coordinate of a modulus taken per unit mass scale
     /// (`update boards --board-coordinates per-mass`): `e_x_pa` → `e_x_per_mass_scale_pa`.
     pub fn per_mass_scale(param: &str) -> String {
@@ -125,6 +128,22 @@ pub enum Coef {
         e_cu_param: usize,
         /// Nominal copper modulus, Pa.
         e_cu_nominal_pa: f64,
+        /// Index of `core_thickness_m` when the core thickness is a parameter: G is then
+        /// evaluated at h = p[h_param] instead of `h_core_m`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        h_param: Option<usize>,
+    },
+    /// `base` times (p_k / nominal)^power: one term of a thickness-dependent quantity's
+    /// polynomial in the core thickness h = p_k (bending stiffness of the core h³, of a
+    /// copper layer at its surface h², h, 1; the coupling correction's t² likewise; the core's
+    /// mass h), so that the model stays affine, and exact, in h.
+    ThicknessPower {
+        base: Box<Coef>,
+        /// Index of `core_thickness_m`.
+        param: usize,
+        /// Thickness the term was assembled at, m.
+        nominal_m: f64,
+        power: i32,
     },
 }
 
@@ -176,6 +195,8 @@ impl ParamMap {
         for (n, v) in p.names.iter().zip(&p.values) {
             let ok = if n == names::NU_XY {
                 v.is_finite()
+            } else if n == names::CORE_THICKNESS {
+                v.is_finite() && *v > 0.0
             } else {
                 v.is_finite() && *v >= 0.0
             };
@@ -217,7 +238,7 @@ impl ParamMap {
         let (ex, ey, g, nu) = (v[ix], v[iy], v[ig], v[inu]);
         let den = 1.0 - nu * nu * ey / ex;
         let q = [ex / den, ey / den, nu * ey / den, g];
-        let eval = |c: &Coef| -> f64 {
+        fn eval(c: &Coef, q: &[f64; 4], q_nom: &[f64; 4], v: &[f64]) -> f64 {
             match c {
                 Coef::CoreQ { comp } => q[*comp] * (1.0 / q_nom[*comp]),
                 Coef::Linear { param, scale } => v[*param] / scale,
@@ -230,15 +251,29 @@ impl ParamMap {
                     q_cu_pa,
                     e_cu_param,
                     e_cu_nominal_pa,
+                    h_param,
                 } => {
                     let eps = v[*e_cu_param] / e_cu_nominal_pa;
-                    coupling_value(q, *h_core_m, *q_cu_pa, eps, *s_node_m)[*comp] / scale
+                    let h = h_param.map_or(*h_core_m, |i| v[i]);
+                    coupling_value(*q, h, *q_cu_pa, eps, *s_node_m)[*comp] / scale
                 }
+                Coef::ThicknessPower {
+                    base,
+                    param,
+                    nominal_m,
+                    power,
+                } => eval(base, q, q_nom, v) * (v[*param] / nominal_m).powi(*power),
             }
-        };
+        }
         (
-            self.k_coefs.iter().map(eval).collect(),
-            self.m_coefs.iter().map(eval).collect(),
+            self.k_coefs
+                .iter()
+                .map(|c| eval(c, &q, &q_nom, v))
+                .collect(),
+            self.m_coefs
+                .iter()
+                .map(|c| eval(c, &q, &q_nom, v))
+                .collect(),
         )
     }
 
@@ -272,21 +307,37 @@ impl ParamMap {
             quot(nu * ey, [0.0, nu, ey]),
             [0.0, 0.0, 1.0, 0.0],
         ];
+        // (value, ∂/∂p) of one coefficient.
         let eval = |c: &Coef| -> (f64, Vec<f64>) {
             let mut grad = vec![0.0; np];
-            match c {
+            // A thickness power's factor r^power (r = h / nominal) and its derivative in h,
+            // then its base.
+            let (c, power) = match c {
+                Coef::ThicknessPower {
+                    base,
+                    param,
+                    nominal_m,
+                    power,
+                } => {
+                    let r = v[*param] / nominal_m;
+                    let d = f64::from(*power) * r.powi(*power - 1) / nominal_m;
+                    (&**base, Some((*param, r.powi(*power), d)))
+                }
+                c => (c, None),
+            };
+            let value = match c {
                 Coef::CoreQ { comp } => {
                     let s = 1.0 / q_nom[*comp];
                     for (k, idx) in [ix, iy, ig, inu].iter().enumerate() {
                         grad[*idx] += dq[*comp][k] * s;
                     }
-                    (q[*comp] * s, grad)
+                    q[*comp] * s
                 }
                 Coef::Linear { param, scale } => {
                     grad[*param] = 1.0 / scale;
-                    (v[*param] / scale, grad)
+                    v[*param] / scale
                 }
-                Coef::Const => (1.0, grad),
+                Coef::Const => 1.0,
                 Coef::Coupling {
                     s_node_m,
                     comp,
@@ -295,17 +346,34 @@ impl ParamMap {
                     q_cu_pa,
                     e_cu_param,
                     e_cu_nominal_pa,
+                    h_param,
                 } => {
                     let eps = v[*e_cu_param] / e_cu_nominal_pa;
-                    let (g, d_core, d_eps) =
-                        coupling_kernel(q, *h_core_m, *q_cu_pa, eps, *s_node_m);
+                    let h = h_param.map_or(*h_core_m, |i| v[i]);
+                    let (g, d_core, d_eps) = coupling_kernel(q, h, *q_cu_pa, eps, *s_node_m);
                     for j in 0..4 {
                         for (k, idx) in [ix, iy, ig, inu].iter().enumerate() {
                             grad[*idx] += d_core[j][*comp] * dq[j][k] / scale;
                         }
                     }
                     grad[*e_cu_param] += d_eps[*comp] / (e_cu_nominal_pa * scale);
-                    (g[*comp] / scale, grad)
+                    if let Some(i) = h_param {
+                        // N = h Q_core + ε s Q_cu: ∂G/∂h = Σ_j ∂G/∂Q_core[j] · Q_core[j] / h.
+                        grad[*i] +=
+                            (0..4).map(|j| d_core[j][*comp] * q[j]).sum::<f64>() / (h * scale);
+                    }
+                    g[*comp] / scale
+                }
+                Coef::ThicknessPower { .. } => unreachable!("unwrapped above"),
+            };
+            match power {
+                None => (value, grad),
+                Some((param, factor, d)) => {
+                    for g in grad.iter_mut() {
+                        *g *= factor;
+                    }
+                    grad[param] += value * d;
+                    (value * factor, grad)
                 }
             }
         };

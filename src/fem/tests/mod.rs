@@ -6,4 +6,5 @@ pub(crate) mod helpers;
 mod joints;
 mod rom;
 mod sensitivity;
+mod thickness;
 mod verification;

@@ -1,0 +1,124 @@
+//! The core thickness as a parameter ([`ModelOptions::core_thickness`]) is exact: the model
+//! at thickness h equals the model of the board whose file says h, copper coupling included.
+
+use crate::fem::board::Board;
+use crate::fem::model::{FeModel, ModelOptions, Setup};
+use crate::fem::params::names;
+
+fn with_thickness(board: &Board, h_m: f64) -> Board {
+    let mut b = board.clone();
+    b.core.thickness_m = h_m;
+    b
+}
+
+/// Eigenvalues and mass of `model` at `p` against those of the board built at thickness `h`.
+fn compare(board: &Board, setup: Setup, h_m: f64, scale_e_x: f64) {
+    let mesh = board.mesh_for(&setup).clone();
+    let opts = ModelOptions {
+        core_thickness: true,
+    };
+    let para = FeModel::build_with(board, setup.clone(), &mesh, opts).unwrap();
+    let mut p = para.nominal_params();
+    p.set(names::CORE_THICKNESS, h_m).unwrap();
+    let ex = p.get(names::E_X).unwrap();
+    p.set(names::E_X, ex * scale_e_x).unwrap();
+    p.set(names::MASS_SCALE, 1.03).unwrap();
+    let direct_board = with_thickness(board, h_m);
+    let direct = FeModel::build(&direct_board, setup, &mesh).unwrap();
+    let mut q = direct.nominal_params();
+    q.set(names::E_X, ex * scale_e_x).unwrap();
+    q.set(names::MASS_SCALE, 1.03).unwrap();
+    let (a, b) = (para.modes(&p, 8).unwrap(), direct.modes(&q, 8).unwrap());
+    for (k, (fa, fb)) in a.freq_hz.iter().zip(&b.freq_hz).enumerate() {
+        assert!(
+            ((fa - fb) / fb).abs() < 1e-9,
+            "h {h_m} m, mode {k}: {fa} Hz with the thickness a parameter, {fb} Hz built at it"
+        );
+    }
+    let (ma, mb) = (
+        para.total_mass_kg(&p).unwrap(),
+        direct.total_mass_kg(&q).unwrap(),
+    );
+    assert!(((ma - mb) / mb).abs() < 1e-12, "mass {ma} vs {mb} kg");
+}
+
+/// The default board (asymmetric copper, so the −B A⁻¹ B coupling is in play) free and
+/// bolted, 8 % thicker and 10 % thinner, with a modulus off nominal.
+#[test]
+fn the_thickness_parameter_reproduces_the_board_built_at_that_thickness() {
+    let b = Board::default_board();
+    let h0 = b.core.thickness_m;
+    for h in [1.08 * h0, 0.9 * h0] {
+        compare(&b, Setup::Free, h, 1.05);
+        compare(&b, Setup::bolted(), h, 0.97);
+    }
+    // At the nominal thickness it is the standard model.
+    compare(&b, Setup::Free, h0, 1.0);
+}
+
+/// A plain plate (no copper): eigenvalues scale as h² at fixed moduli and density scale
+/// (D ∝ h³, mass ∝ h), the closed form of Kirchhoff plate theory.
+#[test]
+fn a_plate_without_copper_scales_its_eigenvalues_with_h_squared() {
+    let b = super::helpers::plain_board(0.1, 0.06, 2e-3, 20e9, 18e9, 8e9, 0.14, 1850.0);
+    let opts = ModelOptions {
+        core_thickness: true,
+    };
+    let m = FeModel::build_with(&b, Setup::Free, &b.mesh, opts).unwrap();
+    let p0 = m.nominal_params();
+    let mut p1 = p0.clone();
+    p1.set(names::CORE_THICKNESS, 2.3e-3).unwrap();
+    let (a, c) = (m.modes(&p0, 5).unwrap(), m.modes(&p1, 5).unwrap());
+    for (f0, f1) in a.freq_hz.iter().zip(&c.freq_hz) {
+        assert!((f1 / f0 - 1.15).abs() < 1e-10, "{f1} / {f0}");
+    }
+    let ratio = m.total_mass_kg(&p1).unwrap() / m.total_mass_kg(&p0).unwrap();
+    assert!((ratio - 1.15).abs() < 1e-12);
+}
+
+/// The coefficients' derivatives in h (the sensitivities' chain rule) match central
+/// differences, the coupling terms' included.
+#[test]
+fn thickness_coefficient_gradients_match_finite_differences() {
+    let b = Board::default_board();
+    let opts = ModelOptions {
+        core_thickness: true,
+    };
+    let m = FeModel::build_with(&b, Setup::Free, &b.mesh, opts).unwrap();
+    let mut p = m.nominal_params();
+    let i = p.position(names::CORE_THICKNESS).unwrap();
+    p.values[i] *= 1.04;
+    p.values[0] *= 0.97;
+    let c = m.map.coefficients(&p).unwrap();
+    let dh = 1e-6 * p.values[i];
+    let (mut lo, mut hi) = (p.clone(), p.clone());
+    lo.values[i] -= dh;
+    hi.values[i] += dh;
+    let (cl, ch) = (
+        m.map.coefficients(&lo).unwrap(),
+        m.map.coefficients(&hi).unwrap(),
+    );
+    let mut n_h = 0;
+    for (t, g) in c.k_grad.iter().enumerate() {
+        let fd = (ch.k[t] - cl.k[t]) / (2.0 * dh);
+        assert!(
+            (g[i] - fd).abs() <= 1e-6 * fd.abs().max(c.k[t].abs() / p.values[i]),
+            "{}: ∂c/∂h {} vs {fd}",
+            m.k_term_names[t],
+            g[i]
+        );
+        n_h += usize::from(g[i] != 0.0);
+    }
+    for (t, g) in c.m_grad.iter().enumerate() {
+        let fd = (ch.m[t] - cl.m[t]) / (2.0 * dh);
+        assert!(
+            (g[i] - fd).abs() <= 1e-6 * fd.abs().max(1e-12),
+            "mass term {t}"
+        );
+    }
+    assert!(n_h > 10, "terms depending on h: {n_h}");
+    // The values alone (the sampler's path) are the same numbers.
+    let (k, mm) = m.map.coefficient_values(&p.values);
+    assert_eq!(k, c.k);
+    assert_eq!(mm, c.m);
+}
