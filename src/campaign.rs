@@ -184,6 +184,8 @@ pub struct Campaign {
     pub measurements: Vec<Measurement>,
     pub readings: Vec<Reading>,
     pub masses: Vec<BoardMass>,
+    /// The sheet's boards with their measured dimensions (where the sheet gives them).
+    pub specimens: Vec<Specimen>,
     pub findings: Findings,
     /// Extra sheet columns, in header order.
     pub extra_columns: Vec<String>,
@@ -400,11 +402,13 @@ pub fn read_campaign(
             ));
         }
     }
+    let specimens = specimen_dimensions(&measurements, &boards, &mut findings);
     Ok(Campaign {
         name,
         measurements,
         readings,
         masses,
+        specimens,
         findings,
         extra_columns: sheet.extra_columns,
     })
@@ -1308,6 +1312,80 @@ fn check_repeats(ms: &[Measurement], findings: &mut Findings) {
 /// The sheet's boards: rows spelling one board differently are resolved to the spelling most
 /// rows use (`sheet.board_id_variant`); spellings used equally often stay apart
 /// (`sheet.board_id_ambiguous`). Rewrites the rows' board_id; returns the boards.
+/// One board of the sheet and its measured dimensions.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Specimen {
+    pub board_id: String,
+    /// Length, width and core thickness, mm ([`sheet::DIMENSIONS`]): the mean over the rows
+    /// that give it, `None` where no row does.
+    pub dimensions_mm: [Option<f64>; 3],
+    /// Rows giving each dimension.
+    pub n_rows: [usize; 3],
+}
+
+/// Relative spread of one specimen's readings of a dimension above which they disagree: 1 %,
+/// ten times a micrometer's repeatability on a 1.5 mm laminate (±2 µm) and forty times a
+/// caliper's on an 80 mm board (±0.02 mm), so only a slip (a digit, another specimen's
+/// value) is flagged, never the gauge's own scatter.
+const DIMENSION_REL_TOL: f64 = 0.01;
+
+/// Every sheet board's dimensions from the rows that give them (quarantined rows included:
+/// the specimen was measured whatever became of its vibration test), readings that disagree
+/// named in a warning.
+fn specimen_dimensions(
+    ms: &[Measurement],
+    boards: &BTreeSet<String>,
+    findings: &mut Findings,
+) -> Vec<Specimen> {
+    boards
+        .iter()
+        .map(|b| {
+            let rows: Vec<&sheet::SheetRow> =
+                ms.iter().map(|m| &m.row).filter(|r| r.board_id == *b).collect();
+            let mut n_rows = [0; 3];
+            let dimensions_mm = std::array::from_fn(|k| {
+                let vals: Vec<(f64, u64)> = rows
+                    .iter()
+                    .filter_map(|r| r.dimensions_mm[k].map(|v| (v, r.line)))
+                    .collect();
+                n_rows[k] = vals.len();
+                if vals.is_empty() {
+                    return None;
+                }
+                let mean = vals.iter().map(|v| v.0).sum::<f64>() / vals.len() as f64;
+                let (lo, hi) = vals
+                    .iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, c), v| (a.min(v.0), c.max(v.0)));
+                if hi - lo > DIMENSION_REL_TOL * mean {
+                    let list = vals
+                        .iter()
+                        .map(|(v, l)| format!("{v} on line {l}"))
+                        .collect::<Vec<_>>()
+                        .join(", ");
+                    findings.push(
+                        Finding::new(
+                            Severity::Warning,
+                            "sheet.dimension_disagrees",
+                            format!(
+                                "board {b}: column {} reads {list}, spread more than {:.0} % of their mean (expected one specimen to measure the same); the mean {mean:.4} mm taken",
+                                sheet::DIMENSIONS[k],
+                                100.0 * DIMENSION_REL_TOL
+                            ),
+                        )
+                        .file("campaign.csv"),
+                    );
+                }
+                Some(mean)
+            });
+            Specimen {
+                board_id: b.clone(),
+                dimensions_mm,
+                n_rows,
+            }
+        })
+        .collect()
+}
+
 fn resolve_sheet_boards(ms: &mut [Measurement], findings: &mut Findings) -> BTreeSet<String> {
     // key → spelling → (rows, first line)
     let mut spellings: BTreeMap<String, BTreeMap<String, (usize, u64)>> = BTreeMap::new();
@@ -1633,6 +1711,59 @@ mod tests {
             .findings
             .iter()
             .any(|f| f.code == "sheet.missing_file" && f.message.contains(&gone)));
+    }
+
+    /// The sheet's dimensions become each board's: the mean of its rows, a slip (one row
+    /// reading 1.06 for 1.60 mm) named with its lines, a board without them left unknown,
+    /// and a bad cell a finding without losing the row's other values.
+    #[test]
+    fn specimen_dimensions_are_each_boards_rows_with_disagreements_named() {
+        let sheet = "measurement_id,board_id,setup,file,length_mm,width_mm,thickness_mm\n\
+                     M1,B-1,free,v/m1.uff,80.01,50.00,1.600\n\
+                     M2,B-1,free,v/m2.uff,79.99,,1.602\n\
+                     M3,B-2,free,v/m3.uff,80.00,50.02,1.520\n\
+                     M4,B-2,free,v/m4.uff,80.00,50.02,1.06\n\
+                     M5,B-3,free,v/m5.uff,,,\n\
+                     M6,B-3,free,v/m6.uff,-80,x,\n";
+        let files = BTreeMap::from([("campaign.csv".to_owned(), sheet.as_bytes().to_vec())]);
+        let c = read_campaign(&InMemory(&files), &IngestConfig::default(), &|| {}).unwrap();
+        let by: BTreeMap<&str, &Specimen> = c
+            .specimens
+            .iter()
+            .map(|s| (s.board_id.as_str(), s))
+            .collect();
+        let b1 = by["B-1"];
+        assert!((b1.dimensions_mm[0].unwrap() - 80.0).abs() < 1e-12);
+        assert_eq!(b1.dimensions_mm[1], Some(50.0));
+        assert!((b1.dimensions_mm[2].unwrap() - 1.601).abs() < 1e-12);
+        assert_eq!(b1.n_rows, [2, 1, 2]);
+        let b2 = by["B-2"];
+        assert!((b2.dimensions_mm[2].unwrap() - 1.29).abs() < 1e-12);
+        let slip: Vec<_> = c
+            .findings
+            .iter()
+            .filter(|f| f.code == "sheet.dimension_disagrees")
+            .collect();
+        assert_eq!(slip.len(), 1, "{slip:?}");
+        assert!(
+            slip[0].message.contains("B-2")
+                && slip[0].message.contains("1.06 on line 5")
+                && slip[0].message.contains("thickness_mm"),
+            "{}",
+            slip[0].message
+        );
+        assert_eq!(by["B-3"].dimensions_mm, [None, None, None]);
+        assert_eq!(by["B-3"].n_rows, [0, 0, 0]);
+        // A negative length and a word: each a finding on its line; the rows stay.
+        assert!(c
+            .findings
+            .iter()
+            .any(|f| f.code == "sheet.not_a_dimension" && f.line == Some(7)));
+        assert!(c
+            .findings
+            .iter()
+            .any(|f| f.code == "sheet.not_a_number" && f.line == Some(7)));
+        assert_eq!(c.measurements.len(), 6);
     }
 
     /// One free-free measurement in memory: nodes 1..=4 on the board, records from `recs`.

@@ -22,13 +22,14 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// Names of the files the stage writes into its output directory.
-pub const OUTPUTS: [&str; 8] = [
+pub const OUTPUTS: [&str; 9] = [
     "measurements.parquet",
     "scan_points.parquet",
     "frf.parquet",
     "vendor_modes.parquet",
     "scale_readings.parquet",
     "masses.parquet",
+    "specimens.parquet",
     "campaign.mcap",
     "ingest_report.json",
 ];
@@ -129,6 +130,9 @@ fn write_measurements(
         f64s(ms.iter().map(|m| axis(m).map(|a| a.1))),
         i32s(ms.iter().map(|m| axis(m).map(|a| a.2 as i32))),
         strs(ms.iter().map(|m| m.uff_blake3.as_deref())),
+        f64s(ms.iter().map(|m| m.row.dimensions_mm[0])),
+        f64s(ms.iter().map(|m| m.row.dimensions_mm[1])),
+        f64s(ms.iter().map(|m| m.row.dimensions_mm[2])),
     ];
     let own: BTreeSet<&str> = tables::MEASUREMENTS
         .columns
@@ -279,6 +283,24 @@ pub fn write_outputs(c: &Campaign, out: &Path, fingerprint: &str) -> anyhow::Res
             f64s(ms.iter().map(|m| Some(m.resolution_g))),
             bools(ms.iter().map(|m| Some(m.inconsistent))),
             i32s(ms.iter().map(|m| Some(m.n_days as i32))),
+        ],
+    )?;
+
+    // specimens
+    let sp = &c.specimens;
+    write_table(
+        &p("specimens.parquet"),
+        &tables::SPECIMENS,
+        &prov,
+        &[],
+        vec![
+            strs(sp.iter().map(|s| Some(s.board_id.as_str()))),
+            f64s(sp.iter().map(|s| s.dimensions_mm[0])),
+            f64s(sp.iter().map(|s| s.dimensions_mm[1])),
+            f64s(sp.iter().map(|s| s.dimensions_mm[2])),
+            i32s(sp.iter().map(|s| Some(s.n_rows[0] as i32))),
+            i32s(sp.iter().map(|s| Some(s.n_rows[1] as i32))),
+            i32s(sp.iter().map(|s| Some(s.n_rows[2] as i32))),
         ],
     )?;
 

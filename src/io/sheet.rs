@@ -2,7 +2,8 @@
 //!
 //! Parsing is done by the `csv` crate (quoted fields with commas and newlines, CRLF); this
 //! module owns the contract on top of it: the required columns, typed optional columns
-//! (`torque_nm`, `temperature_c`, `date`), extra columns kept verbatim, and row-level findings
+//! (`torque_nm`, `temperature_c`, `date`, the specimen's measured `length_mm`, `width_mm`,
+//! `thickness_mm`), extra columns kept verbatim, and row-level findings
 //! naming the file line. A missing required column or an unreadable header is fatal for the
 //! sheet (nothing can be matched without it); a bad row only affects its own measurement.
 //!
@@ -17,14 +18,20 @@ use thiserror::Error;
 /// Columns every sheet must have, in contract order.
 pub const REQUIRED: [&str; 4] = ["measurement_id", "board_id", "setup", "file"];
 /// Optional columns with a meaning; anything else is an extra column kept as metadata.
-pub const OPTIONAL: [&str; 6] = [
+pub const OPTIONAL: [&str; 9] = [
     "bolt_set",
     "torque_nm",
     "temperature_c",
     "date",
     "operator",
     "notes",
+    "length_mm",
+    "width_mm",
+    "thickness_mm",
 ];
+
+/// The specimen's measured dimensions, mm (a careful lab measures every specimen).
+pub const DIMENSIONS: [&str; 3] = ["length_mm", "width_mm", "thickness_mm"];
 
 /// Optional columns whose empty cells are reported when other rows fill them.
 const GAP_COLUMNS: [&str; 2] = ["temperature_c", "date"];
@@ -100,6 +107,9 @@ pub struct SheetRow {
     pub date_unix_ns: Option<i64>,
     pub operator: Option<String>,
     pub notes: Option<String>,
+    /// The specimen's measured length, width and thickness (the laminate core's), mm, in
+    /// the order of [`DIMENSIONS`]; `None` where not given or not a positive number.
+    pub dimensions_mm: [Option<f64>; 3],
     /// Extra columns, by header name, verbatim.
     pub extra: BTreeMap<String, String>,
 }
@@ -328,6 +338,23 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
             }
         };
         let torque_nm = num("torque_nm", &mut sheet.findings);
+        let dimensions_mm = DIMENSIONS.map(|col| {
+            let v = num(col, &mut sheet.findings)?;
+            if v > 0.0 {
+                return Some(v);
+            }
+            sheet.findings.push(
+                Finding::new(
+                    Severity::Warning,
+                    "sheet.not_a_dimension",
+                    format!("column {col}: expected a positive length in mm, found {v}; taken as unknown"),
+                )
+                .file(file)
+                .line(line)
+                .measurement(measurement_id.clone()),
+            );
+            None
+        });
         let temperature_c = num("temperature_c", &mut sheet.findings);
         let date = non_empty(&get("date"));
         let date_unix_ns = date.as_deref().and_then(parse_iso_datetime_ns);
@@ -391,6 +418,7 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
             date_unix_ns,
             operator: non_empty(&get("operator")),
             notes: non_empty(&get("notes")),
+            dimensions_mm,
             extra,
         });
     }

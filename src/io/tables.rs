@@ -308,6 +308,9 @@ pub const MEASUREMENTS: TableSpec = TableSpec {
         c("freq_step_hz", Col::Float64, true, "Hz", "Spectral line spacing."),
         c("n_lines", Col::Int32, true, "", "Number of spectral lines."),
         c("uff_blake3", Col::Utf8, true, "", "BLAKE3 hash of the UFF file."),
+        c("length_mm", Col::Float64, true, "mm", "The specimen's measured length (along x), as the row gives it."),
+        c("width_mm", Col::Float64, true, "mm", "The specimen's measured width (along y), as the row gives it."),
+        c("thickness_mm", Col::Float64, true, "mm", "The specimen's measured laminate core thickness, as the row gives it."),
     ],
 };
 
@@ -437,6 +440,21 @@ pub const MASSES: TableSpec = TableSpec {
     ],
 };
 
+pub const SPECIMENS: TableSpec = TableSpec {
+    name: "specimens",
+    doc: "Every board of the sheet with its measured dimensions (the sheet's optional length_mm, width_mm, thickness_mm): the mean over the rows that give one, null where none does. update takes thickness_mm as the board's known core thickness.",
+    open: false,
+    columns: &[
+        c("board_id", Col::Utf8, false, "", "Board."),
+        c("length_mm", Col::Float64, true, "mm", "Measured length (along x)."),
+        c("width_mm", Col::Float64, true, "mm", "Measured width (along y)."),
+        c("thickness_mm", Col::Float64, true, "mm", "Measured laminate core thickness."),
+        c("n_rows_length", Col::Int32, false, "", "Sheet rows giving the length."),
+        c("n_rows_width", Col::Int32, false, "", "Sheet rows giving the width."),
+        c("n_rows_thickness", Col::Int32, false, "", "Sheet rows giving the thickness."),
+    ],
+};
+
 /// Every table spec the tool writes (for `hbmu schemas` and the drift test).
 pub fn all_tables() -> Vec<&'static TableSpec> {
     vec![
@@ -446,6 +464,7 @@ pub fn all_tables() -> Vec<&'static TableSpec> {
         &VENDOR_MODES,
         &SCALE_READINGS,
         &MASSES,
+        &SPECIMENS,
         &FE_MODES,
         &SENSITIVITY,
     ]
