@@ -26,9 +26,11 @@ use rand_distr::{Distribution, StandardNormal};
 
 use super::scenario::Scenario;
 use super::truth::{
-    BoardTruth, MeasurementModes, Plan, Planned, SetupKind, HAMMER_POINT, SHAKER_REFERENCE_NODE,
+    BoardDraw, BoardTruth, MeasurementModes, Plan, Planned, SetupKind, HAMMER_POINT,
+    SHAKER_REFERENCE_NODE,
 };
 use super::{child_seed, LabError, Stream};
+use crate::fem::Board;
 use crate::io::uff::{
     write_15, write_164, write_2411, write_58, Abscissa, AxisSpec, Format, Function58,
     FunctionType, Node, Ordinate, OrdinateDataType, Units164,
@@ -321,7 +323,13 @@ pub fn measurement_uff(
 }
 
 /// The sheet `campaign.csv` (RFC 4180; fields with commas, quotes or newlines are quoted).
-pub fn sheet_csv(ms: &[Planned]) -> Result<Vec<u8>, LabError> {
+/// With `dimensions` (the board file and the drawn boards, scenario
+/// `campaign.sheet_dimensions`), each row also gets its board's `length_mm`, `width_mm`
+/// (caliper, 0.01 mm) and FR-4 core `thickness_mm` (micrometer, 0.001 mm) as the last columns.
+pub fn sheet_csv(
+    ms: &[Planned],
+    dimensions: Option<(&Board, &[BoardDraw])>,
+) -> Result<Vec<u8>, LabError> {
     let werr = |e: csv::Error| LabError::Write {
         file: "campaign.csv".into(),
         message: e.to_string(),
@@ -329,7 +337,7 @@ pub fn sheet_csv(ms: &[Planned]) -> Result<Vec<u8>, LabError> {
     let mut w = csv::WriterBuilder::new()
         .terminator(csv::Terminator::CRLF)
         .from_writer(Vec::new());
-    w.write_record([
+    let mut header = vec![
         "measurement_id",
         "board_id",
         "setup",
@@ -340,11 +348,14 @@ pub fn sheet_csv(ms: &[Planned]) -> Result<Vec<u8>, LabError> {
         "date",
         "operator",
         "notes",
-    ])
-    .map_err(werr)?;
+    ];
+    if dimensions.is_some() {
+        header.extend(["length_mm", "width_mm", "thickness_mm"]);
+    }
+    w.write_record(&header).map_err(werr)?;
     for m in ms {
         let h = &m.habits;
-        w.write_record([
+        let mut row = vec![
             m.measurement_id.clone(),
             h.sheet_board_id
                 .clone()
@@ -367,8 +378,15 @@ pub fn sheet_csv(ms: &[Planned]) -> Result<Vec<u8>, LabError> {
             },
             m.operator.clone(),
             m.notes.clone(),
-        ])
-        .map_err(werr)?;
+        ];
+        if let Some((board, draws)) = dimensions {
+            row.extend([
+                format!("{:.2}", 1e3 * board.length_x_m),
+                format!("{:.2}", 1e3 * board.width_y_m),
+                format!("{:.3}", 1e3 * draws[m.board].core_thickness_m),
+            ]);
+        }
+        w.write_record(&row).map_err(werr)?;
     }
     w.into_inner().map_err(|e| LabError::Write {
         file: "campaign.csv".into(),

@@ -30,6 +30,8 @@ pub mod truth;
 mod habit_tests;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod thickness_tests;
 
 use std::collections::BTreeMap;
 
@@ -157,6 +159,8 @@ pub(crate) enum Stream {
     Balance = 5,
     /// The lab habits' draws (a stream of their own: switching them leaves the others alone).
     Habits = 6,
+    /// Each board's core thickness (its own stream: the moduli and mass draws stay as before).
+    Thickness = 7,
 }
 
 /// Child seed for `stream` and `index`: SplitMix64 finalisers over (seed, stream, index),
@@ -219,7 +223,13 @@ pub fn simulate_with(
     }
     files.insert(
         "campaign.csv".to_string(),
-        measure::sheet_csv(&plan.measurements)?,
+        measure::sheet_csv(
+            &plan.measurements,
+            scenario
+                .campaign
+                .sheet_dimensions
+                .then_some((board, plan.boards.as_slice())),
+        )?,
     );
     let misfit = truth::model_misfit(scenario, board, &models)?;
     let mut truth = truth::assemble(scenario, board, &plan, &free_cache, meas_truth, misfit);

@@ -142,6 +142,21 @@ pub struct CampaignPlan {
     pub operators: Vec<String>,
     /// Nominal bolt tightening torque, N·m.
     pub torque_nm: f64,
+    /// Write each row's board dimensions on the sheet, after the other columns:
+    /// `length_mm` and `width_mm` (caliper, to 0.01 mm: the board file's `length_x_m` and
+    /// `width_y_m`, which the truth does not vary) and `thickness_mm` (micrometer, to
+    /// 0.001 mm: the board's FR-4 core thickness as drawn, see
+    /// `population.thickness_rel_std`). Default false: no such columns.
+    #[serde(skip_serializing_if = "is_false")]
+    pub sheet_dimensions: bool,
+}
+
+fn is_false(v: &bool) -> bool {
+    !*v
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 impl Default for CampaignPlan {
@@ -164,6 +179,7 @@ impl Default for CampaignPlan {
             start_date: "2025-03-03".into(),
             operators: vec!["A. Weber".into(), "J. Kim".into()],
             torque_nm: 0.5,
+            sheet_dimensions: false,
         }
     }
 }
@@ -250,6 +266,12 @@ pub struct Population {
     pub k_con_mean_n_per_m: f64,
     /// Relative standard deviation of K_con between bolted measurements.
     pub k_con_rel_std: f64,
+    /// Relative standard deviation of each board's FR-4 core thickness around the board
+    /// file's `core.thickness_m` (a laminate's ±10 % tolerance is about 0.05), drawn
+    /// independently of the four above. Default 0: every board at the nominal thickness.
+    /// Plate truth only.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub thickness_rel_std: f64,
 }
 
 impl Default for Population {
@@ -264,6 +286,7 @@ impl Default for Population {
             ],
             k_con_mean_n_per_m: 5.0e6,
             k_con_rel_std: 0.085,
+            thickness_rel_std: 0.0,
         }
     }
 }
@@ -637,6 +660,20 @@ impl Scenario {
                 "population.k_con_rel_std",
                 "at most 0.3",
                 p.k_con_rel_std,
+            ));
+        }
+        if !(p.thickness_rel_std.is_finite() && (0.0..0.2).contains(&p.thickness_rel_std)) {
+            return Err(bad(
+                "population.thickness_rel_std",
+                "a finite number in [0, 0.2)",
+                p.thickness_rel_std,
+            ));
+        }
+        if t.physics == Physics::Solid && p.thickness_rel_std > 0.0 {
+            return Err(bad(
+                "population.thickness_rel_std",
+                "0 with truth.physics = \"solid\" (a per-board core thickness needs the plate truth)",
+                p.thickness_rel_std,
             ));
         }
         let m = &self.measurement;

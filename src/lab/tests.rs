@@ -793,6 +793,9 @@ fn schema_describes_every_scenario_field_and_no_other() {
         off_board_points: Some(true),
         sheet_gaps: Some(true),
     };
+    // The specimen fields, left out at their defaults.
+    s.population.thickness_rel_std = 0.04;
+    s.campaign.sheet_dimensions = true;
     let v = serde_json::to_value(&s).unwrap();
     fn walk(v: &serde_json::Value, sch: &serde_json::Value, path: &str) {
         let sch = if sch["type"] == "array" {

@@ -3,6 +3,8 @@
 //! Draws (all from child seeds, see [`super::child_seed`]):
 //! - per board b: θ_b = θ̄ ∘ (1 + δ_b), δ_b ~ N(0, S R S) with S = diag(rel_std) and R the
 //!   correlation matrix, for θ = (E_x [Pa], E_y [Pa], G_xy [Pa], mass scale [-]);
+//! - per board b, from a stream of its own: the FR-4 core thickness
+//!   h_b = h₀ max(1 + s_h z_b, 1/2) [m], z_b ~ N(0, 1), s_h = `population.thickness_rel_std`;
 //! - per bolted measurement: K_con ~ N(K̄, (rel_std K̄)²) [N/m], each joint's stiffness
 //!   K_con (1 + ε_j), ε_j ~ N(0, per_joint_rel_std²), and a loose-bolt draw (used only when
 //!   the loose-bolt effect is on, so every scenario shares the same draws);
@@ -26,7 +28,9 @@ use super::scenario::{Physics, Scenario};
 use super::solid::{SolidModel, Solver, State as SolidState};
 use super::{child_seed, LabError, Stream};
 use crate::fem::params::names;
-use crate::fem::{Board, FeModel, JointFeature, JointModel, MeshOptions, Modes, Params, Setup};
+use crate::fem::{
+    Board, FeModel, JointFeature, JointModel, MeshOptions, ModelOptions, Modes, Params, Setup,
+};
 
 /// Test setup of a measurement.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -75,6 +79,9 @@ pub struct BoardDraw {
     pub mass_scale: f64,
     /// The relative deviations δ drawn, (E_x, E_y, G_xy, mass scale).
     pub deviation_rel: [f64; 4],
+    /// The board's FR-4 core thickness, m (the board file's unless
+    /// `population.thickness_rel_std` > 0).
+    pub core_thickness_m: f64,
 }
 
 /// One bolted measurement's drawn joint state.
@@ -145,6 +152,9 @@ pub fn plan(s: &Scenario, board: &Board, seed: u64) -> Result<Plan, LabError> {
             let d: [f64; 4] = std::array::from_fn(|i| {
                 pop.rel_std[i] * (0..=i).map(|k| l[i][k] * n[k]).sum::<f64>()
             });
+            // The thickness from a stream of its own: the draws above stay as they were.
+            let mut hrng = ChaCha8Rng::seed_from_u64(child_seed(seed, Stream::Thickness, b as u64));
+            let z_h = normal(&mut hrng);
             BoardDraw {
                 board_id: format!("PCB-{:02}", b + 1),
                 e_x_pa: c.e_x_pa * (1.0 + d[0]),
@@ -152,6 +162,7 @@ pub fn plan(s: &Scenario, board: &Board, seed: u64) -> Result<Plan, LabError> {
                 g_xy_pa: c.g_xy_pa * (1.0 + d[2]),
                 mass_scale: 1.0 + d[3],
                 deviation_rel: d,
+                core_thickness_m: c.thickness_m * (1.0 + pop.thickness_rel_std * z_h).max(0.5),
             }
         })
         .collect();
@@ -429,7 +440,8 @@ impl Models {
         };
         let bolted_mesh = truth_bolted_mesh(s, board);
         let e = &s.effects;
-        let free_plain = FeModel::build(board, Setup::Free, &mesh)?;
+        let opts = model_options(s);
+        let free_plain = FeModel::build_with(board, Setup::Free, &mesh, opts)?;
         let mut free = free_plain.clone();
         if let Some(lm) = &e.lumped_mass {
             free.add_point_mass(lm.x_m, lm.y_m, lm.mass_kg)?;
@@ -440,14 +452,23 @@ impl Models {
         let free_cf = (e.lumped_mass.is_some() || e.underfill.is_some()).then_some(free_plain);
         // The bolted models only where something is measured bolted.
         let (bolted, bolted_cf) = if has_bolted(s) {
-            let bolted_plain =
-                FeModel::build(board, Setup::Bolted(joint_model(s, false)), &bolted_mesh)?;
+            let bolted_plain = FeModel::build_with(
+                board,
+                Setup::Bolted(joint_model(s, false)),
+                &bolted_mesh,
+                opts,
+            )?;
             let model_changes_bolted = e.rotational_restraint.is_some()
                 || e.compliant_fixture.is_some()
                 || e.lumped_mass.is_some()
                 || e.underfill.is_some();
             let mut bolted = if e.rotational_restraint.is_some() || e.compliant_fixture.is_some() {
-                FeModel::build(board, Setup::Bolted(joint_model(s, true)), &bolted_mesh)?
+                FeModel::build_with(
+                    board,
+                    Setup::Bolted(joint_model(s, true)),
+                    &bolted_mesh,
+                    opts,
+                )?
             } else {
                 bolted_plain.clone()
             };
@@ -499,6 +520,14 @@ impl Models {
     }
 }
 
+/// Options of the plate truth models: the core thickness as a parameter when the boards'
+/// thicknesses vary (else the models are built exactly as without it).
+pub fn model_options(s: &Scenario) -> ModelOptions {
+    ModelOptions {
+        core_thickness: s.population.thickness_rel_std > 0.0,
+    }
+}
+
 /// Whether the campaign measures any board bolted.
 fn has_bolted(s: &Scenario) -> bool {
     s.campaign
@@ -529,6 +558,9 @@ fn params(
     p.set(names::E_Y, bd.e_y_pa * stiff)?;
     p.set(names::G_XY, bd.g_xy_pa * stiff)?;
     p.set(names::MASS_SCALE, bd.mass_scale)?;
+    if p.names.iter().any(|n| n == names::CORE_THICKNESS) {
+        p.set(names::CORE_THICKNESS, bd.core_thickness_m)?;
+    }
     if let Some(bo) = bolted {
         for (j, k) in joint_stiffnesses(s, bo, loose).into_iter().enumerate() {
             p.set(&names::k_con_joint(j + 1), k)?;
@@ -1173,6 +1205,7 @@ fn solid_model_misfit(
         g_xy_pa: c.g_xy_pa,
         mass_scale: 1.0,
         deviation_rel: [0.0; 4],
+        core_thickness_m: c.thickness_m,
     };
     let k_bar = s.population.k_con_mean_n_per_m;
     let misfit = |truth: &ModeSet, upd: &ModeSet, max_hz: f64| -> Vec<f64> {
@@ -1291,7 +1324,14 @@ pub fn assemble(
             board.mesh_for(&Setup::bolted()).ny,
             100.0 * s.truth.per_joint_k_rel_std,
             1e3 * s.truth.joint_mass_kg
-        ),
+        ) + &if s.population.thickness_rel_std > 0.0 {
+            format!(
+                "; FR-4 core thickness per board (scattered by {:.1} % around the board file's, see boards' core_thickness_m)",
+                100.0 * s.population.thickness_rel_std
+            )
+        } else {
+            String::new()
+        },
             Physics::Solid => format!(
                 "layered 3D solid (CalculiX C3D20, {} brick(s) through the FR-4 core, one per copper layer where copper lies) on a gmsh quadrilateral mesh of {:.2} mm conforming to the outline, holes, copper regions and clamped annuli; FR-4 through-thickness E_z {:.1} GPa, G_xz/G_yz {:.2}/{:.2} GPa; bolted: each clamped annulus's bottom face on z springs (the joint's stiffness spread by area; K_con of the measurement scattered by {:.1} % per joint) and on in-plane springs (Mindlin's tangential share), {:.2} g of screw head and washer on its top face",
                 s.truth.solid.core_layers,
