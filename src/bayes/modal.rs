@@ -200,6 +200,10 @@ pub struct ModalPredictor {
     /// weighed with the board: they add to the mass, not to `nominal_mass_g`, which is the
     /// board's alone.
     pub point_mass_idx: Vec<usize>,
+    /// Where the core thickness is a parameter ([`crate::fem::ModelOptions::core_thickness`]):
+    /// its index, its nominal value (m) and the core's share of `nominal_mass_g`, the part
+    /// of the mass that follows the thickness.
+    pub core_thickness: Option<(usize, f64, f64)>,
 }
 
 /// Prediction of the updated modes: eigenvalues and reduced vectors in label order.
@@ -338,6 +342,7 @@ impl ModalPredictor {
             mass_scale_idx,
             nominal_mass_g,
             point_mass_idx: vec![],
+            core_thickness: None,
         })
     }
 
@@ -348,12 +353,22 @@ impl ModalPredictor {
         self
     }
 
+    /// The same predictor whose mass follows the core thickness at parameter `idx` (nominal
+    /// `nominal_m`), the core being `core_share` of `nominal_mass_g`.
+    pub fn with_core_thickness(mut self, idx: usize, nominal_m: f64, core_share: f64) -> Self {
+        self.core_thickness = Some((idx, nominal_m, core_share));
+        self
+    }
+
     /// Model mass at `values` (the ROM's full parameter vector), g.
     pub fn mass_g(&self, values: &[f64]) -> f64 {
-        let board = match self.mass_scale_idx {
+        let mut board = match self.mass_scale_idx {
             Some(i) => self.nominal_mass_g * values[i] / self.rom.map.nominal[i],
             None => self.nominal_mass_g,
         };
+        if let Some((i, h0, share)) = self.core_thickness {
+            board *= 1.0 - share + share * values[i] / h0;
+        }
         board
             + self
                 .point_mass_idx

@@ -115,6 +115,7 @@ pub fn build_target(p: &Problem) -> ModalTarget {
         units: vec![unit; p.boards],
         covariate: None,
         subspaces: vec![],
+        coord_obs: vec![],
     }
 }
 

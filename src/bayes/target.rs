@@ -293,6 +293,10 @@ pub struct ModalTarget {
     /// Per unit, a verified subspace of the ROM that [`Target::model`] solves in inside its
     /// box (`surrogate::fit_subspace`); empty or None: the ROM.
     pub subspaces: Vec<Option<std::sync::Arc<super::surrogate::UnitSubspace>>>,
+    /// Per unit, direct measurements of its coordinates, (coordinate k, value, sd) with
+    /// x_k ~ N(value, sd²) in the likelihood: a specimen's measured core thickness, relative to
+    /// the reference like its coordinate. Empty: none.
+    pub coord_obs: Vec<Vec<(usize, f64, f64)>>,
 }
 
 /// Unpacked global vector.
@@ -495,8 +499,15 @@ impl Target for ModalTarget {
         };
         Some(t.with_sufficient(data, self.errors.n_modes))
     }
-    fn log_lik(&self, ctx: &Ctx, b: usize, _x: &[f64], c: &Terms) -> f64 {
-        modal::log_lik_with(&self.units[b], c, &ctx.eps, &ctx.delta, &ctx.logs)
+    fn log_lik(&self, ctx: &Ctx, b: usize, x: &[f64], c: &Terms) -> f64 {
+        let direct: f64 = self
+            .coord_obs
+            .get(b)
+            .into_iter()
+            .flatten()
+            .map(|&(k, value, sd)| normal_lpdf(value, x[k], sd))
+            .sum();
+        modal::log_lik_with(&self.units[b], c, &ctx.eps, &ctx.delta, &ctx.logs) + direct
     }
     fn to_standard(&self, ctx: &Ctx, _b: usize, x: &[f64]) -> Vec<f64> {
         ctx.pop.to_standard(x)
@@ -580,6 +591,7 @@ mod tests {
                 scaled: updated.clone(),
             }),
             subspaces: vec![],
+            coord_obs: vec![],
         };
         (t, updated)
     }

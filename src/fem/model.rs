@@ -907,7 +907,7 @@ impl FeModel {
             kb.push("coupling_correction", Coef::Const, t_corr);
         }
         // Without copper, a thickness parameter leaves the core's mass term alone.
-        if !(i_h.is_some() && !has_cu) {
+        if i_h.is_none() || has_cu {
             mb.push(
                 "board_mass",
                 Coef::Linear {

@@ -81,6 +81,9 @@ pub struct ReportData {
     pub plot_links: Vec<(String, String, String)>,
     pub ingest_measurements: usize,
     pub quarantined: Vec<(String, String)>,
+    /// The boards' measured dimensions (length, width, core thickness, mm), when the sheet
+    /// gave any (ingest's specimens.parquet).
+    pub specimens: Vec<(String, [Option<f64>; 3])>,
     pub ingest_counts: BTreeMap<String, u64>,
     pub findings: Vec<FindingRow>,
     pub provenance: Vec<Provenance>,
@@ -558,6 +561,23 @@ pub fn render(d: &ReportData) -> Rendered {
                 "<tr>{}{}</tr>",
                 txt("measurement_id", m),
                 txt("reason", r)
+            );
+        }
+        t.push_str("</table>");
+        pg.body.push_str(&t);
+    }
+    if !d.specimens.is_empty() {
+        pg.p("Measured specimens (the sheet's dimensions; the core thickness is a known input of every board's model, length and width are shown, not modelled):");
+        let mut t = String::from("<table data-table=\"specimens\"><tr><th>board</th><th>length, mm</th><th>width, mm</th><th>core thickness, mm</th></tr>\n");
+        let mm = |v: Option<f64>| v.map_or(String::from("–"), |x| format!("{x:.3}"));
+        for (b, dims) in &d.specimens {
+            let _ = writeln!(
+                t,
+                "<tr>{}{}{}{}</tr>",
+                txt("board_id", b),
+                txt("length_mm", &mm(dims[0])),
+                txt("width_mm", &mm(dims[1])),
+                txt("thickness_mm", &mm(dims[2]))
             );
         }
         t.push_str("</table>");

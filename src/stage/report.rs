@@ -152,6 +152,31 @@ fn read_measured(path: &Path) -> anyhow::Result<Vec<Measured>> {
 
 /// Boards step 1 held out of the updating (update_report.json's `held_out_boards`; absent
 /// in reports written before the option).
+/// The boards' measured dimensions from ingest's specimens.parquet, when any board has one.
+fn read_specimens(path: &Path) -> anyhow::Result<Vec<(String, [Option<f64>; 3])>> {
+    let mut out = vec![];
+    if !path.is_file() {
+        return Ok(out);
+    }
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let bid = c.str("board_id")?;
+        let cols = [
+            c.f64("length_mm")?,
+            c.f64("width_mm")?,
+            c.f64("thickness_mm")?,
+        ];
+        for r in 0..b.num_rows() {
+            let dims = cols.map(|a| a.is_valid(r).then(|| a.value(r)));
+            out.push((bid.value(r).to_string(), dims));
+        }
+    }
+    if out.iter().all(|(_, d)| d.iter().all(Option::is_none)) {
+        out.clear();
+    }
+    Ok(out)
+}
+
 fn held_out_boards(update_report: &serde_json::Value) -> Vec<String> {
     update_report
         .get("held_out_boards")
@@ -679,6 +704,10 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         inputs.push(pairs.clone());
     }
     let ingest_report = w.join("ingest").join("ingest_report.json");
+    let specimens_path = w.join("ingest").join("specimens.parquet");
+    if specimens_path.is_file() {
+        inputs.push(specimens_path.clone());
+    }
     if ingest_report.is_file() {
         inputs.push(ingest_report.clone());
     }
@@ -875,6 +904,7 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
             plot_links: links,
             ingest_measurements: n_meas,
             quarantined,
+            specimens: read_specimens(&specimens_path)?,
             ingest_counts: counts,
             findings,
             provenance,

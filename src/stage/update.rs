@@ -78,7 +78,7 @@ pub const POPULATION: TableSpec = TableSpec {
 
 pub const BOARDS: TableSpec = TableSpec {
     name: "boards",
-    doc: "Step-1 posterior draws of every board's parameters, one row per particle and board; one column per updated parameter, named with its unit (e.g. e_x_pa, e_y_pa, g_xy_pa, mass_scale); a refit with `--enrich added_mass` adds added_mass_kg (the lumped mass at the enrichment's point; mass_g then includes it, as the balance weighs it), one with `--enrich temperature_stiffness` temperature_coefficient_per_k.",
+    doc: "Step-1 posterior draws of every board's parameters, one row per particle and board; one column per updated parameter, named with its unit (e.g. e_x_pa, e_y_pa, g_xy_pa, mass_scale); a refit with `--enrich added_mass` adds added_mass_kg (the lumped mass at the enrichment's point; mass_g then includes it, as the balance weighs it), one with `--enrich temperature_stiffness` temperature_coefficient_per_k. Where the sheet gave boards' thickness_mm (ingest's specimens.parquet), core_thickness_m (m): the board's core thickness, updated from its measurement and its frequencies.",
     open: true,
     columns: &[
         c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
@@ -482,6 +482,100 @@ fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
         }
     }
     Ok(out)
+}
+
+/// Each board's measured core thickness from ingest's specimens.parquet, m (boards the sheet
+/// gives none for are absent; no table: empty).
+fn read_specimen_thickness(path: &Path) -> anyhow::Result<BTreeMap<String, f64>> {
+    let mut out = BTreeMap::new();
+    if !path.is_file() {
+        return Ok(out);
+    }
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (bid, h) = (c.str("board_id")?, c.f64("thickness_mm")?);
+        for i in 0..b.num_rows() {
+            if arrow::array::Array::is_valid(h, i) {
+                out.insert(bid.value(i).to_string(), 1e-3 * h.value(i));
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Where `model` has the core thickness as a parameter: its index, nominal value (m) and the
+/// core's share of the board's nominal mass (the part that follows the thickness).
+fn core_thickness_mass(model: &FeModel) -> anyhow::Result<Option<(usize, f64, f64)>> {
+    let p = model.nominal_params();
+    let Ok(i) = p.position(names::CORE_THICKNESS) else {
+        return Ok(None);
+    };
+    let h0 = p.values[i];
+    let mut twice = p.clone();
+    twice.values[i] = 2.0 * h0;
+    let (m0, m2) = (model.total_mass_kg(&p)?, model.total_mass_kg(&twice)?);
+    Ok(Some((i, h0, (m2 - m0) / m0)))
+}
+
+/// Standard deviation of a board's measured core thickness, m: 5 µm, 0.3 % of a 1.5 mm
+/// core. A micrometer's own error is ±2 µm (ISO 3611's maximum permissible error below
+/// 25 mm); a laminate's thickness varies over the board by more than that, and the sheet
+/// gives one number for the whole board. Free-free frequencies fix E h² (D ∝ E h³, mass ∝ h),
+/// so this is what keeps a modulus's interval honest: ±0.6 % in E for ±0.3 % in h.
+pub const THICKNESS_SD_M: f64 = 5e-6;
+
+/// Per unit (board), its measured core thickness as an observation of its thickness
+/// coordinate (k, relative value, relative sd; the coordinate is h / h₀ − 1). A board the
+/// sheet gives no thickness for, or one outside the ROM's box (not verified there), has none,
+/// each said in a warning: the population informs it, as it does an unweighed board's mass.
+fn thickness_obs(
+    param_names: &[String],
+    h0_m: f64,
+    unit_names: &[String],
+    thickness_m: &BTreeMap<String, f64>,
+    rom_box: f64,
+    findings: &mut Findings,
+) -> Vec<Vec<(usize, f64, f64)>> {
+    let Some(k) = param_names.iter().position(|p| p == names::CORE_THICKNESS) else {
+        return vec![];
+    };
+    let mut listed = vec![];
+    let out = unit_names
+        .iter()
+        .map(|b| match thickness_m.get(b) {
+            None => {
+                findings.push(Finding::new(
+                    Severity::Warning,
+                    "update.thickness_unknown",
+                    format!("board {b}: the sheet gives no thickness_mm while other boards have one; its core thickness is informed by the population and its frequencies only"),
+                ));
+                vec![]
+            }
+            Some(&h) if (h / h0_m - 1.0).abs() > rom_box => {
+                findings.push(Finding::new(
+                    Severity::Warning,
+                    "update.thickness_outside_box",
+                    format!("board {b}: thickness_mm {:.3} is {:+.1} % off the board file's {:.3} mm, outside the ROM's ±{:.0} % box (expected a laminate within its tolerance: check the sheet, or the board file's core.thickness_m); not used", 1e3 * h, 100.0 * (h / h0_m - 1.0), 1e3 * h0_m, 100.0 * rom_box),
+                ));
+                vec![]
+            }
+            Some(&h) => {
+                listed.push(format!("{b} {:.3}", 1e3 * h));
+                vec![(k, h / h0_m - 1.0, THICKNESS_SD_M / h0_m)]
+            }
+        })
+        .collect();
+    findings.push(Finding::new(
+        Severity::Info,
+        "update.specimen_thickness",
+        format!(
+            "core thickness per board from the sheet, mm (board file: {:.3}), each a measurement of the board's core_thickness_m with sd {:.3} mm: {}",
+            1e3 * h0_m,
+            1e3 * THICKNESS_SD_M,
+            listed.join(", ")
+        ),
+    ));
+    out
 }
 
 pub(crate) fn load_board(path: Option<&Path>) -> anyhow::Result<(Board, String)> {
@@ -2269,6 +2363,19 @@ fn model_error_prior(
     all: &Labels,
 ) -> anyhow::Result<ModelErrorPrior> {
     let n = modes_needed(updated, all);
+    // The mesh study's models are the standard ones: a known thickness is at its nominal in
+    // `nominal`, so it is simply left out.
+    let (names_std, values_std) = nominal
+        .names
+        .iter()
+        .zip(&nominal.values)
+        .filter(|(n, _)| *n != names::CORE_THICKNESS)
+        .map(|(n, v)| (n.clone(), *v))
+        .unzip();
+    let nominal = &crate::fem::Params {
+        names: names_std,
+        values: values_std,
+    };
     let spread = crate::fem::convergence::mesh_spread(board, &Setup::Free, &board.mesh, nominal, n)
         .map_err(|e| anyhow!("the model-error term's mesh study: {e}"))?;
     let raw = |mm: usize| 2.0 * spread.rel_spread.get(mm).copied().unwrap_or(0.0);
@@ -2676,6 +2783,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
     let modes_path = extract_dir.join("modes.parquet");
     let masses_path = opts.ingest_dir.join("masses.parquet");
     let measurements_path = opts.ingest_dir.join("measurements.parquet");
+    let specimens_path = opts.ingest_dir.join("specimens.parquet");
     if let Some(m) = opts.enrich.filter(|m| !is_board_mechanism(*m)) {
         bail!(
             "--enrich {}: not a board mechanism (update boards refits temperature_stiffness, added_mass)",
@@ -2697,6 +2805,10 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
     if opts.enrich_covariate.is_some() {
         inputs.push(measurements_path.clone());
     }
+    // Older ingest outputs have no specimens table: every board at the board file's thickness.
+    if specimens_path.is_file() {
+        inputs.push(specimens_path.clone());
+    }
     let (board, spec) = step_spec(
         opts,
         "update_boards",
@@ -2713,7 +2825,24 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             let pairs = read_pairs(&pairs_path)?;
             let presence = read_presence(&presence_path, "free")?;
             let labels = select_labels(&pairs, "free", &opts.modes, &presence, &mut findings)?;
-            let mut model = FeModel::build(&board, Setup::Free, &board.mesh)?;
+            // Boards measured in thickness: the core thickness is a board parameter (exact in
+            // the model), each board's measurement an observation of it.
+            let thickness_m = read_specimen_thickness(&specimens_path)?;
+            let with_thickness;
+            let opts = if thickness_m.is_empty()
+                || opts.params.iter().any(|p| p == names::CORE_THICKNESS)
+            {
+                opts
+            } else {
+                let mut o = opts.clone();
+                o.params.push(names::CORE_THICKNESS.into());
+                with_thickness = o;
+                &with_thickness
+            };
+            let model_opts = crate::fem::ModelOptions {
+                core_thickness: !thickness_m.is_empty(),
+            };
+            let mut model = FeModel::build_with(&board, Setup::Free, &board.mesh, model_opts)?;
             let board_nominal = model.nominal_params();
             // The board's own mass (the balance weighs an added mass with it).
             let nominal_mass_g = model.total_mass_kg(&board_nominal)? * 1e3;
@@ -2794,6 +2923,13 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 .with_point_masses(point_masses.clone());
             let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
                 .with_point_masses(point_masses);
+            let (predictor, all_pred) = match core_thickness_mass(&model)? {
+                Some((i, h0, share)) => (
+                    predictor.with_core_thickness(i, h0, share),
+                    all_pred.with_core_thickness(i, h0, share),
+                ),
+                None => (predictor, all_pred),
+            };
             // Units: every board with free-free pairs or a mass.
             let masses = read_masses(&masses_path)?;
             // The enrichment's covariate per free-free measurement, as offsets from their mean.
@@ -3002,6 +3138,14 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 units,
                 covariate: covariate.clone(),
                 subspaces: vec![],
+                coord_obs: thickness_obs(
+                    &param_names,
+                    board.core.thickness_m,
+                    &unit_names,
+                    &thickness_m,
+                    opts.rom_box,
+                    &mut findings,
+                ),
             };
             target.errors.discrepancy = discrepancy_for(
                 &target,
@@ -4032,10 +4176,15 @@ pub fn run_joints(
             },
         )
         .map_err(|e| anyhow!("update joints --enrich: {e}"))?;
-        let mut model = FeModel::build(
+        // Boards whose thickness step 1 took as known carry it in their draws.
+        let model_opts = crate::fem::ModelOptions {
+            core_thickness: step1.params.iter().any(|p| p == names::CORE_THICKNESS),
+        };
+        let mut model = FeModel::build_with(
             &board,
             Setup::Bolted(enr.joint_model.clone()),
             board.mesh_for(&Setup::bolted()),
+            model_opts,
         )?;
         // The board mechanism's step-1 enrichment (its evidence.json), and a point mass it
         // added to the boards: the same point mass in the bolted model, its value from each
@@ -4045,8 +4194,12 @@ pub fn run_joints(
             None => serde_json::Value::Null,
         };
         let point_mass = step1_point_mass(&step1_enrichment, &step1, &step1_path)?;
-        let mut baseline =
-            FeModel::build(&board, Setup::bolted(), board.mesh_for(&Setup::bolted()))?;
+        let mut baseline = FeModel::build_with(
+            &board,
+            Setup::bolted(),
+            board.mesh_for(&Setup::bolted()),
+            model_opts,
+        )?;
         if let Some(pm) = &point_mass {
             for m in [&mut model, &mut baseline] {
                 m.add_point_mass_param(&pm.parameter, pm.x_m, pm.y_m, pm.mean_kg)
@@ -4319,6 +4472,13 @@ pub fn run_joints(
             .with_point_masses(point_masses.clone());
         let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
             .with_point_masses(point_masses);
+        let (predictor, all_pred) = match core_thickness_mass(&model)? {
+            Some((i, h0, share)) => (
+                predictor.with_core_thickness(i, h0, share),
+                all_pred.with_core_thickness(i, h0, share),
+            ),
+            None => (predictor, all_pred),
+        };
         let wanted: BTreeSet<(String, i32)> = bolted_rows
             .iter()
             .map(|p| (p.measurement_id.clone(), p.mode))
@@ -4458,6 +4618,7 @@ pub fn run_joints(
             units,
             covariate: None,
             subspaces: vec![],
+            coord_obs: vec![],
         };
         // The cut posterior: groups of `group` particles, each carrying one step-1 draw; every
         // run takes its own evenly spaced subset of the step-1 draws.
@@ -5004,5 +5165,72 @@ mod joint_prep_tests {
         other["enrich"] = "joint_mass".into();
         assert_ne!(joint_prep_key(&prepared(other, "aa")), key);
         assert_ne!(joint_prep_key(&prepared(config(200, 2, 1, 0.2), "ab")), key);
+    }
+}
+
+#[cfg(test)]
+mod thickness_tests {
+    use super::*;
+
+    /// A board's measured core thickness becomes an observation of its thickness coordinate
+    /// (relative to the board file's, sd THICKNESS_SD_M relative); a board the sheet gives
+    /// none for, or one outside the ROM's box, gets none and a warning naming it. The core's
+    /// mass share: the same board without its copper weighs its core.
+    #[test]
+    fn measured_thickness_is_an_observation_of_the_boards_coordinate() {
+        let board = Board::default_board();
+        let h0 = board.core.thickness_m;
+        let params: Vec<String> = ["e_x_pa", "mass_scale", names::CORE_THICKNESS]
+            .map(String::from)
+            .to_vec();
+        let units: Vec<String> = ["A", "B", "C"].map(String::from).to_vec();
+        let given = BTreeMap::from([("A".to_string(), 1.06 * h0), ("C".to_string(), 1.5 * h0)]);
+        let mut findings = Findings::default();
+        let obs = thickness_obs(&params, h0, &units, &given, 0.2, &mut findings);
+        assert_eq!(obs.len(), 3);
+        assert_eq!(obs[0].len(), 1);
+        let (k, x, sd) = obs[0][0];
+        assert_eq!(k, 2);
+        assert!((x - 0.06).abs() < 1e-12 && (sd - THICKNESS_SD_M / h0).abs() < 1e-15);
+        assert!(obs[1].is_empty() && obs[2].is_empty());
+        let codes: Vec<(&str, bool)> = findings
+            .iter()
+            .map(|f| (f.code.as_str(), f.message.starts_with("board ")))
+            .collect();
+        assert!(
+            codes.contains(&("update.thickness_unknown", true)),
+            "{codes:?}"
+        );
+        assert!(
+            codes.contains(&("update.thickness_outside_box", true)),
+            "{codes:?}"
+        );
+        // Without the parameter: nothing observed, nothing said.
+        let mut none = Findings::default();
+        assert!(thickness_obs(&params[..2], h0, &units, &given, 0.2, &mut none).is_empty());
+        assert!(none.is_empty());
+        let mesh = crate::fem::MeshOptions { nx: 8, ny: 6 };
+        let plain = FeModel::build(&board, Setup::Free, &mesh).unwrap();
+        assert!(core_thickness_mass(&plain).unwrap().is_none());
+        let model = FeModel::build_with(
+            &board,
+            Setup::Free,
+            &mesh,
+            crate::fem::ModelOptions {
+                core_thickness: true,
+            },
+        )
+        .unwrap();
+        let (_, h, share) = core_thickness_mass(&model).unwrap().unwrap();
+        assert_eq!(h, h0);
+        let mut bare = board.clone();
+        bare.copper.clear();
+        let core = FeModel::build(&bare, Setup::Free, &mesh).unwrap();
+        let want = core.total_mass_kg(&core.nominal_params()).unwrap()
+            / model.total_mass_kg(&model.nominal_params()).unwrap();
+        assert!(
+            (share - want).abs() < 1e-12 && want < 1.0,
+            "share {share} vs {want}"
+        );
     }
 }
