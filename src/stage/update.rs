@@ -2573,6 +2573,14 @@ fn rom_for(
     } else {
         cap.max(d.max_basis) + 8 * log_axes.len()
     };
+    // The core thickness splits the mass into two terms: the three rigid-body vectors then
+    // lead the basis (`fem::rom`) and take three of its vectors, which a cap chosen for the
+    // elastic modes must not lose (at a cap of 12 the labels could no longer be tracked).
+    let max_basis = if model.map.names.iter().any(|n| n == names::CORE_THICKNESS) {
+        max_basis + 3
+    } else {
+        max_basis
+    };
     let ro = RomOptions {
         n_modes: n_modes_needed.max(d.n_modes),
         box_rel: opts.rom_box,
