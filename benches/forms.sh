@@ -19,6 +19,9 @@ if [ -z "$src" ]; then
 fi
 run() { # form campaign
   local w=$root/target/work/forms-$1
+  # A fresh directory: make judges by timestamps, and a campaign older than the last run's
+  # outputs (another source) would be taken as up to date.
+  rm -rf "$w"
   mkdir -p "$w"
   cp "$src/truth.json" "$w/truth.json"
   local t0=$(date +%s)

@@ -122,3 +122,52 @@ fn thickness_coefficient_gradients_match_finite_differences() {
     assert_eq!(k, c.k);
     assert_eq!(mm, c.m);
 }
+
+/// The ROM of a model with several mass terms (the core thickness splits the mass): its hot
+/// path (`eval_lowest`, the wanted eigenpairs of L⁻¹ Kʳ L⁻ᵀ) gives the full path's
+/// (`eval_coefs`, a complete eigen-decomposition) eigenvalues and vectors, and the full
+/// model's frequencies, at points across the box.
+#[test]
+fn the_rom_hot_path_with_two_mass_terms_matches_its_full_path_and_the_model() {
+    use crate::fem::rom::{latin_hypercube_params, Rom, RomOptions};
+    let b = Board::default_board();
+    let mesh = crate::fem::MeshOptions { nx: 20, ny: 12 };
+    let opts = ModelOptions {
+        core_thickness: true,
+    };
+    let model = FeModel::build_with(&b, Setup::Free, &mesh, opts).unwrap();
+    assert_eq!(model.map.m_coefs.len(), 2, "core and copper mass terms");
+    let rom = Rom::build(
+        &model,
+        &RomOptions {
+            n_modes: 6,
+            n_random: 8,
+            ..RomOptions::default()
+        },
+    )
+    .unwrap();
+    let none = rom.shape_operator(&model, &[]).unwrap();
+    for p in latin_hypercube_params(&model.map, 6, 0.15, 11) {
+        let c = rom.map.coefficients(&p).unwrap();
+        let fast = rom.eval_lowest(&c.k, &c.m, 6).unwrap();
+        let full = rom.eval_coefs(&c.k, &c.m, &none).unwrap();
+        let fe = model.modes(&p, 6).unwrap();
+        for j in 0..6 {
+            let (a, b) = (fast.eigenvalues[j], full.eigenvalues[j]);
+            assert!(((a - b) / b).abs() < 1e-10, "mode {j}: {a} vs {b}");
+            let f = a.sqrt() / (2.0 * std::f64::consts::PI);
+            assert!(
+                ((f - fe.freq_hz[j]) / fe.freq_hz[j]).abs() < 1e-4,
+                "mode {j}: ROM {f} Hz, model {} Hz",
+                fe.freq_hz[j]
+            );
+            let d = (0..rom.dim())
+                .map(|i| (fast.vectors[j][i] - full.reduced[(i, j)]).abs())
+                .fold(0.0, f64::max);
+            let n = (0..rom.dim())
+                .map(|i| full.reduced[(i, j)].abs())
+                .fold(0.0, f64::max);
+            assert!(d < 1e-7 * n, "mode {j}: vectors differ by {d} (of {n})");
+        }
+    }
+}
