@@ -1316,7 +1316,7 @@ fn check_repeats(ms: &[Measurement], findings: &mut Findings) {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Specimen {
     pub board_id: String,
-    /// Length, width and core thickness, mm ([`sheet::DIMENSIONS`]): the mean over the rows
+    /// Length, width and overall thickness, mm ([`sheet::DIMENSIONS`]): the mean over the rows
     /// that give it, `None` where no row does.
     pub dimensions_mm: [Option<f64>; 3],
     /// Rows giving each dimension.

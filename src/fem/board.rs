@@ -396,6 +396,12 @@ impl Board {
             .expect("a board with holes has [joint] (Board::validate), and only a board with holes is bolted")
     }
 
+    /// The thickness of all copper layers together, m: what a micrometer reading over the
+    /// copper adds to the core (the sheet's `thickness_mm` is such a reading).
+    pub fn copper_thickness_m(&self) -> f64 {
+        self.copper.iter().map(|l| l.thickness_m).sum()
+    }
+
     /// The mesh of a setup: `mesh_bolted` for bolted setups where the board has one.
     pub fn mesh_for(&self, setup: &crate::fem::model::Setup) -> &MeshOptions {
         match (setup, &self.mesh_bolted) {

@@ -107,7 +107,7 @@ pub struct SheetRow {
     pub date_unix_ns: Option<i64>,
     pub operator: Option<String>,
     pub notes: Option<String>,
-    /// The specimen's measured length, width and thickness (the laminate core's), mm, in
+    /// The specimen's measured length, width and overall thickness (over its copper), mm, in
     /// the order of [`DIMENSIONS`]; `None` where not given or not a positive number.
     pub dimensions_mm: [Option<f64>; 3],
     /// Extra columns, by header name, verbatim.

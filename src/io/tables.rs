@@ -310,7 +310,7 @@ pub const MEASUREMENTS: TableSpec = TableSpec {
         c("uff_blake3", Col::Utf8, true, "", "BLAKE3 hash of the UFF file."),
         c("length_mm", Col::Float64, true, "mm", "The specimen's measured length (along x), as the row gives it."),
         c("width_mm", Col::Float64, true, "mm", "The specimen's measured width (along y), as the row gives it."),
-        c("thickness_mm", Col::Float64, true, "mm", "The specimen's measured laminate core thickness, as the row gives it."),
+        c("thickness_mm", Col::Float64, true, "mm", "The specimen's measured overall thickness (over its copper layers, as a micrometer reads it), as the row gives it."),
     ],
 };
 
@@ -442,13 +442,13 @@ pub const MASSES: TableSpec = TableSpec {
 
 pub const SPECIMENS: TableSpec = TableSpec {
     name: "specimens",
-    doc: "Every board of the sheet with its measured dimensions (the sheet's optional length_mm, width_mm, thickness_mm): the mean over the rows that give one, null where none does. update takes thickness_mm as the board's known core thickness.",
+    doc: "Every board of the sheet with its measured dimensions (the sheet's optional length_mm, width_mm, thickness_mm): the mean over the rows that give one, null where none does. update takes thickness_mm less the board file's copper layers as a measurement of the board's core thickness.",
     open: false,
     columns: &[
         c("board_id", Col::Utf8, false, "", "Board."),
         c("length_mm", Col::Float64, true, "mm", "Measured length (along x)."),
         c("width_mm", Col::Float64, true, "mm", "Measured width (along y)."),
-        c("thickness_mm", Col::Float64, true, "mm", "Measured laminate core thickness."),
+        c("thickness_mm", Col::Float64, true, "mm", "Measured overall thickness (the core plus the copper layers; update takes the board file's copper off)."),
         c("n_rows_length", Col::Int32, false, "", "Sheet rows giving the length."),
         c("n_rows_width", Col::Int32, false, "", "Sheet rows giving the width."),
         c("n_rows_thickness", Col::Int32, false, "", "Sheet rows giving the thickness."),

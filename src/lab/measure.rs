@@ -325,7 +325,8 @@ pub fn measurement_uff(
 /// The sheet `campaign.csv` (RFC 4180; fields with commas, quotes or newlines are quoted).
 /// With `dimensions` (the board file and the drawn boards, scenario
 /// `campaign.sheet_dimensions`), each row also gets its board's `length_mm`, `width_mm`
-/// (caliper, 0.01 mm) and FR-4 core `thickness_mm` (micrometer, 0.001 mm) as the last columns.
+/// (caliper, 0.01 mm) and `thickness_mm` (micrometer, 0.001 mm: the overall thickness, the
+/// board's FR-4 core plus the board file's copper layers) as the last columns.
 pub fn sheet_csv(
     ms: &[Planned],
     dimensions: Option<(&Board, &[BoardDraw])>,
@@ -383,7 +384,10 @@ pub fn sheet_csv(
             row.extend([
                 format!("{:.2}", 1e3 * board.length_x_m),
                 format!("{:.2}", 1e3 * board.width_y_m),
-                format!("{:.3}", 1e3 * draws[m.board].core_thickness_m),
+                format!(
+                    "{:.3}",
+                    1e3 * (draws[m.board].core_thickness_m + board.copper_thickness_m())
+                ),
             ]);
         }
         w.write_record(&row).map_err(werr)?;

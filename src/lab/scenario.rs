@@ -145,8 +145,9 @@ pub struct CampaignPlan {
     /// Write each row's board dimensions on the sheet, after the other columns:
     /// `length_mm` and `width_mm` (caliper, to 0.01 mm: the board file's `length_x_m` and
     /// `width_y_m`, which the truth does not vary) and `thickness_mm` (micrometer, to
-    /// 0.001 mm: the board's FR-4 core thickness as drawn, see
-    /// `population.thickness_rel_std`). Default false: no such columns.
+    /// 0.001 mm: the overall thickness a micrometer reads over the copper, the board's FR-4
+    /// core as drawn, see `population.thickness_rel_std`, plus the board file's copper
+    /// layers). Default false: no such columns.
     #[serde(skip_serializing_if = "is_false")]
     pub sheet_dimensions: bool,
 }

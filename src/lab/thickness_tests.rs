@@ -210,9 +210,11 @@ fn sheet_gives_each_boards_dimensions_when_asked_and_only_then() {
             .unwrap();
         assert_eq!(row[n], format!("{:.2}", 1e3 * board.length_x_m));
         assert_eq!(row[n + 1], format!("{:.2}", 1e3 * board.width_y_m));
-        assert_eq!(row[n + 2], format!("{:.3}", 1e3 * bt.draw.core_thickness_m));
+        // The overall thickness: the core plus the copper layers.
+        let overall = bt.draw.core_thickness_m + board.copper_thickness_m();
+        assert_eq!(row[n + 2], format!("{:.3}", 1e3 * overall));
         let t_mm: f64 = row[n + 2].parse().unwrap();
-        assert!((t_mm - 1e3 * bt.draw.core_thickness_m).abs() <= 5e-4 + 1e-12);
+        assert!((t_mm - 1e3 * overall).abs() <= 5e-4 + 1e-12);
     }
     // The truth file states each board's thickness; the boards differ.
     let th: Vec<f64> = a

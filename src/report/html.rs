@@ -567,8 +567,8 @@ pub fn render(d: &ReportData) -> Rendered {
         pg.body.push_str(&t);
     }
     if !d.specimens.is_empty() {
-        pg.p("Measured specimens (the sheet's dimensions; the core thickness is a known input of every board's model, length and width are shown, not modelled):");
-        let mut t = String::from("<table data-table=\"specimens\"><tr><th>board</th><th>length, mm</th><th>width, mm</th><th>core thickness, mm</th></tr>\n");
+        pg.p("Measured specimens (the sheet's dimensions; the thickness, less the board file's copper, measures each board's core thickness in step 1; length and width are shown, not modelled):");
+        let mut t = String::from("<table data-table=\"specimens\"><tr><th>board</th><th>length, mm</th><th>width, mm</th><th>thickness, mm</th></tr>\n");
         let mm = |v: Option<f64>| v.map_or(String::from("–"), |x| format!("{x:.3}"));
         for (b, dims) in &d.specimens {
             let _ = writeln!(

@@ -484,8 +484,8 @@ fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
     Ok(out)
 }
 
-/// Each board's measured core thickness from ingest's specimens.parquet, m (boards the sheet
-/// gives none for are absent; no table: empty).
+/// Each board's measured overall thickness from ingest's specimens.parquet, m (boards the
+/// sheet gives none for are absent; no table: empty).
 fn read_specimen_thickness(path: &Path) -> anyhow::Result<BTreeMap<String, f64>> {
     let mut out = BTreeMap::new();
     if !path.is_file() {
@@ -555,7 +555,7 @@ fn thickness_obs(
                 findings.push(Finding::new(
                     Severity::Warning,
                     "update.thickness_outside_box",
-                    format!("board {b}: thickness_mm {:.3} is {:+.1} % off the board file's {:.3} mm, outside the ROM's ±{:.0} % box (expected a laminate within its tolerance: check the sheet, or the board file's core.thickness_m); not used", 1e3 * h, 100.0 * (h / h0_m - 1.0), 1e3 * h0_m, 100.0 * rom_box),
+                    format!("board {b}: its core thickness {:.3} mm (thickness_mm less the board file's copper) is {:+.1} % off the board file's {:.3} mm, outside the ROM's ±{:.0} % box (expected a laminate within its tolerance, thickness_mm the overall thickness over the copper: check the sheet, or the board file's core.thickness_m); not used", 1e3 * h, 100.0 * (h / h0_m - 1.0), 1e3 * h0_m, 100.0 * rom_box),
                 ));
                 vec![]
             }
@@ -569,7 +569,7 @@ fn thickness_obs(
         Severity::Info,
         "update.specimen_thickness",
         format!(
-            "core thickness per board from the sheet, mm (board file: {:.3}), each a measurement of the board's core_thickness_m with sd {:.3} mm: {}",
+            "core thickness per board from the sheet (thickness_mm, the overall thickness, less the board file's copper layers), mm (board file: {:.3}), each a measurement of the board's core_thickness_m with sd {:.3} mm: {}",
             1e3 * h0_m,
             1e3 * THICKNESS_SD_M,
             listed.join(", ")
@@ -2835,7 +2835,14 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             let labels = select_labels(&pairs, "free", &opts.modes, &presence, &mut findings)?;
             // Boards measured in thickness: the core thickness is a board parameter (exact in
             // the model), each board's measurement an observation of it.
-            let thickness_m = read_specimen_thickness(&specimens_path)?;
+            // The sheet's thickness is the overall one a micrometer reads over the copper
+            // (the finished board's, as a fabrication drawing gives it); the model's parameter
+            // is the core's, the board file's copper layers taken off.
+            let copper_m = board.copper_thickness_m();
+            let thickness_m: BTreeMap<String, f64> = read_specimen_thickness(&specimens_path)?
+                .into_iter()
+                .map(|(b, h)| (b, h - copper_m))
+                .collect();
             let with_thickness;
             let opts = if thickness_m.is_empty()
                 || opts.params.iter().any(|p| p == names::CORE_THICKNESS)
