@@ -1309,9 +1309,6 @@ fn check_repeats(ms: &[Measurement], findings: &mut Findings) {
     }
 }
 
-/// The sheet's boards: rows spelling one board differently are resolved to the spelling most
-/// rows use (`sheet.board_id_variant`); spellings used equally often stay apart
-/// (`sheet.board_id_ambiguous`). Rewrites the rows' board_id; returns the boards.
 /// One board of the sheet and its measured dimensions.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Specimen {
@@ -1386,6 +1383,9 @@ fn specimen_dimensions(
         .collect()
 }
 
+/// The sheet's boards: rows spelling one board differently are resolved to the spelling most
+/// rows use (`sheet.board_id_variant`); spellings used equally often stay apart
+/// (`sheet.board_id_ambiguous`). Rewrites the rows' board_id; returns the boards.
 fn resolve_sheet_boards(ms: &mut [Measurement], findings: &mut Findings) -> BTreeSet<String> {
     // key → spelling → (rows, first line)
     let mut spellings: BTreeMap<String, BTreeMap<String, (usize, u64)>> = BTreeMap::new();

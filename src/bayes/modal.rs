@@ -353,10 +353,11 @@ impl ModalPredictor {
         self
     }
 
-    /// The same predictor whose mass follows the core thickness at parameter `idx` (nominal
-    /// `nominal_m`), the core being `core_share` of `nominal_mass_g`.
-    pub fn with_core_thickness(mut self, idx: usize, nominal_m: f64, core_share: f64) -> Self {
-        self.core_thickness = Some((idx, nominal_m, core_share));
+    /// The same predictor whose mass follows the core thickness: `Some((idx, nominal_m,
+    /// core_share))`, the parameter's index, its nominal value and the core's share of
+    /// `nominal_mass_g` (`None`: no thickness parameter).
+    pub fn with_core_thickness(mut self, thickness: Option<(usize, f64, f64)>) -> Self {
+        self.core_thickness = thickness;
         self
     }
 

@@ -1020,7 +1020,7 @@ impl FeModel {
                 .iter()
                 .position(|n| n == names::E_CU)
                 .unwrap_or_else(|| unreachable!("copper without e_cu_pa"));
-            let s_max: f64 = board.copper.iter().map(|l| l.thickness_m).sum();
+            let s_max = board.copper_thickness_m();
             let nodes = chebyshev_nodes(coupling_nodes(&q_core, h, &q_cu, s_max), s_max);
             // With the thickness a parameter, t² = h² u² + 2 h u v + v²: one set of terms
             // per power of h (highest last), each with its h₀ factors.

@@ -524,28 +524,8 @@ impl Rom {
             axpy_mat(&mut k, *ci, ki.as_ref());
         }
         let (lam, y) = {
-            let mut m = Mat::<f64>::zeros(r, r);
-            for (ci, mi) in cm.iter().zip(&self.m_r) {
-                axpy_mat(&mut m, *ci, mi.as_ref());
-            }
-            let llt = m
-                .llt(Side::Lower)
-                .map_err(|e| FemError::Factorisation(format!("reduced mass: {e:?}")))?;
-            let l = llt.L();
-            // C = L⁻¹ K L⁻ᵀ.
-            let mut c = k.clone();
-            faer::linalg::triangular_solve::solve_lower_triangular_in_place(
-                l,
-                c.as_mut(),
-                faer::Par::Seq,
-            );
-            let mut ct = c.transpose().to_owned();
-            faer::linalg::triangular_solve::solve_lower_triangular_in_place(
-                l,
-                ct.as_mut(),
-                faer::Par::Seq,
-            );
-            symmetrize(&mut ct);
+            let (l, ct) = self.whitened(k, cm)?;
+            let l = l.as_ref();
             let evd = ct
                 .self_adjoint_eigen(Side::Lower)
                 .map_err(|e| FemError::Eigen(format!("reduced eigen-solve: {e:?}")))?;
@@ -860,7 +840,7 @@ impl Rom {
             return self.eval_lowest_pencil(ck, cm, count);
         }
         if self.m_r.len() != 1 || ck.len() != self.k_r.len() {
-            // General pencil (several mass terms): the full path.
+            // Coefficients of the wrong length: the full path, whose error says what it expected.
             let empty = RomShapeOperator {
                 points_m: vec![],
                 p: Mat::zeros(0, r),
@@ -893,6 +873,34 @@ impl Rom {
 }
 
 impl Rom {
+    /// The pencil (Kʳ, Mʳ = Σ cm_j Mʳ_j) made standard: the Cholesky factor L of Mʳ and the
+    /// symmetric C = L⁻¹ Kʳ L⁻ᵀ (symmetrised against rounding), for both several-mass paths.
+    fn whitened(&self, k: Mat<f64>, cm: &[f64]) -> Result<(Mat<f64>, Mat<f64>), FemError> {
+        let r = self.dim();
+        let mut m = Mat::<f64>::zeros(r, r);
+        for (ci, mi) in cm.iter().zip(&self.m_r) {
+            axpy_mat(&mut m, *ci, mi.as_ref());
+        }
+        let llt = m
+            .llt(Side::Lower)
+            .map_err(|e| FemError::Factorisation(format!("reduced mass: {e:?}")))?;
+        let l = llt.L();
+        let mut c = k;
+        faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+            l,
+            c.as_mut(),
+            faer::Par::Seq,
+        );
+        let mut ct = c.transpose().to_owned();
+        faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+            l,
+            ct.as_mut(),
+            faer::Par::Seq,
+        );
+        symmetrize(&mut ct);
+        Ok((l.to_owned(), ct))
+    }
+
     /// [`Rom::eval_lowest`] for several mass terms (a point mass, the core thickness):
     /// Mʳ = L Lᵀ, the wanted eigenpairs of L⁻¹ Kʳ L⁻ᵀ by [`super::dense::wanted_eigenpairs`]
     /// (the hot path's solver, not a full eigen-decomposition: 5× faster per evaluation on the
@@ -905,35 +913,18 @@ impl Rom {
     ) -> Result<ReducedModes, FemError> {
         let r = self.dim();
         let up = super::dense::upper_sum(ck, &self.k_flat, r);
-        let mut c = Mat::from_fn(
+        let k = Mat::from_fn(
             r,
             r,
             |i, j| if j >= i { up[i * r + j] } else { up[j * r + i] },
         );
-        let mut m = Mat::<f64>::zeros(r, r);
-        for (ci, mi) in cm.iter().zip(&self.m_r) {
-            axpy_mat(&mut m, *ci, mi.as_ref());
-        }
-        let llt = m
-            .llt(Side::Lower)
-            .map_err(|e| FemError::Factorisation(format!("reduced mass: {e:?}")))?;
-        let l = llt.L();
-        faer::linalg::triangular_solve::solve_lower_triangular_in_place(
-            l,
-            c.as_mut(),
-            faer::Par::Seq,
-        );
-        let mut ct = c.transpose().to_owned();
-        faer::linalg::triangular_solve::solve_lower_triangular_in_place(
-            l,
-            ct.as_mut(),
-            faer::Par::Seq,
-        );
+        let (l, ct) = self.whitened(k, cm)?;
+        let l = l.as_ref();
+        // Only the upper triangle is read by the solver.
         let mut a: Vec<f64> = (0..r * r)
             .map(|q| {
-                let (i, j) = (q / r, q % r);
-                if j >= i {
-                    0.5 * (ct[(i, j)] + ct[(j, i)])
+                if q % r >= q / r {
+                    ct[(q / r, q % r)]
                 } else {
                     0.0
                 }

@@ -81,7 +81,7 @@ pub struct ReportData {
     pub plot_links: Vec<(String, String, String)>,
     pub ingest_measurements: usize,
     pub quarantined: Vec<(String, String)>,
-    /// The boards' measured dimensions (length, width, core thickness, mm), when the sheet
+    /// The boards' measured dimensions (length, width, overall thickness, mm), when the sheet
     /// gave any (ingest's specimens.parquet).
     pub specimens: Vec<(String, [Option<f64>; 3])>,
     pub ingest_counts: BTreeMap<String, u64>,

@@ -150,8 +150,6 @@ fn read_measured(path: &Path) -> anyhow::Result<Vec<Measured>> {
     Ok(out)
 }
 
-/// Boards step 1 held out of the updating (update_report.json's `held_out_boards`; absent
-/// in reports written before the option).
 /// The boards' measured dimensions from ingest's specimens.parquet, when any board has one.
 fn read_specimens(path: &Path) -> anyhow::Result<Vec<(String, [Option<f64>; 3])>> {
     let mut out = vec![];
@@ -177,6 +175,8 @@ fn read_specimens(path: &Path) -> anyhow::Result<Vec<(String, [Option<f64>; 3])>
     Ok(out)
 }
 
+/// Boards step 1 held out of the updating (update_report.json's `held_out_boards`; absent
+/// in reports written before the option).
 fn held_out_boards(update_report: &serde_json::Value) -> Vec<String> {
     update_report
         .get("held_out_boards")

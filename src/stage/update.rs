@@ -2834,10 +2834,9 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             let presence = read_presence(&presence_path, "free")?;
             let labels = select_labels(&pairs, "free", &opts.modes, &presence, &mut findings)?;
             // Boards measured in thickness: the core thickness is a board parameter (exact in
-            // the model), each board's measurement an observation of it.
-            // The sheet's thickness is the overall one a micrometer reads over the copper
-            // (the finished board's, as a fabrication drawing gives it); the model's parameter
-            // is the core's, the board file's copper layers taken off.
+            // the model), each board's reading an observation of it. The sheet gives the
+            // overall thickness a micrometer reads over the copper (a finished board's, as a
+            // fabrication drawing gives it): the board file's copper layers are taken off.
             let copper_m = board.copper_thickness_m();
             let thickness_m: BTreeMap<String, f64> = read_specimen_thickness(&specimens_path)?
                 .into_iter()
@@ -2934,17 +2933,13 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
                 .iter()
                 .map(|(n, _)| rom.map.names.iter().position(|m| m == n).unwrap_or(0))
                 .collect();
+            let thickness = core_thickness_mass(&model)?;
             let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?
-                .with_point_masses(point_masses.clone());
+                .with_point_masses(point_masses.clone())
+                .with_core_thickness(thickness);
             let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
-                .with_point_masses(point_masses);
-            let (predictor, all_pred) = match core_thickness_mass(&model)? {
-                Some((i, h0, share)) => (
-                    predictor.with_core_thickness(i, h0, share),
-                    all_pred.with_core_thickness(i, h0, share),
-                ),
-                None => (predictor, all_pred),
-            };
+                .with_point_masses(point_masses)
+                .with_core_thickness(thickness);
             // Units: every board with free-free pairs or a mass.
             let masses = read_masses(&masses_path)?;
             // The enrichment's covariate per free-free measurement, as offsets from their mean.
@@ -4191,7 +4186,7 @@ pub fn run_joints(
             },
         )
         .map_err(|e| anyhow!("update joints --enrich: {e}"))?;
-        // Boards whose thickness step 1 took as known carry it in their draws.
+        // Where step 1 updated the core thickness, each board's draw carries it.
         let model_opts = crate::fem::ModelOptions {
             core_thickness: step1.params.iter().any(|p| p == names::CORE_THICKNESS),
         };
@@ -4483,17 +4478,13 @@ pub fn run_joints(
             p_board.values[i] = 0.0;
         }
         let nominal_mass_g = model.total_mass_kg(&p_board)? * 1e3;
+        let thickness = core_thickness_mass(&model)?;
         let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?
-            .with_point_masses(point_masses.clone());
+            .with_point_masses(point_masses.clone())
+            .with_core_thickness(thickness);
         let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
-            .with_point_masses(point_masses);
-        let (predictor, all_pred) = match core_thickness_mass(&model)? {
-            Some((i, h0, share)) => (
-                predictor.with_core_thickness(i, h0, share),
-                all_pred.with_core_thickness(i, h0, share),
-            ),
-            None => (predictor, all_pred),
-        };
+            .with_point_masses(point_masses)
+            .with_core_thickness(thickness);
         let wanted: BTreeSet<(String, i32)> = bolted_rows
             .iter()
             .map(|p| (p.measurement_id.clone(), p.mode))
