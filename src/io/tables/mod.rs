@@ -8,6 +8,13 @@
 //! spectra and shapes (pyarrow turns those into numpy arrays per cell). No `pandas` metadata
 //! key is written: pandas reconstructs the frame from the Arrow schema alone.
 
+pub mod diagnose;
+pub mod extract;
+pub mod pairs;
+pub mod propagate;
+pub mod report;
+pub mod update;
+
 use arrow::array::{ArrayRef, RecordBatch};
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
 use parquet::arrow::ArrowWriter;

@@ -1,0 +1,1 @@
+//! The spec, row types, reader and writer of pair's pairs.parquet and presence.parquet.
