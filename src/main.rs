@@ -339,11 +339,11 @@ enum UpdateCommand {
         /// about the classical prediction interval: the default, since boards do differ), or
         /// half-normal (more mass near σ = 0, wider new-board predictions from few boards).
         #[arg(long, value_enum, default_value = "log-normal")]
-        sigma_prior: hbmu::bayes::population::SigmaPrior,
+        sigma_prior: SigmaPriorArg,
         /// Refit with a board mechanism of the diagnosis's library: `temperature_stiffness`
         /// (the FR-4 moduli follow a sheet column, `--enrich-covariate`) or `added_mass` (a
         /// lumped mass per board at `--enrich-location`).
-        #[arg(long, value_enum)]
+        #[arg(long, value_parser = mechanism_parser())]
         enrich: Option<hbmu::diagnose::library::Mechanism>,
         /// The numeric sheet column (measurements.parquet) of `--enrich temperature_stiffness`.
         #[arg(long, default_value = "temperature_c")]
@@ -359,7 +359,7 @@ enum UpdateCommand {
         /// modulus per unit mass scale, the combination free-free frequencies follow) or
         /// `natural` (every parameter as it is).
         #[arg(long, value_enum, default_value = "per-mass")]
-        board_coordinates: stage::update::BoardCoordinates,
+        board_coordinates: BoardCoordinatesArg,
     },
     /// Step 2: joint contact stiffness per bolted measurement and its population, from the
     /// bolted modes, carrying every step-1 draw (the modular, "cut", posterior).
@@ -377,7 +377,7 @@ enum UpdateCommand {
         sigma_scale: f64,
         /// Refit with a joint mechanism of the diagnosis's library added to the joint model
         /// (joint_rotation, joint_mass, fixture_compliance, joint_stiffness_per_joint).
-        #[arg(long, value_enum)]
+        #[arg(long, value_parser = mechanism_parser())]
         enrich: Option<hbmu::diagnose::library::Mechanism>,
         /// The joint (1-based, hole order of the board file) of
         /// `--enrich joint_stiffness_per_joint`; without it, every joint gets its own
@@ -408,57 +408,61 @@ impl UpdateArgs {
             board: self.model,
             out: self.out,
             force: self.force,
-            seed: self.seed,
-            runs: self.runs.max(1),
-            smc: hbmu::bayes::smc::SmcOptions {
-                n_particles: self.particles.max(2),
-                target_ess: self.target_ess,
-                ..Default::default()
-            },
-            modes: self.modes,
-            params,
-            prior_width,
-            sigma_scale,
-            sigma_prior: Default::default(),
-            lkj_eta: self.lkj_eta,
-            eps: match self.eps_fixed {
-                Some(v) => ErrorPrior::Fixed { value: v },
-                None => ErrorPrior::Inferred {
-                    median: self.eps_median,
-                    log_sd: 1.5,
+            sampler: hbmu::update::sampler::SamplerParams {
+                seed: self.seed,
+                runs: self.runs.max(1),
+                smc: hbmu::bayes::smc::SmcOptions {
+                    n_particles: self.particles.max(2),
+                    target_ess: self.target_ess,
+                    ..Default::default()
                 },
+                residual_draws: 250,
+                from_prior: self.from_prior,
+                surrogate: !self.no_surrogate,
+                subspace: !self.no_subspace,
             },
-            delta: if self.no_shapes {
-                None
-            } else {
-                Some(match self.delta_fixed {
+            model: hbmu::update::problem::ModelSpec {
+                modes: self.modes,
+                params,
+                prior_width,
+                sigma_scale,
+                sigma_prior: Default::default(),
+                lkj_eta: self.lkj_eta,
+                eps: match self.eps_fixed {
                     Some(v) => ErrorPrior::Fixed { value: v },
                     None => ErrorPrior::Inferred {
-                        median: self.delta_median,
+                        median: self.eps_median,
                         log_sd: 1.5,
                     },
-                })
+                },
+                delta: if self.no_shapes {
+                    None
+                } else {
+                    Some(match self.delta_fixed {
+                        Some(v) => ErrorPrior::Fixed { value: v },
+                        None => ErrorPrior::Inferred {
+                            median: self.delta_median,
+                            log_sd: 1.5,
+                        },
+                    })
+                },
+                rom_box: hbmu::update::problem::ModelSpec::DEFAULT_ROM_BOX,
+                box_tolerance: 0.01,
+                rom_max_basis: self.rom_basis,
+                enrich: None,
+                enrich_joint: None,
+                enrich_covariate: None,
+                enrich_location: None,
+                enrich_new_modes: false,
+                model_error: !self.no_model_error,
+                discrepancy_freq: self.discrepancy_pct.map(|p| p / 100.0),
+                hold_out_boards: vec![],
+                board_coordinates: Default::default(),
+                mass_floor_rel: self
+                    .mass_floor
+                    .unwrap_or(hbmu::update::problem::ModelSpec::DEFAULT_MASS_FLOOR_REL),
+                shape_weights: self.shape_weights,
             },
-            rom_box: stage::update::UpdateOptions::DEFAULT_ROM_BOX,
-            box_tolerance: 0.01,
-            residual_draws: 250,
-            rom_max_basis: self.rom_basis,
-            from_prior: self.from_prior,
-            surrogate: !self.no_surrogate,
-            subspace: !self.no_subspace,
-            enrich: None,
-            enrich_joint: None,
-            enrich_covariate: None,
-            enrich_location: None,
-            enrich_new_modes: false,
-            model_error: !self.no_model_error,
-            discrepancy_freq: self.discrepancy_pct.map(|p| p / 100.0),
-            hold_out_boards: vec![],
-            board_coordinates: Default::default(),
-            mass_floor_rel: self
-                .mass_floor
-                .unwrap_or(stage::update::UpdateOptions::DEFAULT_MASS_FLOOR_REL),
-            shape_weights: self.shape_weights,
         }
     }
 }
@@ -727,14 +731,14 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
         } => {
             use hbmu::diagnose::library::Mechanism;
             let mut opts = common.options(params, prior_width, sigma_scale);
-            opts.sigma_prior = sigma_prior;
-            opts.enrich = enrich;
-            opts.hold_out_boards = hold_out;
-            opts.board_coordinates = board_coordinates;
+            opts.model.sigma_prior = sigma_prior.into();
+            opts.model.enrich = enrich;
+            opts.model.hold_out_boards = hold_out;
+            opts.model.board_coordinates = board_coordinates.into();
             if enrich == Some(Mechanism::TemperatureStiffness) {
-                opts.enrich_covariate = Some(enrich_covariate);
+                opts.model.enrich_covariate = Some(enrich_covariate);
             }
-            opts.enrich_location = match enrich_location.as_deref() {
+            opts.model.enrich_location = match enrich_location.as_deref() {
                 None => None,
                 Some([x, y]) => Some([*x, *y]),
                 Some(v) => anyhow::bail!(
@@ -768,11 +772,11 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                 }
             }
             let mut opts = common.options(vec![], prior_width, sigma_scale);
-            opts.enrich = enrich;
-            opts.enrich_joint = enrich_joint;
-            opts.enrich_new_modes = enrich_new_modes;
+            opts.model.enrich = enrich;
+            opts.model.enrich_joint = enrich_joint;
+            opts.model.enrich_new_modes = enrich_new_modes;
             // Step 2 has no model-error term (its manifest must not claim one).
-            opts.model_error = false;
+            opts.model.model_error = false;
             let o = stage::update::run_joints(&opts, &boards, cli.verbose)?;
             Ok(report("update joints", &opts.out, &o))
         }
@@ -869,4 +873,44 @@ fn main() -> ExitCode {
             ExitCode::from(exit::ERROR as u8)
         }
     }
+}
+
+/// The command line's spellings of the kernels' choices (the kernels know no clap).
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum SigmaPriorArg {
+    HalfNormal,
+    LogNormal,
+}
+
+impl From<SigmaPriorArg> for hbmu::bayes::population::SigmaPrior {
+    fn from(a: SigmaPriorArg) -> Self {
+        match a {
+            SigmaPriorArg::HalfNormal => Self::HalfNormal,
+            SigmaPriorArg::LogNormal => Self::LogNormal,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum BoardCoordinatesArg {
+    PerMass,
+    Natural,
+}
+
+impl From<BoardCoordinatesArg> for hbmu::update::problem::BoardCoordinates {
+    fn from(a: BoardCoordinatesArg) -> Self {
+        match a {
+            BoardCoordinatesArg::PerMass => Self::PerMass,
+            BoardCoordinatesArg::Natural => Self::Natural,
+        }
+    }
+}
+
+/// `--enrich`: a mechanism of the diagnosis's library by its id (`joint_rotation`, …).
+fn mechanism_parser(
+) -> impl clap::builder::TypedValueParser<Value = hbmu::diagnose::library::Mechanism> {
+    use clap::builder::TypedValueParser;
+    use hbmu::diagnose::library::Mechanism;
+    clap::builder::PossibleValuesParser::new(Mechanism::ALL.map(Mechanism::id))
+        .map(|id: String| Mechanism::from_id(&id).expect("a listed mechanism id"))
 }

@@ -33,17 +33,7 @@ use super::stats::{half_normal_lpdf, normal_lpdf, LN_2PI};
 /// the classical prediction interval; it keeps the half-normal's median, so a scale means
 /// the same typical size under both. The half-normal puts more mass near σ = 0 (units alike),
 /// which suits a coefficient that is probably common to all units.
-#[derive(
-    Clone,
-    Copy,
-    Debug,
-    Default,
-    PartialEq,
-    Eq,
-    serde::Serialize,
-    serde::Deserialize,
-    clap::ValueEnum,
-)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SigmaPrior {
     /// σ_k ~ HalfNormal(s_k).

@@ -6,29 +6,7 @@
 use crate::io::tables::{self, Cols};
 use std::path::Path;
 
-/// One row of `modes.parquet` (the columns the later stages use).
-#[derive(Clone, Debug, PartialEq)]
-pub struct ModeRow {
-    pub measurement_id: String,
-    pub board_id: String,
-    /// `free` or `bolted`.
-    pub setup: String,
-    /// Identified mode number in the measurement, 1-based.
-    pub mode: i32,
-    pub freq_hz: f64,
-    /// Viscous damping ratio (dimensionless).
-    pub damping_ratio: f64,
-    pub band_lo_hz: f64,
-    pub band_hi_hz: f64,
-    /// Scan-point node labels.
-    pub node: Vec<i64>,
-    /// Scan-point coordinates (m), aligned with `node`.
-    pub x_m: Vec<f64>,
-    pub y_m: Vec<f64>,
-    /// Real-normalised shape at the scan points (NaN where a point was excluded; empty when
-    /// null).
-    pub shape: Vec<f64>,
-}
+pub use crate::modal::rows::ModeRow;
 
 /// Every row of `modes.parquet` at `path`, in file order.
 pub fn read_modes_table(path: &Path) -> anyhow::Result<Vec<ModeRow>> {

@@ -48,6 +48,7 @@ pub mod poles;
 pub mod quality;
 pub mod refine;
 pub mod roots;
+pub mod rows;
 pub mod stabilization;
 
 #[cfg(test)]

@@ -195,7 +195,7 @@ fn read_held_out(
     roles: &BTreeMap<(String, String), bool>,
 ) -> anyhow::Result<Vec<Measured>> {
     let mut out = vec![];
-    for p in crate::stage::update::read_pairs(pairs)? {
+    for p in crate::io::tables::update::read_pairs(pairs)? {
         if !boards.contains(&p.board_id) {
             continue;
         }

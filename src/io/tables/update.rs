@@ -1,1 +1,613 @@
 //! The spec, row types, reader and writer of update's tables (both steps).
+
+use crate::bayes::smc::StageInfo;
+use crate::io::tables::{self, c, Col, Cols, TableSpec};
+use crate::modal::rows::PairRow;
+use crate::update::posterior::{DrawTable, Residual, SummaryRow};
+use crate::update::problem::MassRow;
+use anyhow::bail;
+use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
+use arrow::datatypes::{DataType, Field};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+use std::sync::Arc;
+
+pub const JOINTS: TableSpec = TableSpec {
+    name: "joints",
+    doc: "Step-2 posterior draws of every bolted measurement's joint stiffness, one row per particle and measurement. The modular (cut) posterior: every particle carries one step-1 draw of the boards (population.parquet's boards_run/boards_draw), and the bolted data updated only the joint parameters. A refit with an enrichment (`--enrich`, the diagnosis's candidates) adds one column per extra coordinate, named with its unit (e.g. k_rot_nm_per_rad, joint_mass_kg, m_fix_kg, f_fix_hz, k_ratio_<j>); with `joint_stiffness_per_joint` at one joint k_con_n_per_m is the stiffness of the other joints and k_ratio_<j> that joint's over theirs; with every joint (no joint named) k_con_n_per_m is the joints' geometric mean and k_ratio_<j> each joint's stiffness over the mean of the others' in that measurement.",
+    open: true,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
+        c("draw", Col::Int32, false, "", "Particle index within the run."),
+        c("measurement_id", Col::Utf8, false, "", "Bolted measurement."),
+        c("board_id", Col::Utf8, false, "", "Board of the measurement."),
+        c("k_con_n_per_m", Col::Float64, false, "N/m", "Total joint contact stiffness of the measurement's fixing."),
+    ],
+};
+
+pub const POPULATION_JOINTS: TableSpec = TableSpec {
+    name: "population_joints",
+    doc: "Step-2 (joints) population draws, one row per particle, written as population.parquet in the step-2 directory: the step-1 draw the particle carries, the population of ln k_con (natural log of N/m), with an enrichment (`--enrich`) `mu_<coord>`/`sigma_<coord>` of every extra coordinate (natural logs of the parameter in its unit, e.g. mu_ln_k_rot), and the bolted modes' prediction errors `eps_<label>`, `delta_<label>` (when inferred); with the model-form discrepancy (the default, `--discrepancy-pct`), `discrepancy_scale` (its scale τ, relative eigenvalue), `discrepancy_unit_scale` (σ_u, the sd of the part that differs between measurements, integrated out per measurement) and `discrepancy_<label>` (the bolted mode's discrepancy d: the model eigenvalue is λ (1 + d) for every measurement).",
+    open: true,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
+        c("draw", Col::Int32, false, "", "Particle index within the run (ArviZ draw)."),
+        c("boards_run", Col::Int32, false, "", "run of the step-1 draw (boards.parquet) this particle carries."),
+        c("boards_draw", Col::Int32, false, "", "draw of the step-1 draw this particle carries."),
+        c("mu_ln_k_con", Col::Float64, false, "ln(N/m)", "Population mean of ln k_con_n_per_m."),
+        c("sigma_ln_k_con", Col::Float64, false, "ln(N/m)", "Population standard deviation of ln k_con_n_per_m."),
+    ],
+};
+
+pub const POPULATION: TableSpec = TableSpec {
+    name: "population",
+    doc: "Posterior draws of the population (hyper-)parameters, one row per particle; run = independent SMC run (ArviZ: chain = run, draw = draw). Step 1 (boards): for every updated parameter <p> (unit in its name) `mu_<p>` (population mean, unit of <p>), `sigma_<p>` (population standard deviation, unit of <p>), `corr_<p>_<q>` (population correlation). By default (`--board-coordinates per-mass`), where mass_scale is updated, the population of every modulus <m>_pa is formed per unit mass scale: its coordinate is `<m>_per_mass_scale_pa` = <m>_pa / mass_scale (Pa; free-free frequencies follow it), so the columns are e.g. `mu_e_x_per_mass_scale_pa`, `sigma_e_x_per_mass_scale_pa`, `corr_e_x_per_mass_scale_pa_mass_scale`; boards.parquet keeps the moduli themselves. A parameter on a logarithmic coordinate (added_mass_kg of `--enrich added_mass`) has `mu_<p>` = the population median (reference · e^μ, unit of <p>) and `sigma_<p>` in natural-log units. Prediction errors per mode label <l>: `eps_<l>` (relative standard deviation of the eigenvalue λ = ω², dimensionless) and `delta_<l>` (standard deviation of the unit-norm shape residual), when inferred. With the model-form discrepancy (the default, `--discrepancy-pct`): `discrepancy_scale` (its scale τ, relative eigenvalue), `discrepancy_unit_scale` (σ_u, the sd of the part that differs between boards, integrated out per board) and `discrepancy_<l>` (the updated mode's discrepancy d, common to every board: the model eigenvalue is λ (1 + d); orthogonal to what the board parameters can absorb).",
+    open: true,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
+        c("draw", Col::Int32, false, "", "Particle index within the run (ArviZ draw)."),
+    ],
+};
+
+pub const BOARDS: TableSpec = TableSpec {
+    name: "boards",
+    doc: "Step-1 posterior draws of every board's parameters, one row per particle and board; one column per updated parameter, named with its unit (e.g. e_x_pa, e_y_pa, g_xy_pa, mass_scale); a refit with `--enrich added_mass` adds added_mass_kg (the lumped mass at the enrichment's point; mass_g then includes it, as the balance weighs it), one with `--enrich temperature_stiffness` temperature_coefficient_per_k. Where the sheet gave boards' thickness_mm (ingest's specimens.parquet), core_thickness_m (m): the board's core thickness, updated from its measurement and its frequencies.",
+    open: true,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
+        c("draw", Col::Int32, false, "", "Particle index within the run."),
+        c("board_id", Col::Utf8, false, "", "Board."),
+        c("mass_g", Col::Float64, false, "g", "Model mass of the board at this draw."),
+    ],
+};
+
+pub const SUMMARY: TableSpec = TableSpec {
+    name: "summary",
+    doc: "Posterior summary, one row per parameter (and board or measurement where it has one): moments and quantiles over all runs' draws; rank-normalised split R-hat and bulk/tail ESS across runs (Vehtari et al. 2021, the definitions ArviZ uses).",
+    open: false,
+    columns: &[
+        c("parameter", Col::Utf8, false, "", "Column name in population/boards (unit in the name)."),
+        c("board_id", Col::Utf8, true, "", "Board, for per-board parameters."),
+        c("measurement_id", Col::Utf8, true, "", "Measurement, for per-measurement parameters (none yet: step 2 is to come)."),
+        c("mean", Col::Float64, false, "", "Posterior mean (unit of the parameter)."),
+        c("sd", Col::Float64, false, "", "Posterior standard deviation."),
+        c("q05", Col::Float64, false, "", "5 % quantile."),
+        c("q50", Col::Float64, false, "", "Median."),
+        c("q95", Col::Float64, false, "", "95 % quantile."),
+        c("r_hat", Col::Float64, false, "", "Rank-normalised split R-hat across runs."),
+        c("ess_bulk", Col::Float64, false, "", "Bulk effective sample size."),
+        c("ess_tail", Col::Float64, false, "", "Tail effective sample size."),
+    ],
+};
+
+pub const STAGES: TableSpec = TableSpec {
+    name: "stages",
+    doc: "The tempering path: one row per SMC run and tempering stage.",
+    open: false,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run."),
+        c("stage", Col::Int32, false, "", "Tempering stage, 1-based."),
+        c(
+            "beta",
+            Col::Float64,
+            false,
+            "",
+            "Inverse temperature after the stage.",
+        ),
+        c(
+            "ess",
+            Col::Float64,
+            false,
+            "",
+            "Effective sample size of the incremental weights, particles.",
+        ),
+        c(
+            "log_evidence_increment",
+            Col::Float64,
+            false,
+            "",
+            "log mean of the incremental weights.",
+        ),
+        c(
+            "acceptance_unit",
+            Col::Float64,
+            true,
+            "",
+            "Acceptance rate of the per-unit moves.",
+        ),
+        c(
+            "acceptance_global",
+            Col::Float64,
+            true,
+            "",
+            "Acceptance rate of the centred population moves.",
+        ),
+        c(
+            "acceptance_noncentred",
+            Col::Float64,
+            true,
+            "",
+            "Acceptance rate of the non-centred population moves.",
+        ),
+        c(
+            "acceptance_rescale",
+            Col::Float64,
+            true,
+            "",
+            "Acceptance rate of the moves that scale one mode's prediction-error scale together with the units' residuals of that mode (null where no error scale is inferred).",
+        ),
+        c("mutation_steps", Col::Int32, false, "", "Mutation sweeps."),
+        c(
+            "unique_after_resampling",
+            Col::Int32,
+            false,
+            "",
+            "Distinct particles after resampling.",
+        ),
+        c(
+            "model_evals",
+            Col::Float64,
+            false,
+            "",
+            "Model evaluations of the stage (ROM or verified surrogate).",
+        ),
+        c(
+            "screened_out",
+            Col::Float64,
+            false,
+            "",
+            "Proposals the delayed-acceptance screen rejected without a model evaluation (where a surrogate's extrapolation stood in for the ROM beyond the surrogate's box).",
+        ),
+        c(
+            "kind",
+            Col::Utf8,
+            false,
+            "",
+            "`temper`: a tempering stage; `correct`: the final correction from the surrogates to the ROM at β = 1 (weights L_ROM / L_surrogate, the ROM solved in each unit's verified subspace inside its box, resampling, and mutation under the ROM only when resampling left fewer than 98 % of the particles distinct).",
+        ),
+    ],
+};
+
+pub const RESIDUALS: TableSpec = TableSpec {
+    name: "residuals",
+    doc: "Measured vs posterior-predictive model modes, one row per measurement and accepted paired mode of the step's setup (updating and validation modes).",
+    open: false,
+    columns: &[
+        c("measurement_id", Col::Utf8, false, "", "Measurement."),
+        c("board_id", Col::Utf8, false, "", "Board."),
+        c("setup", Col::Utf8, false, "", "`free` or `bolted`."),
+        c("label", Col::Utf8, false, "", "Mode label (from pair)."),
+        c("freq_hz", Col::Float64, false, "Hz", "Identified frequency."),
+        c("model_freq_hz_mean", Col::Float64, false, "Hz", "Posterior mean of the model frequency of this board/measurement."),
+        c("model_freq_hz_sd", Col::Float64, false, "Hz", "Posterior standard deviation of the model frequency (parameter uncertainty)."),
+        c("predictive_sd_hz", Col::Float64, false, "Hz", "Posterior-predictive standard deviation of a measurement: parameter uncertainty, for updated modes the inferred prediction error, and (step 1 with its model-error term) the model error's prior spread of the label (evidence.json's model_error)."),
+        c("rel_residual", Col::Float64, false, "", "(freq_hz - model_freq_hz_mean) / model_freq_hz_mean."),
+        c("std_residual", Col::Float64, false, "", "(freq_hz - model_freq_hz_mean) / predictive_sd_hz."),
+        c("mac", Col::Float64, true, "", "MAC of the measured shape and the model shape (posterior mean); null without a usable shape."),
+        c("used_for_updating", Col::Bool, false, "", "The mode's label was used for updating."),
+    ],
+};
+
+pub(crate) fn read_presence(path: &Path, setup: &str) -> anyhow::Result<Vec<String>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (s, l, u) = (
+            c.str("setup")?,
+            c.str("label")?,
+            c.bool("used_for_updating")?,
+        );
+        for i in 0..b.num_rows() {
+            if s.value(i) == setup && u.value(i) {
+                out.push(l.value(i).to_string());
+            }
+        }
+    }
+    Ok(out)
+}
+
+pub(crate) fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
+    let mut out = BTreeMap::new();
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (bid, m, n, s, r, inc) = (
+            c.str("board_id")?,
+            c.f64("mass_g")?,
+            c.i32("n_stable")?,
+            c.f64("std_g")?,
+            c.f64("resolution_g")?,
+            c.bool("inconsistent")?,
+        );
+        for i in 0..b.num_rows() {
+            out.insert(
+                bid.value(i).to_string(),
+                MassRow {
+                    mass_g: m.value(i),
+                    n_stable: n.value(i),
+                    std_g: s.value(i),
+                    resolution_g: r.value(i),
+                    inconsistent: inc.value(i),
+                },
+            );
+        }
+    }
+    Ok(out)
+}
+
+/// Each board's measured overall thickness from ingest's specimens.parquet, m (boards the
+/// sheet gives none for are absent; no table: empty).
+pub(crate) fn read_specimen_thickness(path: &Path) -> anyhow::Result<BTreeMap<String, f64>> {
+    let mut out = BTreeMap::new();
+    if !path.is_file() {
+        return Ok(out);
+    }
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (bid, h) = (c.str("board_id")?, c.f64("thickness_mm")?);
+        for i in 0..b.num_rows() {
+            if arrow::array::Array::is_valid(h, i) {
+                out.insert(bid.value(i).to_string(), 1e-3 * h.value(i));
+            }
+        }
+    }
+    Ok(out)
+}
+
+pub(crate) fn provenance(stage: &str, fingerprint: &str) -> BTreeMap<String, String> {
+    BTreeMap::from([
+        ("hbmu.stage".to_string(), stage.to_string()),
+        ("hbmu.fingerprint".to_string(), fingerprint.to_string()),
+        (
+            "hbmu.version".to_string(),
+            crate::io::manifest::TOOL_VERSION.to_string(),
+        ),
+        ("hbmu.campaign".to_string(), String::new()),
+    ])
+}
+
+/// Write a table of `spec` with extra float columns (name, unit) after the spec's columns.
+pub(crate) fn write_table(
+    path: &Path,
+    spec: &TableSpec,
+    mut cols: Vec<ArrayRef>,
+    extra: &[(String, String, Vec<f64>)],
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<()> {
+    let fields: Vec<Field> = extra
+        .iter()
+        .map(|(n, u, _)| {
+            let mut md = std::collections::HashMap::new();
+            if !u.is_empty() {
+                md.insert("unit".to_string(), u.clone());
+            }
+            Field::new(n, DataType::Float64, false).with_metadata(md)
+        })
+        .collect();
+    let mut md = tables::table_metadata(spec, prov);
+    let mut units = spec.units();
+    for (n, u, _) in extra {
+        if !u.is_empty() {
+            units.insert(n.clone(), u.clone());
+        }
+    }
+    md.insert("hbmu.units".into(), serde_json::to_string(&units)?);
+    let schema = spec.schema(&fields, &md);
+    for (_, _, v) in extra {
+        cols.push(Arc::new(Float64Array::from(v.clone())));
+    }
+    tables::write_parquet(path, &tables::batch(schema, cols)?)?;
+    Ok(())
+}
+
+pub(crate) fn write_draws(
+    path: &Path,
+    spec: &TableSpec,
+    t: &DrawTable,
+    with_key: bool,
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<()> {
+    let mut cols: Vec<ArrayRef> = vec![
+        Arc::new(Int32Array::from(t.run.clone())),
+        Arc::new(Int32Array::from(t.draw.clone())),
+    ];
+    if with_key {
+        cols.push(Arc::new(StringArray::from_iter_values(
+            t.key.iter().map(|k| k.as_deref().unwrap_or("")),
+        )));
+    }
+    // Spec float columns are taken from the table by name, the rest are extra.
+    let spec_names: Vec<&str> = spec.columns.iter().map(|c| c.name).collect();
+    let mut extra = vec![];
+    for col in &t.cols {
+        if spec_names.contains(&col.0.as_str()) {
+            cols.push(Arc::new(Float64Array::from(col.2.clone())));
+        } else {
+            extra.push(col.clone());
+        }
+    }
+    write_table(path, spec, cols, &extra, prov)
+}
+
+pub(crate) fn write_summary(
+    path: &Path,
+    rows: &[SummaryRow],
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<()> {
+    let f = |g: fn(&crate::bayes::diagnostics::Summary) -> f64| -> ArrayRef {
+        Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| g(&r.s))))
+    };
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.parameter.as_str()),
+        )),
+        Arc::new(StringArray::from_iter(
+            rows.iter().map(|r| r.board_id.as_deref()),
+        )),
+        Arc::new(StringArray::from_iter(
+            rows.iter().map(|r| r.measurement_id.as_deref()),
+        )),
+        f(|s| s.mean),
+        f(|s| s.sd),
+        f(|s| s.q05),
+        f(|s| s.q50),
+        f(|s| s.q95),
+        f(|s| s.r_hat),
+        f(|s| s.ess_bulk),
+        f(|s| s.ess_tail),
+    ];
+    write_table(path, &SUMMARY, cols, &[], prov)
+}
+
+pub(crate) fn write_stages(
+    path: &Path,
+    st: &[StageInfo],
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<()> {
+    let nan_null = |v: f64| if v.is_finite() { Some(v) } else { None };
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(Int32Array::from_iter_values(
+            st.iter().map(|s| s.run as i32),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            st.iter().map(|s| s.stage as i32),
+        )),
+        Arc::new(Float64Array::from_iter_values(st.iter().map(|s| s.beta))),
+        Arc::new(Float64Array::from_iter_values(st.iter().map(|s| s.ess))),
+        Arc::new(Float64Array::from_iter_values(
+            st.iter().map(|s| s.log_evidence_increment),
+        )),
+        Arc::new(Float64Array::from_iter(
+            st.iter().map(|s| nan_null(s.acceptance_unit)),
+        )),
+        Arc::new(Float64Array::from_iter(
+            st.iter().map(|s| nan_null(s.acceptance_global)),
+        )),
+        Arc::new(Float64Array::from_iter(
+            st.iter().map(|s| nan_null(s.acceptance_noncentred)),
+        )),
+        Arc::new(Float64Array::from_iter(
+            st.iter().map(|s| nan_null(s.acceptance_rescale)),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            st.iter().map(|s| s.sweeps as i32),
+        )),
+        Arc::new(Int32Array::from_iter_values(
+            st.iter().map(|s| s.unique_after_resampling as i32),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            st.iter().map(|s| s.model_evals as f64),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            st.iter().map(|s| s.screened_out as f64),
+        )),
+        Arc::new(StringArray::from_iter_values(st.iter().map(|s| s.kind))),
+    ];
+    write_table(path, &STAGES, cols, &[], prov)
+}
+
+pub(crate) fn write_residuals(
+    path: &Path,
+    rows: &[Residual],
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<()> {
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.measurement_id.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.board_id.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.setup.as_str()),
+        )),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| r.label.as_str()),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            rows.iter().map(|r| r.freq_hz),
+        )),
+        Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.mean))),
+        Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.sd))),
+        Arc::new(Float64Array::from_iter_values(
+            rows.iter().map(|r| r.pred_sd),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            rows.iter().map(|r| (r.freq_hz - r.mean) / r.mean),
+        )),
+        Arc::new(Float64Array::from_iter_values(
+            rows.iter().map(|r| (r.freq_hz - r.mean) / r.pred_sd),
+        )),
+        Arc::new(Float64Array::from_iter(rows.iter().map(|r| r.mac))),
+        Arc::new(BooleanArray::from_iter(rows.iter().map(|r| Some(r.used)))),
+    ];
+    write_table(path, &RESIDUALS, cols, &[], prov)
+}
+
+/// Step-1 posterior draws read back from boards.parquet.
+pub(crate) struct Step1 {
+    /// Boards in the order of `values` blocks.
+    pub(crate) board_ids: Vec<String>,
+    /// The updated parameters (ROM names), in column order.
+    pub(crate) params: Vec<String>,
+    /// Coefficients of a board enrichment (e.g. `temperature_coefficient_per_k`), after the
+    /// parameters in every board's block.
+    pub(crate) coefs: Vec<String>,
+    /// Per (run, draw): every board's parameter and coefficient values, board-major.
+    pub(crate) draws: Vec<((i32, i32), Vec<f64>)>,
+}
+
+impl Step1 {
+    /// Values per board in a draw: parameters, then coefficients.
+    pub(crate) fn block(&self) -> usize {
+        self.params.len() + self.coefs.len()
+    }
+}
+
+/// The `enrichment` of a step-1 refit's evidence.json (null for the baseline).
+pub(crate) fn read_step1_enrichment(path: &Path) -> anyhow::Result<serde_json::Value> {
+    Ok(crate::io::read_json(path)?["enrichment"].clone())
+}
+
+/// A point mass a step-1 refit added to the boards: its parameter, point and posterior mean.
+pub(crate) struct Step1PointMass {
+    pub(crate) parameter: String,
+    pub(crate) x_m: f64,
+    pub(crate) y_m: f64,
+    /// Mean over every board and draw, kg (the bolted ROM's centre along it).
+    pub(crate) mean_kg: f64,
+}
+
+/// The point mass of a step-1 enrichment (its `effect` of kind `point_mass`), if any.
+pub(crate) fn step1_point_mass(
+    enrichment: &serde_json::Value,
+    step1: &Step1,
+    step1_path: &Path,
+) -> anyhow::Result<Option<Step1PointMass>> {
+    let e = &enrichment["effect"];
+    if e["kind"].as_str() != Some("point_mass") {
+        return Ok(None);
+    }
+    let parameter = e["parameter"].as_str().unwrap_or_default().to_string();
+    let (Some(x_m), Some(y_m)) = (e["x_m"].as_f64(), e["y_m"].as_f64()) else {
+        bail!(
+            "{}: the step-1 enrichment's point mass has no x_m/y_m",
+            step1_path.display()
+        );
+    };
+    let Some(k) = step1.params.iter().position(|p| *p == parameter) else {
+        bail!(
+            "{}: no column {parameter:?}, the step-1 enrichment's added mass",
+            step1_path.display()
+        );
+    };
+    let d1 = step1.block();
+    let nb = step1.board_ids.len();
+    let (mut sum, mut n) = (0.0, 0usize);
+    for (_, v) in &step1.draws {
+        for b in 0..nb {
+            sum += v[b * d1 + k];
+            n += 1;
+        }
+    }
+    Ok(Some(Step1PointMass {
+        parameter,
+        x_m,
+        y_m,
+        mean_kg: sum / n.max(1) as f64,
+    }))
+}
+
+pub(crate) fn read_step1(path: &Path) -> anyhow::Result<Step1> {
+    let batches = tables::read_parquet(path)?;
+    let Some(first) = batches.first() else {
+        bail!("{}: no rows: the step-1 posterior is empty", path.display());
+    };
+    let (coefs, params): (Vec<String>, Vec<String>) = first
+        .schema()
+        .fields()
+        .iter()
+        .filter(|f| f.data_type() == &DataType::Float64 && f.name() != "mass_g")
+        .map(|f| f.name().clone())
+        .partition(|n| crate::diagnose::library::is_board_coefficient(n));
+    if params.is_empty() {
+        bail!(
+            "{}: no parameter columns (expected e.g. e_x_pa, mass_scale)",
+            path.display()
+        );
+    }
+    let mut by: BTreeMap<(i32, i32), BTreeMap<String, Vec<f64>>> = BTreeMap::new();
+    let mut board_ids: BTreeSet<String> = BTreeSet::new();
+    for b in &batches {
+        let c = Cols { batch: b, path };
+        let (run, draw, bid) = (c.i32("run")?, c.i32("draw")?, c.str("board_id")?);
+        let cols: Vec<&Float64Array> = params
+            .iter()
+            .chain(&coefs)
+            .map(|p| c.f64(p))
+            .collect::<Result<_, _>>()?;
+        for i in 0..b.num_rows() {
+            board_ids.insert(bid.value(i).to_string());
+            by.entry((run.value(i), draw.value(i))).or_default().insert(
+                bid.value(i).to_string(),
+                cols.iter().map(|a| a.value(i)).collect(),
+            );
+        }
+    }
+    let board_ids: Vec<String> = board_ids.into_iter().collect();
+    let mut draws = vec![];
+    for (k, m) in by {
+        let mut v = Vec::with_capacity(board_ids.len() * params.len());
+        for bid in &board_ids {
+            let Some(x) = m.get(bid) else {
+                bail!(
+                    "{}: draw (run {}, draw {}) has no row for board {bid}",
+                    path.display(),
+                    k.0,
+                    k.1
+                );
+            };
+            v.extend(x);
+        }
+        draws.push((k, v));
+    }
+    Ok(Step1 {
+        board_ids,
+        params,
+        coefs,
+        draws,
+    })
+}
+
+/// The accepted pairs of pairs.parquet (with an identified mode, a frequency and a model mode).
+pub fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairRow>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (mid, bid, setup, mode, f, mm, label, acc) = (
+            c.str("measurement_id")?,
+            c.str("board_id")?,
+            c.str("setup")?,
+            c.i32("mode")?,
+            c.f64("freq_hz")?,
+            c.i32("model_mode")?,
+            c.str("label")?,
+            c.bool("accepted")?,
+        );
+        for i in 0..b.num_rows() {
+            use arrow::array::Array;
+            if !acc.value(i) || mode.is_null(i) || f.is_null(i) || mm.is_null(i) {
+                continue;
+            }
+            out.push(PairRow {
+                measurement_id: mid.value(i).into(),
+                board_id: bid.value(i).into(),
+                setup: setup.value(i).into(),
+                mode: mode.value(i),
+                freq_hz: f.value(i),
+                model_mode: mm.value(i),
+                label: label.value(i).into(),
+            });
+        }
+    }
+    Ok(out)
+}

@@ -222,8 +222,9 @@ fn step_options(work: &Path, dir: &str, manifest: &str) -> anyhow::Result<Update
     })?;
     // A refit's likelihood must be the baseline's: its shape terms take the weights the
     // baseline estimated, not weights of its own (their evidences would not compare).
-    if o.shape_weights == ShapeWeighting::Auto {
-        o.shape_weights = ShapeWeighting::from_evidence(&work.join(dir).join("evidence.json"))?;
+    if o.model.shape_weights == ShapeWeighting::Auto {
+        o.model.shape_weights =
+            ShapeWeighting::from_evidence(&work.join(dir).join("evidence.json"))?;
     }
     Ok(o)
 }
@@ -672,8 +673,8 @@ fn refit_options(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate)
     o.board = opts.board.clone();
     o.out = opts.out.join(format!("refits/{}", cand.id()));
     o.force = opts.force;
-    o.enrich = Some(cand.mechanism);
-    o.enrich_joint = cand.joint;
+    o.model.enrich = Some(cand.mechanism);
+    o.model.enrich_joint = cand.joint;
     o
 }
 
@@ -685,7 +686,7 @@ fn joint_refit_options(
     cand: &Candidate,
 ) -> UpdateOptions {
     let mut o = refit_options(opts, base, cand);
-    o.smc.max_expensive_evals_per_particle_unit = Some(REFIT_ROM_EVALS_PER_PARTICLE_UNIT);
+    o.sampler.smc.max_expensive_evals_per_particle_unit = Some(REFIT_ROM_EVALS_PER_PARTICLE_UNIT);
     o
 }
 
@@ -713,9 +714,9 @@ fn board_refit_options(
     xy_m: Option<[f64; 2]>,
 ) -> UpdateOptions {
     let mut o = refit_options(opts, base1, cand);
-    o.enrich_joint = None;
-    o.enrich_covariate = cand.covariate.clone();
-    o.enrich_location = xy_m;
+    o.model.enrich_joint = None;
+    o.model.enrich_covariate = cand.covariate.clone();
+    o.model.enrich_location = xy_m;
     o
 }
 
@@ -744,7 +745,7 @@ fn run_refit(
             None
         })?;
         let mut o2 = joint_refit_options(opts, base, cand);
-        o2.enrich_joint = None;
+        o2.model.enrich_joint = None;
         run_gated(
             o2,
             |o| crate::stage::update::run_joints(o, &boards, verbose),
@@ -797,7 +798,7 @@ fn run_gated(
 ) -> anyhow::Result<StageOutcome> {
     let r = step(&o)?;
     let summary = o.out.join("summary.parquet");
-    let min_ess = MIN_ESS_PER_RUN * o.runs as f64;
+    let min_ess = MIN_ESS_PER_RUN * o.sampler.runs as f64;
     let why = if let Some((name, rh)) = population_r_hat(&summary)?.filter(|(_, r)| *r > MAX_R_HAT)
     {
         format!("R-hat across runs of {name} {rh:.3} > {MAX_R_HAT}")
@@ -813,13 +814,13 @@ fn run_gated(
         );
         return Ok(r);
     }
-    o.smc.n_particles *= 2;
-    o.runs = (2 * o.runs).max(4);
+    o.sampler.smc.n_particles *= 2;
+    o.sampler.runs = (2 * o.sampler.runs).max(4);
     eprintln!(
         "diagnose: {}: {why}: rerun with {} runs of {} particles",
         o.out.display(),
-        o.runs,
-        o.smc.n_particles
+        o.sampler.runs,
+        o.sampler.smc.n_particles
     );
     step(&o)
 }
@@ -862,7 +863,7 @@ fn new_modes_refit(
     let step = step.and_then(|_| {
         let mut o = joint_refit_options(opts, base, cand);
         o.out = out.join("new_modes");
-        o.enrich_new_modes = true;
+        o.model.enrich_new_modes = true;
         run_gated(
             o.clone(),
             |o| crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose),
@@ -934,7 +935,7 @@ fn refine_point(
     };
     let probe = |p: [f64; 2]| -> anyhow::Result<point_search::Probe> {
         let mut o = board_refit_options(opts, base1, cand, Some(p));
-        o.smc.n_particles = (o.smc.n_particles / 2).max(100);
+        o.sampler.smc.n_particles = (o.sampler.smc.n_particles / 2).max(100);
         o.out = opts.out.join(format!(
             "refits/{}/location/x{:.3}_y{:.3}",
             cand.id(),
@@ -1179,7 +1180,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         inputs,
         input_base: w.clone(),
         config,
-        seed: base.as_ref().map(|b| b.seed),
+        seed: base.as_ref().map(|b| b.sampler.seed),
         manifest_path: opts.out.join(MANIFEST),
     };
     // The cluster fan-out: one refit, no diagnosis.
@@ -1494,7 +1495,7 @@ fn board_regions(
     let inp = regions::RegionInput {
         work,
         board,
-        params: &base1.params,
+        params: &base1.model.params,
         checks: &located.mode_checks,
         residual_model_freq: &model_freq,
         locate: lopts,

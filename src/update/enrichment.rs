@@ -53,11 +53,9 @@ use crate::fem::Board;
     Ord,
     Serialize,
     serde::Deserialize,
-    clap::ValueEnum,
     schemars::JsonSchema,
 )]
 #[serde(rename_all = "snake_case")]
-#[value(rename_all = "snake_case")]
 pub enum Mechanism {
     JointRotation,
     JointStiffnessPerJoint,
@@ -93,6 +91,11 @@ impl Mechanism {
             Mechanism::LocalStiffnessLoss => "local_stiffness_loss",
             Mechanism::Prestress => "prestress",
         }
+    }
+
+    /// The mechanism of an id as written in `diagnosis.json` (and on the command line).
+    pub fn from_id(id: &str) -> Option<Mechanism> {
+        Mechanism::ALL.into_iter().find(|m| m.id() == id)
     }
 
     /// The physics in plain words.

@@ -1,0 +1,3 @@
+//! Numerical optimisation shared by the kernels.
+
+pub mod lm;

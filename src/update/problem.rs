@@ -1,0 +1,989 @@
+//! From paired data to the likelihood: the updated labels, each unit's frequency, shape, mass
+//! and thickness observations, the shape-term weights, the model-error prior and the
+//! model-form discrepancy of a step.
+
+use crate::bayes::modal::{FreqObs, MassObs, ShapeObs, UnitData};
+use crate::bayes::shape_weight::{point_key, PointShape, ShapeWeight};
+use crate::bayes::smc::{self};
+use crate::bayes::target::{ErrorPrior, ModalTarget};
+use crate::fem::params::names;
+use crate::fem::{Board, FeModel, Rom, Setup};
+use crate::findings::{Finding, Findings, Severity};
+use crate::modal::rows::{ModeRow, PairRow};
+use crate::update::enrichment::Mechanism;
+use anyhow::{anyhow, bail};
+use std::collections::{BTreeMap, BTreeSet};
+use std::sync::Arc;
+
+/// What a step updates and with which model: the modes and parameters, the priors, the error
+/// model and discrepancy, the ROM box, the enrichment of a diagnosis's refit, the held-out
+/// boards. Step 2's preparation depends on this (and the data) alone.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct ModelSpec {
+    /// Mode labels to update; empty = those `pair` marks `used_for_updating`.
+    pub modes: Vec<String>,
+    /// Step 1: the updated board parameters (ROM parameter names).
+    pub params: Vec<String>,
+    /// Prior sd of the population means, relative to nominal (step 1) or in ln K (step 2).
+    pub prior_width: f64,
+    /// Scale of the population sds' prior (relative, or in ln K): the half-normal's scale;
+    /// the log-normal's median is 0.6745 × it.
+    pub sigma_scale: f64,
+    /// Step 1: the prior family of the board parameters' population sds (step 2: always
+    /// half-normal).
+    #[serde(default)]
+    pub sigma_prior: crate::bayes::population::SigmaPrior,
+    pub lkj_eta: f64,
+    pub eps: ErrorPrior,
+    /// `None`: shape terms off.
+    pub delta: Option<ErrorPrior>,
+    /// ROM half-width (relative) and the largest posterior mass allowed outside it.
+    pub rom_box: f64,
+    pub box_tolerance: f64,
+    /// Cap on the ROM's basis (None: the physics core's default). A smaller basis is faster
+    /// and less accurate; the ROM accuracy test states the error of the default.
+    pub rom_max_basis: Option<usize>,
+    /// Step 2: refit with a joint enrichment of the diagnosis's library (`None`: the baseline).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub enrich: Option<Mechanism>,
+    /// Step 2 with `joint_stiffness_per_joint`: the joint (1-based; `None`: every joint).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub enrich_joint: Option<usize>,
+    /// Step 1 with `temperature_stiffness`: the numeric sheet column the FR-4 moduli follow.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub enrich_covariate: Option<String>,
+    /// Step 1 with `added_mass`: the point (x_m, y_m) of the lumped mass.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub enrich_location: Option<[f64; 2]>,
+    /// Step 2 with an enrichment: the enriched model's modes that no baseline label
+    /// carries (a fixture's own mode) are paired with the identified modes pair left
+    /// unpaired, and join the updating as labels of their own ([`pair_new_modes`]).
+    #[serde(skip_serializing_if = "std::ops::Not::not", default)]
+    pub enrich_new_modes: bool,
+    /// Step 1: a relative model-form error per updated mode, common to a board's
+    /// measurements and independent between boards, integrated out; its prior sd from the
+    /// model's discretization spread (`fem::convergence::mesh_spread`).
+    #[serde(default)]
+    pub model_error: bool,
+    /// The model's stated fidelity: the prior median of the model-form discrepancy's scale,
+    /// a relative frequency ([`crate::bayes::discrepancy`]); `None`: the setup's default
+    /// (free-free [`crate::bayes::discrepancy::FREE_FIDELITY_FREQ`]; bolted none, see
+    /// `run_joints`, [`crate::bayes::discrepancy::BOLTED_FIDELITY_FREQ`] being the bolted
+    /// model's stated fidelity to give it); 0: no discrepancy term.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub discrepancy_freq: Option<f64>,
+    /// Step 1: boards whose measurements and masses are left out of the updating, so that
+    /// the new-board prediction can be validated on them (the report compares them with it).
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub hold_out_boards: Vec<String>,
+    /// Step 1: the coordinates the board population is formed in.
+    #[serde(default)]
+    pub board_coordinates: BoardCoordinates,
+    /// Step 1: the floor of the mass term's sd, relative to the weighed mass
+    /// ([`ModelSpec::DEFAULT_MASS_FLOOR_REL`]; `mass_obs` says why).
+    #[serde(default = "default_mass_floor_rel")]
+    pub mass_floor_rel: f64,
+    /// The power of each mode's shape term ([`crate::bayes::shape_weight`]).
+    #[serde(default)]
+    pub shape_weights: ShapeWeighting,
+}
+
+fn default_mass_floor_rel() -> f64 {
+    ModelSpec::DEFAULT_MASS_FLOOR_REL
+}
+
+impl ModelSpec {
+    /// Default floor of the mass term's sd, relative to the weighed mass (`mass_obs`).
+    pub const DEFAULT_MASS_FLOOR_REL: f64 = 2e-4;
+    /// The ROM box the tests verify the ROM over (relative half-width); step 1 widens it
+    /// when the posterior presses against it ([`crate::update::rom_box::MAX_ROM_BOX`]).
+    pub const DEFAULT_ROM_BOX: f64 = 0.2;
+}
+
+/// How each mode's shape term is weighted against its measurements' shared error
+/// (`--shape-weights`).
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ShapeWeighting {
+    /// 1 / design effect of the residuals at the Laplace reference's centre
+    /// ([`crate::bayes::shape_weight`]).
+    #[default]
+    Auto,
+    /// Every shape term at full weight: the measurements' shape errors independent.
+    Off,
+    /// Given per mode label (a diagnosis's refit takes its baseline's, so that their
+    /// evidences are of the same likelihood); a label not given: 1.
+    Given(BTreeMap<String, f64>),
+}
+
+/// The coordinates of step 1's board population (`bayes::target::PerMass` says why).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BoardCoordinates {
+    /// With the mass scale updated, every modulus (a parameter in Pa) per unit mass scale:
+    /// the population's coordinate `<modulus>_per_mass_scale_pa` is modulus / mass_scale.
+    #[default]
+    PerMass,
+    /// Every parameter as it is.
+    Natural,
+}
+
+/// Identified modes with their shapes: (measurement, mode) → its row of modes.parquet.
+pub(crate) type ShapeMap<'a> = BTreeMap<(String, i32), &'a ModeRow>;
+
+/// The rows of the `wanted` (measurement, mode) keys among the rows of modes.parquet.
+pub(crate) fn shape_map<'a>(rows: &'a [ModeRow], wanted: &BTreeSet<(String, i32)>) -> ShapeMap<'a> {
+    rows.iter()
+        .map(|r| ((r.measurement_id.clone(), r.mode), r))
+        .filter(|(key, _)| wanted.contains(key))
+        .collect()
+}
+
+#[derive(Debug, Clone)]
+pub(crate) struct MassRow {
+    pub(crate) mass_g: f64,
+    pub(crate) n_stable: i32,
+    pub(crate) std_g: f64,
+    pub(crate) resolution_g: f64,
+    pub(crate) inconsistent: bool,
+}
+
+/// Where `model` has the core thickness as a parameter: its index, nominal value (m) and the
+/// core's share of the board's nominal mass (the part that follows the thickness).
+pub(crate) fn core_thickness_mass(model: &FeModel) -> anyhow::Result<Option<(usize, f64, f64)>> {
+    let p = model.nominal_params();
+    let Ok(i) = p.position(names::CORE_THICKNESS) else {
+        return Ok(None);
+    };
+    let h0 = p.values[i];
+    let mut twice = p.clone();
+    twice.values[i] = 2.0 * h0;
+    let (m0, m2) = (model.total_mass_kg(&p)?, model.total_mass_kg(&twice)?);
+    Ok(Some((i, h0, (m2 - m0) / m0)))
+}
+
+/// Standard deviation of a board's measured core thickness, m: 5 µm, 0.3 % of a 1.5 mm
+/// core. A micrometer's own error is ±2 µm (ISO 3611's maximum permissible error below
+/// 25 mm); a laminate's thickness varies over the board by more than that, and the sheet
+/// gives one number for the whole board. Free-free frequencies fix E h² (D ∝ E h³, mass ∝ h),
+/// so this is what keeps a modulus's interval honest: ±0.6 % in E for ±0.3 % in h.
+pub const THICKNESS_SD_M: f64 = 5e-6;
+
+/// Per unit (board), its measured core thickness as an observation of its thickness
+/// coordinate (k, relative value, relative sd; the coordinate is h / h₀ − 1). A board the
+/// sheet gives no thickness for, or one outside the ROM's box (not verified there), has none,
+/// each said in a warning: the population informs it, as it does an unweighed board's mass.
+pub(crate) fn thickness_obs(
+    param_names: &[String],
+    h0_m: f64,
+    unit_names: &[String],
+    thickness_m: &BTreeMap<String, f64>,
+    rom_box: f64,
+    findings: &mut Findings,
+) -> Vec<Vec<(usize, f64, f64)>> {
+    let Some(k) = param_names.iter().position(|p| p == names::CORE_THICKNESS) else {
+        return vec![];
+    };
+    let mut listed = vec![];
+    let out = unit_names
+        .iter()
+        .map(|b| match thickness_m.get(b) {
+            None => {
+                findings.push(Finding::new(
+                    Severity::Warning,
+                    "update.thickness_unknown",
+                    format!("board {b}: the sheet gives no thickness_mm while other boards have one; its core thickness is informed by the population and its frequencies only"),
+                ));
+                vec![]
+            }
+            Some(&h) if (h / h0_m - 1.0).abs() > rom_box => {
+                findings.push(Finding::new(
+                    Severity::Warning,
+                    "update.thickness_outside_box",
+                    format!("board {b}: its core thickness {:.3} mm (thickness_mm less the board file's copper) is {:+.1} % off the board file's {:.3} mm, outside the ROM's ±{:.0} % box (expected a laminate within its tolerance, thickness_mm the overall thickness over the copper: check the sheet, or the board file's core.thickness_m); not used", 1e3 * h, 100.0 * (h / h0_m - 1.0), 1e3 * h0_m, 100.0 * rom_box),
+                ));
+                vec![]
+            }
+            Some(&h) => {
+                listed.push(format!("{b} {:.3}", 1e3 * h));
+                vec![(k, h / h0_m - 1.0, THICKNESS_SD_M / h0_m)]
+            }
+        })
+        .collect();
+    findings.push(Finding::new(
+        Severity::Info,
+        "update.specimen_thickness",
+        format!(
+            "core thickness per board from the sheet (thickness_mm, the overall thickness, less the board file's copper layers), mm (board file: {:.3}), each a measurement of the board's core_thickness_m with sd {:.3} mm: {}",
+            1e3 * h0_m,
+            1e3 * THICKNESS_SD_M,
+            listed.join(", ")
+        ),
+    ));
+    out
+}
+
+/// The updated labels and, per label, the model mode (0-based) it pairs with at the centre.
+pub(crate) struct Labels {
+    pub(crate) labels: Vec<String>,
+    pub(crate) model_mode: Vec<usize>,
+}
+
+pub(crate) fn select_labels(
+    pairs: &[PairRow],
+    setup: &str,
+    requested: &[String],
+    presence: &[String],
+    findings: &mut Findings,
+) -> anyhow::Result<Labels> {
+    let chosen: Vec<String> = if requested.is_empty() {
+        presence.to_vec()
+    } else {
+        requested.to_vec()
+    };
+    if chosen.is_empty() {
+        bail!(
+            "no {setup} mode is marked for updating (presence.parquet) and none was requested with --modes: nothing to update"
+        );
+    }
+    let mut labels = vec![];
+    let mut model_mode = vec![];
+    for l in chosen {
+        let mut counts: BTreeMap<i32, usize> = BTreeMap::new();
+        for p in pairs.iter().filter(|p| p.setup == setup && p.label == l) {
+            *counts.entry(p.model_mode).or_default() += 1;
+        }
+        match counts.iter().max_by_key(|(_, n)| **n) {
+            Some((mm, _)) if *mm >= 1 => {
+                labels.push(l);
+                model_mode.push((*mm - 1) as usize);
+            }
+            _ => findings.push(Finding::new(
+                Severity::Warning,
+                "update.label_unpaired",
+                format!("mode {l:?} has no accepted {setup} pair; left out of the updating"),
+            )),
+        }
+    }
+    if labels.is_empty() {
+        bail!("none of the {setup} modes to update has an accepted pair in pairs.parquet");
+    }
+    Ok(Labels { labels, model_mode })
+}
+
+/// The scan points of an identified mode's shape where the shape is finite and the model can
+/// be evaluated, and the shape's values there.
+pub(crate) fn usable_points(model: &FeModel, row: &ModeRow) -> (Vec<[f64; 2]>, Vec<f64>) {
+    let mut pts = vec![];
+    let mut u = vec![];
+    for ((v, x), y) in row.shape.iter().zip(&row.x_m).zip(&row.y_m) {
+        if v.is_finite() && model.shape_operator(&[[*x, *y]]).is_ok() {
+            pts.push([*x, *y]);
+            u.push(*v);
+        }
+    }
+    (pts, u)
+}
+
+/// A shape observation of one identified mode at its valid scan points, or `None` (with a
+/// finding) when fewer than 3 points remain.
+pub(crate) fn shape_obs(
+    model: &FeModel,
+    rom: &Rom,
+    mode: usize,
+    shape: &ModeRow,
+    measurement_id: &str,
+    grams: &mut Vec<Vec<f64>>,
+    findings: &mut Findings,
+) -> anyhow::Result<Option<ShapeObs>> {
+    let (pts, u) = usable_points(model, shape);
+    let nrm = u.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if pts.len() < 3 || nrm == 0.0 {
+        findings.push(
+            Finding::new(
+                Severity::Warning,
+                "update.shape_points",
+                format!(
+                    "only {} usable scan points for a mode shape (expected at least 3); its shape term is left out",
+                    pts.len()
+                ),
+            )
+            .measurement(measurement_id.to_string()),
+        );
+        return Ok(None);
+    }
+    let op = rom.shape_operator(model, &pts)?;
+    let r = rom.dim();
+    let n = pts.len();
+    let points = PointShape {
+        mode,
+        keys: pts.iter().map(|q| point_key(q[0], q[1])).collect(),
+        u: u.iter().map(|v| v / nrm).collect(),
+        p: (0..n)
+            .flat_map(|i| (0..r).map(move |a| (i, a)))
+            .map(|(i, a)| op.p[(i, a)])
+            .collect(),
+    };
+    let mut pt_u = vec![0.0; r];
+    let mut gram = vec![0.0; r * r];
+    for (i, ui) in u.iter().enumerate() {
+        for a in 0..r {
+            let pa = op.p[(i, a)];
+            pt_u[a] += pa * ui / nrm;
+            for b in 0..r {
+                gram[a * r + b] += pa * op.p[(i, b)];
+            }
+        }
+    }
+    let gram = match grams.iter().position(|g| *g == gram) {
+        Some(i) => i,
+        None => {
+            grams.push(gram);
+            grams.len() - 1
+        }
+    };
+    Ok(Some(ShapeObs {
+        mode,
+        pt_u,
+        gram,
+        n_points: n,
+        ln_n: (n as f64).ln(),
+        cond: 0,
+        weight: 1.0,
+        points: Some(Arc::new(points)),
+    }))
+}
+
+/// Set the power of every shape term of `target` as `how` says, and return each mode's
+/// weight with what it came from (empty without shape terms). `Auto` locates the units with
+/// the Laplace reference at full weight (from `start`, with the mean auxiliary values),
+/// takes each shape's residual against the model there, and weighs each mode by
+/// [`crate::bayes::shape_weight::design_weights`].
+pub(crate) fn weigh_shapes(
+    target: &mut ModalTarget,
+    how: &ShapeWeighting,
+    (aux_mean, start): (&[f64], Option<&[f64]>),
+    labels: &[String],
+    seed: u64,
+    what: &str,
+) -> anyhow::Result<Vec<ShapeWeight>> {
+    use crate::bayes::shape_weight::{design_weights, residual, ModeResidual};
+    use rayon::prelude::*;
+    if target.units.iter().all(|u| u.shapes.is_empty()) {
+        return Ok(vec![]);
+    }
+    let count = |m: usize| -> usize {
+        target
+            .units
+            .iter()
+            .flat_map(|u| &u.shapes)
+            .filter(|o| o.mode == m)
+            .count()
+    };
+    let given = |w: &dyn Fn(&str) -> f64| -> Vec<ShapeWeight> {
+        labels
+            .iter()
+            .enumerate()
+            .map(|(m, l)| ShapeWeight {
+                label: l.clone(),
+                n_observations: count(m),
+                n_pairs: 0,
+                correlation: None,
+                design_effect: 1.0 / w(l),
+                weight: w(l),
+            })
+            .collect()
+    };
+    let weights = match how {
+        ShapeWeighting::Off => given(&|_| 1.0),
+        ShapeWeighting::Given(map) => given(&|l| map.get(l).copied().unwrap_or(1.0)),
+        ShapeWeighting::Auto => {
+            let ropts = crate::bayes::reference::ReferenceOptions {
+                start: start.map(<[f64]>::to_vec),
+                ..Default::default()
+            };
+            let (q, _) =
+                crate::bayes::reference::laplace_reference(&*target, aux_mean, &ropts, seed)
+                    .map_err(|e| {
+                        anyhow!("{what}: locating the units to weigh the shape terms: {e}")
+                    })?;
+            let t = &*target;
+            let res: Vec<ModeResidual> = (0..t.units.len())
+                .into_par_iter()
+                .flat_map_iter(|b| {
+                    let pred = t
+                        .predictor
+                        .predict(&t.values(aux_mean, b, &q.units[b].mean));
+                    t.units[b]
+                        .shapes
+                        .iter()
+                        .filter_map(|o| {
+                            let (pred, ps) = (pred.as_ref()?, o.points.as_ref()?);
+                            Some(ModeResidual {
+                                mode: o.mode,
+                                keys: ps.keys.clone(),
+                                r: residual(ps, &pred.vectors[o.mode], &t.predictor.refs[o.mode])?,
+                            })
+                        })
+                        .collect::<Vec<_>>()
+                })
+                .collect();
+            design_weights(&res, labels)
+        }
+    };
+    for u in &mut target.units {
+        for o in &mut u.shapes {
+            o.weight = weights[o.mode].weight;
+        }
+    }
+    Ok(weights)
+}
+
+/// The shape terms' weights in the log (verbose) and, where a mode's measurements share
+/// most of their shape error, a finding: its shapes then count as few measurements.
+pub(crate) fn report_shape_weights(
+    w: &[ShapeWeight],
+    what: &str,
+    verbose: bool,
+    findings: &mut Findings,
+) {
+    if verbose && !w.is_empty() {
+        let s: Vec<String> = w
+            .iter()
+            .map(|w| {
+                format!(
+                    "{} {:.3} (ρ {:.3}, J {})",
+                    w.label,
+                    w.weight,
+                    w.correlation.unwrap_or(f64::NAN),
+                    w.n_observations
+                )
+            })
+            .collect();
+        eprintln!("{what}: shape-term weights {}", s.join(", "));
+    }
+    let low: Vec<String> = w
+        .iter()
+        .filter(|w| w.weight < 0.5)
+        .map(|w| {
+            format!(
+                "{} (ρ = {:.2} over {} measurements: worth {:.1})",
+                w.label,
+                w.correlation.unwrap_or(f64::NAN),
+                w.n_observations,
+                w.n_observations as f64 * w.weight
+            )
+        })
+        .collect();
+    if !low.is_empty() {
+        findings.push(Finding::new(
+            Severity::Info,
+            "update.shape_weights",
+            format!("{what}: the shape residuals of {} agree between measurements (an error they share: extraction or model), so their shape terms count as fewer independent measurements (evidence.json shape_weights)", low.join(", ")),
+        ));
+    }
+}
+
+/// Where a frequency observation came from, and the index of its shape observation.
+#[derive(Clone, Debug)]
+pub(crate) struct ObsMeta {
+    pub(crate) measurement_id: String,
+    pub(crate) board_id: String,
+    pub(crate) label: usize,
+    pub(crate) freq_hz: f64,
+    pub(crate) shape: Option<usize>,
+}
+
+/// The data of one group of measurements (a board's free-free measurements, or one bolted
+/// measurement) for the given labels.
+pub(crate) fn unit_data(
+    rows: &[&PairRow],
+    labels: &[String],
+    shapes: Option<(&FeModel, &Rom, &ShapeMap<'_>)>,
+    findings: &mut Findings,
+) -> anyhow::Result<(UnitData, Vec<ObsMeta>)> {
+    let mut d = UnitData::default();
+    let mut meta = vec![];
+    for p in rows {
+        let Some(m) = labels.iter().position(|l| *l == p.label) else {
+            continue;
+        };
+        let w = 2.0 * std::f64::consts::PI * p.freq_hz;
+        d.freq.push(FreqObs::new(m, w * w));
+        meta.push(ObsMeta {
+            measurement_id: p.measurement_id.clone(),
+            board_id: p.board_id.clone(),
+            label: m,
+            freq_hz: p.freq_hz,
+            shape: None,
+        });
+        if let Some((model, rom, map)) = shapes {
+            match map.get(&(p.measurement_id.clone(), p.mode)) {
+                Some(s) => {
+                    if let Some(o) = shape_obs(model, rom, m, s, &p.measurement_id, &mut d.grams, findings)? {
+                        meta.last_mut().expect("pushed above").shape = Some(d.shapes.len());
+                        d.shapes.push(o);
+                    }
+                }
+                None => findings.push(
+                    Finding::new(
+                        Severity::Warning,
+                        "update.shape_missing",
+                        format!("identified mode {} has no shape in modes.parquet; its shape term is left out", p.mode),
+                    )
+                    .measurement(p.measurement_id.clone()),
+                ),
+            }
+        }
+    }
+    Ok((d, meta))
+}
+
+pub(crate) fn mass_obs(
+    m: &MassRow,
+    board_id: &str,
+    floor_rel: f64,
+    findings: &mut Findings,
+) -> Option<MassObs> {
+    if m.n_stable < 1 || !m.mass_g.is_finite() {
+        return None;
+    }
+    let res2 = m.resolution_g * m.resolution_g / 12.0;
+    let sd2 = if m.inconsistent {
+        findings.push(Finding::new(
+            Severity::Warning,
+            "update.mass_inconsistent",
+            format!("board {board_id}: the balance readings disagree (ingest flagged them); the mass term uses their full spread, not the spread of the mean"),
+        ));
+        m.std_g * m.std_g + res2
+    } else {
+        m.std_g * m.std_g / m.n_stable as f64 + res2
+    };
+    // A floor of `floor_rel` (default 2e-4) of the mass: the balance's readability is not its
+    // accuracy. Weighing a board (ρ ≈ 1.9 g/cm³) against steel calibration weights (8 g/cm³)
+    // without the air-buoyancy correction alone shifts the reading by ≈ 0.05 %
+    // (ρ_air V (1 − ρ/ρ_ref)); calibration adds to it. Without the floor a 0.1 mg
+    // readability pins mass_scale to 2e-6, a precision no other part of the model has.
+    // Readings corrected for buoyancy against a calibrated balance (or a virtual lab's,
+    // which has neither error) need no floor: `--mass-floor 0`.
+    let sd = sd2.sqrt().max(floor_rel * m.mass_g.abs()).max(1e-9);
+    Some(MassObs {
+        mass_g: m.mass_g,
+        sd_g: sd,
+    })
+}
+
+/// The prior of step 1's model-error term ([`ErrorModel::model_error_sd`]).
+#[derive(Clone, Debug, serde::Serialize)]
+pub(crate) struct ModelErrorPrior {
+    /// How the model's frequencies move on finer meshes.
+    pub(crate) spread: crate::fem::convergence::MeshSpread,
+    /// Every paired free-free label (updating and validation) and its prior sd of the
+    /// relative eigenvalue error b.
+    pub(crate) labels: Vec<String>,
+    pub(crate) sd: Vec<f64>,
+    /// The sds of the updated labels, in their order.
+    #[serde(skip)]
+    pub(crate) sd_updated: Vec<f64>,
+}
+
+/// Floor of a label's model-error sd, relative to the largest of the labels: a mode whose
+/// frequency happens to agree between the meshes compared is not thereby exact.
+pub(crate) const MODEL_ERROR_FLOOR_SHARE: f64 = 0.1;
+
+/// The model-error prior of the labels: b_m ~ N(0, s_m²), s_m = 2 × the mode's relative
+/// frequency spread over the √2 and 2 × finer meshes (λ = ω², so twice the frequency's
+/// relative error), floored at a tenth of the largest s of the labels (and 1e-7).
+pub(crate) fn model_error_prior(
+    board: &Board,
+    nominal: &crate::fem::Params,
+    updated: &Labels,
+    all: &Labels,
+) -> anyhow::Result<ModelErrorPrior> {
+    let n = modes_needed(updated, all);
+    // The mesh study's models are the standard ones: a known thickness is at its nominal in
+    // `nominal`, so it is simply left out.
+    let (names_std, values_std) = nominal
+        .names
+        .iter()
+        .zip(&nominal.values)
+        .filter(|(n, _)| *n != names::CORE_THICKNESS)
+        .map(|(n, v)| (n.clone(), *v))
+        .unzip();
+    let nominal = &crate::fem::Params {
+        names: names_std,
+        values: values_std,
+    };
+    let spread = crate::fem::convergence::mesh_spread(board, &Setup::Free, &board.mesh, nominal, n)
+        .map_err(|e| anyhow!("the model-error term's mesh study: {e}"))?;
+    let raw = |mm: usize| 2.0 * spread.rel_spread.get(mm).copied().unwrap_or(0.0);
+    let top = all
+        .model_mode
+        .iter()
+        .chain(&updated.model_mode)
+        .map(|&mm| raw(mm))
+        .fold(0.0, f64::max);
+    let floor = (MODEL_ERROR_FLOOR_SHARE * top).max(1e-7);
+    let sd_of = |mm: usize| raw(mm).max(floor);
+    Ok(ModelErrorPrior {
+        labels: all.labels.clone(),
+        sd: all.model_mode.iter().map(|&mm| sd_of(mm)).collect(),
+        sd_updated: updated.model_mode.iter().map(|&mm| sd_of(mm)).collect(),
+        spread,
+    })
+}
+
+/// The model-form discrepancy of `target`'s updated modes ([`crate::bayes::discrepancy`]),
+/// orthogonal to the relative eigenvalue sensitivities of unit 0's coordinates at x = 0 (the
+/// reference point; step 2 with the auxiliary values `aux`, the step-1 posterior mean), its
+/// scale's prior median `fidelity_freq` (relative frequency). `None` (with an info finding)
+/// where the fidelity is 0, or where the units' coordinates span every mode.
+pub(crate) fn discrepancy_for(
+    target: &ModalTarget,
+    aux: &[f64],
+    fidelity_freq: f64,
+    what: &str,
+    findings: &mut Findings,
+) -> anyhow::Result<Option<crate::bayes::discrepancy::Discrepancy>> {
+    use crate::bayes::discrepancy::{sensitivities, Discrepancy};
+    if fidelity_freq == 0.0 {
+        return Ok(None);
+    }
+    if !(fidelity_freq.is_finite() && fidelity_freq > 0.0) {
+        bail!("{what}: the model's fidelity (--discrepancy-pct) must be a finite share ≥ 0, found {fidelity_freq}");
+    }
+    let nm = target.errors.n_modes;
+    let d = smc::Target::unit_dim(target);
+    let lambda = |x: &[f64]| -> Option<Vec<f64>> {
+        let t = smc::Target::model(target, aux, 0, x)?;
+        let l = t.lambda[..nm].to_vec();
+        l.iter().all(|v| v.is_finite() && *v > 0.0).then_some(l)
+    };
+    let sens_at = |x0: &[f64]| {
+        sensitivities(lambda, x0, nm, 1e-3)
+            .filter(|s| s.iter().all(|v| v.is_finite()))
+            .ok_or_else(|| anyhow!("{what}: the model-form discrepancy: the model is undefined (or a label lost) within 0.1 % of {x0:?}"))
+    };
+    // The plain metric: every mode's discrepancy weighs alike. The data's precision per
+    // mode (n_m over the within-board scatter ε̂_m², plus the model-error term) as the metric
+    // gave a discrepancy space whose evidence was lower by 13 nats on the realistic paper
+    // campaign (400 × 2), and no less correlation with the boards' moduli.
+    let w = vec![1.0; nm];
+    // The sensitivities where the units are, not at the reference point: the units sit a few
+    // per cent from it (a plate's moduli fitted to a real board), and the sensitivities move
+    // by as much, which leaves a discrepancy orthogonal at the reference point correlated
+    // with the units' common shift at the 1e-4 level its posterior resolves (±0.9 on the
+    // solid-truth campaign; the sampler then crawled). The units' common offset is the
+    // weighted least-squares fit of the mean log-eigenvalue residuals at the reference point.
+    let x0 = vec![0.0; d];
+    let mut sens = sens_at(&x0)?;
+    if let Some(l0) = lambda(&x0) {
+        let mut r = vec![0.0; nm];
+        let mut n = vec![0usize; nm];
+        for u in &target.units {
+            for f in u.freq.iter().filter(|f| f.cond == 0) {
+                r[f.mode] += f.ln_lambda_hat - l0[f.mode].ln();
+                n[f.mode] += 1;
+            }
+        }
+        let r: Vec<f64> = r
+            .iter()
+            .zip(&n)
+            .map(|(a, k)| a / (*k).max(1) as f64)
+            .collect();
+        if let Some(v) = weighted_offset(&sens, &r, &w, d) {
+            // Within the ROM's verified box.
+            let v: Vec<f64> = v.iter().map(|a| a.clamp(-0.15, 0.15)).collect();
+            if let Ok(s) = sens_at(&v) {
+                sens = s;
+            }
+        }
+    }
+    let disc = Discrepancy::new(&sens, nm, d, &w, fidelity_freq);
+    if disc.is_none() {
+        findings.push(Finding::new(
+            Severity::Info,
+            "update.discrepancy_none",
+            format!("{what}: the units' {d} coordinate(s) span all {nm} updated modes: no discrepancy is left that the parameters cannot absorb, so none is inferred"),
+        ));
+    }
+    Ok(disc)
+}
+
+/// argmin over v of Σ_m w_m (r_m − (S v)_m)² (S: n_m × d row-major), with a ridge of 1e-12
+/// of the normal matrix's trace so that a coordinate the modes do not see (the mass scale,
+/// whose moduli are per unit mass) stays at 0. `None` where the solve fails.
+pub(crate) fn weighted_offset(s: &[f64], r: &[f64], w: &[f64], d: usize) -> Option<Vec<f64>> {
+    let nm = r.len();
+    let mut a = vec![0.0; d * d];
+    let mut b = vec![0.0; d];
+    for m in 0..nm {
+        for i in 0..d {
+            b[i] += w[m] * s[m * d + i] * r[m];
+            for j in 0..d {
+                a[i * d + j] += w[m] * s[m * d + i] * s[m * d + j];
+            }
+        }
+    }
+    let tr: f64 = (0..d).map(|i| a[i * d + i]).sum();
+    for i in 0..d {
+        a[i * d + i] += 1e-12 * tr.max(1e-300);
+    }
+    let (l, jitter) = crate::bayes::stats::cholesky_jittered(&a, d);
+    if !jitter.is_finite() {
+        return None;
+    }
+    let y = crate::bayes::stats::lower_solve(&l, d, &b);
+    let v = crate::bayes::stats::lower_transpose_solve(&l, d, &y);
+    v.iter().all(|x| x.is_finite()).then_some(v)
+}
+
+/// Model modes a ROM must carry for the updated labels and every paired label.
+pub(crate) fn modes_needed(labels: &Labels, all: &Labels) -> usize {
+    labels
+        .model_mode
+        .iter()
+        .chain(&all.model_mode)
+        .copied()
+        .max()
+        .unwrap_or(0)
+        + 1
+}
+
+/// Labels of every accepted pair of a setup, with their model mode (0-based), in model order.
+/// Every paired label of `setup` with its model mode (the one most of its pairs name). A
+/// model mode carries one label: where two labels name the same mode (the pair stage
+/// labels measured modes one measurement at a time, and near-degenerate modes can trade
+/// labels), the label with more pairs keeps it and the other is reported in `findings` and
+/// left out of the residuals. Two labels on one mode gave that mode's reference shape to
+/// both, and the second was tracked onto an unrelated mode (a residual of −40 %).
+pub(crate) fn all_labels(
+    pairs: &[PairRow],
+    setup: &str,
+    n_modes: usize,
+    findings: &mut Findings,
+) -> Labels {
+    let mut by: BTreeMap<String, BTreeMap<i32, usize>> = BTreeMap::new();
+    for p in pairs.iter().filter(|p| p.setup == setup) {
+        *by.entry(p.label.clone())
+            .or_default()
+            .entry(p.model_mode)
+            .or_default() += 1;
+    }
+    // (model mode, pairs, label), the mode's most-paired label first.
+    let mut v: Vec<(usize, usize, String)> = by
+        .into_iter()
+        .filter_map(|(l, c)| {
+            let (mm, n) = c.into_iter().max_by_key(|(_, n)| *n)?;
+            (mm >= 1 && (mm as usize) <= n_modes).then(|| ((mm - 1) as usize, n, l))
+        })
+        .collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)).then(a.2.cmp(&b.2)));
+    let mut kept: Vec<(usize, String)> = vec![];
+    for (m, n, l) in v {
+        match kept.iter().find(|(k, _)| *k == m) {
+            Some((_, winner)) => findings.push(Finding::new(
+                Severity::Warning,
+                "update.label_shares_mode",
+                format!(
+                    "{setup}: label {l:?} ({n} pair(s)) names model mode {} like {winner:?}, which has more pairs; its pairs have no residual rows",
+                    m + 1
+                ),
+            )),
+            None => kept.push((m, l)),
+        }
+    }
+    Labels {
+        labels: kept.iter().map(|(_, l)| l.clone()).collect(),
+        model_mode: kept.iter().map(|(m, _)| *m).collect(),
+    }
+}
+
+/// A unit's data for the updated labels and, for the residuals, for every paired label with
+/// shapes; the residual data's findings are reported too, once each.
+#[allow(clippy::type_complexity)]
+pub(crate) fn unit_and_residual_data(
+    rows: &[&PairRow],
+    labels: &Labels,
+    all: &Labels,
+    use_shapes: bool,
+    (model, rom, shapes): (&FeModel, &Rom, &ShapeMap<'_>),
+    covariate: Option<&BTreeMap<String, f64>>,
+    findings: &mut Findings,
+) -> anyhow::Result<(UnitData, (UnitData, Vec<ObsMeta>))> {
+    let sh = use_shapes.then_some((model, rom, shapes));
+    let (mut data, meta) = unit_data(rows, &labels.labels, sh, findings)?;
+    let mut residual_findings = Findings::default();
+    let mut all_data = unit_data(
+        rows,
+        &all.labels,
+        Some((model, rom, shapes)),
+        &mut residual_findings,
+    )?;
+    if let Some(c) = covariate {
+        set_conditions(&mut data, &meta, c);
+        set_conditions(&mut all_data.0, &all_data.1, c);
+    }
+    for f in residual_findings.0 {
+        if !findings.0.contains(&f) {
+            findings.push(f);
+        }
+    }
+    Ok((data, all_data))
+}
+
+/// A unit's conditions: the distinct covariate offsets of its measurements (in order of
+/// first appearance), and each observation's condition.
+pub(crate) fn set_conditions(
+    data: &mut UnitData,
+    meta: &[ObsMeta],
+    offsets: &BTreeMap<String, f64>,
+) {
+    data.conditions.clear();
+    for (k, m) in meta.iter().enumerate() {
+        let c = offsets.get(&m.measurement_id).copied().unwrap_or(0.0);
+        let i = match data.conditions.iter().position(|x| *x == c) {
+            Some(i) => i,
+            None => {
+                data.conditions.push(c);
+                data.conditions.len() - 1
+            }
+        };
+        data.freq[k].cond = i;
+        if let Some(sh) = m.shape {
+            data.shapes[sh].cond = i;
+        }
+    }
+}
+
+/// Points at which mode shapes of different joint models are compared: a 13 × 9 grid inset
+/// by 4 % of the outline, without the points inside a hole's clamped disc.
+pub(crate) fn match_points(board: &Board) -> Vec<[f64; 2]> {
+    let (lx, ly) = (board.length_x_m, board.width_y_m);
+    let r_clamp = 0.5 * board.joint().clamp_diameter_m;
+    let mut out = vec![];
+    for j in 0..9 {
+        for i in 0..13 {
+            let x = lx * (0.04 + 0.92 * i as f64 / 12.0);
+            let y = ly * (0.04 + 0.92 * j as f64 / 8.0);
+            if board
+                .holes
+                .iter()
+                .all(|h| (x - h.x_m).hypot(y - h.y_m) > r_clamp.max(0.5 * h.diameter_m) * 1.05)
+            {
+                out.push([x, y]);
+            }
+        }
+    }
+    out
+}
+
+/// The identified modes of `setup` among the rows of modes.parquet (finite frequency only).
+pub(crate) fn identified_modes<'a>(rows: &'a [ModeRow], setup: &str) -> Vec<&'a ModeRow> {
+    rows.iter()
+        .filter(|r| r.setup == setup && r.freq_hz.is_finite())
+        .collect()
+}
+
+#[cfg(test)]
+mod mass_term_tests {
+    use super::*;
+
+    /// The balance term's sd: the spread of the mean and the readability's uniform rounding
+    /// error, never below the floor (relative to the mass); with the floor at 0, the readings'
+    /// own sd; readings ingest flagged as inconsistent keep their full spread.
+    #[test]
+    fn the_mass_term_sd_is_the_readings_sd_floored() {
+        let row = MassRow {
+            mass_g: 12.5,
+            n_stable: 6,
+            std_g: 6e-5,
+            resolution_g: 1e-4,
+            inconsistent: false,
+        };
+        let own = (6e-5f64 * 6e-5 / 6.0 + 1e-4 * 1e-4 / 12.0).sqrt();
+        let mut f = Findings::default();
+        let floored = mass_obs(&row, "PCB-01", ModelSpec::DEFAULT_MASS_FLOOR_REL, &mut f)
+            .expect("a mass term");
+        assert_eq!(floored.sd_g, 2e-4 * 12.5);
+        assert_eq!(floored.mass_g, 12.5);
+        let bare = mass_obs(&row, "PCB-01", 0.0, &mut f).expect("a mass term");
+        assert!((bare.sd_g - own).abs() < 1e-15, "{} vs {own}", bare.sd_g);
+        let spread = MassRow {
+            inconsistent: true,
+            ..row
+        };
+        let s = mass_obs(&spread, "PCB-01", 0.0, &mut f).expect("a mass term");
+        assert!((s.sd_g - (6e-5f64 * 6e-5 + 1e-4 * 1e-4 / 12.0).sqrt()).abs() < 1e-15);
+        assert_eq!(f.0.len(), 1, "the inconsistent readings are reported");
+        let none = MassRow { n_stable: 0, ..row };
+        assert!(mass_obs(&none, "PCB-01", 0.0, &mut f).is_none());
+    }
+}
+
+#[cfg(test)]
+mod thickness_tests {
+    use super::*;
+
+    /// A board's measured core thickness becomes an observation of its thickness coordinate
+    /// (relative to the board file's, sd THICKNESS_SD_M relative); a board the sheet gives
+    /// none for, or one outside the ROM's box, gets none and a warning naming it. The core's
+    /// mass share: the same board without its copper weighs its core.
+    #[test]
+    fn measured_thickness_is_an_observation_of_the_boards_coordinate() {
+        let board = Board::default_board();
+        let h0 = board.core.thickness_m;
+        let params: Vec<String> = ["e_x_pa", "mass_scale", names::CORE_THICKNESS]
+            .map(String::from)
+            .to_vec();
+        let units: Vec<String> = ["A", "B", "C"].map(String::from).to_vec();
+        let given = BTreeMap::from([("A".to_string(), 1.06 * h0), ("C".to_string(), 1.5 * h0)]);
+        let mut findings = Findings::default();
+        let obs = thickness_obs(&params, h0, &units, &given, 0.2, &mut findings);
+        assert_eq!(obs.len(), 3);
+        assert_eq!(obs[0].len(), 1);
+        let (k, x, sd) = obs[0][0];
+        assert_eq!(k, 2);
+        assert!((x - 0.06).abs() < 1e-12 && (sd - THICKNESS_SD_M / h0).abs() < 1e-15);
+        assert!(obs[1].is_empty() && obs[2].is_empty());
+        let codes: Vec<(&str, bool)> = findings
+            .iter()
+            .map(|f| (f.code.as_str(), f.message.starts_with("board ")))
+            .collect();
+        assert!(
+            codes.contains(&("update.thickness_unknown", true)),
+            "{codes:?}"
+        );
+        assert!(
+            codes.contains(&("update.thickness_outside_box", true)),
+            "{codes:?}"
+        );
+        // Without the parameter: nothing observed, nothing said.
+        let mut none = Findings::default();
+        assert!(thickness_obs(&params[..2], h0, &units, &given, 0.2, &mut none).is_empty());
+        assert!(none.is_empty());
+        let mesh = crate::fem::MeshOptions { nx: 8, ny: 6 };
+        let plain = FeModel::build(&board, Setup::Free, &mesh).unwrap();
+        assert!(core_thickness_mass(&plain).unwrap().is_none());
+        let model = FeModel::build_with(
+            &board,
+            Setup::Free,
+            &mesh,
+            crate::fem::ModelOptions {
+                core_thickness: true,
+            },
+        )
+        .unwrap();
+        let (_, h, share) = core_thickness_mass(&model).unwrap().unwrap();
+        assert_eq!(h, h0);
+        let mut bare = board.clone();
+        bare.copper.clear();
+        let core = FeModel::build(&bare, Setup::Free, &mesh).unwrap();
+        let want = core.total_mass_kg(&core.nominal_params()).unwrap()
+            / model.total_mass_kg(&model.nominal_params()).unwrap();
+        assert!(
+            (share - want).abs() < 1e-12 && want < 1.0,
+            "share {share} vs {want}"
+        );
+    }
+}
