@@ -23,6 +23,17 @@ fn collect(dir: &Path, out: &mut Vec<PathBuf>) {
 }
 
 fn main() {
+    println!("cargo:rerun-if-env-changed=HBMU_SOURCE_ID_OVERRIDE");
+    // A build that must stamp another build's id (to show that a change of the sources alone
+    // changes no output byte: `HBMU_SOURCE_ID_OVERRIDE=<16 hex>`).
+    if let Ok(id) = std::env::var("HBMU_SOURCE_ID_OVERRIDE") {
+        assert!(
+            id.len() == 16 && id.bytes().all(|b| b.is_ascii_hexdigit()),
+            "HBMU_SOURCE_ID_OVERRIDE: expected 16 hex digits, found {id:?}"
+        );
+        println!("cargo:rustc-env=HBMU_SOURCE_ID={id}");
+        return;
+    }
     let root = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR").expect("set by cargo"));
     let mut files = Vec::new();
     collect(&root.join("src"), &mut files);

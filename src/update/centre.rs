@@ -10,7 +10,7 @@ use crate::update::problem::Labels;
 
 /// The ROM's centre in the enrichment's coordinates (ln, relative to the priors' centres).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn fit_centre(
+pub fn fit_centre(
     model: &FeModel,
     p_base: &crate::fem::Params,
     coords: &[Vec<(usize, f64)>],
@@ -78,7 +78,7 @@ pub(crate) fn fit_centre(
 /// search runs from the prior's centre and from the two best grid points; the lowest misfit
 /// wins.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn fit_joint_centre(
+pub fn fit_joint_centre(
     model: &FeModel,
     p_base: &crate::fem::Params,
     coords: &[Vec<(usize, f64)>],

@@ -11,13 +11,19 @@
 //! - [`prepare`]: step 2's model preparation (centre and ROM), a value the caller keeps.
 //! - [`sampler`]: the SMC pipeline (reference → pilot → surrogates → tempering → correction).
 //! - [`posterior`]: draws to tables' rows, summaries, convergence verdicts and residuals.
+//! - [`boards`]: step 1 (boards) phase by phase.
+//! - [`joints`]: step 2 (joints) phase by phase.
+//! - [`step1`]: the step-1 posterior as step 2 carries it.
 //! - [`new_modes`]: an enriched model's own modes paired with unpaired identified ones.
 
+pub mod boards;
 pub mod centre;
 pub mod enrichment;
+pub mod joints;
 pub mod new_modes;
 pub mod posterior;
 pub mod prepare;
 pub mod problem;
 pub mod rom_box;
 pub mod sampler;
+pub mod step1;

@@ -10,9 +10,9 @@ use std::collections::{BTreeMap, BTreeSet};
 
 /// Least MAC of an identified mode with an enriched model's new mode, and the largest
 /// relative frequency difference, for the two to pair (pair's own rule is MAC-based too).
-pub(crate) const NEW_MODE_MIN_MAC: f64 = 0.9;
+pub const NEW_MODE_MIN_MAC: f64 = 0.9;
 
-pub(crate) const NEW_MODE_MAX_REL_FREQ: f64 = 0.05;
+pub const NEW_MODE_MAX_REL_FREQ: f64 = 0.05;
 
 /// The modes of `model` at `p` that no label carries (`taken`), paired with the identified
 /// modes pair left unpaired (`identified` minus `paired`): per measurement the unpaired
@@ -21,7 +21,7 @@ pub(crate) const NEW_MODE_MAX_REL_FREQ: f64 = 0.05;
 /// in at least half of the measurements: an enrichment that predicts a mode the baseline
 /// cannot have (a fixture's own resonance) is then held to that mode too.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn pair_new_modes(
+pub fn pair_new_modes(
     model: &FeModel,
     p: &crate::fem::Params,
     n_track: usize,
@@ -119,20 +119,20 @@ pub(crate) fn pair_new_modes(
 /// A mode of an enriched model that no baseline label carries, with the identified modes it
 /// pairs with ([`pair_new_modes`]).
 #[derive(Clone, Debug)]
-pub(crate) struct NewMode {
+pub struct NewMode {
     /// 0-based mode of the enriched model at the ROM's centre.
-    pub(crate) model_mode: usize,
-    pub(crate) model_freq_hz: f64,
+    pub model_mode: usize,
+    pub model_freq_hz: f64,
     /// `<mechanism>-mode-<k>`.
-    pub(crate) label: String,
+    pub label: String,
     /// One pair per measurement where it paired.
-    pub(crate) rows: Vec<PairRow>,
+    pub rows: Vec<PairRow>,
     /// Bolted measurements with an identified mode.
-    pub(crate) n_measurements: usize,
+    pub n_measurements: usize,
 }
 
 impl NewMode {
-    pub(crate) fn median_freq_hz(&self) -> f64 {
+    pub fn median_freq_hz(&self) -> f64 {
         let f: Vec<f64> = self.rows.iter().map(|r| r.freq_hz).collect();
         median(&f)
     }
@@ -142,7 +142,7 @@ impl NewMode {
 /// `points`) by MAC, greedily from the best pair: per reference, the 0-based mode and its
 /// frequency. A joint enrichment can add modes (the fixture's) and reorder them, so labels
 /// are carried over by shape, never by position.
-pub(crate) fn match_modes(
+pub fn match_modes(
     model: &FeModel,
     p: &crate::fem::Params,
     n_modes: usize,

@@ -9,17 +9,17 @@ use crate::update::problem::ObsMeta;
 use std::collections::BTreeSet;
 
 /// Draws of named scalar columns, one row per (run, draw[, key]).
-pub(crate) struct DrawTable {
-    pub(crate) run: Vec<i32>,
-    pub(crate) draw: Vec<i32>,
+pub struct DrawTable {
+    pub run: Vec<i32>,
+    pub draw: Vec<i32>,
     /// board_id or measurement_id (None for population draws).
-    pub(crate) key: Vec<Option<String>>,
+    pub key: Vec<Option<String>>,
     /// Column names (unit in the name) and values, one value per row.
-    pub(crate) cols: Vec<(String, String, Vec<f64>)>,
+    pub cols: Vec<(String, String, Vec<f64>)>,
 }
 
 impl DrawTable {
-    pub(crate) fn new(names_units: &[(String, String)]) -> DrawTable {
+    pub fn new(names_units: &[(String, String)]) -> DrawTable {
         DrawTable {
             run: vec![],
             draw: vec![],
@@ -30,7 +30,7 @@ impl DrawTable {
                 .collect(),
         }
     }
-    pub(crate) fn push(&mut self, run: usize, draw: usize, key: Option<&str>, values: &[f64]) {
+    pub fn push(&mut self, run: usize, draw: usize, key: Option<&str>, values: &[f64]) {
         self.run.push(run as i32);
         self.draw.push(draw as i32);
         self.key.push(key.map(str::to_string));
@@ -40,7 +40,7 @@ impl DrawTable {
     }
 
     /// Summary rows: per column and key, chains = runs.
-    pub(crate) fn summarize(&self, runs: usize, key_is_board: bool) -> Vec<SummaryRow> {
+    pub fn summarize(&self, runs: usize, key_is_board: bool) -> Vec<SummaryRow> {
         let keys: BTreeSet<Option<String>> = self.key.iter().cloned().collect();
         let mut out = vec![];
         for k in &keys {
@@ -76,7 +76,7 @@ pub const MIN_ESS: f64 = 100.0;
 /// sample size is small (below [`MIN_ESS`]), naming the worst parameters: the posterior
 /// and the evidence's error bar are then not to be trusted as they stand (more particles or
 /// runs; a multimodal posterior, e.g. of a model that misses physics, needs more of both).
-pub(crate) fn convergence_finding(summary: &[SummaryRow], runs: usize) -> Option<Finding> {
+pub fn convergence_finding(summary: &[SummaryRow], runs: usize) -> Option<Finding> {
     let name = |r: &SummaryRow| {
         let mut n = r.parameter.clone();
         if let Some(m) = r.measurement_id.as_ref().or(r.board_id.as_ref()) {
@@ -127,30 +127,30 @@ pub(crate) fn convergence_finding(summary: &[SummaryRow], runs: usize) -> Option
     ))
 }
 
-pub(crate) struct SummaryRow {
-    pub(crate) parameter: String,
-    pub(crate) board_id: Option<String>,
-    pub(crate) measurement_id: Option<String>,
-    pub(crate) s: crate::bayes::diagnostics::Summary,
+pub struct SummaryRow {
+    pub parameter: String,
+    pub board_id: Option<String>,
+    pub measurement_id: Option<String>,
+    pub s: crate::bayes::diagnostics::Summary,
 }
 
 /// One residual row.
-pub(crate) struct Residual {
-    pub(crate) measurement_id: String,
-    pub(crate) board_id: String,
-    pub(crate) setup: String,
-    pub(crate) label: String,
-    pub(crate) freq_hz: f64,
-    pub(crate) mean: f64,
-    pub(crate) sd: f64,
-    pub(crate) pred_sd: f64,
-    pub(crate) mac: Option<f64>,
-    pub(crate) used: bool,
+pub struct Residual {
+    pub measurement_id: String,
+    pub board_id: String,
+    pub setup: String,
+    pub label: String,
+    pub freq_hz: f64,
+    pub mean: f64,
+    pub sd: f64,
+    pub pred_sd: f64,
+    pub mac: Option<f64>,
+    pub used: bool,
 }
 
 /// The population columns of a step's discrepancy: its scale, its per-unit scale and d per
 /// label (relative eigenvalue), in the order of [`discrepancy_values`].
-pub(crate) fn discrepancy_columns(labels: &[String]) -> Vec<(String, String)> {
+pub fn discrepancy_columns(labels: &[String]) -> Vec<(String, String)> {
     [
         "discrepancy_scale".to_string(),
         "discrepancy_unit_scale".to_string(),
@@ -162,7 +162,7 @@ pub(crate) fn discrepancy_columns(labels: &[String]) -> Vec<(String, String)> {
 }
 
 /// The values of [`discrepancy_columns`] at the global vector g (its context `ctx`).
-pub(crate) fn discrepancy_values(
+pub fn discrepancy_values(
     target: &ModalTarget,
     g: &[f64],
     ctx: &crate::bayes::target::Ctx,
@@ -179,7 +179,7 @@ pub(crate) fn discrepancy_values(
 }
 
 /// evidence.json's `discrepancy`: the prior of the model-form discrepancy (null without one).
-pub(crate) fn discrepancy_json(target: &ModalTarget, labels: &[String]) -> serde_json::Value {
+pub fn discrepancy_json(target: &ModalTarget, labels: &[String]) -> serde_json::Value {
     match &target.errors.discrepancy {
         None => serde_json::Value::Null,
         Some(d) => serde_json::json!({
@@ -196,7 +196,7 @@ pub(crate) fn discrepancy_json(target: &ModalTarget, labels: &[String]) -> serde
 }
 
 /// Evidence of the runs: each run's log evidence, their mean and standard error.
-pub(crate) fn evidence_json(log_z: &[f64], posterior: &str) -> serde_json::Value {
+pub fn evidence_json(log_z: &[f64], posterior: &str) -> serde_json::Value {
     let n = log_z.len() as f64;
     let mean = log_z.iter().sum::<f64>() / n;
     let sd = if log_z.len() > 1 {
@@ -215,10 +215,10 @@ pub(crate) fn evidence_json(log_z: &[f64], posterior: &str) -> serde_json::Value
 }
 
 /// A function from a global vector to the population table's values.
-pub(crate) type PopulationRow<'a> = Box<dyn Fn(&[f64]) -> Vec<f64> + 'a>;
+pub type PopulationRow<'a> = Box<dyn Fn(&[f64]) -> Vec<f64> + 'a>;
 
 /// Population columns of a draw, in physical units of the parameters.
-pub(crate) fn population_columns<'a>(
+pub fn population_columns<'a>(
     target: &'a ModalTarget,
     param_names: &[String],
     reference: &[f64],
@@ -323,7 +323,7 @@ pub(crate) fn population_columns<'a>(
 /// Posterior-predictive residuals of every accepted paired mode (updating and validation
 /// labels) of the units, from up to `opts.residual_draws` draws per run.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn residuals(
+pub fn residuals(
     target: &ModalTarget,
     all_pred: &ModalPredictor,
     all_labels: &[String],
@@ -460,16 +460,16 @@ pub(crate) fn residuals(
 
 /// A residual row whose label could not be tracked at every posterior draw (the row is left
 /// out when it never was).
-pub(crate) struct Lost {
-    pub(crate) measurement_id: String,
-    pub(crate) label: String,
-    pub(crate) share_tracked: f64,
+pub struct Lost {
+    pub measurement_id: String,
+    pub label: String,
+    pub share_tracked: f64,
 }
 
 /// The finding for rows of the residual table left out or averaged over fewer draws because
 /// their label's mode could not be tracked (its overlap with the reference mode fell below
 /// 1/√2): nothing is dropped silently.
-pub(crate) fn lost_finding(lost: &[Lost], findings: &mut Findings) {
+pub fn lost_finding(lost: &[Lost], findings: &mut Findings) {
     if lost.is_empty() {
         return;
     }

@@ -129,10 +129,10 @@ pub enum BoardCoordinates {
 }
 
 /// Identified modes with their shapes: (measurement, mode) → its row of modes.parquet.
-pub(crate) type ShapeMap<'a> = BTreeMap<(String, i32), &'a ModeRow>;
+pub type ShapeMap<'a> = BTreeMap<(String, i32), &'a ModeRow>;
 
 /// The rows of the `wanted` (measurement, mode) keys among the rows of modes.parquet.
-pub(crate) fn shape_map<'a>(rows: &'a [ModeRow], wanted: &BTreeSet<(String, i32)>) -> ShapeMap<'a> {
+pub fn shape_map<'a>(rows: &'a [ModeRow], wanted: &BTreeSet<(String, i32)>) -> ShapeMap<'a> {
     rows.iter()
         .map(|r| ((r.measurement_id.clone(), r.mode), r))
         .filter(|(key, _)| wanted.contains(key))
@@ -140,17 +140,17 @@ pub(crate) fn shape_map<'a>(rows: &'a [ModeRow], wanted: &BTreeSet<(String, i32)
 }
 
 #[derive(Debug, Clone)]
-pub(crate) struct MassRow {
-    pub(crate) mass_g: f64,
-    pub(crate) n_stable: i32,
-    pub(crate) std_g: f64,
-    pub(crate) resolution_g: f64,
-    pub(crate) inconsistent: bool,
+pub struct MassRow {
+    pub mass_g: f64,
+    pub n_stable: i32,
+    pub std_g: f64,
+    pub resolution_g: f64,
+    pub inconsistent: bool,
 }
 
 /// Where `model` has the core thickness as a parameter: its index, nominal value (m) and the
 /// core's share of the board's nominal mass (the part that follows the thickness).
-pub(crate) fn core_thickness_mass(model: &FeModel) -> anyhow::Result<Option<(usize, f64, f64)>> {
+pub fn core_thickness_mass(model: &FeModel) -> anyhow::Result<Option<(usize, f64, f64)>> {
     let p = model.nominal_params();
     let Ok(i) = p.position(names::CORE_THICKNESS) else {
         return Ok(None);
@@ -173,7 +173,7 @@ pub const THICKNESS_SD_M: f64 = 5e-6;
 /// coordinate (k, relative value, relative sd; the coordinate is h / h₀ − 1). A board the
 /// sheet gives no thickness for, or one outside the ROM's box (not verified there), has none,
 /// each said in a warning: the population informs it, as it does an unweighed board's mass.
-pub(crate) fn thickness_obs(
+pub fn thickness_obs(
     param_names: &[String],
     h0_m: f64,
     unit_names: &[String],
@@ -224,12 +224,12 @@ pub(crate) fn thickness_obs(
 }
 
 /// The updated labels and, per label, the model mode (0-based) it pairs with at the centre.
-pub(crate) struct Labels {
-    pub(crate) labels: Vec<String>,
-    pub(crate) model_mode: Vec<usize>,
+pub struct Labels {
+    pub labels: Vec<String>,
+    pub model_mode: Vec<usize>,
 }
 
-pub(crate) fn select_labels(
+pub fn select_labels(
     pairs: &[PairRow],
     setup: &str,
     requested: &[String],
@@ -273,7 +273,7 @@ pub(crate) fn select_labels(
 
 /// The scan points of an identified mode's shape where the shape is finite and the model can
 /// be evaluated, and the shape's values there.
-pub(crate) fn usable_points(model: &FeModel, row: &ModeRow) -> (Vec<[f64; 2]>, Vec<f64>) {
+pub fn usable_points(model: &FeModel, row: &ModeRow) -> (Vec<[f64; 2]>, Vec<f64>) {
     let mut pts = vec![];
     let mut u = vec![];
     for ((v, x), y) in row.shape.iter().zip(&row.x_m).zip(&row.y_m) {
@@ -287,7 +287,7 @@ pub(crate) fn usable_points(model: &FeModel, row: &ModeRow) -> (Vec<[f64; 2]>, V
 
 /// A shape observation of one identified mode at its valid scan points, or `None` (with a
 /// finding) when fewer than 3 points remain.
-pub(crate) fn shape_obs(
+pub fn shape_obs(
     model: &FeModel,
     rom: &Rom,
     mode: usize,
@@ -359,7 +359,7 @@ pub(crate) fn shape_obs(
 /// the Laplace reference at full weight (from `start`, with the mean auxiliary values),
 /// takes each shape's residual against the model there, and weighs each mode by
 /// [`crate::bayes::shape_weight::design_weights`].
-pub(crate) fn weigh_shapes(
+pub fn weigh_shapes(
     target: &mut ModalTarget,
     how: &ShapeWeighting,
     (aux_mean, start): (&[f64], Option<&[f64]>),
@@ -441,12 +441,7 @@ pub(crate) fn weigh_shapes(
 
 /// The shape terms' weights in the log (verbose) and, where a mode's measurements share
 /// most of their shape error, a finding: its shapes then count as few measurements.
-pub(crate) fn report_shape_weights(
-    w: &[ShapeWeight],
-    what: &str,
-    verbose: bool,
-    findings: &mut Findings,
-) {
+pub fn report_shape_weights(w: &[ShapeWeight], what: &str, verbose: bool, findings: &mut Findings) {
     if verbose && !w.is_empty() {
         let s: Vec<String> = w
             .iter()
@@ -486,17 +481,17 @@ pub(crate) fn report_shape_weights(
 
 /// Where a frequency observation came from, and the index of its shape observation.
 #[derive(Clone, Debug)]
-pub(crate) struct ObsMeta {
-    pub(crate) measurement_id: String,
-    pub(crate) board_id: String,
-    pub(crate) label: usize,
-    pub(crate) freq_hz: f64,
-    pub(crate) shape: Option<usize>,
+pub struct ObsMeta {
+    pub measurement_id: String,
+    pub board_id: String,
+    pub label: usize,
+    pub freq_hz: f64,
+    pub shape: Option<usize>,
 }
 
 /// The data of one group of measurements (a board's free-free measurements, or one bolted
 /// measurement) for the given labels.
-pub(crate) fn unit_data(
+pub fn unit_data(
     rows: &[&PairRow],
     labels: &[String],
     shapes: Option<(&FeModel, &Rom, &ShapeMap<'_>)>,
@@ -539,7 +534,7 @@ pub(crate) fn unit_data(
     Ok((d, meta))
 }
 
-pub(crate) fn mass_obs(
+pub fn mass_obs(
     m: &MassRow,
     board_id: &str,
     floor_rel: f64,
@@ -575,26 +570,26 @@ pub(crate) fn mass_obs(
 
 /// The prior of step 1's model-error term ([`ErrorModel::model_error_sd`]).
 #[derive(Clone, Debug, serde::Serialize)]
-pub(crate) struct ModelErrorPrior {
+pub struct ModelErrorPrior {
     /// How the model's frequencies move on finer meshes.
-    pub(crate) spread: crate::fem::convergence::MeshSpread,
+    pub spread: crate::fem::convergence::MeshSpread,
     /// Every paired free-free label (updating and validation) and its prior sd of the
     /// relative eigenvalue error b.
-    pub(crate) labels: Vec<String>,
-    pub(crate) sd: Vec<f64>,
+    pub labels: Vec<String>,
+    pub sd: Vec<f64>,
     /// The sds of the updated labels, in their order.
     #[serde(skip)]
-    pub(crate) sd_updated: Vec<f64>,
+    pub sd_updated: Vec<f64>,
 }
 
 /// Floor of a label's model-error sd, relative to the largest of the labels: a mode whose
 /// frequency happens to agree between the meshes compared is not thereby exact.
-pub(crate) const MODEL_ERROR_FLOOR_SHARE: f64 = 0.1;
+pub const MODEL_ERROR_FLOOR_SHARE: f64 = 0.1;
 
 /// The model-error prior of the labels: b_m ~ N(0, s_m²), s_m = 2 × the mode's relative
 /// frequency spread over the √2 and 2 × finer meshes (λ = ω², so twice the frequency's
 /// relative error), floored at a tenth of the largest s of the labels (and 1e-7).
-pub(crate) fn model_error_prior(
+pub fn model_error_prior(
     board: &Board,
     nominal: &crate::fem::Params,
     updated: &Labels,
@@ -638,7 +633,7 @@ pub(crate) fn model_error_prior(
 /// reference point; step 2 with the auxiliary values `aux`, the step-1 posterior mean), its
 /// scale's prior median `fidelity_freq` (relative frequency). `None` (with an info finding)
 /// where the fidelity is 0, or where the units' coordinates span every mode.
-pub(crate) fn discrepancy_for(
+pub fn discrepancy_for(
     target: &ModalTarget,
     aux: &[f64],
     fidelity_freq: f64,
@@ -713,7 +708,7 @@ pub(crate) fn discrepancy_for(
 /// argmin over v of Σ_m w_m (r_m − (S v)_m)² (S: n_m × d row-major), with a ridge of 1e-12
 /// of the normal matrix's trace so that a coordinate the modes do not see (the mass scale,
 /// whose moduli are per unit mass) stays at 0. `None` where the solve fails.
-pub(crate) fn weighted_offset(s: &[f64], r: &[f64], w: &[f64], d: usize) -> Option<Vec<f64>> {
+pub fn weighted_offset(s: &[f64], r: &[f64], w: &[f64], d: usize) -> Option<Vec<f64>> {
     let nm = r.len();
     let mut a = vec![0.0; d * d];
     let mut b = vec![0.0; d];
@@ -739,7 +734,7 @@ pub(crate) fn weighted_offset(s: &[f64], r: &[f64], w: &[f64], d: usize) -> Opti
 }
 
 /// Model modes a ROM must carry for the updated labels and every paired label.
-pub(crate) fn modes_needed(labels: &Labels, all: &Labels) -> usize {
+pub fn modes_needed(labels: &Labels, all: &Labels) -> usize {
     labels
         .model_mode
         .iter()
@@ -757,7 +752,7 @@ pub(crate) fn modes_needed(labels: &Labels, all: &Labels) -> usize {
 /// labels), the label with more pairs keeps it and the other is reported in `findings` and
 /// left out of the residuals. Two labels on one mode gave that mode's reference shape to
 /// both, and the second was tracked onto an unrelated mode (a residual of −40 %).
-pub(crate) fn all_labels(
+pub fn all_labels(
     pairs: &[PairRow],
     setup: &str,
     n_modes: usize,
@@ -802,7 +797,7 @@ pub(crate) fn all_labels(
 /// A unit's data for the updated labels and, for the residuals, for every paired label with
 /// shapes; the residual data's findings are reported too, once each.
 #[allow(clippy::type_complexity)]
-pub(crate) fn unit_and_residual_data(
+pub fn unit_and_residual_data(
     rows: &[&PairRow],
     labels: &Labels,
     all: &Labels,
@@ -834,11 +829,7 @@ pub(crate) fn unit_and_residual_data(
 
 /// A unit's conditions: the distinct covariate offsets of its measurements (in order of
 /// first appearance), and each observation's condition.
-pub(crate) fn set_conditions(
-    data: &mut UnitData,
-    meta: &[ObsMeta],
-    offsets: &BTreeMap<String, f64>,
-) {
+pub fn set_conditions(data: &mut UnitData, meta: &[ObsMeta], offsets: &BTreeMap<String, f64>) {
     data.conditions.clear();
     for (k, m) in meta.iter().enumerate() {
         let c = offsets.get(&m.measurement_id).copied().unwrap_or(0.0);
@@ -858,7 +849,7 @@ pub(crate) fn set_conditions(
 
 /// Points at which mode shapes of different joint models are compared: a 13 × 9 grid inset
 /// by 4 % of the outline, without the points inside a hole's clamped disc.
-pub(crate) fn match_points(board: &Board) -> Vec<[f64; 2]> {
+pub fn match_points(board: &Board) -> Vec<[f64; 2]> {
     let (lx, ly) = (board.length_x_m, board.width_y_m);
     let r_clamp = 0.5 * board.joint().clamp_diameter_m;
     let mut out = vec![];
@@ -879,10 +870,64 @@ pub(crate) fn match_points(board: &Board) -> Vec<[f64; 2]> {
 }
 
 /// The identified modes of `setup` among the rows of modes.parquet (finite frequency only).
-pub(crate) fn identified_modes<'a>(rows: &'a [ModeRow], setup: &str) -> Vec<&'a ModeRow> {
+pub fn identified_modes<'a>(rows: &'a [ModeRow], setup: &str) -> Vec<&'a ModeRow> {
     rows.iter()
         .filter(|r| r.setup == setup && r.freq_hz.is_finite())
         .collect()
+}
+
+/// A numeric sheet column per measurement in its table's order (`None`: no finite value),
+/// with the table's name for messages.
+pub type CovariateColumn<'a> = (&'a [(String, Option<f64>)], &'a str);
+
+/// The covariate of an enrichment for the measurements `used`, as offsets from their mean
+/// (returned too): `values` is the column per measurement in its table's order (`None`: no
+/// finite value), `source` names the table in messages. A used measurement without a value is
+/// a warning and sits at the mean (offset 0), so the refit keeps the baseline's data.
+pub fn covariate_offsets(
+    values: &[(String, Option<f64>)],
+    source: &str,
+    column: &str,
+    used: &BTreeSet<&str>,
+    findings: &mut Findings,
+) -> anyhow::Result<(BTreeMap<String, f64>, f64)> {
+    let mut found: BTreeMap<String, f64> = BTreeMap::new();
+    let mut missing = vec![];
+    for (m, v) in values {
+        if !used.contains(m.as_str()) {
+            continue;
+        }
+        match v {
+            Some(v) => {
+                found.insert(m.clone(), *v);
+            }
+            None => missing.push(m.clone()),
+        }
+    }
+    for m in used {
+        if !found.contains_key(*m) && !missing.iter().any(|x| x == m) {
+            missing.push(m.to_string());
+        }
+    }
+    if found.is_empty() {
+        bail!("{source}: column {column:?} has no value for any measurement used; nothing to refit against");
+    }
+    if !missing.is_empty() {
+        findings.push(Finding::new(
+            Severity::Warning,
+            "update.covariate_missing",
+            format!(
+                "{} measurement(s) have no {column}: {}; taken at the mean of the others",
+                missing.len(),
+                missing.join(", ")
+            ),
+        ));
+    }
+    let mean = found.values().sum::<f64>() / found.len() as f64;
+    Ok((
+        found.into_iter().map(|(k, v)| (k, v - mean)).collect(),
+        mean,
+    ))
 }
 
 #[cfg(test)]

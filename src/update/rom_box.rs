@@ -9,7 +9,7 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::update::problem::ModelSpec;
 use crate::update::sampler::{particles_of, Results};
 
-pub(crate) fn rom_for(
+pub fn rom_for(
     model: &FeModel,
     n_modes_needed: usize,
     log_axes: &[(String, f64)],
@@ -47,14 +47,14 @@ pub(crate) fn rom_for(
 /// Widest ROM box step 1 rebuilds to, relative half-width: beyond it a parameter is so far from
 /// the board file's value, or so little informed, that the board file (or `--params`) needs
 /// changing, not the ROM.
-pub(crate) const MAX_ROM_BOX: f64 = 0.5;
+pub const MAX_ROM_BOX: f64 = 0.5;
 
 /// The step-1 posterior pressing against the ROM's box: the stage's message, and the relative
 /// half-width that would hold what was sampled.
 #[derive(Debug)]
-pub(crate) struct RomBoxViolation {
-    pub(crate) message: String,
-    pub(crate) needed_half_width: f64,
+pub struct RomBoxViolation {
+    pub message: String,
+    pub needed_half_width: f64,
 }
 
 impl std::fmt::Display for RomBoxViolation {
@@ -70,7 +70,7 @@ impl std::error::Error for RomBoxViolation {}
 /// (the order of the measurements' frequency noise). A ROM is exact at its centre up to
 /// round-off; anything more is a construction error (as a mass coefficient other than 1
 /// at the centre once was: every frequency 0.39 % high).
-pub(crate) fn rom_centre_check(
+pub fn rom_centre_check(
     model: &FeModel,
     rom: &Rom,
     n_modes: usize,
@@ -94,7 +94,7 @@ pub(crate) fn rom_centre_check(
 
 /// The worst relative difference between the ROM's and the full model's `n_modes` lowest
 /// frequencies over `points` (one full solve each).
-pub(crate) fn worst_frequency_error(
+pub fn worst_frequency_error(
     model: &FeModel,
     rom: &Rom,
     points: &[crate::fem::Params],
@@ -114,7 +114,7 @@ pub(crate) fn worst_frequency_error(
 
 /// The ROM's worst relative frequency error against the full model over the first `n_modes`
 /// modes, at `n_points` Latin-hypercube points of its box (a design apart from the build's).
-pub(crate) fn rom_box_check(
+pub fn rom_box_check(
     model: &FeModel,
     rom: &Rom,
     box_rel: f64,
@@ -130,7 +130,7 @@ pub(crate) fn rom_box_check(
 /// frequency noise of the updated modes (half the posterior median of ε, which is relative on
 /// λ = ω²) it is to be compared with. The box checks ask whether the ROM holds over its box;
 /// this asks whether it holds where the answer is, at the accuracy the answer claims.
-pub(crate) fn rom_posterior_check(
+pub fn rom_posterior_check(
     model: &FeModel,
     target: &ModalTarget,
     results: &Results,

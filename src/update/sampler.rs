@@ -28,60 +28,60 @@ pub struct SamplerParams {
 }
 
 #[derive(Default, serde::Serialize)]
-pub(crate) struct Acceleration {
-    pub(crate) start: &'static str,
-    pub(crate) reference_model_evals: u64,
-    pub(crate) reference_g_acceptance: f64,
-    pub(crate) reference_units_converged: Vec<bool>,
-    pub(crate) surrogate_units: usize,
-    pub(crate) surrogate_refused: Vec<String>,
-    pub(crate) surrogate_degree: Vec<Option<usize>>,
+pub struct Acceleration {
+    pub start: &'static str,
+    pub reference_model_evals: u64,
+    pub reference_g_acceptance: f64,
+    pub reference_units_converged: Vec<bool>,
+    pub surrogate_units: usize,
+    pub surrogate_refused: Vec<String>,
+    pub surrogate_degree: Vec<Option<usize>>,
     /// Per unit: the surrogate box's half-width in reference sd (10, halved where the ROM or
     /// the polynomial does not hold that far).
-    pub(crate) surrogate_half_width_sd: Vec<Option<f64>>,
-    pub(crate) surrogate_max_abs_dlog_lik: Vec<Option<f64>>,
-    pub(crate) surrogate_rom_evals: u64,
+    pub surrogate_half_width_sd: Vec<Option<f64>>,
+    pub surrogate_max_abs_dlog_lik: Vec<Option<f64>>,
+    pub surrogate_rom_evals: u64,
     /// Proposals outside a surrogate's box (`surrogate_half_width_sd`), evaluated by the ROM.
-    pub(crate) surrogate_proposals_outside_box: u64,
+    pub surrogate_proposals_outside_box: u64,
     /// Fraction of the final particles' units beyond their surrogate's box (ROM-evaluated).
-    pub(crate) surrogate_edge_fraction: f64,
+    pub surrogate_edge_fraction: f64,
     /// Per run: ESS of the correction weights L_ROM / L_surrogate, in particles.
-    pub(crate) correction_ess: Vec<f64>,
+    pub correction_ess: Vec<f64>,
     /// Per run: largest |log L_ROM − log L_surrogate| over the particles.
-    pub(crate) correction_max_abs_dlog_lik: Vec<f64>,
+    pub correction_max_abs_dlog_lik: Vec<f64>,
     /// Per run: mutation sweeps of the correction stage (0 when resampling kept ≥ 98 %).
-    pub(crate) correction_sweeps: Vec<usize>,
+    pub correction_sweeps: Vec<usize>,
     /// Per unit: the dimensions, summed over its updated modes, of the verified per-mode
     /// subspaces of the ROM the correction solves in inside the unit's surrogate box
     /// (`bayes::surrogate::fit_subspace`; None: the ROM).
-    pub(crate) subspace_dim: Vec<Option<usize>>,
+    pub subspace_dim: Vec<Option<usize>>,
     /// Per unit: its largest |log L_subspace − log L_ROM| on the verification points.
-    pub(crate) subspace_max_abs_dlog_lik: Vec<Option<f64>>,
-    pub(crate) subspace_refused: Vec<String>,
-    pub(crate) subspace_rom_evals: u64,
+    pub subspace_max_abs_dlog_lik: Vec<Option<f64>>,
+    pub subspace_refused: Vec<String>,
+    pub subspace_rom_evals: u64,
     /// Wall seconds stay out of the file (the same inputs and seed give the same bytes);
     /// `-v` prints them.
     #[serde(skip)]
-    pub(crate) subspace_seconds: f64,
+    pub subspace_seconds: f64,
     /// Posterior sd / reference sd per global coordinate (first run): how well the
     /// reference fitted (1 = exactly; the reference is inflated, so ~0.8 is expected).
-    pub(crate) reference_sd_ratio_global: Vec<f64>,
+    pub reference_sd_ratio_global: Vec<f64>,
     /// The same per unit coordinate, unit by unit.
-    pub(crate) reference_sd_ratio_units: Vec<Vec<f64>>,
+    pub reference_sd_ratio_units: Vec<Vec<f64>>,
     /// Run 1: (posterior mean − reference mean) / reference sd of every global coordinate
     /// (same order as `reference_sd_ratio_global`).
-    pub(crate) reference_offset_global: Vec<f64>,
+    pub reference_offset_global: Vec<f64>,
     /// Particles of the pilot run whose posterior moments replaced the Laplace reference
     /// (0: no pilot), its tempering stages, and its wall seconds (printed with `-v`, kept out
     /// of the file: a pilot made update_report.json differ between two runs).
-    pub(crate) pilot_particles: usize,
-    pub(crate) pilot_stages: usize,
+    pub pilot_particles: usize,
+    pub pilot_stages: usize,
     #[serde(skip)]
-    pub(crate) pilot_seconds: f64,
+    pub pilot_seconds: f64,
     /// Step 2: pilot groups left out of the surrogates' spread, and groups (over all runs)
     /// that tempered from the base reference, because their moved reference was degenerate.
-    pub(crate) degenerate_pilot_groups: usize,
-    pub(crate) degenerate_group_references: usize,
+    pub degenerate_pilot_groups: usize,
+    pub degenerate_group_references: usize,
 }
 
 /// Particles of the pilot run whose posterior moments replace the Laplace reference of a run
@@ -89,25 +89,26 @@ pub(crate) struct Acceleration {
 /// pilot runs only when the main runs have at least `PILOT_MIN_RATIO` times as many particles,
 /// so it costs a few per cent. On the demo's step 1 at 2000 × 4 it cut the tempering stages
 /// from 10 to 5 a run.
-pub(crate) const PILOT_PARTICLES: usize = 400;
+pub const PILOT_PARTICLES: usize = 400;
 
-pub(crate) const PILOT_MIN_RATIO: usize = 4;
+pub const PILOT_MIN_RATIO: usize = 4;
 
-pub(crate) const PILOT_INFLATION: f64 = 1.1;
+pub const PILOT_INFLATION: f64 = 1.1;
 
-pub(crate) type Results = Vec<smc::RunResult<crate::bayes::modal::Terms>>;
+pub type Results = Vec<smc::RunResult<crate::bayes::modal::Terms>>;
 
 /// `aux`: per run, the auxiliary values its particles carry (step 2: step-1 draws; with
 /// `opts.smc.groups` > 1 group g carries aux[g]); empty for step 1.
 ///
 /// `start`: a unit point known to fit the data (step 2: the joint centre fitted to the mean
 /// bolted modes), where the reference's search begins; None = the prior's centre.
-pub(crate) fn run_smc(
+pub fn run_smc(
     target: &ModalTarget,
     opts: &SamplerParams,
     what: &str,
     aux: &[Vec<Arc<Vec<f64>>>],
     start: Option<&[f64]>,
+    progress: &(dyn Fn(u64, String) + Sync),
     verbose: bool,
 ) -> anyhow::Result<(Results, Acceleration)> {
     use crate::bayes::reference::{
@@ -396,7 +397,6 @@ pub(crate) fn run_smc(
             t_groups - acc.subspace_seconds
         );
     }
-    let pb = crate::stage::progress_bar((opts.runs * 1000) as u64, what);
     let mut out = vec![];
     let (mut t_tempering, mut t_correction) = (0.0, 0.0);
     for r in 0..opts.runs {
@@ -409,13 +409,10 @@ pub(crate) fn run_smc(
                     s.acceptance_noncentred, s.acceptance_rescale, s.sweeps, s.decorrelation, s.unique_after_resampling, s.model_evals
                 );
             }
-            pb.set_position(base + (s.beta * 1000.0) as u64);
-            pb.set_message(format!(
-                "{what} run {}/{} stage {}",
-                r + 1,
-                opts.runs,
-                s.stage
-            ));
+            progress(
+                base + (s.beta * 1000.0) as u64,
+                format!("{what} run {}/{} stage {}", r + 1, opts.runs, s.stage),
+            );
         };
         let a: &[Arc<Vec<f64>>] = if aux.is_empty() {
             &[]
@@ -545,7 +542,6 @@ pub(crate) fn run_smc(
         }
         out.push(res);
     }
-    pb.finish_and_clear();
     if verbose {
         eprintln!("{what}: tempering {t_tempering:.1} s, correction to the ROM {t_correction:.1} s (all runs)");
     }
@@ -573,7 +569,7 @@ pub(crate) fn run_smc(
 
 /// The ROM-box rule: the fraction of posterior draws, per unit parameter, outside the box
 /// the ROM was built and verified for. Returns a description of every violation.
-pub(crate) fn box_violations(
+pub fn box_violations(
     results: &[smc::RunResult<crate::bayes::modal::Terms>],
     unit_names: &[String],
     param_names: &[String],
@@ -612,7 +608,7 @@ pub(crate) fn box_violations(
     out
 }
 
-pub(crate) fn particles_of(
+pub fn particles_of(
     results: &[smc::RunResult<crate::bayes::modal::Terms>],
 ) -> Vec<(usize, usize, &Particle<crate::bayes::modal::Terms>)> {
     results
@@ -628,7 +624,7 @@ pub(crate) fn particles_of(
 }
 
 /// The surrogate boxes' half-widths in reference sd, e.g. `10` or `2.5–10`.
-pub(crate) fn half_widths(acc: &Acceleration) -> String {
+pub fn half_widths(acc: &Acceleration) -> String {
     let hw: Vec<f64> = acc
         .surrogate_half_width_sd
         .iter()
@@ -646,7 +642,7 @@ pub(crate) fn half_widths(acc: &Acceleration) -> String {
 
 /// The finding when final particles lie beyond their surrogate's box (a cost, not a bias:
 /// the ROM evaluates them).
-pub(crate) fn check_surrogate_edges(acc: &Acceleration, findings: &mut Findings) {
+pub fn check_surrogate_edges(acc: &Acceleration, findings: &mut Findings) {
     if acc.surrogate_edge_fraction > 1e-3 {
         findings.push(Finding::new(
             Severity::Info,

@@ -5,7 +5,8 @@ use crate::io::tables::{self, c, Col, Cols, TableSpec};
 use crate::modal::rows::PairRow;
 use crate::update::posterior::{DrawTable, Residual, SummaryRow};
 use crate::update::problem::MassRow;
-use anyhow::bail;
+use crate::update::step1::Step1;
+use anyhow::{anyhow, bail, Context};
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
 use arrow::datatypes::{DataType, Field};
 use std::collections::{BTreeMap, BTreeSet};
@@ -188,7 +189,7 @@ pub const RESIDUALS: TableSpec = TableSpec {
     ],
 };
 
-pub(crate) fn read_presence(path: &Path, setup: &str) -> anyhow::Result<Vec<String>> {
+pub fn read_presence(path: &Path, setup: &str) -> anyhow::Result<Vec<String>> {
     let mut out = vec![];
     for b in tables::read_parquet(path)? {
         let c = Cols { batch: &b, path };
@@ -206,7 +207,7 @@ pub(crate) fn read_presence(path: &Path, setup: &str) -> anyhow::Result<Vec<Stri
     Ok(out)
 }
 
-pub(crate) fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
+pub fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
     let mut out = BTreeMap::new();
     for b in tables::read_parquet(path)? {
         let c = Cols { batch: &b, path };
@@ -236,7 +237,7 @@ pub(crate) fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRo
 
 /// Each board's measured overall thickness from ingest's specimens.parquet, m (boards the
 /// sheet gives none for are absent; no table: empty).
-pub(crate) fn read_specimen_thickness(path: &Path) -> anyhow::Result<BTreeMap<String, f64>> {
+pub fn read_specimen_thickness(path: &Path) -> anyhow::Result<BTreeMap<String, f64>> {
     let mut out = BTreeMap::new();
     if !path.is_file() {
         return Ok(out);
@@ -253,7 +254,7 @@ pub(crate) fn read_specimen_thickness(path: &Path) -> anyhow::Result<BTreeMap<St
     Ok(out)
 }
 
-pub(crate) fn provenance(stage: &str, fingerprint: &str) -> BTreeMap<String, String> {
+pub fn provenance(stage: &str, fingerprint: &str) -> BTreeMap<String, String> {
     BTreeMap::from([
         ("hbmu.stage".to_string(), stage.to_string()),
         ("hbmu.fingerprint".to_string(), fingerprint.to_string()),
@@ -266,7 +267,7 @@ pub(crate) fn provenance(stage: &str, fingerprint: &str) -> BTreeMap<String, Str
 }
 
 /// Write a table of `spec` with extra float columns (name, unit) after the spec's columns.
-pub(crate) fn write_table(
+pub fn write_table(
     path: &Path,
     spec: &TableSpec,
     mut cols: Vec<ArrayRef>,
@@ -299,7 +300,7 @@ pub(crate) fn write_table(
     Ok(())
 }
 
-pub(crate) fn write_draws(
+pub fn write_draws(
     path: &Path,
     spec: &TableSpec,
     t: &DrawTable,
@@ -328,7 +329,7 @@ pub(crate) fn write_draws(
     write_table(path, spec, cols, &extra, prov)
 }
 
-pub(crate) fn write_summary(
+pub fn write_summary(
     path: &Path,
     rows: &[SummaryRow],
     prov: &BTreeMap<String, String>,
@@ -358,7 +359,7 @@ pub(crate) fn write_summary(
     write_table(path, &SUMMARY, cols, &[], prov)
 }
 
-pub(crate) fn write_stages(
+pub fn write_stages(
     path: &Path,
     st: &[StageInfo],
     prov: &BTreeMap<String, String>,
@@ -405,7 +406,7 @@ pub(crate) fn write_stages(
     write_table(path, &STAGES, cols, &[], prov)
 }
 
-pub(crate) fn write_residuals(
+pub fn write_residuals(
     path: &Path,
     rows: &[Residual],
     prov: &BTreeMap<String, String>,
@@ -443,81 +444,12 @@ pub(crate) fn write_residuals(
     write_table(path, &RESIDUALS, cols, &[], prov)
 }
 
-/// Step-1 posterior draws read back from boards.parquet.
-pub(crate) struct Step1 {
-    /// Boards in the order of `values` blocks.
-    pub(crate) board_ids: Vec<String>,
-    /// The updated parameters (ROM names), in column order.
-    pub(crate) params: Vec<String>,
-    /// Coefficients of a board enrichment (e.g. `temperature_coefficient_per_k`), after the
-    /// parameters in every board's block.
-    pub(crate) coefs: Vec<String>,
-    /// Per (run, draw): every board's parameter and coefficient values, board-major.
-    pub(crate) draws: Vec<((i32, i32), Vec<f64>)>,
-}
-
-impl Step1 {
-    /// Values per board in a draw: parameters, then coefficients.
-    pub(crate) fn block(&self) -> usize {
-        self.params.len() + self.coefs.len()
-    }
-}
-
 /// The `enrichment` of a step-1 refit's evidence.json (null for the baseline).
-pub(crate) fn read_step1_enrichment(path: &Path) -> anyhow::Result<serde_json::Value> {
+pub fn read_step1_enrichment(path: &Path) -> anyhow::Result<serde_json::Value> {
     Ok(crate::io::read_json(path)?["enrichment"].clone())
 }
 
-/// A point mass a step-1 refit added to the boards: its parameter, point and posterior mean.
-pub(crate) struct Step1PointMass {
-    pub(crate) parameter: String,
-    pub(crate) x_m: f64,
-    pub(crate) y_m: f64,
-    /// Mean over every board and draw, kg (the bolted ROM's centre along it).
-    pub(crate) mean_kg: f64,
-}
-
-/// The point mass of a step-1 enrichment (its `effect` of kind `point_mass`), if any.
-pub(crate) fn step1_point_mass(
-    enrichment: &serde_json::Value,
-    step1: &Step1,
-    step1_path: &Path,
-) -> anyhow::Result<Option<Step1PointMass>> {
-    let e = &enrichment["effect"];
-    if e["kind"].as_str() != Some("point_mass") {
-        return Ok(None);
-    }
-    let parameter = e["parameter"].as_str().unwrap_or_default().to_string();
-    let (Some(x_m), Some(y_m)) = (e["x_m"].as_f64(), e["y_m"].as_f64()) else {
-        bail!(
-            "{}: the step-1 enrichment's point mass has no x_m/y_m",
-            step1_path.display()
-        );
-    };
-    let Some(k) = step1.params.iter().position(|p| *p == parameter) else {
-        bail!(
-            "{}: no column {parameter:?}, the step-1 enrichment's added mass",
-            step1_path.display()
-        );
-    };
-    let d1 = step1.block();
-    let nb = step1.board_ids.len();
-    let (mut sum, mut n) = (0.0, 0usize);
-    for (_, v) in &step1.draws {
-        for b in 0..nb {
-            sum += v[b * d1 + k];
-            n += 1;
-        }
-    }
-    Ok(Some(Step1PointMass {
-        parameter,
-        x_m,
-        y_m,
-        mean_kg: sum / n.max(1) as f64,
-    }))
-}
-
-pub(crate) fn read_step1(path: &Path) -> anyhow::Result<Step1> {
+pub fn read_step1(path: &Path) -> anyhow::Result<Step1> {
     let batches = tables::read_parquet(path)?;
     let Some(first) = batches.first() else {
         bail!("{}: no rows: the step-1 posterior is empty", path.display());
@@ -610,4 +542,83 @@ pub fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairRow>> {
         }
     }
     Ok(out)
+}
+
+/// The numeric column `column` of measurements.parquet per measurement, in file order (`None`
+/// where it has no finite value): the covariate of a temperature enrichment.
+pub fn read_covariate(path: &Path, column: &str) -> anyhow::Result<Vec<(String, Option<f64>)>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let mid = c.str("measurement_id")?;
+        let col = b.column_by_name(column).ok_or_else(|| {
+            anyhow!(
+                "{}: no column {column:?} (the covariate of the enrichment); columns: {}",
+                path.display(),
+                b.schema()
+                    .fields()
+                    .iter()
+                    .map(|f| f.name().as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        })?;
+        let col = arrow::compute::cast(col, &DataType::Float64).with_context(|| {
+            format!(
+                "{}: column {column:?} is not numeric (expected a number per measurement)",
+                path.display()
+            )
+        })?;
+        let a = col
+            .as_any()
+            .downcast_ref::<Float64Array>()
+            .ok_or_else(|| anyhow!("{}: column {column:?}: expected float64", path.display()))?;
+        for i in 0..b.num_rows() {
+            let v = arrow::array::Array::is_valid(a, i) && a.value(i).is_finite();
+            out.push((mid.value(i).to_string(), v.then(|| a.value(i))));
+        }
+    }
+    Ok(out)
+}
+
+/// Step 2's population, joints, summary and stages tables in `out`; returns their paths.
+pub fn write_joint_tables(
+    out: &Path,
+    t: &crate::update::joints::JointTables,
+    results: &crate::update::sampler::Results,
+    prov: &BTreeMap<String, String>,
+) -> anyhow::Result<Vec<std::path::PathBuf>> {
+    let (pop, jt) = (&t.pop, &t.jt);
+    let mut outputs = vec![];
+    let p = out.join("population.parquet");
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(Int32Array::from(pop.run.clone())),
+        Arc::new(Int32Array::from(pop.draw.clone())),
+        Arc::new(Int32Array::from(t.b_run.clone())),
+        Arc::new(Int32Array::from(t.b_draw.clone())),
+        Arc::new(Float64Array::from(pop.cols[0].2.clone())),
+        Arc::new(Float64Array::from(pop.cols[1].2.clone())),
+    ];
+    write_table(&p, &POPULATION_JOINTS, cols, &pop.cols[2..], prov)?;
+    outputs.push(p);
+    let p = out.join("joints.parquet");
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(Int32Array::from(jt.run.clone())),
+        Arc::new(Int32Array::from(jt.draw.clone())),
+        Arc::new(StringArray::from_iter_values(
+            jt.key.iter().map(|k| k.as_deref().unwrap_or("")),
+        )),
+        Arc::new(StringArray::from_iter_values(t.joint_boards.iter())),
+        Arc::new(Float64Array::from(jt.cols[0].2.clone())),
+    ];
+    write_table(&p, &JOINTS, cols, &jt.cols[1..], prov)?;
+    outputs.push(p);
+    let p = out.join("summary.parquet");
+    write_summary(&p, &t.summary, prov)?;
+    outputs.push(p);
+    let stages: Vec<StageInfo> = results.iter().flat_map(|r| r.stages.clone()).collect();
+    let p = out.join("stages.parquet");
+    write_stages(&p, &stages, prov)?;
+    outputs.push(p);
+    Ok(outputs)
 }

@@ -1,0 +1,542 @@
+//! Step 1 (boards, free-free) as pure functions: the free model with the measured thickness
+//! and a board enrichment, the units (every board's frequencies, shapes, mass, thickness and
+//! covariate), the population prior and the target, the ROM-box rule on the posterior, the
+//! tables' rows and the evidence. `stage::update` reads the inputs, calls these in order and
+//! writes the outputs.
+
+use crate::bayes::modal::{CovariateEffect, ModalPredictor, UnitData};
+use crate::bayes::population::PopulationPrior;
+use crate::bayes::target::{Compose, ErrorModel, ModalTarget, PerMass};
+use crate::fem::params::names;
+use crate::fem::{Board, FeModel, Params, Rom, Setup};
+use crate::findings::{Finding, Findings, Severity};
+use crate::modal::rows::{ModeRow, PairRow};
+use crate::update::enrichment::{board_enrichment, BoardContext, BoardEffect, BoardEnrichment};
+use crate::update::posterior::{
+    discrepancy_json, evidence_json, population_columns, DrawTable, SummaryRow,
+};
+use crate::update::problem::CovariateColumn;
+use crate::update::problem::{
+    all_labels, core_thickness_mass, covariate_offsets, discrepancy_for, mass_obs,
+    model_error_prior, modes_needed, shape_map, thickness_obs, unit_and_residual_data,
+    BoardCoordinates, Labels, MassRow, ModelErrorPrior, ModelSpec, ObsMeta,
+};
+use crate::update::rom_box::RomBoxViolation;
+use crate::update::sampler::{box_violations, particles_of, Results};
+use anyhow::{anyhow, bail};
+use std::collections::{BTreeMap, BTreeSet};
+
+/// The free model of step 1: a board enrichment's parameter added, the updated parameters and
+/// their nominal values, the labels it tracks.
+pub struct BoardModel {
+    pub model: FeModel,
+    pub board_nominal: Params,
+    /// The board's own mass (the balance weighs an added mass with it), g.
+    pub nominal_mass_g: f64,
+    pub enrichment: Option<BoardEnrichment>,
+    pub param_names: Vec<String>,
+    /// A point mechanism's parameter, on a logarithmic axis of this half-width.
+    pub log_axes: Vec<(String, f64)>,
+    pub updated: Vec<usize>,
+    pub reference: Vec<f64>,
+    pub all: Labels,
+    pub need: usize,
+}
+
+/// The free model (see [`BoardModel`]); `with_thickness`: the core thickness a parameter.
+pub fn board_model(
+    board: &Board,
+    spec: &ModelSpec,
+    labels: &Labels,
+    pairs: &[PairRow],
+    with_thickness: bool,
+    findings: &mut Findings,
+) -> anyhow::Result<BoardModel> {
+    let model_opts = crate::fem::ModelOptions {
+        core_thickness: with_thickness,
+    };
+    let mut model = FeModel::build_with(board, Setup::Free, &board.mesh, model_opts)?;
+    let board_nominal = model.nominal_params();
+    // The board's own mass (the balance weighs an added mass with it).
+    let nominal_mass_g = model.total_mass_kg(&board_nominal)? * 1e3;
+    let enrichment = spec
+        .enrich
+        .map(|m| {
+            board_enrichment(
+                m,
+                BoardContext {
+                    board_mass_kg: 1e-3 * nominal_mass_g,
+                    location_m: spec.enrich_location,
+                },
+            )
+            .map_err(|e| anyhow!("--enrich: {e}"))
+        })
+        .transpose()?;
+    // A point mechanism's parameter joins the updated ones on a logarithmic coordinate.
+    let mut param_names = spec.params.clone();
+    let mut log_axes: Vec<(String, f64)> = vec![];
+    if let Some(BoardEffect::PointMass {
+        parameter,
+        x_m,
+        y_m,
+        reference_kg,
+        log_box,
+    }) = enrichment.as_ref().map(|e| &e.effect)
+    {
+        model
+            .add_point_mass_param(parameter, *x_m, *y_m, *reference_kg)
+            .map_err(|e| anyhow!("--enrich added_mass at ({x_m}, {y_m}) m: {e}"))?;
+        param_names.push(parameter.clone());
+        log_axes.push((parameter.clone(), *log_box));
+    }
+    let nominal = model.nominal_params();
+    let mut updated = vec![];
+    for p in &param_names {
+        updated.push(nominal.position(p).map_err(|_| {
+            anyhow!(
+                "--params: {p:?} is not a parameter of the model; expected some of {:?}",
+                nominal.names
+            )
+        })?);
+    }
+    let reference: Vec<f64> = updated.iter().map(|&i| nominal.values[i]).collect();
+    if let Some((i, _)) = reference.iter().enumerate().find(|(_, v)| **v == 0.0) {
+        bail!(
+            "--params: {} has nominal value 0; relative updating needs a non-zero nominal",
+            param_names[i]
+        );
+    }
+    let all = all_labels(pairs, "free", 40, findings);
+    let need = modes_needed(labels, &all);
+    Ok(BoardModel {
+        model,
+        board_nominal,
+        nominal_mass_g,
+        enrichment,
+        param_names,
+        log_axes,
+        updated,
+        reference,
+        all,
+        need,
+    })
+}
+
+/// Step 1's target and what its outputs need: the boards (units) and their residual data, the
+/// model-error prior, a covariate, the population's coordinates.
+pub struct BoardTarget {
+    pub target: ModalTarget,
+    pub all_pred: ModalPredictor,
+    pub units_all: Vec<(UnitData, Vec<ObsMeta>)>,
+    pub unit_names: Vec<String>,
+    pub model_error: Option<ModelErrorPrior>,
+    pub covariate: Option<CovariateEffect>,
+    pub pop_names: Vec<String>,
+    pub pop_reference: Vec<f64>,
+    /// Updated coordinates, and of them the board parameters (an enrichment's follow).
+    pub d: usize,
+    pub d0: usize,
+}
+
+/// Step 1's target: the boards with free-free pairs or a mass are its units. `masses`: the
+/// balance's per board; `covariate_values`: a temperature enrichment's column per measurement
+/// with its source; `thickness_m`: the boards' measured core thickness.
+#[allow(clippy::too_many_arguments)]
+pub fn board_target(
+    board: &Board,
+    bm: &BoardModel,
+    rom: &Rom,
+    spec: &ModelSpec,
+    (labels, pairs, mode_rows): (&Labels, &[PairRow], &[ModeRow]),
+    masses: &BTreeMap<String, MassRow>,
+    covariate_values: Option<CovariateColumn<'_>>,
+    thickness_m: &BTreeMap<String, f64>,
+    findings: &mut Findings,
+) -> anyhow::Result<BoardTarget> {
+    let model_error = spec
+        .model_error
+        .then(|| model_error_prior(board, &bm.board_nominal, labels, &bm.all))
+        .transpose()?;
+    let (model, all, log_axes, nominal_mass_g) =
+        (&bm.model, &bm.all, &bm.log_axes, bm.nominal_mass_g);
+    let point_masses: Vec<usize> = log_axes
+        .iter()
+        .map(|(n, _)| rom.map.names.iter().position(|m| m == n).unwrap_or(0))
+        .collect();
+    let thickness = core_thickness_mass(model)?;
+    let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?
+        .with_point_masses(point_masses.clone())
+        .with_core_thickness(thickness);
+    let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
+        .with_point_masses(point_masses)
+        .with_core_thickness(thickness);
+    // Units: every board with free-free pairs or a mass.
+    // The enrichment's covariate per free-free measurement, as offsets from their mean.
+    let (cov_offsets, covariate) = match bm.enrichment.as_ref().and_then(|e| match &e.effect {
+        BoardEffect::Covariate {
+            coefficient,
+            scaled,
+        } => Some((e, coefficient, scaled)),
+        BoardEffect::PointMass { .. } => None,
+    }) {
+        Some((e, coefficient, scaled)) => {
+            let column = spec.enrich_covariate.clone().ok_or_else(|| {
+                anyhow!("--enrich {}: needs the covariate column", e.mechanism.id())
+            })?;
+            let free: BTreeSet<&str> = pairs
+                .iter()
+                .filter(|p| p.setup == "free")
+                .map(|p| p.measurement_id.as_str())
+                .collect();
+            let (offsets, reference) = covariate_offsets(
+                covariate_values.map_or(&[][..], |(v, _)| v),
+                covariate_values.map_or("", |(_, s)| s),
+                &column,
+                &free,
+                findings,
+            )?;
+            let scaled: Vec<usize> = scaled
+                .iter()
+                .map(|n| {
+                    rom.map.names.iter().position(|m| m == n).ok_or_else(|| {
+                        anyhow!(
+                            "--enrich {}: the model has no parameter {n:?}",
+                            e.mechanism.id()
+                        )
+                    })
+                })
+                .collect::<anyhow::Result<_>>()?;
+            let cov = CovariateEffect {
+                name: coefficient.clone(),
+                covariate: column,
+                reference,
+                scaled,
+            };
+            (Some(offsets), Some(cov))
+        }
+        None => (None, None),
+    };
+    let wanted: BTreeSet<(String, i32)> = pairs
+        .iter()
+        .filter(|p| p.setup == "free")
+        .map(|p| (p.measurement_id.clone(), p.mode))
+        .collect();
+    let shapes = shape_map(mode_rows, &wanted);
+    let mut board_ids: BTreeSet<String> = pairs
+        .iter()
+        .filter(|p| p.setup == "free")
+        .map(|p| p.board_id.clone())
+        .collect();
+    board_ids.extend(masses.keys().cloned());
+    for b in &spec.hold_out_boards {
+        if !board_ids.contains(b) {
+            bail!(
+            "--hold-out: board {b} has no paired free-free mode and no balance reading in this campaign (boards: {})",
+            board_ids.iter().cloned().collect::<Vec<_>>().join(", ")
+        );
+        }
+        findings.push(Finding::new(
+        Severity::Info,
+        "update.board_held_out",
+        format!("board {b} is held out (--hold-out): its modes and mass are not used; the report compares its measurements with the new-board prediction"),
+    ));
+    }
+    board_ids.retain(|b| !spec.hold_out_boards.contains(b));
+    if board_ids.is_empty() {
+        bail!("--hold-out leaves no board to update");
+    }
+    // The balance informs the mass parameters: mass_scale, and an added mass.
+    let mass_updated =
+        spec.params.iter().any(|p| p == names::MASS_SCALE) || !bm.log_axes.is_empty();
+    let use_shapes = spec.delta.is_some();
+    let mut units = vec![];
+    let mut units_all = vec![];
+    let mut unit_names = vec![];
+    for b in &board_ids {
+        let rows: Vec<&PairRow> = pairs
+            .iter()
+            .filter(|p| p.setup == "free" && &p.board_id == b)
+            .collect();
+        let (mut data, (data_all, meta_all)) = unit_and_residual_data(
+            &rows,
+            labels,
+            all,
+            use_shapes,
+            (model, rom, &shapes),
+            cov_offsets.as_ref(),
+            findings,
+        )?;
+        data.mass = match masses.get(b) {
+            Some(m) if mass_updated => mass_obs(m, b, spec.mass_floor_rel, findings),
+            Some(_) => None,
+            None => {
+                findings.push(Finding::new(
+                Severity::Warning,
+                "update.not_weighed",
+                format!("board {b} was never weighed (no stable balance reading): its mass is informed by the population only"),
+            ));
+                None
+            }
+        };
+        if data.freq.is_empty() && data.mass.is_none() {
+            findings.push(Finding::new(
+            Severity::Warning,
+            "update.board_no_data",
+            format!("board {b} has no paired free-free mode to update and no usable mass; left out of step 1"),
+        ));
+            continue;
+        }
+        if data.freq.is_empty() {
+            findings.push(Finding::new(
+                Severity::Warning,
+                "update.board_no_modes",
+                format!(
+                    "board {b} has no paired free-free mode to update; only its mass informs it"
+                ),
+            ));
+        }
+        // Modes missing in some measurements: reported, the rest are used.
+        let meas: BTreeSet<&str> = rows.iter().map(|p| p.measurement_id.as_str()).collect();
+        for (m, l) in labels.labels.iter().enumerate() {
+            let n = data.freq.iter().filter(|f| f.mode == m).count();
+            if n > 0 && n < meas.len() {
+                findings.push(Finding::new(
+                Severity::Info,
+                "update.mode_missing",
+                format!("board {b}: mode {l:?} is paired in {n} of {} measurements; the others contribute no term for it", meas.len()),
+            ));
+            }
+        }
+        units.push(data);
+        units_all.push((data_all, meta_all));
+        unit_names.push(b.clone());
+    }
+    if units.is_empty() {
+        bail!("no board has data for step 1 (no paired free-free mode and no mass)");
+    }
+    let (updated, reference, param_names) = (&bm.updated, &bm.reference, &bm.param_names);
+    let d = updated.len();
+    let d0 = spec.params.len();
+    let mut prior = PopulationPrior {
+        mu_mean: vec![0.0; d0],
+        mu_sd: vec![spec.prior_width; d0],
+        sigma_scale: vec![spec.sigma_scale; d0],
+        // The board parameters' family; an enrichment's coordinate stays half-normal
+        // (a coefficient probably common to all boards).
+        sigma_prior: vec![spec.sigma_prior; d0],
+        lkj_eta: spec.lkj_eta,
+    };
+    if let Some(e) = &bm.enrichment {
+        // The board's coordinate (a coefficient, or ln of an added mass): population
+        // mean ~ the mechanism's prior, and a board-to-board sd of a fifth of that
+        // prior's.
+        prior.mu_mean.push(e.prior_mean);
+        prior.mu_sd.push(e.prior_sd);
+        prior.sigma_scale.push(0.2 * e.prior_sd);
+    }
+    let log: Vec<bool> = (0..d).map(|k| k >= d0).collect();
+    // Moduli per unit mass scale, where the mass scale is updated too.
+    let mass = param_names[..d0]
+        .iter()
+        .position(|p| p == crate::fem::params::names::MASS_SCALE);
+    let per_mass = match (spec.board_coordinates, mass) {
+        (BoardCoordinates::PerMass, Some(mass)) => Some(PerMass {
+            mass,
+            specific: (0..d)
+                .map(|k| k < d0 && k != mass && param_names[k].ends_with("_pa"))
+                .collect(),
+        }),
+        _ => None,
+    };
+    if spec.board_coordinates == BoardCoordinates::PerMass && per_mass.is_none() {
+        findings.push(Finding::new(
+            Severity::Info,
+            "update.board_coordinates",
+            format!("moduli per unit mass scale need {} among the updated parameters ({}): the population is formed in the parameters themselves", crate::fem::params::names::MASS_SCALE, param_names[..d0].join(", ")),
+        ));
+    }
+    // The population's coordinates: names and the values x = 0 stands for.
+    let (pop_names, pop_reference): (Vec<String>, Vec<f64>) = (0..d)
+        .map(|k| match &per_mass {
+            Some(pm) if pm.is_specific(k) => (
+                crate::fem::params::names::per_mass_scale(&param_names[k]),
+                reference[k] / reference[pm.mass],
+            ),
+            _ => (param_names[k].clone(), reference[k]),
+        })
+        .unzip();
+    let mut target = ModalTarget {
+        predictor,
+        compose: Compose::Boards {
+            updated: updated.clone(),
+            reference: reference.clone(),
+            log: log.clone(),
+            per_mass,
+        },
+        prior,
+        errors: ErrorModel {
+            n_modes: labels.labels.len(),
+            eps: spec.eps,
+            delta: spec.delta,
+            model_error_sd: model_error.as_ref().map(|m| m.sd_updated.clone()),
+            discrepancy: None,
+        },
+        units,
+        covariate: covariate.clone(),
+        subspaces: vec![],
+        coord_obs: thickness_obs(
+            param_names,
+            board.core.thickness_m,
+            &unit_names,
+            thickness_m,
+            spec.rom_box,
+            findings,
+        ),
+    };
+    target.errors.discrepancy = discrepancy_for(
+        &target,
+        &[],
+        spec.discrepancy_freq
+            .unwrap_or(crate::bayes::discrepancy::FREE_FIDELITY_FREQ),
+        "boards",
+        findings,
+    )?;
+    Ok(BoardTarget {
+        target,
+        all_pred,
+        units_all,
+        unit_names,
+        model_error,
+        covariate,
+        pop_names,
+        pop_reference,
+        d,
+        d0,
+    })
+}
+
+/// The ROM-box rule: a posterior that presses against the ROM's box is a [`RomBoxViolation`]
+/// with the half-width that would hold it.
+pub fn check_board_box(
+    bm: &BoardModel,
+    bt: &BoardTarget,
+    results: &Results,
+    spec: &ModelSpec,
+) -> anyhow::Result<()> {
+    let violations = box_violations(
+        results,
+        &bt.unit_names,
+        &bm.param_names,
+        |x| bt.target.compose.relative_params(x),
+        |k, x| match bm.log_axes.get(k.wrapping_sub(bt.d0)) {
+            Some((_, w)) if k >= bt.d0 => x.abs() <= *w,
+            _ => x.abs() <= spec.rom_box,
+        },
+        spec.box_tolerance,
+    );
+    if !violations.is_empty() {
+        // The half-width that holds every sampled value of the relative coordinates, with
+        // a margin, to the next 5 %.
+        let mut reach = 0.0f64;
+        for r in results {
+            for p in &r.particles {
+                for x in &p.x {
+                    let x = bt.target.compose.relative_params(x);
+                    for (k, v) in x.iter().enumerate() {
+                        if k < bt.d0 || bm.log_axes.get(k.wrapping_sub(bt.d0)).is_none() {
+                            reach = reach.max(v.abs());
+                        }
+                    }
+                }
+            }
+        }
+        return Err(RomBoxViolation {
+        message: format!(
+            "the posterior presses against the ROM's ±{:.0} % box (relative to the board file's nominal values):\n  {}\nThe ROM is not verified there. Re-centre the model: put the posterior means in the board file (--model) and run again, or leave an uninformed parameter out (--params).",
+            100.0 * spec.rom_box,
+            violations.join("\n  ")
+        ),
+        needed_half_width: (reach * 1.15 / 0.05).ceil() * 0.05,
+    }
+    .into());
+    }
+    Ok(())
+}
+
+/// Step 1's draws as the tables' rows: the population, the boards, and the summary.
+pub fn board_tables(
+    bm: &BoardModel,
+    bt: &BoardTarget,
+    results: &Results,
+    labels: &Labels,
+    runs: usize,
+) -> (DrawTable, DrawTable, Vec<SummaryRow>) {
+    let (pcols, pop_of) =
+        population_columns(&bt.target, &bt.pop_names, &bt.pop_reference, &labels.labels);
+    let mut pop = DrawTable::new(&pcols);
+    let mut bcols: Vec<(String, String)> = bm
+        .param_names
+        .iter()
+        .map(|p| (p.clone(), String::new()))
+        .collect();
+    bcols.push(("mass_g".into(), "g".into()));
+    // A board enrichment's coefficient per board (step 2 carries it with the draw).
+    if let Some(c) = &bt.covariate {
+        bcols.push((c.name.clone(), format!("1/(unit of {})", c.covariate)));
+    }
+    let mut boards = DrawTable::new(&bcols);
+    for (r, i, p) in particles_of(results) {
+        pop.push(r, i, None, &pop_of(&p.g));
+        for (b, name) in bt.unit_names.iter().enumerate() {
+            let v = bt.target.values(&p.aux, b, &p.x[b]);
+            let mut row: Vec<f64> = bm.updated.iter().map(|&k| v[k]).collect();
+            row.push(bt.target.predictor.mass_g(&v));
+            if bt.covariate.is_some() {
+                row.push(p.x[b][bt.d]);
+            }
+            boards.push(r, i, Some(name), &row);
+        }
+    }
+    let mut summary = pop.summarize(runs, true);
+    summary.extend(boards.summarize(runs, true));
+    (pop, boards, summary)
+}
+
+/// Step 1's evidence.json.
+pub fn board_evidence(
+    bm: &BoardModel,
+    bt: &BoardTarget,
+    results: &Results,
+    labels: &Labels,
+    shape_weights: &[crate::bayes::shape_weight::ShapeWeight],
+) -> anyhow::Result<serde_json::Value> {
+    let log_z: Vec<f64> = results.iter().map(|r| r.log_evidence).collect();
+    let mut ev = evidence_json(&log_z, "boards (step 1)");
+    match (&bm.enrichment, &bt.covariate) {
+        (Some(e), Some(c)) => {
+            if let BoardEffect::Covariate {
+                coefficient,
+                scaled,
+            } = &e.effect
+            {
+                ev["enrichment"] = serde_json::json!({
+                    "mechanism": e.mechanism,
+                    "coefficient": coefficient,
+                    "scaled": scaled,
+                    "covariate": c.covariate,
+                    "covariate_reference": c.reference,
+                    "prior_mean": e.prior_mean,
+                    "prior_sd": e.prior_sd,
+                });
+            }
+        }
+        (Some(e), None) => {
+            ev["enrichment"] = serde_json::to_value(e)?;
+        }
+        _ => {}
+    }
+    ev["model_error"] = serde_json::to_value(&bt.model_error)?;
+    ev["shape_weights"] = serde_json::to_value(shape_weights)?;
+    ev["discrepancy"] = discrepancy_json(&bt.target, &labels.labels);
+    Ok(ev)
+}
