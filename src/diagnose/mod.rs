@@ -3,10 +3,13 @@
 //! sensitivity pattern explains it, select by refitting (Bayes factors from the SMC and
 //! held-out error), and explain.
 
+pub mod doc;
 pub mod library;
 pub mod localize;
 pub mod locate;
 pub mod misfit;
 pub mod point_search;
+pub mod regions;
 pub mod screen;
 pub mod select;
+pub mod verdict;
