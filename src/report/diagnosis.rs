@@ -416,8 +416,22 @@ pub fn best_refit(d: &DiagnosisData) -> Option<String> {
 
 /// The section's tables, in the order the page shows them.
 pub fn tables(d: &DiagnosisData) -> Vec<Table> {
-    let doc = &d.doc;
-    let loc = &doc.located;
+    let loc = &d.doc.located;
+    vec![
+        located_modes_table(loc),
+        outliers_table(&d.doc),
+        slips_table(loc),
+        covariates_table(loc),
+        clusters_table(loc),
+        never_seen_table(loc),
+        regions_table(loc),
+        candidates_table(&d.doc),
+        before_after_table(d),
+    ]
+}
+
+/// The located modes.
+fn located_modes_table(loc: &LocatedView) -> Table {
     let located_modes = loc
         .modes
         .iter()
@@ -430,6 +444,17 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &LOCATED_MODES,
+        headers: &["setup", "mode", "mean relative residual [%]", "reasons"],
+        digits: &[0, 0, 3, 0],
+        rows: located_modes,
+    }
+}
+
+/// The outlier measurements with their checks.
+fn outliers_table(doc: &DiagnosisView) -> Table {
+    let loc = &doc.located;
     let outliers = loc
         .measurements
         .iter()
@@ -450,6 +475,24 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &OUTLIERS,
+        headers: &[
+            "measurement",
+            "board",
+            "setup",
+            "modes",
+            "χ²",
+            "q-value",
+            "still an outlier without the covariates",
+        ],
+        digits: &[0, 0, 0, 0, 1, 4, 0],
+        rows: outliers,
+    }
+}
+
+/// The identification outliers (one mode of one measurement).
+fn slips_table(loc: &LocatedView) -> Table {
     let slips = loc
         .identification_outliers
         .iter()
@@ -465,6 +508,24 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &IDENTIFICATION_OUTLIERS,
+        headers: &[
+            "measurement",
+            "board",
+            "setup",
+            "mode",
+            "off the others [%]",
+            "t",
+            "p of its other modes",
+        ],
+        digits: &[0, 0, 0, 0, 3, 1, 3],
+        rows: slips,
+    }
+}
+
+/// The significant covariates.
+fn covariates_table(loc: &LocatedView) -> Table {
     let covariates = loc
         .covariates
         .iter()
@@ -478,6 +539,22 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &COVARIATES,
+        headers: &[
+            "setup",
+            "covariate",
+            "q-value",
+            "slope [relative residual per unit]",
+            "unit",
+        ],
+        digits: &[0, 0, 4, 6, 0],
+        rows: covariates,
+    }
+}
+
+/// The recurring unpaired-mode clusters.
+fn clusters_table(loc: &LocatedView) -> Table {
     let clusters = loc
         .unpaired_clusters
         .iter()
@@ -493,6 +570,24 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &CLUSTERS,
+        headers: &[
+            "setup",
+            "median [Hz]",
+            "min [Hz]",
+            "max [Hz]",
+            "modes",
+            "measurements",
+            "share of the setup",
+        ],
+        digits: &[0, 2, 2, 2, 0, 0, 3],
+        rows: clusters,
+    }
+}
+
+/// The model modes never seen.
+fn never_seen_table(loc: &LocatedView) -> Table {
     let never = loc
         .never_seen
         .iter()
@@ -506,6 +601,22 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &NEVER_SEEN,
+        headers: &[
+            "setup",
+            "model mode",
+            "median model frequency [Hz]",
+            "measurements",
+            "not identified in",
+        ],
+        digits: &[0, 0, 2, 0, 0],
+        rows: never,
+    }
+}
+
+/// The board regions (a mass in g).
+fn regions_table(loc: &LocatedView) -> Table {
     let mm = |v: Option<f64>| v.map(|x| x * 1e3);
     // A mass in g; another amplitude as it is.
     let amp = |r: &RegionView, v: Option<f64>| {
@@ -543,6 +654,28 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &REGIONS,
+        headers: &[
+            "mechanism",
+            "located",
+            "x [mm]",
+            "y [mm]",
+            "amplitude",
+            "± se",
+            "unit",
+            "90 % radius [mm]",
+            "share explained",
+            "p",
+            "also fits at [mm]",
+        ],
+        digits: &[0, 0, 1, 1, 3, 3, 0, 1, 3, 3, 0],
+        rows: regions,
+    }
+}
+
+/// The candidates: a row per held-out setup and estimate (at least one).
+fn candidates_table(doc: &DiagnosisView) -> Table {
     let mut cands = vec![];
     for (k, cd) in doc.candidates.iter().enumerate() {
         let r = cd.refit.as_ref();
@@ -574,6 +707,35 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]);
         }
     }
+    Table {
+        spec: &CANDIDATES,
+        headers: &[
+            "rank",
+            "id",
+            "mechanism",
+            "joint",
+            "covariate",
+            "screened in because",
+            "refitted",
+            "log Bayes factor",
+            "± se",
+            "favoured",
+            "held-out setup",
+            "held-out error before [%]",
+            "after [%]",
+            "parameter",
+            "median",
+            "5 %",
+            "95 %",
+            "refit failed",
+        ],
+        digits: &[0, 0, 0, 0, 0, 0, 0, 2, 2, 0, 0, 4, 4, 0, 4, 4, 4, 0],
+        rows: cands,
+    }
+}
+
+/// The before/after per mode of the best refit ([`best_refit`]); without one, the located modes with the baseline only.
+fn before_after_table(d: &DiagnosisData) -> Table {
     let mut before_after = vec![];
     let best = best_refit(d);
     if let Some(modes) = &d.modes {
@@ -614,139 +776,22 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             }
         }
     }
-    vec![
-        Table {
-            spec: &LOCATED_MODES,
-            headers: &["setup", "mode", "mean relative residual [%]", "reasons"],
-            digits: &[0, 0, 3, 0],
-            rows: located_modes,
-        },
-        Table {
-            spec: &OUTLIERS,
-            headers: &[
-                "measurement",
-                "board",
-                "setup",
-                "modes",
-                "χ²",
-                "q-value",
-                "still an outlier without the covariates",
-            ],
-            digits: &[0, 0, 0, 0, 1, 4, 0],
-            rows: outliers,
-        },
-        Table {
-            spec: &IDENTIFICATION_OUTLIERS,
-            headers: &[
-                "measurement",
-                "board",
-                "setup",
-                "mode",
-                "off the others [%]",
-                "t",
-                "p of its other modes",
-            ],
-            digits: &[0, 0, 0, 0, 3, 1, 3],
-            rows: slips,
-        },
-        Table {
-            spec: &COVARIATES,
-            headers: &[
-                "setup",
-                "covariate",
-                "q-value",
-                "slope [relative residual per unit]",
-                "unit",
-            ],
-            digits: &[0, 0, 4, 6, 0],
-            rows: covariates,
-        },
-        Table {
-            spec: &CLUSTERS,
-            headers: &[
-                "setup",
-                "median [Hz]",
-                "min [Hz]",
-                "max [Hz]",
-                "modes",
-                "measurements",
-                "share of the setup",
-            ],
-            digits: &[0, 2, 2, 2, 0, 0, 3],
-            rows: clusters,
-        },
-        Table {
-            spec: &NEVER_SEEN,
-            headers: &[
-                "setup",
-                "model mode",
-                "median model frequency [Hz]",
-                "measurements",
-                "not identified in",
-            ],
-            digits: &[0, 0, 2, 0, 0],
-            rows: never,
-        },
-        Table {
-            spec: &REGIONS,
-            headers: &[
-                "mechanism",
-                "located",
-                "x [mm]",
-                "y [mm]",
-                "amplitude",
-                "± se",
-                "unit",
-                "90 % radius [mm]",
-                "share explained",
-                "p",
-                "also fits at [mm]",
-            ],
-            digits: &[0, 0, 1, 1, 3, 3, 0, 1, 3, 3, 0],
-            rows: regions,
-        },
-        Table {
-            spec: &CANDIDATES,
-            headers: &[
-                "rank",
-                "id",
-                "mechanism",
-                "joint",
-                "covariate",
-                "screened in because",
-                "refitted",
-                "log Bayes factor",
-                "± se",
-                "favoured",
-                "held-out setup",
-                "held-out error before [%]",
-                "after [%]",
-                "parameter",
-                "median",
-                "5 %",
-                "95 %",
-                "refit failed",
-            ],
-            digits: &[0, 0, 0, 0, 0, 0, 0, 2, 2, 0, 0, 4, 4, 0, 4, 4, 4, 0],
-            rows: cands,
-        },
-        Table {
-            spec: &BEFORE_AFTER,
-            headers: &[
-                "setup",
-                "mode",
-                "updating",
-                "located",
-                "n before",
-                "before [%]",
-                "refit",
-                "n after",
-                "after [%]",
-            ],
-            digits: &[0, 0, 0, 0, 0, 4, 0, 0, 4],
-            rows: before_after,
-        },
-    ]
+    Table {
+        spec: &BEFORE_AFTER,
+        headers: &[
+            "setup",
+            "mode",
+            "updating",
+            "located",
+            "n before",
+            "before [%]",
+            "refit",
+            "n after",
+            "after [%]",
+        ],
+        digits: &[0, 0, 0, 0, 0, 4, 0, 0, 4],
+        rows: before_after,
+    }
 }
 
 /// The verdict in plain language, for a test engineer.
