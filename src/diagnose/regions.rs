@@ -19,10 +19,11 @@ use crate::diagnose::localize::{
     localize_point_mass, localize_point_mass_at, shape_score, weighted_sd, LocalFit, LocalizeInput,
     ModalBasis, ModeResidual, ShapeObs, CHI2_2_Q90, CHI2_2_Q999,
 };
-use crate::diagnose::locate::{LocateOptions, ModeCheck, PairObs};
+use crate::diagnose::locate::{LocateOptions, ModeCheck, PairObs, ResidualObs};
 use crate::fem::eigen::EigenOptions;
 use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Setup};
+use std::collections::BTreeMap;
 
 /// Grid cells along the board's shorter side for the candidate points: 25 (2 mm on a 50 mm
 /// board). The shortest bending half-wave of the first eight or so modes a free-free test
@@ -146,6 +147,20 @@ pub struct MeasuredShape {
     pub shape: Vec<f64>,
     pub x_m: Vec<f64>,
     pub y_m: Vec<f64>,
+}
+
+/// Each free-free label's mean model frequency over the residuals (what [`FreeBasis`] matches
+/// model modes by).
+pub fn free_model_freq(residuals: &[ResidualObs]) -> Vec<(String, f64)> {
+    let mut freq: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    for r in residuals.iter().filter(|r| r.setup == "free") {
+        let e = freq.entry(r.label.clone()).or_insert((0.0, 0));
+        e.0 += r.model_freq_hz_mean;
+        e.1 += 1;
+    }
+    freq.into_iter()
+        .map(|(l, (s, n))| (l, s / n as f64))
+        .collect()
 }
 
 /// The free-free model at the step-1 posterior centre, its modes matched to the residuals'

@@ -8,8 +8,8 @@ use crate::diagnose::doc::{
 };
 use crate::diagnose::locate::{self, Located, ModeCheck};
 use crate::diagnose::regions::BoardRegion;
-use crate::diagnose::screen::Candidate;
-use crate::diagnose::select::{self, Compared, DeviatingJoint, Estimate, Verdict};
+use crate::diagnose::screen::{Candidate, PointLocated};
+use crate::diagnose::select::{self, Compared, DeviatingJoint, Estimate, Refit, Verdict};
 use crate::findings::{Finding, Findings, Severity};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -531,6 +531,28 @@ pub fn mode_rows(
             (k, m, l)
         })
         .collect()
+}
+
+/// A refit of a point the localisation chose from the data: its Occam factor joins the
+/// evidence, and its uncertainty the mass's interval (the refit's is conditional on the
+/// point).
+pub fn with_located_point(r: &mut Refit, pl: PointLocated, point_xy_m: Option<[f64; 2]>) {
+    r.log_evidence_runs
+        .iter_mut()
+        .for_each(|z| *z += pl.log_occam);
+    r.log_location_occam = Some(pl.log_occam);
+    r.point_xy_m = point_xy_m;
+    for e in r.estimates.iter_mut() {
+        let z = 1.645 * pl.location_ln_mass_sd;
+        let lo = (e.median / e.q05).ln().hypot(z);
+        let hi = (e.q95 / e.median).ln().hypot(z);
+        e.q05 = e.median * (-lo).exp();
+        e.q95 = e.median * hi.exp();
+        e.scope = format!(
+            "{}; 90 % interval widened by the location's uncertainty (sd of ln mass {:.3})",
+            e.scope, pl.location_ln_mass_sd
+        );
+    }
 }
 
 #[cfg(test)]

@@ -4,6 +4,7 @@
 
 use crate::diagnose::locate::ModeCheck;
 use crate::diagnose::select::Verdict;
+use crate::diagnose::verdict::{sentence, Row};
 use crate::io::tables::{self, c, Col, TableSpec};
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
 use std::collections::BTreeMap;
@@ -234,6 +235,31 @@ pub struct DiagnosisRow {
     pub estimate_q95: Option<f64>,
     pub failed: Option<String>,
     pub sentence: String,
+}
+
+impl DiagnosisRow {
+    /// The table's row of a diagnosis row (its first estimate, its held-out bolted error).
+    pub fn of(r: &Row) -> Self {
+        let est = r.first_estimate();
+        DiagnosisRow {
+            mechanism: r.cand.mechanism.id().to_string(),
+            joint: r.cand.joint.map(|j| j as i32),
+            covariate: r.cand.covariate.clone(),
+            screen_reason: r.cand.reason.clone(),
+            refitted: r.cmp.is_some(),
+            log_bayes_factor: r.cmp.as_ref().and_then(|c| c.log_bayes_factor),
+            log_bayes_factor_se: r.cmp.as_ref().and_then(|c| c.log_bayes_factor_se),
+            favoured: r.cmp.as_ref().is_some_and(|c| c.favoured),
+            held_out_bolted_error_before_percent: r.held_out_bolted(false),
+            held_out_bolted_error_after_percent: r.held_out_bolted(true),
+            parameter: est.as_ref().map(|e| e.parameter.clone()),
+            estimate_median: est.as_ref().map(|e| e.median),
+            estimate_q05: est.as_ref().map(|e| e.q05),
+            estimate_q95: est.as_ref().map(|e| e.q95),
+            failed: r.cmp.as_ref().and_then(|c| c.refit.failed.clone()),
+            sentence: sentence(r),
+        }
+    }
 }
 
 /// Write `diagnosis.parquet` at `path`, the verdict in its metadata (`hbmu.verdict`).

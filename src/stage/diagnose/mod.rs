@@ -21,7 +21,7 @@ pub mod inputs {
 pub use crate::diagnose::doc::{
     CandidateDoc, DiagnoseOptions, DiagnosisDoc, FindingDoc, HeldOut, LocatedSummary, Location,
 };
-use crate::diagnose::library::{is_board_mechanism, Mechanism};
+use crate::diagnose::library::is_board_mechanism;
 use crate::diagnose::locate::{self, LocateOptions, Located};
 use crate::diagnose::misfit::{MisfitParts, RefitShares};
 use crate::diagnose::regions::{self, demote_weaker_regions, BoardRegion};
@@ -216,25 +216,7 @@ fn screen_candidates(
 ) -> ((Vec<BoardRegion>, String), Vec<Candidate>) {
     let regions = board_regions(work, board, (params, input, located), lopts);
     let mut candidates = screen::screen(located, board);
-    for r in &regions.0 {
-        match r.mechanism {
-            Mechanism::AddedMass => screen::attach_point_mass(
-                &mut candidates,
-                [r.fit.x_m, r.fit.y_m],
-                r.located.then_some(screen::PointLocated {
-                    log_occam: r.fit.log_location_occam,
-                    location_ln_mass_sd: r.fit.location_ln_amplitude_sd,
-                }),
-                &r.sentence,
-            ),
-            // A located loss is the library's `local_stiffness_loss` there; a stiffening has
-            // no mechanism in the library and stays a located, unexplained signature.
-            Mechanism::LocalStiffnessLoss if r.located && r.fit.amplitude < 0.0 => {
-                screen::attach_stiffness_loss(&mut candidates, [r.fit.x_m, r.fit.y_m], &r.sentence)
-            }
-            _ => {}
-        }
-    }
+    screen::attach_regions(&mut candidates, &regions.0);
     (regions, candidates)
 }
 
@@ -251,16 +233,7 @@ fn board_regions(
             "not run: no free-free misfit located (the point-mass and stiffness localisations use the free-free modes)".to_string(),
         );
     }
-    let mut freq: BTreeMap<String, (f64, usize)> = BTreeMap::new();
-    for r in input.residuals.iter().filter(|r| r.setup == "free") {
-        let e = freq.entry(r.label.clone()).or_insert((0.0, 0));
-        e.0 += r.model_freq_hz_mean;
-        e.1 += 1;
-    }
-    let model_freq: Vec<(String, f64)> = freq
-        .into_iter()
-        .map(|(l, (s, n))| (l, s / n as f64))
-        .collect();
+    let model_freq = regions::free_model_freq(&input.residuals);
     let files = WorkDirRegions { work };
     let inp = regions::RegionInput {
         files: &files,
@@ -325,30 +298,7 @@ fn write_outputs(
     let p = opts.out.join(JSON);
     crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     outputs.push(p);
-    let table: Vec<DiagnosisRow> = rows
-        .iter()
-        .map(|r| {
-            let est = r.first_estimate();
-            DiagnosisRow {
-                mechanism: r.cand.mechanism.id().to_string(),
-                joint: r.cand.joint.map(|j| j as i32),
-                covariate: r.cand.covariate.clone(),
-                screen_reason: r.cand.reason.clone(),
-                refitted: r.cmp.is_some(),
-                log_bayes_factor: r.cmp.as_ref().and_then(|c| c.log_bayes_factor),
-                log_bayes_factor_se: r.cmp.as_ref().and_then(|c| c.log_bayes_factor_se),
-                favoured: r.cmp.as_ref().is_some_and(|c| c.favoured),
-                held_out_bolted_error_before_percent: r.held_out_bolted(false),
-                held_out_bolted_error_after_percent: r.held_out_bolted(true),
-                parameter: est.as_ref().map(|e| e.parameter.clone()),
-                estimate_median: est.as_ref().map(|e| e.median),
-                estimate_q05: est.as_ref().map(|e| e.q05),
-                estimate_q95: est.as_ref().map(|e| e.q95),
-                failed: r.cmp.as_ref().and_then(|c| c.refit.failed.clone()),
-                sentence: verdict::sentence(r),
-            }
-        })
-        .collect();
+    let table: Vec<DiagnosisRow> = rows.iter().map(DiagnosisRow::of).collect();
     let p = opts.out.join("diagnosis.parquet");
     diagnose_tables::write_diagnosis(&p, &table, &verdict)?;
     outputs.push(p);

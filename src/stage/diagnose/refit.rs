@@ -10,7 +10,7 @@ use crate::diagnose::locate::{self, Located};
 use crate::diagnose::misfit::RefitShares;
 use crate::diagnose::point_search;
 use crate::diagnose::regions;
-use crate::diagnose::screen::{self, Candidate};
+use crate::diagnose::screen::Candidate;
 use crate::diagnose::select::{self, NewModeNote, Refit};
 use crate::diagnose::verdict::{self, quantile};
 use crate::io::diagnose_inputs::{
@@ -397,30 +397,9 @@ pub(super) fn refine_point(
             return (cand.clone(), vec![], Some(note));
         }
     };
-    let mut c = cand.clone();
-    c.point_xy_m = Some(end);
-    let mut note = None;
-    if let Some(post) = last.laplace(board.length_x_m * board.width_y_m) {
-        c.point_located = Some(screen::PointLocated {
-            log_occam: post.log_occam,
-            location_ln_mass_sd: post.ln_mass_sd,
-        });
-        c.reason = format!(
-            "{}; the point refined by the refits' evidence to ({:.2}, {:.2}) mm (sd {:.2}, {:.2} mm)",
-            c.reason,
-            end[0] * 1e3,
-            end[1] * 1e3,
-            post.sd_m[0] * 1e3,
-            post.sd_m[1] * 1e3
-        );
-    } else {
-        note = Some(format!(
-            "the refinement's last stencil (step {:.3} mm) has no interior maximum of the log evidence: the point moved to the best probe ({:.2}, {:.2}) mm, the location's Occam factor and the mass's spread are the localisation map's",
-            last.h_m * 1e3,
-            end[0] * 1e3,
-            end[1] * 1e3
-        ));
-        eprintln!("diagnose: {}: {}", cand.id(), note.as_deref().unwrap_or(""));
+    let (c, note) = point_search::refined(cand, end, &last, board.length_x_m * board.width_y_m);
+    if let Some(n) = &note {
+        eprintln!("diagnose: {}: {n}", cand.id());
     }
     (c, probes, note)
 }
@@ -524,46 +503,22 @@ pub(super) fn refit(
         // The location was chosen from the data: its Occam factor joins the evidence, and
         // its uncertainty the mass's interval (the refit's is conditional on the point).
         if let Some(pl) = cand.point_located {
-            r.log_evidence_runs
-                .iter_mut()
-                .for_each(|z| *z += pl.log_occam);
-            r.log_location_occam = Some(pl.log_occam);
-            r.point_xy_m = cand.point_xy_m;
+            verdict::with_located_point(&mut r, pl, cand.point_xy_m);
             r.location_probes = probes.clone();
             r.location_note = location_note.clone();
-            for e in r.estimates.iter_mut() {
-                let z = 1.645 * pl.location_ln_mass_sd;
-                let lo = (e.median / e.q05).ln().hypot(z);
-                let hi = (e.q95 / e.median).ln().hypot(z);
-                e.q05 = e.median * (-lo).exp();
-                e.q95 = e.median * hi.exp();
-                e.scope = format!(
-                    "{}; 90 % interval widened by the location's uncertainty (sd of ln mass {:.3})",
-                    e.scope, pl.location_ln_mass_sd
-                );
-            }
         }
         Ok(r)
     });
     match r {
         Ok(r) => r,
         Err(e) => Refit {
-            mechanism: Some(cand.mechanism),
-            joint: cand.joint,
-            dir: rel,
-            log_evidence_runs: vec![],
-            held_out: vec![],
-            updated: vec![],
-            estimates: vec![],
-            failed: Some(format!("{e:#}").replace('\n', " ")),
-            log_location_occam: None,
-            point_xy_m: None,
-            location_probes: vec![],
             location_note,
-            remaining_share: None,
-            explained_rel: None,
-            deviating_joints: vec![],
-            new_modes: vec![],
+            ..Refit::failed(
+                Some(cand.mechanism),
+                cand.joint,
+                rel,
+                format!("{e:#}").replace('\n', " "),
+            )
         },
     }
 }
