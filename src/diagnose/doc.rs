@@ -2,7 +2,7 @@
 
 use crate::diagnose::library::Mechanism;
 use crate::diagnose::locate::{LocateOptions, Located};
-use crate::diagnose::regions::BoardRegion;
+use crate::diagnose::regions;
 use crate::diagnose::screen::Candidate;
 use crate::diagnose::select::{Compared, Estimate, SelectOptions, Verdict};
 use crate::findings::Finding;
@@ -93,9 +93,9 @@ pub struct LocatedSummary {
     pub unpaired_clusters: Vec<crate::diagnose::locate::UnpairedCluster>,
     pub never_seen: Vec<crate::diagnose::locate::ModelModePresence>,
     /// Board regions: the point-mass localisation of the free-free misfit
-    /// ([`crate::diagnose::regions::point_mass_region`]); empty when it did not run, `board_regions_note`
+    /// ([`regions::point_mass_region`]); empty when it did not run, `board_regions_note`
     /// says why, and what is not localised yet.
-    pub board_regions: Vec<BoardRegion>,
+    pub board_regions: Vec<regions::BoardRegion>,
     pub board_regions_note: String,
 }
 

@@ -386,13 +386,9 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         // The location's uncertainty within the chosen region is the frequencies' where
         // that is wider: the shape terms weigh every scan point as independent (n / δ²),
         // while a shape residual of model-form error is smooth over the board, so their Δχ²
-        // overstates how well they place a point. In the lab's `lumped_mass` scenario the
-        // combined map, on a 0.25 mm grid around (56, 30) mm, peaked at (57.75, 29.0) mm,
-        // 3.4 mm from the mass, 3900 above the mass's own point; the sd of ln mass it gave,
-        // 0.002, left the refit's 90 % interval (0.229–0.241 g) short of the 0.25 g. The
-        // frequencies' map (their χ² inflated by the misfit left) fits 0.23–0.33 g over
-        // points within its 90 % region. The shapes still choose between regions (mirror
-        // images), which the frequencies cannot.
+        // overstates how well they place a point (the mass's interval came out too narrow).
+        // The shapes still choose between regions (mirror images), which the frequencies
+        // cannot.
         let freq_region = (fit.region_radius_m, fit.region_points);
         fit.location_ln_amplitude_sd = weighted_sd(&wv).max(fit.location_ln_amplitude_sd);
         combined_region(&mut fit, &combined, k, &open, points);

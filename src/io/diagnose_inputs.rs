@@ -716,66 +716,16 @@ pub fn joint_ratios(dir: &Path, n: usize) -> anyhow::Result<BTreeMap<String, Vec
     Ok(by)
 }
 
-/// A refit directory (or a baseline step) as a [`Refit`]. A board mechanism's refit has
-/// its step 1 in `dir/boards` and, where the campaign has a step 2, its step 2 in `dir`:
-/// its log evidence per run is then Z₂′ + (Z₁′ − Z₁), `step1_baseline` = the baseline's Z₁
-/// per run, so that it compares with the baseline's step 2 (Z₂) as a joint refit does (whose
-/// step 1 is the baseline's): every Bayes factor is over the same data, both steps.
-/// `max_r_hat` is the updating's convergence level ([`r_hat_gate`]).
-pub fn read_refit(
+/// The parameter estimates of a refit directory: a point mass's added mass and a
+/// covariate's coefficient from its step 1 (`boards/`), a joint mechanism's extra
+/// coordinates from step 2 (population medians), and a per-joint stiffness's estimate in
+/// each outlier measurement.
+fn refit_estimates(
     dir: &Path,
-    rel_dir: &str,
     mechanism: Option<Mechanism>,
     joint: Option<usize>,
-    step1_baseline: Option<&[f64]>,
     outliers: &[String],
-    max_r_hat: f64,
-) -> anyhow::Result<Refit> {
-    let board_mech = mechanism.is_some_and(is_board_mechanism);
-    let dir1 = dir.join("boards");
-    let has2 = dir.join("evidence.json").is_file();
-    let main = if board_mech && !has2 { &dir1 } else { dir };
-    let mut log_evidence_runs = evidence_runs(main)?;
-    if board_mech && has2 {
-        let z1 = evidence_runs(&dir1)?;
-        let base = step1_baseline.unwrap_or(&[]);
-        if z1.is_empty() || base.is_empty() {
-            anyhow::bail!(
-                "{}: no step-1 evidence to combine with step 2",
-                dir1.display()
-            );
-        }
-        for (r, z) in log_evidence_runs.iter_mut().enumerate() {
-            *z += z1[r % z1.len()] - base[r % base.len()];
-        }
-    }
-    let res = main.join("residuals.parquet");
-    // A refit whose independent runs disagree on its population-level parameters (the
-    // mechanism's, the hyperparameters, the error scales: rank-normalised split R-hat across
-    // runs above 1.05) has not sampled its posterior: its evidence gives no Bayes factor.
-    // Per-unit parameters are not gated: in step 2 each run carries its own subset of the
-    // step-1 draws (the cut posterior), and a measurement's contact stiffness, tied to its
-    // board's draw, differs between runs by that subset's Monte Carlo error alone (R-hat up
-    // to 1.1 with 20 draws per run on a board the bolted data constrain strongly); that
-    // error is in the runs' evidences, and so in the Bayes factor's standard error.
-    //
-    // Between MAX_R_HAT and MAX_R_HAT_EVIDENCE the runs disagree a little: the Bayes factor
-    // stands (each run is an independent estimate of the log evidence, and their spread is
-    // its standard error, which the decision rule weighs), while the estimates' intervals are
-    // said to be approximate.
-    let mut failed = None;
-    let mut convergence_note = None;
-    if mechanism.is_some() {
-        let mut reps = vec![main.to_path_buf()];
-        if board_mech && has2 {
-            reps.push(dir1.clone());
-        }
-        for d in reps {
-            let (f, n) = r_hat_gate(population_r_hat(&d.join("summary.parquet"))?, &d, max_r_hat);
-            failed = failed.or(f);
-            convergence_note = convergence_note.or(n);
-        }
-    }
+) -> anyhow::Result<Vec<Estimate>> {
     let mut estimates = vec![];
     let ev1 = if mechanism.is_some_and(is_board_mechanism) {
         read_json(&dir.join("boards/evidence.json"))?
@@ -868,47 +818,121 @@ pub fn read_refit(
                 });
             }
         }
-        // A mechanism that acts on some measurements only (one joint loose in some
-        // assemblies): its estimate in each outlier measurement the locate step found
-        // (joints.parquet holds report_ref · e^x per measurement). Not every measurement
-        // whose interval excludes the reference: the joints of one assembly differ by a few
-        // per cent anyway, and the bolted data resolve that.
         if mechanism == Some(Mechanism::JointStiffnessPerJoint) && !every_joint {
-            let jp = dir.join("joints.parquet");
-            for cdef in coords.iter().skip(1) {
-                let param = cdef["report_param"].as_str().unwrap_or_default();
-                let mut by: BTreeMap<String, Vec<f64>> = BTreeMap::new();
-                for b in &tables::read_parquet(&jp)? {
-                    let c = Cols {
-                        batch: b,
-                        path: &jp,
-                    };
-                    let (m, a) = (c.str("measurement_id")?, c.f64(param)?);
-                    for i in 0..b.num_rows() {
-                        by.entry(m.value(i).to_string())
-                            .or_default()
-                            .push(a.value(i));
-                    }
-                }
-                for (m, mut v) in by {
-                    if !outliers.contains(&m) {
-                        continue;
-                    }
-                    v.sort_by(f64::total_cmp);
-                    let (q05, q95) = (quantile(&v, 0.05), quantile(&v, 0.95));
-                    {
-                        estimates.push(Estimate {
-                            parameter: param.to_string(),
-                            scope: format!("measurement {m}"),
-                            median: quantile(&v, 0.5),
-                            q05,
-                            q95,
-                        });
-                    }
-                }
+            estimates.extend(per_measurement_estimates(dir, &coords, outliers)?);
+        }
+    }
+    Ok(estimates)
+}
+
+/// A mechanism that acts on some measurements only (one joint loose in some
+/// assemblies): its estimate in each outlier measurement the locate step found
+/// (joints.parquet holds report_ref · e^x per measurement). Not every measurement
+/// whose interval excludes the reference: the joints of one assembly differ by a few
+/// per cent anyway, and the bolted data resolve that.
+fn per_measurement_estimates(
+    dir: &Path,
+    coords: &[serde_json::Value],
+    outliers: &[String],
+) -> anyhow::Result<Vec<Estimate>> {
+    let mut estimates = vec![];
+    let jp = dir.join("joints.parquet");
+    for cdef in coords.iter().skip(1) {
+        let param = cdef["report_param"].as_str().unwrap_or_default();
+        let mut by: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+        for b in &tables::read_parquet(&jp)? {
+            let c = Cols {
+                batch: b,
+                path: &jp,
+            };
+            let (m, a) = (c.str("measurement_id")?, c.f64(param)?);
+            for i in 0..b.num_rows() {
+                by.entry(m.value(i).to_string())
+                    .or_default()
+                    .push(a.value(i));
+            }
+        }
+        for (m, mut v) in by {
+            if !outliers.contains(&m) {
+                continue;
+            }
+            v.sort_by(f64::total_cmp);
+            let (q05, q95) = (quantile(&v, 0.05), quantile(&v, 0.95));
+            {
+                estimates.push(Estimate {
+                    parameter: param.to_string(),
+                    scope: format!("measurement {m}"),
+                    median: quantile(&v, 0.5),
+                    q05,
+                    q95,
+                });
             }
         }
     }
+    Ok(estimates)
+}
+
+/// A refit directory (or a baseline step) as a [`Refit`]. A board mechanism's refit has
+/// its step 1 in `dir/boards` and, where the campaign has a step 2, its step 2 in `dir`:
+/// its log evidence per run is then Z₂′ + (Z₁′ − Z₁), `step1_baseline` = the baseline's Z₁
+/// per run, so that it compares with the baseline's step 2 (Z₂) as a joint refit does (whose
+/// step 1 is the baseline's): every Bayes factor is over the same data, both steps.
+/// `max_r_hat` is the updating's convergence level ([`r_hat_gate`]).
+pub fn read_refit(
+    dir: &Path,
+    rel_dir: &str,
+    mechanism: Option<Mechanism>,
+    joint: Option<usize>,
+    step1_baseline: Option<&[f64]>,
+    outliers: &[String],
+    max_r_hat: f64,
+) -> anyhow::Result<Refit> {
+    let board_mech = mechanism.is_some_and(is_board_mechanism);
+    let dir1 = dir.join("boards");
+    let has2 = dir.join("evidence.json").is_file();
+    let main = if board_mech && !has2 { &dir1 } else { dir };
+    let mut log_evidence_runs = evidence_runs(main)?;
+    if board_mech && has2 {
+        let z1 = evidence_runs(&dir1)?;
+        let base = step1_baseline.unwrap_or(&[]);
+        if z1.is_empty() || base.is_empty() {
+            anyhow::bail!(
+                "{}: no step-1 evidence to combine with step 2",
+                dir1.display()
+            );
+        }
+        for (r, z) in log_evidence_runs.iter_mut().enumerate() {
+            *z += z1[r % z1.len()] - base[r % base.len()];
+        }
+    }
+    let res = main.join("residuals.parquet");
+    // A refit whose independent runs disagree on its population-level parameters (the
+    // mechanism's, the hyperparameters, the error scales: rank-normalised split R-hat across
+    // runs above 1.05) has not sampled its posterior: its evidence gives no Bayes factor.
+    // Per-unit parameters are not gated: in step 2 each run carries its own subset of the
+    // step-1 draws (the cut posterior), and a measurement's contact stiffness, tied to its
+    // board's draw, differs between runs by that subset's Monte Carlo error alone (R-hat up
+    // to 1.1 with 20 draws per run on a board the bolted data constrain strongly); that
+    // error is in the runs' evidences, and so in the Bayes factor's standard error.
+    //
+    // Between MAX_R_HAT and MAX_R_HAT_EVIDENCE the runs disagree a little: the Bayes factor
+    // stands (each run is an independent estimate of the log evidence, and their spread is
+    // its standard error, which the decision rule weighs), while the estimates' intervals are
+    // said to be approximate.
+    let mut failed = None;
+    let mut convergence_note = None;
+    if mechanism.is_some() {
+        let mut reps = vec![main.to_path_buf()];
+        if board_mech && has2 {
+            reps.push(dir1.clone());
+        }
+        for d in reps {
+            let (f, n) = r_hat_gate(population_r_hat(&d.join("summary.parquet"))?, &d, max_r_hat);
+            failed = failed.or(f);
+            convergence_note = convergence_note.or(n);
+        }
+    }
+    let mut estimates = refit_estimates(dir, mechanism, joint, outliers)?;
     if let Some(note) = &convergence_note {
         for e in estimates.iter_mut() {
             e.scope = format!("{}; {note}", e.scope);

@@ -105,18 +105,12 @@ fn joint_refit_options(
 
 /// A joint refit's budget of bolted-ROM evaluations in its tempering, per particle and unit
 /// and run (the sampler gives up beyond it, and the refit is reported failed: never
-/// favoured). Inside their verified boxes the surrogates answer and the ROM is rarely called
-/// (the blind underfill campaign's joint_mass refit: 0.7 per particle and unit over a whole
-/// run); a unit without a surrogate costs 6–75 a stage (2–25 sweeps of three moves). 100
-/// lets a few units temper on the ROM through a run; an enrichment whose modes the
-/// surrogates cannot follow anywhere (the fixture's own mode swept across the band by its
-/// prior on the underfill campaign: every unit refused) spent 450 000 ROM evaluations
-/// (75 per particle and unit), ~2.5 min on 2 cores, on each of what would have been hundreds
-/// of stages; with a budget of 50 it stopped after the first with its reason (100 allows a
-/// second: 150 > 100 after it). Step 1 has none: its
-/// free-free ROM is cheap (1.3 M evaluations in 19 s), and a covariate's refit runs it
-/// without surrogates by design (a board refit with the temperature coefficient spent 57
-/// per particle and unit in its first two stages, 45 s in all).
+/// favoured). Inside their verified boxes the surrogates answer and the ROM is rarely called;
+/// a unit without a surrogate costs 6–75 a stage. 100 lets a few units temper on the ROM
+/// through a run, while an enrichment whose modes the surrogates cannot follow anywhere stops
+/// after a stage or two with its reason instead of spending minutes on each of hundreds.
+/// Step 1 has none: its free-free ROM is cheap, and a covariate's refit runs it without
+/// surrogates by design.
 const REFIT_ROM_EVALS_PER_PARTICLE_UNIT: f64 = 100.0;
 
 /// The step-1 options of a board mechanism's refit, its point at `xy_m` (`added_mass`).
@@ -182,23 +176,18 @@ pub(super) fn run_refit(
 
 /// The bulk ESS per run below which a refit's population-level parameter is resampled
 /// ([`run_gated`]): Vehtari et al. (2021) ask for 100 per chain before R-hat and the
-/// posterior quantiles are to be trusted. Measured on the paper campaign's rotation refit
-/// at 2 runs × 200 (R-hat 1.03 passed): the population median of k_rot had a bulk ESS of 97
-/// and a 90 % interval about half as wide as at 4 × 400 (1.514–1.551 against 1.497–1.564,
-/// truth 1.5).
+/// posterior quantiles are to be trusted.
 const MIN_ESS_PER_RUN: f64 = 100.0;
 
 /// Run one update step of a refit; when its independent runs disagree on a population-level
 /// parameter (R-hat above [`MAX_R_HAT`], the gate [`summarize_refit`] applies) or one has
 /// fewer than [`MIN_ESS_PER_RUN`] effective draws a run, run it once more with twice the
-/// particles and twice the runs (at least 4). A refit is a few samplers'
-/// worth of work, and without this a decisive candidate whose nuisance scale mixed slowly (a
-/// mode's shape error with a bulk ESS of 25) gave no Bayes factor at all. More runs, not only
-/// more particles: two runs that settle on different trade-offs between the modes' error
-/// scales (the blind rotation campaign's refit: ε of one mode 3e-5 in one run, 8e-5 in the
-/// other) stay apart however many particles each has, and R-hat from two runs is itself
-/// too noisy to tell; four runs of 400 agreed there (R-hat 1.02). The retry replaces the
-/// first attempt's outputs; if it still disagrees, the gate reports it.
+/// particles and twice the runs (at least 4): without this a decisive candidate whose
+/// nuisance scale mixed slowly gave no Bayes factor at all. More runs, not only more
+/// particles: two runs that settle on different trade-offs between the modes' error scales
+/// stay apart however many particles each has, and R-hat from two runs is itself too noisy
+/// to tell. The retry replaces the first attempt's outputs; if it still disagrees, the gate
+/// reports it.
 ///
 /// The retry is for the Bayes factor. Before it, `decided` says whether the first attempt
 /// already misses a bar of the decision rule that the evidence does not set
