@@ -31,13 +31,13 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::stage::propagate::PREDICTIONS,
         &crate::stage::report::TABLE2,
         &crate::stage::report::INTERVALS,
-        &crate::stage::diagnose::DIAGNOSIS,
-        &crate::stage::diagnose::MODES,
+        &crate::io::tables::diagnose::DIAGNOSIS,
+        &crate::io::tables::diagnose::MODES,
     ];
     for t in crate::io::tables::all_tables()
         .into_iter()
         .chain(stage_tables)
-        .chain(crate::report::diagnosis::SPECS)
+        .chain(crate::io::tables::diagnose::SPECS)
     {
         out.insert(format!("tables/{}.json", t.name), pretty(&t.json_schema()));
     }

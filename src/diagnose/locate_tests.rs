@@ -672,7 +672,7 @@ fn print_located() {
         panic!("set HBMU_LOCATE_WORK to a work directory");
     };
     let (input, findings) =
-        crate::stage::diagnose::inputs::read_inputs(std::path::Path::new(&dir)).unwrap();
+        crate::io::diagnose_inputs::read_inputs(std::path::Path::new(&dir)).unwrap();
     for f in findings.iter() {
         println!("finding: {f}");
     }

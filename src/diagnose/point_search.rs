@@ -13,6 +13,7 @@
 //! stencil's curvature and step give the location's posterior: its Occam factor against a
 //! uniform prior over the board, and the spread of ln(mass) it carries.
 
+use crate::diagnose::screen::{Candidate, PointLocated};
 use serde::Serialize;
 
 /// One probe: the log evidence of a refit with its point fixed at `xy_m`, and the ln of the
@@ -176,6 +177,42 @@ pub fn search<E>(
         }
         h *= 0.5;
     }
+}
+
+/// The candidate at the search's end point `end`: with the location's Laplace posterior of
+/// the `last` stencil in place of the map's Occam factor and ln(mass) spread, or, when that
+/// stencil has no interior maximum, as it was with the note saying so.
+pub fn refined(
+    cand: &Candidate,
+    end: [f64; 2],
+    last: &Stencil,
+    board_area_m2: f64,
+) -> (Candidate, Option<String>) {
+    let mut c = cand.clone();
+    c.point_xy_m = Some(end);
+    let mut note = None;
+    if let Some(post) = last.laplace(board_area_m2) {
+        c.point_located = Some(PointLocated {
+            log_occam: post.log_occam,
+            location_ln_mass_sd: post.ln_mass_sd,
+        });
+        c.reason = format!(
+            "{}; the point refined by the refits' evidence to ({:.2}, {:.2}) mm (sd {:.2}, {:.2} mm)",
+            c.reason,
+            end[0] * 1e3,
+            end[1] * 1e3,
+            post.sd_m[0] * 1e3,
+            post.sd_m[1] * 1e3
+        );
+    } else {
+        note = Some(format!(
+            "the refinement's last stencil (step {:.3} mm) has no interior maximum of the log evidence: the point moved to the best probe ({:.2}, {:.2}) mm, the location's Occam factor and the mass's spread are the localisation map's",
+            last.h_m * 1e3,
+            end[0] * 1e3,
+            end[1] * 1e3
+        ));
+    }
+    (c, note)
 }
 
 #[cfg(test)]

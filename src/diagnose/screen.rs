@@ -27,6 +27,7 @@ use serde::Serialize;
 
 use super::library::Mechanism;
 use super::locate::Located;
+use super::regions::BoardRegion;
 use crate::fem::Board;
 
 /// One screened candidate.
@@ -312,6 +313,30 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
         out.insert(first_joint, cand(Mechanism::AddedMass, why));
     }
     out
+}
+
+/// Attach the located board regions to the candidates: a point mass's point (and its
+/// uncertainty when located) to `added_mass`, a located loss to `local_stiffness_loss`.
+pub fn attach_regions(candidates: &mut Vec<Candidate>, regions: &[BoardRegion]) {
+    for r in regions {
+        match r.mechanism {
+            Mechanism::AddedMass => attach_point_mass(
+                candidates,
+                [r.fit.x_m, r.fit.y_m],
+                r.located.then_some(PointLocated {
+                    log_occam: r.fit.log_location_occam,
+                    location_ln_mass_sd: r.fit.location_ln_amplitude_sd,
+                }),
+                &r.sentence,
+            ),
+            // A located loss is the library's `local_stiffness_loss` there; a stiffening has
+            // no mechanism in the library and stays a located, unexplained signature.
+            Mechanism::LocalStiffnessLoss if r.located && r.fit.amplitude < 0.0 => {
+                attach_stiffness_loss(candidates, [r.fit.x_m, r.fit.y_m], &r.sentence)
+            }
+            _ => {}
+        }
+    }
 }
 
 #[cfg(test)]

@@ -121,6 +121,35 @@ pub struct Refit {
     pub new_modes: Vec<NewModeNote>,
 }
 
+impl Refit {
+    /// A refit that gave no posterior, and why.
+    pub fn failed(
+        mechanism: Option<Mechanism>,
+        joint: Option<usize>,
+        dir: String,
+        failed: String,
+    ) -> Refit {
+        Refit {
+            mechanism,
+            joint,
+            dir,
+            log_evidence_runs: vec![],
+            held_out: vec![],
+            updated: vec![],
+            estimates: vec![],
+            failed: Some(failed),
+            log_location_occam: None,
+            point_xy_m: None,
+            location_probes: vec![],
+            location_note: None,
+            remaining_share: None,
+            explained_rel: None,
+            deviating_joints: vec![],
+            new_modes: vec![],
+        }
+    }
+}
+
 /// A mode an enrichment adds that the campaign shows ([`Refit::new_modes`]).
 #[derive(Clone, Debug, Serialize, PartialEq, schemars::JsonSchema)]
 pub struct NewModeNote {

@@ -7,6 +7,7 @@ pub mod balance_log;
 pub mod board_files;
 pub mod cache;
 pub mod campaign_dir;
+pub mod diagnose_inputs;
 pub mod external;
 pub mod gerber;
 pub mod ingest_outputs;

@@ -4,7 +4,6 @@
 //! the tables the section shows, built once ([`tables`]) so that the page and the Parquet/CSV
 //! files next to it hold the same values.
 
-use crate::io::tables::{c, Col, TableSpec};
 use serde::Deserialize;
 
 /// `diagnosis.json`, the parts the report shows.
@@ -212,164 +211,165 @@ pub enum Cell {
     Bool(bool),
 }
 
-/// A table of the section: its spec (column names and types, the Parquet/CSV file), the
+/// A table of the section: its [`Section`] (the table's name and column names), the
 /// page's column headers and the rows.
 #[derive(Clone, Debug)]
 pub struct Table {
-    pub spec: &'static TableSpec,
+    pub spec: &'static Section,
     pub headers: &'static [&'static str],
     /// Decimals shown per column (numbers only; the page keeps the full value in `data-value`).
     pub digits: &'static [usize],
     pub rows: Vec<Vec<Cell>>,
 }
 
-pub const LOCATED_MODES: TableSpec = TableSpec {
+/// A table of the section as the page shows it: its name (the Parquet/CSV file the report
+/// stage writes, whose full spec is `crate::io::tables::diagnose`) and its column names, in
+/// the order of the rows' cells.
+#[derive(Clone, Copy, Debug)]
+pub struct Section {
+    pub name: &'static str,
+    pub columns: &'static [Column],
+}
+
+/// A column of a [`Section`].
+#[derive(Clone, Copy, Debug)]
+pub struct Column {
+    pub name: &'static str,
+}
+
+const fn col(name: &'static str) -> Column {
+    Column { name }
+}
+
+pub const LOCATED_MODES: Section = Section {
     name: "diagnosis_located_modes",
-    doc: "The modes the diagnosis located as misfitting (diagnosis.json: located.modes): setup, label, the baseline's mean relative residual (f_measured − f̄_model)/f̄_model in percent, and why (mean_shift, eps_excess, validation).",
-    open: false,
     columns: &[
-        c("setup", Col::Utf8, false, "", "Setup."),
-        c("label", Col::Utf8, false, "", "Mode label."),
-        c("mean_rel_residual_pct", Col::Float64, true, "%", "Mean relative residual of the baseline, percent."),
-        c("reasons", Col::Utf8, false, "", "Why it was located, comma-separated."),
+        col("setup"),
+        col("label"),
+        col("mean_rel_residual_pct"),
+        col("reasons"),
     ],
 };
 
-pub const OUTLIERS: TableSpec = TableSpec {
+pub const OUTLIERS: Section = Section {
     name: "diagnosis_outliers",
-    doc: "Outlier measurements of the diagnosis (diagnosis.json: located.measurements, with their check from checks.measurement_checks): the joint statistic over the measurement's modes and its BH q-value, and whether it stays an outlier once the located covariates are taken out.",
-    open: false,
     columns: &[
-        c("measurement_id", Col::Utf8, false, "", "Measurement."),
-        c("board_id", Col::Utf8, true, "", "Board."),
-        c("setup", Col::Utf8, true, "", "Setup."),
-        c("n_modes", Col::Int32, true, "", "Modes in the statistic."),
-        c("chi2", Col::Float64, true, "", "Sum of squared normal scores over the modes (~chi2(n_modes) when like the others)."),
-        c("q_value", Col::Float64, true, "", "Benjamini–Hochberg q-value over all measurements."),
-        c("outlier_after_covariates", Col::Bool, false, "", "Still an outlier with the located covariates taken out."),
+        col("measurement_id"),
+        col("board_id"),
+        col("setup"),
+        col("n_modes"),
+        col("chi2"),
+        col("q_value"),
+        col("outlier_after_covariates"),
     ],
 };
 
-pub const IDENTIFICATION_OUTLIERS: TableSpec = TableSpec {
+pub const IDENTIFICATION_OUTLIERS: Section = Section {
     name: "diagnosis_identification_outliers",
-    doc: "Outlier measurements whose deviation is one mode's alone (diagnosis.json: located.identification_outliers): the mode is far from the other measurements while the measurement's other modes agree with them. Likely a slip of the modal fit; listed for checking, not counted as misfit.",
-    open: false,
     columns: &[
-        c("measurement_id", Col::Utf8, false, "", "Measurement."),
-        c("board_id", Col::Utf8, false, "", "Board."),
-        c("setup", Col::Utf8, false, "", "Setup."),
-        c("label", Col::Utf8, false, "", "The mode that deviates."),
-        c("centred_rel_residual_pct", Col::Float64, true, "%", "Its relative residual minus the mean of the other clean measurements, percent."),
-        c("z", Col::Float64, true, "", "Its predictive t beyond the tolerance."),
-        c("p_value_other_modes", Col::Float64, true, "", "Chi-square p of the measurement's other modes."),
+        col("measurement_id"),
+        col("board_id"),
+        col("setup"),
+        col("label"),
+        col("centred_rel_residual_pct"),
+        col("z"),
+        col("p_value_other_modes"),
     ],
 };
 
-pub const COVARIATES: TableSpec = TableSpec {
+pub const COVARIATES: Section = Section {
     name: "diagnosis_covariates",
-    doc: "Sheet columns the residuals follow significantly (diagnosis.json: located.covariates): the BH q-value of the covariate's test and, for a numeric covariate, the slope of the relative residual per unit of the covariate.",
-    open: false,
     columns: &[
-        c("setup", Col::Utf8, false, "", "Setup."),
-        c("covariate", Col::Utf8, false, "", "Sheet column."),
-        c("q_value", Col::Float64, true, "", "Benjamini–Hochberg q-value over the covariate tests."),
-        c("slope_rel_per_unit", Col::Float64, true, "", "Relative residual per unit of the covariate (numeric covariates)."),
-        c("unit", Col::Utf8, false, "", "Unit of the covariate (empty when none)."),
+        col("setup"),
+        col("covariate"),
+        col("q_value"),
+        col("slope_rel_per_unit"),
+        col("unit"),
     ],
 };
 
-pub const CLUSTERS: TableSpec = TableSpec {
+pub const CLUSTERS: Section = Section {
     name: "diagnosis_unpaired_clusters",
-    doc: "Recurring clusters of identified modes that no model mode pairs with (diagnosis.json: located.unpaired_clusters): a mode the model lacks.",
-    open: false,
     columns: &[
-        c("setup", Col::Utf8, false, "", "Setup."),
-        c("median_freq_hz", Col::Float64, true, "Hz", "Median frequency of the cluster."),
-        c("min_freq_hz", Col::Float64, true, "Hz", "Lowest frequency."),
-        c("max_freq_hz", Col::Float64, true, "Hz", "Highest frequency."),
-        c("n_modes", Col::Int32, false, "", "Identified modes in the cluster."),
-        c("n_measurements", Col::Int32, false, "", "Measurements with a mode in it."),
-        c("share_of_setup", Col::Float64, true, "", "Share of the setup's measurements."),
+        col("setup"),
+        col("median_freq_hz"),
+        col("min_freq_hz"),
+        col("max_freq_hz"),
+        col("n_modes"),
+        col("n_measurements"),
+        col("share_of_setup"),
     ],
 };
 
-pub const NEVER_SEEN: TableSpec = TableSpec {
+pub const NEVER_SEEN: Section = Section {
     name: "diagnosis_never_seen",
-    doc: "Model modes never identified in any measurement of their setup (diagnosis.json: located.never_seen); not counted as a misfit (a nodal line at the excitation point or a band edge does this).",
-    open: false,
     columns: &[
-        c("setup", Col::Utf8, false, "", "Setup."),
-        c("label", Col::Utf8, false, "", "Model mode label."),
-        c("median_model_freq_hz", Col::Float64, true, "Hz", "Median model frequency over the measurements."),
-        c("n_measurements", Col::Int32, false, "", "Measurements of the setup."),
-        c("n_missing", Col::Int32, false, "", "Measurements where it was not identified."),
+        col("setup"),
+        col("label"),
+        col("median_model_freq_hz"),
+        col("n_measurements"),
+        col("n_missing"),
     ],
 };
 
-pub const REGIONS: TableSpec = TableSpec {
+pub const REGIONS: Section = Section {
     name: "diagnosis_board_regions",
-    doc: "Where on the board (diagnosis.json: located.board_regions): the localisations of the free-free misfit, one row per signature (a point mass, `added_mass`; a change of the core's bending stiffness over a small disc, `local_stiffness_loss`, either sign): the best point of a grid over the board, the amplitude there (a mass in g, or the stiffness factor − 1), the 90 % region's radius, the share of the misfit (off the board parameters' span) it explains, and the places the frequencies cannot tell apart from it. Where both signatures pass the rule, only the one explaining more is located.",
-    open: false,
     columns: &[
-        c("mechanism", Col::Utf8, false, "", "Mechanism whose signature was fitted."),
-        c("located", Col::Bool, false, "", "Significant and explains at least half the misfit."),
-        c("x_mm", Col::Float64, true, "mm", "Best point, x."),
-        c("y_mm", Col::Float64, true, "mm", "Best point, y."),
-        c("amplitude", Col::Float64, true, "", "Least-squares amplitude at the best point, in amplitude_unit."),
-        c("amplitude_se", Col::Float64, true, "", "Its standard error."),
-        c("amplitude_unit", Col::Utf8, false, "", "`g` (a point mass) or `factor - 1` (the core's bending stiffness over the disc)."),
-        c("region_radius_mm", Col::Float64, true, "mm", "Radius of the 90 % region."),
-        c("explained_share", Col::Float64, true, "", "Share of the misfit explained."),
-        c("p_value", Col::Float64, true, "", "Tail probability of the χ² reduction under no change."),
-        c("alternatives", Col::Utf8, false, "", "Other points (mm) the frequencies fit about as well."),
+        col("mechanism"),
+        col("located"),
+        col("x_mm"),
+        col("y_mm"),
+        col("amplitude"),
+        col("amplitude_se"),
+        col("amplitude_unit"),
+        col("region_radius_mm"),
+        col("explained_share"),
+        col("p_value"),
+        col("alternatives"),
     ],
 };
 
-pub const CANDIDATES: TableSpec = TableSpec {
+pub const CANDIDATES: Section = Section {
     name: "diagnosis_candidates",
-    doc: "The mechanisms the diagnosis screened (diagnosis.json: candidates), strongest first: why each was screened in, whether it was refitted, its log Bayes factor over the baseline with the standard error, whether it is favoured, the held-out mean absolute frequency error before and after per setup, the parameter estimates (median and 90 % interval) and why a refit failed. A candidate with several held-out setups or parameters takes several rows (the k-th setup and the k-th parameter side by side, the candidate's columns repeated).",
-    open: false,
     columns: &[
-        c("rank", Col::Int32, false, "", "Order in diagnosis.json (1 = strongest)."),
-        c("id", Col::Utf8, false, "", "Candidate id (its refit directory under diagnose/refits/)."),
-        c("mechanism", Col::Utf8, false, "", "Mechanism id."),
-        c("joint", Col::Int32, true, "", "Joint of a per-joint candidate (1-based)."),
-        c("covariate", Col::Utf8, true, "", "Sheet column the candidate follows."),
-        c("screen_reason", Col::Utf8, false, "", "Why the screening kept it."),
-        c("refitted", Col::Bool, false, "", "A refit was run."),
-        c("log_bayes_factor", Col::Float64, true, "", "ln p(data | candidate) − ln p(data | baseline)."),
-        c("log_bayes_factor_se", Col::Float64, true, "", "Its standard error over the independent runs."),
-        c("favoured", Col::Bool, false, "", "Passes the decision rule."),
-        c("held_out_setup", Col::Utf8, true, "", "Setup of the held-out error."),
-        c("held_out_before_pct", Col::Float64, true, "%", "Held-out mean absolute frequency error of the baseline, percent."),
-        c("held_out_after_pct", Col::Float64, true, "%", "The same with the candidate, percent."),
-        c("parameter", Col::Utf8, true, "", "Parameter of the estimate (unit in its name)."),
-        c("estimate_median", Col::Float64, true, "", "Median (the parameter's unit)."),
-        c("estimate_q05", Col::Float64, true, "", "5 % quantile."),
-        c("estimate_q95", Col::Float64, true, "", "95 % quantile."),
-        c("failed", Col::Utf8, true, "", "Why the refit gave no posterior."),
+        col("rank"),
+        col("id"),
+        col("mechanism"),
+        col("joint"),
+        col("covariate"),
+        col("screen_reason"),
+        col("refitted"),
+        col("log_bayes_factor"),
+        col("log_bayes_factor_se"),
+        col("favoured"),
+        col("held_out_setup"),
+        col("held_out_before_pct"),
+        col("held_out_after_pct"),
+        col("parameter"),
+        col("estimate_median"),
+        col("estimate_q05"),
+        col("estimate_q95"),
+        col("failed"),
     ],
 };
 
-pub const BEFORE_AFTER: TableSpec = TableSpec {
+pub const BEFORE_AFTER: Section = Section {
     name: "diagnosis_before_after",
-    doc: "Each mode's mean relative residual (f_measured − f̄_model)/f̄_model in percent, baseline against the best refit (the first favoured candidate, else the first refitted one that gave a posterior), from diagnose/diagnosis_modes.parquet: every mode of the setups the refit covers; without a refit, the located modes with the baseline only.",
-    open: false,
     columns: &[
-        c("setup", Col::Utf8, false, "", "Setup."),
-        c("label", Col::Utf8, false, "", "Mode label."),
-        c("used_for_updating", Col::Bool, false, "", "Used for updating (false: a validation mode)."),
-        c("located", Col::Bool, false, "", "Located as misfitting in the baseline."),
-        c("n_before", Col::Int32, true, "", "Measurements behind the baseline's mean."),
-        c("before_pct", Col::Float64, true, "%", "Baseline mean relative residual, percent."),
-        c("model", Col::Utf8, true, "", "The refit (candidate id); null without one."),
-        c("n_after", Col::Int32, true, "", "Measurements behind the refit's mean."),
-        c("after_pct", Col::Float64, true, "%", "The refit's mean relative residual, percent."),
+        col("setup"),
+        col("label"),
+        col("used_for_updating"),
+        col("located"),
+        col("n_before"),
+        col("before_pct"),
+        col("model"),
+        col("n_after"),
+        col("after_pct"),
     ],
 };
 
-/// Every table spec of the section (for `hbmu schemas`).
-pub const SPECS: [&TableSpec; 9] = [
+/// Every table of the section, in the order [`tables`] returns them.
+pub const SECTIONS: [&Section; 9] = [
     &LOCATED_MODES,
     &OUTLIERS,
     &IDENTIFICATION_OUTLIERS,
@@ -416,8 +416,22 @@ pub fn best_refit(d: &DiagnosisData) -> Option<String> {
 
 /// The section's tables, in the order the page shows them.
 pub fn tables(d: &DiagnosisData) -> Vec<Table> {
-    let doc = &d.doc;
-    let loc = &doc.located;
+    let loc = &d.doc.located;
+    vec![
+        located_modes_table(loc),
+        outliers_table(&d.doc),
+        slips_table(loc),
+        covariates_table(loc),
+        clusters_table(loc),
+        never_seen_table(loc),
+        regions_table(loc),
+        candidates_table(&d.doc),
+        before_after_table(d),
+    ]
+}
+
+/// The located modes.
+fn located_modes_table(loc: &LocatedView) -> Table {
     let located_modes = loc
         .modes
         .iter()
@@ -430,6 +444,17 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &LOCATED_MODES,
+        headers: &["setup", "mode", "mean relative residual [%]", "reasons"],
+        digits: &[0, 0, 3, 0],
+        rows: located_modes,
+    }
+}
+
+/// The outlier measurements with their checks.
+fn outliers_table(doc: &DiagnosisView) -> Table {
+    let loc = &doc.located;
     let outliers = loc
         .measurements
         .iter()
@@ -450,6 +475,24 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &OUTLIERS,
+        headers: &[
+            "measurement",
+            "board",
+            "setup",
+            "modes",
+            "χ²",
+            "q-value",
+            "still an outlier without the covariates",
+        ],
+        digits: &[0, 0, 0, 0, 1, 4, 0],
+        rows: outliers,
+    }
+}
+
+/// The identification outliers (one mode of one measurement).
+fn slips_table(loc: &LocatedView) -> Table {
     let slips = loc
         .identification_outliers
         .iter()
@@ -465,6 +508,24 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &IDENTIFICATION_OUTLIERS,
+        headers: &[
+            "measurement",
+            "board",
+            "setup",
+            "mode",
+            "off the others [%]",
+            "t",
+            "p of its other modes",
+        ],
+        digits: &[0, 0, 0, 0, 3, 1, 3],
+        rows: slips,
+    }
+}
+
+/// The significant covariates.
+fn covariates_table(loc: &LocatedView) -> Table {
     let covariates = loc
         .covariates
         .iter()
@@ -478,6 +539,22 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &COVARIATES,
+        headers: &[
+            "setup",
+            "covariate",
+            "q-value",
+            "slope [relative residual per unit]",
+            "unit",
+        ],
+        digits: &[0, 0, 4, 6, 0],
+        rows: covariates,
+    }
+}
+
+/// The recurring unpaired-mode clusters.
+fn clusters_table(loc: &LocatedView) -> Table {
     let clusters = loc
         .unpaired_clusters
         .iter()
@@ -493,6 +570,24 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &CLUSTERS,
+        headers: &[
+            "setup",
+            "median [Hz]",
+            "min [Hz]",
+            "max [Hz]",
+            "modes",
+            "measurements",
+            "share of the setup",
+        ],
+        digits: &[0, 2, 2, 2, 0, 0, 3],
+        rows: clusters,
+    }
+}
+
+/// The model modes never seen.
+fn never_seen_table(loc: &LocatedView) -> Table {
     let never = loc
         .never_seen
         .iter()
@@ -506,6 +601,22 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &NEVER_SEEN,
+        headers: &[
+            "setup",
+            "model mode",
+            "median model frequency [Hz]",
+            "measurements",
+            "not identified in",
+        ],
+        digits: &[0, 0, 2, 0, 0],
+        rows: never,
+    }
+}
+
+/// The board regions (a mass in g).
+fn regions_table(loc: &LocatedView) -> Table {
     let mm = |v: Option<f64>| v.map(|x| x * 1e3);
     // A mass in g; another amplitude as it is.
     let amp = |r: &RegionView, v: Option<f64>| {
@@ -543,6 +654,28 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]
         })
         .collect();
+    Table {
+        spec: &REGIONS,
+        headers: &[
+            "mechanism",
+            "located",
+            "x [mm]",
+            "y [mm]",
+            "amplitude",
+            "± se",
+            "unit",
+            "90 % radius [mm]",
+            "share explained",
+            "p",
+            "also fits at [mm]",
+        ],
+        digits: &[0, 0, 1, 1, 3, 3, 0, 1, 3, 3, 0],
+        rows: regions,
+    }
+}
+
+/// The candidates: a row per held-out setup and estimate (at least one).
+fn candidates_table(doc: &DiagnosisView) -> Table {
     let mut cands = vec![];
     for (k, cd) in doc.candidates.iter().enumerate() {
         let r = cd.refit.as_ref();
@@ -574,6 +707,35 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             ]);
         }
     }
+    Table {
+        spec: &CANDIDATES,
+        headers: &[
+            "rank",
+            "id",
+            "mechanism",
+            "joint",
+            "covariate",
+            "screened in because",
+            "refitted",
+            "log Bayes factor",
+            "± se",
+            "favoured",
+            "held-out setup",
+            "held-out error before [%]",
+            "after [%]",
+            "parameter",
+            "median",
+            "5 %",
+            "95 %",
+            "refit failed",
+        ],
+        digits: &[0, 0, 0, 0, 0, 0, 0, 2, 2, 0, 0, 4, 4, 0, 4, 4, 4, 0],
+        rows: cands,
+    }
+}
+
+/// The before/after per mode of the best refit ([`best_refit`]); without one, the located modes with the baseline only.
+fn before_after_table(d: &DiagnosisData) -> Table {
     let mut before_after = vec![];
     let best = best_refit(d);
     if let Some(modes) = &d.modes {
@@ -614,139 +776,22 @@ pub fn tables(d: &DiagnosisData) -> Vec<Table> {
             }
         }
     }
-    vec![
-        Table {
-            spec: &LOCATED_MODES,
-            headers: &["setup", "mode", "mean relative residual [%]", "reasons"],
-            digits: &[0, 0, 3, 0],
-            rows: located_modes,
-        },
-        Table {
-            spec: &OUTLIERS,
-            headers: &[
-                "measurement",
-                "board",
-                "setup",
-                "modes",
-                "χ²",
-                "q-value",
-                "still an outlier without the covariates",
-            ],
-            digits: &[0, 0, 0, 0, 1, 4, 0],
-            rows: outliers,
-        },
-        Table {
-            spec: &IDENTIFICATION_OUTLIERS,
-            headers: &[
-                "measurement",
-                "board",
-                "setup",
-                "mode",
-                "off the others [%]",
-                "t",
-                "p of its other modes",
-            ],
-            digits: &[0, 0, 0, 0, 3, 1, 3],
-            rows: slips,
-        },
-        Table {
-            spec: &COVARIATES,
-            headers: &[
-                "setup",
-                "covariate",
-                "q-value",
-                "slope [relative residual per unit]",
-                "unit",
-            ],
-            digits: &[0, 0, 4, 6, 0],
-            rows: covariates,
-        },
-        Table {
-            spec: &CLUSTERS,
-            headers: &[
-                "setup",
-                "median [Hz]",
-                "min [Hz]",
-                "max [Hz]",
-                "modes",
-                "measurements",
-                "share of the setup",
-            ],
-            digits: &[0, 2, 2, 2, 0, 0, 3],
-            rows: clusters,
-        },
-        Table {
-            spec: &NEVER_SEEN,
-            headers: &[
-                "setup",
-                "model mode",
-                "median model frequency [Hz]",
-                "measurements",
-                "not identified in",
-            ],
-            digits: &[0, 0, 2, 0, 0],
-            rows: never,
-        },
-        Table {
-            spec: &REGIONS,
-            headers: &[
-                "mechanism",
-                "located",
-                "x [mm]",
-                "y [mm]",
-                "amplitude",
-                "± se",
-                "unit",
-                "90 % radius [mm]",
-                "share explained",
-                "p",
-                "also fits at [mm]",
-            ],
-            digits: &[0, 0, 1, 1, 3, 3, 0, 1, 3, 3, 0],
-            rows: regions,
-        },
-        Table {
-            spec: &CANDIDATES,
-            headers: &[
-                "rank",
-                "id",
-                "mechanism",
-                "joint",
-                "covariate",
-                "screened in because",
-                "refitted",
-                "log Bayes factor",
-                "± se",
-                "favoured",
-                "held-out setup",
-                "held-out error before [%]",
-                "after [%]",
-                "parameter",
-                "median",
-                "5 %",
-                "95 %",
-                "refit failed",
-            ],
-            digits: &[0, 0, 0, 0, 0, 0, 0, 2, 2, 0, 0, 4, 4, 0, 4, 4, 4, 0],
-            rows: cands,
-        },
-        Table {
-            spec: &BEFORE_AFTER,
-            headers: &[
-                "setup",
-                "mode",
-                "updating",
-                "located",
-                "n before",
-                "before [%]",
-                "refit",
-                "n after",
-                "after [%]",
-            ],
-            digits: &[0, 0, 0, 0, 0, 4, 0, 0, 4],
-            rows: before_after,
-        },
-    ]
+    Table {
+        spec: &BEFORE_AFTER,
+        headers: &[
+            "setup",
+            "mode",
+            "updating",
+            "located",
+            "n before",
+            "before [%]",
+            "refit",
+            "n after",
+            "after [%]",
+        ],
+        digits: &[0, 0, 0, 0, 0, 4, 0, 0, 4],
+        rows: before_after,
+    }
 }
 
 /// The verdict in plain language, for a test engineer.
@@ -772,6 +817,9 @@ pub fn verdict_statement(doc: &DiagnosisView) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::diagnose::doc::{
+        CandidateDoc, DiagnoseOptions, DiagnosisDoc, FindingDoc, HeldOut, LocatedSummary,
+    };
     use crate::diagnose::library::Mechanism;
     use crate::diagnose::locate::{
         self, LocateInput, LocateOptions, LocatedCovariate, LocatedMode, MeasurementCheck,
@@ -780,9 +828,6 @@ mod tests {
     use crate::diagnose::screen::Candidate;
     use crate::diagnose::select::{Compared, Estimate, Refit, SelectOptions, Verdict};
     use crate::report::html::{render, ReportData};
-    use crate::stage::diagnose::{
-        CandidateDoc, DiagnoseOptions, DiagnosisDoc, FindingDoc, HeldOut, LocatedSummary,
-    };
     use std::collections::BTreeMap;
 
     /// A diagnosis document from the diagnose stage's own types, with a known content.
@@ -928,9 +973,9 @@ mod tests {
                 covariates,
                 unpaired_clusters: clusters,
                 never_seen: never,
-                board_regions: vec![crate::stage::diagnose::regions::BoardRegion {
+                board_regions: vec![crate::diagnose::regions::BoardRegion {
                     amplitude_unit: "kg".into(),
-                    ..crate::stage::diagnose::regions::BoardRegion::located_fit(
+                    ..crate::diagnose::regions::BoardRegion::located_fit(
                         Mechanism::AddedMass,
                         crate::diagnose::localize::LocalFit {
                             x_m: 0.056,

@@ -24,7 +24,7 @@ use std::sync::Arc;
 
 pub const MANIFEST: &str = "report.manifest.json";
 pub const HTML: &str = "report.html";
-/// The diagnose stage's per-mode misfits (see `stage::diagnose::MODES`).
+/// The diagnose stage's per-mode misfits (see `io::tables::diagnose::MODES`).
 const DIAGNOSIS_MODES_FILE: &str = "diagnosis_modes.parquet";
 
 pub const TABLE2: TableSpec = TableSpec {
@@ -566,8 +566,10 @@ fn write_section_table(
     t: &diagnosis::Table,
     prov: &BTreeMap<String, String>,
 ) -> anyhow::Result<Vec<PathBuf>> {
+    let spec = crate::io::tables::diagnose::section_spec(t.spec.name)
+        .ok_or_else(|| anyhow!("{}: no table spec", t.spec.name))?;
     let mut cols: Vec<ArrayRef> = vec![];
-    for (k, col) in t.spec.columns.iter().enumerate() {
+    for (k, col) in spec.columns.iter().enumerate() {
         let cells = t.rows.iter().map(|r| &r[k]);
         let a: ArrayRef = match col.ty {
             Col::Utf8 => Arc::new(StringArray::from_iter(cells.map(|c| match c {
@@ -594,7 +596,7 @@ fn write_section_table(
         };
         cols.push(a);
     }
-    write_both(out, t.spec, cols, prov)
+    write_both(out, spec, cols, prov)
 }
 
 /// The table as Parquet and as CSV (numbers in Rust's shortest round-trip form, empty = null).

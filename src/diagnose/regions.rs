@@ -1,4 +1,5 @@
-//! Where on the board: the inputs of [`crate::diagnose::localize`] from a work directory.
+//! Where on the board: the localisations of the free-free misfit ([`crate::diagnose::localize`])
+//! over the board, with the work directory's tables read through [`RegionFiles`].
 //!
 //! The free-free model is built from the board file at the step-1 posterior centre (the
 //! median over all boards' draws of every updated parameter, `update_boards/boards.parquet`);
@@ -11,20 +12,18 @@
 //! (`extract/modes.parquet`, the accepted free-free pairs) choose among the best point and
 //! its alternatives by [`shape_score`].
 
-use std::path::Path;
-
-use anyhow::{anyhow, Context};
+use anyhow::anyhow;
 
 use crate::diagnose::library::Mechanism;
 use crate::diagnose::localize::{
     localize_point_mass, localize_point_mass_at, shape_score, weighted_sd, LocalFit, LocalizeInput,
     ModalBasis, ModeResidual, ShapeObs, CHI2_2_Q90, CHI2_2_Q999,
 };
-use crate::diagnose::locate::{LocateOptions, ModeCheck, PairObs};
+use crate::diagnose::locate::{LocateOptions, ModeCheck, PairObs, ResidualObs};
 use crate::fem::eigen::EigenOptions;
 use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Setup};
-use crate::io::tables::{read_parquet, Cols};
+use std::collections::BTreeMap;
 
 /// Grid cells along the board's shorter side for the candidate points: 25 (2 mm on a 50 mm
 /// board). The shortest bending half-wave of the first eight or so modes a free-free test
@@ -108,17 +107,60 @@ impl BoardRegion {
     }
 }
 
-/// What the localisations read: the work directory (step-1 posterior, measured shapes), the
-/// board, the updated parameters, locate's mode checks (the free-free ones are localised),
+/// What the localisations read: the work directory's tables (step-1 posterior, measured
+/// shapes; [`RegionFiles`]), the board, the updated parameters, locate's mode checks (the free-free ones are localised),
 /// each label's mean model frequency in the step-1 residuals, locate's options and the pairs.
 pub struct RegionInput<'a> {
-    pub work: &'a Path,
+    pub files: &'a dyn RegionFiles,
     pub board: &'a Board,
     pub params: &'a [String],
     pub checks: &'a [ModeCheck],
     pub residual_model_freq: &'a [(String, f64)],
     pub locate: &'a LocateOptions,
     pub pairs: &'a [PairObs],
+}
+
+/// The work directory's tables a localisation reads, each when it needs it (so a missing or
+/// bad table fails the localisation that reads it, with its file named).
+pub trait RegionFiles {
+    /// Median over every row of `update_boards/boards.parquet` of each parameter column.
+    fn posterior_centre(&self, params: &[String]) -> anyhow::Result<Vec<f64>>;
+    /// Whether the campaign's balance weighed at least one board.
+    fn weighed(&self) -> anyhow::Result<bool>;
+    /// The updating's shape error δ per label of `label_index` (label → model mode index);
+    /// `None` when the updating had no shape terms.
+    fn shape_errors(&self, label_index: &[(String, usize)]) -> anyhow::Result<Option<Vec<f64>>>;
+    /// The measured shapes (`extract/modes.parquet`) of the (measurement, mode) rows that
+    /// `wanted` accepts, in file order.
+    fn measured_shapes(
+        &self,
+        wanted: &dyn Fn(&str, i32) -> bool,
+    ) -> anyhow::Result<Vec<MeasuredShape>>;
+}
+
+/// One identified mode's measured shape and its scan points (lists as read; unequal lengths
+/// are left out by the shape choice).
+#[derive(Clone, Debug, Default)]
+pub struct MeasuredShape {
+    pub measurement_id: String,
+    pub mode: i32,
+    pub shape: Vec<f64>,
+    pub x_m: Vec<f64>,
+    pub y_m: Vec<f64>,
+}
+
+/// Each free-free label's mean model frequency over the residuals (what [`FreeBasis`] matches
+/// model modes by).
+pub fn free_model_freq(residuals: &[ResidualObs]) -> Vec<(String, f64)> {
+    let mut freq: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    for r in residuals.iter().filter(|r| r.setup == "free") {
+        let e = freq.entry(r.label.clone()).or_insert((0.0, 0));
+        e.0 += r.model_freq_hz_mean;
+        e.1 += 1;
+    }
+    freq.into_iter()
+        .map(|(l, (s, n))| (l, s / n as f64))
+        .collect()
 }
 
 /// The free-free model at the step-1 posterior centre, its modes matched to the residuals'
@@ -144,7 +186,7 @@ impl FreeBasis {
     /// model mode, a model that cannot be built).
     pub fn new(inp: &RegionInput) -> anyhow::Result<Self> {
         let RegionInput {
-            work,
+            files,
             board,
             params,
             checks,
@@ -159,7 +201,7 @@ impl FreeBasis {
         if free.is_empty() {
             return Err(anyhow!("no free-free mode residuals"));
         }
-        let centre = posterior_centre(&work.join("update_boards/boards.parquet"), params)?;
+        let centre = files.posterior_centre(params)?;
         let model = FeModel::build(board, Setup::Free, &board.mesh)?;
         let mut p0 = model.nominal_params();
         for (name, v) in params.iter().zip(&centre) {
@@ -196,7 +238,7 @@ impl FreeBasis {
         // own mass, so the mass scale is not a free direction of the residuals (which would
         // discard the absolute size of the shifts) but part of the signature (a point mass
         // minus the same mass spread uniformly). A stiffness change leaves the mass alone.
-        let weighed = params.iter().any(|p| p == names::MASS_SCALE) && weighed(work)?;
+        let weighed = params.iter().any(|p| p == names::MASS_SCALE) && files.weighed()?;
         let board_mass_kg = model.total_mass_kg(&p0)?;
         let nuisance: Vec<Vec<f64>> = params
             .iter()
@@ -344,13 +386,9 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         // The location's uncertainty within the chosen region is the frequencies' where
         // that is wider: the shape terms weigh every scan point as independent (n / δ²),
         // while a shape residual of model-form error is smooth over the board, so their Δχ²
-        // overstates how well they place a point. In the lab's `lumped_mass` scenario the
-        // combined map, on a 0.25 mm grid around (56, 30) mm, peaked at (57.75, 29.0) mm,
-        // 3.4 mm from the mass, 3900 above the mass's own point; the sd of ln mass it gave,
-        // 0.002, left the refit's 90 % interval (0.229–0.241 g) short of the 0.25 g. The
-        // frequencies' map (their χ² inflated by the misfit left) fits 0.23–0.33 g over
-        // points within its 90 % region. The shapes still choose between regions (mirror
-        // images), which the frequencies cannot.
+        // overstates how well they place a point (the mass's interval came out too narrow).
+        // The shapes still choose between regions (mirror images), which the frequencies
+        // cannot.
         let freq_region = (fit.region_radius_m, fit.region_points);
         fit.location_ln_amplitude_sd = weighted_sd(&wv).max(fit.location_ln_amplitude_sd);
         combined_region(&mut fit, &combined, k, &open, points);
@@ -571,17 +609,14 @@ fn decide_by_shapes(
         .zip(&fb.index)
         .map(|(c, &j)| (c.label.clone(), j))
         .collect();
-    let delta = shape_errors(
-        &inp.work.join("update_boards/population.parquet"),
-        &label_index,
-    )?;
+    let delta = inp.files.shape_errors(&label_index)?;
     let has_delta = delta.is_some();
     let points = loc_in.points_m;
     let open = open_points(fit, has_delta, points);
     let shapes = shape_choice(
         &fb.model,
         (&fb.modes0, &fb.rigid),
-        (&inp.work.join("extract/modes.parquet"), inp.pairs),
+        (inp.files, inp.pairs),
         &label_index,
         delta.as_ref(),
         (&open, points, &fit.amplitude_at),
@@ -732,7 +767,7 @@ enum Coupling {
 fn shape_choice(
     model: &FeModel,
     (modes, rigid): (&crate::fem::Modes, &faer::Mat<f64>),
-    (modes_path, pairs): (&Path, &[PairObs]),
+    (files, pairs): (&dyn RegionFiles, &[PairObs]),
     label_index: &[(String, usize)],
     delta: Option<&Vec<f64>>,
     (open, points, mass_at): (&[usize], &[[f64; 2]], &[f64]),
@@ -755,31 +790,22 @@ fn shape_choice(
     // Per measurement: (model mode index, measured shape, its points).
     type Measured = (usize, f64, Vec<f64>, Vec<[f64; 2]>);
     let mut by_meas: BTreeMap<String, Vec<Measured>> = BTreeMap::new();
-    for b in
-        read_parquet(modes_path).with_context(|| format!("reading {}", modes_path.display()))?
-    {
-        let c = Cols {
-            batch: &b,
-            path: modes_path,
+    let measured = files
+        .measured_shapes(&|mid: &str, mode: i32| wanted.contains_key(&(mid.to_string(), mode)))?;
+    for m in measured {
+        let Some(&(j, w)) = wanted.get(&(m.measurement_id.clone(), m.mode)) else {
+            continue;
         };
-        let (mid, mode) = (c.str("measurement_id")?, c.i32("mode")?);
-        for i in 0..b.num_rows() {
-            let Some(&(j, w)) = wanted.get(&(mid.value(i).to_string(), mode.value(i))) else {
-                continue;
-            };
-            let s = c.list_f64("shape", i)?.unwrap_or_default();
-            let x = c.list_f64("x_m", i)?.unwrap_or_default();
-            let y = c.list_f64("y_m", i)?.unwrap_or_default();
-            if s.len() != x.len() || s.len() != y.len() || s.is_empty() {
-                skipped += 1;
-                continue;
-            }
-            let pts = x.iter().zip(&y).map(|(a, b)| [*a, *b]).collect();
-            by_meas
-                .entry(mid.value(i).to_string())
-                .or_default()
-                .push((j, w, s, pts));
+        let (s, x, y) = (m.shape, m.x_m, m.y_m);
+        if s.len() != x.len() || s.len() != y.len() || s.is_empty() {
+            skipped += 1;
+            continue;
         }
+        let pts = x.iter().zip(&y).map(|(a, b)| [*a, *b]).collect();
+        by_meas
+            .entry(m.measurement_id)
+            .or_default()
+            .push((j, w, s, pts));
     }
     let cands: Vec<[f64; 2]> = open.iter().map(|&i| points[i]).collect();
     let none = |skipped| ShapeChoice {
@@ -874,70 +900,6 @@ fn shape_choice(
     })
 }
 
-/// The updating's shape error δ per label of `label_index` (the median of population.parquet's
-/// `delta_<label>`); a label the updating held out (no δ) takes the largest δ of the others,
-/// the least weight. `None` when the updating had no shape terms.
-fn shape_errors(path: &Path, label_index: &[(String, usize)]) -> anyhow::Result<Option<Vec<f64>>> {
-    let batches = read_parquet(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut out: Vec<Option<f64>> = vec![];
-    for (label, _) in label_index {
-        let col = format!("delta_{label}");
-        let mut v = vec![];
-        for b in &batches {
-            let c = Cols { batch: b, path };
-            if let Ok(a) = c.f64(&col) {
-                v.extend(a.iter().flatten().filter(|x| x.is_finite() && *x > 0.0));
-            }
-        }
-        v.sort_by(f64::total_cmp);
-        out.push((!v.is_empty()).then(|| v[v.len() / 2]));
-    }
-    let Some(worst) = out.iter().flatten().copied().reduce(f64::max) else {
-        return Ok(None);
-    };
-    Ok(Some(out.into_iter().map(|d| d.unwrap_or(worst)).collect()))
-}
-
-/// Whether the campaign's balance weighed at least one board (ingest/masses.parquet has a
-/// row with a stable mass).
-fn weighed(work: &Path) -> anyhow::Result<bool> {
-    let path = work.join("ingest/masses.parquet");
-    if !path.is_file() {
-        return Ok(false);
-    }
-    Ok(read_parquet(&path)
-        .with_context(|| format!("reading {}", path.display()))?
-        .iter()
-        .any(|b| b.num_rows() > 0))
-}
-
-/// Median over every row of `boards.parquet` of each parameter column.
-fn posterior_centre(path: &Path, params: &[String]) -> anyhow::Result<Vec<f64>> {
-    let mut cols: Vec<Vec<f64>> = vec![vec![]; params.len()];
-    for b in read_parquet(path).with_context(|| format!("reading {}", path.display()))? {
-        let c = Cols { batch: &b, path };
-        for (k, name) in params.iter().enumerate() {
-            cols[k].extend(c.f64(name)?.iter().flatten());
-        }
-    }
-    cols.into_iter()
-        .zip(params)
-        .map(|(mut v, name)| {
-            v.retain(|x| x.is_finite());
-            if v.is_empty() {
-                return Err(anyhow!("{}: no finite {name}", path.display()));
-            }
-            v.sort_by(f64::total_cmp);
-            let n = v.len();
-            Ok(if n % 2 == 1 {
-                v[n / 2]
-            } else {
-                0.5 * (v[n / 2 - 1] + v[n / 2])
-            })
-        })
-        .collect()
-}
-
 /// Grid points over the board at [`grid_step_m`], none inside a hole (nor within a grid step
 /// of its edge, where the clamp or the drill sits).
 fn grid(board: &Board) -> Vec<[f64; 2]> {
@@ -959,4 +921,121 @@ fn grid(board: &Board) -> Vec<[f64; 2]> {
         }
     }
     out
+}
+
+/// Where several signatures located the same misfit, the weaker one is not located: the
+/// same residuals, the same number of fitted quantities (an amplitude and two coordinates),
+/// so the larger Δχ² is the likelier mechanism. Where the updating had shape terms, the Δχ²
+/// is the frequencies' plus the shapes' at each located point (the sum each point was chosen
+/// by, and the refit's likelihood has both): on a board whose few free-free modes leave
+/// both signatures explaining 99 % of the frequency misfit, the shapes are what tells a
+/// point mass from a soft spot. Without shape terms, the frequencies' explained share.
+/// The weaker one's sentence says which one explains more, and by what.
+pub fn demote_weaker_regions(regions: &mut [BoardRegion]) {
+    let with_shapes = regions
+        .iter()
+        .filter(|r| r.located)
+        .all(|r| r.combined_delta_chi2.is_some());
+    let key = |r: &BoardRegion| {
+        if with_shapes {
+            r.combined_delta_chi2.unwrap_or(f64::NEG_INFINITY)
+        } else {
+            r.fit.explained_share
+        }
+    };
+    let best = regions
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| r.located)
+        .max_by(|a, b| key(a.1).total_cmp(&key(b.1)))
+        .map(|(i, r)| (i, r.mechanism, key(r), r.fit.explained_share));
+    let Some((bi, bm, bk, bs)) = best else {
+        return;
+    };
+    for (i, r) in regions.iter_mut().enumerate() {
+        if i != bi && r.located {
+            r.located = false;
+            let by = if with_shapes {
+                format!(
+                    "frequencies and mode shapes together, Δχ² {:.0} against {:.0}; of the frequencies alone {:.0} % against {:.0} %",
+                    bk,
+                    key(r),
+                    100.0 * bs,
+                    100.0 * r.fit.explained_share
+                )
+            } else {
+                format!(
+                    "{:.0} % against {:.0} %",
+                    100.0 * bs,
+                    100.0 * r.fit.explained_share
+                )
+            };
+            r.sentence = format!(
+                "{} Not located: the {} signature explains more of the misfit ({by}).",
+                r.sentence,
+                bm.id(),
+            );
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{demote_weaker_regions, BoardRegion};
+    use crate::diagnose::library::Mechanism;
+    use crate::diagnose::localize::LocalFit;
+
+    fn region(mechanism: Mechanism, share: f64, combined: Option<f64>) -> BoardRegion {
+        let fit = LocalFit {
+            x_m: 0.05,
+            y_m: 0.03,
+            amplitude: 1.0,
+            amplitude_se: 0.1,
+            chi2_before: 100.0,
+            chi2_after: 100.0 * (1.0 - share),
+            dof_after: 2,
+            explained_share: share,
+            p_value: 1e-9,
+            region_radius_m: 0.01,
+            region_points: 10,
+            log_location_occam: -1.0,
+            inflation: 1.0,
+            ..LocalFit::default()
+        };
+        BoardRegion {
+            combined_delta_chi2: combined,
+            ..BoardRegion::located_fit(mechanism, fit, "Fit.")
+        }
+    }
+
+    /// Two signatures that explain the frequencies alike: with shape terms the combined Δχ²
+    /// decides (here against the frequencies' slightly larger share), without them the share.
+    #[test]
+    fn the_shapes_decide_between_signatures_the_frequencies_cannot_tell_apart() {
+        let mut r = [
+            region(Mechanism::AddedMass, 0.9913, Some(187_842.0)),
+            region(Mechanism::LocalStiffnessLoss, 0.9926, Some(184_405.0)),
+        ];
+        demote_weaker_regions(&mut r);
+        assert!(r[0].located && !r[1].located);
+        assert!(r[1].sentence.contains("added_mass signature explains more"));
+        assert!(r[1].sentence.contains("Δχ² 187842 against 184405"));
+
+        let mut r = [
+            region(Mechanism::AddedMass, 0.9913, None),
+            region(Mechanism::LocalStiffnessLoss, 0.9926, None),
+        ];
+        demote_weaker_regions(&mut r);
+        assert!(!r[0].located && r[1].located);
+        assert!(r[0].sentence.contains("(99 % against 99 %)"));
+
+        // A region that was not located is neither compared nor changed.
+        let mut r = [
+            region(Mechanism::AddedMass, 0.9, Some(10.0)),
+            region(Mechanism::LocalStiffnessLoss, 0.4, Some(50.0)),
+        ];
+        r[1].located = false;
+        demote_weaker_regions(&mut r);
+        assert!(r[0].located && r[1].sentence == "Fit.");
+    }
 }

@@ -1,5 +1,6 @@
-//! The diagnosis stage's inputs: the work directory's tables read into the plain data of
-//! [`crate::diagnose::locate`].
+//! The diagnosis stage's inputs: the work directory's tables (and a refit's) read into the
+//! plain data of [`crate::diagnose::locate`], [`crate::diagnose::regions`] and
+//! [`crate::diagnose::select`].
 //!
 //! Required: `ingest/measurements.parquet`, `extract/modes.parquet`, `pair/pairs.parquet`
 //! and the residuals of at least one update step. Optional (a [`Finding`] when absent):
@@ -13,14 +14,19 @@
 //! written as strings). The date becomes two covariates: `date_days` (numeric, days since the
 //! campaign's first measurement) and `date_day` (categorical, the calendar day).
 
+use crate::diagnose::library::{is_board_mechanism, Mechanism};
 use crate::diagnose::locate::{
     Covariate, CovariateValues, EpsDraws, IdentifiedMode, LocateInput, MeasurementInfo, PairObs,
     ResidualObs,
 };
+use crate::diagnose::regions::{MeasuredShape, RegionFiles};
+use crate::diagnose::select::{Estimate, Refit, SetupError};
+use crate::diagnose::verdict::{quantile, r_hat_gate};
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::modes_table::read_modes_table;
-use crate::io::tables::{self, Cols};
-use anyhow::{bail, Context};
+use crate::io::read_json;
+use crate::io::tables::{self, read_parquet, Cols};
+use anyhow::{anyhow, bail, Context};
 use arrow::array::{Array, AsArray};
 use arrow::datatypes::{DataType, Float64Type, Int32Type, Int64Type};
 use std::collections::{BTreeMap, BTreeSet};
@@ -387,7 +393,7 @@ fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairObs>> {
     Ok(out)
 }
 
-pub(crate) fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
+pub fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
     let mut out = vec![];
     for b in tables::read_parquet(path)? {
         let c = Cols { batch: &b, path };
@@ -444,6 +450,520 @@ fn read_eps(path: &Path, setup: &str) -> anyhow::Result<Vec<EpsDraws>> {
             draws,
         })
         .collect())
+}
+
+/// Mean absolute relative error per setup of the held-out (`used == false`) or updated modes
+/// in a residuals table.
+pub fn setup_errors(path: &Path, used: bool) -> anyhow::Result<Vec<SetupError>> {
+    let mut acc: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (setup, rel, u) = (
+            c.str("setup")?,
+            c.f64("rel_residual")?,
+            c.bool("used_for_updating")?,
+        );
+        for i in 0..b.num_rows() {
+            if u.value(i) == used && rel.value(i).is_finite() {
+                let e = acc.entry(setup.value(i).to_string()).or_default();
+                e.0 += rel.value(i).abs();
+                e.1 += 1;
+            }
+        }
+    }
+    Ok(acc
+        .into_iter()
+        .map(|(setup, (s, n))| SetupError {
+            setup,
+            mean_abs_error_percent: 100.0 * s / n.max(1) as f64,
+            n,
+        })
+        .collect())
+}
+
+/// The log evidence of every run of an update directory (its evidence.json).
+pub fn evidence_runs(dir: &Path) -> anyhow::Result<Vec<f64>> {
+    let ev = read_json(&dir.join("evidence.json"))?;
+    Ok(ev["log_evidence_runs"]
+        .as_array()
+        .ok_or_else(|| {
+            anyhow!(
+                "{}: no log_evidence_runs",
+                dir.join("evidence.json").display()
+            )
+        })?
+        .iter()
+        .filter_map(|v| v.as_f64())
+        .collect())
+}
+
+/// The population-level parameter (no board, no measurement) with the largest R-hat in a
+/// summary table, with that R-hat; None without such rows or R-hats (one run).
+pub fn population_r_hat(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
+    population_worst(path, "r_hat", |a, b| a > b)
+}
+
+/// The population-level parameter with the smallest bulk ESS, with that ESS.
+pub fn population_ess(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
+    population_worst(path, "ess_bulk", |a, b| a < b)
+}
+
+/// The population-level row of a summary table whose finite `col` is worst by `worse`.
+pub fn population_worst(
+    path: &Path,
+    col: &str,
+    worse: impl Fn(f64, f64) -> bool,
+) -> anyhow::Result<Option<(String, f64)>> {
+    let mut worst: Option<(String, f64)> = None;
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (name, board, meas, r) = (
+            c.str("parameter")?,
+            c.str("board_id")?,
+            c.str("measurement_id")?,
+            c.f64(col)?,
+        );
+        for i in 0..b.num_rows() {
+            use arrow::array::Array;
+            if board.is_valid(i) || meas.is_valid(i) || !r.value(i).is_finite() {
+                continue;
+            }
+            if worst.as_ref().is_none_or(|(_, w)| worse(r.value(i), *w)) {
+                worst = Some((name.value(i).to_string(), r.value(i)));
+            }
+        }
+    }
+    Ok(worst)
+}
+
+/// Every value of a Float64 column of a Parquet table, sorted.
+pub fn sorted_column(path: &Path, col: &str) -> anyhow::Result<Vec<f64>> {
+    let mut v = vec![];
+    for b in &tables::read_parquet(path)? {
+        let a = Cols { batch: b, path }.f64(col)?;
+        v.extend((0..b.num_rows()).map(|i| a.value(i)));
+    }
+    v.sort_by(f64::total_cmp);
+    Ok(v)
+}
+
+/// A refit's residuals: its step 2's and, for a board mechanism, its step 1's (`boards/`).
+pub fn refit_residuals(dir: &Path) -> anyhow::Result<Vec<ResidualObs>> {
+    let mut obs = vec![];
+    for p in [
+        dir.join("residuals.parquet"),
+        dir.join("boards/residuals.parquet"),
+    ] {
+        if p.is_file() {
+            obs.extend(read_residuals(&p)?);
+        }
+    }
+    Ok(obs)
+}
+
+/// The updating's shape error δ per label of `label_index` (the median of population.parquet's
+/// `delta_<label>`); a label the updating held out (no δ) takes the largest δ of the others,
+/// the least weight. `None` when the updating had no shape terms.
+pub fn shape_errors(
+    path: &Path,
+    label_index: &[(String, usize)],
+) -> anyhow::Result<Option<Vec<f64>>> {
+    let batches = read_parquet(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut out: Vec<Option<f64>> = vec![];
+    for (label, _) in label_index {
+        let col = format!("delta_{label}");
+        let mut v = vec![];
+        for b in &batches {
+            let c = Cols { batch: b, path };
+            if let Ok(a) = c.f64(&col) {
+                v.extend(a.iter().flatten().filter(|x| x.is_finite() && *x > 0.0));
+            }
+        }
+        v.sort_by(f64::total_cmp);
+        out.push((!v.is_empty()).then(|| v[v.len() / 2]));
+    }
+    let Some(worst) = out.iter().flatten().copied().reduce(f64::max) else {
+        return Ok(None);
+    };
+    Ok(Some(out.into_iter().map(|d| d.unwrap_or(worst)).collect()))
+}
+
+/// Whether the campaign's balance weighed at least one board (ingest/masses.parquet has a
+/// row with a stable mass).
+pub fn weighed(work: &Path) -> anyhow::Result<bool> {
+    let path = work.join("ingest/masses.parquet");
+    if !path.is_file() {
+        return Ok(false);
+    }
+    Ok(read_parquet(&path)
+        .with_context(|| format!("reading {}", path.display()))?
+        .iter()
+        .any(|b| b.num_rows() > 0))
+}
+
+/// Median over every row of `boards.parquet` of each parameter column.
+pub fn posterior_centre(path: &Path, params: &[String]) -> anyhow::Result<Vec<f64>> {
+    let mut cols: Vec<Vec<f64>> = vec![vec![]; params.len()];
+    for b in read_parquet(path).with_context(|| format!("reading {}", path.display()))? {
+        let c = Cols { batch: &b, path };
+        for (k, name) in params.iter().enumerate() {
+            cols[k].extend(c.f64(name)?.iter().flatten());
+        }
+    }
+    cols.into_iter()
+        .zip(params)
+        .map(|(mut v, name)| {
+            v.retain(|x| x.is_finite());
+            if v.is_empty() {
+                return Err(anyhow!("{}: no finite {name}", path.display()));
+            }
+            v.sort_by(f64::total_cmp);
+            let n = v.len();
+            Ok(if n % 2 == 1 {
+                v[n / 2]
+            } else {
+                0.5 * (v[n / 2 - 1] + v[n / 2])
+            })
+        })
+        .collect()
+}
+
+/// The work directory's tables the board-region localisations read
+/// ([`crate::diagnose::regions::RegionFiles`]).
+pub struct WorkDirRegions<'a> {
+    pub work: &'a Path,
+}
+
+impl RegionFiles for WorkDirRegions<'_> {
+    fn posterior_centre(&self, params: &[String]) -> anyhow::Result<Vec<f64>> {
+        posterior_centre(&self.work.join("update_boards/boards.parquet"), params)
+    }
+
+    fn weighed(&self) -> anyhow::Result<bool> {
+        weighed(self.work)
+    }
+
+    fn shape_errors(&self, label_index: &[(String, usize)]) -> anyhow::Result<Option<Vec<f64>>> {
+        shape_errors(
+            &self.work.join("update_boards/population.parquet"),
+            label_index,
+        )
+    }
+
+    fn measured_shapes(
+        &self,
+        wanted: &dyn Fn(&str, i32) -> bool,
+    ) -> anyhow::Result<Vec<MeasuredShape>> {
+        measured_shapes(&self.work.join("extract/modes.parquet"), wanted)
+    }
+}
+
+/// The shapes and scan points of the rows of a modes table that `wanted` accepts (by
+/// measurement and mode), in file order.
+pub fn measured_shapes(
+    modes_path: &Path,
+    wanted: &dyn Fn(&str, i32) -> bool,
+) -> anyhow::Result<Vec<MeasuredShape>> {
+    let mut out = vec![];
+    for b in
+        read_parquet(modes_path).with_context(|| format!("reading {}", modes_path.display()))?
+    {
+        let c = Cols {
+            batch: &b,
+            path: modes_path,
+        };
+        let (mid, mode) = (c.str("measurement_id")?, c.i32("mode")?);
+        for i in 0..b.num_rows() {
+            if !wanted(mid.value(i), mode.value(i)) {
+                continue;
+            }
+            out.push(MeasuredShape {
+                measurement_id: mid.value(i).to_string(),
+                mode: mode.value(i),
+                shape: c.list_f64("shape", i)?.unwrap_or_default(),
+                x_m: c.list_f64("x_m", i)?.unwrap_or_default(),
+                y_m: c.list_f64("y_m", i)?.unwrap_or_default(),
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// The every-joint refit's `joints.parquet` in `dir`: per measurement, each of the `n`
+/// joints' k_ratio_<j> draws.
+pub fn joint_ratios(dir: &Path, n: usize) -> anyhow::Result<BTreeMap<String, Vec<Vec<f64>>>> {
+    let jp = dir.join("joints.parquet");
+    // measurement → per joint, the ratio draws.
+    let mut by: BTreeMap<String, Vec<Vec<f64>>> = BTreeMap::new();
+    for b in &tables::read_parquet(&jp)? {
+        let c = Cols {
+            batch: b,
+            path: &jp,
+        };
+        let m = c.str("measurement_id")?;
+        let cols = (1..=n)
+            .map(|j| c.f64(&format!("k_ratio_{j}")))
+            .collect::<std::io::Result<Vec<_>>>()?;
+        for i in 0..b.num_rows() {
+            let e = by
+                .entry(m.value(i).to_string())
+                .or_insert_with(|| vec![vec![]; n]);
+            for (j, a) in cols.iter().enumerate() {
+                e[j].push(a.value(i));
+            }
+        }
+    }
+    Ok(by)
+}
+
+/// The parameter estimates of a refit directory: a point mass's added mass and a
+/// covariate's coefficient from its step 1 (`boards/`), a joint mechanism's extra
+/// coordinates from step 2 (population medians), and a per-joint stiffness's estimate in
+/// each outlier measurement.
+fn refit_estimates(
+    dir: &Path,
+    mechanism: Option<Mechanism>,
+    joint: Option<usize>,
+    outliers: &[String],
+) -> anyhow::Result<Vec<Estimate>> {
+    let mut estimates = vec![];
+    let ev1 = if mechanism.is_some_and(is_board_mechanism) {
+        read_json(&dir.join("boards/evidence.json"))?
+    } else {
+        serde_json::Value::Null
+    };
+    let point_mass = &ev1["enrichment"]["effect"];
+    if point_mass["kind"].as_str() == Some("point_mass") {
+        // Its step-1 refit (`boards/`): the population median of the added mass (the
+        // column holds reference · e^μ, kg), and the mass's spread over the boards.
+        let param = point_mass["parameter"].as_str().unwrap_or_default();
+        let v = sorted_column(
+            &dir.join("boards/population.parquet"),
+            &format!("mu_{param}"),
+        )?;
+        if !v.is_empty() {
+            estimates.push(Estimate {
+                parameter: param.to_string(),
+                scope: format!(
+                    "population median, at ({:.1}, {:.1}) mm",
+                    1e3 * point_mass["x_m"].as_f64().unwrap_or(f64::NAN),
+                    1e3 * point_mass["y_m"].as_f64().unwrap_or(f64::NAN)
+                ),
+                median: quantile(&v, 0.5),
+                q05: quantile(&v, 0.05),
+                q95: quantile(&v, 0.95),
+            });
+        }
+    } else if mechanism.is_some_and(is_board_mechanism) {
+        // Its step-1 refit (`boards/`): the coefficient's population mean, as drawn.
+        let coef = ev1["enrichment"]["coefficient"]
+            .as_str()
+            .unwrap_or_default();
+        let v = sorted_column(
+            &dir.join("boards/population.parquet"),
+            &format!("mu_{coef}"),
+        )?;
+        if !v.is_empty() {
+            estimates.push(Estimate {
+                parameter: coef.to_string(),
+                scope: format!(
+                    "population mean, per unit of {} around {:.2}",
+                    ev1["enrichment"]["covariate"]
+                        .as_str()
+                        .unwrap_or("the covariate"),
+                    ev1["enrichment"]["covariate_reference"]
+                        .as_f64()
+                        .unwrap_or(f64::NAN)
+                ),
+                median: quantile(&v, 0.5),
+                q05: quantile(&v, 0.05),
+                q95: quantile(&v, 0.95),
+            });
+        }
+    } else if mechanism.is_some() {
+        // Extra coordinates (beyond ln k_con): population medians report_ref · e^μ.
+        let ev = read_json(&dir.join("evidence.json"))?;
+        let coords = ev["enrichment"]["coordinates"]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
+        let pop = dir.join("population.parquet");
+        let batches = tables::read_parquet(&pop)?;
+        // Every joint's contrast (no joint named): no population median to report (their
+        // common part is the prior's); the per-measurement ratios are `every_joint_estimates`.
+        let every_joint = crate::diagnose::library::is_every_joint(mechanism, joint);
+        let skip = if every_joint { coords.len() } else { 1 };
+        for cdef in coords.iter().skip(skip) {
+            let name = cdef["name"].as_str().unwrap_or_default();
+            let param = cdef["report_param"].as_str().unwrap_or_default();
+            let col = format!("mu_{name}");
+            let mut v = vec![];
+            for b in &batches {
+                let c = Cols {
+                    batch: b,
+                    path: &pop,
+                };
+                let a = c.f64(&col)?;
+                // The column holds ln(report_ref) + μ.
+                v.extend((0..b.num_rows()).map(|i| a.value(i).exp()));
+            }
+            v.sort_by(f64::total_cmp);
+            if !v.is_empty() {
+                estimates.push(Estimate {
+                    parameter: param.to_string(),
+                    scope: "population median".into(),
+                    median: quantile(&v, 0.5),
+                    q05: quantile(&v, 0.05),
+                    q95: quantile(&v, 0.95),
+                });
+            }
+        }
+        if mechanism == Some(Mechanism::JointStiffnessPerJoint) && !every_joint {
+            estimates.extend(per_measurement_estimates(dir, &coords, outliers)?);
+        }
+    }
+    Ok(estimates)
+}
+
+/// A mechanism that acts on some measurements only (one joint loose in some
+/// assemblies): its estimate in each outlier measurement the locate step found
+/// (joints.parquet holds report_ref · e^x per measurement). Not every measurement
+/// whose interval excludes the reference: the joints of one assembly differ by a few
+/// per cent anyway, and the bolted data resolve that.
+fn per_measurement_estimates(
+    dir: &Path,
+    coords: &[serde_json::Value],
+    outliers: &[String],
+) -> anyhow::Result<Vec<Estimate>> {
+    let mut estimates = vec![];
+    let jp = dir.join("joints.parquet");
+    for cdef in coords.iter().skip(1) {
+        let param = cdef["report_param"].as_str().unwrap_or_default();
+        let mut by: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+        for b in &tables::read_parquet(&jp)? {
+            let c = Cols {
+                batch: b,
+                path: &jp,
+            };
+            let (m, a) = (c.str("measurement_id")?, c.f64(param)?);
+            for i in 0..b.num_rows() {
+                by.entry(m.value(i).to_string())
+                    .or_default()
+                    .push(a.value(i));
+            }
+        }
+        for (m, mut v) in by {
+            if !outliers.contains(&m) {
+                continue;
+            }
+            v.sort_by(f64::total_cmp);
+            let (q05, q95) = (quantile(&v, 0.05), quantile(&v, 0.95));
+            {
+                estimates.push(Estimate {
+                    parameter: param.to_string(),
+                    scope: format!("measurement {m}"),
+                    median: quantile(&v, 0.5),
+                    q05,
+                    q95,
+                });
+            }
+        }
+    }
+    Ok(estimates)
+}
+
+/// A refit directory (or a baseline step) as a [`Refit`]. A board mechanism's refit has
+/// its step 1 in `dir/boards` and, where the campaign has a step 2, its step 2 in `dir`:
+/// its log evidence per run is then Z₂′ + (Z₁′ − Z₁), `step1_baseline` = the baseline's Z₁
+/// per run, so that it compares with the baseline's step 2 (Z₂) as a joint refit does (whose
+/// step 1 is the baseline's): every Bayes factor is over the same data, both steps.
+/// `max_r_hat` is the updating's convergence level ([`r_hat_gate`]).
+pub fn read_refit(
+    dir: &Path,
+    rel_dir: &str,
+    mechanism: Option<Mechanism>,
+    joint: Option<usize>,
+    step1_baseline: Option<&[f64]>,
+    outliers: &[String],
+    max_r_hat: f64,
+) -> anyhow::Result<Refit> {
+    let board_mech = mechanism.is_some_and(is_board_mechanism);
+    let dir1 = dir.join("boards");
+    let has2 = dir.join("evidence.json").is_file();
+    let main = if board_mech && !has2 { &dir1 } else { dir };
+    let mut log_evidence_runs = evidence_runs(main)?;
+    if board_mech && has2 {
+        let z1 = evidence_runs(&dir1)?;
+        let base = step1_baseline.unwrap_or(&[]);
+        if z1.is_empty() || base.is_empty() {
+            anyhow::bail!(
+                "{}: no step-1 evidence to combine with step 2",
+                dir1.display()
+            );
+        }
+        for (r, z) in log_evidence_runs.iter_mut().enumerate() {
+            *z += z1[r % z1.len()] - base[r % base.len()];
+        }
+    }
+    let res = main.join("residuals.parquet");
+    // A refit whose independent runs disagree on its population-level parameters (the
+    // mechanism's, the hyperparameters, the error scales: rank-normalised split R-hat across
+    // runs above 1.05) has not sampled its posterior: its evidence gives no Bayes factor.
+    // Per-unit parameters are not gated: in step 2 each run carries its own subset of the
+    // step-1 draws (the cut posterior), and a measurement's contact stiffness, tied to its
+    // board's draw, differs between runs by that subset's Monte Carlo error alone (R-hat up
+    // to 1.1 with 20 draws per run on a board the bolted data constrain strongly); that
+    // error is in the runs' evidences, and so in the Bayes factor's standard error.
+    //
+    // Between MAX_R_HAT and MAX_R_HAT_EVIDENCE the runs disagree a little: the Bayes factor
+    // stands (each run is an independent estimate of the log evidence, and their spread is
+    // its standard error, which the decision rule weighs), while the estimates' intervals are
+    // said to be approximate.
+    let mut failed = None;
+    let mut convergence_note = None;
+    if mechanism.is_some() {
+        let mut reps = vec![main.to_path_buf()];
+        if board_mech && has2 {
+            reps.push(dir1.clone());
+        }
+        for d in reps {
+            let (f, n) = r_hat_gate(population_r_hat(&d.join("summary.parquet"))?, &d, max_r_hat);
+            failed = failed.or(f);
+            convergence_note = convergence_note.or(n);
+        }
+    }
+    let mut estimates = refit_estimates(dir, mechanism, joint, outliers)?;
+    if let Some(note) = &convergence_note {
+        for e in estimates.iter_mut() {
+            e.scope = format!("{}; {note}", e.scope);
+        }
+    }
+    let mut held_out = setup_errors(&res, false)?;
+    let mut updated = setup_errors(&res, true)?;
+    if board_mech && has2 {
+        // The free-free predictions of its step 1 too.
+        let res1 = dir1.join("residuals.parquet");
+        held_out.extend(setup_errors(&res1, false)?);
+        updated.extend(setup_errors(&res1, true)?);
+    }
+    Ok(Refit {
+        mechanism,
+        joint,
+        dir: rel_dir.to_string(),
+        log_evidence_runs,
+        held_out,
+        updated,
+        estimates,
+        failed,
+        log_location_occam: None,
+        point_xy_m: None,
+        location_probes: vec![],
+        location_note: None,
+        remaining_share: None,
+        explained_rel: None,
+        deviating_joints: vec![],
+        new_modes: vec![],
+    })
 }
 
 #[cfg(test)]

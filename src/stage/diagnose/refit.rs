@@ -1,0 +1,542 @@
+//! The diagnosis's refits: the update steps rerun with a screened mechanism (`update boards
+//! --enrich` for a board mechanism, `update joints --enrich` for a joint one), with exactly
+//! the options of the work directory's steps (read from their manifests), gated on their
+//! convergence; the added mass's point refined by the refits' evidence; and each refit read
+//! back as a [`Refit`]. Every call into `crate::stage::update` of the diagnosis is here.
+
+use super::DiagnoseOptions;
+use crate::diagnose::library::{is_board_mechanism, Mechanism};
+use crate::diagnose::locate::{self, Located};
+use crate::diagnose::misfit::RefitShares;
+use crate::diagnose::point_search;
+use crate::diagnose::regions;
+use crate::diagnose::screen::Candidate;
+use crate::diagnose::select::{self, NewModeNote, Refit};
+use crate::diagnose::verdict::{self, quantile};
+use crate::io::diagnose_inputs::{
+    evidence_runs, joint_ratios, population_ess, population_r_hat, read_refit, refit_residuals,
+    sorted_column,
+};
+use crate::io::read_json;
+pub(super) use crate::stage::update::load_board;
+use crate::stage::update::{ShapeWeighting, UpdateOptions, MAX_R_HAT};
+use crate::stage::StageOutcome;
+use anyhow::{anyhow, Context};
+use std::path::Path;
+
+/// A refit directory (or a baseline step) as a [`Refit`] ([`read_refit`]), its convergence
+/// gated at the updating's own level ([`MAX_R_HAT`]).
+pub(super) fn summarize_refit(
+    dir: &Path,
+    rel_dir: &str,
+    mechanism: Option<Mechanism>,
+    joint: Option<usize>,
+    step1_baseline: Option<&[f64]>,
+    outliers: &[String],
+) -> anyhow::Result<Refit> {
+    read_refit(
+        dir,
+        rel_dir,
+        mechanism,
+        joint,
+        step1_baseline,
+        outliers,
+        MAX_R_HAT,
+    )
+}
+
+/// The options the work directory's step 2 ran with (its manifest's config).
+pub(super) fn step2_options(work: &Path) -> anyhow::Result<UpdateOptions> {
+    step_options(work, "update_joints", crate::stage::update::MANIFEST_JOINTS)
+}
+
+/// The options the work directory's step 1 ran with.
+pub(super) fn step1_options(work: &Path) -> anyhow::Result<UpdateOptions> {
+    step_options(work, "update_boards", crate::stage::update::MANIFEST_BOARDS)
+}
+
+fn step_options(work: &Path, dir: &str, manifest: &str) -> anyhow::Result<UpdateOptions> {
+    let p = work.join(dir).join(manifest);
+    let m = read_json(&p)?;
+    let cfg = m
+        .get("config")
+        .cloned()
+        .ok_or_else(|| anyhow!("{}: no `config`: not a stage manifest", p.display()))?;
+    let mut o: UpdateOptions = serde_json::from_value(cfg).with_context(|| {
+        format!(
+            "{}: config is not the options of `update {}` (written by another version?)",
+            p.display(),
+            dir.trim_start_matches("update_")
+        )
+    })?;
+    // A refit's likelihood must be the baseline's: its shape terms take the weights the
+    // baseline estimated, not weights of its own (their evidences would not compare).
+    if o.model.shape_weights == ShapeWeighting::Auto {
+        o.model.shape_weights = ShapeWeighting::from_evidence(&work.join(dir).join("evidence.json"))?;
+    }
+    Ok(o)
+}
+
+/// The options of one candidate's refit: the step-2 options with the enrichment.
+fn refit_options(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate) -> UpdateOptions {
+    let mut o = base.clone();
+    o.ingest_dir = opts.work_dir.join("ingest");
+    o.pair_dir = opts.work_dir.join("pair");
+    o.extract_dir = Some(opts.work_dir.join("extract"));
+    o.board = opts.board.clone();
+    o.out = opts.out.join(format!("refits/{}", cand.id()));
+    o.force = opts.force;
+    o.model.enrich = Some(cand.mechanism);
+    o.model.enrich_joint = cand.joint;
+    o
+}
+
+/// The options of a refit's step 2 (the bolted joints): [`refit_options`] with the budget of
+/// ROM evaluations ([`REFIT_ROM_EVALS_PER_PARTICLE_UNIT`]).
+fn joint_refit_options(
+    opts: &DiagnoseOptions,
+    base: &UpdateOptions,
+    cand: &Candidate,
+) -> UpdateOptions {
+    let mut o = refit_options(opts, base, cand);
+    o.sampler.smc.max_expensive_evals_per_particle_unit = Some(REFIT_ROM_EVALS_PER_PARTICLE_UNIT);
+    o
+}
+
+/// A joint refit's budget of bolted-ROM evaluations in its tempering, per particle and unit
+/// and run (the sampler gives up beyond it, and the refit is reported failed: never
+/// favoured). Inside their verified boxes the surrogates answer and the ROM is rarely called;
+/// a unit without a surrogate costs 6–75 a stage. 100 lets a few units temper on the ROM
+/// through a run, while an enrichment whose modes the surrogates cannot follow anywhere stops
+/// after a stage or two with its reason instead of spending minutes on each of hundreds.
+/// Step 1 has none: its free-free ROM is cheap, and a covariate's refit runs it without
+/// surrogates by design.
+const REFIT_ROM_EVALS_PER_PARTICLE_UNIT: f64 = 100.0;
+
+/// The step-1 options of a board mechanism's refit, its point at `xy_m` (`added_mass`).
+fn board_refit_options(
+    opts: &DiagnoseOptions,
+    base1: &UpdateOptions,
+    cand: &Candidate,
+    xy_m: Option<[f64; 2]>,
+) -> UpdateOptions {
+    let mut o = refit_options(opts, base1, cand);
+    o.model.enrich_joint = None;
+    o.model.enrich_covariate = cand.covariate.clone();
+    o.model.enrich_location = xy_m;
+    o
+}
+
+/// Run one candidate's refit: step 1 (`update boards --enrich`) for a board mechanism, on
+/// the step-1 options `base1`; step 2 (`update joints --enrich`) for a joint mechanism, on
+/// the step-2 options `base2`.
+///
+/// `decided` is asked before the last step is rerun for its convergence ([`run_gated`]).
+pub(super) fn run_refit(
+    opts: &DiagnoseOptions,
+    (base1, base2): (&UpdateOptions, Option<&UpdateOptions>),
+    cand: &Candidate,
+    decided: &dyn Fn() -> Option<String>,
+    verbose: bool,
+) -> anyhow::Result<StageOutcome> {
+    if is_board_mechanism(cand.mechanism) {
+        // Step 1 with the mechanism (refits/<id>/boards), then, where the campaign has a
+        // step 2, step 2 on top of it carrying the boards' coefficients (refits/<id>).
+        let mut o = board_refit_options(opts, base1, cand, cand.point_xy_m);
+        let boards = o.out.join("boards");
+        o.out = boards.clone();
+        let Some(base) = base2 else {
+            return run_gated(o, |o| crate::stage::update::run_boards(o, verbose), decided);
+        };
+        run_gated(o, |o| crate::stage::update::run_boards(o, verbose), &|| {
+            None
+        })?;
+        let mut o2 = joint_refit_options(opts, base, cand);
+        o2.model.enrich_joint = None;
+        run_gated(
+            o2,
+            |o| crate::stage::update::run_joints(o, &boards, verbose),
+            decided,
+        )
+    } else {
+        let base = base2.ok_or_else(|| {
+            anyhow!(
+                "{}: no step 2 (update_joints): a joint mechanism cannot be refitted",
+                opts.work_dir.display()
+            )
+        })?;
+        let o = joint_refit_options(opts, base, cand);
+        run_gated(
+            o,
+            |o| crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose),
+            decided,
+        )
+    }
+}
+
+/// The bulk ESS per run below which a refit's population-level parameter is resampled
+/// ([`run_gated`]): Vehtari et al. (2021) ask for 100 per chain before R-hat and the
+/// posterior quantiles are to be trusted.
+const MIN_ESS_PER_RUN: f64 = 100.0;
+
+/// Run one update step of a refit; when its independent runs disagree on a population-level
+/// parameter (R-hat above [`MAX_R_HAT`], the gate [`summarize_refit`] applies) or one has
+/// fewer than [`MIN_ESS_PER_RUN`] effective draws a run, run it once more with twice the
+/// particles and twice the runs (at least 4): without this a decisive candidate whose
+/// nuisance scale mixed slowly gave no Bayes factor at all. More runs, not only more
+/// particles: two runs that settle on different trade-offs between the modes' error scales
+/// stay apart however many particles each has, and R-hat from two runs is itself too noisy
+/// to tell. The retry replaces the first attempt's outputs; if it still disagrees, the gate
+/// reports it.
+///
+/// The retry is for the Bayes factor. Before it, `decided` says whether the first attempt
+/// already misses a bar of the decision rule that the evidence does not set
+/// ([`select::cannot_be_favoured`]); then the refit cannot be favoured whatever its Bayes
+/// factor, and the retry (four times the first attempt's work) is not run.
+fn run_gated(
+    mut o: UpdateOptions,
+    step: impl Fn(&UpdateOptions) -> anyhow::Result<StageOutcome>,
+    decided: &dyn Fn() -> Option<String>,
+) -> anyhow::Result<StageOutcome> {
+    let r = step(&o)?;
+    let summary = o.out.join("summary.parquet");
+    let min_ess = MIN_ESS_PER_RUN * o.sampler.runs as f64;
+    let why = if let Some((name, rh)) = population_r_hat(&summary)?.filter(|(_, r)| *r > MAX_R_HAT)
+    {
+        format!("R-hat across runs of {name} {rh:.3} > {MAX_R_HAT}")
+    } else if let Some((name, ess)) = population_ess(&summary)?.filter(|(_, e)| *e < min_ess) {
+        format!("bulk ESS of {name} {ess:.0} < {min_ess:.0} ({MIN_ESS_PER_RUN} a run)")
+    } else {
+        return Ok(r);
+    };
+    if let Some(not) = decided() {
+        eprintln!(
+            "diagnose: {}: {why}; not rerun: it cannot be favoured whatever its Bayes factor ({not})",
+            o.out.display()
+        );
+        return Ok(r);
+    }
+    o.sampler.smc.n_particles *= 2;
+    o.sampler.runs = (2 * o.sampler.runs).max(4);
+    eprintln!(
+        "diagnose: {}: {why}: rerun with {} runs of {} particles",
+        o.out.display(),
+        o.sampler.runs,
+        o.sampler.smc.n_particles
+    );
+    step(&o)
+}
+
+/// A joint refit's enriched model may carry modes the baseline lacks (a fixture's own) that
+/// the campaign identified and pair left unpaired (`new_modes` of its evidence.json). The
+/// refit itself leaves them out, so that its evidence is over the baseline's data; a second
+/// refit (`<refit>/new_modes`, `update joints --enrich-new-modes`) fits them too, and its
+/// population medians replace the estimates: the mode is the mechanism's most direct
+/// evidence (a fixture's own resonance pins its frequency). It is not run for a refit that
+/// cannot be favoured whatever its Bayes factor (`not_favourable` is then why): better estimates
+/// of a mechanism the diagnosis will not claim are not worth a second sampler's run; the
+/// modes are still named.
+#[allow(clippy::too_many_arguments)]
+fn new_modes_refit(
+    opts: &DiagnoseOptions,
+    base2: Option<&UpdateOptions>,
+    cand: &Candidate,
+    out: &Path,
+    rel: &str,
+    r: &mut Refit,
+    not_favourable: Option<String>,
+    verbose: bool,
+) -> anyhow::Result<()> {
+    let ev = read_json(&out.join("evidence.json"))?;
+    let found: Vec<&serde_json::Value> = ev["new_modes"]
+        .as_array()
+        .map(|a| a.iter().collect())
+        .unwrap_or_default();
+    let Some(base) = base2.filter(|_| !found.is_empty() && r.failed.is_none()) else {
+        return Ok(());
+    };
+    let step = match not_favourable {
+        Some(why) => Err(anyhow!(
+            "not refitted: the refit cannot be favoured whatever its Bayes factor ({why})"
+        )),
+        None => Ok(()),
+    };
+    let nm_rel = format!("{rel}/new_modes");
+    let step = step.and_then(|_| {
+        let mut o = joint_refit_options(opts, base, cand);
+        o.out = out.join("new_modes");
+        o.model.enrich_new_modes = true;
+        run_gated(
+            o.clone(),
+            |o| crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose),
+            &|| None,
+        )
+        .and_then(|_| summarize_refit(&o.out, &nm_rel, Some(cand.mechanism), cand.joint, None, &[]))
+    });
+    let (dir, why) = match step {
+        Ok(nm) if nm.failed.is_none() && !nm.estimates.is_empty() => {
+            r.estimates = nm
+                .estimates
+                .into_iter()
+                .map(|mut e| {
+                    e.scope = format!("{}, fitted with the mechanism's own mode(s)", e.scope);
+                    e
+                })
+                .collect();
+            (Some(nm_rel), None)
+        }
+        Ok(nm) => (
+            None,
+            Some(nm.failed.unwrap_or_else(|| "no estimates".into())),
+        ),
+        Err(e) => (None, Some(format!("{e:#}").replace('\n', " "))),
+    };
+    r.new_modes = found
+        .iter()
+        .map(|m| NewModeNote {
+            label: m["label"].as_str().unwrap_or_default().to_string(),
+            model_freq_hz: m["model_freq_hz"].as_f64().unwrap_or(f64::NAN),
+            median_freq_hz: m["median_freq_hz"].as_f64().unwrap_or(f64::NAN),
+            n_paired: m["n_paired"].as_u64().unwrap_or(0) as usize,
+            n_measurements: m["n_measurements"].as_u64().unwrap_or(0) as usize,
+            estimates_dir: dir.clone(),
+            estimates_failed: why.clone(),
+        })
+        .collect();
+    Ok(())
+}
+
+/// The located point of an `added_mass` candidate, refined by the refits' own evidence
+/// ([`crate::diagnose::point_search`]): step-1 refits with the point fixed at the probes of
+/// a compass search (`refits/<id>/location/x<mm>_y<mm>`, each a hashed stage of its own)
+/// from the localisation's grid point, steps halving from 1 mm to 0.25 mm. Returns the candidate at the
+/// refined point, with the location's Laplace posterior in place of the map's Occam factor
+/// and ln(mass) spread, and every probe. Any other candidate, or a search that could not
+/// run (a probe off the board, a failed refit), is returned as it was; that, and a last
+/// stencil without a maximum, is the returned note (in the refit's `location_note` and a
+/// `diagnose.location_search` warning among the stage's findings).
+pub(super) fn refine_point(
+    opts: &DiagnoseOptions,
+    board: &crate::fem::Board,
+    base1: &UpdateOptions,
+    cand: &Candidate,
+    verbose: bool,
+) -> (Candidate, Vec<point_search::Probe>, Option<String>) {
+    let (Mechanism::AddedMass, Some(start), Some(_)) =
+        (cand.mechanism, cand.point_xy_m, cand.point_located)
+    else {
+        return (cand.clone(), vec![], None);
+    };
+    // From half the map's grid step (its point is within one of the map's optimum) to an
+    // eighth; each probe with half the refit's particles (the log evidence between probes
+    // differs by tens to hundreds, its error across runs is a few).
+    let plan = point_search::SearchPlan {
+        first_step_m: 0.5 * regions::grid_step_m(board),
+        last_step_m: 0.125 * regions::grid_step_m(board),
+        max_probes: 24,
+    };
+    let probe = |p: [f64; 2]| -> anyhow::Result<point_search::Probe> {
+        let mut o = board_refit_options(opts, base1, cand, Some(p));
+        o.sampler.smc.n_particles = (o.sampler.smc.n_particles / 2).max(100);
+        o.out = opts.out.join(format!(
+            "refits/{}/location/x{:.3}_y{:.3}",
+            cand.id(),
+            p[0] * 1e3,
+            p[1] * 1e3
+        ));
+        crate::stage::update::run_boards(&o, verbose)?;
+        let z = evidence_runs(&o.out)?;
+        let m = sorted_column(
+            &o.out.join("population.parquet"),
+            &format!("mu_{}", crate::diagnose::library::ADDED_MASS),
+        )?;
+        if z.is_empty() || m.is_empty() {
+            anyhow::bail!("{}: no log evidence or no mass", o.out.display());
+        }
+        let q = point_search::Probe {
+            x_m: p[0],
+            y_m: p[1],
+            log_evidence: z.iter().sum::<f64>() / z.len() as f64,
+            ln_mass_kg: quantile(&m, 0.5).ln(),
+        };
+        eprintln!(
+            "diagnose: {}: point ({:.3}, {:.3}) mm: log evidence {:.2}, mass {:.4} g",
+            cand.id(),
+            p[0] * 1e3,
+            p[1] * 1e3,
+            q.log_evidence,
+            q.ln_mass_kg.exp() * 1e3
+        );
+        Ok(q)
+    };
+    let point_search::SearchResult {
+        probes,
+        last,
+        end_xy_m: end,
+    } = match point_search::search(start, &plan, probe) {
+        Ok(r) => r,
+        Err(e) => {
+            let note = format!(
+                "the point's refinement stopped ({}); the refit keeps the located point ({:.2}, {:.2}) mm and the localisation map's spread",
+                format!("{e:#}").replace('\n', " "),
+                start[0] * 1e3,
+                start[1] * 1e3
+            );
+            eprintln!("diagnose: {}: {note}", cand.id());
+            return (cand.clone(), vec![], Some(note));
+        }
+    };
+    let (c, note) = point_search::refined(cand, end, &last, board.length_x_m * board.width_y_m);
+    if let Some(n) = &note {
+        eprintln!("diagnose: {}: {n}", cand.id());
+    }
+    (c, probes, note)
+}
+
+/// What the decision rule compares a refit with: the located misfit, the locate step's
+/// input, the baseline's summary and step-1 log evidence per run.
+pub(super) struct Against<'a> {
+    pub located: &'a Located,
+    pub input: &'a locate::LocateInput,
+    pub baseline: &'a Refit,
+    pub z1: &'a [f64],
+}
+
+/// Why the refit of `cand` as it stands in its directory cannot be favoured whatever its
+/// Bayes factor ([`select::cannot_be_favoured`]); None where it could be, or where its
+/// outputs cannot be read (then the evidence is left to decide).
+pub(super) fn cannot_be_favoured(
+    opts: &DiagnoseOptions,
+    cand: &Candidate,
+    a: &Against,
+) -> Option<String> {
+    let rel = format!("refits/{}", cand.id());
+    let out = opts.out.join(&rel);
+    let outliers = &a.located.measurements_after_covariates;
+    let mut r = summarize_refit(
+        &out,
+        &rel,
+        Some(cand.mechanism),
+        cand.joint,
+        Some(a.z1),
+        outliers,
+    )
+    .ok()?;
+    let after = refit_residuals(&out).ok()?;
+    with_shares(opts, cand, a, &mut r, &after);
+    select::cannot_be_favoured(a.baseline, &r, &opts.select)
+}
+
+/// Set a refit's share of the located misfit it leaves and the misfit it removes, from its
+/// residuals `after`.
+fn with_shares(
+    opts: &DiagnoseOptions,
+    cand: &Candidate,
+    a: &Against,
+    r: &mut Refit,
+    after: &[locate::ResidualObs],
+) {
+    let shares = RefitShares::new(a.located, a.input, after, &opts.locate);
+    r.remaining_share = shares.own(cand);
+    r.explained_rel = shares.explained(cand);
+}
+
+/// Run (or find up to date) one candidate's refit.
+pub(super) fn refit(
+    opts: &DiagnoseOptions,
+    board: &crate::fem::Board,
+    bases: (&UpdateOptions, Option<&UpdateOptions>),
+    cand: &Candidate,
+    against: &Against,
+    verbose: bool,
+) -> Refit {
+    let (outliers, z1) = (&against.located.measurements_after_covariates, against.z1);
+    let (refined, probes, location_note) = refine_point(opts, board, bases.0, cand, verbose);
+    let cand = &refined;
+    let rel = format!("refits/{}", cand.id());
+    let out = opts.out.join(&rel);
+    let decided = || cannot_be_favoured(opts, cand, against);
+    let r = run_refit(opts, bases, cand, &decided, verbose).and_then(|_| {
+        let mut r = summarize_refit(
+            &out,
+            &rel,
+            Some(cand.mechanism),
+            cand.joint,
+            Some(z1),
+            outliers,
+        )?;
+        if crate::diagnose::library::is_every_joint(Some(cand.mechanism), cand.joint) {
+            let by = joint_ratios(&out, board.holes.len())?;
+            let (est, dev) = verdict::every_joint_estimates(by, board, outliers);
+            r.estimates.extend(est);
+            r.deviating_joints = dev;
+        }
+        if !is_board_mechanism(cand.mechanism) {
+            // The refit as summarized here, not read again from its directory.
+            let not_favourable = refit_residuals(&out).ok().and_then(|after| {
+                let mut judged = r.clone();
+                with_shares(opts, cand, against, &mut judged, &after);
+                select::cannot_be_favoured(against.baseline, &judged, &opts.select)
+            });
+            new_modes_refit(
+                opts,
+                bases.1,
+                cand,
+                &out,
+                &rel,
+                &mut r,
+                not_favourable,
+                verbose,
+            )?;
+        }
+        // The location was chosen from the data: its Occam factor joins the evidence, and
+        // its uncertainty the mass's interval (the refit's is conditional on the point).
+        if let Some(pl) = cand.point_located {
+            verdict::with_located_point(&mut r, pl, cand.point_xy_m);
+            r.location_probes = probes.clone();
+            r.location_note = location_note.clone();
+        }
+        Ok(r)
+    });
+    match r {
+        Ok(r) => r,
+        Err(e) => Refit {
+            location_note,
+            ..Refit::failed(
+                Some(cand.mechanism),
+                cand.joint,
+                rel,
+                format!("{e:#}").replace('\n', " "),
+            )
+        },
+    }
+}
+
+/// The baselines' summaries: step 1's, and where the campaign has a step 2, step 2's with
+/// step 1's free-free errors (a board mechanism changes both).
+pub(super) fn baselines(w: &Path, step2: bool) -> anyhow::Result<(Refit, Option<Refit>)> {
+    let baseline1 = summarize_refit(
+        &w.join("update_boards"),
+        "../update_boards",
+        None,
+        None,
+        None,
+        &[],
+    )?;
+    let baseline = if step2 {
+        let mut b = summarize_refit(
+            &w.join("update_joints"),
+            "../update_joints",
+            None,
+            None,
+            None,
+            &[],
+        )?;
+        b.held_out.extend(baseline1.held_out.iter().cloned());
+        b.updated.extend(baseline1.updated.iter().cloned());
+        Some(b)
+    } else {
+        None
+    };
+    Ok((baseline1, baseline))
+}
