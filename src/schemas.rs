@@ -17,8 +17,8 @@ pub fn generate() -> BTreeMap<String, String> {
         s
     };
     let stage_tables = [
-        &crate::stage::extract::MODES,
-        &crate::stage::extract::POINT_FLAGS,
+        &crate::io::tables::extract::MODES,
+        &crate::io::tables::extract::POINT_FLAGS,
         &crate::stage::pair::PAIRS,
         &crate::stage::pair::PRESENCE,
         &crate::stage::update::POPULATION,

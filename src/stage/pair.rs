@@ -16,7 +16,6 @@ use crate::io::manifest::StageSpec;
 use crate::io::modes_table::{read_modes_table, ModeRow};
 use crate::io::tables::{self, c, Col, TableSpec};
 use crate::modal::pair::{self, IdentifiedShape, ModelMode, PairParams, PresenceRecord, ScanPoint};
-use crate::stage::extract::sanitize;
 use crate::stage::fe::SetupArg;
 use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::Context;
@@ -321,10 +320,10 @@ pub fn run(opts: &PairOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
                     &cl,
                     &format!("MAC {} ({})", m.measurement_id, m.setup),
                 ) {
-                    let p = opts
-                        .out
-                        .join("plots")
-                        .join(format!("{}_mac.svg", sanitize(&m.measurement_id)));
+                    let p = opts.out.join("plots").join(format!(
+                        "{}_mac.svg",
+                        crate::io::sanitize(&m.measurement_id)
+                    ));
                     crate::io::atomic::write_bytes(&p, svg.as_bytes())?;
                     outputs.push(p);
                 }
