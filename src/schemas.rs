@@ -19,8 +19,8 @@ pub fn generate() -> BTreeMap<String, String> {
     let stage_tables = [
         &crate::io::tables::extract::MODES,
         &crate::io::tables::extract::POINT_FLAGS,
-        &crate::stage::pair::PAIRS,
-        &crate::stage::pair::PRESENCE,
+        &crate::io::tables::pairs::PAIRS,
+        &crate::io::tables::pairs::PRESENCE,
         &crate::stage::update::POPULATION,
         &crate::stage::update::BOARDS,
         &crate::stage::update::SUMMARY,
