@@ -29,8 +29,8 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::stage::update::JOINTS,
         &crate::stage::update::POPULATION_JOINTS,
         &crate::stage::propagate::PREDICTIONS,
-        &crate::stage::report::TABLE2,
-        &crate::stage::report::INTERVALS,
+        &crate::io::tables::report::TABLE2,
+        &crate::io::tables::report::INTERVALS,
         &crate::stage::diagnose::DIAGNOSIS,
         &crate::stage::diagnose::MODES,
     ];
