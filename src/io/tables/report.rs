@@ -6,7 +6,8 @@
 use crate::io::read_json;
 use crate::io::tables::{self, c, Col, Cols, TableSpec};
 use crate::report::diagnosis::{self, Cell, DiagnosisData, DiagnosisView, ModeMisfit};
-use crate::report::html::{StepData, SummaryRow};
+use crate::report::html::{Provenance, StepData, SummaryRow};
+use crate::report::sources;
 use crate::report::validation::{Interval, Measured, Table2Row};
 use anyhow::{anyhow, bail, Context};
 use arrow::array::{Array, ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
@@ -544,4 +545,251 @@ fn write_both(
     let csvp = out.join(format!("{}.csv", spec.name));
     crate::io::atomic::write_bytes(&csvp, &bytes)?;
     Ok(vec![pq, csvp])
+}
+
+// ---------------------------------------------------------------------------------------------
+// The report's inputs in a work directory.
+
+/// The diagnose stage's document (see `stage::diagnose::JSON`).
+const DIAGNOSIS_FILE: &str = "diagnosis.json";
+/// The diagnose stage's per-mode misfits (see `stage::diagnose::MODES`).
+const DIAGNOSIS_MODES_FILE: &str = "diagnosis_modes.parquet";
+
+/// The report's inputs in a work directory: where they are, which are there, and the list the
+/// manifest hashes (in the order it hashes them).
+pub struct Sources {
+    pub step1: PathBuf,
+    pub step2: PathBuf,
+    pub prop: PathBuf,
+    pub has2: bool,
+    pub step1_report: serde_json::Value,
+    pub held_out: Vec<String>,
+    pub pairs: PathBuf,
+    /// Step 2's update_report.json when step 2 ran without a posterior.
+    pub step2_note: Option<PathBuf>,
+    pub ingest_report: PathBuf,
+    pub specimens: PathBuf,
+    pub diag_json: PathBuf,
+    pub diag_modes: PathBuf,
+    pub has_diag: bool,
+    /// The plots to copy, with the stage that drew them.
+    pub plots: Vec<(&'static str, PathBuf)>,
+    /// Manifests of every stage (provenance).
+    pub manifests: Vec<PathBuf>,
+    pub inputs: Vec<PathBuf>,
+}
+
+/// Locate the inputs of the report of work directory `w`; an error when a required one is
+/// missing.
+pub fn locate(w: &Path) -> anyhow::Result<Sources> {
+    let step1 = w.join("update_boards");
+    let step2 = w.join("update_joints");
+    let prop = w.join("propagate");
+    if !prop.join("predictions.parquet").is_file() {
+        bail!(
+            "{}: no predictions.parquet; run `hbmu propagate {} --out {}` first",
+            prop.display(),
+            step1.display(),
+            prop.display()
+        );
+    }
+    if !step1.join("boards.parquet").is_file() {
+        bail!(
+            "{}: no step-1 posterior (boards.parquet); run `hbmu update boards` first",
+            step1.display()
+        );
+    }
+    let has2 = step2.join("joints.parquet").is_file();
+    let step1_report = read_json(&step1.join("update_report.json"))?;
+    let held_out = sources::held_out_boards(&step1_report);
+    let pairs = w.join("pair").join("pairs.parquet");
+    let mut inputs = vec![
+        prop.join("predictions.parquet"),
+        prop.join("propagate_report.json"),
+    ];
+    let step_files = [
+        "population.parquet",
+        "summary.parquet",
+        "stages.parquet",
+        "residuals.parquet",
+        "evidence.json",
+        "update_report.json",
+    ];
+    inputs.extend(step_files.iter().map(|f| step1.join(f)));
+    inputs.push(step1.join("boards.parquet"));
+    if has2 {
+        // update_report.json is optional in step 2 (not part of its output contract).
+        inputs.extend(
+            step_files
+                .iter()
+                .map(|f| step2.join(f))
+                .filter(|p| !p.ends_with("update_report.json") || p.is_file()),
+        );
+        inputs.push(step2.join("joints.parquet"));
+    }
+    // Step 2 that ran without a posterior (a campaign without paired bolted modes) says why.
+    let step2_note = step2.join("update_report.json");
+    let step2_note = (!has2 && step2_note.is_file()).then_some(step2_note);
+    if let Some(p) = &step2_note {
+        inputs.push(p.clone());
+    }
+    if !held_out.is_empty() {
+        if !pairs.is_file() {
+            bail!(
+                "{}: step 1 held out boards {} but the work directory has no pair/pairs.parquet to compare their measurements with",
+                step1.display(),
+                held_out.join(", ")
+            );
+        }
+        inputs.push(pairs.clone());
+    }
+    let ingest_report = w.join("ingest").join("ingest_report.json");
+    let specimens = w.join("ingest").join("specimens.parquet");
+    if specimens.is_file() {
+        inputs.push(specimens.clone());
+    }
+    if ingest_report.is_file() {
+        inputs.push(ingest_report.clone());
+    }
+    // The diagnosis, when the diagnose stage ran: its document and per-mode misfits.
+    let diag_json = w.join("diagnose").join(DIAGNOSIS_FILE);
+    let diag_modes = w.join("diagnose").join(DIAGNOSIS_MODES_FILE);
+    let has_diag = diag_json.is_file();
+    if has_diag {
+        inputs.push(diag_json.clone());
+        if diag_modes.is_file() {
+            inputs.push(diag_modes.clone());
+        }
+    }
+    let plots: Vec<(&str, PathBuf)> = svgs(&w.join("extract").join("plots"))
+        .into_iter()
+        .map(|p| ("extract", p))
+        .chain(
+            svgs(&w.join("pair").join("plots"))
+                .into_iter()
+                .map(|p| ("pair", p)),
+        )
+        .collect();
+    inputs.extend(plots.iter().map(|(_, p)| p.clone()));
+    Ok(Sources {
+        step1,
+        step2,
+        prop,
+        has2,
+        step1_report,
+        held_out,
+        pairs,
+        step2_note,
+        ingest_report,
+        specimens,
+        diag_json,
+        diag_modes,
+        has_diag,
+        plots,
+        manifests: manifests(w),
+        inputs,
+    })
+}
+
+/// Manifests of every stage (provenance): their outputs' hashes only, no times.
+fn manifests(w: &Path) -> Vec<PathBuf> {
+    let mut manifests = vec![];
+    for d in [
+        "ingest",
+        "extract",
+        "pair",
+        "fe",
+        "update_boards",
+        "update_joints",
+        "propagate",
+        "diagnose",
+    ] {
+        let mut v: Vec<PathBuf> = std::fs::read_dir(w.join(d))
+            .map(|r| {
+                r.filter_map(|e| e.ok().map(|e| e.path()))
+                    .filter(|p| p.to_string_lossy().ends_with(".manifest.json"))
+                    .collect()
+            })
+            .unwrap_or_default();
+        v.sort();
+        manifests.extend(v);
+    }
+    manifests
+}
+
+/// The measured frequencies (both steps' residuals, and the held-out boards' pairs), step 2's
+/// data, or why there is none.
+pub fn read_measurements(
+    src: &Sources,
+) -> anyhow::Result<(Vec<Measured>, Option<StepData>, Option<String>)> {
+    let mut measured = read_measured(&src.step1.join("residuals.parquet"))?;
+    let mut step2_data = None;
+    let mut step2_absent = None;
+    if src.has2 {
+        measured.extend(read_measured(&src.step2.join("residuals.parquet"))?);
+        step2_data = Some(step_data(
+            &src.step2,
+            "joints (step 2)",
+            "joints.parquet",
+            "measurement_id",
+        )?);
+    } else {
+        let note = src.step2_note.as_deref().map(read_json).transpose()?;
+        step2_absent = Some(sources::step2_absent(note.as_ref()));
+    }
+    if !src.held_out.is_empty() {
+        let roles: BTreeMap<(String, String), bool> = measured
+            .iter()
+            .map(|m| ((m.setup.clone(), m.label.clone()), m.used_for_updating))
+            .collect();
+        measured.extend(read_held_out(&src.pairs, &src.held_out, &roles)?);
+    }
+    Ok((measured, step2_data, step2_absent))
+}
+
+/// The provenance of every stage manifest that reads.
+pub fn provenance(manifests: &[PathBuf], w: &Path) -> Vec<Provenance> {
+    let mut provenance = vec![];
+    for m in manifests {
+        let Some(man) = crate::io::manifest::read_manifest(m) else {
+            continue;
+        };
+        provenance.push(Provenance {
+            stage: man.stage.clone(),
+            manifest: crate::io::manifest::rel_path(m, w),
+            tool_version: man.tool_version.clone(),
+            fingerprint: man.fingerprint.clone(),
+            outputs: man
+                .outputs
+                .iter()
+                .map(|o| (o.path.clone(), o.blake3.clone()))
+                .collect(),
+        });
+    }
+    provenance
+}
+
+/// Copy the plots under `out/plots/<stage>/`: the copies and the page's links to them.
+#[allow(clippy::type_complexity)]
+pub fn copy_plots(
+    plots: &[(&str, PathBuf)],
+    out: &Path,
+) -> anyhow::Result<(Vec<PathBuf>, Vec<(String, String, String)>)> {
+    let mut outputs = vec![];
+    let mut links = vec![];
+    for (kind, p) in plots {
+        let name = p
+            .file_name()
+            .map(|n| n.to_string_lossy().to_string())
+            .unwrap_or_default();
+        let (mid, what, rel) = sources::plot_link(kind, &name);
+        let dst = out.join(&rel);
+        crate::io::atomic::write_bytes(
+            &dst,
+            &std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?,
+        )?;
+        outputs.push(dst);
+        links.push((mid, what, rel));
+    }
+    Ok((outputs, links))
 }
