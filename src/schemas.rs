@@ -28,7 +28,7 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::stage::update::RESIDUALS,
         &crate::stage::update::JOINTS,
         &crate::stage::update::POPULATION_JOINTS,
-        &crate::stage::propagate::PREDICTIONS,
+        &crate::io::tables::propagate::PREDICTIONS,
         &crate::io::tables::report::TABLE2,
         &crate::io::tables::report::INTERVALS,
         &crate::stage::diagnose::DIAGNOSIS,
