@@ -17,10 +17,10 @@ pub fn generate() -> BTreeMap<String, String> {
         s
     };
     let stage_tables = [
-        &crate::stage::extract::MODES,
-        &crate::stage::extract::POINT_FLAGS,
-        &crate::stage::pair::PAIRS,
-        &crate::stage::pair::PRESENCE,
+        &crate::io::tables::extract::MODES,
+        &crate::io::tables::extract::POINT_FLAGS,
+        &crate::io::tables::pairs::PAIRS,
+        &crate::io::tables::pairs::PRESENCE,
         &crate::io::tables::update::POPULATION,
         &crate::io::tables::update::BOARDS,
         &crate::io::tables::update::SUMMARY,
@@ -28,9 +28,9 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::io::tables::update::RESIDUALS,
         &crate::io::tables::update::JOINTS,
         &crate::io::tables::update::POPULATION_JOINTS,
-        &crate::stage::propagate::PREDICTIONS,
-        &crate::stage::report::TABLE2,
-        &crate::stage::report::INTERVALS,
+        &crate::io::tables::propagate::PREDICTIONS,
+        &crate::io::tables::report::TABLE2,
+        &crate::io::tables::report::INTERVALS,
         &crate::io::tables::diagnose::DIAGNOSIS,
         &crate::io::tables::diagnose::MODES,
     ];

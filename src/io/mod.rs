@@ -24,3 +24,16 @@ pub fn read_json(path: &std::path::Path) -> anyhow::Result<serde_json::Value> {
     let b = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
     serde_json::from_slice(&b).with_context(|| format!("{}: not valid JSON", path.display()))
 }
+
+/// A file-name-safe version of an id (for plot file names).
+pub fn sanitize(id: &str) -> String {
+    id.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' || c == '.' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}

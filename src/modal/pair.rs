@@ -15,6 +15,8 @@
 use super::assign::hungarian_max;
 use super::mac::mac_matrix;
 use super::ModalError;
+use crate::fem::{Board, FeModel, FemError, Modes, Setup};
+use crate::findings::{Finding, Findings, Severity};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -583,4 +585,323 @@ pub fn modes_present(records: &[PresenceRecord], min_fraction: f64) -> Vec<Label
             }
         })
         .collect()
+}
+
+// ---------------------------------------------------------------------------------------------
+// The pair stage's computation: one model per setup, labelled on a grid over the board, and
+// the pairing of one measurement's modes with it.
+
+/// One measurement's identified modes (consecutive rows of modes.parquet), with the band and
+/// scan points of its first row.
+pub struct MeasurementModes {
+    pub measurement_id: String,
+    pub board_id: String,
+    pub setup: String,
+    pub band: (f64, f64),
+    pub points: Vec<ScanPoint>,
+    /// (identified mode number, frequency, shape at `points`).
+    pub modes: Vec<(i32, f64, Vec<f64>)>,
+}
+
+/// A setup's full model at its nominal parameters, its modes, their labels on the board grid
+/// ([`board_grid_labels`]) and each mode's largest |amplitude| on that grid.
+pub struct SetupModel {
+    pub model: FeModel,
+    pub modes: Modes,
+    pub labels: Vec<String>,
+    pub board_max: Vec<f64>,
+}
+
+impl SetupModel {
+    /// Build the model of `setup` and label its first `n_model_modes` modes. Each model mode
+    /// is labelled once per setup, on a grid over the whole board, so it keeps its label in
+    /// every measurement whatever part of the board was scanned.
+    pub fn build(
+        board: &Board,
+        setup: Setup,
+        n_model_modes: usize,
+        params: &PairParams,
+    ) -> Result<SetupModel, FemError> {
+        let model = FeModel::build(board, setup.clone(), board.mesh_for(&setup))?;
+        let p = model.nominal_params();
+        let modes = model.modes(&p, n_model_modes)?;
+        let (labels, board_max) = board_grid_labels(board, &model, &modes, params)?;
+        Ok(SetupModel {
+            model,
+            modes,
+            labels,
+            board_max,
+        })
+    }
+}
+
+/// One row of pairs.parquet of a measurement: an identified mode (paired or not) or a model
+/// mode in the band that found no partner (`missing`).
+pub struct PairRecord {
+    pub mode: Option<i32>,
+    pub freq_hz: Option<f64>,
+    pub model_mode: Option<i32>,
+    pub model_freq_hz: Option<f64>,
+    pub label: String,
+    pub mac: Option<f64>,
+    pub accepted: bool,
+    pub missing: bool,
+    pub swapped: bool,
+}
+
+/// A measurement's pairing: its rows, its presence record, and what its MAC plot shows.
+pub struct MeasurementPairing {
+    pub rows: Vec<PairRecord>,
+    pub presence: PresenceRecord,
+    pub pairing: Pairing,
+    pub model_modes: Vec<ModelMode>,
+}
+
+/// Pair one measurement's modes with its setup's model: by MAC where its points tell the
+/// model's modes apart, else by frequency, visibility and order (finding `pair.by_frequency`).
+/// Scan points off the model board are left out (finding `pair.point_outside_model`); `None`
+/// when no point is left or the pairing fails (a quarantine finding).
+pub fn pair_measurement(
+    m: &MeasurementModes,
+    sm: &SetupModel,
+    p: &PairParams,
+    findings: &mut Findings,
+) -> Result<Option<MeasurementPairing>, FemError> {
+    let (model, fe_modes, labels, board_max) = (&sm.model, &sm.modes, &sm.labels, &sm.board_max);
+    // Scan points the model cannot evaluate (outside the outline, inside a hole) are
+    // left out of this measurement's MAC, and reported.
+    let mut keep = vec![];
+    for (i, pt) in m.points.iter().enumerate() {
+        if model.w_at(fe_modes, &[[pt.x_m, pt.y_m]]).is_ok() {
+            keep.push(i);
+        } else {
+            findings.push(
+                Finding::new(
+                    Severity::Warning,
+                    "pair.point_outside_model",
+                    format!(
+                        "scan point node {} at ({:.4}, {:.4}) m is outside the model board or inside a hole; left out of the MAC",
+                        pt.node_id, pt.x_m, pt.y_m
+                    ),
+                )
+                .measurement(m.measurement_id.clone()),
+            );
+        }
+    }
+    if keep.is_empty() {
+        findings.push(
+            Finding::new(
+                Severity::Quarantined,
+                "pair.points",
+                "no scan point lies on the model board (expected at least 1)",
+            )
+            .measurement(m.measurement_id.clone()),
+        );
+        return Ok(None);
+    }
+    let points: Vec<ScanPoint> = keep.iter().map(|&i| m.points[i]).collect();
+    let model_modes = modes_at(model, fe_modes, &points)?;
+    let identified: Vec<IdentifiedShape> = m
+        .modes
+        .iter()
+        .map(|(_, f, s)| IdentifiedShape {
+            freq_hz: *f,
+            shape: keep.iter().map(|&i| s[i]).collect(),
+        })
+        .collect();
+    // The MAC pairs modes only where these points tell the model's own modes apart.
+    let alike = model_mac_max(&model_modes, m.band, p.freq_gate_sd * p.freq_sd_rel);
+    let by_mac = points.len() >= 3 && alike < p.mac_min;
+    let paired = if by_mac {
+        pair_modes_labelled(&identified, &model_modes, labels.clone(), m.band, p)
+    } else {
+        let visibility = visibility(&model_modes, board_max);
+        findings.push(
+            Finding::new(
+                Severity::Info,
+                "pair.by_frequency",
+                format!(
+                    "{} scan point(s) cannot tell the model's modes apart by MAC (two model modes near the band have MAC {alike:.2} at them, against {} for a pair); paired on frequency (prior predictive sd {} of ln f, at most {} sd apart), on each model mode's amplitude at the points (under {} of its largest on the board: near a node there, less likely seen, not missing when unseen) and on the modes' order",
+                    points.len(),
+                    p.mac_min,
+                    p.freq_sd_rel,
+                    p.freq_gate_sd,
+                    p.min_visibility
+                ),
+            )
+            .measurement(m.measurement_id.clone()),
+        );
+        pair_modes_by_frequency(
+            &identified,
+            &model_modes,
+            labels.clone(),
+            &visibility,
+            m.band,
+            p,
+        )
+    };
+    let pairing = match paired {
+        Ok(p) => p,
+        Err(e) => {
+            findings.push(
+                Finding::new(Severity::Quarantined, "pair.failed", e.to_string())
+                    .measurement(m.measurement_id.clone()),
+            );
+            return Ok(None);
+        }
+    };
+    let (rows, accepted_labels) = pair_records(m, &pairing, &model_modes);
+    Ok(Some(MeasurementPairing {
+        rows,
+        presence: PresenceRecord {
+            measurement_id: m.measurement_id.clone(),
+            setup: m.setup.clone(),
+            accepted_labels,
+        },
+        pairing,
+        model_modes,
+    }))
+}
+
+/// Each model mode's visibility at the points: its largest |amplitude| there over its largest
+/// on the board grid, at most 1 (0 for a mode flat on the board).
+fn visibility(model_modes: &[ModelMode], board_max: &[f64]) -> Vec<f64> {
+    model_modes
+        .iter()
+        .zip(board_max)
+        .map(|(mm, &big)| {
+            let here = mm.shape.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+            if big > 0.0 {
+                (here / big).min(1.0)
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// The rows of a measurement's pairing (one per identified mode, then one per missing model
+/// mode) and the labels of its accepted pairs.
+fn pair_records(
+    m: &MeasurementModes,
+    pairing: &Pairing,
+    model_modes: &[ModelMode],
+) -> (Vec<PairRecord>, Vec<String>) {
+    let swapped: std::collections::BTreeSet<usize> =
+        pairing.swaps.iter().flat_map(|&(a, b)| [a, b]).collect();
+    let mut accepted_labels = vec![];
+    let mut rows = vec![];
+    for pr in &pairing.pairs {
+        let (mode_no, f, _) = &m.modes[pr.mode];
+        if pr.accepted {
+            accepted_labels.push(pr.label.clone());
+        }
+        rows.push(PairRecord {
+            mode: Some(*mode_no),
+            freq_hz: Some(*f),
+            model_mode: pr.model_mode.map(|j| j as i32 + 1),
+            model_freq_hz: pr.model_mode.map(|j| model_modes[j].freq_hz),
+            label: pr.label.clone(),
+            mac: pr.model_mode.map(|_| pr.mac),
+            accepted: pr.accepted,
+            missing: false,
+            swapped: swapped.contains(&pr.mode),
+        });
+    }
+    for &j in &pairing.missing {
+        rows.push(PairRecord {
+            mode: None,
+            freq_hz: None,
+            model_mode: Some(j as i32 + 1),
+            model_freq_hz: Some(model_modes[j].freq_hz),
+            label: pairing.model_labels[j].clone(),
+            mac: None,
+            accepted: false,
+            missing: true,
+            swapped: false,
+        });
+    }
+    (rows, accepted_labels)
+}
+
+/// Row and column labels of a measurement's MAC plot: `<mode>: <f> Hz` per identified mode,
+/// `<label> <f>` per model mode.
+pub fn mac_plot_labels(
+    m: &MeasurementModes,
+    mp: &MeasurementPairing,
+) -> (Vec<String>, Vec<String>) {
+    let rl: Vec<String> = m
+        .modes
+        .iter()
+        .map(|(k, f, _)| format!("{k}: {f:.0} Hz"))
+        .collect();
+    let cl: Vec<String> = mp
+        .pairing
+        .model_labels
+        .iter()
+        .zip(&mp.model_modes)
+        .map(|(l, mm)| format!("{l} {:.0}", mm.freq_hz))
+        .collect();
+    (rl, cl)
+}
+
+/// Grid points along the board's longer side for labelling model modes (25 on an 80 mm board): a
+/// mode's nodal lines are resolved up to order ~8 whatever the scan grid was.
+const LABEL_GRID_POINTS: usize = 25;
+
+/// Labels of the model's modes from their shapes on a regular grid over the whole board
+/// (cell centres of a `LABEL_GRID_POINTS`-per-longer-side grid; points in holes or off the
+/// outline are left out), made unique ([`label_modes`]); and each mode's largest
+/// |amplitude| on that grid (the scale of its visibility at a measurement's points).
+pub fn board_grid_labels(
+    board: &Board,
+    model: &FeModel,
+    modes: &Modes,
+    params: &PairParams,
+) -> Result<(Vec<String>, Vec<f64>), FemError> {
+    let (lx, ly) = (board.length_x_m, board.width_y_m);
+    let step = lx.max(ly) / LABEL_GRID_POINTS as f64;
+    let (nx, ny) = (
+        ((lx / step).round() as usize).max(3),
+        ((ly / step).round() as usize).max(3),
+    );
+    let mut points = vec![];
+    for j in 0..ny {
+        for i in 0..nx {
+            let (x, y) = (
+                (i as f64 + 0.5) * lx / nx as f64,
+                (j as f64 + 0.5) * ly / ny as f64,
+            );
+            if model.w_at(modes, &[[x, y]]).is_ok() {
+                points.push(ScanPoint {
+                    node_id: (j * nx + i) as i64,
+                    x_m: x,
+                    y_m: y,
+                    z_m: 0.0,
+                });
+            }
+        }
+    }
+    let shapes = modes_at(model, modes, &points)?;
+    let board_max = shapes
+        .iter()
+        .map(|m| m.shape.iter().fold(0.0f64, |a, v| a.max(v.abs())))
+        .collect();
+    Ok((label_modes(&shapes, &points, params), board_max))
+}
+
+/// The model's modes as shapes at `points`.
+pub fn modes_at(
+    model: &FeModel,
+    modes: &Modes,
+    points: &[ScanPoint],
+) -> Result<Vec<ModelMode>, FemError> {
+    let pts: Vec<[f64; 2]> = points.iter().map(|p| [p.x_m, p.y_m]).collect();
+    let w = model.w_at(modes, &pts)?;
+    Ok((0..modes.freq_hz.len())
+        .map(|j| ModelMode {
+            freq_hz: modes.freq_hz[j],
+            shape: (0..pts.len()).map(|i| w[(i, j)]).collect(),
+        })
+        .collect())
 }

@@ -7,4 +7,5 @@ pub mod diagnosis;
 pub mod figures;
 pub mod html;
 pub mod plots;
+pub mod sources;
 pub mod validation;

@@ -337,6 +337,33 @@ pub fn held_out_coverage<'a>(iv: impl IntoIterator<Item = &'a Interval>) -> (usi
     })
 }
 
+/// The free-free coverage of the 90 % intervals, each as (inside, measurements): of the
+/// validation modes by their boards' intervals, of every measurement by the new board's, and of
+/// the held-out boards by the new board's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FreeCoverage {
+    pub validation: (usize, usize),
+    pub new_board: (usize, usize),
+    pub held_out: (usize, usize),
+}
+
+/// [`FreeCoverage`] of a set of intervals.
+pub fn free_coverage(iv: &[Interval]) -> FreeCoverage {
+    let cov = |scope: &str, upd: Option<bool>| {
+        coverage(iv.iter().filter(|i| {
+            i.scope == scope && i.setup == "free" && upd.is_none_or(|u| i.used_for_updating == u)
+        }))
+    };
+    FreeCoverage {
+        validation: cov("board", Some(false)),
+        new_board: cov("new_board", None),
+        held_out: held_out_coverage(
+            iv.iter()
+                .filter(|i| i.scope == "new_board" && i.setup == "free"),
+        ),
+    }
+}
+
 /// How often the new-unit 90 % predictive interval covers the units it was learnt from, when
 /// `n` units are drawn from a normal population and observed exactly, with a flat prior on
 /// the mean and on ln σ: the posterior predictive is x̄ ± t₀.₉₅,ₙ₋₁ s √(1 + 1/n), and for an

@@ -9,14 +9,12 @@
 use crate::fem::{self, Board, FeModel, JointModel, Params};
 use crate::io::cache::{Cache, Fetch};
 use crate::io::manifest::{Prepared, StageSpec};
-use crate::io::tables::{self, TableSpec};
+use crate::io::tables::fe as fe_tables;
 use crate::stage::{exit, StageOutcome, StageResult};
-use anyhow::{anyhow, bail, Context};
-use arrow::array::{ArrayRef, Float64Array, Int32Array, StringArray};
+use anyhow::{anyhow, Context};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 /// Which boundary conditions.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, clap::ValueEnum)]
@@ -120,7 +118,7 @@ fn spec_for(
             "stage": extra_config,
         }),
         seed,
-        manifest_path: manifest_path_for(out),
+        manifest_path: crate::io::manifest::manifest_path_for(out),
     }
 }
 
@@ -135,75 +133,12 @@ fn fingerprinted_model_options(opts: &ModelOptions) -> serde_json::Value {
     v
 }
 
-/// `<out>.manifest.json` next to a single-file output.
-pub fn manifest_path_for(out: &Path) -> PathBuf {
-    let mut s = out.as_os_str().to_owned();
-    s.push(".manifest.json");
-    PathBuf::from(s)
-}
-
-fn provenance(stage: &str, fingerprint: &str, board: &Board) -> BTreeMap<String, String> {
-    BTreeMap::from([
-        ("hbmu.stage".to_string(), stage.to_string()),
-        ("hbmu.fingerprint".to_string(), fingerprint.to_string()),
-        (
-            "hbmu.version".to_string(),
-            crate::io::manifest::TOOL_VERSION.to_string(),
-        ),
-        ("hbmu.board".to_string(), board.name.clone()),
-        ("hbmu.campaign".to_string(), String::new()),
-    ])
-}
-
-fn write(
-    path: &Path,
-    spec: &TableSpec,
-    prov: &BTreeMap<String, String>,
-    cols: Vec<ArrayRef>,
-) -> anyhow::Result<()> {
-    let schema = spec.schema(&[], &tables::table_metadata(spec, prov));
-    let b = tables::batch(schema, cols)?;
-    tables::write_parquet(path, &b).with_context(|| format!("writing {}", path.display()))
-}
-
 /// Where `fe modes` reports the shapes: the board's scan grid, or a measurement's points.
 #[derive(Debug, Clone, Serialize)]
 pub struct PointsFrom {
     /// An ingest output directory (its `scan_points.parquet` is read).
     pub ingest_dir: PathBuf,
     pub measurement_id: String,
-}
-
-/// Node ids and (x, y) of the points at which shapes are reported.
-pub fn report_points(
-    board: &Board,
-    from: Option<&PointsFrom>,
-) -> anyhow::Result<(Vec<i64>, Vec<[f64; 2]>)> {
-    match from {
-        None => {
-            let pts = board.scan_points_m();
-            Ok(((1..=pts.len() as i64).collect(), pts))
-        }
-        Some(f) => {
-            let path = f.ingest_dir.join("scan_points.parquet");
-            let rows = tables::read_scan_points(&path)?;
-            let pts: Vec<_> = rows
-                .into_iter()
-                .filter(|r| r.measurement_id == f.measurement_id && !r.is_reference)
-                .collect();
-            if pts.is_empty() {
-                bail!(
-                    "{}: no scan points for measurement {:?} (is it quarantined, or misspelt?)",
-                    path.display(),
-                    f.measurement_id
-                );
-            }
-            Ok((
-                pts.iter().map(|r| r.node).collect(),
-                pts.iter().map(|r| [r.xyz_m[0], r.xyz_m[1]]).collect(),
-            ))
-        }
-    }
 }
 
 /// The cache key of an `fe` artifact: stage, tool version, seed and the configuration, which
@@ -353,10 +288,12 @@ pub fn run_modes(
                 (model, Some(choice.chosen.clone()), Some(choice))
             }
         };
-        let (nodes, pts) = report_points(&model.board, points_from)?;
+        let (nodes, pts) = fe_tables::report_points(
+            &model.board,
+            points_from.map(|f| (f.ingest_dir.as_path(), f.measurement_id.as_str())),
+        )?;
         let modes = model.modes(&p, n_modes)?;
         let w = model.w_at(&modes, &pts)?;
-        let n = modes.freq_hz.len();
         let coarse = check
             .as_ref()
             .filter(|c| choice.is_none() && c.max_rel_error > mesh_tol);
@@ -372,7 +309,7 @@ pub fn run_modes(
                 check.finer_mesh[1]
             );
         }
-        let mut prov = provenance("fe-modes", &prep.fingerprint, &model.board);
+        let mut prov = fe_tables::provenance("fe-modes", &prep.fingerprint, &model.board);
         prov.insert(
             "hbmu.fe.discretization".to_string(),
             serde_json::to_string(&check)?,
@@ -387,19 +324,14 @@ pub fn run_modes(
                 "choice": choice,
             }))?,
         );
-        write(
+        fe_tables::write_modes(
             out,
-            &tables::FE_MODES,
             &prov,
-            vec![
-                Arc::new(StringArray::from(vec![opts.setup.as_str(); n])),
-                Arc::new(Int32Array::from_iter_values((1..=n).map(|m| m as i32))),
-                Arc::new(Float64Array::from(modes.freq_hz.clone())),
-                tables::list_i64_col((0..n).map(|_| nodes.clone())),
-                tables::list_f64_col((0..n).map(|_| pts.iter().map(|p| p[0]).collect())),
-                tables::list_f64_col((0..n).map(|_| pts.iter().map(|p| p[1]).collect())),
-                tables::list_f64_col((0..n).map(|j| (0..pts.len()).map(|i| w[(i, j)]).collect())),
-            ],
+            opts.setup.as_str(),
+            &modes.freq_hz,
+            &nodes,
+            &pts,
+            &w,
         )?;
         let mut summary = BTreeMap::new();
         summary.insert("freq_hz".into(), serde_json::to_value(&modes.freq_hz)?);
@@ -498,35 +430,13 @@ fn write_sensitivity(
     let (model, p) = build_model(board, opts)?;
     let modes = model.modes(&p, n_modes)?;
     let d = fem::sensitivity::eigen_derivatives(&model, &p, &modes, false)?;
-    let mut rows: Vec<(i32, f64, String, f64, f64, f64)> = vec![];
-    for j in 0..modes.freq_hz.len() {
-        for (k, name) in p.names.iter().enumerate() {
-            let df = d.d_freq_hz[(j, k)];
-            rows.push((
-                j as i32 + 1,
-                modes.freq_hz[j],
-                name.clone(),
-                p.values[k],
-                df,
-                p.values[k] / modes.freq_hz[j] * df,
-            ));
-        }
-    }
-    let prov = provenance("fe-sensitivity", fingerprint, &model.board);
-    write(
+    let prov = fe_tables::provenance("fe-sensitivity", fingerprint, &model.board);
+    fe_tables::write_sensitivity(
         out,
-        &tables::SENSITIVITY,
         &prov,
-        vec![
-            Arc::new(StringArray::from(vec![opts.setup.as_str(); rows.len()])),
-            Arc::new(Int32Array::from_iter_values(rows.iter().map(|r| r.0))),
-            Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.1))),
-            Arc::new(StringArray::from_iter_values(
-                rows.iter().map(|r| r.2.as_str()),
-            )),
-            Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.3))),
-            Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.4))),
-            Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| r.5))),
-        ],
+        opts.setup.as_str(),
+        &p,
+        &modes.freq_hz,
+        &d.d_freq_hz,
     )
 }

@@ -77,7 +77,7 @@ pub fn run(opts: &SimulateOptions) -> anyhow::Result<StageOutcome> {
             "out": crate::io::manifest::rel_path(&opts.out, &truth_dir),
         }),
         seed: Some(seed),
-        manifest_path: crate::stage::fe::manifest_path_for(&opts.truth),
+        manifest_path: crate::io::manifest::manifest_path_for(&opts.truth),
     };
     crate::stage::run(spec, opts.force, |_prep| {
         let board = Board::from_toml_str(&board_text)?;

@@ -11,73 +11,21 @@
 //! (`report::html`); this file only reads and writes.
 
 use crate::io::manifest::StageSpec;
-use crate::io::tables::{self, c, Col, Cols, TableSpec};
-use crate::report::diagnosis::{self, Cell, DiagnosisData, DiagnosisView, ModeMisfit};
-use crate::report::html::{self, FindingRow, Provenance, ReportData, StepData, SummaryRow};
-use crate::report::validation::{self, Interval, Measured, Pred, Table2Row};
+use crate::io::read_json;
+use crate::io::tables::report::{
+    copy_plots, locate, provenance, read_diagnosis, read_measurements, read_specimens, step_data,
+    write_intervals, write_section_table, write_table2,
+};
+use crate::report::diagnosis;
+use crate::report::html::{self, ReportData};
+use crate::report::sources;
+use crate::report::validation::{self, Interval};
 use crate::stage::{exit, StageOutcome, StageResult};
-use anyhow::{anyhow, bail, Context};
-use arrow::array::{Array, ArrayRef, BooleanArray, Float64Array, Int32Array, StringArray};
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::path::PathBuf;
 
 pub const MANIFEST: &str = "report.manifest.json";
 pub const HTML: &str = "report.html";
-/// The diagnose stage's per-mode misfits (see `io::tables::diagnose::MODES`).
-const DIAGNOSIS_MODES_FILE: &str = "diagnosis_modes.parquet";
-
-pub const TABLE2: TableSpec = TableSpec {
-    name: "table2",
-    doc: "The Table-2 analog of the validation report: per setup and mode, the measured mean and standard deviation over every measurement of every board (each board weighted equally) against the prediction for a new board (model mean and sd, predictive sd with the prediction error), their relative errors, and the coverage of the predicted 90 % intervals. Null where undefined (fewer than two measurements).",
-    open: false,
-    columns: &[
-        c("setup", Col::Utf8, false, "", "`free` or `bolted`."),
-        c("label", Col::Utf8, false, "", "Mode label."),
-        c("role", Col::Utf8, false, "", "`updating` or `validation` (not used for updating)."),
-        c("n_measured", Col::Int32, false, "", "Measurements of the mode (all boards)."),
-        c("n_boards", Col::Int32, false, "", "Boards behind n_measured."),
-        c("measured_mean_hz", Col::Float64, true, "Hz", "Mean of the measured frequencies, every board weighted equally (a measurement of a board measured n_b times weighs 1 / (n_b n_boards)): the mean of a measurement of a board picked at random, which the new-board prediction stands for."),
-        c("measured_sd_hz", Col::Float64, true, "Hz", "Standard deviation of the measured frequencies with the same weights w (reliability-weighted: sum w (f - mean)^2 / (1 - sum w^2)); the sample sd when every board has as many measurements."),
-        c("simulated_mean_hz", Col::Float64, true, "Hz", "Mean model frequency of a new board."),
-        c("simulated_sd_hz", Col::Float64, true, "Hz", "Standard deviation of the model frequency of a new board."),
-        c("predictive_sd_hz", Col::Float64, true, "Hz", "Standard deviation of a predicted measurement of a new board."),
-        c("discrepancy_mean_pct", Col::Float64, true, "%", "Model-form discrepancy of a new board's predicted measurement (predictions.parquet discrepancy_rel, in % of the frequency): its mean over the draws, 0 where the updating ran without one. Beside simulated_sd_hz (the parameters' spread), the model's own error."),
-        c("discrepancy_sd_pct", Col::Float64, true, "%", "Standard deviation of that discrepancy over the draws (its posterior spread; for a validation mode, its prior at the inferred scale)."),
-        c("mean_error_with_discrepancy_pct", Col::Float64, true, "%", "(simulated mean with the discrepancy - measured mean) / measured mean."),
-        c("mean_error_pct", Col::Float64, true, "%", "(simulated mean - measured mean) / measured mean."),
-        c("sd_error_pct", Col::Float64, true, "%", "(predictive sd - measured sd) / measured sd."),
-        c("board_coverage_90", Col::Float64, true, "", "Fraction of the measurements inside their own board's predicted 90 % interval."),
-        c("new_board_coverage_90", Col::Float64, true, "", "Fraction of the measurements inside the new board's predicted 90 % interval."),
-        c("n_held_out", Col::Int32, false, "", "Measurements of the mode on boards held out of the updating (`update boards --hold-out`); not in n_measured or the measured mean and sd."),
-        c("held_out_coverage_90", Col::Float64, true, "", "Fraction of the held-out boards' measurements inside the new board's predicted 90 % interval (the out-of-sample test); null without held-out boards."),
-    ],
-};
-
-pub const INTERVALS: TableSpec = TableSpec {
-    name: "intervals",
-    doc: "Predicted distributions of the validation report (the Figure-6 analog's boxes): per scope (`board`, `new_board`), board, setup and mode, the model frequency's mean and sd and the quantiles of a predicted measurement (numpy's default linear interpolation), with the measurements compared (the board's own; every updated board's for a new board, and apart the held-out boards') and how many lie in [q05, q95].",
-    open: false,
-    columns: &[
-        c("scope", Col::Utf8, false, "", "`board` or `new_board`."),
-        c("board_id", Col::Utf8, true, "", "Board; null for a new board."),
-        c("setup", Col::Utf8, false, "", "`free` or `bolted`."),
-        c("label", Col::Utf8, false, "", "Mode label."),
-        c("role", Col::Utf8, false, "", "`updating` or `validation`."),
-        c("n_draws", Col::Int32, false, "", "Predictions behind the interval."),
-        c("model_mean_hz", Col::Float64, true, "Hz", "Mean model frequency."),
-        c("model_sd_hz", Col::Float64, true, "Hz", "Standard deviation of the model frequency."),
-        c("q05_hz", Col::Float64, true, "Hz", "5 % quantile of a predicted measurement."),
-        c("q25_hz", Col::Float64, true, "Hz", "25 % quantile."),
-        c("q50_hz", Col::Float64, true, "Hz", "Median."),
-        c("q75_hz", Col::Float64, true, "Hz", "75 % quantile."),
-        c("q95_hz", Col::Float64, true, "Hz", "95 % quantile."),
-        c("n_measured", Col::Int32, false, "", "Measurements compared."),
-        c("n_inside_90", Col::Int32, false, "", "Measurements inside [q05, q95]."),
-        c("n_held_out", Col::Int32, false, "", "For a new board: measurements of the boards held out of the updating; 0 for a measured board."),
-        c("n_held_out_inside_90", Col::Int32, false, "", "Held-out measurements inside [q05, q95]."),
-    ],
-};
 
 /// Options of `hbmu report`.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -90,714 +38,22 @@ pub struct ReportOptions {
     pub force: bool,
 }
 
-fn read_preds(path: &Path) -> anyhow::Result<Vec<Pred>> {
-    let mut out = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (sc, bid, st, l, f, fo) = (
-            c.str("scope")?,
-            c.str("board_id")?,
-            c.str("setup")?,
-            c.str("label")?,
-            c.f64("freq_hz")?,
-            c.f64("freq_obs_hz")?,
-        );
-        // Absent from the predictions of a posterior without a discrepancy (older outputs).
-        let disc = b
-            .column_by_name("discrepancy_rel")
-            .is_some()
-            .then(|| c.f64("discrepancy_rel"))
-            .transpose()?;
-        for i in 0..b.num_rows() {
-            out.push(Pred {
-                scope: sc.value(i).into(),
-                board_id: (!bid.is_null(i)).then(|| bid.value(i).to_string()),
-                setup: st.value(i).into(),
-                label: l.value(i).into(),
-                freq_hz: f.value(i),
-                freq_obs_hz: fo.value(i),
-                discrepancy_rel: disc.map_or(0.0, |d| d.value(i)),
-            });
-        }
-    }
-    Ok(out)
-}
-
-fn read_measured(path: &Path) -> anyhow::Result<Vec<Measured>> {
-    let mut out = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (m, bid, st, l, f, u) = (
-            c.str("measurement_id")?,
-            c.str("board_id")?,
-            c.str("setup")?,
-            c.str("label")?,
-            c.f64("freq_hz")?,
-            c.bool("used_for_updating")?,
-        );
-        for i in 0..b.num_rows() {
-            out.push(Measured {
-                measurement_id: m.value(i).into(),
-                board_id: bid.value(i).into(),
-                setup: st.value(i).into(),
-                label: l.value(i).into(),
-                freq_hz: f.value(i),
-                used_for_updating: u.value(i),
-                held_out: false,
-            });
-        }
-    }
-    Ok(out)
-}
-
-/// The boards' measured dimensions from ingest's specimens.parquet, when any board has one.
-fn read_specimens(path: &Path) -> anyhow::Result<Vec<(String, [Option<f64>; 3])>> {
-    let mut out = vec![];
-    if !path.is_file() {
-        return Ok(out);
-    }
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let bid = c.str("board_id")?;
-        let cols = [
-            c.f64("length_mm")?,
-            c.f64("width_mm")?,
-            c.f64("thickness_mm")?,
-        ];
-        for r in 0..b.num_rows() {
-            let dims = cols.map(|a| a.is_valid(r).then(|| a.value(r)));
-            out.push((bid.value(r).to_string(), dims));
-        }
-    }
-    if out.iter().all(|(_, d)| d.iter().all(Option::is_none)) {
-        out.clear();
-    }
-    Ok(out)
-}
-
-/// Boards step 1 held out of the updating (update_report.json's `held_out_boards`; absent
-/// in reports written before the option).
-fn held_out_boards(update_report: &serde_json::Value) -> Vec<String> {
-    update_report
-        .get("held_out_boards")
-        .and_then(|v| v.as_array())
-        .into_iter()
-        .flatten()
-        .filter_map(|b| b.as_str().map(str::to_string))
-        .collect()
-}
-
-/// The held-out boards' measured frequencies: their accepted pairs (both setups, read as the
-/// updating reads them), each mode's role taken from the updated boards' residuals.
-fn read_held_out(
-    pairs: &Path,
-    boards: &[String],
-    roles: &BTreeMap<(String, String), bool>,
-) -> anyhow::Result<Vec<Measured>> {
-    let mut out = vec![];
-    for p in crate::io::tables::update::read_pairs(pairs)? {
-        if !boards.contains(&p.board_id) {
-            continue;
-        }
-        let key = (p.setup, p.label);
-        let Some(used) = roles.get(&key) else {
-            continue; // a mode the updated boards' residuals do not have: nothing predicts it
-        };
-        out.push(Measured {
-            measurement_id: p.measurement_id,
-            board_id: p.board_id,
-            setup: key.0,
-            label: key.1,
-            freq_hz: p.freq_hz,
-            used_for_updating: *used,
-            held_out: true,
-        });
-    }
-    Ok(out)
-}
-
-/// Float columns of a draws table except the given keys, in file order.
-fn float_columns(path: &Path, skip: &[&str]) -> anyhow::Result<Vec<(String, Vec<f64>)>> {
-    let mut cols: Vec<(String, Vec<f64>)> = vec![];
-    for b in tables::read_parquet(path)? {
-        for (k, f) in b.schema().fields().iter().enumerate() {
-            if skip.contains(&f.name().as_str())
-                || f.data_type() != &arrow::datatypes::DataType::Float64
-            {
-                continue;
-            }
-            let a = b
-                .column(k)
-                .as_any()
-                .downcast_ref::<Float64Array>()
-                .expect("float64 checked");
-            match cols.iter_mut().find(|(n, _)| n == f.name()) {
-                Some((_, v)) => v.extend(a.iter().map(|x| x.unwrap_or(f64::NAN))),
-                None => cols.push((
-                    f.name().clone(),
-                    a.iter().map(|x| x.unwrap_or(f64::NAN)).collect(),
-                )),
-            }
-        }
-    }
-    Ok(cols)
-}
-
-/// Per-unit draws of a boards/joints table: (parameter, unit, draws), units sorted.
-fn unit_draws(
-    path: &Path,
-    key: &str,
-    skip: &[&str],
-) -> anyhow::Result<Vec<(String, String, Vec<f64>)>> {
-    let mut by: BTreeMap<(String, String), Vec<f64>> = BTreeMap::new();
-    let mut order: Vec<String> = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let k = c.str(key)?;
-        for (j, f) in b.schema().fields().iter().enumerate() {
-            if skip.contains(&f.name().as_str())
-                || f.data_type() != &arrow::datatypes::DataType::Float64
-            {
-                continue;
-            }
-            if !order.contains(f.name()) {
-                order.push(f.name().clone());
-            }
-            let a = b
-                .column(j)
-                .as_any()
-                .downcast_ref::<Float64Array>()
-                .expect("float64 checked");
-            for i in 0..b.num_rows() {
-                by.entry((f.name().clone(), k.value(i).to_string()))
-                    .or_default()
-                    .push(a.value(i));
-            }
-        }
-    }
-    let mut out = vec![];
-    for p in &order {
-        for ((q, u), v) in &by {
-            if q == p {
-                out.push((p.clone(), u.clone(), v.clone()));
-            }
-        }
-    }
-    Ok(out)
-}
-
-fn read_summary(path: &Path) -> anyhow::Result<Vec<SummaryRow>> {
-    let mut out = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (p, bid, mid) = (
-            c.str("parameter")?,
-            c.str("board_id")?,
-            c.str("measurement_id")?,
-        );
-        let f: Vec<&Float64Array> = [
-            "mean", "sd", "q05", "q50", "q95", "r_hat", "ess_bulk", "ess_tail",
-        ]
-        .iter()
-        .map(|n| c.f64(n))
-        .collect::<Result<_, _>>()?;
-        for i in 0..b.num_rows() {
-            let unit = if !bid.is_null(i) {
-                Some(bid.value(i).to_string())
-            } else if !mid.is_null(i) {
-                Some(mid.value(i).to_string())
-            } else {
-                None
-            };
-            let g = |k: usize| {
-                if f[k].is_null(i) {
-                    f64::NAN
-                } else {
-                    f[k].value(i)
-                }
-            };
-            out.push(SummaryRow {
-                parameter: p.value(i).into(),
-                unit,
-                mean: g(0),
-                sd: g(1),
-                q05: g(2),
-                q50: g(3),
-                q95: g(4),
-                r_hat: g(5),
-                ess_bulk: g(6),
-                ess_tail: g(7),
-            });
-        }
-    }
-    Ok(out)
-}
-
-fn read_stages(path: &Path) -> anyhow::Result<Vec<Vec<(f64, f64, f64)>>> {
-    let mut runs: BTreeMap<i32, Vec<(f64, f64, f64)>> = BTreeMap::new();
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (r, s, beta, ess) = (
-            c.i32("run")?,
-            c.i32("stage")?,
-            c.f64("beta")?,
-            c.f64("ess")?,
-        );
-        for i in 0..b.num_rows() {
-            runs.entry(r.value(i)).or_default().push((
-                s.value(i) as f64,
-                beta.value(i),
-                ess.value(i),
-            ));
-        }
-    }
-    Ok(runs.into_values().collect())
-}
-
-use crate::io::read_json;
-
-fn findings_of(stage: &str, v: &serde_json::Value, out: &mut Vec<FindingRow>) {
-    for f in v
-        .get("findings")
-        .and_then(|f| f.as_array())
-        .into_iter()
-        .flatten()
-    {
-        let sev = f.get("severity").and_then(|s| s.as_str()).unwrap_or("");
-        if !matches!(sev, "warning" | "error") {
-            continue;
-        }
-        let s = |k: &str| f.get(k).and_then(|x| x.as_str()).unwrap_or("").to_string();
-        let mut w = vec![];
-        for k in ["file", "measurement_id", "record"] {
-            if !s(k).is_empty() {
-                w.push(s(k));
-            }
-        }
-        if let Some(l) = f.get("line").and_then(|l| l.as_u64()) {
-            w.push(format!("line {l}"));
-        }
-        out.push(FindingRow {
-            stage: stage.into(),
-            severity: sev.into(),
-            code: s("code"),
-            where_: w.join(", "),
-            message: s("message"),
-        });
-    }
-}
-
-fn step_data(dir: &Path, name: &str, units: &str, key: &str) -> anyhow::Result<StepData> {
-    Ok(StepData {
-        name: name.into(),
-        population: float_columns(&dir.join("population.parquet"), &[])?,
-        units: unit_draws(&dir.join(units), key, &["mass_g"])?,
-        summary: read_summary(&dir.join("summary.parquet"))?,
-        stages: read_stages(&dir.join("stages.parquet"))?,
-        evidence: read_json(&dir.join("evidence.json"))?,
-    })
-}
-
-fn svgs(dir: &Path) -> Vec<PathBuf> {
-    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map(|r| {
-            r.filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| p.extension().is_some_and(|x| x == "svg"))
-                .collect()
-        })
-        .unwrap_or_default();
-    v.sort();
-    v
-}
-
-fn opt_f64(v: f64) -> Option<f64> {
-    v.is_finite().then_some(v)
-}
-
-fn write_table2(
-    out: &Path,
-    rows: &[Table2Row],
-    prov: &BTreeMap<String, String>,
-) -> anyhow::Result<Vec<PathBuf>> {
-    let f = |g: fn(&Table2Row) -> f64| -> ArrayRef {
-        Arc::new(Float64Array::from_iter(rows.iter().map(|r| opt_f64(g(r)))))
-    };
-    let cols: Vec<ArrayRef> = vec![
-        Arc::new(StringArray::from_iter_values(
-            rows.iter().map(|r| r.setup.as_str()),
-        )),
-        Arc::new(StringArray::from_iter_values(
-            rows.iter().map(|r| r.label.as_str()),
-        )),
-        Arc::new(StringArray::from_iter_values(rows.iter().map(|r| {
-            if r.used_for_updating {
-                "updating"
-            } else {
-                "validation"
-            }
-        }))),
-        Arc::new(Int32Array::from_iter_values(
-            rows.iter().map(|r| r.n_measured as i32),
-        )),
-        Arc::new(Int32Array::from_iter_values(
-            rows.iter().map(|r| r.n_boards as i32),
-        )),
-        f(|r| r.measured_mean_hz),
-        f(|r| r.measured_sd_hz),
-        f(|r| r.simulated_mean_hz),
-        f(|r| r.simulated_sd_hz),
-        f(|r| r.predictive_sd_hz),
-        f(|r| r.discrepancy_mean_pct),
-        f(|r| r.discrepancy_sd_pct),
-        f(|r| r.mean_error_with_discrepancy_pct),
-        f(|r| r.mean_error_pct),
-        f(|r| r.sd_error_pct),
-        f(|r| r.board_coverage_90),
-        f(|r| r.new_board_coverage_90),
-        Arc::new(Int32Array::from_iter_values(
-            rows.iter().map(|r| r.n_held_out as i32),
-        )),
-        f(|r| r.held_out_coverage_90),
-    ];
-    write_both(out, &TABLE2, cols, prov)
-}
-
-fn write_intervals(
-    out: &Path,
-    rows: &[Interval],
-    prov: &BTreeMap<String, String>,
-) -> anyhow::Result<Vec<PathBuf>> {
-    let f = |g: fn(&Interval) -> f64| -> ArrayRef {
-        Arc::new(Float64Array::from_iter(rows.iter().map(|r| opt_f64(g(r)))))
-    };
-    let cols: Vec<ArrayRef> = vec![
-        Arc::new(StringArray::from_iter_values(
-            rows.iter().map(|r| r.scope.as_str()),
-        )),
-        Arc::new(StringArray::from_iter(
-            rows.iter().map(|r| r.board_id.as_deref()),
-        )),
-        Arc::new(StringArray::from_iter_values(
-            rows.iter().map(|r| r.setup.as_str()),
-        )),
-        Arc::new(StringArray::from_iter_values(
-            rows.iter().map(|r| r.label.as_str()),
-        )),
-        Arc::new(StringArray::from_iter_values(rows.iter().map(|r| {
-            if r.used_for_updating {
-                "updating"
-            } else {
-                "validation"
-            }
-        }))),
-        Arc::new(Int32Array::from_iter_values(
-            rows.iter().map(|r| r.n_draws as i32),
-        )),
-        f(|r| r.model_mean_hz),
-        f(|r| r.model_sd_hz),
-        f(|r| r.q05_hz),
-        f(|r| r.q25_hz),
-        f(|r| r.q50_hz),
-        f(|r| r.q75_hz),
-        f(|r| r.q95_hz),
-        Arc::new(Int32Array::from_iter_values(
-            rows.iter().map(|r| r.n_measured as i32),
-        )),
-        Arc::new(Int32Array::from_iter_values(
-            rows.iter().map(|r| r.n_inside_90 as i32),
-        )),
-        Arc::new(Int32Array::from_iter_values(
-            rows.iter().map(|r| r.n_held_out as i32),
-        )),
-        Arc::new(Int32Array::from_iter_values(
-            rows.iter().map(|r| r.n_held_out_inside_90 as i32),
-        )),
-    ];
-    write_both(out, &INTERVALS, cols, prov)
-}
-
-/// `diagnosis.json` and, when there, `diagnosis_modes.parquet` of the diagnose stage.
-fn read_diagnosis(json: &Path, modes: &Path) -> anyhow::Result<DiagnosisData> {
-    let b = std::fs::read(json).with_context(|| format!("cannot read {}", json.display()))?;
-    let doc: DiagnosisView = serde_json::from_slice(&b).with_context(|| {
-        format!(
-            "{}: not a diagnosis document (expected the fields of schemas/diagnosis.schema.json)",
-            json.display()
-        )
-    })?;
-    let modes = if modes.is_file() {
-        let mut out = vec![];
-        for b in tables::read_parquet(modes)? {
-            let c = Cols {
-                batch: &b,
-                path: modes,
-            };
-            let (m, st, l, u, n, r, loc) = (
-                c.str("model")?,
-                c.str("setup")?,
-                c.str("label")?,
-                c.bool("used_for_updating")?,
-                c.i32("n")?,
-                c.f64("mean_rel_residual")?,
-                c.bool("located")?,
-            );
-            for i in 0..b.num_rows() {
-                out.push(ModeMisfit {
-                    model: m.value(i).into(),
-                    setup: st.value(i).into(),
-                    label: l.value(i).into(),
-                    used_for_updating: u.value(i),
-                    n: n.value(i).max(0) as usize,
-                    mean_rel_residual: (!r.is_null(i)).then(|| r.value(i)),
-                    located: loc.value(i),
-                });
-            }
-        }
-        Some(out)
-    } else {
-        None
-    };
-    Ok(DiagnosisData { doc, modes })
-}
-
-/// One table of the diagnosis section as Parquet and CSV.
-fn write_section_table(
-    out: &Path,
-    t: &diagnosis::Table,
-    prov: &BTreeMap<String, String>,
-) -> anyhow::Result<Vec<PathBuf>> {
-    let spec = crate::io::tables::diagnose::section_spec(t.spec.name)
-        .ok_or_else(|| anyhow!("{}: no table spec", t.spec.name))?;
-    let mut cols: Vec<ArrayRef> = vec![];
-    for (k, col) in spec.columns.iter().enumerate() {
-        let cells = t.rows.iter().map(|r| &r[k]);
-        let a: ArrayRef = match col.ty {
-            Col::Utf8 => Arc::new(StringArray::from_iter(cells.map(|c| match c {
-                Cell::Str(v) => v.clone(),
-                _ => None,
-            }))),
-            Col::Float64 => Arc::new(Float64Array::from_iter(cells.map(|c| match c {
-                Cell::F64(v) => *v,
-                _ => None,
-            }))),
-            Col::Int32 => Arc::new(Int32Array::from_iter(cells.map(|c| match c {
-                Cell::Int(v) => v.map(|x| x as i32),
-                _ => None,
-            }))),
-            Col::Bool => Arc::new(BooleanArray::from_iter(cells.map(|c| match c {
-                Cell::Bool(b) => Some(*b),
-                _ => None,
-            }))),
-            other => bail!(
-                "{}: column {} of type {other:?} not supported",
-                t.spec.name,
-                col.name
-            ),
-        };
-        cols.push(a);
-    }
-    write_both(out, spec, cols, prov)
-}
-
-/// The table as Parquet and as CSV (numbers in Rust's shortest round-trip form, empty = null).
-fn write_both(
-    out: &Path,
-    spec: &TableSpec,
-    cols: Vec<ArrayRef>,
-    prov: &BTreeMap<String, String>,
-) -> anyhow::Result<Vec<PathBuf>> {
-    let schema = spec.schema(&[], &tables::table_metadata(spec, prov));
-    let batch = tables::batch(schema, cols)?;
-    let pq = out.join(format!("{}.parquet", spec.name));
-    tables::write_parquet(&pq, &batch)?;
-    let mut w = csv::Writer::from_writer(vec![]);
-    w.write_record(spec.columns.iter().map(|c| c.name))?;
-    for i in 0..batch.num_rows() {
-        let rec: Vec<String> = batch
-            .columns()
-            .iter()
-            .map(|a| {
-                if a.is_null(i) {
-                    return String::new();
-                }
-                if let Some(s) = a.as_any().downcast_ref::<StringArray>() {
-                    s.value(i).to_string()
-                } else if let Some(x) = a.as_any().downcast_ref::<Float64Array>() {
-                    x.value(i).to_string()
-                } else if let Some(x) = a.as_any().downcast_ref::<Int32Array>() {
-                    x.value(i).to_string()
-                } else if let Some(x) = a.as_any().downcast_ref::<BooleanArray>() {
-                    x.value(i).to_string()
-                } else {
-                    String::new()
-                }
-            })
-            .collect();
-        w.write_record(&rec)?;
-    }
-    let bytes = w.into_inner().map_err(|e| anyhow!("csv: {e}"))?;
-    let csvp = out.join(format!("{}.csv", spec.name));
-    crate::io::atomic::write_bytes(&csvp, &bytes)?;
-    Ok(vec![pq, csvp])
-}
-
 /// Run `hbmu report`.
 pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
     let w = &opts.work_dir;
-    let step1 = w.join("update_boards");
-    let step2 = w.join("update_joints");
-    let prop = w.join("propagate");
-    if !prop.join("predictions.parquet").is_file() {
-        bail!(
-            "{}: no predictions.parquet; run `hbmu propagate {} --out {}` first",
-            prop.display(),
-            step1.display(),
-            prop.display()
-        );
-    }
-    if !step1.join("boards.parquet").is_file() {
-        bail!(
-            "{}: no step-1 posterior (boards.parquet); run `hbmu update boards` first",
-            step1.display()
-        );
-    }
-    let has2 = step2.join("joints.parquet").is_file();
-    let step1_report = read_json(&step1.join("update_report.json"))?;
-    let held_out = held_out_boards(&step1_report);
-    let pairs = w.join("pair").join("pairs.parquet");
-    let mut inputs = vec![
-        prop.join("predictions.parquet"),
-        prop.join("propagate_report.json"),
-    ];
-    let step_files = [
-        "population.parquet",
-        "summary.parquet",
-        "stages.parquet",
-        "residuals.parquet",
-        "evidence.json",
-        "update_report.json",
-    ];
-    inputs.extend(step_files.iter().map(|f| step1.join(f)));
-    inputs.push(step1.join("boards.parquet"));
-    if has2 {
-        // update_report.json is optional in step 2 (not part of its output contract).
-        inputs.extend(
-            step_files
-                .iter()
-                .map(|f| step2.join(f))
-                .filter(|p| !p.ends_with("update_report.json") || p.is_file()),
-        );
-        inputs.push(step2.join("joints.parquet"));
-    }
-    // Step 2 that ran without a posterior (a campaign without paired bolted modes) says why.
-    let step2_note = step2.join("update_report.json");
-    let step2_note = (!has2 && step2_note.is_file()).then_some(step2_note);
-    if let Some(p) = &step2_note {
-        inputs.push(p.clone());
-    }
-    if !held_out.is_empty() {
-        if !pairs.is_file() {
-            bail!(
-                "{}: step 1 held out boards {} but the work directory has no pair/pairs.parquet to compare their measurements with",
-                step1.display(),
-                held_out.join(", ")
-            );
-        }
-        inputs.push(pairs.clone());
-    }
-    let ingest_report = w.join("ingest").join("ingest_report.json");
-    let specimens_path = w.join("ingest").join("specimens.parquet");
-    if specimens_path.is_file() {
-        inputs.push(specimens_path.clone());
-    }
-    if ingest_report.is_file() {
-        inputs.push(ingest_report.clone());
-    }
-    // The diagnosis, when the diagnose stage ran: its document and per-mode misfits.
-    let diag_json = w.join("diagnose").join(crate::stage::diagnose::JSON);
-    let diag_modes = w.join("diagnose").join(DIAGNOSIS_MODES_FILE);
-    let has_diag = diag_json.is_file();
-    if has_diag {
-        inputs.push(diag_json.clone());
-        if diag_modes.is_file() {
-            inputs.push(diag_modes.clone());
-        }
-    }
-    let plots: Vec<(&str, PathBuf)> = svgs(&w.join("extract").join("plots"))
-        .into_iter()
-        .map(|p| ("extract", p))
-        .chain(
-            svgs(&w.join("pair").join("plots"))
-                .into_iter()
-                .map(|p| ("pair", p)),
-        )
-        .collect();
-    inputs.extend(plots.iter().map(|(_, p)| p.clone()));
-    // Manifests of every stage (provenance): their outputs' hashes only, no times.
-    let mut manifests = vec![];
-    for d in [
-        "ingest",
-        "extract",
-        "pair",
-        "fe",
-        "update_boards",
-        "update_joints",
-        "propagate",
-        "diagnose",
-    ] {
-        let mut v: Vec<PathBuf> = std::fs::read_dir(w.join(d))
-            .map(|r| {
-                r.filter_map(|e| e.ok().map(|e| e.path()))
-                    .filter(|p| p.to_string_lossy().ends_with(".manifest.json"))
-                    .collect()
-            })
-            .unwrap_or_default();
-        v.sort();
-        manifests.extend(v);
-    }
+    let mut src = locate(w)?;
     let spec = StageSpec {
         stage: "report".into(),
-        inputs,
+        inputs: std::mem::take(&mut src.inputs),
         input_base: w.clone(),
-        config: serde_json::json!({ "step2": has2, "diagnosis": has_diag }),
+        config: serde_json::json!({ "step2": src.has2, "diagnosis": src.has_diag }),
         seed: None,
         manifest_path: opts.out.join(MANIFEST),
     };
     crate::stage::run(spec, opts.force, |prep| {
-        let preds = read_preds(&prop.join("predictions.parquet"))?;
-        let mut measured = read_measured(&step1.join("residuals.parquet"))?;
-        let mut step2_data = None;
-        let mut step2_absent = None;
-        if has2 {
-            measured.extend(read_measured(&step2.join("residuals.parquet"))?);
-            step2_data = Some(step_data(
-                &step2,
-                "joints (step 2)",
-                "joints.parquet",
-                "measurement_id",
-            )?);
-        } else {
-            let why = match &step2_note {
-                Some(p) => read_json(p)?
-                    .get("findings")
-                    .and_then(|f| f.as_array())
-                    .and_then(|f| f.iter().find(|f| f["code"] == "update.no_bolted_data"))
-                    .and_then(|f| f["message"].as_str())
-                    .map(|m| format!("step 2 ran and found nothing to update: {m}. "))
-                    .unwrap_or_default(),
-                None => String::new(),
-            };
-            step2_absent = Some(format!(
-                "{why}The work directory has no step-2 posterior (update_joints/joints.parquet): the joints were not updated, so there are no bolted predictions, no bolted Table-2 rows or boxes, and no joint posterior in this report."
-            ));
-        }
-        if !held_out.is_empty() {
-            let roles: BTreeMap<(String, String), bool> = measured
-                .iter()
-                .map(|m| ((m.setup.clone(), m.label.clone()), m.used_for_updating))
-                .collect();
-            measured.extend(read_held_out(&pairs, &held_out, &roles)?);
-        }
+        let preds =
+            crate::io::tables::propagate::read_preds(&src.prop.join("predictions.parquet"))?;
+        let (measured, step2_data, step2_absent) = read_measurements(&src)?;
         let iv = validation::intervals(&preds, &measured);
         let t2 = validation::table2(&preds, &measured, &iv);
         let mut meas_map: BTreeMap<(String, String, String), Vec<f64>> = BTreeMap::new();
@@ -808,81 +64,27 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
                 .push(m.freq_hz);
         }
         let mut findings = vec![];
-        let (mut n_meas, mut quarantined, mut counts) = (0, vec![], BTreeMap::new());
-        if ingest_report.is_file() {
-            let v = read_json(&ingest_report)?;
-            n_meas = v.get("measurements").and_then(|x| x.as_u64()).unwrap_or(0) as usize;
-            for q in v
-                .get("quarantined")
-                .and_then(|x| x.as_array())
-                .into_iter()
-                .flatten()
-            {
-                let s = |k: &str| q.get(k).and_then(|x| x.as_str()).unwrap_or("").to_string();
-                let id = if q.is_string() {
-                    q.as_str().unwrap_or("").to_string()
-                } else {
-                    s("measurement_id")
-                };
-                quarantined.push((id, s("reason")));
-            }
-            if let Some(o) = v.get("counts").and_then(|x| x.as_object()) {
-                for (k, c) in o {
-                    counts.insert(k.clone(), c.as_u64().unwrap_or(0));
-                }
-            }
-            findings_of("ingest", &v, &mut findings);
+        let mut ingest = sources::IngestSummary::default();
+        if src.ingest_report.is_file() {
+            let v = read_json(&src.ingest_report)?;
+            ingest = sources::ingest_summary(&v);
+            sources::findings_of("ingest", &v, &mut findings);
         }
-        findings_of("update boards", &step1_report, &mut findings);
-        if has2 && step2.join("update_report.json").is_file() {
-            findings_of(
+        sources::findings_of("update boards", &src.step1_report, &mut findings);
+        if src.has2 && src.step2.join("update_report.json").is_file() {
+            sources::findings_of(
                 "update joints",
-                &read_json(&step2.join("update_report.json"))?,
+                &read_json(&src.step2.join("update_report.json"))?,
                 &mut findings,
             );
         }
-        let prop_report = read_json(&prop.join("propagate_report.json"))?;
-        findings_of("propagate", &prop_report, &mut findings);
-        let mut provenance = vec![];
-        for m in &manifests {
-            let Some(man) = crate::io::manifest::read_manifest(m) else {
-                continue;
-            };
-            provenance.push(Provenance {
-                stage: man.stage.clone(),
-                manifest: crate::io::manifest::rel_path(m, w),
-                tool_version: man.tool_version.clone(),
-                fingerprint: man.fingerprint.clone(),
-                outputs: man
-                    .outputs
-                    .iter()
-                    .map(|o| (o.path.clone(), o.blake3.clone()))
-                    .collect(),
-            });
-        }
+        let prop_report = read_json(&src.prop.join("propagate_report.json"))?;
+        sources::findings_of("propagate", &prop_report, &mut findings);
+        let provenance = provenance(&src.manifests, w);
         // Copies of the plots, linked from the page.
-        let mut outputs = vec![];
-        let mut links = vec![];
-        for (kind, p) in &plots {
-            let name = p
-                .file_name()
-                .map(|n| n.to_string_lossy().to_string())
-                .unwrap_or_default();
-            let rel = format!("plots/{kind}/{name}");
-            let dst = opts.out.join(&rel);
-            crate::io::atomic::write_bytes(
-                &dst,
-                &std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?,
-            )?;
-            outputs.push(dst);
-            let (mid, what) = match name.strip_suffix(".svg").and_then(|s| s.rsplit_once('_')) {
-                Some((m, k)) => (m.to_string(), k.to_string()),
-                None => (name.clone(), kind.to_string()),
-            };
-            links.push((mid, what, rel));
-        }
-        let diagnosis = if has_diag {
-            Some(read_diagnosis(&diag_json, &diag_modes)?)
+        let (mut outputs, links) = copy_plots(&src.plots, &opts.out)?;
+        let diagnosis = if src.has_diag {
+            Some(read_diagnosis(&src.diag_json, &src.diag_modes)?)
         } else {
             None
         };
@@ -896,7 +98,7 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         let data = ReportData {
             title,
             tool_version: crate::io::manifest::TOOL_VERSION.into(),
-            step1: step_data(&step1, "boards (step 1)", "boards.parquet", "board_id")?,
+            step1: step_data(&src.step1, "boards (step 1)", "boards.parquet", "board_id")?,
             step2: step2_data,
             step2_absent,
             table2: t2.clone(),
@@ -904,10 +106,10 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
             measured: meas_map,
             propagate: prop_report,
             plot_links: links,
-            ingest_measurements: n_meas,
-            quarantined,
-            specimens: read_specimens(&specimens_path)?,
-            ingest_counts: counts,
+            ingest_measurements: ingest.measurements,
+            quarantined: ingest.quarantined,
+            specimens: read_specimens(&src.specimens)?,
+            ingest_counts: ingest.counts,
             findings,
             provenance,
             inputs: prep
@@ -941,51 +143,46 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
         let p = opts.out.join("summary.md");
         crate::io::atomic::write_bytes(&p, r.markdown.as_bytes())?;
         outputs.push(p);
-        let cov = |scope: &str, upd: Option<bool>| {
-            validation::coverage(iv.iter().filter(|i| {
-                i.scope == scope
-                    && i.setup == "free"
-                    && upd.is_none_or(|u| i.used_for_updating == u)
-            }))
-        };
-        let (vk, vn) = cov("board", Some(false));
-        let (nk, nn) = cov("new_board", None);
-        let (hk, hn) = validation::held_out_coverage(
-            iv.iter()
-                .filter(|i| i.scope == "new_board" && i.setup == "free"),
-        );
-        eprintln!(
-            "report: {} figures; free-free coverage of the 90 % intervals: validation modes {vk}/{vn}, new board {nk}/{nn}{}{}",
-            r.figures,
-            if hn > 0 {
-                format!(", held-out boards by the new board {hk}/{hn}")
-            } else {
-                String::new()
-            },
-            if has2 { "" } else { "; no step-2 posterior: no bolted predictions" }
-        );
+        let summary = summarise(&iv, r.figures, src.has2);
         if verbose {
             for f in &data.findings {
                 eprintln!("{} {} {}: {}", f.stage, f.severity, f.code, f.message);
             }
         }
-        let mut s = BTreeMap::new();
-        s.insert("figures".into(), serde_json::json!(r.figures));
-        s.insert(
-            "validation_coverage_free".into(),
-            serde_json::json!([vk, vn]),
-        );
-        s.insert(
-            "new_board_coverage_free".into(),
-            serde_json::json!([nk, nn]),
-        );
-        if hn > 0 {
-            s.insert("held_out_coverage_free".into(), serde_json::json!([hk, hn]));
-        }
         Ok(StageResult {
             outputs,
             exit_code: exit::OK,
-            summary: s,
+            summary,
         })
     })
+}
+
+/// Say the free-free coverage of the 90 % intervals on stderr; the manifest's summary.
+fn summarise(iv: &[Interval], figures: usize, has2: bool) -> BTreeMap<String, serde_json::Value> {
+    let c = validation::free_coverage(iv);
+    let ((vk, vn), (nk, nn), (hk, hn)) = (c.validation, c.new_board, c.held_out);
+    eprintln!(
+        "report: {} figures; free-free coverage of the 90 % intervals: validation modes {vk}/{vn}, new board {nk}/{nn}{}{}",
+        figures,
+        if hn > 0 {
+            format!(", held-out boards by the new board {hk}/{hn}")
+        } else {
+            String::new()
+        },
+        if has2 { "" } else { "; no step-2 posterior: no bolted predictions" }
+    );
+    let mut s = BTreeMap::new();
+    s.insert("figures".into(), serde_json::json!(figures));
+    s.insert(
+        "validation_coverage_free".into(),
+        serde_json::json!([vk, vn]),
+    );
+    s.insert(
+        "new_board_coverage_free".into(),
+        serde_json::json!([nk, nn]),
+    );
+    if hn > 0 {
+        s.insert("held_out_coverage_free".into(), serde_json::json!([hk, hn]));
+    }
+    s
 }

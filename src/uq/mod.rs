@@ -2,4 +2,5 @@
 //! the reduced-order model ([`propagate`]). No I/O; `stage::propagate` reads the posterior
 //! tables and writes the predictions.
 
+pub mod inputs;
 pub mod propagate;

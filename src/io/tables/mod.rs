@@ -10,6 +10,7 @@
 
 pub mod diagnose;
 pub mod extract;
+pub mod fe;
 pub mod pairs;
 pub mod propagate;
 pub mod report;

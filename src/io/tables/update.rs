@@ -2,7 +2,7 @@
 
 use crate::bayes::smc::StageInfo;
 use crate::io::tables::{self, c, Col, Cols, TableSpec};
-use crate::modal::rows::PairRow;
+pub use crate::io::tables::pairs::{read_pairs, read_presence};
 use crate::update::posterior::{DrawTable, Residual, SummaryRow};
 use crate::update::problem::MassRow;
 use crate::update::step1::Step1;
@@ -189,23 +189,6 @@ pub const RESIDUALS: TableSpec = TableSpec {
     ],
 };
 
-pub fn read_presence(path: &Path, setup: &str) -> anyhow::Result<Vec<String>> {
-    let mut out = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (s, l, u) = (
-            c.str("setup")?,
-            c.str("label")?,
-            c.bool("used_for_updating")?,
-        );
-        for i in 0..b.num_rows() {
-            if s.value(i) == setup && u.value(i) {
-                out.push(l.value(i).to_string());
-            }
-        }
-    }
-    Ok(out)
-}
 
 pub fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
     let mut out = BTreeMap::new();
@@ -510,39 +493,6 @@ pub fn read_step1(path: &Path) -> anyhow::Result<Step1> {
     })
 }
 
-/// The accepted pairs of pairs.parquet (with an identified mode, a frequency and a model mode).
-pub fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairRow>> {
-    let mut out = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (mid, bid, setup, mode, f, mm, label, acc) = (
-            c.str("measurement_id")?,
-            c.str("board_id")?,
-            c.str("setup")?,
-            c.i32("mode")?,
-            c.f64("freq_hz")?,
-            c.i32("model_mode")?,
-            c.str("label")?,
-            c.bool("accepted")?,
-        );
-        for i in 0..b.num_rows() {
-            use arrow::array::Array;
-            if !acc.value(i) || mode.is_null(i) || f.is_null(i) || mm.is_null(i) {
-                continue;
-            }
-            out.push(PairRow {
-                measurement_id: mid.value(i).into(),
-                board_id: bid.value(i).into(),
-                setup: setup.value(i).into(),
-                mode: mode.value(i),
-                freq_hz: f.value(i),
-                model_mode: mm.value(i),
-                label: label.value(i).into(),
-            });
-        }
-    }
-    Ok(out)
-}
 
 /// The numeric column `column` of measurements.parquet per measurement, in file order (`None`
 /// where it has no finite value): the covariate of a temperature enrichment.
