@@ -35,9 +35,9 @@
 //! the sheet (`sheet.repeat_of_unknown`, `sheet.repeat_of_valid`: both rows then kept).
 
 use crate::findings::{Finding, Findings, Severity};
-use crate::io::balance_log::{self, BoardMass, MassParams, Reading};
-use crate::io::sheet::{self, Setup, SheetRow};
-use crate::io::uff::{self, Abscissa, Dataset, FunctionType, Ordinate};
+use crate::formats::balance_log::{self, BoardMass, MassParams, Reading};
+use crate::formats::sheet::{self, Setup, SheetRow};
+use crate::formats::uff::{self, Abscissa, Dataset, FunctionType, Ordinate};
 use anyhow::{bail, Context};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -1773,7 +1773,7 @@ mod tests {
 
     /// [`one_measurement`] with `extra` datasets appended to its UFF.
     fn one_measurement_with(recs: &[uff::Function58], extra: &[u8]) -> Campaign {
-        use crate::io::uff::{write_2411, write_58, Format, Node};
+        use crate::formats::uff::{write_2411, write_58, Format, Node};
         let mut bytes = Vec::new();
         let nodes: Vec<Node> = (1..=4)
             .map(|k| Node {
@@ -1806,7 +1806,7 @@ mod tests {
     /// A double-precision FRF record: response `node`, reference `reference`, numerator
     /// specific data type `spec` (8, 11, 12), ordinate `h` on 0, 10, 20, ... Hz.
     fn frf(node: i64, reference: i64, spec: i64, h: &[(f64, f64)]) -> uff::Function58 {
-        use crate::io::uff::{AxisSpec, Function58, OrdinateDataType};
+        use crate::formats::uff::{AxisSpec, Function58, OrdinateDataType};
         Function58 {
             id_lines: [
                 "t".into(),

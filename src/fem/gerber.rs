@@ -1,5 +1,5 @@
 //! Gerber RS-274X images to raster copper coverage: pure functions over parsed statements
-//! (`io::gerber` reads the files).
+//! (`formats::gerber` reads the files).
 //!
 //! [`render`] executes the statements (apertures C/R/O/P with holes, D01 strokes with
 //! circular or rectangular apertures, D03 flashes, G36/G37 regions, G01/G02/G03 with

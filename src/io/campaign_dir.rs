@@ -3,7 +3,7 @@
 
 use crate::campaign::Source;
 use crate::io::manifest;
-use crate::io::sheet;
+use crate::formats::sheet;
 use anyhow::{bail, Context};
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};

@@ -18,8 +18,7 @@
 use crate::fem::gerber::{
     macro_primitive, render, ApertureShape, Cmd, Image, Interp, MacroPrimitive, SrcPos, Stmt,
 };
-use anyhow::{bail, Context};
-use std::path::Path;
+use anyhow::bail;
 
 /// A parse error at a position.
 fn perr(name: &str, pos: &SrcPos, msg: impl std::fmt::Display) -> anyhow::Error {
@@ -694,14 +693,6 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
 pub fn read_gerber_str(text: &str, name: &str) -> anyhow::Result<Image> {
     let stmts = parse_gerber(text, name)?;
     render(&stmts).map_err(|e| perr(name, &e.pos, e.message))
-}
-
-/// Read, parse and render a Gerber file.
-pub fn read_gerber(path: &Path) -> anyhow::Result<Image> {
-    let bytes = std::fs::read(path)
-        .with_context(|| format!("cannot read Gerber file {}", path.display()))?;
-    let text = String::from_utf8_lossy(&bytes);
-    read_gerber_str(&text, &path.display().to_string())
 }
 
 #[cfg(test)]
