@@ -404,7 +404,9 @@ fn a_repeated_measurement_keeps_the_repeat_and_quarantines_the_invalid_one() {
         u.datasets
             .iter()
             .find_map(|d| match d {
-                crate::formats::uff::Dataset::Function(f) if f.response_node == 1 => match &f.ordinate {
+                crate::formats::uff::Dataset::Function(f) if f.response_node == 1 => match &f
+                    .ordinate
+                {
                     crate::formats::uff::Ordinate::Complex { re, im } => {
                         let mut a: Vec<f64> = re.iter().zip(im).map(|(r, i)| r.hypot(*i)).collect();
                         a.sort_by(f64::total_cmp);
