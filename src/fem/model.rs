@@ -911,7 +911,7 @@ impl Plate<'_> {
         let s_max = self.board.copper_thickness_m();
         let nodes = chebyshev_nodes(coupling_nodes(&self.q_core, self.h, &q_cu, s_max), s_max);
         let (scales, vals) = self.coupling_values(coupled, pattern, &nodes, q_cu, i_h.is_some());
-        let n_pow = if i_h.is_some() { 3 } else { 1 };
+        let n_pow: usize = if i_h.is_some() { 3 } else { 1 };
         for pw in 0..n_pow {
             for (k, sk) in nodes.iter().enumerate() {
                 for comp in 0..4 {

@@ -1,5 +1,5 @@
 //! Byte-level readers and writers of the lab formats: UFF, the measurement sheet, MT-SICS
-//! balance logs and Gerber. They work over `&[u8]` or `&str`, never paths; `crate::io` reads
+//! balance logs and Gerber. They work over `&[u8]` or `&str`, never paths; the io module reads
 //! the files.
 
 pub mod balance_log;
