@@ -9,7 +9,7 @@
 
 use std::time::Instant;
 
-use hbmu::io::uff::{
+use hbmu::formats::uff::{
     parse, write_164, write_2411, write_58, Abscissa, AxisSpec, Dataset, Format, Function58,
     FunctionType, Node, Ordinate, OrdinateDataType, Units164,
 };

@@ -35,9 +35,9 @@
 //! the sheet (`sheet.repeat_of_unknown`, `sheet.repeat_of_valid`: both rows then kept).
 
 use crate::findings::{Finding, Findings, Severity};
-use crate::io::balance_log::{self, BoardMass, MassParams, Reading};
-use crate::io::sheet::{self, Setup, SheetRow};
-use crate::io::uff::{self, Abscissa, Dataset, FunctionType, Ordinate};
+use crate::formats::balance_log::{self, BoardMass, MassParams, Reading};
+use crate::formats::sheet::{self, Setup, SheetRow};
+use crate::formats::uff::{self, Abscissa, Dataset, FunctionType, Ordinate};
 use anyhow::{bail, Context};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -522,29 +522,34 @@ fn roving_response_node(datasets: &[Dataset], expected_type: i32) -> Option<i64>
         .then(|| *responses.first().expect("one response node"))
 }
 
+/// Quarantines `m` with the finding `code`, `msg`.
+fn quarantine(
+    m: &mut Measurement,
+    fd: &mut Findings,
+    file: &str,
+    mid: &str,
+    code: &str,
+    msg: String,
+) {
+    fd.push(
+        Finding::new(Severity::Quarantined, code, msg.clone())
+            .file(file.to_owned())
+            .measurement(mid.to_owned()),
+    );
+    m.quarantine = Some(msg);
+}
+
 /// Parse one measurement's UFF and fill `m`; returns its findings. Quarantines on fatal issues.
 fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
     let mut fd = Findings::default();
     let file = m.row.file.clone();
     let mid = m.row.measurement_id.clone();
     let setup = m.row.setup.expect("checked before");
-    let quarantine = |m: &mut Measurement, fd: &mut Findings, code: &str, msg: String| {
-        fd.push(
-            Finding::new(Severity::Quarantined, code, msg.clone())
-                .file(file.clone())
-                .measurement(mid.clone()),
-        );
-        m.quarantine = Some(msg);
-    };
     let bytes = match src.read(&file) {
         Ok(b) => b,
         Err(e) => {
-            quarantine(
-                m,
-                &mut fd,
-                "uff.unreadable",
-                format!("cannot read file: {e}"),
-            );
+            let msg = format!("cannot read file: {e}");
+            quarantine(m, &mut fd, &file, &mid, "uff.unreadable", msg);
             return fd;
         }
     };
@@ -552,76 +557,22 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
     let parsed = match uff::parse(&bytes) {
         Ok(p) => p,
         Err(e) => {
-            quarantine(m, &mut fd, "uff.not_uff", e.to_string());
+            quarantine(m, &mut fd, &file, &mid, "uff.not_uff", e.to_string());
             return fd;
         }
     };
-    for iss in &parsed.issues {
-        fd.push(
-            Finding::new(
-                Severity::RecordDropped,
-                "uff.bad_dataset",
-                format!("{}; dataset dropped", iss.kind),
-            )
-            .file(file.clone())
-            .line(iss.line as u64)
-            .record(format!(
-                "dataset {} #{}",
-                iss.number.map_or("?".into(), |n| n.to_string()),
-                iss.index
-            ))
-            .measurement(mid.clone()),
-        );
-        m.dropped += 1;
-    }
-    for s in &parsed.skipped {
-        fd.push(
-            Finding::new(
-                Severity::Info,
-                "uff.skipped_dataset",
-                format!("dataset {} is not used by hbmu; skipped", s.number),
-            )
-            .file(file.clone())
-            .line(s.line as u64)
-            .record(format!("dataset {} #{}", s.number, s.index))
-            .measurement(mid.clone()),
-        );
-    }
+    note_parse_issues(&parsed, m, &mut fd, &file, &mid);
     let units = parsed.datasets.iter().find_map(|d| match d {
         Dataset::Units(u) => Some(u.clone()),
         _ => None,
     });
-    let to_m = |v: f64| match &units {
-        Some(u) => u.length_to_metres(v),
-        None => v * 1e-3, // contract: millimetres without dataset 164
-    };
-    // Nodes: merged over all node datasets; a repeated id with other coordinates is reported.
-    let mut nodes: BTreeMap<i64, [f64; 3]> = BTreeMap::new();
-    for d in &parsed.datasets {
-        if let Dataset::Nodes(ns) = d {
-            for n in &ns.nodes {
-                let xyz = n.xyz_file_units.map(to_m);
-                if let Some(old) = nodes.insert(n.id, xyz) {
-                    if old != xyz {
-                        fd.push(
-                            Finding::new(
-                                Severity::Warning,
-                                "uff.node_redefined",
-                                format!("node {} defined twice with different coordinates; the later definition is used", n.id),
-                            )
-                            .file(file.clone())
-                            .line(ns.line as u64)
-                            .measurement(mid.clone()),
-                        );
-                    }
-                }
-            }
-        }
-    }
+    let nodes = merged_nodes(&parsed.datasets, units.as_ref(), &mut fd, &file, &mid);
     if nodes.is_empty() {
         quarantine(
             m,
             &mut fd,
+            &file,
+            &mid,
             "uff.no_geometry",
             "no scan-point geometry (expected dataset 2411 or 15 with the scan points)".into(),
         );
@@ -629,9 +580,6 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
     }
 
     let expected_type = setup.expected_function_type();
-    let mut axis: Option<(f64, f64, usize)> = None;
-    let mut seen: BTreeSet<(i64, i32)> = BTreeSet::new();
-    let mut ref_count: BTreeMap<i64, usize> = BTreeMap::new();
     let roving = roving_response_node(&parsed.datasets, expected_type);
     if let Some(fixed) = roving {
         fd.push(
@@ -644,12 +592,195 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             .measurement(mid.clone()),
         );
     }
-    let mut converted: BTreeMap<String, (i32, usize, usize)> = BTreeMap::new();
+    let reader = RecordReader {
+        file: &file,
+        mid: &mid,
+        setup,
+        expected_type,
+        roving,
+        nodes: &nodes,
+        units: units.as_ref(),
+    };
+    let mut state = RecordState::default();
     for d in &parsed.datasets {
         let Dataset::Function(f) = d else { continue };
+        let Some((rec, is_coh)) = reader.read(f, &mut state, &mut fd, &mut m.dropped) else {
+            continue;
+        };
+        if is_coh {
+            m.coherence.push(rec);
+        } else {
+            m.records.push(rec);
+        }
+    }
+    note_conversions(&state.converted, expected_type, &mut fd, &file, &mid);
+    // Mode sets (dataset 55, one per mode) as modal-analysis software exports them.
+    let (vendor_modes, dropped) = read_vendor_modes(&parsed.datasets, &nodes, &mut fd, &file, &mid);
+    m.vendor_modes = vendor_modes;
+    m.dropped += dropped;
+    let vendor: Vec<String> = m
+        .vendor_modes
+        .iter()
+        .map(|v| format!("{:.1} Hz at line {}", v.freq_hz, v.line))
+        .collect();
+    if m.records.is_empty() {
+        if vendor.is_empty() {
+            quarantine(
+                m,
+                &mut fd,
+                &file,
+                &mid,
+                "uff.no_records",
+                format!(
+                    "no usable response record (expected dataset 58 records of function type {expected_type}) and no mode set (dataset 55)"
+                ),
+            );
+            return fd;
+        }
+        modes_only(m, &nodes, &vendor, &mut fd, &file, &mid);
+        return fd;
+    }
+    if !vendor.is_empty() {
+        fd.push(
+            Finding::new(
+                Severity::Warning,
+                "uff.mode_sets_not_used",
+                format!(
+                    "the measurement holds FRFs and {} dataset-55 mode(s) ({}): extract identifies the modes from the FRFs; the lab's modes are kept in vendor_modes.parquet for comparison",
+                    vendor.len(),
+                    vendor.join(", ")
+                ),
+            )
+            .file(file.clone())
+            .measurement(mid.clone()),
+        );
+    }
+    drop_off_axis_coherence(m, state.axis, &mut fd, &file, &mid);
+    place_points(m, &nodes, &state.ref_count, &mut fd, &file, &mid);
+    fd
+}
+
+/// The findings on the datasets the parser dropped (each counted in `m.dropped`) or
+/// skipped.
+fn note_parse_issues(
+    parsed: &uff::UffFile,
+    m: &mut Measurement,
+    fd: &mut Findings,
+    file: &str,
+    mid: &str,
+) {
+    for iss in &parsed.issues {
+        fd.push(
+            Finding::new(
+                Severity::RecordDropped,
+                "uff.bad_dataset",
+                format!("{}; dataset dropped", iss.kind),
+            )
+            .file(file.to_owned())
+            .line(iss.line as u64)
+            .record(format!(
+                "dataset {} #{}",
+                iss.number.map_or("?".into(), |n| n.to_string()),
+                iss.index
+            ))
+            .measurement(mid.to_owned()),
+        );
+        m.dropped += 1;
+    }
+    for s in &parsed.skipped {
+        fd.push(
+            Finding::new(
+                Severity::Info,
+                "uff.skipped_dataset",
+                format!("dataset {} is not used by hbmu; skipped", s.number),
+            )
+            .file(file.to_owned())
+            .line(s.line as u64)
+            .record(format!("dataset {} #{}", s.number, s.index))
+            .measurement(mid.to_owned()),
+        );
+    }
+}
+
+/// The nodes of all node datasets, metres, merged; a repeated id with other coordinates is
+/// reported (the later definition is used).
+fn merged_nodes(
+    datasets: &[Dataset],
+    units: Option<&uff::Units164>,
+    fd: &mut Findings,
+    file: &str,
+    mid: &str,
+) -> BTreeMap<i64, [f64; 3]> {
+    let to_m = |v: f64| match units {
+        Some(u) => u.length_to_metres(v),
+        None => v * 1e-3, // contract: millimetres without dataset 164
+    };
+    // Nodes: merged over all node datasets; a repeated id with other coordinates is reported.
+    let mut nodes: BTreeMap<i64, [f64; 3]> = BTreeMap::new();
+    for d in datasets {
+        if let Dataset::Nodes(ns) = d {
+            for n in &ns.nodes {
+                let xyz = n.xyz_file_units.map(to_m);
+                if let Some(old) = nodes.insert(n.id, xyz) {
+                    if old != xyz {
+                        fd.push(
+                            Finding::new(
+                                Severity::Warning,
+                                "uff.node_redefined",
+                                format!("node {} defined twice with different coordinates; the later definition is used", n.id),
+                            )
+                            .file(file.to_owned())
+                            .line(ns.line as u64)
+                            .measurement(mid.to_owned()),
+                        );
+                    }
+                }
+            }
+        }
+    }
+    nodes
+}
+
+/// What reading one measurement's records needs to know.
+struct RecordReader<'a> {
+    file: &'a str,
+    mid: &'a str,
+    setup: Setup,
+    expected_type: i32,
+    /// The fixed response node of a roving hammer ([`roving_response_node`]).
+    roving: Option<i64>,
+    nodes: &'a BTreeMap<i64, [f64; 3]>,
+    units: Option<&'a uff::Units164>,
+}
+
+/// What reading a measurement's records accumulates over them.
+#[derive(Default)]
+struct RecordState {
+    /// The response records' frequency axis (start, step, lines): the first record's.
+    axis: Option<(f64, f64, usize)>,
+    /// (node, function type) of the records kept.
+    seen: BTreeSet<(i64, i32)>,
+    /// Response records per reference node.
+    ref_count: BTreeMap<i64, usize>,
+    /// Per quantity converted: (q, records, lines zeroed at 0 Hz).
+    converted: BTreeMap<String, (i32, usize, usize)>,
+}
+
+impl RecordReader<'_> {
+    /// Record `f` converted to the contract (and whether it is a coherence), or `None` when
+    /// it is dropped (with a finding, counted in `dropped`).
+    fn read(
+        &self,
+        f: &uff::Function58,
+        st: &mut RecordState,
+        fd: &mut Findings,
+        dropped: &mut usize,
+    ) -> Option<(Record, bool)> {
+        let (file, mid, setup, expected_type) =
+            (self.file, self.mid, self.setup, self.expected_type);
         let ft = f.function_type.code() as i32;
         // The scan point a record belongs to, and its excitation (swapped for a roving hammer).
-        let (node, node_dir, reference, reference_dir) = match roving {
+        let (node, node_dir, reference, reference_dir) = match self.roving {
             Some(fixed) if f.response_node == fixed => (
                 f.reference_node,
                 f.reference_direction,
@@ -671,12 +802,12 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                     code,
                     format!("{msg}; record dropped"),
                 )
-                .file(file.clone())
+                .file(file.to_owned())
                 .line(f.line as u64)
                 .record(loc.clone())
-                .measurement(mid.clone()),
+                .measurement(mid.to_owned()),
             );
-            m.dropped += 1;
+            *dropped += 1;
         };
         let is_coh = f.function_type == FunctionType::Coherence;
         if !is_coh && ft != expected_type {
@@ -685,14 +816,14 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                 _ => "is not one the contract knows",
             };
             drop(
-                &mut fd,
+                fd,
                 "uff.function_type",
                 format!(
                     "function type {ft} {what} (expected {expected_type} for setup `{}`, or 6 coherence)",
                     setup.as_str()
                 ),
             );
-            continue;
+            return None;
         }
         let mut sign = 1.0;
         match node_dir {
@@ -705,80 +836,80 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                         "uff.direction_flipped",
                         "response direction -Z; ordinate negated to +Z",
                     )
-                    .file(file.clone())
+                    .file(file.to_owned())
                     .line(f.line as u64)
                     .record(loc.clone())
-                    .measurement(mid.clone()),
+                    .measurement(mid.to_owned()),
                 );
             }
             d => {
                 drop(
-                    &mut fd,
+                    fd,
                     "uff.direction",
                     format!("response direction {d} (expected 3 = +Z)"),
                 );
-                continue;
+                return None;
             }
         }
-        if !nodes.contains_key(&node) {
+        if !self.nodes.contains_key(&node) {
             drop(
-                &mut fd,
+                fd,
                 "uff.unknown_node",
                 format!("response node {node} has no coordinates in dataset 2411/15"),
             );
-            continue;
+            return None;
         }
         let (min, inc) = match &f.abscissa {
             Abscissa::Even { min, increment } => (*min, *increment),
             Abscissa::Uneven(_) => {
                 drop(
-                    &mut fd,
+                    fd,
                     "uff.uneven_abscissa",
                     "abscissa is unevenly spaced (expected evenly spaced frequency lines)".into(),
                 );
-                continue;
+                return None;
             }
         };
         let n = f.ordinate.len();
         if !(inc.is_finite() && inc > 0.0 && min.is_finite() && min >= 0.0) || n < 2 {
             drop(
-                &mut fd,
+                fd,
                 "uff.bad_abscissa",
                 format!("abscissa start {min} Hz, step {inc} Hz, {n} lines (expected start >= 0, step > 0, >= 2 lines)"),
             );
-            continue;
+            return None;
         }
         if !is_coh {
-            match axis {
-                None => axis = Some((min, inc, n)),
+            match st.axis {
+                None => st.axis = Some((min, inc, n)),
                 Some((a0, da, na)) => {
                     let same = na == n
                         && (a0 - min).abs() <= 1e-9 * da.max(1.0)
                         && (da - inc).abs() <= 1e-9 * da;
                     if !same {
                         drop(
-                            &mut fd,
+                            fd,
                             "uff.axis_mismatch",
                             format!("frequency axis {min} Hz + k*{inc} Hz, {n} lines differs from the measurement's first record ({a0} Hz + k*{da} Hz, {na} lines)"),
                         );
-                        continue;
+                        return None;
                     }
                 }
             }
         }
-        if !seen.insert((node, ft)) {
+        if !st.seen.insert((node, ft)) {
             drop(
-                &mut fd,
+                fd,
                 "uff.duplicate_record",
                 format!("second record of function type {ft} for node {node} (the first is kept)"),
             );
-            continue;
+            return None;
         }
         let factor = sign
             * if is_coh {
                 1.0
             } else {
-                ordinate_factor(f, units.as_ref())
+                ordinate_factor(f, self.units)
             };
         let (measured, q) = if is_coh {
             ("coherence".to_owned(), 0)
@@ -786,11 +917,11 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             m
         } else {
             drop(
-                &mut fd,
+                fd,
                 "uff.ordinate_quantity",
                 format!("ordinate specific data type {} names no motion (expected 8 displacement, 11 velocity or 12 acceleration, or 0/1 unknown/general for the contract's quantity)", f.ordinate_axis.spec_data_type),
             );
-            continue;
+            return None;
         };
         let (re, im) = match (&f.ordinate, is_coh) {
             (Ordinate::Complex { re, im }, false) => {
@@ -798,7 +929,7 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                 let mut im: Vec<f64> = im.iter().map(|v| v * factor).collect();
                 let zeroed = times_i_omega_pow(q, min, inc, &mut re, &mut im);
                 if q != 0 {
-                    let e = converted.entry(measured.clone()).or_insert((q, 0, 0));
+                    let e = st.converted.entry(measured.clone()).or_insert((q, 0, 0));
                     e.1 += 1;
                     e.2 += zeroed;
                 }
@@ -807,11 +938,11 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             (Ordinate::Real(v), true) => (v.clone(), None),
             (Ordinate::Real(_), false) => {
                 drop(
-                    &mut fd,
+                    fd,
                     "uff.real_ordinate",
                     format!("function type {ft} has a real ordinate (expected complex)"),
                 );
-                continue;
+                return None;
             }
             (Ordinate::Complex { re, im }, true) => {
                 // Coherence is real by definition; some writers store it as complex with a
@@ -823,16 +954,16 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                         "uff.complex_coherence",
                         format!("coherence stored as complex (max |imag| = {max_im:.3e}); real part used"),
                     )
-                    .file(file.clone())
+                    .file(file.to_owned())
                     .line(f.line as u64)
                     .record(loc.clone())
-                    .measurement(mid.clone()),
+                    .measurement(mid.to_owned()),
                 );
                 (re.clone(), None)
             }
         };
         if !is_coh {
-            *ref_count.entry(reference).or_default() += 1;
+            *st.ref_count.entry(reference).or_default() += 1;
         }
         let rec = Record {
             node,
@@ -850,13 +981,19 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
             re,
             im,
         };
-        if is_coh {
-            m.coherence.push(rec);
-        } else {
-            m.records.push(rec);
-        }
+        Some((rec, is_coh))
     }
-    for (measured, (q, n, zeroed)) in &converted {
+}
+
+/// One finding per quantity whose records were converted to the contract's quantity.
+fn note_conversions(
+    converted: &BTreeMap<String, (i32, usize, usize)>,
+    expected_type: i32,
+    fd: &mut Findings,
+    file: &str,
+    mid: &str,
+) {
+    for (measured, (q, n, zeroed)) in converted {
         let how = match q {
             -1 => "divided by iω",
             1 => "multiplied by iω",
@@ -880,78 +1017,61 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                 "uff.converted_ordinate",
                 format!("{n} record(s) measured as {measured}: {how} to {target} (q = {q}){zero_note}; frf.parquet keeps what was measured in `measured_as`"),
             )
-            .file(file.clone())
-            .measurement(mid.clone()),
+            .file(file.to_owned())
+            .measurement(mid.to_owned()),
         );
     }
-    // Mode sets (dataset 55, one per mode) as modal-analysis software exports them.
-    let (vendor_modes, dropped) = read_vendor_modes(&parsed.datasets, &nodes, &mut fd, &file, &mid);
-    m.vendor_modes = vendor_modes;
-    m.dropped += dropped;
-    let vendor: Vec<String> = m
+}
+
+/// A measurement of modes only (`vendor` describes them): the lab identified them; its
+/// scan points are the nodes with coordinates, with a record where a mode has a value.
+fn modes_only(
+    m: &mut Measurement,
+    nodes: &BTreeMap<i64, [f64; 3]>,
+    vendor: &[String],
+    fd: &mut Findings,
+    file: &str,
+    mid: &str,
+) {
+    let with_value: BTreeSet<i64> = m
         .vendor_modes
         .iter()
-        .map(|v| format!("{:.1} Hz at line {}", v.freq_hz, v.line))
+        .flat_map(|v| v.nodes.iter().copied())
         .collect();
-    if m.records.is_empty() {
-        if vendor.is_empty() {
-            quarantine(
-                m,
-                &mut fd,
-                "uff.no_records",
-                format!(
-                    "no usable response record (expected dataset 58 records of function type {expected_type}) and no mode set (dataset 55)"
-                ),
-            );
-            return fd;
-        }
-        // A measurement of modes only: the lab identified them; its scan points are the
-        // nodes with coordinates, with a record where a mode has a value.
-        let with_value: BTreeSet<i64> = m
-            .vendor_modes
-            .iter()
-            .flat_map(|v| v.nodes.iter().copied())
-            .collect();
-        m.points = nodes
-            .iter()
-            .map(|(&node, &xyz_m)| Point {
-                node,
-                xyz_m,
-                is_reference: false,
-                has_record: with_value.contains(&node),
-            })
-            .collect();
-        fd.push(
-            Finding::new(
-                Severity::Info,
-                "uff.vendor_modes",
-                format!(
-                    "no response record; {} mode(s) identified by the lab's modal software (dataset 55: {}) are the measurement's modes: extract passes them through, `source = uff55` in modes.parquet",
-                    vendor.len(),
-                    vendor.join(", ")
-                ),
-            )
-            .file(file.clone())
-            .measurement(mid.clone()),
-        );
-        note_points(m, &mut fd, &file, &mid, "no value in any mode set");
-        return fd;
-    }
-    if !vendor.is_empty() {
-        fd.push(
-            Finding::new(
-                Severity::Warning,
-                "uff.mode_sets_not_used",
-                format!(
-                    "the measurement holds FRFs and {} dataset-55 mode(s) ({}): extract identifies the modes from the FRFs; the lab's modes are kept in vendor_modes.parquet for comparison",
-                    vendor.len(),
-                    vendor.join(", ")
-                ),
-            )
-            .file(file.clone())
-            .measurement(mid.clone()),
-        );
-    }
+    m.points = nodes
+        .iter()
+        .map(|(&node, &xyz_m)| Point {
+            node,
+            xyz_m,
+            is_reference: false,
+            has_record: with_value.contains(&node),
+        })
+        .collect();
+    fd.push(
+        Finding::new(
+            Severity::Info,
+            "uff.vendor_modes",
+            format!(
+                "no response record; {} mode(s) identified by the lab's modal software (dataset 55: {}) are the measurement's modes: extract passes them through, `source = uff55` in modes.parquet",
+                vendor.len(),
+                vendor.join(", ")
+            ),
+        )
+        .file(file.to_owned())
+        .measurement(mid.to_owned()),
+    );
+    note_points(m, fd, file, mid, "no value in any mode set");
+}
+
+/// Drops the coherence records on another frequency axis than the response records'
+/// (`axis`): they are of no use.
+fn drop_off_axis_coherence(
+    m: &mut Measurement,
+    axis: Option<(f64, f64, usize)>,
+    fd: &mut Findings,
+    file: &str,
+    mid: &str,
+) {
     // Coherence on another axis than the response records is of no use.
     if let Some((a0, da, na)) = axis {
         let before = m.coherence.len();
@@ -969,11 +1089,23 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                     "uff.coherence_axis",
                     format!("{lost} coherence record(s) on another frequency axis than the response records; dropped"),
                 )
-                .file(file.clone())
-                .measurement(mid.clone()),
+                .file(file.to_owned())
+                .measurement(mid.to_owned()),
             );
         }
     }
+}
+
+/// The main reference (the one most records use), the records sorted with it first, and
+/// the scan points of a measurement with response records.
+fn place_points(
+    m: &mut Measurement,
+    nodes: &BTreeMap<i64, [f64; 3]>,
+    ref_count: &BTreeMap<i64, usize>,
+    fd: &mut Findings,
+    file: &str,
+    mid: &str,
+) {
     let main_ref = ref_count
         .iter()
         .max_by_key(|(node, n)| (**n, -**node))
@@ -986,8 +1118,8 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                 "uff.mixed_reference",
                 format!("records use {} different reference nodes ({:?}); expected one reference per measurement", ref_count.len(), ref_count.keys().collect::<Vec<_>>()),
             )
-            .file(file.clone())
-            .measurement(mid.clone()),
+            .file(file.to_owned())
+            .measurement(mid.to_owned()),
         );
     }
     // Put the main reference first so `reference_node()` reports it.
@@ -1002,8 +1134,8 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
                 "uff.reference_without_geometry",
                 format!("reference node {main_ref} has no coordinates in dataset 2411/15"),
             )
-            .file(file.clone())
-            .measurement(mid.clone()),
+            .file(file.to_owned())
+            .measurement(mid.to_owned()),
         );
     }
     m.points = nodes
@@ -1017,12 +1149,11 @@ fn read_measurement(src: &dyn Source, m: &mut Measurement) -> Findings {
         .collect();
     note_points(
         m,
-        &mut fd,
-        &file,
-        &mid,
+        fd,
+        file,
+        mid,
         "no response record (marked invalid by the vibrometer, or dropped)",
     );
-    fd
 }
 
 /// The findings on a measurement's scan points: points off the board's plane, and points
@@ -1773,7 +1904,7 @@ mod tests {
 
     /// [`one_measurement`] with `extra` datasets appended to its UFF.
     fn one_measurement_with(recs: &[uff::Function58], extra: &[u8]) -> Campaign {
-        use crate::io::uff::{write_2411, write_58, Format, Node};
+        use crate::formats::uff::{write_2411, write_58, Format, Node};
         let mut bytes = Vec::new();
         let nodes: Vec<Node> = (1..=4)
             .map(|k| Node {
@@ -1806,7 +1937,7 @@ mod tests {
     /// A double-precision FRF record: response `node`, reference `reference`, numerator
     /// specific data type `spec` (8, 11, 12), ordinate `h` on 0, 10, 20, ... Hz.
     fn frf(node: i64, reference: i64, spec: i64, h: &[(f64, f64)]) -> uff::Function58 {
-        use crate::io::uff::{AxisSpec, Function58, OrdinateDataType};
+        use crate::formats::uff::{AxisSpec, Function58, OrdinateDataType};
         Function58 {
             id_lines: [
                 "t".into(),

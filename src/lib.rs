@@ -9,6 +9,7 @@ pub mod campaign;
 pub mod diagnose;
 pub mod fem;
 pub mod findings;
+pub mod formats;
 pub mod io;
 pub mod lab;
 pub mod modal;

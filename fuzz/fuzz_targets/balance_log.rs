@@ -4,6 +4,6 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let (readings, _findings) = hbmu::io::balance_log::parse(data, "fuzz.log");
-    let _ = hbmu::io::balance_log::board_masses(&readings, Default::default());
+    let (readings, _findings) = hbmu::formats::balance_log::parse(data, "fuzz.log");
+    let _ = hbmu::formats::balance_log::board_masses(&readings, Default::default());
 });

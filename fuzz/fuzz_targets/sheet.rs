@@ -4,5 +4,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let _ = hbmu::io::sheet::parse(data, "fuzz.csv");
+    let _ = hbmu::formats::sheet::parse(data, "fuzz.csv");
 });

@@ -4,5 +4,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let _ = hbmu::io::uff::parse(data);
+    let _ = hbmu::formats::uff::parse(data);
 });

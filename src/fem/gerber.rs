@@ -1,5 +1,5 @@
 //! Gerber RS-274X images to raster copper coverage: pure functions over parsed statements
-//! (`io::gerber` reads the files).
+//! (`formats::gerber` reads the files).
 //!
 //! [`render`] executes the statements (apertures C/R/O/P with holes, D01 strokes with
 //! circular or rectangular apertures, D03 flashes, G36/G37 regions, G01/G02/G03 with
@@ -645,78 +645,153 @@ pub fn macro_primitive(
     }
 }
 
-/// Execute Gerber statements into an image.
-pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
-    use std::collections::HashMap;
-    let err = |s: &Stmt, m: String| GerberError {
+/// A Gerber error at statement `s`.
+fn err(s: &Stmt, m: String) -> GerberError {
+    GerberError {
         pos: s.pos.clone(),
         message: m,
-    };
-    let mut apertures: HashMap<u32, ApertureShape> = HashMap::new();
-    let mut current: Option<u32> = None;
-    // The 2021 specification asks for G01/G02/G03 before the first D01; older files (and
-    // writers such as gerbonara 1.5) rely on the former default, linear.
-    let mut interp = Interp::Linear;
-    let mut multi = true;
-    let mut dark = true;
-    let mut xf = Xform {
-        mx: false,
-        my: false,
-        rot_deg: 0.0,
-        scale: 1.0,
-    };
-    let mut pt: Option<[f64; 2]> = None;
-    let mut img = Image::default();
-    let mut region: Option<Vec<Vec<[f64; 2]>>> = None;
-    let mut contour: Vec<[f64; 2]> = Vec::new();
-    let mut sr: Option<(usize, u32, u32, f64, f64)> = None;
-    let mut ended = false;
-
-    fn push(img: &mut Image, dark: bool, contours: Vec<Vec<[f64; 2]>>) {
-        push_parts(img, dark, contours, Vec::new());
     }
-    fn push_parts(
-        img: &mut Image,
-        dark: bool,
-        contours: Vec<Vec<[f64; 2]>>,
-        parts: Vec<(usize, bool)>,
-    ) {
-        let bbox = bbox_of(&contours);
-        img.features.push(Feature {
-            dark,
-            contours,
-            parts,
-            bbox,
+}
+
+fn push(img: &mut Image, dark: bool, contours: Vec<Vec<[f64; 2]>>) {
+    push_parts(img, dark, contours, Vec::new());
+}
+
+fn push_parts(
+    img: &mut Image,
+    dark: bool,
+    contours: Vec<Vec<[f64; 2]>>,
+    parts: Vec<(usize, bool)>,
+) {
+    let bbox = bbox_of(&contours);
+    img.features.push(Feature {
+        dark,
+        contours,
+        parts,
+        bbox,
+    });
+}
+
+/// Checks the aperture definition `code` = `shape` at `s`.
+fn check_aperture(s: &Stmt, code: u32, shape: &ApertureShape) -> Result<(), GerberError> {
+    let code = &code;
+    if *code < 10 {
+        return Err(err(
+            s,
+            format!("expected an aperture number ≥ 10, found {code}"),
+        ));
+    }
+    let bad = match shape {
+        ApertureShape::Circle { d_m, hole_m } => {
+            !(*d_m >= 0.0) || hole_m.is_some_and(|h| !(h >= 0.0 && h < *d_m))
+        }
+        ApertureShape::Rect { w_m, h_m, hole_m } | ApertureShape::Obround { w_m, h_m, hole_m } => {
+            !(*w_m > 0.0 && *h_m > 0.0) || hole_m.is_some_and(|h| !(h >= 0.0 && h < w_m.min(*h_m)))
+        }
+        ApertureShape::Polygon { d_m, n, hole_m, .. } => {
+            !(*d_m > 0.0 && (3..=12).contains(n)) || hole_m.is_some_and(|h| !(h >= 0.0 && h < *d_m))
+        }
+        ApertureShape::Macro { primitives, .. } => primitives
+            .iter()
+            .flat_map(|p| p.contours.iter().flatten())
+            .any(|v| !(v[0].is_finite() && v[1].is_finite())),
+    };
+    if bad {
+        return Err(err(
+            s,
+            format!("expected positive aperture sizes (polygon: 3 to 12 vertices) with a hole inside the aperture, found {shape:?}"),
+        ));
+    }
+    Ok(())
+}
+
+/// The graphics state while executing Gerber statements, and the image drawn so far.
+struct Renderer {
+    apertures: std::collections::HashMap<u32, ApertureShape>,
+    current: Option<u32>,
+    interp: Interp,
+    multi: bool,
+    dark: bool,
+    xf: Xform,
+    pt: Option<[f64; 2]>,
+    img: Image,
+    region: Option<Vec<Vec<[f64; 2]>>>,
+    contour: Vec<[f64; 2]>,
+    sr: Option<(usize, u32, u32, f64, f64)>,
+    ended: bool,
+}
+
+/// Execute Gerber statements into an image.
+pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
+    let mut r = Renderer {
+        apertures: std::collections::HashMap::new(),
+        current: None,
+        // The 2021 specification asks for G01/G02/G03 before the first D01; older files (and
+        // writers such as gerbonara 1.5) rely on the former default, linear.
+        interp: Interp::Linear,
+        multi: true,
+        dark: true,
+        xf: Xform {
+            mx: false,
+            my: false,
+            rot_deg: 0.0,
+            scale: 1.0,
+        },
+        pt: None,
+        img: Image::default(),
+        region: None,
+        contour: Vec::new(),
+        sr: None,
+        ended: false,
+    };
+    for s in stmts {
+        r.step(s)?;
+    }
+    if r.region.is_some() {
+        let s = stmts.last().map(|s| s.pos.clone()).unwrap_or(SrcPos {
+            line: 0,
+            command: String::new(),
+        });
+        return Err(GerberError {
+            pos: s,
+            message: "expected G37 to close the region, found the end of the file".into(),
         });
     }
-    // Close the current region contour (if any segment was drawn) into a feature.
-    let close_contour = |img: &mut Image,
-                         contour: &mut Vec<[f64; 2]>,
-                         dark: bool,
-                         s: &Stmt|
-     -> Result<(), GerberError> {
-        if contour.len() > 1 {
-            let (a, b) = (contour[0], contour[contour.len() - 1]);
+    r.close_sr();
+    Ok(r.img)
+}
+
+impl Renderer {
+    /// Close the current region contour (if any segment was drawn) into a feature.
+    fn close_contour(&mut self, s: &Stmt) -> Result<(), GerberError> {
+        if self.contour.len() > 1 {
+            let (a, b) = (self.contour[0], self.contour[self.contour.len() - 1]);
             if (a[0] - b[0]).hypot(a[1] - b[1]) > 1e-6 {
                 return Err(err(
-                    s,
-                    format!(
-                        "expected the region contour started at ({:.6}, {:.6}) mm to be closed, found it ending at ({:.6}, {:.6}) mm",
-                        a[0] * 1e3,
-                        a[1] * 1e3,
-                        b[0] * 1e3,
-                        b[1] * 1e3
-                    ),
-                ));
+                s,
+                format!(
+                    "expected the region contour started at ({:.6}, {:.6}) mm to be closed, found it ending at ({:.6}, {:.6}) mm",
+                    a[0] * 1e3,
+                    a[1] * 1e3,
+                    b[0] * 1e3,
+                    b[1] * 1e3
+                ),
+            ));
             }
-            push(img, dark, vec![std::mem::take(contour)]);
+            push(
+                &mut self.img,
+                self.dark,
+                vec![std::mem::take(&mut self.contour)],
+            );
         }
-        contour.clear();
+        self.contour.clear();
         Ok(())
-    };
-    let close_sr = |img: &mut Image, sr: &mut Option<(usize, u32, u32, f64, f64)>| {
-        if let Some((start, nx, ny, dx, dy)) = sr.take() {
-            let block: Vec<Feature> = img.features[start..].to_vec();
+    }
+
+    /// Close the current step-and-repeat block: its copies.
+    fn close_sr(&mut self) {
+        if let Some((start, nx, ny, dx, dy)) = self.sr.take() {
+            let block: Vec<Feature> = self.img.features[start..].to_vec();
             for j in 0..ny {
                 for i in 0..nx {
                     if i == 0 && j == 0 {
@@ -729,303 +804,308 @@ pub fn render(stmts: &[Stmt]) -> Result<Image, GerberError> {
                             .iter()
                             .map(|c| c.iter().map(|p| [p[0] + ox, p[1] + oy]).collect())
                             .collect();
-                        push_parts(img, f.dark, contours, f.parts.clone());
+                        push_parts(&mut self.img, f.dark, contours, f.parts.clone());
                     }
                 }
             }
         }
-    };
+    }
 
-    for s in stmts {
-        if ended {
+    /// Execute statement `s`.
+    fn step(&mut self, s: &Stmt) -> Result<(), GerberError> {
+        if self.ended {
             return Err(err(s, "expected nothing after M02 (end of file)".into()));
         }
         match &s.cmd {
             Cmd::ApertureDef { code, shape } => {
-                if *code < 10 {
-                    return Err(err(
-                        s,
-                        format!("expected an aperture number ≥ 10, found {code}"),
-                    ));
-                }
-                let bad = match shape {
-                    ApertureShape::Circle { d_m, hole_m } => {
-                        !(*d_m >= 0.0) || hole_m.is_some_and(|h| !(h >= 0.0 && h < *d_m))
-                    }
-                    ApertureShape::Rect { w_m, h_m, hole_m }
-                    | ApertureShape::Obround { w_m, h_m, hole_m } => {
-                        !(*w_m > 0.0 && *h_m > 0.0)
-                            || hole_m.is_some_and(|h| !(h >= 0.0 && h < w_m.min(*h_m)))
-                    }
-                    ApertureShape::Polygon { d_m, n, hole_m, .. } => {
-                        !(*d_m > 0.0 && (3..=12).contains(n))
-                            || hole_m.is_some_and(|h| !(h >= 0.0 && h < *d_m))
-                    }
-                    ApertureShape::Macro { primitives, .. } => primitives
-                        .iter()
-                        .flat_map(|p| p.contours.iter().flatten())
-                        .any(|v| !(v[0].is_finite() && v[1].is_finite())),
-                };
-                if bad {
-                    return Err(err(
-                        s,
-                        format!("expected positive aperture sizes (polygon: 3 to 12 vertices) with a hole inside the aperture, found {shape:?}"),
-                    ));
-                }
-                apertures.insert(*code, shape.clone());
+                check_aperture(s, *code, shape)?;
+                self.apertures.insert(*code, shape.clone());
             }
             Cmd::Select(code) => {
-                if region.is_some() {
+                if self.region.is_some() {
                     return Err(err(
                         s,
                         "expected no aperture selection inside a region statement (G36 … G37)"
                             .into(),
                     ));
                 }
-                if !apertures.contains_key(code) {
+                if !self.apertures.contains_key(code) {
                     return Err(err(
                         s,
                         format!("expected a defined aperture, found D{code} undefined (no %ADD{code}…% before this line)"),
                     ));
                 }
-                current = Some(*code);
+                self.current = Some(*code);
             }
-            Cmd::Interp(m) => interp = *m,
-            Cmd::Quadrant { multi: m } => multi = *m,
+            Cmd::Interp(m) => self.interp = *m,
+            Cmd::Quadrant { multi: m } => self.multi = *m,
             Cmd::Region(on) => {
                 if *on {
-                    if region.is_some() {
+                    if self.region.is_some() {
                         return Err(err(
                             s,
                             "expected G37 before another G36, found a nested G36".into(),
                         ));
                     }
-                    region = Some(Vec::new());
-                    contour.clear();
+                    self.region = Some(Vec::new());
+                    self.contour.clear();
                 } else {
-                    if region.is_none() {
+                    if self.region.is_none() {
                         return Err(err(
                             s,
                             "expected G36 before G37, found G37 outside a region".into(),
                         ));
                     }
-                    close_contour(&mut img, &mut contour, dark, s)?;
-                    region = None;
+                    self.close_contour(s)?;
+                    self.region = None;
                 }
             }
             Cmd::Polarity { dark: d } => {
-                if region.is_some() {
+                if self.region.is_some() {
                     return Err(err(
                         s,
                         "expected no polarity change inside a region statement".into(),
                     ));
                 }
-                dark = *d;
+                self.dark = *d;
             }
             Cmd::Mirror { x, y } => {
-                xf.mx = *x;
-                xf.my = *y;
+                self.xf.mx = *x;
+                self.xf.my = *y;
             }
-            Cmd::Rotate(a) => xf.rot_deg = *a,
+            Cmd::Rotate(a) => self.xf.rot_deg = *a,
             Cmd::Scale(f) => {
                 if !(*f > 0.0) {
                     return Err(err(s, format!("expected a positive scale, found {f}")));
                 }
-                xf.scale = *f;
+                self.xf.scale = *f;
             }
             Cmd::StepRepeat { nx, ny, dx_m, dy_m } => {
-                close_sr(&mut img, &mut sr);
+                self.close_sr();
                 if *nx == 0 || *ny == 0 {
                     return Err(err(
                         s,
                         format!("expected at least one copy along x and y, found {nx} × {ny}"),
                     ));
                 }
-                sr = Some((img.features.len(), *nx, *ny, *dx_m, *dy_m));
+                self.sr = Some((self.img.features.len(), *nx, *ny, *dx_m, *dy_m));
             }
-            Cmd::StepRepeatEnd => close_sr(&mut img, &mut sr),
+            Cmd::StepRepeatEnd => self.close_sr(),
             Cmd::End => {
-                if region.is_some() {
+                if self.region.is_some() {
                     return Err(err(s, "expected G37 to close the region before M02".into()));
                 }
-                close_sr(&mut img, &mut sr);
-                ended = true;
+                self.close_sr();
+                self.ended = true;
             }
-            Cmd::Op { d, x, y, i, j } => {
-                let from = pt;
-                let to = match (x, y, from) {
-                    (Some(x), Some(y), _) => [*x, *y],
-                    (Some(x), None, Some(p)) => [*x, p[1]],
-                    (None, Some(y), Some(p)) => [p[0], *y],
-                    (None, None, Some(p)) => p,
-                    _ => {
-                        return Err(err(
-                            s,
-                            "expected both X and Y: the current point is undefined before the first full coordinate".into(),
-                        ))
-                    }
+            Cmd::Op { d, x, y, i, j } => self.op(s, *d, *x, *y, *i, *j)?,
+        }
+        Ok(())
+    }
+
+    /// An operation: D01 (draw), D02 (move) or D03 (flash) to (x, y).
+    fn op(
+        &mut self,
+        s: &Stmt,
+        d: u8,
+        x: Option<f64>,
+        y: Option<f64>,
+        i: Option<f64>,
+        j: Option<f64>,
+    ) -> Result<(), GerberError> {
+        let (x, y) = (&x, &y);
+        let from = self.pt;
+        let to = match (x, y, from) {
+            (Some(x), Some(y), _) => [*x, *y],
+            (Some(x), None, Some(p)) => [*x, p[1]],
+            (None, Some(y), Some(p)) => [p[0], *y],
+            (None, None, Some(p)) => p,
+            _ => {
+                return Err(err(
+                    s,
+                    "expected both X and Y: the current point is undefined before the first full coordinate".into(),
+                ))
+            }
+        };
+        match d {
+            2 => {
+                if self.region.is_some() {
+                    self.close_contour(s)?;
+                }
+                self.pt = Some(to);
+            }
+            3 => {
+                if self.region.is_some() {
+                    return Err(err(
+                        s,
+                        "expected no flash (D03) inside a region statement".into(),
+                    ));
+                }
+                let Some(code) = self.current else {
+                    return Err(err(
+                        s,
+                        "expected an aperture selected (Dnn) before a flash, found none".into(),
+                    ));
                 };
-                match d {
-                    2 => {
-                        if region.is_some() {
-                            close_contour(&mut img, &mut contour, dark, s)?;
+                let ap = &self.apertures[&code];
+                let c = aperture_contours(ap, &self.xf)
+                    .into_iter()
+                    .map(|c| {
+                        c.into_iter()
+                            .map(|p| [p[0] + to[0], p[1] + to[1]])
+                            .collect()
+                    })
+                    .collect();
+                let parts = match ap {
+                    ApertureShape::Macro { primitives, .. } => primitives
+                        .iter()
+                        .map(|p| (p.contours.len(), p.exposure))
+                        .collect(),
+                    _ => Vec::new(),
+                };
+                push_parts(&mut self.img, self.dark, c, parts);
+                self.pt = Some(to);
+            }
+            1 => self.draw(s, from, to, i, j)?,
+            _ => return Err(err(s, format!("expected D01, D02 or D03, found D{d:02}"))),
+        }
+        Ok(())
+    }
+
+    /// A draw (D01) from `from` to `to` with the arc centre offsets `i`, `j`.
+    fn draw(
+        &mut self,
+        s: &Stmt,
+        from: Option<[f64; 2]>,
+        to: [f64; 2],
+        i: Option<f64>,
+        j: Option<f64>,
+    ) -> Result<(), GerberError> {
+        let mode = self.interp;
+        let Some(p) = from else {
+            return Err(err(
+                s,
+                "expected a current point (D02 or a previous operation) before D01, found none"
+                    .into(),
+            ));
+        };
+        // The path of the segment, excluding its start point.
+        let path: Vec<[f64; 2]> = match mode {
+            Interp::Linear => vec![to],
+            Interp::Clockwise | Interp::CounterClockwise => {
+                arc_path(s, p, to, i, j, mode, self.multi)?
+            }
+        };
+        grow(&mut self.img.path_bbox, p);
+        for &q in &path {
+            grow(&mut self.img.path_bbox, q);
+        }
+        if self.region.is_some() {
+            if self.contour.is_empty() {
+                self.contour.push(p);
+            }
+            self.contour.extend(path);
+        } else {
+            let Some(code) = self.current else {
+                return Err(err(
+                    s,
+                    "expected an aperture selected (Dnn) before a draw (D01), found none".into(),
+                ));
+            };
+            let ap = &self.apertures[&code];
+            let mut prev = p;
+            match ap {
+                ApertureShape::Circle { d_m, .. } => {
+                    let r = 0.5 * d_m * self.xf.scale;
+                    if r > 0.0 {
+                        if path.is_empty() {
+                            push(&mut self.img, self.dark, vec![disc(p, r)]);
                         }
-                        pt = Some(to);
-                    }
-                    3 => {
-                        if region.is_some() {
-                            return Err(err(
-                                s,
-                                "expected no flash (D03) inside a region statement".into(),
-                            ));
-                        }
-                        let Some(code) = current else {
-                            return Err(err(
-                                s,
-                                "expected an aperture selected (Dnn) before a flash, found none"
-                                    .into(),
-                            ));
-                        };
-                        let ap = &apertures[&code];
-                        let c = aperture_contours(ap, &xf)
-                            .into_iter()
-                            .map(|c| {
-                                c.into_iter()
-                                    .map(|p| [p[0] + to[0], p[1] + to[1]])
-                                    .collect()
-                            })
-                            .collect();
-                        let parts = match ap {
-                            ApertureShape::Macro { primitives, .. } => primitives
-                                .iter()
-                                .map(|p| (p.contours.len(), p.exposure))
-                                .collect(),
-                            _ => Vec::new(),
-                        };
-                        push_parts(&mut img, dark, c, parts);
-                        pt = Some(to);
-                    }
-                    1 => {
-                        let mode = interp;
-                        let Some(p) = from else {
-                            return Err(err(s, "expected a current point (D02 or a previous operation) before D01, found none".into()));
-                        };
-                        // The path of the segment, excluding its start point.
-                        let path: Vec<[f64; 2]> = match mode {
-                            Interp::Linear => vec![to],
-                            Interp::Clockwise | Interp::CounterClockwise => {
-                                let cw = mode == Interp::Clockwise;
-                                let (ii, jj) = (i.unwrap_or(0.0), j.unwrap_or(0.0));
-                                let centre = if multi {
-                                    [p[0] + ii, p[1] + jj]
-                                } else {
-                                    // G74: I, J unsigned; the centre is the one giving an
-                                    // arc of at most 90° in the given direction.
-                                    let mut best: Option<([f64; 2], f64)> = None;
-                                    for (sx, sy) in
-                                        [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)]
-                                    {
-                                        let c = [p[0] + sx * ii.abs(), p[1] + sy * jj.abs()];
-                                        let a0 = (p[1] - c[1]).atan2(p[0] - c[0]);
-                                        let a1 = (to[1] - c[1]).atan2(to[0] - c[0]);
-                                        let sw = (if cw { a0 - a1 } else { a1 - a0 })
-                                            .rem_euclid(2.0 * std::f64::consts::PI);
-                                        let dr = ((p[0] - c[0]).hypot(p[1] - c[1])
-                                            - (to[0] - c[0]).hypot(to[1] - c[1]))
-                                        .abs();
-                                        if sw <= std::f64::consts::FRAC_PI_2 + 1e-9
-                                            && best.is_none_or(|b| dr < b.1)
-                                        {
-                                            best = Some((c, dr));
-                                        }
-                                    }
-                                    match best {
-                                        Some((c, _)) => c,
-                                        None => return Err(err(s, "expected a single-quadrant (G74) arc of at most 90°, found none matching I, J".into())),
-                                    }
-                                };
-                                let r0 = (p[0] - centre[0]).hypot(p[1] - centre[1]);
-                                let r1 = (to[0] - centre[0]).hypot(to[1] - centre[1]);
-                                if (r0 - r1).abs() > 5e-6 + 1e-3 * r0.max(r1) {
-                                    return Err(err(
-                                        s,
-                                        format!(
-                                            "expected the arc's start and end at the same distance from its centre, found {:.6} mm and {:.6} mm",
-                                            r0 * 1e3,
-                                            r1 * 1e3
-                                        ),
-                                    ));
-                                }
-                                if !multi && (p[0] - to[0]).hypot(p[1] - to[1]) <= 1e-12 {
-                                    Vec::new()
-                                } else {
-                                    arc_points(p, to, centre, cw)
-                                }
-                            }
-                        };
-                        grow(&mut img.path_bbox, p);
                         for &q in &path {
-                            grow(&mut img.path_bbox, q);
+                            push(&mut self.img, self.dark, vec![capsule(prev, q, r)]);
+                            prev = q;
                         }
-                        if region.is_some() {
-                            if contour.is_empty() {
-                                contour.push(p);
-                            }
-                            contour.extend(path);
-                        } else {
-                            let Some(code) = current else {
-                                return Err(err(s, "expected an aperture selected (Dnn) before a draw (D01), found none".into()));
-                            };
-                            let ap = &apertures[&code];
-                            let mut prev = p;
-                            match ap {
-                                ApertureShape::Circle { d_m, .. } => {
-                                    let r = 0.5 * d_m * xf.scale;
-                                    if r > 0.0 {
-                                        if path.is_empty() {
-                                            push(&mut img, dark, vec![disc(p, r)]);
-                                        }
-                                        for &q in &path {
-                                            push(&mut img, dark, vec![capsule(prev, q, r)]);
-                                            prev = q;
-                                        }
-                                    }
-                                }
-                                ApertureShape::Rect { .. } if mode == Interp::Linear => {
-                                    let c = &aperture_contours(ap, &xf)[0];
-                                    let pts = c
-                                        .iter()
-                                        .flat_map(|v| [[v[0] + p[0], v[1] + p[1]], [v[0] + to[0], v[1] + to[1]]])
-                                        .collect();
-                                    push(&mut img, dark, vec![convex_hull(pts)]);
-                                }
-                                _ => {
-                                    return Err(err(
-                                        s,
-                                        format!("expected a circular aperture for a draw (a rectangle for straight draws only), found D{code} = {ap:?}"),
-                                    ))
-                                }
-                            }
-                        }
-                        pt = Some(to);
                     }
-                    _ => return Err(err(s, format!("expected D01, D02 or D03, found D{d:02}"))),
+                }
+                ApertureShape::Rect { .. } if mode == Interp::Linear => {
+                    let c = &aperture_contours(ap, &self.xf)[0];
+                    let pts = c
+                        .iter()
+                        .flat_map(|v| [[v[0] + p[0], v[1] + p[1]], [v[0] + to[0], v[1] + to[1]]])
+                        .collect();
+                    push(&mut self.img, self.dark, vec![convex_hull(pts)]);
+                }
+                _ => {
+                    return Err(err(
+                        s,
+                        format!("expected a circular aperture for a draw (a rectangle for straight draws only), found D{code} = {ap:?}"),
+                    ))
                 }
             }
         }
+        self.pt = Some(to);
+        Ok(())
     }
-    if region.is_some() {
-        let s = stmts.last().map(|s| s.pos.clone()).unwrap_or(SrcPos {
-            line: 0,
-            command: String::new(),
-        });
-        return Err(GerberError {
-            pos: s,
-            message: "expected G37 to close the region, found the end of the file".into(),
-        });
+}
+
+/// The path of a circular arc from `p` to `to` (excluding `p`) with centre offsets `i`,
+/// `j`: signed (G75, `multi`), or unsigned with the centre giving an arc of at most 90°
+/// (G74).
+fn arc_path(
+    s: &Stmt,
+    p: [f64; 2],
+    to: [f64; 2],
+    i: Option<f64>,
+    j: Option<f64>,
+    mode: Interp,
+    multi: bool,
+) -> Result<Vec<[f64; 2]>, GerberError> {
+    let cw = mode == Interp::Clockwise;
+    let (ii, jj) = (i.unwrap_or(0.0), j.unwrap_or(0.0));
+    let centre = if multi {
+        [p[0] + ii, p[1] + jj]
+    } else {
+        // G74: I, J unsigned; the centre is the one giving an
+        // arc of at most 90° in the given direction.
+        let mut best: Option<([f64; 2], f64)> = None;
+        for (sx, sy) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
+            let c = [p[0] + sx * ii.abs(), p[1] + sy * jj.abs()];
+            let a0 = (p[1] - c[1]).atan2(p[0] - c[0]);
+            let a1 = (to[1] - c[1]).atan2(to[0] - c[0]);
+            let sw = (if cw { a0 - a1 } else { a1 - a0 }).rem_euclid(2.0 * std::f64::consts::PI);
+            let dr = ((p[0] - c[0]).hypot(p[1] - c[1]) - (to[0] - c[0]).hypot(to[1] - c[1])).abs();
+            if sw <= std::f64::consts::FRAC_PI_2 + 1e-9 && best.is_none_or(|b| dr < b.1) {
+                best = Some((c, dr));
+            }
+        }
+        match best {
+            Some((c, _)) => c,
+            None => {
+                return Err(err(
+                    s,
+                    "expected a single-quadrant (G74) arc of at most 90°, found none matching I, J"
+                        .into(),
+                ))
+            }
+        }
+    };
+    let r0 = (p[0] - centre[0]).hypot(p[1] - centre[1]);
+    let r1 = (to[0] - centre[0]).hypot(to[1] - centre[1]);
+    if (r0 - r1).abs() > 5e-6 + 1e-3 * r0.max(r1) {
+        return Err(err(
+            s,
+            format!(
+                "expected the arc's start and end at the same distance from its centre, found {:.6} mm and {:.6} mm",
+                r0 * 1e3,
+                r1 * 1e3
+            ),
+        ));
     }
-    close_sr(&mut img, &mut sr);
-    Ok(img)
+    Ok(if !multi && (p[0] - to[0]).hypot(p[1] - to[1]) <= 1e-12 {
+        Vec::new()
+    } else {
+        arc_points(p, to, centre, cw)
+    })
 }
 
 /// Sorted disjoint intervals.

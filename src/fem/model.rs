@@ -471,6 +471,666 @@ impl TermBuilder {
     }
 }
 
+/// Triplets of one term: (row, column, value).
+type Triplets = Vec<(usize, usize, f64)>;
+
+/// Checks that `x_m` and `y_m` are node lines of `board`: at least 2 elements each way,
+/// strictly increasing from 0 to the board's length (width).
+fn check_node_lines(board: &Board, x_m: &[f64], y_m: &[f64]) -> Result<(), FemError> {
+    for (axis, l, len) in [("x", x_m, board.length_x_m), ("y", y_m, board.width_y_m)] {
+        let tol = 1e-9 * len;
+        if l.len() < 3
+            || l[0] != 0.0
+            || (l[l.len() - 1] - len).abs() > tol
+            || l.windows(2).any(|p| !(p[1] > p[0]))
+        {
+            let bad = l.windows(2).position(|p| !(p[1] > p[0]));
+            return Err(FemError::Mesh(format!(
+                "expected at least 2 elements along {axis}: node lines strictly increasing from 0 to {len} m, found {} lines from {:?} to {:?}{}",
+                l.len(),
+                l.first(),
+                l.last(),
+                bad.map_or(String::new(), |i| format!(", not increasing at line {}", i + 1))
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Per element: whether it keeps material, its material fraction, and its cut-cell
+/// quadrature when a hole cuts it.
+struct CutCells {
+    active: Vec<bool>,
+    material_fraction: Vec<f64>,
+    cut_points: Vec<Option<CutCell>>,
+}
+
+/// The cut cells of `board`'s holes on the `nx × ny` mesh `mesh`.
+fn cut_cells(board: &Board, mesh: &Mesh, nx: usize, ny: usize) -> CutCells {
+    // Cut cells: per element, the quadrature points of its part inside each hole
+    // (holes do not overlap, see `Board::validate`), and its material fraction.
+    // An element with (almost) no material is dropped; below 1e-12 of its area the
+    // material it would carry changes no frequency by more than rounding, while its
+    // DOFs would make K − σM singular to working precision.
+    let mut active = vec![true; nx * ny];
+    let mut material_fraction = vec![1.0; nx * ny];
+    let mut cut_points: Vec<Option<CutCell>> = vec![None; nx * ny];
+    for ey in 0..ny {
+        for ex in 0..nx {
+            let e = ey * nx + ex;
+            let rect = mesh.rect(ex, ey);
+            let mut voids: Vec<(usize, Vec<QPoint>)> = Vec::new();
+            for (hi, h) in board.holes.iter().enumerate() {
+                let q = annulus_rect_quadrature(h.x_m, h.y_m, 0.0, 0.5 * h.diameter_m, &rect);
+                if !q.is_empty() {
+                    voids.push((hi, q));
+                }
+            }
+            if voids.is_empty() {
+                continue;
+            }
+            let void: f64 = voids.iter().flat_map(|v| &v.1).map(|q| q.2).sum();
+            material_fraction[e] = (1.0 - void / rect.area()).clamp(0.0, 1.0);
+            // An element whose four corners lie in one hole lies in it whole (a disc
+            // is convex): decided exactly, since 1 − void/area leaves ~1e-11 of
+            // rounding there, which once kept such an element and its DOFs.
+            let inside = |h: &super::board::Hole| {
+                let r2 = (0.5 * h.diameter_m).powi(2);
+                [rect.x0, rect.x1].iter().all(|x| {
+                    [rect.y0, rect.y1]
+                        .iter()
+                        .all(|y| (x - h.x_m).powi(2) + (y - h.y_m).powi(2) <= r2)
+                })
+            };
+            if board.holes.iter().any(inside) {
+                material_fraction[e] = 0.0;
+            }
+            if material_fraction[e] < MIN_MATERIAL_FRACTION {
+                active[e] = false;
+                continue;
+            }
+            cut_points[e] = Some(if voids.len() == 1 {
+                // Integrate the material part directly (rays from the hole centre,
+                // from its radius to the far side of the element): no cancellation
+                // when little material is left.
+                let h = &board.holes[voids[0].0];
+                let far = (rect.x1 - rect.x0).hypot(rect.y1 - rect.y0)
+                    + (h.x_m - rect.x0).abs()
+                    + (h.y_m - rect.y0).abs();
+                CutCell::Material(annulus_rect_quadrature(
+                    h.x_m,
+                    h.y_m,
+                    0.5 * h.diameter_m,
+                    far,
+                    &rect,
+                ))
+            } else {
+                CutCell::Void(voids.into_iter().flat_map(|v| v.1).collect())
+            });
+        }
+    }
+    CutCells {
+        active,
+        material_fraction,
+        cut_points,
+    }
+}
+
+/// Per node, its first DOF (four per node; `None`: the node is in no active element),
+/// and the number of DOFs.
+fn number_dofs(active: &[bool], nx: usize, ny: usize) -> (Vec<Option<usize>>, usize) {
+    let n_nodes = (nx + 1) * (ny + 1);
+    let mut used = vec![false; n_nodes];
+    for ey in 0..ny {
+        for ex in 0..nx {
+            if active[ey * nx + ex] {
+                for (i, j) in NODE_IJ {
+                    used[(ey + j) * (nx + 1) + ex + i] = true;
+                }
+            }
+        }
+    }
+    let mut node_dof = vec![None; n_nodes];
+    let mut n_dof = 0;
+    for (n, u) in used.iter().enumerate() {
+        if *u {
+            node_dof[n] = Some(n_dof);
+            n_dof += 4;
+        }
+    }
+    (node_dof, n_dof)
+}
+
+/// The plate's parameters (the core's moduli, the copper's modulus, the mass scale, and
+/// the core thickness when `core_thickness`) with their nominal values, the mass scale's
+/// index and the core thickness's.
+fn plate_params(
+    board: &Board,
+    core_thickness: bool,
+) -> (Vec<String>, Vec<f64>, usize, Option<usize>) {
+    let c = &board.core;
+    let mut pnames: Vec<String> = [names::E_X, names::E_Y, names::G_XY, names::NU_XY]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    let mut nominal = vec![c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy];
+    if !board.copper.is_empty() {
+        pnames.push(names::E_CU.into());
+        nominal.push(board.copper[0].e_pa);
+    }
+    pnames.push(names::MASS_SCALE.into());
+    nominal.push(1.0);
+    let i_mass = pnames.len() - 1;
+    // The core thickness's index, when it is a parameter.
+    let i_h = core_thickness.then(|| {
+        pnames.push(names::CORE_THICKNESS.into());
+        nominal.push(c.thickness_m);
+        pnames.len() - 1
+    });
+    (pnames, nominal, i_mass, i_h)
+}
+
+/// `base` times (h/h₀)^`power` when the core thickness h is parameter `i_h`, else `base`.
+fn thickness_power(i_h: Option<usize>, nominal_m: f64, base: Coef, power: i32) -> Coef {
+    match i_h {
+        Some(param) => Coef::ThicknessPower {
+            base: Box::new(base),
+            param,
+            nominal_m,
+            power,
+        },
+        None => base,
+    }
+}
+
+/// Appends Σ_k comp_k K[k] of the element with DOFs `dofs` to `t`.
+fn add_components(t: &mut Triplets, em: &ElementMatrices, dofs: &[usize; 16], comp: Comp4) {
+    for r in 0..16 {
+        for cc in 0..16 {
+            let v: f64 = (0..4).map(|k| comp[k] * em.k[k][r][cc]).sum::<f64>();
+            t.push((dofs[r], dofs[cc], v));
+        }
+    }
+}
+
+/// Appends the element matrix `m` with DOFs `dofs` to `t`.
+fn push16(t: &mut Triplets, dofs: &[usize; 16], m: &[[f64; 16]; 16]) {
+    for r in 0..16 {
+        for cc in 0..16 {
+            t.push((dofs[r], dofs[cc], m[r][cc]));
+        }
+    }
+}
+
+/// Σ over cells of Σ_k comp_k(cell) K_cell[k].
+fn combine(cells: &[Cell], eme: &ElementMatrices, f: &dyn Fn(&Cell) -> Comp4) -> [[f64; 16]; 16] {
+    let mut out = [[0.0; 16]; 16];
+    for cell in cells {
+        let m = cell.matrices.as_ref().unwrap_or(eme);
+        let comp = f(cell);
+        for k in 0..4 {
+            if comp[k] == 0.0 {
+                continue;
+            }
+            for r in 0..16 {
+                for cc in 0..16 {
+                    out[r][cc] += comp[k] * m.k[k][r][cc];
+                }
+            }
+        }
+    }
+    out
+}
+
+/// What the element loop and the coupling expansion share: the board on its mesh with
+/// its cut cells and copper, and the core's laminate data.
+struct Plate<'a> {
+    board: &'a Board,
+    mesh: &'a Mesh,
+    cut_points: &'a [Option<CutCell>],
+    units: UnitMatrices<'a>,
+    copper: CopperMap,
+    /// The core's nominal Q.
+    q_core: Comp4,
+    /// The core's A factor (its thickness).
+    a_core: f64,
+    /// The core's thickness, m.
+    h: f64,
+}
+
+/// The element loop's triplets, per term.
+#[derive(Default)]
+struct PlateTriplets {
+    core: [Triplets; 4],
+    cu: Triplets,
+    cu_pow: [Triplets; 3],
+    corr: Triplets,
+    mass: Triplets,
+    mass_core: Triplets,
+    any_corr: bool,
+}
+
+impl Plate<'_> {
+    /// The pieces of constant copper of element (ex, ey).
+    fn cells_of(&self, ex: usize, ey: usize) -> Vec<Cell> {
+        // Copper is integrated exactly: each element is split into convex pieces of
+        // constant coverage (see `fem::copper`), each piece integrated over its
+        // material part (holes cut out) by the polygon / polar cut-cell quadrature.
+        let nx = self.mesh.nx;
+        let rect = self.mesh.rect(ex, ey);
+        let (a, b) = self.mesh.size(ex, ey);
+        let mut pieces = self.copper.pieces(&rect);
+        if pieces.len() == 1 {
+            let coverage = pieces.pop().map(|p| p.coverage).unwrap_or_default();
+            return vec![Cell {
+                coverage,
+                matrices: None,
+            }];
+        }
+        pieces
+            .into_iter()
+            .map(|p| {
+                let mut m = ElementMatrices {
+                    k: [[[0.0; 16]; 16]; 4],
+                    m: [[0.0; 16]; 16],
+                };
+                let pts = if self.cut_points[ey * nx + ex].is_some() {
+                    piece_material_quadrature(&p.polygon, &self.board.holes)
+                } else {
+                    polygon_quadrature(&p.polygon)
+                };
+                m.add_points(&pts, rect.x0, rect.y0, a, b, 1.0);
+                Cell {
+                    coverage: p.coverage,
+                    matrices: Some(m),
+                }
+            })
+            .collect()
+    }
+
+    /// Per copper state: D_cu, ρh of copper, A and B of the stack, and the two copper
+    /// variables s, t of the coupling expansion.
+    fn stack(&self, cov: &[f64]) -> Stack {
+        let h = self.h;
+        let mut st = Stack {
+            a: self.q_core.map(|q| q * self.a_core),
+            b: [0.0; 4],
+            d_cu: [0.0; 4],
+            d_cu_pow: [[0.0; 4]; 3],
+            rho_h_cu: 0.0,
+            s: 0.0,
+            t: 0.0,
+            t_pow: [0.0; 2],
+        };
+        for (l, frac) in self.board.copper.iter().zip(cov) {
+            if *frac == 0.0 {
+                continue;
+            }
+            let (z1, z2) = match l.side {
+                LayerSide::Top => (h / 2.0, h / 2.0 + l.thickness_m),
+                LayerSide::Bottom => (-h / 2.0 - l.thickness_m, -h / 2.0),
+            };
+            let (fa, fb, fd) = layer_factors(z1, z2);
+            let q = isotropic_q(l.e_pa, l.nu);
+            let tl = l.thickness_m;
+            let fd_pow = [tl.powi(3) / 3.0, h * tl * tl / 2.0, h * h * tl / 4.0];
+            let sign = if fb < 0.0 { -1.0 } else { 1.0 };
+            for k in 0..4 {
+                st.a[k] += frac * q[k] * fa;
+                st.b[k] += frac * q[k] * fb;
+                st.d_cu[k] += frac * q[k] * fd;
+                for (pw, f) in fd_pow.iter().enumerate() {
+                    st.d_cu_pow[pw][k] += frac * q[k] * f;
+                }
+            }
+            st.rho_h_cu += frac * l.density_kg_per_m3 * l.thickness_m;
+            st.s += frac * fa;
+            st.t += frac * fb;
+            st.t_pow[0] += sign * frac * tl / 2.0;
+            st.t_pow[1] += sign * frac * tl * tl / 2.0;
+        }
+        st
+    }
+
+    /// The element matrices of (ex, ey) over its material part only.
+    fn material_matrices(&self, ex: usize, ey: usize) -> std::borrow::Cow<'_, ElementMatrices> {
+        let nx = self.mesh.nx;
+        let em = self.units.get(ex, ey);
+        match &self.cut_points[ey * nx + ex] {
+            None => em,
+            Some(cc) => std::borrow::Cow::Owned(cut_cell_matrices(&em, cc, self.mesh, ex, ey)),
+        }
+    }
+
+    /// The plate's triplets of every active element (core per Q component, copper, the
+    /// frozen coupling correction, mass), and the elements with B ≠ 0 somewhere (for the
+    /// exact coupling expansion, when `uniform_cu`). With `thickness`, copper and the
+    /// core's mass are split by powers of the core thickness.
+    fn element_triplets(
+        &self,
+        thickness: bool,
+        uniform_cu: bool,
+        q_core_scale: Comp4,
+        d_core: f64,
+    ) -> (PlateTriplets, Vec<(usize, usize)>) {
+        let mesh = self.mesh;
+        let (nx, ny) = (mesh.nx, mesh.ny);
+        let has_cu = !self.board.copper.is_empty();
+        let mut t = PlateTriplets::default();
+        // Elements with B ≠ 0 somewhere, for the exact expansion.
+        let mut coupled: Vec<(usize, usize)> = Vec::new();
+        for ey in 0..ny {
+            for ex in 0..nx {
+                if !mesh.active[ey * nx + ex] {
+                    continue;
+                }
+                let Some(dofs) = mesh.element_dofs(ex, ey) else {
+                    unreachable!("active element without DOFs")
+                };
+                // The element's matrices over its material part only.
+                let em = self.material_matrices(ex, ey);
+                let eme = &*em;
+                // Core: one term per Q component, assembled at the nominal Q (or, where a
+                // component is zero there, at the scale its coefficient divides by).
+                for k in 0..4 {
+                    let mut unit = [0.0; 4];
+                    unit[k] = q_core_scale[k] * d_core;
+                    add_components(&mut t.core[k], eme, &dofs, unit);
+                }
+                let cells = self.cells_of(ex, ey);
+                if has_cu && thickness {
+                    for (pw, tp) in t.cu_pow.iter_mut().enumerate() {
+                        let k_cu = combine(&cells, eme, &|c| self.stack(&c.coverage).d_cu_pow[pw]);
+                        push16(tp, &dofs, &k_cu);
+                    }
+                } else if has_cu {
+                    let k_cu = combine(&cells, eme, &|c| self.stack(&c.coverage).d_cu);
+                    push16(&mut t.cu, &dofs, &k_cu);
+                }
+                if uniform_cu {
+                    if cells.iter().any(|c| self.stack(&c.coverage).t != 0.0) {
+                        coupled.push((ex, ey));
+                    }
+                } else {
+                    let corr = combine(&cells, eme, &|c| {
+                        let st = self.stack(&c.coverage);
+                        coupling_correction(st.a, st.b)
+                    });
+                    if corr.iter().flatten().any(|v| *v != 0.0) {
+                        t.any_corr = true;
+                        push16(&mut t.corr, &dofs, &corr);
+                    }
+                }
+                let mut mass = [[0.0; 16]; 16];
+                let rho_core_h = self.board.core.density_kg_per_m3 * self.h;
+                for cell in &cells {
+                    let mm = &cell.matrices.as_ref().unwrap_or(eme).m;
+                    let rho = self.stack(&cell.coverage).rho_h_cu;
+                    for r in 0..16 {
+                        for cc in 0..16 {
+                            mass[r][cc] += rho * mm[r][cc];
+                        }
+                    }
+                }
+                if thickness {
+                    // The core's mass in a term of its own (∝ h).
+                    let mut core = [[0.0; 16]; 16];
+                    for r in 0..16 {
+                        for cc in 0..16 {
+                            core[r][cc] = rho_core_h * eme.m[r][cc];
+                        }
+                    }
+                    push16(&mut t.mass_core, &dofs, &core);
+                } else {
+                    for r in 0..16 {
+                        for cc in 0..16 {
+                            mass[r][cc] += rho_core_h * eme.m[r][cc];
+                        }
+                    }
+                }
+                push16(&mut t.mass, &dofs, &mass);
+            }
+        }
+        (t, coupled)
+    }
+
+    /// The exact coupling expansion's terms over the elements `coupled` (copper of modulus
+    /// `e_cu0` and Q `q_cu`, its modulus parameter `i_cu`): names, coefficients and values
+    /// on `pattern`.
+    fn coupling_terms(
+        &self,
+        coupled: &[(usize, usize)],
+        pattern: &Pattern,
+        (e_cu0, q_cu): (f64, Comp4),
+        i_cu: usize,
+        i_h: Option<usize>,
+        h_pow: &dyn Fn(Coef, i32) -> Coef,
+    ) -> (Vec<String>, Vec<Coef>, Vec<Vec<f64>>) {
+        let mut names = Vec::new();
+        let mut coefs = Vec::new();
+        let s_max = self.board.copper_thickness_m();
+        let nodes = chebyshev_nodes(coupling_nodes(&self.q_core, self.h, &q_cu, s_max), s_max);
+        let (scales, vals) = self.coupling_values(coupled, pattern, &nodes, q_cu, i_h.is_some());
+        let n_pow: usize = if i_h.is_some() { 3 } else { 1 };
+        for pw in 0..n_pow {
+            for (k, sk) in nodes.iter().enumerate() {
+                for comp in 0..4 {
+                    let coupling = Coef::Coupling {
+                        s_node_m: *sk,
+                        comp,
+                        scale: scales[k][comp],
+                        h_core_m: self.h,
+                        q_cu_pa: q_cu,
+                        e_cu_param: i_cu,
+                        e_cu_nominal_pa: e_cu0,
+                        h_param: i_h,
+                    };
+                    names.push(match i_h {
+                        Some(_) => format!("coupling_s{k}_c{comp}_h{pw}"),
+                        None => format!("coupling_s{k}_c{comp}"),
+                    });
+                    coefs.push(h_pow(coupling, pw as i32));
+                }
+            }
+        }
+        (names, coefs, vals)
+    }
+
+    /// The exact coupling expansion's values on `pattern` over the elements `coupled`, one
+    /// per power of h (one power without the thickness parameter), Chebyshev node and Q
+    /// component, and the components' scales per node.
+    fn coupling_values(
+        &self,
+        coupled: &[(usize, usize)],
+        pattern: &Pattern,
+        nodes: &[f64],
+        q_cu: Comp4,
+        thickness: bool,
+    ) -> (Vec<[f64; 4]>, Vec<Vec<f64>>) {
+        let h = self.h;
+        // With the thickness a parameter, t² = h² u² + 2 h u v + v²: one set of terms
+        // per power of h (highest last), each with its h₀ factors.
+        let n_pow = if thickness { 3 } else { 1 };
+        let n_set = 4 * nodes.len();
+        let mut vals = vec![vec![0.0; pattern.row_idx.len()]; n_pow * n_set];
+        let scales: Vec<[f64; 4]> = nodes
+            .iter()
+            .map(|sk| {
+                coupling_kernel(self.q_core, h, q_cu, 1.0, *sk).0.map(|g| {
+                    if g != 0.0 {
+                        g
+                    } else {
+                        1.0
+                    }
+                })
+            })
+            .collect();
+        for &(ex, ey) in coupled {
+            let em = self.material_matrices(ex, ey);
+            let eme = &*em;
+            let Some(dofs) = self.mesh.element_dofs(ex, ey) else {
+                unreachable!("active element without DOFs")
+            };
+            let idx: Vec<usize> = (0..256)
+                .map(|q| pattern.index(dofs[q / 16], dofs[q % 16]))
+                .collect();
+            for cell in self.cells_of(ex, ey) {
+                let st = self.stack(&cell.coverage);
+                if st.t == 0.0 {
+                    continue;
+                }
+                let m = cell.matrices.as_ref().unwrap_or(eme);
+                let l = lagrange_basis(nodes, st.s);
+                let t2: Vec<f64> = if thickness {
+                    let (hu, v) = (h * st.t_pow[0], st.t_pow[1]);
+                    vec![v * v, 2.0 * hu * v, hu * hu]
+                } else {
+                    vec![st.t * st.t]
+                };
+                for (pw, t2) in t2.iter().enumerate() {
+                    for (k, lk) in l.iter().enumerate() {
+                        for comp in 0..4 {
+                            let w = -t2 * lk * scales[k][comp];
+                            let v = &mut vals[pw * n_set + 4 * k + comp];
+                            for (q, &iq) in idx.iter().enumerate() {
+                                v[iq] += w * m.k[comp][q / 16][q % 16];
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        (scales, vals)
+    }
+}
+
+impl PlateTriplets {
+    /// The plate's stiffness and mass terms, named and with their coefficients (`i_mass`:
+    /// the mass scale's index; `i_h`: the core thickness's, when a parameter).
+    fn push_terms(
+        self,
+        kb: &mut TermBuilder,
+        mb: &mut TermBuilder,
+        board: &Board,
+        i_mass: usize,
+        i_h: Option<usize>,
+        h_pow: &dyn Fn(Coef, i32) -> Coef,
+    ) {
+        let has_cu = !board.copper.is_empty();
+        let core_names = ["core_q11", "core_q22", "core_q12", "core_q66"];
+        for (k, t) in self.core.into_iter().enumerate() {
+            kb.push(core_names[k], h_pow(Coef::CoreQ { comp: k }, 3), t);
+        }
+        if has_cu && i_h.is_some() {
+            let scale = board.copper[0].e_pa;
+            for (pw, t) in self.cu_pow.into_iter().enumerate() {
+                let coef = h_pow(Coef::Linear { param: 4, scale }, pw as i32);
+                kb.push(&format!("copper_h{pw}"), coef, t);
+            }
+        } else if has_cu {
+            let scale = board.copper[0].e_pa;
+            kb.push("copper", Coef::Linear { param: 4, scale }, self.cu);
+        }
+        if self.any_corr {
+            kb.push("coupling_correction", Coef::Const, self.corr);
+        }
+        // Without copper, a thickness parameter leaves the core's mass term alone.
+        if i_h.is_none() || has_cu {
+            mb.push(
+                "board_mass",
+                Coef::Linear {
+                    param: i_mass,
+                    scale: 1.0,
+                },
+                self.mass,
+            );
+        }
+        if i_h.is_some() {
+            let coef = Coef::Linear {
+                param: i_mass,
+                scale: 1.0,
+            };
+            mb.push("core_mass", h_pow(coef, 1), self.mass_core);
+        }
+    }
+}
+
+/// Per hole of a bolted board, the DOFs of w in its clamped annulus and its patch (the
+/// annulus's area and per-element integrals).
+fn joint_patches(board: &Board, mesh: &Mesh) -> Result<(Vec<Vec<usize>>, Vec<Patch>), FemError> {
+    let (nx, ny) = (mesh.nx, mesh.ny);
+    let r_clamp = 0.5 * board.joint().clamp_diameter_m;
+    let mut patches = Vec::new();
+    let mut jpatches = Vec::new();
+    for (hi, hole) in board.holes.iter().enumerate() {
+        let r_hole = 0.5 * hole.diameter_m;
+        let mut parts = Vec::new();
+        let mut w_dofs = Vec::new();
+        for ey in 0..ny {
+            for ex in 0..nx {
+                if !mesh.active[ey * nx + ex] {
+                    continue;
+                }
+                let rect = mesh.rect(ex, ey);
+                let (a, b) = mesh.size(ex, ey);
+                let pts = annulus_rect_quadrature(hole.x_m, hole.y_m, r_hole, r_clamp, &rect);
+                if pts.is_empty() {
+                    continue;
+                }
+                let Some(dofs) = mesh.element_dofs(ex, ey) else {
+                    unreachable!("active element without DOFs")
+                };
+                let pi = part_integrals(&pts, rect.x0, rect.y0, a, b);
+                for k in 0..4 {
+                    w_dofs.push(dofs[4 * k]);
+                }
+                parts.push((dofs, pi));
+            }
+        }
+        let area_m2: f64 = parts.iter().map(|(_, p)| p.area_m2).sum();
+        if !(area_m2 > 0.0) {
+            return Err(FemError::Mesh(format!(
+                "hole {hi} at ({}, {}) m: expected a clamped annulus of positive area between the hole radius {r_hole} m and the clamp radius {r_clamp} m, found none",
+                hole.x_m, hole.y_m
+            )));
+        }
+        w_dofs.sort_unstable();
+        w_dofs.dedup();
+        patches.push(w_dofs);
+        jpatches.push(Patch { area_m2, parts });
+    }
+    Ok((patches, jpatches))
+}
+
+/// Adds the joint terms `terms` to the stiffness (`kb`) or mass (`mb`) terms, each joint
+/// parameter appended to `pnames` and `nominal` when first seen.
+fn push_joint_terms(
+    terms: Vec<super::joints::JointTerm>,
+    pnames: &mut Vec<String>,
+    nominal: &mut Vec<f64>,
+    kb: &mut TermBuilder,
+    mb: &mut TermBuilder,
+) {
+    for t in terms {
+        let param = match pnames.iter().position(|n| *n == t.param) {
+            Some(i) => i,
+            None => {
+                pnames.push(t.param.clone());
+                nominal.push(t.nominal);
+                pnames.len() - 1
+            }
+        };
+        let coef = Coef::Linear {
+            param,
+            scale: t.scale,
+        };
+        match t.which {
+            Which::K => kb.push(&t.param, coef, t.triplets),
+            Which::M => mb.push(&t.param, coef, t.triplets),
+        }
+    }
+}
+
 impl FeModel {
     /// Build the model of `board` in `setup` on the mesh `mesh`.
     /// Free boards get a uniform mesh, bolted ones a mesh graded towards the joints
@@ -517,23 +1177,7 @@ impl FeModel {
         opts: ModelOptions,
     ) -> Result<FeModel, FemError> {
         board.validate()?;
-        for (axis, l, len) in [("x", &x_m, board.length_x_m), ("y", &y_m, board.width_y_m)] {
-            let tol = 1e-9 * len;
-            if l.len() < 3
-                || l[0] != 0.0
-                || (l[l.len() - 1] - len).abs() > tol
-                || l.windows(2).any(|p| !(p[1] > p[0]))
-            {
-                let bad = l.windows(2).position(|p| !(p[1] > p[0]));
-                return Err(FemError::Mesh(format!(
-                    "expected at least 2 elements along {axis}: node lines strictly increasing from 0 to {len} m, found {} lines from {:?} to {:?}{}",
-                    l.len(),
-                    l.first(),
-                    l.last(),
-                    bad.map_or(String::new(), |i| format!(", not increasing at line {}", i + 1))
-                )));
-            }
-        }
+        check_node_lines(board, &x_m, &y_m)?;
         if let Setup::Bolted(j) = &setup {
             j.validate()?;
             if board.holes.is_empty() {
@@ -544,139 +1188,26 @@ impl FeModel {
         }
         let (nx, ny) = (x_m.len() - 1, y_m.len() - 1);
         let mut mesh_data = Mesh::from_lines(x_m, y_m, board.length_x_m, board.width_y_m);
-        // Cut cells: per element, the quadrature points of its part inside each hole
-        // (holes do not overlap, see `Board::validate`), and its material fraction.
-        // An element with (almost) no material is dropped; below 1e-12 of its area the
-        // material it would carry changes no frequency by more than rounding, while its
-        // DOFs would make K − σM singular to working precision.
-        let mut active = vec![true; nx * ny];
-        let mut material_fraction = vec![1.0; nx * ny];
-        let mut cut_points: Vec<Option<CutCell>> = vec![None; nx * ny];
-        for ey in 0..ny {
-            for ex in 0..nx {
-                let e = ey * nx + ex;
-                let rect = mesh_data.rect(ex, ey);
-                let mut voids: Vec<(usize, Vec<QPoint>)> = Vec::new();
-                for (hi, h) in board.holes.iter().enumerate() {
-                    let q = annulus_rect_quadrature(h.x_m, h.y_m, 0.0, 0.5 * h.diameter_m, &rect);
-                    if !q.is_empty() {
-                        voids.push((hi, q));
-                    }
-                }
-                if voids.is_empty() {
-                    continue;
-                }
-                let void: f64 = voids.iter().flat_map(|v| &v.1).map(|q| q.2).sum();
-                material_fraction[e] = (1.0 - void / rect.area()).clamp(0.0, 1.0);
-                // An element whose four corners lie in one hole lies in it whole (a disc
-                // is convex): decided exactly, since 1 − void/area leaves ~1e-11 of
-                // rounding there, which once kept such an element and its DOFs.
-                let inside = |h: &super::board::Hole| {
-                    let r2 = (0.5 * h.diameter_m).powi(2);
-                    [rect.x0, rect.x1].iter().all(|x| {
-                        [rect.y0, rect.y1]
-                            .iter()
-                            .all(|y| (x - h.x_m).powi(2) + (y - h.y_m).powi(2) <= r2)
-                    })
-                };
-                if board.holes.iter().any(inside) {
-                    material_fraction[e] = 0.0;
-                }
-                if material_fraction[e] < MIN_MATERIAL_FRACTION {
-                    active[e] = false;
-                    continue;
-                }
-                cut_points[e] = Some(if voids.len() == 1 {
-                    // Integrate the material part directly (rays from the hole centre,
-                    // from its radius to the far side of the element): no cancellation
-                    // when little material is left.
-                    let h = &board.holes[voids[0].0];
-                    let far = (rect.x1 - rect.x0).hypot(rect.y1 - rect.y0)
-                        + (h.x_m - rect.x0).abs()
-                        + (h.y_m - rect.y0).abs();
-                    CutCell::Material(annulus_rect_quadrature(
-                        h.x_m,
-                        h.y_m,
-                        0.5 * h.diameter_m,
-                        far,
-                        &rect,
-                    ))
-                } else {
-                    CutCell::Void(voids.into_iter().flat_map(|v| v.1).collect())
-                });
-            }
-        }
-        let n_nodes = (nx + 1) * (ny + 1);
-        let mut used = vec![false; n_nodes];
-        for ey in 0..ny {
-            for ex in 0..nx {
-                if active[ey * nx + ex] {
-                    for (i, j) in NODE_IJ {
-                        used[(ey + j) * (nx + 1) + ex + i] = true;
-                    }
-                }
-            }
-        }
-        let mut node_dof = vec![None; n_nodes];
-        let mut n_dof = 0;
-        for (n, u) in used.iter().enumerate() {
-            if *u {
-                node_dof[n] = Some(n_dof);
-                n_dof += 4;
-            }
-        }
-        mesh_data.active = active;
-        mesh_data.material_fraction = material_fraction;
+        let cuts = cut_cells(board, &mesh_data, nx, ny);
+        let (node_dof, mut n_dof) = number_dofs(&cuts.active, nx, ny);
+        mesh_data.active = cuts.active;
+        mesh_data.material_fraction = cuts.material_fraction;
         mesh_data.node_dof = node_dof;
         let mesh_data = mesh_data;
+        let cut_points = cuts.cut_points;
 
         // Parameters.
         let c = &board.core;
-        let mut pnames: Vec<String> = [names::E_X, names::E_Y, names::G_XY, names::NU_XY]
-            .iter()
-            .map(|s| s.to_string())
-            .collect();
-        let mut nominal = vec![c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy];
+        let (mut pnames, mut nominal, i_mass, i_h) = plate_params(board, opts.core_thickness);
         let has_cu = !board.copper.is_empty();
-        if has_cu {
-            pnames.push(names::E_CU.into());
-            nominal.push(board.copper[0].e_pa);
-        }
-        pnames.push(names::MASS_SCALE.into());
-        nominal.push(1.0);
-        let i_mass = pnames.len() - 1;
-        // The core thickness's index, when it is a parameter.
-        let i_h = opts.core_thickness.then(|| {
-            pnames.push(names::CORE_THICKNESS.into());
-            nominal.push(c.thickness_m);
-            pnames.len() - 1
-        });
         // A term's coefficient times (h/h₀)^power where h is a parameter.
-        let h_pow = |base: Coef, power: i32| match i_h {
-            Some(param) => Coef::ThicknessPower {
-                base: Box::new(base),
-                param,
-                nominal_m: c.thickness_m,
-                power,
-            },
-            None => base,
-        };
+        let h_pow = |base: Coef, power: i32| thickness_power(i_h, c.thickness_m, base, power);
 
         // Per-element laminate data.
-        let units = UnitMatrices::new(&mesh_data);
         let h = c.thickness_m;
         let q_core = orthotropic_q(c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy);
         let q_core_scale = core_q_scale(q_core);
         let (a_core, _, d_core) = layer_factors(-h / 2.0, h / 2.0);
-        let mut kb = TermBuilder::new();
-        let mut mb = TermBuilder::new();
-        let mut t_core: [Vec<(usize, usize, f64)>; 4] = Default::default();
-        let mut t_cu = Vec::new();
-        let mut t_cu_pow: [Vec<(usize, usize, f64)>; 3] = Default::default();
-        let mut t_corr = Vec::new();
-        let mut t_mass = Vec::new();
-        let mut t_mass_core = Vec::new();
-        let mut any_corr = false;
         // Exact coupling expansion when all copper is one material (see `laminate`).
         let uniform_cu = board
             .copper
@@ -694,303 +1225,34 @@ impl FeModel {
                 names::CORE_THICKNESS
             )));
         }
-        // Elements with B ≠ 0 somewhere, for the exact expansion.
-        let mut coupled: Vec<(usize, usize)> = Vec::new();
-        let add = |t: &mut Vec<(usize, usize, f64)>,
-                   em: &ElementMatrices,
-                   dofs: &[usize; 16],
-                   comp: Comp4| {
-            for r in 0..16 {
-                for cc in 0..16 {
-                    let v: f64 = (0..4).map(|k| comp[k] * em.k[k][r][cc]).sum::<f64>();
-                    t.push((dofs[r], dofs[cc], v));
-                }
-            }
+        let plate = Plate {
+            board,
+            mesh: &mesh_data,
+            cut_points: &cut_points,
+            units: UnitMatrices::new(&mesh_data),
+            copper: CopperMap::new(board),
+            q_core,
+            a_core,
+            h,
         };
-        // Copper is integrated exactly: each element is split into convex pieces of
-        // constant coverage (see `fem::copper`), each piece integrated over its
-        // material part (holes cut out) by the polygon / polar cut-cell quadrature.
-        let copper = CopperMap::new(board);
-        let cells_of = |ex: usize, ey: usize| -> Vec<Cell> {
-            let rect = mesh_data.rect(ex, ey);
-            let (a, b) = mesh_data.size(ex, ey);
-            let mut pieces = copper.pieces(&rect);
-            if pieces.len() == 1 {
-                let coverage = pieces.pop().map(|p| p.coverage).unwrap_or_default();
-                return vec![Cell {
-                    coverage,
-                    matrices: None,
-                }];
-            }
-            pieces
-                .into_iter()
-                .map(|p| {
-                    let mut m = ElementMatrices {
-                        k: [[[0.0; 16]; 16]; 4],
-                        m: [[0.0; 16]; 16],
-                    };
-                    let pts = if cut_points[ey * nx + ex].is_some() {
-                        piece_material_quadrature(&p.polygon, &board.holes)
-                    } else {
-                        polygon_quadrature(&p.polygon)
-                    };
-                    m.add_points(&pts, rect.x0, rect.y0, a, b, 1.0);
-                    Cell {
-                        coverage: p.coverage,
-                        matrices: Some(m),
-                    }
-                })
-                .collect()
-        };
-        // Per copper state: D_cu, ρh of copper, A and B of the stack, and the two
-        // copper variables s, t of the coupling expansion.
-        let stack = |cov: &[f64]| -> Stack {
-            let mut st = Stack {
-                a: q_core.map(|q| q * a_core),
-                b: [0.0; 4],
-                d_cu: [0.0; 4],
-                d_cu_pow: [[0.0; 4]; 3],
-                rho_h_cu: 0.0,
-                s: 0.0,
-                t: 0.0,
-                t_pow: [0.0; 2],
-            };
-            for (l, frac) in board.copper.iter().zip(cov) {
-                if *frac == 0.0 {
-                    continue;
-                }
-                let (z1, z2) = match l.side {
-                    LayerSide::Top => (h / 2.0, h / 2.0 + l.thickness_m),
-                    LayerSide::Bottom => (-h / 2.0 - l.thickness_m, -h / 2.0),
-                };
-                let (fa, fb, fd) = layer_factors(z1, z2);
-                let q = isotropic_q(l.e_pa, l.nu);
-                let tl = l.thickness_m;
-                let fd_pow = [tl.powi(3) / 3.0, h * tl * tl / 2.0, h * h * tl / 4.0];
-                let sign = if fb < 0.0 { -1.0 } else { 1.0 };
-                for k in 0..4 {
-                    st.a[k] += frac * q[k] * fa;
-                    st.b[k] += frac * q[k] * fb;
-                    st.d_cu[k] += frac * q[k] * fd;
-                    for (pw, f) in fd_pow.iter().enumerate() {
-                        st.d_cu_pow[pw][k] += frac * q[k] * f;
-                    }
-                }
-                st.rho_h_cu += frac * l.density_kg_per_m3 * l.thickness_m;
-                st.s += frac * fa;
-                st.t += frac * fb;
-                st.t_pow[0] += sign * frac * tl / 2.0;
-                st.t_pow[1] += sign * frac * tl * tl / 2.0;
-            }
-            st
-        };
-        let push16 = |t: &mut Vec<(usize, usize, f64)>, dofs: &[usize; 16], m: &[[f64; 16]; 16]| {
-            for r in 0..16 {
-                for cc in 0..16 {
-                    t.push((dofs[r], dofs[cc], m[r][cc]));
-                }
-            }
-        };
-        // Σ over cells of Σ_k comp_k(cell) K_cell[k].
-        let combine = |cells: &[Cell], eme: &ElementMatrices, f: &dyn Fn(&Cell) -> Comp4| {
-            let mut out = [[0.0; 16]; 16];
-            for cell in cells {
-                let m = cell.matrices.as_ref().unwrap_or(eme);
-                let comp = f(cell);
-                for k in 0..4 {
-                    if comp[k] == 0.0 {
-                        continue;
-                    }
-                    for r in 0..16 {
-                        for cc in 0..16 {
-                            out[r][cc] += comp[k] * m.k[k][r][cc];
-                        }
-                    }
-                }
-            }
-            out
-        };
-        for ey in 0..ny {
-            for ex in 0..nx {
-                if !mesh_data.active[ey * nx + ex] {
-                    continue;
-                }
-                let Some(dofs) = mesh_data.element_dofs(ex, ey) else {
-                    unreachable!("active element without DOFs")
-                };
-                // The element's matrices over its material part only.
-                let em = units.get(ex, ey);
-                let cut;
-                let eme = match &cut_points[ey * nx + ex] {
-                    None => &*em,
-                    Some(cc) => {
-                        cut = cut_cell_matrices(&em, cc, &mesh_data, ex, ey);
-                        &cut
-                    }
-                };
-                // Core: one term per Q component, assembled at the nominal Q (or, where a
-                // component is zero there, at the scale its coefficient divides by).
-                for k in 0..4 {
-                    let mut unit = [0.0; 4];
-                    unit[k] = q_core_scale[k] * d_core;
-                    add(&mut t_core[k], eme, &dofs, unit);
-                }
-                let cells = cells_of(ex, ey);
-                if has_cu && i_h.is_some() {
-                    for (pw, t) in t_cu_pow.iter_mut().enumerate() {
-                        let k_cu = combine(&cells, eme, &|c| stack(&c.coverage).d_cu_pow[pw]);
-                        push16(t, &dofs, &k_cu);
-                    }
-                } else if has_cu {
-                    let k_cu = combine(&cells, eme, &|c| stack(&c.coverage).d_cu);
-                    push16(&mut t_cu, &dofs, &k_cu);
-                }
-                if uniform_cu.is_some() {
-                    if cells.iter().any(|c| stack(&c.coverage).t != 0.0) {
-                        coupled.push((ex, ey));
-                    }
-                } else {
-                    let corr = combine(&cells, eme, &|c| {
-                        let st = stack(&c.coverage);
-                        coupling_correction(st.a, st.b)
-                    });
-                    if corr.iter().flatten().any(|v| *v != 0.0) {
-                        any_corr = true;
-                        push16(&mut t_corr, &dofs, &corr);
-                    }
-                }
-                let mut mass = [[0.0; 16]; 16];
-                let rho_core_h = c.density_kg_per_m3 * h;
-                for cell in &cells {
-                    let mm = &cell.matrices.as_ref().unwrap_or(eme).m;
-                    let rho = stack(&cell.coverage).rho_h_cu;
-                    for r in 0..16 {
-                        for cc in 0..16 {
-                            mass[r][cc] += rho * mm[r][cc];
-                        }
-                    }
-                }
-                if i_h.is_some() {
-                    // The core's mass in a term of its own (∝ h).
-                    let mut core = [[0.0; 16]; 16];
-                    for r in 0..16 {
-                        for cc in 0..16 {
-                            core[r][cc] = rho_core_h * eme.m[r][cc];
-                        }
-                    }
-                    push16(&mut t_mass_core, &dofs, &core);
-                } else {
-                    for r in 0..16 {
-                        for cc in 0..16 {
-                            mass[r][cc] += rho_core_h * eme.m[r][cc];
-                        }
-                    }
-                }
-                push16(&mut t_mass, &dofs, &mass);
-            }
-        }
-        let core_names = ["core_q11", "core_q22", "core_q12", "core_q66"];
-        for (k, t) in t_core.into_iter().enumerate() {
-            kb.push(core_names[k], h_pow(Coef::CoreQ { comp: k }, 3), t);
-        }
-        if has_cu && i_h.is_some() {
-            let scale = board.copper[0].e_pa;
-            for (pw, t) in t_cu_pow.into_iter().enumerate() {
-                let coef = h_pow(Coef::Linear { param: 4, scale }, pw as i32);
-                kb.push(&format!("copper_h{pw}"), coef, t);
-            }
-        } else if has_cu {
-            let scale = board.copper[0].e_pa;
-            kb.push("copper", Coef::Linear { param: 4, scale }, t_cu);
-        }
-        if any_corr {
-            kb.push("coupling_correction", Coef::Const, t_corr);
-        }
-        // Without copper, a thickness parameter leaves the core's mass term alone.
-        if i_h.is_none() || has_cu {
-            mb.push(
-                "board_mass",
-                Coef::Linear {
-                    param: i_mass,
-                    scale: 1.0,
-                },
-                t_mass,
-            );
-        }
-        if i_h.is_some() {
-            let coef = Coef::Linear {
-                param: i_mass,
-                scale: 1.0,
-            };
-            mb.push("core_mass", h_pow(coef, 1), t_mass_core);
-        }
+        let mut kb = TermBuilder::new();
+        let mut mb = TermBuilder::new();
+        let (trips, coupled) =
+            plate.element_triplets(i_h.is_some(), uniform_cu.is_some(), q_core_scale, d_core);
+        trips.push_terms(&mut kb, &mut mb, board, i_mass, i_h, &h_pow);
 
         // Joints.
         let mut patches = Vec::new();
         let mut fixture_dof = None;
         if let Setup::Bolted(jm) = &setup {
-            let r_clamp = 0.5 * board.joint().clamp_diameter_m;
-            let mut jpatches = Vec::new();
-            for (hi, hole) in board.holes.iter().enumerate() {
-                let r_hole = 0.5 * hole.diameter_m;
-                let mut parts = Vec::new();
-                let mut w_dofs = Vec::new();
-                for ey in 0..ny {
-                    for ex in 0..nx {
-                        if !mesh_data.active[ey * nx + ex] {
-                            continue;
-                        }
-                        let rect = mesh_data.rect(ex, ey);
-                        let (a, b) = mesh_data.size(ex, ey);
-                        let pts =
-                            annulus_rect_quadrature(hole.x_m, hole.y_m, r_hole, r_clamp, &rect);
-                        if pts.is_empty() {
-                            continue;
-                        }
-                        let Some(dofs) = mesh_data.element_dofs(ex, ey) else {
-                            unreachable!("active element without DOFs")
-                        };
-                        let pi = part_integrals(&pts, rect.x0, rect.y0, a, b);
-                        for k in 0..4 {
-                            w_dofs.push(dofs[4 * k]);
-                        }
-                        parts.push((dofs, pi));
-                    }
-                }
-                let area_m2: f64 = parts.iter().map(|(_, p)| p.area_m2).sum();
-                if !(area_m2 > 0.0) {
-                    return Err(FemError::Mesh(format!(
-                        "hole {hi} at ({}, {}) m: expected a clamped annulus of positive area between the hole radius {r_hole} m and the clamp radius {r_clamp} m, found none",
-                        hole.x_m, hole.y_m
-                    )));
-                }
-                w_dofs.sort_unstable();
-                w_dofs.dedup();
-                patches.push(w_dofs);
-                jpatches.push(Patch { area_m2, parts });
-            }
+            let jpatches;
+            (patches, jpatches) = joint_patches(board, &mesh_data)?;
             if jm.has_fixture() {
                 fixture_dof = Some(n_dof);
                 n_dof += 1;
             }
-            for t in joint_terms(jm, &jpatches, fixture_dof, board.joint().k_con_n_per_m) {
-                let param = match pnames.iter().position(|n| *n == t.param) {
-                    Some(i) => i,
-                    None => {
-                        pnames.push(t.param.clone());
-                        nominal.push(t.nominal);
-                        pnames.len() - 1
-                    }
-                };
-                let coef = Coef::Linear {
-                    param,
-                    scale: t.scale,
-                };
-                match t.which {
-                    Which::K => kb.push(&t.param, coef, t.triplets),
-                    Which::M => mb.push(&t.param, coef, t.triplets),
-                }
-            }
+            let terms = joint_terms(jm, &jpatches, fixture_dof, board.joint().k_con_n_per_m);
+            push_joint_terms(terms, &mut pnames, &mut nominal, &mut kb, &mut mb);
         }
 
         // Shared pattern: all element blocks plus joint entries.
@@ -1020,85 +1282,10 @@ impl FeModel {
                 .iter()
                 .position(|n| n == names::E_CU)
                 .unwrap_or_else(|| unreachable!("copper without e_cu_pa"));
-            let s_max = board.copper_thickness_m();
-            let nodes = chebyshev_nodes(coupling_nodes(&q_core, h, &q_cu, s_max), s_max);
-            // With the thickness a parameter, t² = h² u² + 2 h u v + v²: one set of terms
-            // per power of h (highest last), each with its h₀ factors.
-            let n_pow = if i_h.is_some() { 3 } else { 1 };
-            let n_set = 4 * nodes.len();
-            let mut vals = vec![vec![0.0; pattern.row_idx.len()]; n_pow * n_set];
-            let scales: Vec<[f64; 4]> = nodes
-                .iter()
-                .map(|sk| {
-                    coupling_kernel(q_core, h, q_cu, 1.0, *sk)
-                        .0
-                        .map(|g| if g != 0.0 { g } else { 1.0 })
-                })
-                .collect();
-            for &(ex, ey) in &coupled {
-                let em = units.get(ex, ey);
-                let cut;
-                let eme = match &cut_points[ey * nx + ex] {
-                    None => &*em,
-                    Some(cc) => {
-                        cut = cut_cell_matrices(&em, cc, &mesh_data, ex, ey);
-                        &cut
-                    }
-                };
-                let Some(dofs) = mesh_data.element_dofs(ex, ey) else {
-                    unreachable!("active element without DOFs")
-                };
-                let idx: Vec<usize> = (0..256)
-                    .map(|q| pattern.index(dofs[q / 16], dofs[q % 16]))
-                    .collect();
-                for cell in cells_of(ex, ey) {
-                    let st = stack(&cell.coverage);
-                    if st.t == 0.0 {
-                        continue;
-                    }
-                    let m = cell.matrices.as_ref().unwrap_or(eme);
-                    let l = lagrange_basis(&nodes, st.s);
-                    let t2: Vec<f64> = if i_h.is_some() {
-                        let (hu, v) = (h * st.t_pow[0], st.t_pow[1]);
-                        vec![v * v, 2.0 * hu * v, hu * hu]
-                    } else {
-                        vec![st.t * st.t]
-                    };
-                    for (pw, t2) in t2.iter().enumerate() {
-                        for (k, lk) in l.iter().enumerate() {
-                            for comp in 0..4 {
-                                let w = -t2 * lk * scales[k][comp];
-                                let v = &mut vals[pw * n_set + 4 * k + comp];
-                                for (q, &iq) in idx.iter().enumerate() {
-                                    v[iq] += w * m.k[comp][q / 16][q % 16];
-                                }
-                            }
-                        }
-                    }
-                }
-            }
-            for pw in 0..n_pow {
-                for (k, sk) in nodes.iter().enumerate() {
-                    for comp in 0..4 {
-                        let coupling = Coef::Coupling {
-                            s_node_m: *sk,
-                            comp,
-                            scale: scales[k][comp],
-                            h_core_m: h,
-                            q_cu_pa: q_cu,
-                            e_cu_param: i_cu,
-                            e_cu_nominal_pa: e_cu0,
-                            h_param: i_h,
-                        };
-                        if i_h.is_some() {
-                            kb.names.push(format!("coupling_s{k}_c{comp}_h{pw}"));
-                        } else {
-                            kb.names.push(format!("coupling_s{k}_c{comp}"));
-                        }
-                        kb.coefs.push(h_pow(coupling, pw as i32));
-                    }
-                }
-            }
+            let (names, coefs, vals) =
+                plate.coupling_terms(&coupled, &pattern, (e_cu0, q_cu), i_cu, i_h, &h_pow);
+            kb.names.extend(names);
+            kb.coefs.extend(coefs);
             k_terms.extend(vals);
         }
         let symbolic = factorize_symbolic_cholesky(

@@ -114,7 +114,7 @@ fn read_gerber_layers(
             bail!("{}: gerber: expected either `outline` or `origin_m`, found both (the outline sets the origin)", path.display());
         }
         let f = dir.join(o);
-        let img = crate::io::gerber::read_gerber(&f)?;
+        let img = read_gerber(&f)?;
         let Some(bb) = img.path_bbox else {
             bail!(
                 "{}: expected the board outline drawn (D01 strokes or regions), found nothing drawn",
@@ -145,7 +145,7 @@ fn read_gerber_layers(
         let Some(g) = &l.gerber else { continue };
         let f = dir.join(g);
         // The error names the Gerber file, line and command.
-        let mut image = crate::io::gerber::read_gerber(&f)?;
+        let mut image = read_gerber(&f)?;
         image.translate(-origin[0], -origin[1]);
         l.gerber_image = Some(std::sync::Arc::new(GerberLayerImage {
             image,
@@ -154,6 +154,14 @@ fn read_gerber_layers(
         files.push(f);
     }
     Ok(())
+}
+
+/// Read, parse and render a Gerber file.
+pub fn read_gerber(path: &Path) -> anyhow::Result<crate::fem::gerber::Image> {
+    let bytes = std::fs::read(path)
+        .with_context(|| format!("cannot read Gerber file {}", path.display()))?;
+    let text = String::from_utf8_lossy(&bytes);
+    crate::formats::gerber::read_gerber_str(&text, &path.display().to_string())
 }
 
 #[cfg(test)]

@@ -2,8 +2,8 @@
 //! skipped), reading, and the input files that fingerprint the ingest stage.
 
 use crate::campaign::Source;
+use crate::formats::sheet;
 use crate::io::manifest;
-use crate::io::sheet;
 use anyhow::{bail, Context};
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};

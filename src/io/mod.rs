@@ -1,22 +1,18 @@
-//! Everything that touches files: parsers over bytes (UFF, balance logs, the sheet), writers
-//! of our artifacts (Parquet tables, the campaign MCAP, manifests), and atomic writes. Kernels
-//! never import this module; stages call it.
+//! Everything that touches files: reading the lab's files (whose bytes `crate::formats`
+//! parses), writers of our artifacts (Parquet tables, the campaign MCAP, manifests), and
+//! atomic writes. Kernels never import this module; stages call it.
 
 pub mod atomic;
-pub mod balance_log;
 pub mod board_files;
 pub mod cache;
 pub mod campaign_dir;
 pub mod diagnose_inputs;
 pub mod external;
-pub mod gerber;
 pub mod ingest_outputs;
 pub mod manifest;
 pub mod mcap_writer;
 pub mod modes_table;
-pub mod sheet;
 pub mod tables;
-pub mod uff;
 
 /// A JSON document read from `path`; errors name the file (unreadable, or not JSON).
 pub fn read_json(path: &std::path::Path) -> anyhow::Result<serde_json::Value> {

@@ -170,7 +170,7 @@ fn check_weight_and_tray_are_not_boards() {
         .readings
         .iter()
         .filter(|r| r.board_id.as_deref() == Some(habits::CHECK_WEIGHT_ID))
-        .filter(|r| r.status == crate::io::balance_log::Status::Stable)
+        .filter(|r| r.status == crate::formats::balance_log::Status::Stable)
         .filter_map(|r| r.mass_g)
         .collect();
     assert!(
@@ -400,12 +400,14 @@ fn a_repeated_measurement_keeps_the_repeat_and_quarantines_the_invalid_one() {
     // The bad UFF really is bad: its spectra have no resonance standing out of the noise
     // (peak over median |H| at the hammer point), the repeat's do.
     let dyn_range = |file: &str| {
-        let u = crate::io::uff::parse(&c.files[file]).unwrap();
+        let u = crate::formats::uff::parse(&c.files[file]).unwrap();
         u.datasets
             .iter()
             .find_map(|d| match d {
-                crate::io::uff::Dataset::Function(f) if f.response_node == 1 => match &f.ordinate {
-                    crate::io::uff::Ordinate::Complex { re, im } => {
+                crate::formats::uff::Dataset::Function(f) if f.response_node == 1 => match &f
+                    .ordinate
+                {
+                    crate::formats::uff::Ordinate::Complex { re, im } => {
                         let mut a: Vec<f64> = re.iter().zip(im).map(|(r, i)| r.hypot(*i)).collect();
                         a.sort_by(f64::total_cmp);
                         Some(a[a.len() - 1] / a[a.len() / 2])
@@ -476,7 +478,7 @@ fn scan_grids_differ_between_setups_and_sessions() {
         assert!(m.quarantine.is_none());
         // Free: the hammer point is a scan point; bolted: the shaker reference is not.
         match m.row.setup {
-            Some(crate::io::sheet::Setup::Free) => assert_eq!(m.points.len(), n_free),
+            Some(crate::formats::sheet::Setup::Free) => assert_eq!(m.points.len(), n_free),
             _ => assert!(
                 m.points.len() - 1 < n_free && m.points.len() > 9,
                 "{}",

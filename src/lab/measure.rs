@@ -31,7 +31,7 @@ use super::truth::{
 };
 use super::{child_seed, LabError, Stream};
 use crate::fem::Board;
-use crate::io::uff::{
+use crate::formats::uff::{
     write_15, write_164, write_2411, write_58, Abscissa, AxisSpec, Format, Function58,
     FunctionType, Node, Ordinate, OrdinateDataType, Units164,
 };
@@ -166,7 +166,7 @@ pub fn measurement_uff(
         (1 << 40) | m.index as u64,
     ));
     let var = file_variant(s, m.index);
-    let werr = |e: crate::io::uff::UffWriteError| LabError::Write {
+    let werr = |e: crate::formats::uff::UffWriteError| LabError::Write {
         file: m.file.clone(),
         message: e.to_string(),
     };

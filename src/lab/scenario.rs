@@ -510,294 +510,330 @@ impl Scenario {
 
     /// Check every value; the error names the field, what was expected and what was found.
     pub fn validate(&self) -> Result<(), LabError> {
-        fn bad(field: &str, expected: &str, found: impl std::fmt::Display) -> LabError {
-            LabError::ScenarioInvalid {
-                field: field.to_string(),
-                expected: expected.to_string(),
-                found: found.to_string(),
-            }
-        }
-        let pos = |field: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(bad(field, "a finite positive number", v))
-            }
-        };
-        let nonneg = |field: &str, v: f64| {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err(bad(field, "a finite number >= 0", v))
-            }
-        };
-        let prob = |field: &str, v: f64| {
-            if (0.0..=1.0).contains(&v) {
-                Ok(())
-            } else {
-                Err(bad(field, "a probability in [0, 1]", v))
-            }
-        };
-        let c = &self.campaign;
-        if c.n_boards == 0 || c.n_boards > 99 {
-            return Err(bad("campaign.n_boards", "1 to 99 boards", c.n_boards));
-        }
-        if c.free_per_board > 999 {
-            return Err(bad(
-                "campaign.free_per_board",
-                "at most 999",
-                c.free_per_board,
-            ));
-        }
-        let mut seen = vec![false; c.n_boards + 1];
-        for (g, grp) in c.bolted.iter().enumerate() {
-            for &b in &grp.boards {
-                if b == 0 || b > c.n_boards {
-                    return Err(bad(
-                        &format!("campaign.bolted[{g}].boards"),
-                        &format!("board numbers in 1..={}", c.n_boards),
-                        b,
-                    ));
-                }
-                if seen[b] {
-                    return Err(bad(
-                        &format!("campaign.bolted[{g}].boards"),
-                        "each board in at most one group",
-                        b,
-                    ));
-                }
-                seen[b] = true;
-            }
-            if grp.per_board > 99 {
-                return Err(bad(
-                    &format!("campaign.bolted[{g}].per_board"),
-                    "at most 99",
-                    grp.per_board,
-                ));
-            }
-        }
-        if chrono::NaiveDate::parse_from_str(&c.start_date, "%Y-%m-%d").is_err() {
-            return Err(bad(
-                "campaign.start_date",
-                "a date YYYY-MM-DD",
-                &c.start_date,
-            ));
-        }
-        if c.operators.is_empty() {
-            return Err(bad("campaign.operators", "at least one name", "[]"));
-        }
-        pos("campaign.torque_nm", c.torque_nm)?;
-        let t = &self.truth;
-        if t.mesh_nx < 4 || t.mesh_ny < 4 {
-            return Err(bad(
-                "truth.mesh_nx/mesh_ny",
-                "at least 4 × 4 elements",
-                format!("{} × {}", t.mesh_nx, t.mesh_ny),
-            ));
-        }
-        if t.n_free_modes == 0 || t.n_bolted_modes == 0 {
-            return Err(bad(
-                "truth.n_free_modes/n_bolted_modes",
-                ">= 1",
-                format!("{} / {}", t.n_free_modes, t.n_bolted_modes),
-            ));
-        }
-        nonneg("truth.joint_mass_kg", t.joint_mass_kg)?;
-        nonneg("truth.per_joint_k_rel_std", t.per_joint_k_rel_std)?;
-        if t.per_joint_k_rel_std > 0.2 {
-            return Err(bad(
-                "truth.per_joint_k_rel_std",
-                "at most 0.2",
-                t.per_joint_k_rel_std,
-            ));
-        }
-        t.solid
-            .check()
-            .map_err(|(field, expected, found)| bad(&field, &expected, found))?;
-        if t.physics == Physics::Solid && t.joint_mass_kg > 0.0 {
-            return Err(bad(
-                "truth.joint_mass_kg",
-                "0 with truth.physics = \"solid\" (its riding mass is truth.solid.riding_mass_kg)",
-                t.joint_mass_kg,
-            ));
-        }
-        let p = &self.population;
-        for (i, s) in p.rel_std.iter().enumerate() {
-            nonneg(&format!("population.rel_std[{i}]"), *s)?;
-            if *s > 0.2 {
-                return Err(bad(&format!("population.rel_std[{i}]"), "at most 0.2", s));
-            }
-        }
-        for i in 0..4 {
-            if (p.correlation[i][i] - 1.0).abs() > 1e-12 {
-                return Err(bad(
-                    &format!("population.correlation[{i}][{i}]"),
-                    "1 on the diagonal",
-                    p.correlation[i][i],
-                ));
-            }
-            for j in 0..4 {
-                let (a, b) = (p.correlation[i][j], p.correlation[j][i]);
-                if !(a.is_finite() && (a - b).abs() <= 1e-12 && a.abs() <= 1.0) {
-                    return Err(bad(
-                        &format!("population.correlation[{i}][{j}]"),
-                        "a symmetric matrix with entries in [-1, 1]",
-                        a,
-                    ));
-                }
-            }
-        }
-        if super::truth::cholesky4(&p.correlation).is_none() {
-            return Err(bad(
-                "population.correlation",
-                "a positive definite matrix",
-                format!("{:?}", p.correlation),
-            ));
-        }
-        pos("population.k_con_mean_n_per_m", p.k_con_mean_n_per_m)?;
-        nonneg("population.k_con_rel_std", p.k_con_rel_std)?;
-        if p.k_con_rel_std > 0.3 {
-            return Err(bad(
-                "population.k_con_rel_std",
-                "at most 0.3",
-                p.k_con_rel_std,
-            ));
-        }
-        if !(p.thickness_rel_std.is_finite() && (0.0..0.2).contains(&p.thickness_rel_std)) {
-            return Err(bad(
-                "population.thickness_rel_std",
-                "a finite number in [0, 0.2)",
-                p.thickness_rel_std,
-            ));
-        }
-        if t.physics == Physics::Solid && p.thickness_rel_std > 0.0 {
-            return Err(bad(
-                "population.thickness_rel_std",
-                "0 with truth.physics = \"solid\" (a per-board core thickness needs the plate truth)",
-                p.thickness_rel_std,
-            ));
-        }
-        let m = &self.measurement;
-        for (f, n, hz) in [
-            ("measurement.free", m.free_lines, m.free_max_hz),
-            ("measurement.bolted", m.bolted_lines, m.bolted_max_hz),
-        ] {
-            if !(16..=100_000).contains(&n) {
-                return Err(bad(&format!("{f}_lines"), "16 to 100000 lines", n));
-            }
-            pos(&format!("{f}_max_hz"), hz)?;
-        }
-        if !(m.damping_min > 0.0 && m.damping_min <= m.damping_max && m.damping_max < 0.2) {
-            return Err(bad(
-                "measurement.damping_min/damping_max",
-                "0 < min <= max < 0.2",
-                format!("{} / {}", m.damping_min, m.damping_max),
-            ));
-        }
-        nonneg("measurement.noise_floor_rel", m.noise_floor_rel)?;
-        nonneg("measurement.noise_prop_rel", m.noise_prop_rel)?;
-        prob("measurement.missing_point_prob", m.missing_point_prob)?;
-        prob("measurement.dropout_point_prob", m.dropout_point_prob)?;
-        if !(0.0..=0.3).contains(&m.base_rocking_rel) {
-            return Err(bad(
-                "measurement.base_rocking_rel",
-                "a fraction in [0, 0.3]",
-                m.base_rocking_rel,
-            ));
-        }
-        if !(m.suspension_hz[0] > 0.0 && m.suspension_hz[0] <= m.suspension_hz[1]) {
-            return Err(bad(
-                "measurement.suspension_hz",
-                "[lo, hi] with 0 < lo <= hi",
-                format!("{:?}", m.suspension_hz),
-            ));
-        }
-        let l = &self.lab;
-        if !(l.temperature_mean_c > -50.0 && l.temperature_mean_c < 100.0) {
-            return Err(bad(
-                "lab.temperature_mean_c",
-                "-50 to 100 °C",
-                l.temperature_mean_c,
-            ));
-        }
-        nonneg("lab.temperature_swing_c", l.temperature_swing_c)?;
-        pos("lab.temperature_period", l.temperature_period)?;
-        nonneg("lab.temperature_noise_c", l.temperature_noise_c)?;
-        let b = &self.balance;
-        if b.sessions_per_board == 0 || b.stable_per_session == 0 {
-            return Err(bad(
-                "balance.sessions_per_board/stable_per_session",
-                ">= 1",
-                format!("{} / {}", b.sessions_per_board, b.stable_per_session),
-            ));
-        }
-        if ![1e-3, 1e-4, 1e-5]
-            .iter()
-            .any(|d| (b.resolution_g - d).abs() < 1e-12)
-        {
-            return Err(bad(
-                "balance.resolution_g",
-                "1e-3, 1e-4 or 1e-5 g",
-                b.resolution_g,
-            ));
-        }
-        nonneg("balance.repeatability_d", b.repeatability_d)?;
-        prob("balance.glitch_prob", b.glitch_prob)?;
-        prob("balance.garbled_prob", b.garbled_prob)?;
-        let e = &self.effects;
-        if let Some(r) = &e.rotational_restraint {
-            pos(
-                "effects.rotational_restraint.k_rot_nm_per_rad",
-                r.k_rot_nm_per_rad,
-            )?;
-        }
-        if let Some(lb) = &e.loose_bolt {
-            prob("effects.loose_bolt.share", lb.share)?;
-            if !(lb.stiffness_factor > 0.0 && lb.stiffness_factor < 1.0) {
-                return Err(bad(
-                    "effects.loose_bolt.stiffness_factor",
-                    "a factor in (0, 1)",
-                    lb.stiffness_factor,
-                ));
-            }
-        }
-        if let Some(tc) = &e.temperature {
-            if !(tc.coefficient_per_k.is_finite() && tc.coefficient_per_k.abs() < 0.05) {
-                return Err(bad(
-                    "effects.temperature.coefficient_per_k",
-                    "|α| < 0.05 1/K",
-                    tc.coefficient_per_k,
-                ));
-            }
-            if !tc.reference_c.is_finite() {
-                return Err(bad(
-                    "effects.temperature.reference_c",
-                    "a finite °C",
-                    tc.reference_c,
-                ));
-            }
-        }
-        if let Some(lm) = &e.lumped_mass {
-            pos("effects.lumped_mass.mass_kg", lm.mass_kg)?;
-            nonneg("effects.lumped_mass.x_m", lm.x_m)?;
-            nonneg("effects.lumped_mass.y_m", lm.y_m)?;
-        }
-        if let Some(f) = &e.compliant_fixture {
-            pos("effects.compliant_fixture.k_fix_n_per_m", f.k_fix_n_per_m)?;
-            pos("effects.compliant_fixture.m_fix_kg", f.m_fix_kg)?;
-        }
-        if let Some(d) = &e.underfill {
-            nonneg("effects.underfill.x_m", d.x_m)?;
-            nonneg("effects.underfill.y_m", d.y_m)?;
-            pos("effects.underfill.radius_m", d.radius_m)?;
-            if !(d.stiffness_factor.is_finite() && d.stiffness_factor > 1.0) {
-                return Err(bad(
-                    "effects.underfill.stiffness_factor",
-                    "a finite factor above 1",
-                    d.stiffness_factor,
-                ));
-            }
-        }
-        Ok(())
+        validate_campaign(&self.campaign)?;
+        validate_truth(&self.truth)?;
+        validate_population(&self.population, &self.truth)?;
+        validate_measurement(&self.measurement)?;
+        validate_lab_and_balance(&self.lab, &self.balance)?;
+        validate_effects(&self.effects)
     }
+}
+
+/// A scenario error: `field` expected `expected`, found `found`.
+fn bad(field: &str, expected: &str, found: impl std::fmt::Display) -> LabError {
+    LabError::ScenarioInvalid {
+        field: field.to_string(),
+        expected: expected.to_string(),
+        found: found.to_string(),
+    }
+}
+
+/// `v` must be finite and positive.
+fn pos(field: &str, v: f64) -> Result<(), LabError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(bad(field, "a finite positive number", v))
+    }
+}
+
+/// `v` must be finite and non-negative.
+fn nonneg(field: &str, v: f64) -> Result<(), LabError> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(())
+    } else {
+        Err(bad(field, "a finite number >= 0", v))
+    }
+}
+
+/// `v` must be a probability.
+fn prob(field: &str, v: f64) -> Result<(), LabError> {
+    if (0.0..=1.0).contains(&v) {
+        Ok(())
+    } else {
+        Err(bad(field, "a probability in [0, 1]", v))
+    }
+}
+
+/// Checks the campaign plan.
+fn validate_campaign(c: &CampaignPlan) -> Result<(), LabError> {
+    if c.n_boards == 0 || c.n_boards > 99 {
+        return Err(bad("campaign.n_boards", "1 to 99 boards", c.n_boards));
+    }
+    if c.free_per_board > 999 {
+        return Err(bad(
+            "campaign.free_per_board",
+            "at most 999",
+            c.free_per_board,
+        ));
+    }
+    let mut seen = vec![false; c.n_boards + 1];
+    for (g, grp) in c.bolted.iter().enumerate() {
+        for &b in &grp.boards {
+            if b == 0 || b > c.n_boards {
+                return Err(bad(
+                    &format!("campaign.bolted[{g}].boards"),
+                    &format!("board numbers in 1..={}", c.n_boards),
+                    b,
+                ));
+            }
+            if seen[b] {
+                return Err(bad(
+                    &format!("campaign.bolted[{g}].boards"),
+                    "each board in at most one group",
+                    b,
+                ));
+            }
+            seen[b] = true;
+        }
+        if grp.per_board > 99 {
+            return Err(bad(
+                &format!("campaign.bolted[{g}].per_board"),
+                "at most 99",
+                grp.per_board,
+            ));
+        }
+    }
+    if chrono::NaiveDate::parse_from_str(&c.start_date, "%Y-%m-%d").is_err() {
+        return Err(bad(
+            "campaign.start_date",
+            "a date YYYY-MM-DD",
+            &c.start_date,
+        ));
+    }
+    if c.operators.is_empty() {
+        return Err(bad("campaign.operators", "at least one name", "[]"));
+    }
+    pos("campaign.torque_nm", c.torque_nm)?;
+    Ok(())
+}
+
+/// Checks the truth model.
+fn validate_truth(t: &TruthModel) -> Result<(), LabError> {
+    if t.mesh_nx < 4 || t.mesh_ny < 4 {
+        return Err(bad(
+            "truth.mesh_nx/mesh_ny",
+            "at least 4 × 4 elements",
+            format!("{} × {}", t.mesh_nx, t.mesh_ny),
+        ));
+    }
+    if t.n_free_modes == 0 || t.n_bolted_modes == 0 {
+        return Err(bad(
+            "truth.n_free_modes/n_bolted_modes",
+            ">= 1",
+            format!("{} / {}", t.n_free_modes, t.n_bolted_modes),
+        ));
+    }
+    nonneg("truth.joint_mass_kg", t.joint_mass_kg)?;
+    nonneg("truth.per_joint_k_rel_std", t.per_joint_k_rel_std)?;
+    if t.per_joint_k_rel_std > 0.2 {
+        return Err(bad(
+            "truth.per_joint_k_rel_std",
+            "at most 0.2",
+            t.per_joint_k_rel_std,
+        ));
+    }
+    t.solid
+        .check()
+        .map_err(|(field, expected, found)| bad(&field, &expected, found))?;
+    if t.physics == Physics::Solid && t.joint_mass_kg > 0.0 {
+        return Err(bad(
+            "truth.joint_mass_kg",
+            "0 with truth.physics = \"solid\" (its riding mass is truth.solid.riding_mass_kg)",
+            t.joint_mass_kg,
+        ));
+    }
+    Ok(())
+}
+
+/// Checks the population (some limits depend on the truth's physics `t`).
+fn validate_population(p: &Population, t: &TruthModel) -> Result<(), LabError> {
+    for (i, s) in p.rel_std.iter().enumerate() {
+        nonneg(&format!("population.rel_std[{i}]"), *s)?;
+        if *s > 0.2 {
+            return Err(bad(&format!("population.rel_std[{i}]"), "at most 0.2", s));
+        }
+    }
+    for i in 0..4 {
+        if (p.correlation[i][i] - 1.0).abs() > 1e-12 {
+            return Err(bad(
+                &format!("population.correlation[{i}][{i}]"),
+                "1 on the diagonal",
+                p.correlation[i][i],
+            ));
+        }
+        for j in 0..4 {
+            let (a, b) = (p.correlation[i][j], p.correlation[j][i]);
+            if !(a.is_finite() && (a - b).abs() <= 1e-12 && a.abs() <= 1.0) {
+                return Err(bad(
+                    &format!("population.correlation[{i}][{j}]"),
+                    "a symmetric matrix with entries in [-1, 1]",
+                    a,
+                ));
+            }
+        }
+    }
+    if super::truth::cholesky4(&p.correlation).is_none() {
+        return Err(bad(
+            "population.correlation",
+            "a positive definite matrix",
+            format!("{:?}", p.correlation),
+        ));
+    }
+    pos("population.k_con_mean_n_per_m", p.k_con_mean_n_per_m)?;
+    nonneg("population.k_con_rel_std", p.k_con_rel_std)?;
+    if p.k_con_rel_std > 0.3 {
+        return Err(bad(
+            "population.k_con_rel_std",
+            "at most 0.3",
+            p.k_con_rel_std,
+        ));
+    }
+    if !(p.thickness_rel_std.is_finite() && (0.0..0.2).contains(&p.thickness_rel_std)) {
+        return Err(bad(
+            "population.thickness_rel_std",
+            "a finite number in [0, 0.2)",
+            p.thickness_rel_std,
+        ));
+    }
+    if t.physics == Physics::Solid && p.thickness_rel_std > 0.0 {
+        return Err(bad(
+            "population.thickness_rel_std",
+            "0 with truth.physics = \"solid\" (a per-board core thickness needs the plate truth)",
+            p.thickness_rel_std,
+        ));
+    }
+    Ok(())
+}
+
+/// Checks the instrument.
+fn validate_measurement(m: &Instrument) -> Result<(), LabError> {
+    for (f, n, hz) in [
+        ("measurement.free", m.free_lines, m.free_max_hz),
+        ("measurement.bolted", m.bolted_lines, m.bolted_max_hz),
+    ] {
+        if !(16..=100_000).contains(&n) {
+            return Err(bad(&format!("{f}_lines"), "16 to 100000 lines", n));
+        }
+        pos(&format!("{f}_max_hz"), hz)?;
+    }
+    if !(m.damping_min > 0.0 && m.damping_min <= m.damping_max && m.damping_max < 0.2) {
+        return Err(bad(
+            "measurement.damping_min/damping_max",
+            "0 < min <= max < 0.2",
+            format!("{} / {}", m.damping_min, m.damping_max),
+        ));
+    }
+    nonneg("measurement.noise_floor_rel", m.noise_floor_rel)?;
+    nonneg("measurement.noise_prop_rel", m.noise_prop_rel)?;
+    prob("measurement.missing_point_prob", m.missing_point_prob)?;
+    prob("measurement.dropout_point_prob", m.dropout_point_prob)?;
+    if !(0.0..=0.3).contains(&m.base_rocking_rel) {
+        return Err(bad(
+            "measurement.base_rocking_rel",
+            "a fraction in [0, 0.3]",
+            m.base_rocking_rel,
+        ));
+    }
+    if !(m.suspension_hz[0] > 0.0 && m.suspension_hz[0] <= m.suspension_hz[1]) {
+        return Err(bad(
+            "measurement.suspension_hz",
+            "[lo, hi] with 0 < lo <= hi",
+            format!("{:?}", m.suspension_hz),
+        ));
+    }
+    Ok(())
+}
+
+/// Checks the lab conditions and the balance.
+fn validate_lab_and_balance(l: &LabConditions, b: &Balance) -> Result<(), LabError> {
+    if !(l.temperature_mean_c > -50.0 && l.temperature_mean_c < 100.0) {
+        return Err(bad(
+            "lab.temperature_mean_c",
+            "-50 to 100 °C",
+            l.temperature_mean_c,
+        ));
+    }
+    nonneg("lab.temperature_swing_c", l.temperature_swing_c)?;
+    pos("lab.temperature_period", l.temperature_period)?;
+    nonneg("lab.temperature_noise_c", l.temperature_noise_c)?;
+    if b.sessions_per_board == 0 || b.stable_per_session == 0 {
+        return Err(bad(
+            "balance.sessions_per_board/stable_per_session",
+            ">= 1",
+            format!("{} / {}", b.sessions_per_board, b.stable_per_session),
+        ));
+    }
+    if ![1e-3, 1e-4, 1e-5]
+        .iter()
+        .any(|d| (b.resolution_g - d).abs() < 1e-12)
+    {
+        return Err(bad(
+            "balance.resolution_g",
+            "1e-3, 1e-4 or 1e-5 g",
+            b.resolution_g,
+        ));
+    }
+    nonneg("balance.repeatability_d", b.repeatability_d)?;
+    prob("balance.glitch_prob", b.glitch_prob)?;
+    prob("balance.garbled_prob", b.garbled_prob)?;
+    Ok(())
+}
+
+/// Checks the systematic effects.
+fn validate_effects(e: &Effects) -> Result<(), LabError> {
+    if let Some(r) = &e.rotational_restraint {
+        pos(
+            "effects.rotational_restraint.k_rot_nm_per_rad",
+            r.k_rot_nm_per_rad,
+        )?;
+    }
+    if let Some(lb) = &e.loose_bolt {
+        prob("effects.loose_bolt.share", lb.share)?;
+        if !(lb.stiffness_factor > 0.0 && lb.stiffness_factor < 1.0) {
+            return Err(bad(
+                "effects.loose_bolt.stiffness_factor",
+                "a factor in (0, 1)",
+                lb.stiffness_factor,
+            ));
+        }
+    }
+    if let Some(tc) = &e.temperature {
+        if !(tc.coefficient_per_k.is_finite() && tc.coefficient_per_k.abs() < 0.05) {
+            return Err(bad(
+                "effects.temperature.coefficient_per_k",
+                "|α| < 0.05 1/K",
+                tc.coefficient_per_k,
+            ));
+        }
+        if !tc.reference_c.is_finite() {
+            return Err(bad(
+                "effects.temperature.reference_c",
+                "a finite °C",
+                tc.reference_c,
+            ));
+        }
+    }
+    if let Some(lm) = &e.lumped_mass {
+        pos("effects.lumped_mass.mass_kg", lm.mass_kg)?;
+        nonneg("effects.lumped_mass.x_m", lm.x_m)?;
+        nonneg("effects.lumped_mass.y_m", lm.y_m)?;
+    }
+    if let Some(f) = &e.compliant_fixture {
+        pos("effects.compliant_fixture.k_fix_n_per_m", f.k_fix_n_per_m)?;
+        pos("effects.compliant_fixture.m_fix_kg", f.m_fix_kg)?;
+    }
+    if let Some(d) = &e.underfill {
+        nonneg("effects.underfill.x_m", d.x_m)?;
+        nonneg("effects.underfill.y_m", d.y_m)?;
+        pos("effects.underfill.radius_m", d.radius_m)?;
+        if !(d.stiffness_factor.is_finite() && d.stiffness_factor > 1.0) {
+            return Err(bad(
+                "effects.underfill.stiffness_factor",
+                "a finite factor above 1",
+                d.stiffness_factor,
+            ));
+        }
+    }
+    Ok(())
 }

@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use super::truth::{MeasurementTruth, SetupKind};
 use super::*;
-use crate::io::uff::{self, Abscissa, Dataset, FunctionType, Ordinate};
+use crate::formats::uff::{self, Abscissa, Dataset, FunctionType, Ordinate};
 
 fn small(mut s: Scenario) -> Scenario {
     s.campaign.n_boards = 3;
@@ -284,7 +284,7 @@ fn campaign_follows_the_contract_for_our_readers() {
             "{name}"
         );
     }
-    let sheet = crate::io::sheet::parse(&c.files["campaign.csv"], "campaign.csv").unwrap();
+    let sheet = crate::formats::sheet::parse(&c.files["campaign.csv"], "campaign.csv").unwrap();
     assert!(sheet.findings.is_empty(), "{:?}", sheet.findings);
     assert_eq!(sheet.rows.len(), t.measurements.len());
     assert!(sheet.extra_columns.is_empty());
@@ -344,7 +344,7 @@ fn campaign_follows_the_contract_for_our_readers() {
     let mut readings = Vec::new();
     let mut reported = Vec::new();
     for (name, bytes) in c.files.iter().filter(|(n, _)| n.starts_with("scale/")) {
-        let (r, f) = crate::io::balance_log::parse(bytes, name);
+        let (r, f) = crate::formats::balance_log::parse(bytes, name);
         for x in f.iter() {
             assert_eq!(x.code, "balance.unknown_response", "{x}");
             reported.push(format!("{}:{}", x.file.clone().unwrap(), x.line.unwrap()));
@@ -356,7 +356,7 @@ fn campaign_follows_the_contract_for_our_readers() {
     listed.sort();
     assert!(!listed.is_empty());
     assert_eq!(reported, listed);
-    let masses = crate::io::balance_log::board_masses(&readings, Default::default());
+    let masses = crate::formats::balance_log::board_masses(&readings, Default::default());
     assert_eq!(masses.len(), t.boards.len());
     let units: BTreeSet<String> = readings.iter().filter_map(|r| r.unit.clone()).collect();
     assert_eq!(

@@ -310,11 +310,7 @@ pub fn lscf_poles_with(
             found: format!("{nmax} > {}", basis.max_order),
         });
     }
-    let freq_hz = &basis.freq_hz;
-    let nf = freq_hz.len();
-    let f_lo = freq_hz[0];
-    let f_hi = freq_hz[nf - 1];
-    let dt = basis.dt;
+    let nf = basis.freq_hz.len();
     let n1 = nmax + 1;
     let np = h.len();
     if let Some(row) = h.iter().find(|r| r.len() != nf) {
@@ -333,8 +329,6 @@ pub fn lscf_poles_with(
             });
         }
     }
-    let e_re = basis.e_re().subcols(0, n1);
-    let e_im = basis.e_im().subcols(0, n1);
     // Squared line weights: every lag sum carries them exactly once.
     let v2: Vec<f64> = match line_weight {
         Some(lw) => lw.iter().map(|w| w * w).collect(),
@@ -347,9 +341,71 @@ pub fn lscf_poles_with(
             found: format!("{} weights for {np} points", weights.len()),
         });
     }
+    let (l_mat, l_inv) = whitening(basis, &v2, n1)?;
+    let t_lag = t_lags(basis, h, weights, &v2, n1);
+    let gp_buf = whitened_blocks(basis, h, weights, &v2, l_mat.as_ref(), n1);
+    let rows = np * n1;
+    let alphas = denominators(&gp_buf, &t_lag, params, np, n1)?;
+
+    // Numerators: y_o = G_o alpha for all points and orders in one product. Viewed as an
+    // n1 x (P n1) matrix, G' has entry (j, o + P i) = G_o[i, j], so
+    // Y = G'_view^T A ((P n1) x orders) with Y[o + P i, c] = (G_o alpha_c)[i].
+    let n_ord = alphas.len();
+    let a_all = Mat::<f64>::from_fn(n1, n_ord, |j, c| alphas[c].1.get(j).copied().unwrap_or(0.0));
+    let g_view = MatRef::from_column_major_slice(&gp_buf, n1, rows);
+    let mut y_all = Mat::<f64>::zeros(rows, n_ord);
+    matmul(
+        y_all.as_mut(),
+        Accum::Replace,
+        g_view.transpose(),
+        a_all.as_ref(),
+        1.0,
+        Par::Seq,
+    );
+    drop(gp_buf);
+    crate::simd::clear_upper_vector_state();
+
+    // Roots of every order, each started from the roots of the previous order (sequential:
+    // the polynomials of consecutive orders share most of their roots).
+    let mut all_roots: Vec<Vec<c64>> = Vec::with_capacity(alphas.len());
+    let mut prev: Vec<c64> = Vec::new();
+    for (n, alpha) in &alphas {
+        let roots =
+            super::roots::poly_roots_from(alpha, &prev).ok_or_else(|| ModalError::Numerical {
+                stage: "lscf polynomial roots",
+                detail: format!("no root-finder converged at order {n}"),
+            })?;
+        prev.clone_from(&roots);
+        all_roots.push(roots);
+    }
+
+    // Shape estimates per order (in parallel, collected in order).
+    alphas
+        .par_iter()
+        .zip(all_roots)
+        .enumerate()
+        .map(|(c, ((n, _), roots))| {
+            let col = y_all.col(c).try_as_col_major().expect("contiguous");
+            order_poles(
+                *n,
+                roots,
+                col.as_slice(),
+                l_inv.as_ref(),
+                weights,
+                basis,
+                n1,
+            )
+        })
+        .collect()
+}
+
+/// The Cholesky factor L of the lag matrix R (r_m = Re sum_k v_k^2 E^m, `v2` the squared
+/// line weights) of orders up to `n1 - 1`, and its inverse.
+fn whitening(basis: &LscfBasis, v2: &[f64], n1: usize) -> Result<(Mat<f64>, Mat<f64>), ModalError> {
+    let nf = basis.freq_hz.len();
     // R (common to all points up to w_o^2, which is folded into H): r_m = Re sum_k v_k^2 E^m.
     let r_lag: Vec<f64> = (0..n1)
-        .map(|m| dot(&basis.e_re[m * nf..(m + 1) * nf], &v2))
+        .map(|m| dot(&basis.e_re[m * nf..(m + 1) * nf], v2))
         .collect();
     let mut r = vec![0.0; n1 * n1];
     for i in 0..n1 {
@@ -368,7 +424,12 @@ pub fn lscf_poles_with(
         Par::Seq,
     );
     crate::simd::clear_upper_vector_state();
+    Ok((l_mat, l_inv))
+}
 
+/// The lags of T summed over points.
+fn t_lags(basis: &LscfBasis, h: &[&[c64]], weights: &[f64], v2: &[f64], n1: usize) -> Vec<f64> {
+    let nf = basis.freq_hz.len();
     // T summed over points: t_m = Re sum_k v_k^2 (sum_o w_o^2 |H_ok|^2) E^m.
     let mut pow_sum = vec![0.0; nf];
     for (row, w) in h.iter().zip(weights) {
@@ -376,13 +437,28 @@ pub fn lscf_poles_with(
             *p += w * w * v.norm_sqr();
         }
     }
-    for (p, v) in pow_sum.iter_mut().zip(&v2) {
+    for (p, v) in pow_sum.iter_mut().zip(v2) {
         *p *= v;
     }
-    let t_lag: Vec<f64> = (0..n1)
+    (0..n1)
         .map(|m| dot(&basis.e_re[m * nf..(m + 1) * nf], &pow_sum))
-        .collect();
+        .collect()
+}
 
+/// G' = S' L^{-T}, column-major (P n1) x n1: block o holds G_o^T with G_o = L^{-1} S_o, S_o
+/// the lag sums of point o.
+fn whitened_blocks(
+    basis: &LscfBasis,
+    h: &[&[c64]],
+    weights: &[f64],
+    v2: &[f64],
+    l_mat: MatRef<'_, f64>,
+    n1: usize,
+) -> Vec<f64> {
+    let nf = basis.freq_hz.len();
+    let np = h.len();
+    let e_re = basis.e_re().subcols(0, n1);
+    let e_im = basis.e_im().subcols(0, n1);
     // Lag sums s_m = sum_k w_o v_k^2 H_ok E^m of every point: with the weighted data as
     // columns (lines x points), Re s_{+m} = p - q and Re s_{-m} = p + q with p = X_re^T E_re,
     // q = X_im^T E_im (points x n1).
@@ -435,13 +511,25 @@ pub fn lscf_poles_with(
     }
     let gp = MatMut::from_column_major_slice_mut(&mut gp_buf, rows, n1);
     faer::linalg::triangular_solve::solve_lower_triangular_in_place(
-        l_mat.as_ref(),
+        l_mat,
         gp.transpose_mut(),
         Par::Seq,
     );
-    let gp_slice = gp_buf.as_slice();
     crate::simd::clear_upper_vector_state();
+    gp_buf
+}
 
+/// The denominators (alpha, highest coefficient 1) of the orders `params` asks for, from the
+/// whitened blocks `gp_slice` and the lags of T.
+fn denominators(
+    gp_slice: &[f64],
+    t_lag: &[f64],
+    params: &LscfParams,
+    np: usize,
+    n1: usize,
+) -> Result<Vec<(usize, Vec<f64>)>, ModalError> {
+    let nmax = params.max_order;
+    let rows = np * n1;
     // Denominators of all orders (sequential: P accumulates row by row). Rows k of all
     // G_o, viewed as an n1 x P matrix W_k (column k of G'), add W_k W_k^T.
     let mut pacc = Mat::<f64>::zeros(n1, n1);
@@ -480,128 +568,102 @@ pub fn lscf_poles_with(
         }
         n += params.order_step;
     }
-    drop(pacc);
+    Ok(alphas)
+}
 
-    // Numerators: y_o = G_o alpha for all points and orders in one product. Viewed as an
-    // n1 x (P n1) matrix, G' has entry (j, o + P i) = G_o[i, j], so
-    // Y = G'_view^T A ((P n1) x orders) with Y[o + P i, c] = (G_o alpha_c)[i].
-    let n_ord = alphas.len();
-    let a_all = Mat::<f64>::from_fn(n1, n_ord, |j, c| alphas[c].1.get(j).copied().unwrap_or(0.0));
-    let g_view = MatRef::from_column_major_slice(gp_slice, n1, rows);
-    let mut y_all = Mat::<f64>::zeros(rows, n_ord);
-    matmul(
-        y_all.as_mut(),
-        Accum::Replace,
-        g_view.transpose(),
-        a_all.as_ref(),
-        1.0,
-        Par::Seq,
-    );
-    drop(gp_buf);
-    crate::simd::clear_upper_vector_state();
-
-    // Roots of every order, each started from the roots of the previous order (sequential:
-    // the polynomials of consecutive orders share most of their roots).
-    let mut all_roots: Vec<Vec<c64>> = Vec::with_capacity(alphas.len());
-    let mut prev: Vec<c64> = Vec::new();
-    for (n, alpha) in &alphas {
-        let roots =
-            super::roots::poly_roots_from(alpha, &prev).ok_or_else(|| ModalError::Numerical {
-                stage: "lscf polynomial roots",
-                detail: format!("no root-finder converged at order {n}"),
-            })?;
-        prev.clone_from(&roots);
-        all_roots.push(roots);
+/// The poles of order `n` from its denominator's `roots`, with shapes from the numerators
+/// `y_col` (Y's column of this order) of every point.
+fn order_poles(
+    n: usize,
+    roots: Vec<c64>,
+    y_col: &[f64],
+    l_inv: MatRef<'_, f64>,
+    weights: &[f64],
+    basis: &LscfBasis,
+    n1: usize,
+) -> Result<OrderPoles, ModalError> {
+    let np = weights.len();
+    let dt = basis.dt;
+    let f_lo = basis.freq_hz[0];
+    let f_hi = basis.freq_hz[basis.freq_hz.len() - 1];
+    let mut lambdas = Vec::new();
+    for z in roots {
+        if z.norm_sqr() == 0.0 || !z.re.is_finite() || !z.im.is_finite() {
+            continue;
+        }
+        let lam = -z.ln() / dt;
+        if lam.im <= 0.0 {
+            continue;
+        }
+        let f = lam.norm() / (2.0 * PI);
+        if f < f_lo || f > f_hi {
+            continue;
+        }
+        lambdas.push((lam, z));
     }
-
-    // Shape estimates per order (in parallel, collected in order).
-    alphas
-        .par_iter()
-        .zip(all_roots)
-        .enumerate()
-        .map(|(c, ((n, _), roots))| {
-            let n = *n;
-            let mut lambdas = Vec::new();
-            for z in roots {
-                if z.norm_sqr() == 0.0 || !z.re.is_finite() || !z.im.is_finite() {
-                    continue;
-                }
-                let lam = -z.ln() / dt;
-                if lam.im <= 0.0 {
-                    continue;
-                }
-                let f = lam.norm() / (2.0 * PI);
-                if f < f_lo || f > f_hi {
-                    continue;
-                }
-                lambdas.push((lam, z));
+    let nz = lambdas.len();
+    let mut shapes = vec![Vec::with_capacity(np); nz];
+    if nz > 0 {
+        // beta_o = -L_n^{-T} y_o on the leading block, for all points at once:
+        // B (P x (n+1)) = -Y_c L_n^{-1}, Y_c[o, i] = Y[o + P i, c].
+        let y_c = MatRef::from_column_major_slice(y_col, np, n1).subcols(0, n + 1);
+        let mut b = Mat::<f64>::zeros(np, n + 1);
+        matmul(
+            b.as_mut(),
+            Accum::Replace,
+            y_c,
+            l_inv.submatrix(0, 0, n + 1, n + 1),
+            -1.0,
+            Par::Seq,
+        );
+        // B_o(z_r) = sum_j beta_oj z_r^j: products with the Vandermonde matrix.
+        let mut v_re = Mat::<f64>::zeros(n + 1, nz);
+        let mut v_im = Mat::<f64>::zeros(n + 1, nz);
+        for (r, (_, z)) in lambdas.iter().enumerate() {
+            let mut zp = c64::new(1.0, 0.0);
+            for j in 0..=n {
+                v_re[(j, r)] = zp.re;
+                v_im[(j, r)] = zp.im;
+                zp *= z;
             }
-            let nz = lambdas.len();
-            let mut shapes = vec![Vec::with_capacity(np); nz];
-            if nz > 0 {
-                // beta_o = -L_n^{-T} y_o on the leading block, for all points at once:
-                // B (P x (n+1)) = -Y_c L_n^{-1}, Y_c[o, i] = Y[o + P i, c].
-                let col = y_all.col(c).try_as_col_major().expect("contiguous");
-                let y_c = MatRef::from_column_major_slice(col.as_slice(), np, n1).subcols(0, n + 1);
-                let mut b = Mat::<f64>::zeros(np, n + 1);
-                matmul(
-                    b.as_mut(),
-                    Accum::Replace,
-                    y_c,
-                    l_inv.as_ref().submatrix(0, 0, n + 1, n + 1),
-                    -1.0,
-                    Par::Seq,
-                );
-                // B_o(z_r) = sum_j beta_oj z_r^j: products with the Vandermonde matrix.
-                let mut v_re = Mat::<f64>::zeros(n + 1, nz);
-                let mut v_im = Mat::<f64>::zeros(n + 1, nz);
-                for (r, (_, z)) in lambdas.iter().enumerate() {
-                    let mut zp = c64::new(1.0, 0.0);
-                    for j in 0..=n {
-                        v_re[(j, r)] = zp.re;
-                        v_im[(j, r)] = zp.im;
-                        zp *= z;
-                    }
-                }
-                let mut s_re = Mat::<f64>::zeros(np, nz);
-                let mut s_im = Mat::<f64>::zeros(np, nz);
-                matmul(
-                    s_re.as_mut(),
-                    Accum::Replace,
-                    b.as_ref(),
-                    v_re.as_ref(),
-                    1.0,
-                    Par::Seq,
-                );
-                matmul(
-                    s_im.as_mut(),
-                    Accum::Replace,
-                    b.as_ref(),
-                    v_im.as_ref(),
-                    1.0,
-                    Par::Seq,
-                );
-                crate::simd::clear_upper_vector_state();
-                for (r, sh) in shapes.iter_mut().enumerate() {
-                    for (o, &w) in weights.iter().enumerate() {
-                        sh.push(c64::new(s_re[(o, r)], s_im[(o, r)]) / w);
-                    }
-                }
+        }
+        let mut s_re = Mat::<f64>::zeros(np, nz);
+        let mut s_im = Mat::<f64>::zeros(np, nz);
+        matmul(
+            s_re.as_mut(),
+            Accum::Replace,
+            b.as_ref(),
+            v_re.as_ref(),
+            1.0,
+            Par::Seq,
+        );
+        matmul(
+            s_im.as_mut(),
+            Accum::Replace,
+            b.as_ref(),
+            v_im.as_ref(),
+            1.0,
+            Par::Seq,
+        );
+        crate::simd::clear_upper_vector_state();
+        for (r, sh) in shapes.iter_mut().enumerate() {
+            for (o, &w) in weights.iter().enumerate() {
+                sh.push(c64::new(s_re[(o, r)], s_im[(o, r)]) / w);
             }
-            let mut poles: Vec<RawPole> = lambdas
-                .into_iter()
-                .zip(shapes)
-                .map(|((lam, _), shape)| RawPole {
-                    lambda: lam,
-                    freq_hz: lam.norm() / (2.0 * PI),
-                    damping_ratio: -lam.re / lam.norm(),
-                    shape,
-                })
-                .collect();
-            poles.sort_by(|a, b| a.freq_hz.total_cmp(&b.freq_hz));
-            Ok(OrderPoles { order: n, poles })
+        }
+    }
+    let mut poles: Vec<RawPole> = lambdas
+        .into_iter()
+        .zip(shapes)
+        .map(|((lam, _), shape)| RawPole {
+            lambda: lam,
+            freq_hz: lam.norm() / (2.0 * PI),
+            damping_ratio: -lam.re / lam.norm(),
+            shape,
         })
-        .collect()
+        .collect();
+    poles.sort_by(|a, b| a.freq_hz.total_cmp(&b.freq_hz));
+    Ok(OrderPoles { order: n, poles })
 }
 
 /// Sanathanan–Koerner line weights `v_k = 1/|A(Omega_k)|` from a set of poles (rad/s,

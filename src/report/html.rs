@@ -213,7 +213,28 @@ pub fn render(d: &ReportData) -> Rendered {
         d.tool_version
     );
 
-    // --- Summary and coverage.
+    summary_section(&mut pg, &mut md, d);
+    diagnosis_section(&mut pg, &mut md, d.diagnosis.as_ref());
+    table2_section(&mut pg, &mut md, d);
+    figure6_section(&mut pg, d);
+    for step in std::iter::once(&d.step1).chain(d.step2.as_ref()) {
+        posterior_section(&mut pg, step);
+    }
+    diagnostics_section(&mut pg, &mut md, d);
+    propagation_section(&mut pg, d);
+    findings_section(&mut pg, &mut md, d);
+    plots_section(&mut pg, d);
+    provenance_section(&mut pg, &mut md, d);
+    let html = page_html(d, &pg);
+    Rendered {
+        html,
+        markdown: md,
+        figures: pg.figures,
+    }
+}
+
+/// The summary: coverage of the predicted 90 % intervals per setup and scope.
+fn summary_section(pg: &mut Page, md: &mut String, d: &ReportData) {
     pg.section("summary", "Summary");
     let cov = |scope: &str, setup: &str, updating: Option<bool>| {
         super::validation::coverage(d.intervals.iter().filter(|i| {
@@ -290,11 +311,10 @@ pub fn render(d: &ReportData) -> Rendered {
         let _ = writeln!(md, "\n**Bolted predictions absent:** {why}");
     }
     let _ = writeln!(md);
+}
 
-    // --- Diagnosis.
-    diagnosis_section(&mut pg, &mut md, d.diagnosis.as_ref());
-
-    // --- Table 2 analog.
+/// Measured against simulated frequencies per mode (the paper's Table 2).
+fn table2_section(pg: &mut Page, md: &mut String, d: &ReportData) {
     pg.section(
         "table2",
         "Measured vs simulated frequencies (Table 2 analog)",
@@ -356,8 +376,11 @@ pub fn render(d: &ReportData) -> Rendered {
     t.push_str("</table>");
     pg.body.push_str(&t);
     let _ = writeln!(md);
+}
 
-    // --- Figure 6 analog.
+/// The predicted distributions per board and setup with the measurements (the paper's
+/// Figure 6), and every interval.
+fn figure6_section(pg: &mut Page, d: &ReportData) {
     pg.section(
         "figure6",
         "Predicted distributions per board (Figure 6 analog)",
@@ -439,13 +462,11 @@ pub fn render(d: &ReportData) -> Rendered {
     }
     t.push_str("</table></details>");
     pg.body.push_str(&t);
+}
 
-    // --- Posteriors.
-    for step in std::iter::once(&d.step1).chain(d.step2.as_ref()) {
-        posterior_section(&mut pg, step);
-    }
-
-    // --- Evidence and diagnostics.
+/// Sampler diagnostics and evidence per step: tempering paths, evidence, R-hat, ESS and
+/// the posterior summary.
+fn diagnostics_section(pg: &mut Page, md: &mut String, d: &ReportData) {
     pg.section("diagnostics", "Sampler diagnostics and evidence");
     let _ = writeln!(md, "## Sampler\n");
     for step in std::iter::once(&d.step1).chain(d.step2.as_ref()) {
@@ -526,8 +547,10 @@ pub fn render(d: &ReportData) -> Rendered {
         pg.body.push_str(&t);
     }
     let _ = writeln!(md);
+}
 
-    // --- Propagation.
+/// The propagation's draws and counts.
+fn propagation_section(pg: &mut Page, d: &ReportData) {
     pg.section("propagation", "Propagation");
     pg.p(&format!(
         "Monte Carlo propagation: {} draws (seed {}); evaluations {}, without a prediction {}, outside the ROM's box {}. Full output: <code>propagate/predictions.parquet</code>.",
@@ -537,8 +560,11 @@ pub fn render(d: &ReportData) -> Rendered {
         d.propagate.pointer("/counts/inadmissible_or_untracked").map(|v| v.to_string()).unwrap_or_default(),
         d.propagate.pointer("/counts/outside_rom_box").map(|v| v.to_string()).unwrap_or_default(),
     ));
+}
 
-    // --- Ingest findings and other findings.
+/// Ingest's counts, the quarantined measurements, the specimens and the findings that
+/// matter.
+fn findings_section(pg: &mut Page, md: &mut String, d: &ReportData) {
     pg.section("findings", "Findings that matter");
     pg.p(&format!(
         "Ingest: {} measurements, {} quarantined. Finding counts: {}.",
@@ -607,8 +633,10 @@ pub fn render(d: &ReportData) -> Rendered {
         d.findings.len(),
         d.quarantined.len()
     );
+}
 
-    // --- Links to the identification plots.
+/// Links to the stabilization diagrams and MAC matrices.
+fn plots_section(pg: &mut Page, d: &ReportData) {
     pg.section("plots", "Stabilization diagrams and MAC matrices");
     if d.plot_links.is_empty() {
         pg.p("No stabilization or MAC plots in the work directory (extract/pair ran with --no-plots?).");
@@ -635,8 +663,10 @@ pub fn render(d: &ReportData) -> Rendered {
         s.push_str("</p>");
         pg.body.push_str(&s);
     }
+}
 
-    // --- Provenance.
+/// The report's inputs and every stage's outputs with their BLAKE3.
+fn provenance_section(pg: &mut Page, md: &mut String, d: &ReportData) {
     pg.section("provenance", "Provenance");
     pg.p(&format!(
         "Built by hbmu {} from the artifacts below (BLAKE3 of each file, as recorded in each stage's manifest). Generation time is recorded in <code>report.manifest.json</code> only.",
@@ -676,7 +706,10 @@ pub fn render(d: &ReportData) -> Rendered {
     for (p, h) in &d.inputs {
         let _ = writeln!(md, "- `{p}` blake3 `{h}`");
     }
+}
 
+/// The HTML page: head, table of contents and `pg`'s body.
+fn page_html(d: &ReportData, pg: &Page) -> String {
     let mut html = String::new();
     let _ = write!(
         html,
@@ -691,11 +724,7 @@ pub fn render(d: &ReportData) -> Rendered {
     html.push_str("</ul></nav>\n");
     html.push_str(&pg.body);
     html.push_str("</body>\n</html>\n");
-    Rendered {
-        html,
-        markdown: md,
-        figures: pg.figures,
-    }
+    html
 }
 
 /// One table of the diagnosis section; "none" in one line when it has no rows.

@@ -18,8 +18,7 @@
 use crate::fem::gerber::{
     macro_primitive, render, ApertureShape, Cmd, Image, Interp, MacroPrimitive, SrcPos, Stmt,
 };
-use anyhow::{bail, Context};
-use std::path::Path;
+use anyhow::bail;
 
 /// A parse error at a position.
 fn perr(name: &str, pos: &SrcPos, msg: impl std::fmt::Display) -> anyhow::Error {
@@ -305,288 +304,314 @@ fn instantiate_macro(
     Ok(out)
 }
 
+/// Coordinate format, unit, modes and aperture macros while reading a Gerber file's words.
+struct Parser<'n> {
+    /// The file, for error messages.
+    name: &'n str,
+    out: Vec<Stmt>,
+    format: Option<(Format, Format)>,
+    unit_m: Option<f64>,
+    last_d: Option<u8>,
+    /// Aperture macros: name and the words of its body.
+    macros: Vec<(String, Vec<SrcPos>)>,
+    in_macro: bool,
+    /// Incremental coordinates (FS…I… or G91) and the current point they add to, m
+    /// (the origin before the first operation).
+    incremental: bool,
+    cur: [f64; 2],
+}
+
+/// The codes and coordinates of a function-code word.
+struct CodeWord<'c> {
+    g: Option<u32>,
+    d: Option<u32>,
+    m: Option<u32>,
+    /// X, Y, I, J as written.
+    xy: [Option<&'c str>; 4],
+}
+
 /// Parse Gerber text into statements (coordinates and sizes in metres). `name` is used
 /// in error messages (the file).
 pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
     let ws = words(text, name)?;
-    let mut out = Vec::new();
-    let mut format: Option<(Format, Format)> = None;
-    let mut unit_m: Option<f64> = None;
-    let mut last_d: Option<u8> = None;
-    // Aperture macros: name and the words of its body.
-    let mut macros: Vec<(String, Vec<SrcPos>)> = Vec::new();
-    let mut in_macro = false;
-    // Incremental coordinates (FS…I… or G91) and the current point they add to, m
-    // (the origin before the first operation).
-    let mut incremental = false;
-    let mut cur = [0.0f64; 2];
+    let mut p = Parser {
+        name,
+        out: Vec::new(),
+        format: None,
+        unit_m: None,
+        last_d: None,
+        macros: Vec::new(),
+        in_macro: false,
+        incremental: false,
+        cur: [0.0f64; 2],
+    };
     for w in ws {
-        let pos = w.pos.clone();
-        let c = pos.command.as_str();
-        let push = |out: &mut Vec<Stmt>, cmd: Cmd| {
-            out.push(Stmt {
-                pos: pos.clone(),
-                cmd,
-            })
-        };
         if w.extended {
-            // Words after `%AMname*` up to the closing `%` are the macro's body.
-            if in_macro
-                && !c.starts_with("AM")
-                && !c
-                    .get(0..2)
-                    .is_some_and(|p| p.chars().all(|ch| ch.is_ascii_uppercase()))
-            {
-                if let Some(m) = macros.last_mut() {
-                    m.1.push(pos.clone());
-                }
-                continue;
-            }
-            in_macro = false;
-            let (code, rest) = c.split_at(c.len().min(2));
-            let unit = |what: &str| -> anyhow::Result<f64> {
-                unit_m.ok_or_else(|| {
-                    perr(
-                        name,
-                        &pos,
-                        format!("expected the unit (%MOMM*% or %MOIN*%) before {what}"),
-                    )
-                })
-            };
-            match code {
-                "FS" => {
-                    let b = rest.as_bytes();
-                    let ok = b.len() == 8 && (b[0] == b'L' || b[0] == b'T') && b[2] == b'X' && b[5] == b'Y';
-                    if !ok {
-                        return Err(perr(name, &pos, "expected the format `FS` L|T A X<int><dec> Y<int><dec>, e.g. FSLAX46Y46"));
-                    }
-                    if b[1] != b'A' && b[1] != b'I' {
-                        return Err(perr(name, &pos, "expected absolute (FSLA…) or incremental (FSLI…) coordinates"));
-                    }
-                    incremental = b[1] == b'I';
-                    let d = |k: usize| (b[k] as char).to_digit(10).map(|v| v as usize);
-                    let (Some(xi), Some(xd), Some(yi), Some(yd)) = (d(3), d(4), d(6), d(7)) else {
-                        return Err(perr(name, &pos, "expected digit counts after X and Y, e.g. FSLAX46Y46"));
-                    };
-                    let t = b[0] == b'T';
-                    format = Some((
-                        Format { trailing: t, int: xi, dec: xd },
-                        Format { trailing: t, int: yi, dec: yd },
-                    ));
-                }
-                "MO" => {
-                    unit_m = Some(match rest {
-                        "MM" => 1e-3,
-                        "IN" => 25.4e-3,
-                        _ => return Err(perr(name, &pos, format!("expected MOMM or MOIN, found MO{rest}"))),
-                    })
-                }
-                "AD" => {
-                    let u = unit("an aperture definition")?;
-                    let body = rest.strip_prefix('D').ok_or_else(|| perr(name, &pos, "expected ADD<number><template>"))?;
-                    let nd = body.bytes().take_while(|b| b.is_ascii_digit()).count();
-                    let code: u32 = body[..nd].parse().map_err(|_| perr(name, &pos, "expected an aperture number after ADD"))?;
-                    let (tmpl, params) = match body[nd..].split_once(',') {
-                        Some((t, p)) => (t, p),
-                        None => (&body[nd..], ""),
-                    };
-                    let ps: Vec<f64> = if params.is_empty() {
-                        Vec::new()
-                    } else {
-                        params
-                            .split('X')
-                            .map(|p| parse_decimal(p).ok_or_else(|| perr(name, &pos, format!("expected a decimal aperture parameter, found {p:?}"))))
-                            .collect::<anyhow::Result<_>>()?
-                    };
-                    let need = |lo: usize, hi: usize| -> anyhow::Result<()> {
-                        if ps.len() < lo || ps.len() > hi {
-                            Err(perr(name, &pos, format!("expected {lo} to {hi} parameters for template {tmpl}, found {}", ps.len())))
-                        } else {
-                            Ok(())
-                        }
-                    };
-                    let m = |k: usize| ps.get(k).map(|v| v * u);
-                    let shape = match tmpl {
-                        "C" => {
-                            need(1, 2)?;
-                            ApertureShape::Circle { d_m: ps[0] * u, hole_m: m(1) }
-                        }
-                        "R" => {
-                            need(2, 3)?;
-                            ApertureShape::Rect { w_m: ps[0] * u, h_m: ps[1] * u, hole_m: m(2) }
-                        }
-                        "O" => {
-                            need(2, 3)?;
-                            ApertureShape::Obround { w_m: ps[0] * u, h_m: ps[1] * u, hole_m: m(2) }
-                        }
-                        "P" => {
-                            need(2, 4)?;
-                            if ps[1].fract() != 0.0 {
-                                return Err(perr(name, &pos, format!("expected a whole number of polygon vertices, found {}", ps[1])));
-                            }
-                            ApertureShape::Polygon {
-                                d_m: ps[0] * u,
-                                n: ps[1].max(0.0) as u32,
-                                rotation_deg: ps.get(2).copied().unwrap_or(0.0),
-                                hole_m: m(3),
-                            }
-                        }
-                        t if macros.iter().any(|(n, _)| n == t) => {
-                            let body = &macros.iter().rev().find(|(n, _)| n == t).unwrap_or_else(|| unreachable!()).1;
-                            ApertureShape::Macro {
-                                name: t.to_string(),
-                                primitives: instantiate_macro(name, t, body, &ps, u, &pos)?,
-                            }
-                        }
-                        t => return Err(perr(name, &pos, format!("expected an aperture template C, R, O or P (or a macro defined by AM), found {t:?}"))),
-                    };
-                    push(&mut out, Cmd::ApertureDef { code, shape });
-                }
-                "AM" => {
-                    if rest.is_empty() || macros.iter().any(|(n, _)| n == rest) {
-                        return Err(perr(name, &pos, format!("expected a new macro name after AM, found {rest:?}")));
-                    }
-                    macros.push((rest.to_string(), Vec::new()));
-                    in_macro = true;
-                }
-                "LP" => match rest {
-                    "D" => push(&mut out, Cmd::Polarity { dark: true }),
-                    "C" => push(&mut out, Cmd::Polarity { dark: false }),
-                    _ => return Err(perr(name, &pos, format!("expected LPD or LPC, found LP{rest}"))),
-                },
-                "LM" => {
-                    let (x, y) = match rest {
-                        "N" => (false, false),
-                        "X" => (true, false),
-                        "Y" => (false, true),
-                        "XY" => (true, true),
-                        _ => return Err(perr(name, &pos, format!("expected LMN, LMX, LMY or LMXY, found LM{rest}"))),
-                    };
-                    push(&mut out, Cmd::Mirror { x, y });
-                }
-                "LR" | "LS" => {
-                    let v = parse_decimal(rest).ok_or_else(|| perr(name, &pos, format!("expected a decimal after {code}, found {rest:?}")))?;
-                    push(&mut out, if code == "LR" { Cmd::Rotate(v) } else { Cmd::Scale(v) });
-                }
-                "SR" => {
-                    if rest.is_empty() {
-                        push(&mut out, Cmd::StepRepeatEnd);
-                    } else {
-                        let u = unit("a step-and-repeat")?;
-                        let field = |k: char| -> Option<&str> {
-                            let i = rest.find(k)?;
-                            let tail = &rest[i + 1..];
-                            let e = tail.find(|ch: char| ch.is_ascii_alphabetic()).unwrap_or(tail.len());
-                            Some(&tail[..e])
-                        };
-                        let parsed = (|| {
-                            Some((
-                                field('X')?.parse::<u32>().ok()?,
-                                field('Y')?.parse::<u32>().ok()?,
-                                parse_decimal(field('I')?)?,
-                                parse_decimal(field('J')?)?,
-                            ))
-                        })();
-                        let Some((nx, ny, i, j)) = parsed else {
-                            return Err(perr(name, &pos, "expected SRX<copies>Y<copies>I<step>J<step>"));
-                        };
-                        push(&mut out, Cmd::StepRepeat { nx, ny, dx_m: i * u, dy_m: j * u });
-                    }
-                }
-                // Attributes, image name, layer name: no effect on the image.
-                "TF" | "TA" | "TO" | "TD" | "IN" | "LN" => {}
-                "IP" if rest == "POS" => {}
-                "AS" if rest == "AXBY" => {}
-                "MI" if matches!(rest, "" | "A0B0" | "A0" | "B0") => {}
-                "IR" if rest == "0" => {}
-                "OF" if rest.chars().all(|ch| "AB0.+-".contains(ch)) => {}
-                "SF" if matches!(rest, "" | "A1B1" | "A1.0B1.0" | "A1" | "B1") => {}
-                "AB" => return Err(perr(name, &pos, "block apertures (AB) are not supported yet")),
-                _ => return Err(perr(name, &pos, format!("expected a supported extended command (FS, MO, AD, AM, LP, LM, LR, LS, SR, attributes), found %{c}%"))),
-            }
-            continue;
+            p.extended(&w.pos)?;
+        } else {
+            p.function_code(&w.pos)?;
         }
+    }
+    let out = p.out;
+    if !out.iter().any(|s| s.cmd == Cmd::End) {
+        bail!("{name}: expected M02 at the end of the file, found none (truncated file?)");
+    }
+    Ok(out)
+}
+
+impl Parser<'_> {
+    fn push(&mut self, pos: &SrcPos, cmd: Cmd) {
+        self.out.push(Stmt {
+            pos: pos.clone(),
+            cmd,
+        })
+    }
+
+    /// The unit, m, which must be known before `what`.
+    fn unit(&self, pos: &SrcPos, what: &str) -> anyhow::Result<f64> {
+        self.unit_m.ok_or_else(|| {
+            perr(
+                self.name,
+                pos,
+                format!("expected the unit (%MOMM*% or %MOIN*%) before {what}"),
+            )
+        })
+    }
+
+    /// An extended (`%…%`) word, or a word of an aperture macro's body.
+    fn extended(&mut self, pos: &SrcPos) -> anyhow::Result<()> {
+        let name = self.name;
+        let c = pos.command.as_str();
+        // Words after `%AMname*` up to the closing `%` are the macro's body.
+        if self.in_macro
+            && !c.starts_with("AM")
+            && !c
+                .get(0..2)
+                .is_some_and(|p| p.chars().all(|ch| ch.is_ascii_uppercase()))
+        {
+            if let Some(m) = self.macros.last_mut() {
+                m.1.push(pos.clone());
+            }
+            return Ok(());
+        }
+        self.in_macro = false;
+        let (code, rest) = c.split_at(c.len().min(2));
+        match code {
+            "FS" => {
+                let b = rest.as_bytes();
+                let ok = b.len() == 8 && (b[0] == b'L' || b[0] == b'T') && b[2] == b'X' && b[5] == b'Y';
+                if !ok {
+                    return Err(perr(name, pos, "expected the format `FS` L|T A X<int><dec> Y<int><dec>, e.g. FSLAX46Y46"));
+                }
+                if b[1] != b'A' && b[1] != b'I' {
+                    return Err(perr(name, pos, "expected absolute (FSLA…) or incremental (FSLI…) coordinates"));
+                }
+                self.incremental = b[1] == b'I';
+                let d = |k: usize| (b[k] as char).to_digit(10).map(|v| v as usize);
+                let (Some(xi), Some(xd), Some(yi), Some(yd)) = (d(3), d(4), d(6), d(7)) else {
+                    return Err(perr(name, pos, "expected digit counts after X and Y, e.g. FSLAX46Y46"));
+                };
+                let t = b[0] == b'T';
+                self.format = Some((
+                    Format { trailing: t, int: xi, dec: xd },
+                    Format { trailing: t, int: yi, dec: yd },
+                ));
+            }
+            "MO" => {
+                self.unit_m = Some(match rest {
+                    "MM" => 1e-3,
+                    "IN" => 25.4e-3,
+                    _ => return Err(perr(name, pos, format!("expected MOMM or MOIN, found MO{rest}"))),
+                })
+            }
+            "AD" => {
+                let cmd = self.aperture_def(pos, rest)?;
+                self.push(pos, cmd);
+            }
+            "AM" => {
+                if rest.is_empty() || self.macros.iter().any(|(n, _)| n == rest) {
+                    return Err(perr(name, pos, format!("expected a new macro name after AM, found {rest:?}")));
+                }
+                self.macros.push((rest.to_string(), Vec::new()));
+                self.in_macro = true;
+            }
+            "LP" => match rest {
+                "D" => self.push(pos, Cmd::Polarity { dark: true }),
+                "C" => self.push(pos, Cmd::Polarity { dark: false }),
+                _ => return Err(perr(name, pos, format!("expected LPD or LPC, found LP{rest}"))),
+            },
+            "LM" => {
+                let (x, y) = match rest {
+                    "N" => (false, false),
+                    "X" => (true, false),
+                    "Y" => (false, true),
+                    "XY" => (true, true),
+                    _ => return Err(perr(name, pos, format!("expected LMN, LMX, LMY or LMXY, found LM{rest}"))),
+                };
+                self.push(pos, Cmd::Mirror { x, y });
+            }
+            "LR" | "LS" => {
+                let v = parse_decimal(rest).ok_or_else(|| perr(name, pos, format!("expected a decimal after {code}, found {rest:?}")))?;
+                self.push(pos, if code == "LR" { Cmd::Rotate(v) } else { Cmd::Scale(v) });
+            }
+            "SR" => {
+                if rest.is_empty() {
+                    self.push(pos, Cmd::StepRepeatEnd);
+                } else {
+                    let u = self.unit(pos, "a step-and-repeat")?;
+                    let field = |k: char| -> Option<&str> {
+                        let i = rest.find(k)?;
+                        let tail = &rest[i + 1..];
+                        let e = tail.find(|ch: char| ch.is_ascii_alphabetic()).unwrap_or(tail.len());
+                        Some(&tail[..e])
+                    };
+                    let parsed = (|| {
+                        Some((
+                            field('X')?.parse::<u32>().ok()?,
+                            field('Y')?.parse::<u32>().ok()?,
+                            parse_decimal(field('I')?)?,
+                            parse_decimal(field('J')?)?,
+                        ))
+                    })();
+                    let Some((nx, ny, i, j)) = parsed else {
+                        return Err(perr(name, pos, "expected SRX<copies>Y<copies>I<step>J<step>"));
+                    };
+                    self.push(pos, Cmd::StepRepeat { nx, ny, dx_m: i * u, dy_m: j * u });
+                }
+            }
+            // Attributes, image name, layer name: no effect on the image.
+            "TF" | "TA" | "TO" | "TD" | "IN" | "LN" => {}
+            "IP" if rest == "POS" => {}
+            "AS" if rest == "AXBY" => {}
+            "MI" if matches!(rest, "" | "A0B0" | "A0" | "B0") => {}
+            "IR" if rest == "0" => {}
+            "OF" if rest.chars().all(|ch| "AB0.+-".contains(ch)) => {}
+            "SF" if matches!(rest, "" | "A1B1" | "A1.0B1.0" | "A1" | "B1") => {}
+            "AB" => return Err(perr(name, pos, "block apertures (AB) are not supported yet")),
+            _ => return Err(perr(name, pos, format!("expected a supported extended command (FS, MO, AD, AM, LP, LM, LR, LS, SR, attributes), found %{c}%"))),
+        }
+        Ok(())
+    }
+
+    /// The aperture definition `%ADD<rest>%`.
+    fn aperture_def(&self, pos: &SrcPos, rest: &str) -> anyhow::Result<Cmd> {
+        let name = self.name;
+        let u = self.unit(pos, "an aperture definition")?;
+        let body = rest
+            .strip_prefix('D')
+            .ok_or_else(|| perr(name, pos, "expected ADD<number><template>"))?;
+        let nd = body.bytes().take_while(|b| b.is_ascii_digit()).count();
+        let code: u32 = body[..nd]
+            .parse()
+            .map_err(|_| perr(name, pos, "expected an aperture number after ADD"))?;
+        let (tmpl, params) = match body[nd..].split_once(',') {
+            Some((t, p)) => (t, p),
+            None => (&body[nd..], ""),
+        };
+        let ps: Vec<f64> = if params.is_empty() {
+            Vec::new()
+        } else {
+            params
+                .split('X')
+                .map(|p| {
+                    parse_decimal(p).ok_or_else(|| {
+                        perr(
+                            name,
+                            pos,
+                            format!("expected a decimal aperture parameter, found {p:?}"),
+                        )
+                    })
+                })
+                .collect::<anyhow::Result<_>>()?
+        };
+        let need = |lo: usize, hi: usize| -> anyhow::Result<()> {
+            if ps.len() < lo || ps.len() > hi {
+                Err(perr(
+                    name,
+                    pos,
+                    format!(
+                        "expected {lo} to {hi} parameters for template {tmpl}, found {}",
+                        ps.len()
+                    ),
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        let m = |k: usize| ps.get(k).map(|v| v * u);
+        let shape = match tmpl {
+            "C" => {
+                need(1, 2)?;
+                ApertureShape::Circle { d_m: ps[0] * u, hole_m: m(1) }
+            }
+            "R" => {
+                need(2, 3)?;
+                ApertureShape::Rect { w_m: ps[0] * u, h_m: ps[1] * u, hole_m: m(2) }
+            }
+            "O" => {
+                need(2, 3)?;
+                ApertureShape::Obround { w_m: ps[0] * u, h_m: ps[1] * u, hole_m: m(2) }
+            }
+            "P" => {
+                need(2, 4)?;
+                if ps[1].fract() != 0.0 {
+                    return Err(perr(name, pos, format!("expected a whole number of polygon vertices, found {}", ps[1])));
+                }
+                ApertureShape::Polygon {
+                    d_m: ps[0] * u,
+                    n: ps[1].max(0.0) as u32,
+                    rotation_deg: ps.get(2).copied().unwrap_or(0.0),
+                    hole_m: m(3),
+                }
+            }
+            t if self.macros.iter().any(|(n, _)| n == t) => {
+                let body = &self.macros.iter().rev().find(|(n, _)| n == t).unwrap_or_else(|| unreachable!()).1;
+                ApertureShape::Macro {
+                    name: t.to_string(),
+                    primitives: instantiate_macro(name, t, body, &ps, u, pos)?,
+                }
+            }
+            t => return Err(perr(name, pos, format!("expected an aperture template C, R, O or P (or a macro defined by AM), found {t:?}"))),
+        };
+        Ok(Cmd::ApertureDef { code, shape })
+    }
+
+    /// A function-code word: G, D and M codes and an operation's coordinates.
+    fn function_code(&mut self, pos: &SrcPos) -> anyhow::Result<()> {
+        let name = self.name;
+        let c = pos.command.as_str();
         // Function-code word: letter + number pairs.
         if c.starts_with("G04")
             || c.starts_with("G4") && c[2..].starts_with(|ch: char| !ch.is_ascii_digit())
             || c == "G4"
         {
-            continue; // comment
+            return Ok(()); // comment
         }
-        let b = c.as_bytes();
-        let mut k = 0;
-        let (mut g, mut d, mut m) = (None::<u32>, None::<u32>, None::<u32>);
-        let mut xy: [Option<&str>; 4] = [None; 4];
-        while k < b.len() {
-            let letter = b[k] as char;
-            let s = k + 1;
-            let mut e = s;
-            while e < b.len()
-                && (b[e].is_ascii_digit() || ((b[e] == b'+' || b[e] == b'-') && e == s))
-            {
-                e += 1;
-            }
-            if e == s || (e == s + 1 && !b[s].is_ascii_digit()) {
-                return Err(perr(
-                    name,
-                    &pos,
-                    format!("expected a number after `{letter}`"),
-                ));
-            }
-            let num = &c[s..e];
-            let int = || {
-                num.parse::<u32>().map_err(|_| {
-                    perr(
-                        name,
-                        &pos,
-                        format!("expected a whole number after `{letter}`, found {num:?}"),
-                    )
-                })
-            };
-            match letter {
-                'G' => g = Some(int()?),
-                'D' => d = Some(int()?),
-                'M' => m = Some(int()?),
-                'X' => xy[0] = Some(num),
-                'Y' => xy[1] = Some(num),
-                'I' => xy[2] = Some(num),
-                'J' => xy[3] = Some(num),
-                _ => {
-                    return Err(perr(
-                        name,
-                        &pos,
-                        format!(
-                            "expected a G, D, M code or X, Y, I, J coordinates, found `{letter}`"
-                        ),
-                    ))
-                }
-            }
-            k = e;
-        }
+        let CodeWord { g, d, m, xy } = code_word(c, name, pos)?;
         if let Some(g) = g {
             match g {
-                1 => push(&mut out, Cmd::Interp(Interp::Linear)),
-                2 => push(&mut out, Cmd::Interp(Interp::Clockwise)),
-                3 => push(&mut out, Cmd::Interp(Interp::CounterClockwise)),
-                74 => push(&mut out, Cmd::Quadrant { multi: false }),
-                75 => push(&mut out, Cmd::Quadrant { multi: true }),
-                36 => push(&mut out, Cmd::Region(true)),
-                37 => push(&mut out, Cmd::Region(false)),
+                1 => self.push(pos, Cmd::Interp(Interp::Linear)),
+                2 => self.push(pos, Cmd::Interp(Interp::Clockwise)),
+                3 => self.push(pos, Cmd::Interp(Interp::CounterClockwise)),
+                74 => self.push(pos, Cmd::Quadrant { multi: false }),
+                75 => self.push(pos, Cmd::Quadrant { multi: true }),
+                36 => self.push(pos, Cmd::Region(true)),
+                37 => self.push(pos, Cmd::Region(false)),
                 54 | 55 => {}
-                90 => incremental = false,
-                91 => incremental = true,
-                70 => unit_m = Some(25.4e-3),
-                71 => unit_m = Some(1e-3),
-                _ => return Err(perr(name, &pos, format!("expected a supported G code (01, 02, 03, 04, 36, 37, 74, 75), found G{g:02}"))),
+                90 => self.incremental = false,
+                91 => self.incremental = true,
+                70 => self.unit_m = Some(25.4e-3),
+                71 => self.unit_m = Some(1e-3),
+                _ => return Err(perr(name, pos, format!("expected a supported G code (01, 02, 03, 04, 36, 37, 74, 75), found G{g:02}"))),
             }
         }
         if let Some(m) = m {
             match m {
-                2 | 0 | 30 => push(&mut out, Cmd::End),
+                2 | 0 | 30 => self.push(pos, Cmd::End),
                 1 => {}
-                _ => return Err(perr(name, &pos, format!("expected M02, found M{m:02}"))),
+                _ => return Err(perr(name, pos, format!("expected M02, found M{m:02}"))),
             }
-            continue;
+            return Ok(());
         }
         let has_xy = xy.iter().any(|v| v.is_some());
         let op = match d {
@@ -594,46 +619,46 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
                 if has_xy {
                     return Err(perr(
                         name,
-                        &pos,
+                        pos,
                         "expected no coordinates with an aperture selection",
                     ));
                 }
-                push(&mut out, Cmd::Select(n));
-                last_d = None;
-                continue;
+                self.push(pos, Cmd::Select(n));
+                self.last_d = None;
+                return Ok(());
             }
             Some(n @ 1..=3) => n as u8,
             Some(n) => {
                 return Err(perr(
                     name,
-                    &pos,
+                    pos,
                     format!("expected D01, D02, D03 or an aperture Dnn (nn ≥ 10), found D{n:02}"),
                 ))
             }
-            None if has_xy => match last_d {
+            None if has_xy => match self.last_d {
                 // Deprecated modal D01: coordinates alone repeat the last D01.
                 Some(1) => 1,
                 _ => {
                     return Err(perr(
                         name,
-                        &pos,
+                        pos,
                         "expected an operation code (D01, D02 or D03) after the coordinates",
                     ))
                 }
             },
-            None => continue,
+            None => return Ok(()),
         };
-        let Some((fx, fy)) = format else {
+        let Some((fx, fy)) = self.format else {
             return Err(perr(
                 name,
-                &pos,
+                pos,
                 "expected the coordinate format (%FS…%) before the first coordinate",
             ));
         };
-        let Some(u) = unit_m else {
+        let Some(u) = self.unit_m else {
             return Err(perr(
                 name,
-                &pos,
+                pos,
                 "expected the unit (%MOMM*% or %MOIN*%) before the first coordinate",
             ));
         };
@@ -647,7 +672,7 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
             if digits.len() > f.int + f.dec {
                 return Err(perr(
                     name,
-                    &pos,
+                    pos,
                     format!(
                         "expected at most {} digits (format {}{}), found {s:?}",
                         f.int + f.dec,
@@ -658,7 +683,7 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
             }
             let v: f64 = digits
                 .parse::<u64>()
-                .map_err(|_| perr(name, &pos, format!("expected digits, found {s:?}")))?
+                .map_err(|_| perr(name, pos, format!("expected digits, found {s:?}")))?
                 as f64;
             let scale = if f.trailing {
                 10f64.powi((f.int + f.dec - digits.len()) as i32 - f.dec as i32)
@@ -668,12 +693,12 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
             Ok(Some(if neg { -v } else { v } * scale * u))
         };
         let (mut x, mut y) = (coord(0, fx)?, coord(1, fy)?);
-        if incremental {
+        if self.incremental {
             // Both coordinates become absolute: a missing one is an increment of 0.
-            x = Some(cur[0] + x.unwrap_or(0.0));
-            y = Some(cur[1] + y.unwrap_or(0.0));
+            x = Some(self.cur[0] + x.unwrap_or(0.0));
+            y = Some(self.cur[1] + y.unwrap_or(0.0));
         }
-        cur = [x.unwrap_or(cur[0]), y.unwrap_or(cur[1])];
+        self.cur = [x.unwrap_or(self.cur[0]), y.unwrap_or(self.cur[1])];
         let cmd = Cmd::Op {
             d: op,
             x,
@@ -681,27 +706,68 @@ pub fn parse_gerber(text: &str, name: &str) -> anyhow::Result<Vec<Stmt>> {
             i: coord(2, fx)?,
             j: coord(3, fy)?,
         };
-        push(&mut out, cmd);
-        last_d = Some(op);
+        self.push(pos, cmd);
+        self.last_d = Some(op);
+        Ok(())
     }
-    if !out.iter().any(|s| s.cmd == Cmd::End) {
-        bail!("{name}: expected M02 at the end of the file, found none (truncated file?)");
+}
+
+/// The G, D and M codes and the X, Y, I, J coordinates (as written) of the function-code
+/// word `c` at `pos`.
+fn code_word<'c>(c: &'c str, name: &str, pos: &SrcPos) -> anyhow::Result<CodeWord<'c>> {
+    let b = c.as_bytes();
+    let mut k = 0;
+    let (mut g, mut d, mut m) = (None::<u32>, None::<u32>, None::<u32>);
+    let mut xy: [Option<&str>; 4] = [None; 4];
+    while k < b.len() {
+        let letter = b[k] as char;
+        let s = k + 1;
+        let mut e = s;
+        while e < b.len() && (b[e].is_ascii_digit() || ((b[e] == b'+' || b[e] == b'-') && e == s)) {
+            e += 1;
+        }
+        if e == s || (e == s + 1 && !b[s].is_ascii_digit()) {
+            return Err(perr(
+                name,
+                pos,
+                format!("expected a number after `{letter}`"),
+            ));
+        }
+        let num = &c[s..e];
+        let int = || {
+            num.parse::<u32>().map_err(|_| {
+                perr(
+                    name,
+                    pos,
+                    format!("expected a whole number after `{letter}`, found {num:?}"),
+                )
+            })
+        };
+        match letter {
+            'G' => g = Some(int()?),
+            'D' => d = Some(int()?),
+            'M' => m = Some(int()?),
+            'X' => xy[0] = Some(num),
+            'Y' => xy[1] = Some(num),
+            'I' => xy[2] = Some(num),
+            'J' => xy[3] = Some(num),
+            _ => {
+                return Err(perr(
+                    name,
+                    pos,
+                    format!("expected a G, D, M code or X, Y, I, J coordinates, found `{letter}`"),
+                ))
+            }
+        }
+        k = e;
     }
-    Ok(out)
+    Ok(CodeWord { g, d, m, xy })
 }
 
 /// Parse and render a Gerber file's text; errors name `name`, the line and the command.
 pub fn read_gerber_str(text: &str, name: &str) -> anyhow::Result<Image> {
     let stmts = parse_gerber(text, name)?;
     render(&stmts).map_err(|e| perr(name, &e.pos, e.message))
-}
-
-/// Read, parse and render a Gerber file.
-pub fn read_gerber(path: &Path) -> anyhow::Result<Image> {
-    let bytes = std::fs::read(path)
-        .with_context(|| format!("cannot read Gerber file {}", path.display()))?;
-    let text = String::from_utf8_lossy(&bytes);
-    read_gerber_str(&text, &path.display().to_string())
 }
 
 #[cfg(test)]

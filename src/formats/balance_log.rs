@@ -155,7 +155,7 @@ pub fn parse(bytes: &[u8], file: &str) -> (Vec<Reading>, Findings) {
         let tokens: Vec<&str> = text.split_whitespace().collect();
         let (timestamp, time_ns) = match tokens.first() {
             Some(t) => {
-                let ns = crate::io::sheet::parse_iso_datetime_ns(t);
+                let ns = crate::formats::sheet::parse_iso_datetime_ns(t);
                 (ns.map(|_| t.to_string()), ns)
             }
             None => (None, None),

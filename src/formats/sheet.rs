@@ -166,6 +166,75 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
         .has_headers(true)
         .flexible(true)
         .from_reader(bytes);
+    let names = column_names(&mut rdr, file)?;
+    let extra_columns: Vec<String> = names
+        .iter()
+        .filter(|n| !REQUIRED.contains(&n.as_str()) && !OPTIONAL.contains(&n.as_str()))
+        .cloned()
+        .collect();
+
+    let mut sheet = Sheet {
+        extra_columns,
+        ..Default::default()
+    };
+    let mut gaps = Gaps {
+        empties: vec![],
+        filled: [0usize; GAP_COLUMNS.len()],
+    };
+    let mut rec = csv::ByteRecord::new();
+    let mut lines = LineCounter {
+        bytes,
+        counted_to: 0,
+        counted_lines: 1,
+    };
+    loop {
+        let line_hint = rdr.position().line();
+        match rdr.read_byte_record(&mut rec) {
+            Ok(false) => break,
+            Ok(true) => {}
+            Err(e) => {
+                let line = e.position().map(|p| p.line()).unwrap_or(line_hint);
+                sheet.findings.push(
+                    Finding::new(
+                        Severity::RecordDropped,
+                        "sheet.unreadable_row",
+                        format!("row cannot be read as CSV ({e}); the row is dropped"),
+                    )
+                    .file(file)
+                    .line(line),
+                );
+                // A CSV syntax error (e.g. an unterminated quote) may swallow the rest of the
+                // file; stop rather than guess.
+                break;
+            }
+        }
+        // The csv crate's line counter skips newlines inside quoted fields; count them from the
+        // byte offset instead, so the line we report is the one an editor shows.
+        let line = match rec.position() {
+            // With CRLF the reported start can sit on the previous line's `\n`; step past it.
+            Some(p) => {
+                let b = p.byte() as usize;
+                lines.line_at(if bytes.get(b) == Some(&b'\n') {
+                    b + 1
+                } else {
+                    b
+                })
+            }
+            None => line_hint,
+        };
+        let (fields, bad_utf8) = utf8_fields(&rec, names.len());
+        if fields.iter().all(|f| f.trim().is_empty()) {
+            continue; // blank line
+        }
+        push_row(&mut sheet, &mut gaps, &names, &fields, bad_utf8, file, line);
+    }
+    note_gaps(&mut sheet, &gaps, file);
+    Ok(sheet)
+}
+
+/// The header's column names (trimmed); errors when it is unreadable or empty, names a
+/// column twice or lacks a required column.
+fn column_names(rdr: &mut csv::Reader<&[u8]>, file: &str) -> Result<Vec<String>, SheetError> {
     let headers = match rdr.byte_headers() {
         Ok(h) => h.clone(),
         Err(e) => {
@@ -203,231 +272,220 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
             found: names,
         });
     }
-    let idx = |name: &str| names.iter().position(|n| n == name);
-    let extra_columns: Vec<String> = names
-        .iter()
-        .filter(|n| !REQUIRED.contains(&n.as_str()) && !OPTIONAL.contains(&n.as_str()))
-        .cloned()
-        .collect();
+    Ok(names)
+}
 
-    let mut sheet = Sheet {
-        extra_columns,
-        ..Default::default()
-    };
-    // Empty cells of the columns checked for gaps: (column, line, measurement_id).
-    let mut empties: Vec<(usize, u64, String)> = vec![];
-    let mut filled = [0usize; GAP_COLUMNS.len()];
-    let mut rec = csv::ByteRecord::new();
-    let (mut counted_to, mut counted_lines) = (0usize, 1u64);
-    let mut line_at = |byte: usize| -> u64 {
-        let byte = byte.min(bytes.len());
-        if byte >= counted_to {
-            counted_lines += memchr::memchr_iter(b'\n', &bytes[counted_to..byte]).count() as u64;
-            counted_to = byte;
+/// Counts the lines up to byte offsets of the sheet (the line an editor shows).
+struct LineCounter<'b> {
+    bytes: &'b [u8],
+    counted_to: usize,
+    counted_lines: u64,
+}
+
+impl LineCounter<'_> {
+    /// The 1-based line of byte offset `byte`.
+    fn line_at(&mut self, byte: usize) -> u64 {
+        let byte = byte.min(self.bytes.len());
+        if byte >= self.counted_to {
+            self.counted_lines +=
+                memchr::memchr_iter(b'\n', &self.bytes[self.counted_to..byte]).count() as u64;
+            self.counted_to = byte;
         } else {
-            counted_to = 0;
-            counted_lines = 1 + memchr::memchr_iter(b'\n', &bytes[..byte]).count() as u64;
-            counted_to = byte;
+            self.counted_to = 0;
+            self.counted_lines = 1 + memchr::memchr_iter(b'\n', &self.bytes[..byte]).count() as u64;
+            self.counted_to = byte;
         }
-        counted_lines
+        self.counted_lines
+    }
+}
+
+/// A row's fields as text, and whether any was not UTF-8 (its invalid bytes replaced).
+fn utf8_fields(rec: &csv::ByteRecord, n_columns: usize) -> (Vec<String>, bool) {
+    let mut fields: Vec<String> = Vec::with_capacity(n_columns);
+    let mut bad_utf8 = false;
+    for f in rec.iter() {
+        match std::str::from_utf8(f) {
+            Ok(s) => fields.push(s.to_string()),
+            Err(_) => {
+                bad_utf8 = true;
+                fields.push(String::from_utf8_lossy(f).into_owned());
+            }
+        }
+    }
+    (fields, bad_utf8)
+}
+
+/// Empty cells of the columns checked for gaps: (column, line, measurement_id), and per
+/// column the rows that fill it.
+struct Gaps {
+    empties: Vec<(usize, u64, String)>,
+    filled: [usize; GAP_COLUMNS.len()],
+}
+
+/// Reads the row `fields` at `line` into `sheet` (its row and findings) and `gaps`.
+fn push_row(
+    sheet: &mut Sheet,
+    gaps: &mut Gaps,
+    names: &[String],
+    fields: &[String],
+    bad_utf8: bool,
+    file: &str,
+    line: u64,
+) {
+    let idx = |name: &str| names.iter().position(|n| n == name);
+    if bad_utf8 {
+        sheet.findings.push(
+            Finding::new(
+                Severity::Warning,
+                "sheet.not_utf8",
+                "row is not valid UTF-8 (expected UTF-8); invalid bytes replaced by U+FFFD",
+            )
+            .file(file)
+            .line(line),
+        );
+    }
+    if fields.len() != names.len() {
+        sheet.findings.push(
+            Finding::new(
+                Severity::Warning,
+                "sheet.field_count",
+                format!(
+                    "row has {} fields, header has {} (missing fields taken as empty, surplus ignored)",
+                    fields.len(),
+                    names.len()
+                ),
+            )
+            .file(file)
+            .line(line),
+        );
+    }
+    let get = |name: &str| -> String {
+        idx(name)
+            .and_then(|i| fields.get(i))
+            .map(|s| s.trim().to_string())
+            .unwrap_or_default()
     };
-    loop {
-        let line_hint = rdr.position().line();
-        match rdr.read_byte_record(&mut rec) {
-            Ok(false) => break,
-            Ok(true) => {}
-            Err(e) => {
-                let line = e.position().map(|p| p.line()).unwrap_or(line_hint);
-                sheet.findings.push(
+    let measurement_id = get("measurement_id");
+    let num = |name: &str, findings: &mut Findings| -> Option<f64> {
+        let raw = get(name);
+        if raw.is_empty() {
+            return None;
+        }
+        match raw.parse::<f64>() {
+            Ok(v) if v.is_finite() => Some(v),
+            _ => {
+                findings.push(
                     Finding::new(
-                        Severity::RecordDropped,
-                        "sheet.unreadable_row",
-                        format!("row cannot be read as CSV ({e}); the row is dropped"),
+                        Severity::Warning,
+                        "sheet.not_a_number",
+                        format!(
+                            "column {name}: expected a number, found {raw:?}; taken as unknown"
+                        ),
                     )
                     .file(file)
-                    .line(line),
+                    .line(line)
+                    .measurement(measurement_id.clone()),
                 );
-                // A CSV syntax error (e.g. an unterminated quote) may swallow the rest of the
-                // file; stop rather than guess.
-                break;
+                None
             }
         }
-        // The csv crate's line counter skips newlines inside quoted fields; count them from the
-        // byte offset instead, so the line we report is the one an editor shows.
-        let line = match rec.position() {
-            // With CRLF the reported start can sit on the previous line's `\n`; step past it.
-            Some(p) => {
-                let b = p.byte() as usize;
-                line_at(if bytes.get(b) == Some(&b'\n') {
-                    b + 1
-                } else {
-                    b
-                })
-            }
-            None => line_hint,
-        };
-        let mut fields: Vec<String> = Vec::with_capacity(names.len());
-        let mut bad_utf8 = false;
-        for f in rec.iter() {
-            match std::str::from_utf8(f) {
-                Ok(s) => fields.push(s.to_string()),
-                Err(_) => {
-                    bad_utf8 = true;
-                    fields.push(String::from_utf8_lossy(f).into_owned());
-                }
-            }
+    };
+    let torque_nm = num("torque_nm", &mut sheet.findings);
+    let dimensions_mm = DIMENSIONS.map(|col| {
+        let v = num(col, &mut sheet.findings)?;
+        if v > 0.0 {
+            return Some(v);
         }
-        if fields.iter().all(|f| f.trim().is_empty()) {
-            continue; // blank line
-        }
-        if bad_utf8 {
-            sheet.findings.push(
-                Finding::new(
-                    Severity::Warning,
-                    "sheet.not_utf8",
-                    "row is not valid UTF-8 (expected UTF-8); invalid bytes replaced by U+FFFD",
-                )
-                .file(file)
-                .line(line),
-            );
-        }
-        if fields.len() != names.len() {
-            sheet.findings.push(
-                Finding::new(
-                    Severity::Warning,
-                    "sheet.field_count",
-                    format!(
-                        "row has {} fields, header has {} (missing fields taken as empty, surplus ignored)",
-                        fields.len(),
-                        names.len()
-                    ),
-                )
-                .file(file)
-                .line(line),
-            );
-        }
-        let get = |name: &str| -> String {
-            idx(name)
-                .and_then(|i| fields.get(i))
-                .map(|s| s.trim().to_string())
-                .unwrap_or_default()
-        };
-        let measurement_id = get("measurement_id");
-        let num = |name: &str, findings: &mut Findings| -> Option<f64> {
-            let raw = get(name);
-            if raw.is_empty() {
-                return None;
-            }
-            match raw.parse::<f64>() {
-                Ok(v) if v.is_finite() => Some(v),
-                _ => {
-                    findings.push(
-                        Finding::new(
-                            Severity::Warning,
-                            "sheet.not_a_number",
-                            format!(
-                                "column {name}: expected a number, found {raw:?}; taken as unknown"
-                            ),
-                        )
-                        .file(file)
-                        .line(line)
-                        .measurement(measurement_id.clone()),
-                    );
-                    None
-                }
-            }
-        };
-        let torque_nm = num("torque_nm", &mut sheet.findings);
-        let dimensions_mm = DIMENSIONS.map(|col| {
-            let v = num(col, &mut sheet.findings)?;
-            if v > 0.0 {
-                return Some(v);
-            }
-            sheet.findings.push(
-                Finding::new(
-                    Severity::Warning,
-                    "sheet.not_a_dimension",
-                    format!("column {col}: expected a positive length in mm, found {v}; taken as unknown"),
-                )
-                .file(file)
-                .line(line)
-                .measurement(measurement_id.clone()),
-            );
-            None
-        });
-        let temperature_c = num("temperature_c", &mut sheet.findings);
-        let date = non_empty(&get("date"));
-        let date_unix_ns = date.as_deref().and_then(parse_iso_datetime_ns);
-        if let (Some(d), None) = (&date, date_unix_ns) {
-            sheet.findings.push(
-                Finding::new(
-                    Severity::Warning,
-                    "sheet.bad_date",
-                    format!("column date: expected ISO-8601 date or date-time, found {d:?}"),
-                )
-                .file(file)
-                .line(line)
-                .measurement(measurement_id.clone()),
-            );
-        }
-        let board_raw = idx("board_id")
-            .and_then(|i| fields.get(i))
-            .cloned()
-            .unwrap_or_default();
-        if board_raw.trim() != board_raw && !board_raw.trim().is_empty() {
-            sheet.findings.push(
-                Finding::new(
-                    Severity::Warning,
-                    "sheet.board_id_whitespace",
-                    format!(
-                        "board_id {board_raw:?} has spaces around it (expected the bare ID); taken as {:?}",
-                        board_raw.trim()
-                    ),
-                )
-                .file(file)
-                .line(line)
-                .measurement(measurement_id.clone()),
-            );
-        }
-        for (k, col) in GAP_COLUMNS.iter().enumerate() {
-            if idx(col).is_some() {
-                if get(col).is_empty() {
-                    empties.push((k, line, measurement_id.clone()));
-                } else {
-                    filled[k] += 1;
-                }
-            }
-        }
-        let setup_raw = get("setup");
-        let extra = sheet
-            .extra_columns
-            .iter()
-            .map(|c| (c.clone(), get(c)))
-            .collect();
-        sheet.rows.push(SheetRow {
-            line,
-            measurement_id,
-            board_id: get("board_id"),
-            setup: Setup::parse(&setup_raw),
-            setup_raw,
-            file: get("file"),
-            bolt_set: non_empty(&get("bolt_set")),
-            torque_nm,
-            temperature_c,
-            date,
-            date_unix_ns,
-            operator: non_empty(&get("operator")),
-            notes: non_empty(&get("notes")),
-            dimensions_mm,
-            extra,
-        });
+        sheet.findings.push(
+            Finding::new(
+                Severity::Warning,
+                "sheet.not_a_dimension",
+                format!(
+                    "column {col}: expected a positive length in mm, found {v}; taken as unknown"
+                ),
+            )
+            .file(file)
+            .line(line)
+            .measurement(measurement_id.clone()),
+        );
+        None
+    });
+    let temperature_c = num("temperature_c", &mut sheet.findings);
+    let date = non_empty(&get("date"));
+    let date_unix_ns = date.as_deref().and_then(parse_iso_datetime_ns);
+    if let (Some(d), None) = (&date, date_unix_ns) {
+        sheet.findings.push(
+            Finding::new(
+                Severity::Warning,
+                "sheet.bad_date",
+                format!("column date: expected ISO-8601 date or date-time, found {d:?}"),
+            )
+            .file(file)
+            .line(line)
+            .measurement(measurement_id.clone()),
+        );
     }
+    let board_raw = idx("board_id")
+        .and_then(|i| fields.get(i))
+        .cloned()
+        .unwrap_or_default();
+    if board_raw.trim() != board_raw && !board_raw.trim().is_empty() {
+        sheet.findings.push(
+            Finding::new(
+                Severity::Warning,
+                "sheet.board_id_whitespace",
+                format!(
+                    "board_id {board_raw:?} has spaces around it (expected the bare ID); taken as {:?}",
+                    board_raw.trim()
+                ),
+            )
+            .file(file)
+            .line(line)
+            .measurement(measurement_id.clone()),
+        );
+    }
+    for (k, col) in GAP_COLUMNS.iter().enumerate() {
+        if idx(col).is_some() {
+            if get(col).is_empty() {
+                gaps.empties.push((k, line, measurement_id.clone()));
+            } else {
+                gaps.filled[k] += 1;
+            }
+        }
+    }
+    let setup_raw = get("setup");
+    let extra = sheet
+        .extra_columns
+        .iter()
+        .map(|c| (c.clone(), get(c)))
+        .collect();
+    sheet.rows.push(SheetRow {
+        line,
+        measurement_id,
+        board_id: get("board_id"),
+        setup: Setup::parse(&setup_raw),
+        setup_raw,
+        file: get("file"),
+        bolt_set: non_empty(&get("bolt_set")),
+        torque_nm,
+        temperature_c,
+        date,
+        date_unix_ns,
+        operator: non_empty(&get("operator")),
+        notes: non_empty(&get("notes")),
+        dimensions_mm,
+        extra,
+    });
+}
+
+/// Gaps: a finding per empty cell of a column the lab fills on other rows.
+fn note_gaps(sheet: &mut Sheet, gaps: &Gaps, file: &str) {
     // Gaps: a column the lab fills, left empty on some rows.
     for (k, col) in GAP_COLUMNS.iter().enumerate() {
-        if filled[k] == 0 {
+        if gaps.filled[k] == 0 {
             continue;
         }
-        for (kk, line, mid) in &empties {
+        for (kk, line, mid) in &gaps.empties {
             if *kk == k {
                 sheet.findings.push(
                     Finding::new(
@@ -442,7 +500,6 @@ pub fn parse(bytes: &[u8], file: &str) -> Result<Sheet, SheetError> {
             }
         }
     }
-    Ok(sheet)
 }
 
 #[cfg(test)]
