@@ -61,6 +61,27 @@ pub struct PopulationPrior {
     pub sigma_prior: Vec<SigmaPrior>,
     /// LKJ shape η (1 = uniform over correlation matrices; larger = closer to I).
     pub lkj_eta: f64,
+    /// The LKJ normalising constant, computed at its first use.
+    #[serde(skip)]
+    pub lkj_log_norm: LkjNorm,
+}
+
+/// A prior's LKJ normalising constant, computed once for the (d, η) it is first asked for
+/// (the sampler asks at every move of the global vector) and recomputed for any other.
+#[derive(Clone, Debug, Default)]
+pub struct LkjNorm(std::sync::OnceLock<(usize, u64, f64)>);
+
+impl LkjNorm {
+    fn get(&self, d: usize, eta: f64) -> f64 {
+        let &(cd, ce, c) = self
+            .0
+            .get_or_init(|| (d, eta.to_bits(), lkj_log_normaliser(d, eta)));
+        if cd == d && ce == eta.to_bits() {
+            c
+        } else {
+            lkj_log_normaliser(d, eta)
+        }
+    }
 }
 
 /// μ, σ and the Cholesky factors of one global vector.
@@ -137,7 +158,8 @@ impl PopulationPrior {
         if !log_jac.is_finite() {
             return f64::NEG_INFINITY;
         }
-        lp + lkj_cholesky_lpdf(l, d, self.lkj_eta) + log_jac
+        lp + lkj_cholesky_lpdf_with(l, d, self.lkj_eta, self.lkj_log_norm.get(d, self.lkj_eta))
+            + log_jac
     }
 
     /// A draw of the global vector from the prior.
@@ -267,10 +289,15 @@ pub fn lkj_cholesky(y: &[f64], d: usize) -> (Vec<f64>, f64) {
 
 /// log LKJ-Cholesky density of L (over its free elements), shape η.
 pub fn lkj_cholesky_lpdf(l: &[f64], d: usize, eta: f64) -> f64 {
+    lkj_cholesky_lpdf_with(l, d, eta, lkj_log_normaliser(d, eta))
+}
+
+/// [`lkj_cholesky_lpdf`] with its normalising constant `log_norm` given.
+fn lkj_cholesky_lpdf_with(l: &[f64], d: usize, eta: f64, log_norm: f64) -> f64 {
     // The normalising constant is the same for every L and cancels in every ratio the
     // sampler forms, but the evidence needs it: c_d(η) from Lewandowski et al. (2009),
     // eq. 16, written in terms of the Beta function.
-    let mut lp = lkj_log_normaliser(d, eta);
+    let mut lp = log_norm;
     for i in 1..d {
         let e = d as f64 - i as f64 + 2.0 * eta - 3.0;
         lp += e * l[i * d + i].ln();
@@ -282,21 +309,6 @@ pub fn lkj_cholesky_lpdf(l: &[f64], d: usize, eta: f64) -> f64 {
 /// independent scaled Beta(b_j, b_j) variables on (−1, 1), each with normaliser
 /// 2^{2b−1} B(b, b).
 fn lkj_log_normaliser(d: usize, eta: f64) -> f64 {
-    // A pure function of (d, η) that the sampler asks for at every move of the global
-    // vector (it was 7 % of step 1's time): memoised per thread, the last value only.
-    thread_local! {
-        static LAST: std::cell::Cell<(usize, u64, f64)> = const { std::cell::Cell::new((usize::MAX, 0, 0.0)) };
-    }
-    let (ld, le, lc) = LAST.with(|c| c.get());
-    if ld == d && le == eta.to_bits() {
-        return lc;
-    }
-    let c = lkj_log_normaliser_uncached(d, eta);
-    LAST.with(|cell| cell.set((d, eta.to_bits(), c)));
-    c
-}
-
-fn lkj_log_normaliser_uncached(d: usize, eta: f64) -> f64 {
     let mut c = 0.0;
     for i in 1..d {
         for j in 0..i {
@@ -351,6 +363,7 @@ mod tests {
             sigma_scale: vec![1.0; d],
             sigma_prior: vec![],
             lkj_eta: eta,
+            lkj_log_norm: Default::default(),
         }
     }
 

@@ -104,6 +104,7 @@ pub fn build_target(p: &Problem) -> ModalTarget {
             sigma_scale: vec![p.sigma_scale; d],
             sigma_prior: vec![p.sigma_prior; d],
             lkj_eta: p.lkj_eta,
+            lkj_log_norm: Default::default(),
         },
         errors: ErrorModel {
             n_modes: p.modes.len(),

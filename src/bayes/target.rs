@@ -575,6 +575,7 @@ mod tests {
                 sigma_scale: vec![0.05, 0.05, 0.05, 0.001],
                 sigma_prior: vec![],
                 lkj_eta: 2.0,
+                lkj_log_norm: Default::default(),
             },
             errors: ErrorModel {
                 n_modes: 4,

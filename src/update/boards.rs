@@ -325,6 +325,7 @@ pub fn board_target(
         // (a coefficient probably common to all boards).
         sigma_prior: vec![spec.sigma_prior; d0],
         lkj_eta: spec.lkj_eta,
+        lkj_log_norm: Default::default(),
     };
     if let Some(e) = &bm.enrichment {
         // The board's coordinate (a coefficient, or ln of an added mass): population

@@ -588,6 +588,7 @@ pub fn joint_target(
             sigma_scale: vec![spec.sigma_scale; jm.coords.len()],
             sigma_prior: vec![],
             lkj_eta: spec.lkj_eta,
+            lkj_log_norm: Default::default(),
         },
         errors: ErrorModel {
             n_modes: labels.labels.len(),

@@ -42,7 +42,6 @@ pub const PRESENCE: TableSpec = TableSpec {
 
 pub use crate::modal::rows::PairRow;
 
-
 /// The accepted pairs of pairs.parquet (with an identified mode, a frequency and a model mode).
 pub fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairRow>> {
     let mut out = vec![];

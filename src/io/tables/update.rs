@@ -1,8 +1,8 @@
 //! The spec, row types, reader and writer of update's tables (both steps).
 
 use crate::bayes::smc::StageInfo;
-use crate::io::tables::{self, c, Col, Cols, TableSpec};
 pub use crate::io::tables::pairs::{read_pairs, read_presence};
+use crate::io::tables::{self, c, Col, Cols, TableSpec};
 use crate::update::posterior::{DrawTable, Residual, SummaryRow};
 use crate::update::problem::MassRow;
 use crate::update::step1::Step1;
@@ -188,7 +188,6 @@ pub const RESIDUALS: TableSpec = TableSpec {
         c("used_for_updating", Col::Bool, false, "", "The mode's label was used for updating."),
     ],
 };
-
 
 pub fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
     let mut out = BTreeMap::new();
@@ -492,7 +491,6 @@ pub fn read_step1(path: &Path) -> anyhow::Result<Step1> {
         draws,
     })
 }
-
 
 /// The numeric column `column` of measurements.parquet per measurement, in file order (`None`
 /// where it has no finite value): the covariate of a temperature enrichment.

@@ -84,8 +84,14 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         let (input, _) = read_inputs(w)?;
         let located = locate::locate(&input, &opts.locate);
         let (board, _) = load_board(opts.board.as_deref())?;
-        let (_, cands) =
-            screen_candidates(w, &board, &base1.model.params, &input, &located, &opts.locate);
+        let (_, cands) = screen_candidates(
+            w,
+            &board,
+            &base1.model.params,
+            &input,
+            &located,
+            &opts.locate,
+        );
         let cand = cands.iter().find(|c| c.id() == *only).ok_or_else(|| {
             anyhow!(
                 "--only {only}: not a screened candidate of this work directory (screened: {})",
@@ -109,8 +115,14 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
         findings.0.extend(in_findings.0);
         let located = locate::locate(&input, &opts.locate);
         let (board, _) = load_board(opts.board.as_deref())?;
-        let (regions, candidates) =
-            screen_candidates(w, &board, &base1.model.params, &input, &located, &opts.locate);
+        let (regions, candidates) = screen_candidates(
+            w,
+            &board,
+            &base1.model.params,
+            &input,
+            &located,
+            &opts.locate,
+        );
         let mut refits: Vec<Refit> = vec![];
         let (baseline1, baseline) = baselines(w, step2)?;
         let mut parts = MisfitParts::new(&located);

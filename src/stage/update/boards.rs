@@ -1,0 +1,278 @@
+//! `update boards` (step 1): free-free modes and balance masses of every board; read →
+//! [`crate::update::boards`] → write.
+
+use super::*;
+
+/// Step 1: boards, free-free.
+pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
+    let extract_dir = opts.extract_dir();
+    let pairs_path = opts.pair_dir.join("pairs.parquet");
+    let presence_path = opts.pair_dir.join("presence.parquet");
+    let modes_path = extract_dir.join("modes.parquet");
+    let masses_path = opts.ingest_dir.join("masses.parquet");
+    let measurements_path = opts.ingest_dir.join("measurements.parquet");
+    let specimens_path = opts.ingest_dir.join("specimens.parquet");
+    if let Some(m) = opts.model.enrich.filter(|m| !is_board_mechanism(*m)) {
+        bail!(
+            "--enrich {}: not a board mechanism (update boards refits temperature_stiffness, added_mass)",
+            m.id()
+        );
+    }
+    if !(opts.model.mass_floor_rel.is_finite() && opts.model.mass_floor_rel >= 0.0) {
+        bail!(
+            "--mass-floor: expected a finite relative value >= 0, found {}",
+            opts.model.mass_floor_rel
+        );
+    }
+    let mut inputs = vec![
+        pairs_path.clone(),
+        presence_path.clone(),
+        modes_path.clone(),
+        masses_path.clone(),
+    ];
+    if opts.model.enrich_covariate.is_some() {
+        inputs.push(measurements_path.clone());
+    }
+    // Older ingest outputs have no specimens table: every board at the board file's thickness.
+    if specimens_path.is_file() {
+        inputs.push(specimens_path.clone());
+    }
+    let (board, spec) = step_spec(
+        opts,
+        "update_boards",
+        inputs,
+        &[("step", "boards")],
+        MANIFEST_BOARDS,
+    )?;
+    let paths = BoardPaths {
+        pairs: pairs_path,
+        presence: presence_path,
+        modes: modes_path,
+        masses: masses_path,
+        measurements: measurements_path,
+        specimens: specimens_path,
+    };
+    crate::stage::run(spec, opts.force, |prep| {
+        // One attempt at the ROM box `opts.model.rom_box`; `carried` are findings of an
+        // earlier one.
+        widen_rom_box_once(opts, |o, carried| {
+            boards_attempt(o, carried, &board, &paths, prep, verbose)
+        })
+    })
+}
+
+pub(crate) struct BoardPaths {
+    pub(crate) pairs: PathBuf,
+    pub(crate) presence: PathBuf,
+    pub(crate) modes: PathBuf,
+    pub(crate) masses: PathBuf,
+    pub(crate) measurements: PathBuf,
+    pub(crate) specimens: PathBuf,
+}
+
+pub(crate) fn boards_attempt(
+    opts: &UpdateOptions,
+    carried: &[Finding],
+    board: &Board,
+    paths: &BoardPaths,
+    prep: &crate::io::manifest::Prepared,
+    verbose: bool,
+) -> anyhow::Result<StageResult> {
+    use crate::update::boards;
+    let mut clock = PhaseClock::new("update boards", verbose);
+    let mut findings = Findings::default();
+    findings.0.extend(carried.iter().cloned());
+    let pairs = read_pairs(&paths.pairs)?;
+    let presence = read_presence(&paths.presence, "free")?;
+    let labels = select_labels(&pairs, "free", &opts.model.modes, &presence, &mut findings)?;
+    // Boards measured in thickness: the core thickness is a board parameter (exact in the
+    // model), each board's reading an observation of it. The sheet gives the overall thickness
+    // a micrometer reads over the copper (a finished board's, as a fabrication drawing gives
+    // it): the board file's copper layers are taken off.
+    let copper_m = board.copper_thickness_m();
+    let thickness_m: BTreeMap<String, f64> = read_specimen_thickness(&paths.specimens)?
+        .into_iter()
+        .map(|(b, h)| (b, h - copper_m))
+        .collect();
+    let with_thickness;
+    let opts =
+        if thickness_m.is_empty() || opts.model.params.iter().any(|p| p == names::CORE_THICKNESS) {
+            opts
+        } else {
+            let mut o = opts.clone();
+            o.model.params.push(names::CORE_THICKNESS.into());
+            with_thickness = o;
+            &with_thickness
+        };
+    let bm = boards::board_model(
+        board,
+        &opts.model,
+        &labels,
+        &pairs,
+        !thickness_m.is_empty(),
+        &mut findings,
+    )?;
+    let need = bm.need;
+    clock.lap("models");
+    let rom = rom_for(&bm.model, need, &bm.log_axes, &opts.model)?;
+    rom_centre_check(&bm.model, &rom, need, &mut findings)?;
+    clock.lap("rom_build");
+    if opts.model.rom_box > ModelSpec::DEFAULT_ROM_BOX {
+        let worst = rom_box_check(&bm.model, &rom, opts.model.rom_box, need)?;
+        findings.push(Finding::new(
+            if worst > 1e-4 { Severity::Warning } else { Severity::Info },
+            "update.rom_box_check",
+            format!(
+                "the ROM over ±{:.0} %: worst relative frequency error {worst:.1e} against the full model over its first {need} modes at 8 Latin-hypercube points{}",
+                100.0 * opts.model.rom_box,
+                if worst > 1e-4 { " (above 1e-4, the accuracy the ±20 % ROM is held to: raise --rom-basis)" } else { "" }
+            ),
+        ));
+    }
+    let masses = read_masses(&paths.masses)?;
+    let covariate = match (&opts.model.enrich, &opts.model.enrich_covariate) {
+        (Some(Mechanism::TemperatureStiffness), Some(column)) => {
+            Some(read_covariate(&paths.measurements, column)?)
+        }
+        _ => None,
+    };
+    let mode_rows = read_modes_table(&paths.modes)?;
+    let measurements_source = paths.measurements.display().to_string();
+    let mut bt = boards::board_target(
+        board,
+        &bm,
+        &rom,
+        &opts.model,
+        (&labels, &pairs, &mode_rows),
+        &masses,
+        covariate
+            .as_deref()
+            .map(|v| (v, measurements_source.as_str())),
+        &thickness_m,
+        &mut findings,
+    )?;
+    // The surrogates model a unit's terms as a function of its ROM parameters alone; with a
+    // covariate the terms also follow the unit's coefficient, so the ROM runs directly.
+    let mut sopts = opts.clone();
+    sopts.sampler.surrogate &= bt.target.covariate.is_none();
+    clock.lap("unit_data");
+    let shape_weights = weigh_shapes(
+        &mut bt.target,
+        &opts.model.shape_weights,
+        (&[], None),
+        &labels.labels,
+        opts.sampler.seed,
+        "boards",
+    )?;
+    report_shape_weights(&shape_weights, "boards", verbose, &mut findings);
+    clock.lap("shape_weights");
+    let pb = crate::stage::progress_bar((sopts.sampler.runs * 1000) as u64, "boards");
+    let (results, acceleration) = run_smc(
+        &bt.target,
+        &sopts.sampler,
+        "boards",
+        &[],
+        None,
+        &progress_to(&pb),
+        verbose,
+    )?;
+    pb.finish_and_clear();
+    let sampler_seconds = clock.lap("sampler");
+    check_surrogate_edges(&acceleration, &mut findings);
+    boards::check_board_box(&bm, &bt, &results, &opts.model)?;
+    let prov = provenance("update_boards", &prep.fingerprint);
+    let mut outputs = vec![];
+    let (pop, boards_t, summary) =
+        boards::board_tables(&bm, &bt, &results, &labels, opts.sampler.runs);
+    let p = opts.out.join("population.parquet");
+    write_draws(&p, &POPULATION, &pop, false, &prov)?;
+    outputs.push(p);
+    let p = opts.out.join("boards.parquet");
+    write_draws(&p, &BOARDS, &boards_t, true, &prov)?;
+    outputs.push(p);
+    let p = opts.out.join("summary.parquet");
+    write_summary(&p, &summary, &prov)?;
+    outputs.push(p);
+    let stages: Vec<StageInfo> = results.iter().flat_map(|r| r.stages.clone()).collect();
+    let p = opts.out.join("stages.parquet");
+    write_stages(&p, &stages, &prov)?;
+    outputs.push(p);
+    clock.lap("tables");
+    let (res, lost) = residuals(
+        &bt.target,
+        &bt.all_pred,
+        &bm.all.labels,
+        &labels.labels,
+        &bt.units_all,
+        &results,
+        "free",
+        opts.sampler.residual_draws,
+        bt.model_error.as_ref().map(|m| m.sd.as_slice()),
+    );
+    lost_finding(&lost, &mut findings);
+    let p = opts.out.join("residuals.parquet");
+    write_residuals(&p, &res, &prov)?;
+    outputs.push(p);
+    let p = opts.out.join("rom.npz");
+    crate::io::atomic::write_bytes(&p, &bt.target.predictor.rom.to_npz_bytes())?;
+    outputs.push(p);
+    let ev = boards::board_evidence(&bm, &bt, &results, &labels, &shape_weights)?;
+    let p = opts.out.join("evidence.json");
+    crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
+    outputs.push(p);
+    clock.lap("residuals");
+    finish(
+        opts,
+        findings,
+        outputs,
+        &results,
+        &summary,
+        ev,
+        sampler_seconds,
+        &labels.labels,
+        verbose,
+        "update boards",
+        &acceleration,
+        &clock,
+    )
+}
+
+/// Runs a step-1 attempt; when its posterior presses against the ROM's box and a box up to
+/// [`MAX_ROM_BOX`] would hold it, rebuilds the ROM over that box and runs once more (the
+/// finding `update.rom_box_widened` says so, and the new ROM is checked against the full
+/// model). A posterior that still presses, or needs more, stops the stage with the message.
+pub(crate) fn widen_rom_box_once(
+    opts: &UpdateOptions,
+    attempt: impl Fn(&UpdateOptions, &[Finding]) -> anyhow::Result<StageResult>,
+) -> anyhow::Result<StageResult> {
+    let e = match attempt(opts, &[]) {
+        Err(e) => e,
+        ok => return ok,
+    };
+    let Some(v) = e.downcast_ref::<RomBoxViolation>() else {
+        return Err(e);
+    };
+    if v.needed_half_width > MAX_ROM_BOX || v.needed_half_width <= opts.model.rom_box {
+        return Err(e);
+    }
+    let mut wider = opts.clone();
+    wider.model.rom_box = v.needed_half_width;
+    let what = v
+        .message
+        .lines()
+        .filter_map(|l| l.strip_prefix("  "))
+        .collect::<Vec<_>>()
+        .join("; ");
+    let note = Finding::new(
+        Severity::Warning,
+        "update.rom_box_widened",
+        format!(
+            "the posterior pressed against the ROM's ±{:.0} % box ({}): the ROM was rebuilt over ±{:.0} % around the board file's values, checked against the full model (update.rom_box_check), and the sampling run again",
+            100.0 * opts.model.rom_box,
+            what.trim(),
+            100.0 * wider.model.rom_box
+        ),
+    );
+    eprintln!("update boards: {}", note.message);
+    attempt(&wider, &[note])
+}

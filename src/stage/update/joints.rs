@@ -1,0 +1,392 @@
+//! `update joints` (step 2): bolted measurements, the boards carried from step 1 (the cut
+//! posterior); read → [`crate::update::joints`] → write.
+
+use super::*;
+
+/// The key of a [`JointPrep`]: the step's input files by content and its model spec (not the
+/// sampler's parameters, which do not change the preparation).
+pub(crate) fn joint_prep_key(prep: &crate::io::manifest::Prepared, spec: &ModelSpec) -> String {
+    let mut h = blake3::Hasher::new();
+    for f in &prep.inputs {
+        h.update(f.path.as_bytes());
+        h.update(&[0]);
+        h.update(f.blake3.as_bytes());
+        h.update(&[0]);
+    }
+    h.update(serde_json::to_string(spec).unwrap_or_default().as_bytes());
+    h.finalize().to_hex().to_string()
+}
+
+/// Step 2: the joints, bolted, carrying step 1's posterior (the cut posterior).
+pub fn run_joints(
+    opts: &UpdateOptions,
+    boards_dir: &Path,
+    verbose: bool,
+) -> anyhow::Result<StageOutcome> {
+    run_joints_with(opts, boards_dir, &mut None, verbose)
+}
+
+/// [`run_joints`] with the caller's preparation: a `memo` prepared for the same model spec and
+/// inputs (its key says) spares the centre fit and the ROM; a new preparation is left in it.
+pub fn run_joints_with(
+    opts: &UpdateOptions,
+    boards_dir: &Path,
+    memo: &mut Option<JointPrep>,
+    verbose: bool,
+) -> anyhow::Result<StageOutcome> {
+    let extract_dir = opts.extract_dir();
+    let paths = JointPaths {
+        pairs: opts.pair_dir.join("pairs.parquet"),
+        presence: opts.pair_dir.join("presence.parquet"),
+        modes: extract_dir.join("modes.parquet"),
+        step1: boards_dir.join("boards.parquet"),
+        step1_evidence: boards_dir.join("evidence.json"),
+        measurements: opts.ingest_dir.join("measurements.parquet"),
+    };
+    let mut inputs = vec![
+        paths.pairs.clone(),
+        paths.presence.clone(),
+        paths.modes.clone(),
+        paths.step1.clone(),
+        paths.measurements.clone(),
+    ];
+    if opts.model.enrich.is_some_and(is_board_mechanism) {
+        inputs.push(paths.step1_evidence.clone());
+        inputs.push(paths.measurements.clone());
+    }
+    let (board, spec) = step_spec(
+        opts,
+        "update_joints",
+        inputs,
+        &[("step", "joints"), ("posterior", "cut")],
+        MANIFEST_JOINTS,
+    )?;
+    crate::stage::run(spec, opts.force, |prep| {
+        joints_body(opts, &board, &paths, prep, memo, verbose)
+    })
+}
+
+pub(crate) struct JointPaths {
+    pub(crate) pairs: PathBuf,
+    pub(crate) presence: PathBuf,
+    pub(crate) modes: PathBuf,
+    pub(crate) step1: PathBuf,
+    pub(crate) step1_evidence: PathBuf,
+    pub(crate) measurements: PathBuf,
+}
+
+/// Step 2's inputs as read: the bolted pairs, the step-1 posterior, a board mechanism's step-1
+/// enrichment and covariate column.
+pub(crate) struct JointInputs {
+    pub(crate) pairs: Vec<PairRow>,
+    pub(crate) presence: Vec<String>,
+    pub(crate) step1: Step1,
+    pub(crate) step1_enrichment: serde_json::Value,
+    pub(crate) mode_rows: Vec<ModeRow>,
+    pub(crate) covariate: Option<Vec<(String, Option<f64>)>>,
+}
+
+pub(crate) fn read_joint_inputs(
+    opts: &UpdateOptions,
+    paths: &JointPaths,
+    pairs: Vec<PairRow>,
+) -> anyhow::Result<JointInputs> {
+    let step1 = read_step1(&paths.step1)?;
+    let presence = read_presence(&paths.presence, "bolted")?;
+    let board_mech = opts.model.enrich.filter(|m| is_board_mechanism(*m));
+    let step1_enrichment = match board_mech {
+        Some(_) => read_step1_enrichment(&paths.step1_evidence)?,
+        None => serde_json::Value::Null,
+    };
+    let mode_rows = read_modes_table(&paths.modes)?;
+    let covariate = match board_mech {
+        Some(Mechanism::TemperatureStiffness) => match step1_enrichment["covariate"].as_str() {
+            Some(column) => Some(read_covariate(&paths.measurements, column)?),
+            None => None,
+        },
+        _ => None,
+    };
+    Ok(JointInputs {
+        pairs,
+        presence,
+        step1,
+        step1_enrichment,
+        mode_rows,
+        covariate,
+    })
+}
+
+pub(crate) fn joints_body(
+    opts: &UpdateOptions,
+    board: &Board,
+    paths: &JointPaths,
+    prep: &crate::io::manifest::Prepared,
+    memo: &mut Option<JointPrep>,
+    verbose: bool,
+) -> anyhow::Result<StageResult> {
+    use crate::update::joints;
+    let mut clock = PhaseClock::new("update joints", verbose);
+    let mut findings = Findings::default();
+    let pairs = read_pairs(&paths.pairs)?;
+    if !pairs.iter().any(|p| p.setup == "bolted") {
+        return no_bolted_data(opts, &paths.measurements, findings);
+    }
+    let inp = read_joint_inputs(opts, paths, pairs)?;
+    let (step1_source, ev_source) = (
+        paths.step1.display().to_string(),
+        paths.step1_evidence.display().to_string(),
+    );
+    let labels = select_labels(
+        &inp.pairs,
+        "bolted",
+        &opts.model.modes,
+        &inp.presence,
+        &mut findings,
+    )?;
+    let bolted_rows: Vec<&PairRow> = inp.pairs.iter().filter(|p| p.setup == "bolted").collect();
+    let mut jm = joints::joint_models(
+        board,
+        &opts.model,
+        &labels,
+        &inp.pairs,
+        &inp.step1,
+        &step1_source,
+        &inp.step1_enrichment,
+        &mut findings,
+    )?;
+    clock.lap("models");
+    let t_centre = std::time::Instant::now();
+    let key = joint_prep_key(prep, &opts.model);
+    let remembered = memo.take().filter(|m| m.key == key);
+    let centre = match &remembered {
+        Some(m) => m.centre.clone(),
+        None => joints::fit_joint_centre_of(&jm, &labels, &bolted_rows)?,
+    };
+    if verbose {
+        eprintln!(
+            "joints: ROM centre {:?} = {centre:.4?} (ln, relative to the priors' centres), {} in {:.1} s",
+            jm.enr.coordinates.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(),
+            if remembered.is_some() { "as prepared by the caller's previous run of the same step" } else { "fitted" },
+            t_centre.elapsed().as_secs_f64()
+        );
+    }
+    let c = joints::centred(
+        &mut jm,
+        &centre,
+        &labels,
+        &opts.model,
+        &inp.mode_rows,
+        &bolted_rows,
+        &mut findings,
+    )?;
+    let bolted_rows: Vec<&PairRow> = bolted_rows.into_iter().chain(&c.new_rows).collect();
+    clock.lap("centre_fit");
+    let rom = match remembered {
+        Some(m) => m.rom,
+        None => rom_for(&jm.model, c.need, &c.log_axes, &opts.model)?,
+    };
+    *memo = Some(JointPrep {
+        key,
+        centre: centre.clone(),
+        rom: rom.clone(),
+    });
+    rom_centre_check(&jm.model, &rom, c.need, &mut findings)?;
+    clock.lap("rom_build");
+    let measurements_source = paths.measurements.display().to_string();
+    let mut jt = joints::joint_target(
+        &jm,
+        &c,
+        &rom,
+        &bolted_rows,
+        &inp.mode_rows,
+        (&inp.step1, &step1_source),
+        (&inp.step1_enrichment, &ev_source),
+        inp.covariate
+            .as_deref()
+            .map(|v| (v, measurements_source.as_str())),
+        &opts.model,
+        &opts.sampler,
+        &mut findings,
+    )?;
+    let mut sopts = opts.clone();
+    sopts.sampler = jt.sampler.clone();
+    clock.lap("unit_data");
+    // The units located for the weights with the step-1 posterior mean of the boards.
+    let step1 = &inp.step1;
+    let draws_mean: Vec<f64> = match step1.draws.first() {
+        None => vec![],
+        Some((_, d0)) => (0..d0.len())
+            .map(|k| step1.draws.iter().map(|(_, d)| d[k]).sum::<f64>() / step1.draws.len() as f64)
+            .collect(),
+    };
+    jt.target.errors.discrepancy = discrepancy_for(
+        &jt.target,
+        &draws_mean,
+        // Off unless asked for (`--discrepancy-pct`): bolted, each measurement's joint
+        // stiffness is already free, and a per-mode bias common to every assembly spans every
+        // shift a common joint effect makes, so no refit could be told from it.
+        opts.model.discrepancy_freq.unwrap_or(0.0),
+        "joints",
+        &mut findings,
+    )?;
+    let shape_weights = weigh_shapes(
+        &mut jt.target,
+        &opts.model.shape_weights,
+        (&draws_mean, Some(&centre)),
+        &c.labels.labels,
+        opts.sampler.seed,
+        "joints",
+    )?;
+    report_shape_weights(&shape_weights, "joints", verbose, &mut findings);
+    clock.lap("shape_weights");
+    let pb = crate::stage::progress_bar((sopts.sampler.runs * 1000) as u64, "joints");
+    let (results, acceleration) = run_smc(
+        &jt.target,
+        &sopts.sampler,
+        "joints",
+        &jt.aux,
+        Some(&centre),
+        &progress_to(&pb),
+        verbose,
+    )?;
+    pb.finish_and_clear();
+    let sampler_seconds = clock.lap("sampler");
+    check_surrogate_edges(&acceleration, &mut findings);
+    joints::check_joint_box(
+        (&jm, &c),
+        &centre,
+        &results,
+        &jt.unit_names,
+        &opts.model,
+        verbose,
+    )?;
+    findings.push(joints::rom_posterior_finding(
+        &jm.model, &jt.target, &results, c.need,
+    ));
+    let prov = provenance("update_joints", &prep.fingerprint);
+    let tables = joints::joint_tables(&jm, &jt, &results, &c.labels, &inp.step1, opts.sampler.runs);
+    let mut outputs = write_joint_tables(&opts.out, &tables, &results, &prov)?;
+    clock.lap("tables");
+    let (res, lost) = residuals(
+        &jt.target,
+        &jt.all_pred,
+        &c.all.labels,
+        &c.labels.labels,
+        &jt.units_all,
+        &results,
+        "bolted",
+        opts.sampler.residual_draws,
+        None,
+    );
+    lost_finding(&lost, &mut findings);
+    let p = opts.out.join("residuals.parquet");
+    write_residuals(&p, &res, &prov)?;
+    outputs.push(p);
+    let p = opts.out.join("rom.npz");
+    crate::io::atomic::write_bytes(&p, &jt.target.predictor.rom.to_npz_bytes())?;
+    outputs.push(p);
+    let ev = joints::joint_evidence(
+        (&jm, &c),
+        &jt.target,
+        &results,
+        &centre,
+        &inp.step1_enrichment,
+        &shape_weights,
+        &opts.model,
+    )?;
+    let p = opts.out.join("evidence.json");
+    crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
+    outputs.push(p);
+    clock.lap("residuals");
+    finish(
+        &sopts,
+        findings,
+        outputs,
+        &results,
+        &tables.summary,
+        ev,
+        sampler_seconds,
+        &c.labels.labels,
+        verbose,
+        "update joints",
+        &acceleration,
+        &clock,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bayes::target::ErrorPrior;
+    use crate::io::manifest::{FileHash, Prepared};
+
+    fn prepared(input_blake3: &str) -> Prepared {
+        Prepared {
+            spec: StageSpec {
+                stage: "update_joints".into(),
+                inputs: vec![],
+                input_base: PathBuf::new(),
+                config: serde_json::Value::Null,
+                seed: Some(1),
+                manifest_path: PathBuf::new(),
+            },
+            inputs: vec![FileHash {
+                path: "pairs.parquet".into(),
+                blake3: input_blake3.into(),
+                bytes: 1,
+            }],
+            config_blake3: String::new(),
+            fingerprint: String::new(),
+        }
+    }
+
+    fn spec(rom_box: f64, enrich: Mechanism) -> ModelSpec {
+        ModelSpec {
+            modes: vec![],
+            params: vec![],
+            prior_width: 1.0,
+            sigma_scale: 0.5,
+            sigma_prior: Default::default(),
+            lkj_eta: 2.0,
+            eps: ErrorPrior::Fixed { value: 1e-3 },
+            delta: None,
+            rom_box,
+            box_tolerance: 0.01,
+            rom_max_basis: None,
+            enrich: Some(enrich),
+            enrich_joint: None,
+            enrich_covariate: None,
+            enrich_location: None,
+            enrich_new_modes: false,
+            model_error: false,
+            discrepancy_freq: None,
+            hold_out_boards: vec![],
+            board_coordinates: Default::default(),
+            mass_floor_rel: ModelSpec::DEFAULT_MASS_FLOOR_REL,
+            shape_weights: Default::default(),
+        }
+    }
+
+    /// A preparation is keyed by the inputs' content and the model spec (the sampler's
+    /// parameters are not part of it): another model option or input content changes it.
+    #[test]
+    fn the_preparation_key_is_the_inputs_and_the_model_spec() {
+        let key = joint_prep_key(&prepared("aa"), &spec(0.2, Mechanism::JointRotation));
+        assert_eq!(
+            joint_prep_key(&prepared("aa"), &spec(0.2, Mechanism::JointRotation)),
+            key
+        );
+        assert_ne!(
+            joint_prep_key(&prepared("aa"), &spec(0.3, Mechanism::JointRotation)),
+            key
+        );
+        assert_ne!(
+            joint_prep_key(&prepared("aa"), &spec(0.2, Mechanism::JointMass)),
+            key
+        );
+        assert_ne!(
+            joint_prep_key(&prepared("ab"), &spec(0.2, Mechanism::JointRotation)),
+            key
+        );
+    }
+}
