@@ -585,62 +585,7 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             }
             Ok(outcome.exit_code())
         }
-        Command::Fe { command } => match command {
-            FeCommand::Modes {
-                model,
-                n_modes,
-                mesh_tol,
-                measurement,
-                ingest,
-                out,
-            } => {
-                let from = match (ingest, measurement) {
-                    (Some(ingest_dir), Some(measurement_id)) => Some(stage::fe::PointsFrom {
-                        ingest_dir,
-                        measurement_id,
-                    }),
-                    _ => None,
-                };
-                if !(mesh_tol > 0.0 && mesh_tol < 1.0) {
-                    anyhow::bail!(
-                        "--mesh-tol: expected a relative error in (0, 1), found {mesh_tol}"
-                    );
-                }
-                let o = stage::fe::run_modes(
-                    &model.options(),
-                    n_modes,
-                    mesh_tol,
-                    from.as_ref(),
-                    &out,
-                    model.force,
-                )?;
-                Ok(report("fe modes", &out, &o))
-            }
-            FeCommand::Rom {
-                model,
-                n_modes,
-                box_rel,
-                seed,
-                out,
-            } => {
-                let ro = hbmu::fem::RomOptions {
-                    n_modes,
-                    box_rel,
-                    seed,
-                    ..Default::default()
-                };
-                let o = stage::fe::run_rom(&model.options(), &ro, &out, model.force)?;
-                Ok(report("fe rom", &out, &o))
-            }
-            FeCommand::Sensitivity {
-                model,
-                n_modes,
-                out,
-            } => {
-                let o = stage::fe::run_sensitivity(&model.options(), n_modes, &out, model.force)?;
-                Ok(report("fe sensitivity", &out, &o))
-            }
-        },
+        Command::Fe { command } => run_fe(command),
         Command::Extract {
             ingest_dir,
             out,
@@ -714,72 +659,7 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
             let o = stage::lab::run(&opts)?;
             Ok(report("lab simulate", &opts.out, &o))
         }
-        Command::Update {
-            command:
-                UpdateCommand::Boards {
-                    common,
-                    params,
-                    prior_width,
-                    sigma_scale,
-                    sigma_prior,
-                    enrich,
-                    enrich_covariate,
-                    enrich_location,
-                    hold_out,
-                    board_coordinates,
-                },
-        } => {
-            use hbmu::diagnose::library::Mechanism;
-            let mut opts = common.options(params, prior_width, sigma_scale);
-            opts.model.sigma_prior = sigma_prior.into();
-            opts.model.enrich = enrich;
-            opts.model.hold_out_boards = hold_out;
-            opts.model.board_coordinates = board_coordinates.into();
-            if enrich == Some(Mechanism::TemperatureStiffness) {
-                opts.model.enrich_covariate = Some(enrich_covariate);
-            }
-            opts.model.enrich_location = match enrich_location.as_deref() {
-                None => None,
-                Some([x, y]) => Some([*x, *y]),
-                Some(v) => anyhow::bail!(
-                    "--enrich-location: expected two numbers X_M,Y_M, found {}",
-                    v.len()
-                ),
-            };
-            let o = stage::update::run_boards(&opts, cli.verbose)?;
-            Ok(report("update boards", &opts.out, &o))
-        }
-        Command::Update {
-            command:
-                UpdateCommand::Joints {
-                    common,
-                    boards,
-                    prior_width,
-                    sigma_scale,
-                    enrich,
-                    enrich_joint,
-                    enrich_new_modes,
-                },
-        } => {
-            // Step 2 has neither a balance term nor a model-error term: say so rather than
-            // ignore the step-1 options.
-            for (given, flag) in [
-                (common.mass_floor.is_some(), "--mass-floor"),
-                (common.no_model_error, "--no-model-error"),
-            ] {
-                if given {
-                    anyhow::bail!("update joints: {flag} is an option of update boards (step 1); step 2 has no balance term and no model-error term");
-                }
-            }
-            let mut opts = common.options(vec![], prior_width, sigma_scale);
-            opts.model.enrich = enrich;
-            opts.model.enrich_joint = enrich_joint;
-            opts.model.enrich_new_modes = enrich_new_modes;
-            // Step 2 has no model-error term (its manifest must not claim one).
-            opts.model.model_error = false;
-            let o = stage::update::run_joints(&opts, &boards, cli.verbose)?;
-            Ok(report("update joints", &opts.out, &o))
-        }
+        Command::Update { command } => run_update(command, cli.verbose),
         Command::Diagnose {
             work_dir,
             out,
@@ -913,4 +793,128 @@ fn mechanism_parser(
     use hbmu::diagnose::library::Mechanism;
     clap::builder::PossibleValuesParser::new(Mechanism::ALL.map(Mechanism::id))
         .map(|id: String| Mechanism::from_id(&id).expect("a listed mechanism id"))
+}
+
+/// `hbmu fe …`.
+fn run_fe(command: FeCommand) -> anyhow::Result<i32> {
+    match command {
+        FeCommand::Modes {
+            model,
+            n_modes,
+            mesh_tol,
+            measurement,
+            ingest,
+            out,
+        } => {
+            let from = match (ingest, measurement) {
+                (Some(ingest_dir), Some(measurement_id)) => Some(stage::fe::PointsFrom {
+                    ingest_dir,
+                    measurement_id,
+                }),
+                _ => None,
+            };
+            if !(mesh_tol > 0.0 && mesh_tol < 1.0) {
+                anyhow::bail!("--mesh-tol: expected a relative error in (0, 1), found {mesh_tol}");
+            }
+            let o = stage::fe::run_modes(
+                &model.options(),
+                n_modes,
+                mesh_tol,
+                from.as_ref(),
+                &out,
+                model.force,
+            )?;
+            Ok(report("fe modes", &out, &o))
+        }
+        FeCommand::Rom {
+            model,
+            n_modes,
+            box_rel,
+            seed,
+            out,
+        } => {
+            let ro = hbmu::fem::RomOptions {
+                n_modes,
+                box_rel,
+                seed,
+                ..Default::default()
+            };
+            let o = stage::fe::run_rom(&model.options(), &ro, &out, model.force)?;
+            Ok(report("fe rom", &out, &o))
+        }
+        FeCommand::Sensitivity {
+            model,
+            n_modes,
+            out,
+        } => {
+            let o = stage::fe::run_sensitivity(&model.options(), n_modes, &out, model.force)?;
+            Ok(report("fe sensitivity", &out, &o))
+        }
+    }
+}
+
+/// `hbmu update boards|joints …`.
+fn run_update(command: UpdateCommand, verbose: bool) -> anyhow::Result<i32> {
+    match command {
+        UpdateCommand::Boards {
+            common,
+            params,
+            prior_width,
+            sigma_scale,
+            sigma_prior,
+            enrich,
+            enrich_covariate,
+            enrich_location,
+            hold_out,
+            board_coordinates,
+        } => {
+            use hbmu::diagnose::library::Mechanism;
+            let mut opts = common.options(params, prior_width, sigma_scale);
+            opts.model.sigma_prior = sigma_prior.into();
+            opts.model.enrich = enrich;
+            opts.model.hold_out_boards = hold_out;
+            opts.model.board_coordinates = board_coordinates.into();
+            if enrich == Some(Mechanism::TemperatureStiffness) {
+                opts.model.enrich_covariate = Some(enrich_covariate);
+            }
+            opts.model.enrich_location = match enrich_location.as_deref() {
+                None => None,
+                Some([x, y]) => Some([*x, *y]),
+                Some(v) => anyhow::bail!(
+                    "--enrich-location: expected two numbers X_M,Y_M, found {}",
+                    v.len()
+                ),
+            };
+            let o = stage::update::run_boards(&opts, verbose)?;
+            Ok(report("update boards", &opts.out, &o))
+        }
+        UpdateCommand::Joints {
+            common,
+            boards,
+            prior_width,
+            sigma_scale,
+            enrich,
+            enrich_joint,
+            enrich_new_modes,
+        } => {
+            // Step 2 has neither a balance term nor a model-error term: say so rather than
+            // ignore the step-1 options.
+            for (given, flag) in [
+                (common.mass_floor.is_some(), "--mass-floor"),
+                (common.no_model_error, "--no-model-error"),
+            ] {
+                if given {
+                    anyhow::bail!("update joints: {flag} is an option of update boards (step 1); step 2 has no balance term and no model-error term");
+                }
+            }
+            let mut opts = common.options(vec![], prior_width, sigma_scale);
+            opts.model.enrich = enrich;
+            opts.model.enrich_joint = enrich_joint;
+            opts.model.enrich_new_modes = enrich_new_modes;
+            // Step 2 has no model-error term (its manifest must not claim one).
+            opts.model.model_error = false;
+            let o = stage::update::run_joints(&opts, &boards, verbose)?;
+            Ok(report("update joints", &opts.out, &o))
+        }
+    }
 }

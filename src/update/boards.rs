@@ -216,104 +216,15 @@ pub fn board_target(
         }
         None => (None, None),
     };
-    let wanted: BTreeSet<(String, i32)> = pairs
-        .iter()
-        .filter(|p| p.setup == "free")
-        .map(|p| (p.measurement_id.clone(), p.mode))
-        .collect();
-    let shapes = shape_map(mode_rows, &wanted);
-    let mut board_ids: BTreeSet<String> = pairs
-        .iter()
-        .filter(|p| p.setup == "free")
-        .map(|p| p.board_id.clone())
-        .collect();
-    board_ids.extend(masses.keys().cloned());
-    for b in &spec.hold_out_boards {
-        if !board_ids.contains(b) {
-            bail!(
-            "--hold-out: board {b} has no paired free-free mode and no balance reading in this campaign (boards: {})",
-            board_ids.iter().cloned().collect::<Vec<_>>().join(", ")
-        );
-        }
-        findings.push(Finding::new(
-        Severity::Info,
-        "update.board_held_out",
-        format!("board {b} is held out (--hold-out): its modes and mass are not used; the report compares its measurements with the new-board prediction"),
-    ));
-    }
-    board_ids.retain(|b| !spec.hold_out_boards.contains(b));
-    if board_ids.is_empty() {
-        bail!("--hold-out leaves no board to update");
-    }
-    // The balance informs the mass parameters: mass_scale, and an added mass.
-    let mass_updated =
-        spec.params.iter().any(|p| p == names::MASS_SCALE) || !bm.log_axes.is_empty();
-    let use_shapes = spec.delta.is_some();
-    let mut units = vec![];
-    let mut units_all = vec![];
-    let mut unit_names = vec![];
-    for b in &board_ids {
-        let rows: Vec<&PairRow> = pairs
-            .iter()
-            .filter(|p| p.setup == "free" && &p.board_id == b)
-            .collect();
-        let (mut data, (data_all, meta_all)) = unit_and_residual_data(
-            &rows,
-            labels,
-            all,
-            use_shapes,
-            (model, rom, &shapes),
-            cov_offsets.as_ref(),
-            findings,
-        )?;
-        data.mass = match masses.get(b) {
-            Some(m) if mass_updated => mass_obs(m, b, spec.mass_floor_rel, findings),
-            Some(_) => None,
-            None => {
-                findings.push(Finding::new(
-                Severity::Warning,
-                "update.not_weighed",
-                format!("board {b} was never weighed (no stable balance reading): its mass is informed by the population only"),
-            ));
-                None
-            }
-        };
-        if data.freq.is_empty() && data.mass.is_none() {
-            findings.push(Finding::new(
-            Severity::Warning,
-            "update.board_no_data",
-            format!("board {b} has no paired free-free mode to update and no usable mass; left out of step 1"),
-        ));
-            continue;
-        }
-        if data.freq.is_empty() {
-            findings.push(Finding::new(
-                Severity::Warning,
-                "update.board_no_modes",
-                format!(
-                    "board {b} has no paired free-free mode to update; only its mass informs it"
-                ),
-            ));
-        }
-        // Modes missing in some measurements: reported, the rest are used.
-        let meas: BTreeSet<&str> = rows.iter().map(|p| p.measurement_id.as_str()).collect();
-        for (m, l) in labels.labels.iter().enumerate() {
-            let n = data.freq.iter().filter(|f| f.mode == m).count();
-            if n > 0 && n < meas.len() {
-                findings.push(Finding::new(
-                Severity::Info,
-                "update.mode_missing",
-                format!("board {b}: mode {l:?} is paired in {n} of {} measurements; the others contribute no term for it", meas.len()),
-            ));
-            }
-        }
-        units.push(data);
-        units_all.push((data_all, meta_all));
-        unit_names.push(b.clone());
-    }
-    if units.is_empty() {
-        bail!("no board has data for step 1 (no paired free-free mode and no mass)");
-    }
+    let (units, units_all, unit_names) = board_units(
+        bm,
+        rom,
+        spec,
+        (labels, pairs, mode_rows),
+        masses,
+        cov_offsets.as_ref(),
+        findings,
+    )?;
     let (updated, reference, param_names) = (&bm.updated, &bm.reference, &bm.param_names);
     let d = updated.len();
     let d0 = spec.params.len();
@@ -414,6 +325,120 @@ pub fn board_target(
         d,
         d0,
     })
+}
+
+/// Step 1's units: every board with free-free pairs or a mass, less the held-out ones; per
+/// board its data for the likelihood, and for the residuals.
+#[allow(clippy::type_complexity)]
+fn board_units(
+    bm: &BoardModel,
+    rom: &Rom,
+    spec: &ModelSpec,
+    (labels, pairs, mode_rows): (&Labels, &[PairRow], &[ModeRow]),
+    masses: &BTreeMap<String, MassRow>,
+    cov_offsets: Option<&BTreeMap<String, f64>>,
+    findings: &mut Findings,
+) -> anyhow::Result<(Vec<UnitData>, Vec<(UnitData, Vec<ObsMeta>)>, Vec<String>)> {
+    let (model, all) = (&bm.model, &bm.all);
+    let wanted: BTreeSet<(String, i32)> = pairs
+        .iter()
+        .filter(|p| p.setup == "free")
+        .map(|p| (p.measurement_id.clone(), p.mode))
+        .collect();
+    let shapes = shape_map(mode_rows, &wanted);
+    let mut board_ids: BTreeSet<String> = pairs
+        .iter()
+        .filter(|p| p.setup == "free")
+        .map(|p| p.board_id.clone())
+        .collect();
+    board_ids.extend(masses.keys().cloned());
+    for b in &spec.hold_out_boards {
+        if !board_ids.contains(b) {
+            bail!(
+            "--hold-out: board {b} has no paired free-free mode and no balance reading in this campaign (boards: {})",
+            board_ids.iter().cloned().collect::<Vec<_>>().join(", ")
+        );
+        }
+        findings.push(Finding::new(
+        Severity::Info,
+        "update.board_held_out",
+        format!("board {b} is held out (--hold-out): its modes and mass are not used; the report compares its measurements with the new-board prediction"),
+    ));
+    }
+    board_ids.retain(|b| !spec.hold_out_boards.contains(b));
+    if board_ids.is_empty() {
+        bail!("--hold-out leaves no board to update");
+    }
+    // The balance informs the mass parameters: mass_scale, and an added mass.
+    let mass_updated =
+        spec.params.iter().any(|p| p == names::MASS_SCALE) || !bm.log_axes.is_empty();
+    let use_shapes = spec.delta.is_some();
+    let mut units = vec![];
+    let mut units_all = vec![];
+    let mut unit_names = vec![];
+    for b in &board_ids {
+        let rows: Vec<&PairRow> = pairs
+            .iter()
+            .filter(|p| p.setup == "free" && &p.board_id == b)
+            .collect();
+        let (mut data, (data_all, meta_all)) = unit_and_residual_data(
+            &rows,
+            labels,
+            all,
+            use_shapes,
+            (model, rom, &shapes),
+            cov_offsets,
+            findings,
+        )?;
+        data.mass = match masses.get(b) {
+            Some(m) if mass_updated => mass_obs(m, b, spec.mass_floor_rel, findings),
+            Some(_) => None,
+            None => {
+                findings.push(Finding::new(
+                Severity::Warning,
+                "update.not_weighed",
+                format!("board {b} was never weighed (no stable balance reading): its mass is informed by the population only"),
+            ));
+                None
+            }
+        };
+        if data.freq.is_empty() && data.mass.is_none() {
+            findings.push(Finding::new(
+            Severity::Warning,
+            "update.board_no_data",
+            format!("board {b} has no paired free-free mode to update and no usable mass; left out of step 1"),
+        ));
+            continue;
+        }
+        if data.freq.is_empty() {
+            findings.push(Finding::new(
+                Severity::Warning,
+                "update.board_no_modes",
+                format!(
+                    "board {b} has no paired free-free mode to update; only its mass informs it"
+                ),
+            ));
+        }
+        // Modes missing in some measurements: reported, the rest are used.
+        let meas: BTreeSet<&str> = rows.iter().map(|p| p.measurement_id.as_str()).collect();
+        for (m, l) in labels.labels.iter().enumerate() {
+            let n = data.freq.iter().filter(|f| f.mode == m).count();
+            if n > 0 && n < meas.len() {
+                findings.push(Finding::new(
+                Severity::Info,
+                "update.mode_missing",
+                format!("board {b}: mode {l:?} is paired in {n} of {} measurements; the others contribute no term for it", meas.len()),
+            ));
+            }
+        }
+        units.push(data);
+        units_all.push((data_all, meta_all));
+        unit_names.push(b.clone());
+    }
+    if units.is_empty() {
+        bail!("no board has data for step 1 (no paired free-free mode and no mass)");
+    }
+    Ok((units, units_all, unit_names))
 }
 
 /// The ROM-box rule: a posterior that presses against the ROM's box is a [`RomBoxViolation`]

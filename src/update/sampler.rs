@@ -111,14 +111,7 @@ pub fn run_smc(
     progress: &(dyn Fn(u64, String) + Sync),
     verbose: bool,
 ) -> anyhow::Result<(Results, Acceleration)> {
-    use crate::bayes::reference::{
-        laplace_reference, reference_for_aux, GaussianReference, ReferenceOptions,
-    };
-    use crate::bayes::surrogate::{
-        fit_subspace, fit_unit, SubspaceOptions, SurrogateOptions, SurrogateTarget,
-    };
-    use rand::SeedableRng;
-    use rayon::prelude::*;
+    use crate::bayes::surrogate::SurrogateTarget;
     let mut acc = Acceleration {
         start: if opts.from_prior {
             "prior"
@@ -131,7 +124,104 @@ pub fn run_smc(
     let all_aux: Vec<&Arc<Vec<f64>>> = aux.iter().flatten().collect();
     // A modular step: groups carrying their own auxiliary values (step-1 draws).
     let modular = opts.smc.groups > 1 && !aux.is_empty();
-    let base_ref = if opts.from_prior {
+    let base_ref = base_reference(
+        target, opts, what, &all_aux, start, modular, verbose, &mut acc,
+    )?;
+    let t_base = t_start.elapsed().as_secs_f64();
+    let grouped = base_ref.is_some() && modular;
+    let _nu = smc::Target::n_units(target);
+    // Where the units go across the groups' draws: with groups, each group's units sit
+    // elsewhere (its draw moves them), so a few pilot groups, spread over the draws, are
+    // moved to their own draws with the ROM; the surrogates' samples then cover the base
+    // reference widened by twice the pilots' spread of the units, and the groups' own
+    // references are found on the surrogates (their boxes cover where they go).
+    let unit_spread = pilot_unit_spread(target, &base_ref, grouped, &all_aux, what, &mut acc)?;
+    let surrogates = fit_surrogates(target, opts, &base_ref, &unit_spread, &all_aux, &mut acc);
+    let t_surrogates = t_start.elapsed().as_secs_f64() - t_base;
+    // The correction's model: per unit with a surrogate, a verified subspace of the ROM over
+    // the surrogate's box (the ROM beyond it).
+    let t_sub = std::time::Instant::now();
+    let exact_target = fit_subspaces(target, opts, &base_ref, &surrogates, &mut acc);
+    acc.subspace_seconds = t_sub.elapsed().as_secs_f64();
+    let exact: &ModalTarget = exact_target.as_ref().unwrap_or(target);
+    let sur = SurrogateTarget {
+        inner: target,
+        surrogates,
+        outside_box: Default::default(),
+        rom_evals: Default::default(),
+    };
+    let starts = run_starts(&sur, opts, &base_ref, grouped, aux, what, &mut acc)?;
+    let t_groups = t_start.elapsed().as_secs_f64() - t_base - t_surrogates;
+    if verbose {
+        eprintln!(
+            "{what}: reference {t_base:.1} s (pilots and) surrogates {t_surrogates:.1} s, subspaces {:.1} s, pilot run ({:.1} s) or group references {:.1} s",
+            acc.subspace_seconds,
+            acc.pilot_seconds,
+            t_groups - acc.subspace_seconds
+        );
+    }
+    let mut out = vec![];
+    let (mut t_tempering, mut t_correction) = (0.0, 0.0);
+    for r in 0..opts.runs {
+        let base = (r * 1000) as u64;
+        let observe = |s: &StageInfo| {
+            if verbose {
+                eprintln!(
+                    "{what} run {} stage {:3} {} beta {:.3e} ess {:6.0} acc unit/global/nc/rescale {:.2}/{:.2}/{:.2}/{:.2} sweeps {:2} rho {:.2} unique {:5} evals {}",
+                    r + 1, s.stage, s.kind, s.beta, s.ess, s.acceptance_unit, s.acceptance_global,
+                    s.acceptance_noncentred, s.acceptance_rescale, s.sweeps, s.decorrelation, s.unique_after_resampling, s.model_evals
+                );
+            }
+            progress(
+                base + (s.beta * 1000.0) as u64,
+                format!("{what} run {}/{} stage {}", r + 1, opts.runs, s.stage),
+            );
+        };
+        let a: &[Arc<Vec<f64>>] = if aux.is_empty() {
+            &[]
+        } else {
+            &aux[r % aux.len()]
+        };
+        let t_run = std::time::Instant::now();
+        let mut res = smc::run_with(&sur, &opts.smc, opts.seed, r, &starts[r], a, &observe)
+            .map_err(|e| anyhow!("{what}, run {}: {e}", r + 1))?;
+        t_tempering += t_run.elapsed().as_secs_f64();
+        let t_corr = std::time::Instant::now();
+        if sur.surrogates.iter().any(|s| s.is_some()) {
+            correct_to_rom((exact, &sur), opts, r, &mut res, &observe, &mut acc);
+        }
+        t_correction += t_corr.elapsed().as_secs_f64();
+        if let (0, Some(_)) = (r, &base_ref) {
+            reference_offsets(target, &starts[0], &res, opts, (what, verbose), &mut acc);
+        }
+        out.push(res);
+    }
+    if verbose {
+        eprintln!("{what}: tempering {t_tempering:.1} s, correction to the ROM {t_correction:.1} s (all runs)");
+    }
+    acc.surrogate_proposals_outside_box =
+        sur.outside_box.load(std::sync::atomic::Ordering::Relaxed);
+    // Final particles beyond the boxes cost ROM evaluations at every later sweep: the
+    // reference was narrower than the posterior there.
+    acc.surrogate_edge_fraction = edge_fraction(&out, &sur, target);
+    Ok((out, acc))
+}
+
+/// The base reference of a step: the Laplace-type Gaussian around the units located with the
+/// mean auxiliary values (`None`: tempering starts from the prior).
+#[allow(clippy::too_many_arguments)]
+fn base_reference(
+    target: &ModalTarget,
+    opts: &SamplerParams,
+    what: &str,
+    all_aux: &[&Arc<Vec<f64>>],
+    start: Option<&[f64]>,
+    modular: bool,
+    verbose: bool,
+    acc: &mut Acceleration,
+) -> anyhow::Result<BaseReference> {
+    use crate::bayes::reference::{laplace_reference, ReferenceOptions};
+    Ok(if opts.from_prior {
         None
     } else {
         // Units are located with the mean auxiliary values (step 2: the step-1 posterior
@@ -181,16 +271,32 @@ pub fn run_smc(
             );
         }
         Some((Arc::new(q), ropts))
-    };
-    let t_base = t_start.elapsed().as_secs_f64();
-    let grouped = base_ref.is_some() && modular;
+    })
+}
+
+/// A step's base reference and the options it was built with.
+type BaseReference = Option<(
+    Arc<crate::bayes::reference::GaussianReference>,
+    crate::bayes::reference::ReferenceOptions,
+)>;
+
+/// Where the units go across the groups' draws: with groups, each group's units sit
+/// elsewhere (its draw moves them), so a few pilot groups, spread over the draws, are moved
+/// to their own draws with the ROM; the surrogates' samples then cover the base reference
+/// widened by twice the pilots' spread of the units, and the groups' own references are found
+/// on the surrogates (their boxes cover where they go).
+fn pilot_unit_spread(
+    target: &ModalTarget,
+    base_ref: &BaseReference,
+    grouped: bool,
+    all_aux: &[&Arc<Vec<f64>>],
+    what: &str,
+    acc: &mut Acceleration,
+) -> anyhow::Result<Vec<Option<crate::bayes::reference::Mvn>>> {
+    use crate::bayes::reference::{reference_for_aux, GaussianReference};
+    use rayon::prelude::*;
     let nu = smc::Target::n_units(target);
-    // Where the units go across the groups' draws: with groups, each group's units sit
-    // elsewhere (its draw moves them), so a few pilot groups, spread over the draws, are
-    // moved to their own draws with the ROM; the surrogates' samples then cover the base
-    // reference widened by twice the pilots' spread of the units, and the groups' own
-    // references are found on the surrogates (their boxes cover where they go).
-    let unit_spread: Vec<Option<crate::bayes::reference::Mvn>> = match &base_ref {
+    Ok(match &base_ref {
         Some((q, ropts)) if grouped => {
             let n_pilot = all_aux.len().min(8);
             let pilots: Vec<(GaussianReference, u64)> = (0..n_pilot)
@@ -235,60 +341,84 @@ pub fn run_smc(
                 .collect()
         }
         _ => vec![None; nu],
-    };
-    let surrogates: Vec<Option<Arc<crate::bayes::surrogate::UnitSurrogate>>> =
-        match (&base_ref, opts.surrogate) {
-            (Some((q, _)), true) => {
-                let ctx = smc::Target::ctx(target, &q.global.mean);
-                let so = SurrogateOptions::default();
-                let fits: Vec<_> = (0..nu)
-                    .into_par_iter()
-                    .map(|b| {
-                        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(smc::stream_key(&[
-                            opts.seed, 0x5A, b as u64,
-                        ]));
-                        let unit_q = unit_spread[b].as_ref().unwrap_or(&q.units[b]);
-                        let samples: Vec<Vec<f64>> = (0..400)
-                            .map(|i| {
-                                let a: &[f64] = if all_aux.is_empty() {
-                                    &[]
-                                } else {
-                                    all_aux[(i * 7919) % all_aux.len()]
-                                };
-                                target.values(a, b, &unit_q.sample(&mut rng))
-                            })
-                            .collect();
-                        fit_unit(target, b, &samples, &ctx.eps, &ctx.delta, &so, opts.seed)
-                    })
-                    .collect();
-                fits.into_iter()
-                    .enumerate()
-                    .map(|(b, f)| match f {
-                        Ok(s) => {
-                            acc.surrogate_units += 1;
-                            acc.surrogate_degree.push(Some(s.degree));
-                            acc.surrogate_half_width_sd.push(Some(s.half_width));
-                            acc.surrogate_max_abs_dlog_lik.push(Some(s.max_abs_dll));
-                            acc.surrogate_rom_evals += s.rom_evals;
-                            Some(Arc::new(s))
-                        }
-                        Err(e) => {
-                            acc.surrogate_refused.push(format!("unit {b}: {e}"));
-                            acc.surrogate_degree.push(None);
-                            acc.surrogate_half_width_sd.push(None);
-                            acc.surrogate_max_abs_dlog_lik.push(None);
-                            None
-                        }
-                    })
-                    .collect()
-            }
-            _ => vec![None; nu],
-        };
-    let t_surrogates = t_start.elapsed().as_secs_f64() - t_base;
-    // The correction's model: per unit with a surrogate, a verified subspace of the ROM over
-    // the surrogate's box (the ROM beyond it).
-    let t_sub = std::time::Instant::now();
-    let exact_target: Option<ModalTarget> = match (&base_ref, opts.subspace) {
+    })
+}
+
+/// Per unit, a local surrogate of its modal terms over the reference (widened by the pilots'
+/// spread), verified against the ROM; `None` where it was refused.
+fn fit_surrogates(
+    target: &ModalTarget,
+    opts: &SamplerParams,
+    base_ref: &BaseReference,
+    unit_spread: &[Option<crate::bayes::reference::Mvn>],
+    all_aux: &[&Arc<Vec<f64>>],
+    acc: &mut Acceleration,
+) -> Vec<Option<Arc<crate::bayes::surrogate::UnitSurrogate>>> {
+    use crate::bayes::surrogate::{fit_unit, SurrogateOptions};
+    use rand::SeedableRng;
+    use rayon::prelude::*;
+    let nu = smc::Target::n_units(target);
+    match (&base_ref, opts.surrogate) {
+        (Some((q, _)), true) => {
+            let ctx = smc::Target::ctx(target, &q.global.mean);
+            let so = SurrogateOptions::default();
+            let fits: Vec<_> = (0..nu)
+                .into_par_iter()
+                .map(|b| {
+                    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(smc::stream_key(&[
+                        opts.seed, 0x5A, b as u64,
+                    ]));
+                    let unit_q = unit_spread[b].as_ref().unwrap_or(&q.units[b]);
+                    let samples: Vec<Vec<f64>> = (0..400)
+                        .map(|i| {
+                            let a: &[f64] = if all_aux.is_empty() {
+                                &[]
+                            } else {
+                                all_aux[(i * 7919) % all_aux.len()]
+                            };
+                            target.values(a, b, &unit_q.sample(&mut rng))
+                        })
+                        .collect();
+                    fit_unit(target, b, &samples, &ctx.eps, &ctx.delta, &so, opts.seed)
+                })
+                .collect();
+            fits.into_iter()
+                .enumerate()
+                .map(|(b, f)| match f {
+                    Ok(s) => {
+                        acc.surrogate_units += 1;
+                        acc.surrogate_degree.push(Some(s.degree));
+                        acc.surrogate_half_width_sd.push(Some(s.half_width));
+                        acc.surrogate_max_abs_dlog_lik.push(Some(s.max_abs_dll));
+                        acc.surrogate_rom_evals += s.rom_evals;
+                        Some(Arc::new(s))
+                    }
+                    Err(e) => {
+                        acc.surrogate_refused.push(format!("unit {b}: {e}"));
+                        acc.surrogate_degree.push(None);
+                        acc.surrogate_half_width_sd.push(None);
+                        acc.surrogate_max_abs_dlog_lik.push(None);
+                        None
+                    }
+                })
+                .collect()
+        }
+        _ => vec![None; nu],
+    }
+}
+
+/// The correction's model: per unit with a surrogate, a verified subspace of the ROM over the
+/// surrogate's box (the ROM beyond it).
+fn fit_subspaces(
+    target: &ModalTarget,
+    opts: &SamplerParams,
+    base_ref: &BaseReference,
+    surrogates: &[Option<Arc<crate::bayes::surrogate::UnitSurrogate>>],
+    acc: &mut Acceleration,
+) -> Option<ModalTarget> {
+    use crate::bayes::surrogate::{fit_subspace, SubspaceOptions};
+    use rayon::prelude::*;
+    match (&base_ref, opts.subspace) {
         (Some((q, _)), true) if surrogates.iter().any(Option::is_some) => {
             let ctx = smc::Target::ctx(target, &q.global.mean);
             let so = SubspaceOptions::default();
@@ -328,24 +458,30 @@ pub fn run_smc(
             })
         }
         _ => None,
-    };
-    acc.subspace_seconds = t_sub.elapsed().as_secs_f64();
-    let exact: &ModalTarget = exact_target.as_ref().unwrap_or(target);
-    let sur = SurrogateTarget {
-        inner: target,
-        surrogates,
-        outside_box: Default::default(),
-        rom_evals: Default::default(),
-    };
-    // One start per run: the prior, the reference, or (groups carrying their own auxiliary
-    // values: a modular step) one reference per group, found on the surrogates.
-    let starts: Vec<smc::Start> = match &base_ref {
+    }
+}
+
+/// One start per run: the prior, the reference, or (groups carrying their own auxiliary
+/// values: a modular step) one reference per group, found on the surrogates.
+#[allow(clippy::too_many_arguments)]
+fn run_starts(
+    sur: &crate::bayes::surrogate::SurrogateTarget<'_>,
+    opts: &SamplerParams,
+    base_ref: &BaseReference,
+    grouped: bool,
+    aux: &[Vec<Arc<Vec<f64>>>],
+    what: &str,
+    acc: &mut Acceleration,
+) -> anyhow::Result<Vec<smc::Start>> {
+    use crate::bayes::reference::{reference_for_aux, GaussianReference};
+    use rayon::prelude::*;
+    Ok(match &base_ref {
         None => vec![smc::Start::Prior; opts.runs],
         Some((q, ropts)) if !grouped => {
             let q = if opts.smc.n_particles >= PILOT_MIN_RATIO * PILOT_PARTICLES {
                 let t0 = std::time::Instant::now();
                 let (q, stages) = crate::bayes::reference::pilot_reference(
-                    &sur,
+                    sur,
                     q,
                     &opts.smc,
                     PILOT_PARTICLES,
@@ -368,7 +504,7 @@ pub fn run_smc(
                 let run_aux = &aux[r % aux.len()];
                 let refs: Vec<(GaussianReference, u64)> = run_aux
                     .par_iter()
-                    .map(|a| reference_for_aux(&sur, q, a, ropts, 2))
+                    .map(|a| reference_for_aux(sur, q, a, ropts, 2))
                     .collect::<Result<_, _>>()
                     .map_err(|e| anyhow!("{what}: a group's reference (run {}): {e}", r + 1))?;
                 // A group whose moved reference is degenerate tempers from the base reference
@@ -387,171 +523,152 @@ pub fn run_smc(
             }
             starts
         }
-    };
-    let t_groups = t_start.elapsed().as_secs_f64() - t_base - t_surrogates;
-    if verbose {
-        eprintln!(
-            "{what}: reference {t_base:.1} s (pilots and) surrogates {t_surrogates:.1} s, subspaces {:.1} s, pilot run ({:.1} s) or group references {:.1} s",
-            acc.subspace_seconds,
-            acc.pilot_seconds,
-            t_groups - acc.subspace_seconds
-        );
-    }
-    let mut out = vec![];
-    let (mut t_tempering, mut t_correction) = (0.0, 0.0);
-    for r in 0..opts.runs {
-        let base = (r * 1000) as u64;
-        let observe = |s: &StageInfo| {
-            if verbose {
-                eprintln!(
-                    "{what} run {} stage {:3} {} beta {:.3e} ess {:6.0} acc unit/global/nc/rescale {:.2}/{:.2}/{:.2}/{:.2} sweeps {:2} rho {:.2} unique {:5} evals {}",
-                    r + 1, s.stage, s.kind, s.beta, s.ess, s.acceptance_unit, s.acceptance_global,
-                    s.acceptance_noncentred, s.acceptance_rescale, s.sweeps, s.decorrelation, s.unique_after_resampling, s.model_evals
-                );
-            }
-            progress(
-                base + (s.beta * 1000.0) as u64,
-                format!("{what} run {}/{} stage {}", r + 1, opts.runs, s.stage),
-            );
-        };
-        let a: &[Arc<Vec<f64>>] = if aux.is_empty() {
-            &[]
-        } else {
-            &aux[r % aux.len()]
-        };
-        let t_run = std::time::Instant::now();
-        let mut res = smc::run_with(&sur, &opts.smc, opts.seed, r, &starts[r], a, &observe)
-            .map_err(|e| anyhow!("{what}, run {}: {e}", r + 1))?;
-        t_tempering += t_run.elapsed().as_secs_f64();
-        let t_corr = std::time::Instant::now();
-        if sur.surrogates.iter().any(|s| s.is_some()) {
-            // Correction to the ROM: every particle's units re-evaluated by the ROM and
-            // weighted by L_ROM / L_surrogate. Unit by unit, every particle at a time: a
-            // unit's ROM (its subspace's packed terms, 0.45 MB at the bolted ROM's 50 terms)
-            // then stays in the core's cache across particles; particle by particle, every
-            // evaluation streamed it back (the same sums in the same order either way).
-            let ctxs: Vec<_> = res
-                .particles
-                .par_iter()
-                .map(|p| smc::Target::ctx(exact, &p.g))
-                .collect();
-            let mut lw = vec![0.0; res.particles.len()];
-            for b in 0..nu {
-                if sur.surrogates[b].is_none() {
-                    continue;
-                }
-                res.particles
-                    .par_iter_mut()
-                    .zip(ctxs.par_iter())
-                    .zip(lw.par_iter_mut())
-                    .for_each(|((p, ctx), lw)| {
-                        let c = smc::Target::model(exact, &p.aux, b, &p.x[b]);
-                        let l = match &c {
-                            Some(c) => smc::Target::log_lik(exact, ctx, b, &p.x[b], c),
-                            None => f64::NEG_INFINITY,
-                        };
-                        let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
-                        *lw += l - p.ll[b];
-                        p.cache[b] = c;
-                        p.ll[b] = l;
-                    });
-            }
-            let max_dll = lw.iter().map(|v| v.abs()).fold(0.0, f64::max);
-            // Mutation after the correction runs on the ROM (every proposal a ROM evaluation):
-            // on the demo's step 2 at 2000 × 4 two such sweeps cost ~100 s a run to
-            // diversify the 4 % of particles the resampling duplicated (correction ESS 0.99),
-            // so they run only when more than a tenth are copies (a surrogate that missed).
-            let info = smc::correct(exact, &opts.smc, opts.seed, r, &mut res, &lw, 0.9);
-            let rom_evals = (res.particles.len() * acc.surrogate_units) as u64;
-            if let Some(last) = res.stages.last_mut() {
-                last.model_evals += rom_evals;
-            }
-            observe(&info);
-            acc.correction_ess.push(info.ess);
-            acc.correction_max_abs_dlog_lik.push(max_dll);
-            acc.correction_sweeps.push(info.sweeps);
+    })
+}
+
+/// Correction to the ROM: every particle's units re-evaluated by the ROM and weighted by
+/// L_ROM / L_surrogate, then the correction stage.
+fn correct_to_rom(
+    (exact, sur): (&ModalTarget, &crate::bayes::surrogate::SurrogateTarget<'_>),
+    opts: &SamplerParams,
+    r: usize,
+    res: &mut smc::RunResult<crate::bayes::modal::Terms>,
+    observe: &(dyn Fn(&StageInfo) + Sync),
+    acc: &mut Acceleration,
+) {
+    use rayon::prelude::*;
+    let nu = sur.surrogates.len();
+    // Correction to the ROM: every particle's units re-evaluated by the ROM and
+    // weighted by L_ROM / L_surrogate. Unit by unit, every particle at a time: a
+    // unit's ROM (its subspace's packed terms, 0.45 MB at the bolted ROM's 50 terms)
+    // then stays in the core's cache across particles; particle by particle, every
+    // evaluation streamed it back (the same sums in the same order either way).
+    let ctxs: Vec<_> = res
+        .particles
+        .par_iter()
+        .map(|p| smc::Target::ctx(exact, &p.g))
+        .collect();
+    let mut lw = vec![0.0; res.particles.len()];
+    for b in 0..nu {
+        if sur.surrogates[b].is_none() {
+            continue;
         }
-        t_correction += t_corr.elapsed().as_secs_f64();
-        if let (0, Some(_)) = (r, &base_ref) {
-            // Each particle measured against its own group's q: (value − q mean) / q sd;
-            // the mean of that is the offset, its sd the posterior sd / reference sd.
-            let start = &starts[0];
-            let moments = |z: Vec<f64>| -> (f64, f64) {
-                let n = z.len().max(1) as f64;
-                let m = z.iter().sum::<f64>() / n;
-                (
-                    m,
-                    (z.iter().map(|v| (v - m).powi(2)).sum::<f64>() / n).sqrt(),
-                )
-            };
-            let q_of = |p: &smc::Particle<crate::bayes::modal::Terms>| {
-                start.q(p.group).expect("a reference start")
-            };
-            // Each group's q sds, once (Mvn::sd sums its Cholesky rows).
-            let sds: Vec<(Vec<f64>, Vec<Vec<f64>>)> = (0..opts.smc.groups.max(1))
-                .map(|g| {
-                    let q = start.q(g).expect("a reference start");
-                    (q.global.sd(), q.units.iter().map(|u| u.sd()).collect())
-                })
-                .collect();
-            let ng = smc::Target::n_global(target);
-            let global: Vec<(f64, f64)> = (0..ng)
+        res.particles
+            .par_iter_mut()
+            .zip(ctxs.par_iter())
+            .zip(lw.par_iter_mut())
+            .for_each(|((p, ctx), lw)| {
+                let c = smc::Target::model(exact, &p.aux, b, &p.x[b]);
+                let l = match &c {
+                    Some(c) => smc::Target::log_lik(exact, ctx, b, &p.x[b], c),
+                    None => f64::NEG_INFINITY,
+                };
+                let l = if l.is_nan() { f64::NEG_INFINITY } else { l };
+                *lw += l - p.ll[b];
+                p.cache[b] = c;
+                p.ll[b] = l;
+            });
+    }
+    let max_dll = lw.iter().map(|v| v.abs()).fold(0.0, f64::max);
+    // Mutation after the correction runs on the ROM (every proposal a ROM evaluation):
+    // on the demo's step 2 at 2000 × 4 two such sweeps cost ~100 s a run to
+    // diversify the 4 % of particles the resampling duplicated (correction ESS 0.99),
+    // so they run only when more than a tenth are copies (a surrogate that missed).
+    let info = smc::correct(exact, &opts.smc, opts.seed, r, res, &lw, 0.9);
+    let rom_evals = (res.particles.len() * acc.surrogate_units) as u64;
+    if let Some(last) = res.stages.last_mut() {
+        last.model_evals += rom_evals;
+    }
+    observe(&info);
+    acc.correction_ess.push(info.ess);
+    acc.correction_max_abs_dlog_lik.push(max_dll);
+    acc.correction_sweeps.push(info.sweeps);
+}
+
+/// The first run's particles against the reference they started from: per coordinate the
+/// mean offset and the sd ratio, in reference sds.
+fn reference_offsets(
+    target: &ModalTarget,
+    start: &smc::Start,
+    res: &smc::RunResult<crate::bayes::modal::Terms>,
+    opts: &SamplerParams,
+    (what, verbose): (&str, bool),
+    acc: &mut Acceleration,
+) {
+    let nu = smc::Target::n_units(target);
+    // Each particle measured against its own group's q: (value − q mean) / q sd;
+    // the mean of that is the offset, its sd the posterior sd / reference sd.
+    let moments = |z: Vec<f64>| -> (f64, f64) {
+        let n = z.len().max(1) as f64;
+        let m = z.iter().sum::<f64>() / n;
+        (
+            m,
+            (z.iter().map(|v| (v - m).powi(2)).sum::<f64>() / n).sqrt(),
+        )
+    };
+    let q_of = |p: &smc::Particle<crate::bayes::modal::Terms>| {
+        start.q(p.group).expect("a reference start")
+    };
+    // Each group's q sds, once (Mvn::sd sums its Cholesky rows).
+    let sds: Vec<(Vec<f64>, Vec<Vec<f64>>)> = (0..opts.smc.groups.max(1))
+        .map(|g| {
+            let q = start.q(g).expect("a reference start");
+            (q.global.sd(), q.units.iter().map(|u| u.sd()).collect())
+        })
+        .collect();
+    let ng = smc::Target::n_global(target);
+    let global: Vec<(f64, f64)> = (0..ng)
+        .map(|k| {
+            moments(
+                res.particles
+                    .iter()
+                    .map(|p| (p.g[k] - q_of(p).global.mean[k]) / sds[p.group].0[k])
+                    .collect(),
+            )
+        })
+        .collect();
+    acc.reference_offset_global = global.iter().map(|m| m.0).collect();
+    acc.reference_sd_ratio_global = global.iter().map(|m| m.1).collect();
+    acc.reference_sd_ratio_units = (0..nu)
+        .map(|b| {
+            (0..smc::Target::unit_dim(target))
                 .map(|k| {
                     moments(
                         res.particles
                             .iter()
-                            .map(|p| (p.g[k] - q_of(p).global.mean[k]) / sds[p.group].0[k])
+                            .map(|p| (p.x[b][k] - q_of(p).units[b].mean[k]) / sds[p.group].1[b][k])
                             .collect(),
                     )
+                    .1
                 })
-                .collect();
-            acc.reference_offset_global = global.iter().map(|m| m.0).collect();
-            acc.reference_sd_ratio_global = global.iter().map(|m| m.1).collect();
-            acc.reference_sd_ratio_units = (0..nu)
-                .map(|b| {
-                    (0..smc::Target::unit_dim(target))
-                        .map(|k| {
-                            moments(
-                                res.particles
-                                    .iter()
-                                    .map(|p| {
-                                        (p.x[b][k] - q_of(p).units[b].mean[k])
-                                            / sds[p.group].1[b][k]
-                                    })
-                                    .collect(),
-                            )
-                            .1
-                        })
-                        .collect()
-                })
-                .collect();
-            if verbose {
-                eprintln!(
-                    "{what}: (posterior mean - reference mean) / reference sd, global {:.2?}",
-                    acc.reference_offset_global
-                );
-                eprintln!(
-                    "{what}: posterior sd / reference sd, global {:.2?}",
-                    acc.reference_sd_ratio_global
-                );
-                eprintln!(
-                    "{what}: posterior sd / reference sd, units {:.2?}",
-                    acc.reference_sd_ratio_units
-                );
-            }
-        }
-        out.push(res);
-    }
+                .collect()
+        })
+        .collect();
     if verbose {
-        eprintln!("{what}: tempering {t_tempering:.1} s, correction to the ROM {t_correction:.1} s (all runs)");
+        eprintln!(
+            "{what}: (posterior mean - reference mean) / reference sd, global {:.2?}",
+            acc.reference_offset_global
+        );
+        eprintln!(
+            "{what}: posterior sd / reference sd, global {:.2?}",
+            acc.reference_sd_ratio_global
+        );
+        eprintln!(
+            "{what}: posterior sd / reference sd, units {:.2?}",
+            acc.reference_sd_ratio_units
+        );
     }
-    acc.surrogate_proposals_outside_box =
-        sur.outside_box.load(std::sync::atomic::Ordering::Relaxed);
-    // Final particles beyond the boxes cost ROM evaluations at every later sweep: the
-    // reference was narrower than the posterior there.
+}
+
+/// The fraction of the final particles' units beyond their surrogate's box.
+fn edge_fraction(
+    out: &Results,
+    sur: &crate::bayes::surrogate::SurrogateTarget<'_>,
+    target: &ModalTarget,
+) -> f64 {
     let mut n_edge = 0usize;
     let mut n_all = 0usize;
-    for res in &out {
+    for res in out {
         for p in &res.particles {
             for (b, s) in sur.surrogates.iter().enumerate() {
                 if let Some(s) = s {
@@ -563,8 +680,7 @@ pub fn run_smc(
             }
         }
     }
-    acc.surrogate_edge_fraction = n_edge as f64 / n_all.max(1) as f64;
-    Ok((out, acc))
+    n_edge as f64 / n_all.max(1) as f64
 }
 
 /// The ROM-box rule: the fraction of posterior draws, per unit parameter, outside the box
