@@ -1,5 +1,7 @@
 //! Repository invariants: schema files in sync with the code, module header comments.
 
+mod layers;
+
 use crate::common::repo;
 
 #[test]
