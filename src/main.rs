@@ -79,7 +79,7 @@ enum Command {
         /// Output directory of `hbmu extract`.
         extract_dir: PathBuf,
         /// Board description (TOML) of the model; default: the built-in board.
-        #[arg(long)]
+        #[arg(long = "board", alias = "model", value_name = "BOARD_TOML")]
         model: Option<PathBuf>,
         #[arg(long)]
         out: PathBuf,
@@ -149,7 +149,7 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
         /// Board file the work directory was updated with (default: the built-in board).
-        #[arg(long)]
+        #[arg(long = "board", alias = "model", value_name = "BOARD_TOML")]
         model: Option<PathBuf>,
         /// Refit at most this many screened candidates (0: locate and screen only).
         #[arg(long, default_value_t = 3)]
@@ -229,7 +229,7 @@ struct UpdateArgs {
     #[arg(long)]
     extract: Option<PathBuf>,
     /// Board description (TOML) of the model; default: the built-in board.
-    #[arg(long)]
+    #[arg(long = "board", alias = "model", value_name = "BOARD_TOML")]
     model: Option<PathBuf>,
     #[arg(long)]
     out: PathBuf,

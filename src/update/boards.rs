@@ -478,7 +478,7 @@ pub fn check_board_box(
         }
         return Err(RomBoxViolation {
         message: format!(
-            "the posterior presses against the ROM's ±{:.0} % box (relative to the board file's nominal values):\n  {}\nThe ROM is not verified there. Re-centre the model: put the posterior means in the board file (--model) and run again, or leave an uninformed parameter out (--params).",
+            "the posterior presses against the ROM's ±{:.0} % box (relative to the board file's nominal values):\n  {}\nThe ROM is not verified there. Re-centre the model: put the posterior means in the board file (--board) and run again, or leave an uninformed parameter out (--params).",
             100.0 * spec.rom_box,
             violations.join("\n  ")
         ),

@@ -137,7 +137,7 @@ impl Work {
             self.s("pair"),
             "--out".into(),
             self.s(out),
-            "--model".into(),
+            "--board".into(),
             self.s(board),
         ];
         for a in [
@@ -167,7 +167,7 @@ impl Work {
             self.s("pair"),
             "--boards".into(),
             self.s(boards),
-            "--model".into(),
+            "--board".into(),
             self.s("coarse.toml"),
             "--out".into(),
             self.s(out),
