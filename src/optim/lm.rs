@@ -107,12 +107,67 @@ pub fn levenberg_marquardt(
             break;
         }
         // A neighbour the model cannot solve ends the search at the accepted point, the best
-        // one found (before, that Jacobian failed the whole step; the search now stops where
-        // the model stops being defined).
+        // one found: the search stops where the model stops being defined.
         match jacobian(&r0, neighbours) {
             Ok(j) => jac = j,
             Err(_) => break,
         }
     }
     Ok((c0, x))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A linear least-squares problem: the minimiser and its residual are the normal
+    /// equations' closed form (y = 1.5 + 0.25 t + noise, fitted by a line).
+    #[test]
+    fn a_line_fit_reaches_the_normal_equations_solution() {
+        let t: Vec<f64> = (0..8).map(|i| i as f64).collect();
+        let noise = [0.03, -0.02, 0.01, 0.04, -0.05, 0.02, -0.01, -0.02];
+        let y: Vec<f64> = t
+            .iter()
+            .zip(noise)
+            .map(|(t, e)| 1.5 + 0.25 * t + e)
+            .collect();
+        let n = t.len() as f64;
+        let (st, sy) = (t.iter().sum::<f64>(), y.iter().sum::<f64>());
+        let stt: f64 = t.iter().map(|v| v * v).sum();
+        let sty: f64 = t.iter().zip(&y).map(|(a, b)| a * b).sum();
+        let b = (n * sty - st * sy) / (n * stt - st * st);
+        let a = (sy - b * st) / n;
+        let best: f64 = t.iter().zip(&y).map(|(t, y)| (a + b * t - y).powi(2)).sum();
+        let resid = |x: &[f64]| -> anyhow::Result<Vec<f64>> {
+            Ok(t.iter().zip(&y).map(|(t, y)| x[0] + x[1] * t - y).collect())
+        };
+        let (c, x) = levenberg_marquardt(&resid, vec![0.0, 0.0], &[10.0, 10.0]).unwrap();
+        assert!(
+            (x[0] - a).abs() < 1e-5 && (x[1] - b).abs() < 1e-5,
+            "{x:?} vs {a} {b}"
+        );
+        assert!((c - best).abs() < 1e-9, "{c} vs {best}");
+    }
+
+    /// A nonlinear problem with an exact fit: y = 2 e^{-0.7 t} from a start far off, and the
+    /// bounds are honoured where the minimiser lies outside them.
+    #[test]
+    fn an_exponential_decay_is_found_and_the_bounds_hold() {
+        let t: Vec<f64> = (0..10).map(|i| 0.3 * i as f64).collect();
+        let y: Vec<f64> = t.iter().map(|t| 2.0 * (-0.7 * t).exp()).collect();
+        let resid = |x: &[f64]| -> anyhow::Result<Vec<f64>> {
+            Ok(t.iter()
+                .zip(&y)
+                .map(|(t, y)| x[0].exp() * (x[1] * t).exp() - y)
+                .collect())
+        };
+        let (c, x) = levenberg_marquardt(&resid, vec![0.0, 0.0], &[5.0, 5.0]).unwrap();
+        assert!(
+            (x[0] - 2f64.ln()).abs() < 1e-3 && (x[1] + 0.7).abs() < 1e-3,
+            "{x:?}"
+        );
+        assert!(c < 1e-6, "{c}");
+        let (_, x) = levenberg_marquardt(&resid, vec![0.0, 0.0], &[5.0, 0.5]).unwrap();
+        assert!(x[1] >= -0.5 - 1e-12, "{x:?}");
+    }
 }
