@@ -154,9 +154,11 @@ pub(super) fn run_refit(
         })?;
         let mut o2 = joint_refit_options(opts, base, cand);
         o2.model.enrich_joint = None;
+        // The gate's retry reuses the first attempt's preparation (same model spec).
+        let prep = std::cell::RefCell::new(None);
         run_gated(
             o2,
-            |o| crate::stage::update::run_joints(o, &boards, verbose),
+            |o| crate::stage::update::run_joints_with(o, &boards, &mut prep.borrow_mut(), verbose),
             decided,
         )
     } else {
@@ -167,9 +169,13 @@ pub(super) fn run_refit(
             )
         })?;
         let o = joint_refit_options(opts, base, cand);
+        let prep = std::cell::RefCell::new(None);
         run_gated(
             o,
-            |o| crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose),
+            |o| {
+                let boards = opts.work_dir.join("update_boards");
+                crate::stage::update::run_joints_with(o, &boards, &mut prep.borrow_mut(), verbose)
+            },
             decided,
         )
     }
@@ -267,9 +273,13 @@ fn new_modes_refit(
         let mut o = joint_refit_options(opts, base, cand);
         o.out = out.join("new_modes");
         o.model.enrich_new_modes = true;
+        let prep = std::cell::RefCell::new(None);
         run_gated(
             o.clone(),
-            |o| crate::stage::update::run_joints(o, &opts.work_dir.join("update_boards"), verbose),
+            |o| {
+                let boards = opts.work_dir.join("update_boards");
+                crate::stage::update::run_joints_with(o, &boards, &mut prep.borrow_mut(), verbose)
+            },
             &|| None,
         )
         .and_then(|_| summarize_refit(&o.out, &nm_rel, Some(cand.mechanism), cand.joint, None, &[]))
