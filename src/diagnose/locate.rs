@@ -1,7 +1,7 @@
 //! Locate: posterior-predictive checks of the updated model against the recordings.
 //!
 //! Pure: plain data in ([`LocateInput`], read from a work directory by
-//! `stage::diagnose::inputs`), plain data out ([`Located`], serialisable). Five checks:
+//! `io::diagnose_inputs`), plain data out ([`Located`], serialisable). Five checks:
 //!
 //! 1. **Modes** ([`ModeCheck`]), per (setup, label): the mean relative residual
 //!    r = (f_measured − f̄_model)/f̄_model over the measurements, tested against its scatter.
@@ -32,7 +32,7 @@ use std::collections::{BTreeMap, BTreeSet};
 // Input.
 
 /// One paired mode of one measurement against the updated model (a row of an update step's
-/// `residuals.parquet`; see `stage::update::residuals`).
+/// `residuals.parquet`; see `update::posterior::residuals`).
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ResidualObs {
     pub measurement_id: String,

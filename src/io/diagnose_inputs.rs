@@ -25,6 +25,7 @@ use crate::diagnose::verdict::{quantile, r_hat_gate};
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::modes_table::read_modes_table;
 use crate::io::read_json;
+use crate::io::tables::update::read_residuals;
 use crate::io::tables::{self, read_parquet, Cols};
 use anyhow::{anyhow, bail, Context};
 use arrow::array::{Array, AsArray};
@@ -387,40 +388,6 @@ fn read_pairs(path: &Path) -> anyhow::Result<Vec<PairObs>> {
                 model_freq_hz: mf.is_valid(i).then(|| mf.value(i)),
                 accepted: acc.value(i),
                 missing: miss.value(i),
-            });
-        }
-    }
-    Ok(out)
-}
-
-pub fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
-    let mut out = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (mid, bid, setup, label, f, fm, psd, rel, z, used) = (
-            c.str("measurement_id")?,
-            c.str("board_id")?,
-            c.str("setup")?,
-            c.str("label")?,
-            c.f64("freq_hz")?,
-            c.f64("model_freq_hz_mean")?,
-            c.f64("predictive_sd_hz")?,
-            c.f64("rel_residual")?,
-            c.f64("std_residual")?,
-            c.bool("used_for_updating")?,
-        );
-        for i in 0..b.num_rows() {
-            out.push(ResidualObs {
-                measurement_id: mid.value(i).to_string(),
-                board_id: bid.value(i).to_string(),
-                setup: setup.value(i).to_string(),
-                label: label.value(i).to_string(),
-                freq_hz: f.value(i),
-                model_freq_hz_mean: fm.value(i),
-                predictive_sd_hz: psd.value(i),
-                rel_residual: rel.value(i),
-                std_residual: z.value(i),
-                used_for_updating: used.value(i),
             });
         }
     }

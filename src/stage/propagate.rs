@@ -14,9 +14,10 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::io::manifest::StageSpec;
 use crate::io::tables::pairs::{read_pairs, PairRow};
 use crate::io::tables::propagate::{
-    classify, fixed_eps, read_residuals, read_rom, read_step1, read_step2, update_rom_options,
-    updated_labels, write_predictions, Inputs, MANIFEST_BOARDS,
+    classify, fixed_eps, read_rom, read_step1, read_step2, update_rom_options, updated_labels,
+    write_predictions, Inputs,
 };
+use crate::io::tables::update::{read_residuals, MANIFEST_BOARDS};
 use crate::stage::{exit, StageOutcome, StageResult};
 use crate::uq::inputs;
 use crate::uq::propagate::{self as uq, LabelModel, Models, Posterior};

@@ -2,7 +2,6 @@
 //! propagate's readers of the update steps' outputs (posterior draws, residuals, manifests,
 //! ROMs).
 
-use crate::diagnose::locate::ResidualObs;
 use crate::fem::params::names;
 use crate::fem::Rom;
 use crate::findings::{Finding, Findings, Severity};
@@ -15,8 +14,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-/// Step 1's manifest (see `stage::update::MANIFEST_BOARDS`).
-pub const MANIFEST_BOARDS: &str = "update_boards.manifest.json";
+use crate::io::tables::update::MANIFEST_BOARDS;
 
 pub const PREDICTIONS: TableSpec = TableSpec {
     name: "predictions",
@@ -80,42 +78,6 @@ pub fn write_predictions(
     let schema = PREDICTIONS.schema(&[], &tables::table_metadata(&PREDICTIONS, prov));
     tables::write_parquet(path, &tables::batch(schema, cols)?)?;
     Ok(())
-}
-
-/// The rows of an update step's residuals.parquet (the columns propagate uses; the same
-/// reader as diagnose's).
-pub fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
-    let mut out = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (mid, bid, setup, label, f, fm, psd, rel, z, used) = (
-            c.str("measurement_id")?,
-            c.str("board_id")?,
-            c.str("setup")?,
-            c.str("label")?,
-            c.f64("freq_hz")?,
-            c.f64("model_freq_hz_mean")?,
-            c.f64("predictive_sd_hz")?,
-            c.f64("rel_residual")?,
-            c.f64("std_residual")?,
-            c.bool("used_for_updating")?,
-        );
-        for i in 0..b.num_rows() {
-            out.push(ResidualObs {
-                measurement_id: mid.value(i).to_string(),
-                board_id: bid.value(i).to_string(),
-                setup: setup.value(i).to_string(),
-                label: label.value(i).to_string(),
-                freq_hz: f.value(i),
-                model_freq_hz_mean: fm.value(i),
-                predictive_sd_hz: psd.value(i),
-                rel_residual: rel.value(i),
-                std_residual: z.value(i),
-                used_for_updating: used.value(i),
-            });
-        }
-    }
-    Ok(out)
 }
 
 /// Labels used for updating in a step (from its residuals).

@@ -1,6 +1,7 @@
 //! The spec, row types, reader and writer of update's tables (both steps).
 
 use crate::bayes::smc::StageInfo;
+use crate::diagnose::locate::ResidualObs;
 pub use crate::io::tables::pairs::{read_pairs, read_presence};
 use crate::io::tables::{self, c, Col, Cols, TableSpec};
 use crate::update::posterior::{DrawTable, Residual, SummaryRow};
@@ -12,6 +13,10 @@ use arrow::datatypes::{DataType, Field};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 use std::sync::Arc;
+
+/// The manifests of the two steps in their output directories.
+pub const MANIFEST_BOARDS: &str = "update_boards.manifest.json";
+pub const MANIFEST_JOINTS: &str = "update_joints.manifest.json";
 
 pub const JOINTS: TableSpec = TableSpec {
     name: "joints",
@@ -569,4 +574,39 @@ pub fn write_joint_tables(
     write_stages(&p, &stages, prov)?;
     outputs.push(p);
     Ok(outputs)
+}
+
+/// The rows of an update step's residuals.parquet as the later stages use them.
+pub fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (mid, bid, setup, label, f, fm, psd, rel, z, used) = (
+            c.str("measurement_id")?,
+            c.str("board_id")?,
+            c.str("setup")?,
+            c.str("label")?,
+            c.f64("freq_hz")?,
+            c.f64("model_freq_hz_mean")?,
+            c.f64("predictive_sd_hz")?,
+            c.f64("rel_residual")?,
+            c.f64("std_residual")?,
+            c.bool("used_for_updating")?,
+        );
+        for i in 0..b.num_rows() {
+            out.push(ResidualObs {
+                measurement_id: mid.value(i).to_string(),
+                board_id: bid.value(i).to_string(),
+                setup: setup.value(i).to_string(),
+                label: label.value(i).to_string(),
+                freq_hz: f.value(i),
+                model_freq_hz_mean: fm.value(i),
+                predictive_sd_hz: psd.value(i),
+                rel_residual: rel.value(i),
+                std_residual: z.value(i),
+                used_for_updating: used.value(i),
+            });
+        }
+    }
+    Ok(out)
 }

@@ -12,12 +12,6 @@
 
 mod refit;
 
-/// Where the work directory's tables used to be read (`stage::propagate` still reads
-/// residuals through here; their reader is [`crate::io::diagnose_inputs`]).
-pub mod inputs {
-    pub use crate::io::diagnose_inputs::{read_inputs, read_residuals};
-}
-
 pub use crate::diagnose::doc::{
     CandidateDoc, DiagnoseOptions, DiagnosisDoc, FindingDoc, HeldOut, LocatedSummary, Location,
 };

@@ -53,8 +53,7 @@ mod joints;
 pub use boards::run_boards;
 pub use joints::{run_joints, run_joints_with};
 
-pub const MANIFEST_BOARDS: &str = "update_boards.manifest.json";
-pub const MANIFEST_JOINTS: &str = "update_joints.manifest.json";
+pub use crate::io::tables::update::{MANIFEST_BOARDS, MANIFEST_JOINTS};
 
 /// A step's options: where it reads and writes, what it updates with which model
 /// ([`ModelSpec`]), and how the posterior is sampled ([`SamplerParams`]). The configuration the
