@@ -1032,3 +1032,72 @@ mod thickness_tests {
         );
     }
 }
+
+#[cfg(test)]
+mod assembly_tests {
+    use super::*;
+
+    fn pair(m: &str, b: &str, mode: i32, f: f64, mm: i32, label: &str) -> PairRow {
+        PairRow {
+            measurement_id: m.into(),
+            board_id: b.into(),
+            setup: "free".into(),
+            mode,
+            freq_hz: f,
+            model_mode: mm,
+            label: label.into(),
+        }
+    }
+
+    /// A small campaign's pairs to the likelihood's data: the labels pair's presence marks,
+    /// each at the model mode most of its pairs name; a requested label without a pair is
+    /// named and left out; every pair of a board becomes a frequency term λ̂ = (2π f)² of its
+    /// label, in pair order, with its measurement and board.
+    #[test]
+    fn pairs_become_labels_and_frequency_terms() {
+        let pairs = vec![
+            pair("M1", "B1", 1, 100.0, 7, "torsion-1"),
+            pair("M1", "B1", 2, 180.0, 8, "bending-x-1"),
+            pair("M2", "B1", 1, 101.0, 7, "torsion-1"),
+            pair("M3", "B2", 1, 99.0, 9, "torsion-1"),
+            pair("M3", "B2", 2, 181.0, 8, "bending-x-1"),
+        ];
+        let presence = vec!["torsion-1".to_string(), "bending-x-1".to_string()];
+        let mut findings = Findings::default();
+        let labels = select_labels(&pairs, "free", &[], &presence, &mut findings).unwrap();
+        assert_eq!(labels.labels, presence);
+        assert_eq!(
+            labels.model_mode,
+            vec![6, 7],
+            "the majority model mode, 0-based"
+        );
+        assert!(findings.0.is_empty());
+
+        let asked = vec!["torsion-1".to_string(), "plate-2-2".to_string()];
+        let l2 = select_labels(&pairs, "free", &asked, &presence, &mut findings).unwrap();
+        assert_eq!(l2.labels, vec!["torsion-1".to_string()]);
+        assert_eq!(findings.0.len(), 1);
+        assert_eq!(findings.0[0].code, "update.label_unpaired");
+        assert!(select_labels(
+            &pairs,
+            "free",
+            &["plate-2-2".into()],
+            &presence,
+            &mut findings
+        )
+        .is_err());
+
+        let b1: Vec<&PairRow> = pairs.iter().filter(|p| p.board_id == "B1").collect();
+        let (data, meta) = unit_data(&b1, &labels.labels, None, &mut findings).unwrap();
+        let w = |f: f64| (2.0 * std::f64::consts::PI * f).powi(2);
+        let got: Vec<(usize, f64)> = data.freq.iter().map(|o| (o.mode, o.lambda_hat)).collect();
+        assert_eq!(got, vec![(0, w(100.0)), (1, w(180.0)), (0, w(101.0))]);
+        assert_eq!(
+            meta.iter()
+                .map(|m| (m.measurement_id.as_str(), m.label))
+                .collect::<Vec<_>>(),
+            vec![("M1", 0), ("M1", 1), ("M2", 0)]
+        );
+        assert!(data.shapes.is_empty() && data.mass.is_none());
+    }
+}
