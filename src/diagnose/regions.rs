@@ -980,12 +980,14 @@ pub fn demote_weaker_regions(regions: &mut [BoardRegion]) {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::{demote_weaker_regions, BoardRegion};
     use crate::diagnose::library::Mechanism;
     use crate::diagnose::localize::LocalFit;
 
-    fn region(mechanism: Mechanism, share: f64, combined: Option<f64>) -> BoardRegion {
+    /// A located region of `mechanism` explaining `share` of its modes' misfit, with the
+    /// shapes' combined Δχ² `combined` (a fixture of the diagnosis's tests).
+    pub(crate) fn region(mechanism: Mechanism, share: f64, combined: Option<f64>) -> BoardRegion {
         let fit = LocalFit {
             x_m: 0.05,
             y_m: 0.03,

@@ -559,32 +559,8 @@ pub fn with_located_point(r: &mut Refit, pl: PointLocated, point_xy_m: Option<[f
 mod tests {
     use super::{above_practical_threshold, model_form_pattern, whole_board_outliers};
     use crate::diagnose::library::Mechanism;
-    use crate::diagnose::localize::LocalFit;
     use crate::diagnose::locate::{self, LocateInput, LocateOptions, LocatedMode};
-    use crate::diagnose::regions::BoardRegion;
-
-    fn region(mechanism: Mechanism, share: f64, combined: Option<f64>) -> BoardRegion {
-        let fit = LocalFit {
-            x_m: 0.05,
-            y_m: 0.03,
-            amplitude: 1.0,
-            amplitude_se: 0.1,
-            chi2_before: 100.0,
-            chi2_after: 100.0 * (1.0 - share),
-            dof_after: 2,
-            explained_share: share,
-            p_value: 1e-9,
-            region_radius_m: 0.01,
-            region_points: 10,
-            log_location_occam: -1.0,
-            inflation: 1.0,
-            ..LocalFit::default()
-        };
-        BoardRegion {
-            combined_delta_chi2: combined,
-            ..BoardRegion::located_fit(mechanism, fit, "Fit.")
-        }
-    }
+    use crate::diagnose::regions::tests::region;
 
     /// A located mean shift counts as a finding only at or above the practical threshold;
     /// an unexplained free-free misfit placed nowhere on the board is the model's form, and a

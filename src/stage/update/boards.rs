@@ -166,17 +166,7 @@ pub(crate) fn boards_attempt(
     )?;
     report_shape_weights(&shape_weights, "boards", verbose, &mut findings);
     clock.lap("shape_weights");
-    let pb = crate::stage::progress_bar((sopts.sampler.runs * 1000) as u64, "boards");
-    let (results, acceleration) = run_smc(
-        &bt.target,
-        &sopts.sampler,
-        "boards",
-        &[],
-        None,
-        &progress_to(&pb),
-        verbose,
-    )?;
-    pb.finish_and_clear();
+    let (results, acceleration) = sample(&bt.target, &sopts.sampler, "boards", &[], None, verbose)?;
     let sampler_seconds = clock.lap("sampler");
     check_surrogate_edges(&acceleration, &mut findings);
     boards::check_board_box(&bm, &bt, &results, &opts.model)?;

@@ -239,17 +239,14 @@ pub(crate) fn joints_body(
     )?;
     report_shape_weights(&shape_weights, "joints", verbose, &mut findings);
     clock.lap("shape_weights");
-    let pb = crate::stage::progress_bar((sopts.sampler.runs * 1000) as u64, "joints");
-    let (results, acceleration) = run_smc(
+    let (results, acceleration) = sample(
         &jt.target,
         &sopts.sampler,
         "joints",
         &jt.aux,
         Some(&centre),
-        &progress_to(&pb),
         verbose,
     )?;
-    pb.finish_and_clear();
     let sampler_seconds = clock.lap("sampler");
     check_surrogate_edges(&acceleration, &mut findings);
     joints::check_joint_box(

@@ -240,6 +240,32 @@ fn step_spec(
     Ok((board, spec))
 }
 
+/// A step's SMC ([`run_smc`]) with its progress on a progress bar.
+fn sample(
+    target: &crate::bayes::target::ModalTarget,
+    sampler: &crate::update::sampler::SamplerParams,
+    what: &str,
+    aux: &[Vec<std::sync::Arc<Vec<f64>>>],
+    start: Option<&[f64]>,
+    verbose: bool,
+) -> anyhow::Result<(
+    crate::update::sampler::Results,
+    crate::update::sampler::Acceleration,
+)> {
+    let pb = crate::stage::progress_bar((sampler.runs * 1000) as u64, what);
+    let out = run_smc(
+        target,
+        sampler,
+        what,
+        aux,
+        start,
+        &progress_to(&pb),
+        verbose,
+    )?;
+    pb.finish_and_clear();
+    Ok(out)
+}
+
 /// The sampler's progress on a progress bar.
 fn progress_to(pb: &indicatif::ProgressBar) -> impl Fn(u64, String) + Sync + '_ {
     move |position, message| {
