@@ -298,15 +298,7 @@ pub fn read_step1(
                     corr: om,
                 },
                 boards: vec![],
-                eps: labels
-                    .iter()
-                    .zip(&eps)
-                    .map(|(l, e)| match e {
-                        Some(a) => Some(a.value(r)),
-                        None if updated.contains(l) => fixed,
-                        None => None,
-                    })
-                    .collect(),
+                eps: eps_at(labels, &eps, &updated, fixed, r),
                 discrepancy: disc.at(r),
             });
         }
@@ -416,15 +408,7 @@ pub fn read_step2(
                 step1,
                 mu_ln_k: mu.value(r),
                 sigma_ln_k: sg.value(r),
-                eps: labels
-                    .iter()
-                    .zip(&eps)
-                    .map(|(l, e)| match e {
-                        Some(a) => Some(a.value(r)),
-                        None if updated.contains(l) => fixed,
-                        None => None,
-                    })
-                    .collect(),
+                eps: eps_at(labels, &eps, &updated, fixed, r),
                 discrepancy: disc.at(r),
             });
         }
@@ -548,4 +532,24 @@ pub fn classify(
         step1,
         step2,
     })
+}
+
+/// Each label's ε at row `r`: its column's value, else the recorded fixed ε for an updated
+/// label, else none (a validation mode borrows one).
+fn eps_at(
+    labels: &[String],
+    eps: &[Option<&Float64Array>],
+    updated: &BTreeSet<String>,
+    fixed: Option<f64>,
+    r: usize,
+) -> Vec<Option<f64>> {
+    labels
+        .iter()
+        .zip(eps)
+        .map(|(l, e)| match e {
+            Some(a) => Some(a.value(r)),
+            None if updated.contains(l) => fixed,
+            None => None,
+        })
+        .collect()
 }
