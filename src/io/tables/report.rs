@@ -320,6 +320,18 @@ fn opt_f64(v: f64) -> Option<f64> {
     v.is_finite().then_some(v)
 }
 
+/// The setup, label and role (`updating` or `validation`) columns of both report tables.
+fn mode_cols<R>(rows: &[R], key: impl Fn(&R) -> (&str, &str, bool)) -> [ArrayRef; 3] {
+    let role = |u: bool| if u { "updating" } else { "validation" };
+    [
+        Arc::new(StringArray::from_iter_values(rows.iter().map(|r| key(r).0))),
+        Arc::new(StringArray::from_iter_values(rows.iter().map(|r| key(r).1))),
+        Arc::new(StringArray::from_iter_values(
+            rows.iter().map(|r| role(key(r).2)),
+        )),
+    ]
+}
+
 /// table2.parquet and table2.csv under `out`.
 pub fn write_table2(
     out: &Path,
@@ -329,20 +341,11 @@ pub fn write_table2(
     let f = |g: fn(&Table2Row) -> f64| -> ArrayRef {
         Arc::new(Float64Array::from_iter(rows.iter().map(|r| opt_f64(g(r)))))
     };
-    let cols: Vec<ArrayRef> = vec![
-        Arc::new(StringArray::from_iter_values(
-            rows.iter().map(|r| r.setup.as_str()),
-        )),
-        Arc::new(StringArray::from_iter_values(
-            rows.iter().map(|r| r.label.as_str()),
-        )),
-        Arc::new(StringArray::from_iter_values(rows.iter().map(|r| {
-            if r.used_for_updating {
-                "updating"
-            } else {
-                "validation"
-            }
-        }))),
+    let mut cols: Vec<ArrayRef> = mode_cols(rows, |r| {
+        (r.setup.as_str(), r.label.as_str(), r.used_for_updating)
+    })
+    .into();
+    cols.extend([
         Arc::new(Int32Array::from_iter_values(
             rows.iter().map(|r| r.n_measured as i32),
         )),
@@ -365,7 +368,7 @@ pub fn write_table2(
             rows.iter().map(|r| r.n_held_out as i32),
         )),
         f(|r| r.held_out_coverage_90),
-    ];
+    ]);
     write_both(out, &TABLE2, cols, prov)
 }
 
@@ -378,26 +381,18 @@ pub fn write_intervals(
     let f = |g: fn(&Interval) -> f64| -> ArrayRef {
         Arc::new(Float64Array::from_iter(rows.iter().map(|r| opt_f64(g(r)))))
     };
-    let cols: Vec<ArrayRef> = vec![
+    let mut cols: Vec<ArrayRef> = vec![
         Arc::new(StringArray::from_iter_values(
             rows.iter().map(|r| r.scope.as_str()),
         )),
         Arc::new(StringArray::from_iter(
             rows.iter().map(|r| r.board_id.as_deref()),
         )),
-        Arc::new(StringArray::from_iter_values(
-            rows.iter().map(|r| r.setup.as_str()),
-        )),
-        Arc::new(StringArray::from_iter_values(
-            rows.iter().map(|r| r.label.as_str()),
-        )),
-        Arc::new(StringArray::from_iter_values(rows.iter().map(|r| {
-            if r.used_for_updating {
-                "updating"
-            } else {
-                "validation"
-            }
-        }))),
+    ];
+    cols.extend(mode_cols(rows, |r| {
+        (r.setup.as_str(), r.label.as_str(), r.used_for_updating)
+    }));
+    cols.extend([
         Arc::new(Int32Array::from_iter_values(
             rows.iter().map(|r| r.n_draws as i32),
         )),
@@ -420,7 +415,7 @@ pub fn write_intervals(
         Arc::new(Int32Array::from_iter_values(
             rows.iter().map(|r| r.n_held_out_inside_90 as i32),
         )),
-    ];
+    ]);
     write_both(out, &INTERVALS, cols, prov)
 }
 
