@@ -18,5 +18,6 @@ pub mod report;
 pub mod schemas;
 pub mod simd;
 pub mod stage;
+pub mod table_spec;
 pub mod update;
 pub mod uq;

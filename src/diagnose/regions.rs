@@ -293,7 +293,7 @@ impl FreeBasis {
 /// The point-mass localisation over the free-free modes of `checks` (locate's mode checks).
 /// `Err` says why it could not run (the stage writes it as the note).
 pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<BoardRegion> {
-    let RegionInput { params, locate, .. } = *inp;
+    let RegionInput { locate, .. } = *inp;
     let FreeBasis {
         model,
         modes0,
@@ -345,29 +345,16 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         }),
         positive_only: true,
     };
-    let fit = localize_point_mass(&loc_in, min_separation_m(inp.board)).ok_or_else(|| {
-        anyhow!(
-            "no point mass fits the free-free residuals ({} modes, {} parameters)",
-            modes.len(),
-            params.len()
-        )
-    })?;
     // The measured mode shapes join the frequencies.
+    let (mut fit, d) = locate_and_decide(inp, fb, &loc_in, "point mass", &|_| Coupling::PointMass)?;
     let ShapeDecision {
-        fit: chosen,
-        chosen_by_shapes,
-        shape_scores,
-        shapes,
         has_delta,
-        open,
-        combined,
+        ref open,
+        ref combined,
         best_open,
-    } = decide_by_shapes(inp, fb, &loc_in, &fit, &|_| Coupling::PointMass)?;
-    let combined_delta_chi2 = best_open
-        .filter(|_| has_delta && !shapes.scores.is_empty())
-        .map(|k| combined[k]);
-    let mut fit = chosen.unwrap_or(fit);
-    if let (true, Some(k), false) = (has_delta, best_open, shapes.scores.is_empty()) {
+        ..
+    } = d;
+    if let (true, Some(k), false) = (has_delta, best_open, d.shapes.scores.is_empty()) {
         // The region and the location's Occam factor of the combined map (the refit's
         // likelihood has both the frequencies and the shapes).
         let s2 = 2.0 * fit.inflation;
@@ -379,7 +366,7 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         fit.log_location_occam = (own / points.len() as f64).ln().min(0.0);
         let wv: Vec<(f64, f64)> = open
             .iter()
-            .zip(&combined)
+            .zip(combined)
             .filter(|(&i, _)| fit.amplitude_at[i] > 0.0)
             .map(|(&i, d)| ((-(top - d).max(0.0) / s2).exp(), fit.amplitude_at[i].ln()))
             .collect();
@@ -391,19 +378,19 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         // cannot.
         let freq_region = (fit.region_radius_m, fit.region_points);
         fit.location_ln_amplitude_sd = weighted_sd(&wv).max(fit.location_ln_amplitude_sd);
-        combined_region(&mut fit, &combined, k, &open, points);
+        combined_region(&mut fit, combined, k, open, points);
         // The region reported (radius and its points together) is the wider of the two.
         if freq_region.0 > fit.region_radius_m {
             (fit.region_radius_m, fit.region_points) = freq_region;
         }
     }
     let located = passes_rule(&fit, locate);
-    let alt = alternatives_clause(&fit, chosen_by_shapes, shape_scores.len());
-    let skipped = if shapes.skipped > 0 {
+    let alt = alternatives_clause(&fit, d.chosen_by_shapes, d.shape_scores.len());
+    let skipped = if d.shapes.skipped > 0 {
         format!(
             " {} of {} measured shapes were left out of the shape choice (lists of unequal length, or scan points the model cannot evaluate).",
-            shapes.skipped,
-            shapes.skipped + shapes.used
+            d.shapes.skipped,
+            d.shapes.skipped + d.shapes.used
         )
     } else {
         String::new()
@@ -428,18 +415,7 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
             fit.p_value
         )
     };
-    Ok(BoardRegion {
-        mechanism: Mechanism::AddedMass,
-        amplitude_unit: "kg".into(),
-        located,
-        fit,
-        shape_scores,
-        chosen_by_shapes,
-        shapes_used: shapes.used,
-        shapes_skipped: shapes.skipped,
-        combined_delta_chi2,
-        sentence,
-    })
+    Ok(d.region(Mechanism::AddedMass, "kg", located, fit, sentence))
 }
 
 /// Radius of the disc of a stiffness change's signature, m: a spot the size of a component's
@@ -456,7 +432,7 @@ pub const STIFFNESS_RADIUS_M: f64 = 4e-3;
 /// frequencies alone cannot tell the mirror points of a near-symmetric board apart; the
 /// measured shapes choose among them ([`decide_by_shapes`]).
 pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<BoardRegion> {
-    let RegionInput { params, locate, .. } = *inp;
+    let RegionInput { locate, .. } = *inp;
     let points = &fb.points;
     let cols = &fb.index;
     let shapes = faer::Mat::<f64>::from_fn(fb.modes0.shapes.nrows(), cols.len(), |r, c| {
@@ -483,24 +459,8 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
         exact: None,
         positive_only: false,
     };
-    let fit = localize_point_mass(&loc_in, min_separation_m(inp.board)).ok_or_else(|| {
-        anyhow!(
-            "no stiffness change fits the free-free residuals ({} modes, {} parameters)",
-            modes.len(),
-            params.len()
-        )
-    })?;
     // The measured mode shapes join the frequencies, as for the point mass.
-    let ShapeDecision {
-        fit: chosen,
-        chosen_by_shapes,
-        shape_scores,
-        shapes,
-        has_delta,
-        open,
-        combined,
-        best_open,
-    } = decide_by_shapes(inp, fb, &loc_in, &fit, &|open| {
+    let (mut fit, d) = locate_and_decide(inp, fb, &loc_in, "stiffness change", &|open| {
         Coupling::Stiffness(
             open.iter()
                 .map(|&i| {
@@ -514,12 +474,8 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
                 .collect(),
         )
     })?;
-    let combined_delta_chi2 = best_open
-        .filter(|_| has_delta && !shapes.scores.is_empty())
-        .map(|k| combined[k]);
-    let mut fit = chosen.unwrap_or(fit);
-    if let (true, Some(k)) = (has_delta, best_open) {
-        combined_region(&mut fit, &combined, k, &open, points);
+    if let (true, Some(k)) = (d.has_delta, d.best_open) {
+        combined_region(&mut fit, &d.combined, k, &d.open, points);
     }
     let located = passes_rule(&fit, locate);
     let kind = if fit.amplitude > 0.0 {
@@ -528,7 +484,7 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
         "loss"
     };
     let area_mm2 = std::f64::consts::PI * (STIFFNESS_RADIUS_M * 1e3).powi(2);
-    let alt = alternatives_clause(&fit, chosen_by_shapes, shape_scores.len());
+    let alt = alternatives_clause(&fit, d.chosen_by_shapes, d.shape_scores.len());
     let sentence = if located {
         format!(
             "A local {kind} of the board's bending stiffness at ({:.0}, {:.0}) mm (90 % region {}): the core's bending stiffness × {:.2} ± {:.2} over a {:.0} mm disc (or as much over another small area: (f − 1) × area = {:+.0} mm²) explains {:.0} % of the free-free misfit that the board parameters cannot{alt}.",
@@ -560,18 +516,35 @@ pub fn stiffness_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Boa
             fit.p_value
         )
     };
-    Ok(BoardRegion {
-        mechanism: Mechanism::LocalStiffnessLoss,
-        amplitude_unit: "factor - 1".into(),
+    Ok(d.region(
+        Mechanism::LocalStiffnessLoss,
+        "factor - 1",
         located,
         fit,
-        shape_scores,
-        chosen_by_shapes,
-        shapes_used: shapes.used,
-        shapes_skipped: shapes.skipped,
-        combined_delta_chi2,
         sentence,
-    })
+    ))
+}
+
+/// A localisation over `fb`'s grid ([`localize_point_mass`]; `what` names the change in the
+/// error when nothing fits), then the measured shapes' decision ([`decide_by_shapes`]): the
+/// fit at the point they chose (the frequencies' best when they chose none) and the decision.
+fn locate_and_decide(
+    inp: &RegionInput,
+    fb: &FreeBasis,
+    loc_in: &LocalizeInput,
+    what: &str,
+    coupling: &dyn Fn(&[usize]) -> Coupling,
+) -> anyhow::Result<(LocalFit, ShapeDecision)> {
+    let fit = localize_point_mass(loc_in, min_separation_m(inp.board)).ok_or_else(|| {
+        anyhow!(
+            "no {what} fits the free-free residuals ({} modes, {} parameters)",
+            loc_in.modes.len(),
+            inp.params.len()
+        )
+    })?;
+    let mut d = decide_by_shapes(inp, fb, loc_in, &fit, coupling)?;
+    let fit = d.fit.take().unwrap_or(fit);
+    Ok((fit, d))
 }
 
 /// What the measured shapes decided for a localisation ([`decide_by_shapes`]).
@@ -588,6 +561,37 @@ struct ShapeDecision {
     open: Vec<usize>,
     combined: Vec<f64>,
     best_open: Option<usize>,
+}
+
+impl ShapeDecision {
+    /// The board region of a localisation decided so: `fit` at the chosen point, `located` by
+    /// the rule, with its sentence.
+    fn region(
+        self,
+        mechanism: Mechanism,
+        amplitude_unit: &str,
+        located: bool,
+        fit: LocalFit,
+        sentence: String,
+    ) -> BoardRegion {
+        // The combined map's Δχ² at the chosen point, where the shapes had terms of their own.
+        let combined_delta_chi2 = self
+            .best_open
+            .filter(|_| self.has_delta && !self.shapes.scores.is_empty())
+            .map(|k| self.combined[k]);
+        BoardRegion {
+            mechanism,
+            amplitude_unit: amplitude_unit.into(),
+            located,
+            fit,
+            shape_scores: self.shape_scores,
+            chosen_by_shapes: self.chosen_by_shapes,
+            shapes_used: self.shapes.used,
+            shapes_skipped: self.shapes.skipped,
+            combined_delta_chi2,
+            sentence,
+        }
+    }
 }
 
 /// The measured mode shapes join a localisation's frequencies: over the points the

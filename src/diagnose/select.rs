@@ -66,7 +66,7 @@ pub fn main_deviating_joint(dev: &[DeviatingJoint]) -> Option<&DeviatingJoint> {
 }
 
 /// One refit's summary (the baseline's too).
-#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
+#[derive(Clone, Debug, Default, Serialize, schemars::JsonSchema)]
 pub struct Refit {
     pub mechanism: Option<Mechanism>,
     /// The joint (1-based) of a per-joint candidate.
@@ -138,14 +138,7 @@ impl Refit {
             updated: vec![],
             estimates: vec![],
             failed: Some(failed),
-            log_location_occam: None,
-            point_xy_m: None,
-            location_probes: vec![],
-            location_note: None,
-            remaining_share: None,
-            explained_rel: None,
-            deviating_joints: vec![],
-            new_modes: vec![],
+            ..Default::default()
         }
     }
 }
@@ -605,14 +598,7 @@ mod tests {
             updated: vec![],
             estimates: vec![],
             failed: None,
-            log_location_occam: None,
-            point_xy_m: None,
-            location_probes: vec![],
-            location_note: None,
-            remaining_share: None,
-            explained_rel: None,
-            deviating_joints: vec![],
-            new_modes: vec![],
+            ..Default::default()
         }
     }
 

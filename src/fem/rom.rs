@@ -837,7 +837,7 @@ impl Rom {
         let r = self.dim();
         let count = count.min(self.n_modes);
         if self.m_r.len() != 1 && ck.len() == self.k_r.len() && cm.len() == self.m_r.len() {
-            return self.eval_lowest_pencil(ck, cm, count);
+            return self.eval_lowest_pencil((ck, cm), count);
         }
         if self.m_r.len() != 1 || ck.len() != self.k_r.len() {
             // Coefficients of the wrong length: the full path, whose error says what it expected.
@@ -907,8 +907,7 @@ impl Rom {
     /// bolted board), y = L⁻ᵀ z, signed as [`Rom::eval_coefs`] signs them.
     fn eval_lowest_pencil(
         &self,
-        ck: &[f64],
-        cm: &[f64],
+        (ck, cm): (&[f64], &[f64]),
         count: usize,
     ) -> Result<ReducedModes, FemError> {
         let r = self.dim();

@@ -40,45 +40,35 @@ fn words(text: &str, name: &str) -> anyhow::Result<Vec<Word>> {
     let mut cur = String::new();
     let mut start = 1usize;
     let mut in_ext = false;
-    let lone_g =
-        |w: &str| w.len() >= 2 && w.starts_with('G') && w[1..].bytes().all(|b| b.is_ascii_digit());
+    // A word still open at a line end or a `%` must be a lone G-code (its `*` omitted).
+    let close_lone_g = |out: &mut Vec<Word>, cur: &mut String, start: usize, found: &str| {
+        let lone_g =
+            cur.len() >= 2 && cur.starts_with('G') && cur[1..].bytes().all(|b| b.is_ascii_digit());
+        if !lone_g {
+            bail!("{name}:{start}: `{cur}`: expected `*` to end the command, found {found}");
+        }
+        out.push(Word {
+            extended: false,
+            pos: SrcPos {
+                line: start,
+                command: std::mem::take(cur),
+            },
+        });
+        Ok(())
+    };
     for ch in text.chars() {
         match ch {
             '\n' | '\r' => {
                 if ch == '\n' {
                     if !in_ext && !cur.is_empty() {
-                        if lone_g(&cur) {
-                            out.push(Word {
-                                extended: false,
-                                pos: SrcPos {
-                                    line: start,
-                                    command: std::mem::take(&mut cur),
-                                },
-                            });
-                        } else {
-                            bail!(
-                                "{name}:{start}: `{cur}`: expected `*` to end the command before the end of the line"
-                            );
-                        }
+                        close_lone_g(&mut out, &mut cur, start, "the end of the line")?;
                     }
                     line += 1;
                 }
             }
             '%' => {
                 if !in_ext && !cur.is_empty() {
-                    if lone_g(&cur) {
-                        out.push(Word {
-                            extended: false,
-                            pos: SrcPos {
-                                line: start,
-                                command: std::mem::take(&mut cur),
-                            },
-                        });
-                    } else {
-                        bail!(
-                            "{name}:{start}: `{cur}`: expected `*` to end the command, found `%`"
-                        );
-                    }
+                    close_lone_g(&mut out, &mut cur, start, "`%`")?;
                 }
                 if in_ext && !cur.trim().is_empty() {
                     bail!(

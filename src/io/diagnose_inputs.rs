@@ -27,6 +27,7 @@ use crate::io::modes_table::read_modes_table;
 use crate::io::read_json;
 use crate::io::tables::update::read_residuals;
 use crate::io::tables::{self, read_parquet, Cols};
+use crate::io::work_dir::{self, WorkDir};
 use anyhow::{anyhow, bail, Context};
 use arrow::array::{Array, AsArray};
 use arrow::datatypes::{DataType, Float64Type, Int32Type, Int64Type};
@@ -59,7 +60,7 @@ pub const NOT_COVARIATES: &[&str] = &[
 ];
 
 /// The update steps, in order: directory under the work directory.
-const STEPS: [&str; 2] = ["update_boards", "update_joints"];
+const STEPS: [&str; 2] = [work_dir::UPDATE_BOARDS, work_dir::UPDATE_JOINTS];
 
 const NS_PER_DAY: f64 = 86_400e9;
 
@@ -67,10 +68,10 @@ const NS_PER_DAY: f64 = 86_400e9;
 pub fn read_inputs(work_dir: &Path) -> anyhow::Result<(LocateInput, Findings)> {
     let mut findings = Findings::default();
     let mut input = LocateInput::default();
-    let meas_path = work_dir.join("ingest/measurements.parquet");
-    read_measurements(&meas_path, &mut input, &mut findings)?;
-    input.identified = read_modes(&work_dir.join("extract/modes.parquet"))?;
-    input.pairs = read_pairs(&work_dir.join("pair/pairs.parquet"))?;
+    let wd = WorkDir::new(work_dir);
+    read_measurements(&wd.measurements(), &mut input, &mut findings)?;
+    input.identified = read_modes(&wd.modes())?;
+    input.pairs = read_pairs(&wd.pairs())?;
     let known: BTreeSet<String> = input
         .measurements
         .iter()
@@ -558,7 +559,7 @@ pub fn shape_errors(
 /// Whether the campaign's balance weighed at least one board (ingest/masses.parquet has a
 /// row with a stable mass).
 pub fn weighed(work: &Path) -> anyhow::Result<bool> {
-    let path = work.join("ingest/masses.parquet");
+    let path = WorkDir::new(work).masses();
     if !path.is_file() {
         return Ok(false);
     }
@@ -603,7 +604,10 @@ pub struct WorkDirRegions<'a> {
 
 impl RegionFiles for WorkDirRegions<'_> {
     fn posterior_centre(&self, params: &[String]) -> anyhow::Result<Vec<f64>> {
-        posterior_centre(&self.work.join("update_boards/boards.parquet"), params)
+        let boards = WorkDir::new(self.work)
+            .update_boards()
+            .join("boards.parquet");
+        posterior_centre(&boards, params)
     }
 
     fn weighed(&self) -> anyhow::Result<bool> {
@@ -611,17 +615,17 @@ impl RegionFiles for WorkDirRegions<'_> {
     }
 
     fn shape_errors(&self, label_index: &[(String, usize)]) -> anyhow::Result<Option<Vec<f64>>> {
-        shape_errors(
-            &self.work.join("update_boards/population.parquet"),
-            label_index,
-        )
+        let population = WorkDir::new(self.work)
+            .update_boards()
+            .join("population.parquet");
+        shape_errors(&population, label_index)
     }
 
     fn measured_shapes(
         &self,
         wanted: &dyn Fn(&str, i32) -> bool,
     ) -> anyhow::Result<Vec<MeasuredShape>> {
-        measured_shapes(&self.work.join("extract/modes.parquet"), wanted)
+        measured_shapes(&WorkDir::new(self.work).modes(), wanted)
     }
 }
 
@@ -839,6 +843,17 @@ fn per_measurement_estimates(
     Ok(estimates)
 }
 
+/// Where a refit's (or a baseline step's) tables lie and what it refitted.
+#[derive(Clone, Copy, Debug)]
+pub struct RefitSource<'a> {
+    pub dir: &'a Path,
+    /// `dir` as the diagnosis names it (relative to the diagnosis directory).
+    pub rel_dir: &'a str,
+    pub mechanism: Option<Mechanism>,
+    /// The joint (1-based) of a per-joint candidate.
+    pub joint: Option<usize>,
+}
+
 /// A refit directory (or a baseline step) as a [`Refit`]. A board mechanism's refit has
 /// its step 1 in `dir/boards` and, where the campaign has a step 2, its step 2 in `dir`:
 /// its log evidence per run is then Z₂′ + (Z₁′ − Z₁), `step1_baseline` = the baseline's Z₁
@@ -846,14 +861,17 @@ fn per_measurement_estimates(
 /// step 1 is the baseline's): every Bayes factor is over the same data, both steps.
 /// `max_r_hat` is the updating's convergence level ([`r_hat_gate`]).
 pub fn read_refit(
-    dir: &Path,
-    rel_dir: &str,
-    mechanism: Option<Mechanism>,
-    joint: Option<usize>,
+    src: RefitSource<'_>,
     step1_baseline: Option<&[f64]>,
     outliers: &[String],
     max_r_hat: f64,
 ) -> anyhow::Result<Refit> {
+    let RefitSource {
+        dir,
+        rel_dir,
+        mechanism,
+        joint,
+    } = src;
     let board_mech = mechanism.is_some_and(is_board_mechanism);
     let dir1 = dir.join("boards");
     let has2 = dir.join("evidence.json").is_file();
@@ -922,14 +940,7 @@ pub fn read_refit(
         updated,
         estimates,
         failed,
-        log_location_occam: None,
-        point_xy_m: None,
-        location_probes: vec![],
-        location_note: None,
-        remaining_share: None,
-        explained_rel: None,
-        deviating_joints: vec![],
-        new_modes: vec![],
+        ..Default::default()
     })
 }
 

@@ -13,6 +13,7 @@ pub mod manifest;
 pub mod mcap_writer;
 pub mod modes_table;
 pub mod tables;
+pub mod work_dir;
 
 /// A JSON document read from `path`; errors name the file (unreadable, or not JSON).
 pub fn read_json(path: &std::path::Path) -> anyhow::Result<serde_json::Value> {

@@ -31,6 +31,7 @@ use super::truth::{
 };
 use super::{child_seed, LabError, Stream};
 use crate::fem::Board;
+use crate::formats::sheet;
 use crate::formats::uff::{
     write_15, write_164, write_2411, write_58, Abscissa, AxisSpec, Format, Function58,
     FunctionType, Node, Ordinate, OrdinateDataType, Units164,
@@ -338,21 +339,12 @@ pub fn sheet_csv(
     let mut w = csv::WriterBuilder::new()
         .terminator(csv::Terminator::CRLF)
         .from_writer(Vec::new());
-    let mut header = vec![
-        "measurement_id",
-        "board_id",
-        "setup",
-        "file",
-        "bolt_set",
-        "torque_nm",
-        "temperature_c",
-        "date",
-        "operator",
-        "notes",
-    ];
-    if dimensions.is_some() {
-        header.extend(["length_mm", "width_mm", "thickness_mm"]);
-    }
+    // The contract's columns in its order; the board dimensions only where they were measured.
+    let header: Vec<&str> = sheet::REQUIRED
+        .into_iter()
+        .chain(sheet::OPTIONAL)
+        .filter(|c| dimensions.is_some() || !sheet::DIMENSIONS.contains(c))
+        .collect();
     w.write_record(&header).map_err(werr)?;
     for m in ms {
         let h = &m.habits;

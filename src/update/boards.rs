@@ -4,7 +4,7 @@
 //! tables' rows and the evidence. `stage::update` reads the inputs, calls these in order and
 //! writes the outputs.
 
-use crate::bayes::modal::{CovariateEffect, ModalPredictor, UnitData};
+use crate::bayes::modal::{CovariateEffect, UnitData};
 use crate::bayes::population::PopulationPrior;
 use crate::bayes::target::{Compose, ErrorModel, ModalTarget, PerMass};
 use crate::fem::params::names;
@@ -17,9 +17,9 @@ use crate::update::posterior::{
 };
 use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
-    all_labels, core_thickness_mass, covariate_offsets, discrepancy_for, mass_obs,
-    model_error_prior, modes_needed, shape_map, thickness_obs, unit_and_residual_data,
-    BoardCoordinates, Labels, MassRow, ModelErrorPrior, ModelSpec, ObsMeta,
+    all_labels, covariate_offsets, discrepancy_for, mass_obs, model_error_prior, modes_needed,
+    predictors, shape_map, thickness_obs, unit_and_residual_data, BoardCoordinates, Labels,
+    MassRow, ModelErrorPrior, ModelSpec, ObsMeta, StepTarget,
 };
 use crate::update::rom_box::RomBoxViolation;
 use crate::update::sampler::{box_violations, particles_of, Results};
@@ -125,10 +125,7 @@ pub fn board_model(
 /// Step 1's target and what its outputs need: the boards (units) and their residual data, the
 /// model-error prior, a covariate, the population's coordinates.
 pub struct BoardTarget {
-    pub target: ModalTarget,
-    pub all_pred: ModalPredictor,
-    pub units_all: Vec<(UnitData, Vec<ObsMeta>)>,
-    pub unit_names: Vec<String>,
+    pub step: StepTarget,
     pub model_error: Option<ModelErrorPrior>,
     pub covariate: Option<CovariateEffect>,
     pub pop_names: Vec<String>,
@@ -163,13 +160,13 @@ pub fn board_target(
         .iter()
         .map(|(n, _)| rom.map.names.iter().position(|m| m == n).unwrap_or(0))
         .collect();
-    let thickness = core_thickness_mass(model)?;
-    let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?
-        .with_point_masses(point_masses.clone())
-        .with_core_thickness(thickness);
-    let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
-        .with_point_masses(point_masses)
-        .with_core_thickness(thickness);
+    let (predictor, all_pred) = predictors(
+        model,
+        rom,
+        (&labels.model_mode, &all.model_mode),
+        nominal_mass_g,
+        &point_masses,
+    )?;
     // Units: every board with free-free pairs or a mass.
     // The enrichment's covariate per free-free measurement, as offsets from their mean.
     let (cov_offsets, covariate) = match bm.enrichment.as_ref().and_then(|e| match &e.effect {
@@ -314,10 +311,12 @@ pub fn board_target(
         findings,
     )?;
     Ok(BoardTarget {
-        target,
-        all_pred,
-        units_all,
-        unit_names,
+        step: StepTarget {
+            target,
+            all_pred,
+            units_all,
+            unit_names,
+        },
         model_error,
         covariate,
         pop_names,
@@ -451,9 +450,9 @@ pub fn check_board_box(
 ) -> anyhow::Result<()> {
     let violations = box_violations(
         results,
-        &bt.unit_names,
+        &bt.step.unit_names,
         &bm.param_names,
-        |x| bt.target.compose.relative_params(x),
+        |x| bt.step.target.compose.relative_params(x),
         |k, x| match bm.log_axes.get(k.wrapping_sub(bt.d0)) {
             Some((_, w)) if k >= bt.d0 => x.abs() <= *w,
             _ => x.abs() <= spec.rom_box,
@@ -467,7 +466,7 @@ pub fn check_board_box(
         for r in results {
             for p in &r.particles {
                 for x in &p.x {
-                    let x = bt.target.compose.relative_params(x);
+                    let x = bt.step.target.compose.relative_params(x);
                     for (k, v) in x.iter().enumerate() {
                         if k < bt.d0 || bm.log_axes.get(k.wrapping_sub(bt.d0)).is_none() {
                             reach = reach.max(v.abs());
@@ -497,8 +496,12 @@ pub fn board_tables(
     labels: &Labels,
     runs: usize,
 ) -> (DrawTable, DrawTable, Vec<SummaryRow>) {
-    let (pcols, pop_of) =
-        population_columns(&bt.target, &bt.pop_names, &bt.pop_reference, &labels.labels);
+    let (pcols, pop_of) = population_columns(
+        &bt.step.target,
+        &bt.pop_names,
+        &bt.pop_reference,
+        &labels.labels,
+    );
     let mut pop = DrawTable::new(&pcols);
     let mut bcols: Vec<(String, String)> = bm
         .param_names
@@ -513,10 +516,10 @@ pub fn board_tables(
     let mut boards = DrawTable::new(&bcols);
     for (r, i, p) in particles_of(results) {
         pop.push(r, i, None, &pop_of(&p.g));
-        for (b, name) in bt.unit_names.iter().enumerate() {
-            let v = bt.target.values(&p.aux, b, &p.x[b]);
+        for (b, name) in bt.step.unit_names.iter().enumerate() {
+            let v = bt.step.target.values(&p.aux, b, &p.x[b]);
             let mut row: Vec<f64> = bm.updated.iter().map(|&k| v[k]).collect();
-            row.push(bt.target.predictor.mass_g(&v));
+            row.push(bt.step.target.predictor.mass_g(&v));
             if bt.covariate.is_some() {
                 row.push(p.x[b][bt.d]);
             }
@@ -563,6 +566,6 @@ pub fn board_evidence(
     }
     ev["model_error"] = serde_json::to_value(&bt.model_error)?;
     ev["shape_weights"] = serde_json::to_value(shape_weights)?;
-    ev["discrepancy"] = discrepancy_json(&bt.target, &labels.labels);
+    ev["discrepancy"] = discrepancy_json(&bt.step.target, &labels.labels);
     Ok(ev)
 }

@@ -3,7 +3,6 @@
 //! of the posterior against the ROM's box and the full model, the tables' rows and the evidence.
 //! `stage::update` reads the inputs, calls these in order and writes the outputs.
 
-use crate::bayes::modal::{ModalPredictor, UnitData};
 use crate::bayes::population::PopulationPrior;
 use crate::bayes::smc;
 use crate::bayes::target::{Compose, ErrorModel, ErrorPrior, JointsCovariate, ModalTarget};
@@ -20,8 +19,8 @@ use crate::update::posterior::{
 };
 use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
-    all_labels, core_thickness_mass, covariate_offsets, identified_modes, match_points,
-    modes_needed, shape_map, unit_and_residual_data, Labels, ModelSpec, ObsMeta,
+    all_labels, covariate_offsets, identified_modes, match_points, modes_needed, predictors,
+    shape_map, unit_and_residual_data, Labels, ModelSpec, StepTarget,
 };
 use crate::update::rom_box::rom_posterior_check;
 use crate::update::sampler::{box_violations, particles_of, Results, SamplerParams};
@@ -418,10 +417,7 @@ pub fn centred(
 /// The cut posterior's target and its groups: every unit a bolted measurement, every group of
 /// `group` particles carrying one step-1 draw.
 pub struct JointTarget {
-    pub target: ModalTarget,
-    pub all_pred: ModalPredictor,
-    pub units_all: Vec<(UnitData, Vec<ObsMeta>)>,
-    pub unit_names: Vec<String>,
+    pub step: StepTarget,
     pub unit_boards: Vec<String>,
     pub group: usize,
     /// The sampler with the particles rounded to whole groups.
@@ -453,13 +449,13 @@ pub fn joint_target(
         p_board.values[i] = 0.0;
     }
     let nominal_mass_g = model.total_mass_kg(&p_board)? * 1e3;
-    let thickness = core_thickness_mass(model)?;
-    let predictor = ModalPredictor::new(rom.clone(), &labels.model_mode, nominal_mass_g)?
-        .with_point_masses(point_masses.clone())
-        .with_core_thickness(thickness);
-    let all_pred = ModalPredictor::new(rom.clone(), &all.model_mode, nominal_mass_g)?
-        .with_point_masses(point_masses)
-        .with_core_thickness(thickness);
+    let (predictor, all_pred) = predictors(
+        model,
+        rom,
+        (&labels.model_mode, &all.model_mode),
+        nominal_mass_g,
+        &point_masses,
+    )?;
     let wanted: BTreeSet<(String, i32)> = bolted_rows
         .iter()
         .map(|p| (p.measurement_id.clone(), p.mode))
@@ -627,10 +623,12 @@ pub fn joint_target(
         })
         .collect();
     Ok(JointTarget {
-        target,
-        all_pred,
-        units_all,
-        unit_names,
+        step: StepTarget {
+            target,
+            all_pred,
+            units_all,
+            unit_names,
+        },
         unit_boards,
         group,
         sampler,
@@ -735,7 +733,7 @@ pub fn joint_tables(
     step1: &Step1,
     runs: usize,
 ) -> JointTables {
-    let target = &jt_.target;
+    let target = &jt_.step.target;
     // population.parquet (step 2).
     let mut pcols: Vec<(String, String)> = vec![];
     let enr = &jm.enr;
@@ -802,7 +800,7 @@ pub fn joint_tables(
         .0;
         b_run.push(kr);
         b_draw.push(kd);
-        for (b, name) in jt_.unit_names.iter().enumerate() {
+        for (b, name) in jt_.step.unit_names.iter().enumerate() {
             jt.push(r, i, Some(name), &enr.report_values(&p.x[b]));
             joint_boards.push(jt_.unit_boards[b].clone());
         }
@@ -813,7 +811,7 @@ pub fn joint_tables(
         row.board_id = row
             .measurement_id
             .as_ref()
-            .and_then(|m| jt_.unit_names.iter().position(|u| u == m))
+            .and_then(|m| jt_.step.unit_names.iter().position(|u| u == m))
             .map(|b| jt_.unit_boards[b].clone());
     }
     summary.extend(js);

@@ -1,11 +1,10 @@
 //! Posterior draws to the tables' rows: population and board columns, summaries with R-hat and
 //! ESS, the convergence verdict, the posterior-predictive residuals, the evidence.
 
-use crate::bayes::modal::{ModalPredictor, UnitData};
 use crate::bayes::smc::{self};
 use crate::bayes::target::{Compose, ErrorPrior, ModalTarget};
 use crate::findings::{Finding, Findings, Severity};
-use crate::update::problem::ObsMeta;
+use crate::update::problem::StepTarget;
 use std::collections::BTreeSet;
 
 /// Draws of named scalar columns, one row per (run, draw[, key]).
@@ -324,17 +323,15 @@ pub fn population_columns<'a>(
 /// labels) of the units, from up to `opts.residual_draws` draws per run.
 #[allow(clippy::too_many_arguments)]
 pub fn residuals(
-    target: &ModalTarget,
-    all_pred: &ModalPredictor,
-    all_labels: &[String],
-    updated: &[String],
-    units_all: &[(UnitData, Vec<ObsMeta>)],
+    st: &StepTarget,
+    (all_labels, updated): (&[String], &[String]),
     results: &[smc::RunResult<crate::bayes::modal::Terms>],
     setup: &str,
     draws_per_run: usize,
     model_error_sd: Option<&[f64]>,
 ) -> (Vec<Residual>, Vec<Lost>) {
     use rayon::prelude::*;
+    let (target, all_pred, units_all) = (&st.target, &st.all_pred, &st.units_all);
     let upd_idx: Vec<Option<usize>> = all_labels
         .iter()
         .map(|l| updated.iter().position(|u| u == l))

@@ -2,7 +2,7 @@
 //! and thickness observations, the shape-term weights, the model-error prior and the
 //! model-form discrepancy of a step.
 
-use crate::bayes::modal::{FreqObs, MassObs, ShapeObs, UnitData};
+use crate::bayes::modal::{FreqObs, MassObs, ModalPredictor, ShapeObs, UnitData};
 use crate::bayes::shape_weight::{point_key, PointShape, ShapeWeight};
 use crate::bayes::smc::{self};
 use crate::bayes::target::{ErrorPrior, ModalTarget};
@@ -160,6 +160,35 @@ pub fn core_thickness_mass(model: &FeModel) -> anyhow::Result<Option<(usize, f64
     twice.values[i] = 2.0 * h0;
     let (m0, m2) = (model.total_mass_kg(&p)?, model.total_mass_kg(&twice)?);
     Ok(Some((i, h0, (m2 - m0) / m0)))
+}
+
+/// The predictors of a step: over the updated labels' model modes and over all labels'
+/// (the residuals and the intervals), each with the point-mass coordinates `point_masses`
+/// and `model`'s core thickness ([`core_thickness_mass`]).
+pub fn predictors(
+    model: &FeModel,
+    rom: &Rom,
+    (updated, all): (&[usize], &[usize]),
+    nominal_mass_g: f64,
+    point_masses: &[usize],
+) -> anyhow::Result<(ModalPredictor, ModalPredictor)> {
+    let thickness = core_thickness_mass(model)?;
+    let make = |modes: &[usize]| -> anyhow::Result<ModalPredictor> {
+        Ok(ModalPredictor::new(rom.clone(), modes, nominal_mass_g)?
+            .with_point_masses(point_masses.to_vec())
+            .with_core_thickness(thickness))
+    };
+    Ok((make(updated)?, make(all)?))
+}
+
+/// A step's target and what its residuals need: the predictor over every label (not only
+/// the updated ones), each unit's data over every label with its observations' metadata, and
+/// the units' names.
+pub struct StepTarget {
+    pub target: ModalTarget,
+    pub all_pred: ModalPredictor,
+    pub units_all: Vec<(UnitData, Vec<ObsMeta>)>,
+    pub unit_names: Vec<String>,
 }
 
 /// Standard deviation of a board's measured core thickness, m: 5 µm, 0.3 % of a 1.5 mm

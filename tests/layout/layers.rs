@@ -18,6 +18,7 @@ const KERNELS: &[&str] = &[
     "optim",
     "report",
     "simd.rs",
+    "table_spec.rs",
     "uq",
     "update",
 ];

@@ -130,12 +130,12 @@ pub(super) fn read_58b(
     // has 2 or 3 values, so a count that disagrees with the header is accepted if the implied
     // count is followed by the closing `-1`.
     let implied = header.as_ref().ok().map(|h| {
-        let size = if h.ordinate_data_type.is_double() {
+        let size = if h.f.ordinate_data_type.is_double() {
             8
         } else {
             4
         };
-        h.num_points
+        h.f.num_points
             .saturating_mul(h.values_per_point())
             .saturating_mul(size)
     });
@@ -174,20 +174,20 @@ pub(super) fn read_58b(
             },
         ));
     }
-    let size = if h.ordinate_data_type.is_double() {
+    let size = if h.f.ordinate_data_type.is_double() {
         8
     } else {
         4
     };
     let vpp = h.values_per_point();
-    let expected = h.num_points.saturating_mul(vpp);
+    let expected = h.f.num_points.saturating_mul(vpp);
     let found = n_bytes / size;
     if found != expected || n_bytes % size != 0 {
         return Err(ctx.issue(
             data_line,
             IssueKind::WrongValueCount {
                 expected,
-                points: h.num_points,
+                points: h.f.num_points,
                 found,
             },
         ));

@@ -210,33 +210,20 @@ pub(super) fn skip_to_delimiter(cur: &mut Lines<'_>) {
     }
 }
 
-/// The 11 header records of dataset 58 (ID lines 1–5, records 6–11).
+/// The 11 header records of dataset 58 (ID lines 1–5, records 6–11): the dataset with its
+/// data records still to read.
 pub(super) struct Header58 {
-    pub id_lines: [String; 5],
-    pub function_type: i64,
-    pub function_id: i64,
-    pub version: i64,
-    pub load_case: i64,
-    pub response_entity: String,
-    pub response_node: i64,
-    pub response_direction: i64,
-    pub reference_entity: String,
-    pub reference_node: i64,
-    pub reference_direction: i64,
-    pub ordinate_data_type: OrdinateDataType,
-    pub num_points: usize,
+    /// Every header field; `abscissa` holds the even spacing (or an empty uneven list) and
+    /// `ordinate` is empty until the data are read.
+    pub f: Function58,
     pub even: bool,
-    pub abscissa_min: f64,
-    pub abscissa_increment: f64,
-    pub z_axis_value: f64,
-    pub axes: [AxisSpec; 4],
 }
 
 impl Header58 {
     /// Values per point in the data records: x (if uneven) + 1 (real) or 2 (complex).
     pub fn values_per_point(&self) -> usize {
         usize::from(!self.even)
-            + if self.ordinate_data_type.is_complex() {
+            + if self.f.ordinate_data_type.is_complex() {
                 2
             } else {
                 1
@@ -248,10 +235,10 @@ impl Header58 {
         let vpp = self.values_per_point();
         let (xs, ordinate) = split_values(
             values,
-            self.num_points,
+            self.f.num_points,
             vpp,
             self.even,
-            self.ordinate_data_type,
+            self.f.ordinate_data_type,
         );
         self.into_function_parts(xs, ordinate, binary, ctx)
     }
@@ -264,43 +251,14 @@ impl Header58 {
         binary: bool,
         ctx: Ctx,
     ) -> Function58 {
-        let n = self.num_points;
-        let (abscissa, ordinate) = (
-            if self.even {
-                Abscissa::Even {
-                    min: self.abscissa_min,
-                    increment: self.abscissa_increment,
-                }
-            } else {
-                Abscissa::Uneven(abscissa)
-            },
-            ordinate,
-        );
-        let [abscissa_axis, ordinate_axis, denominator_axis, z_axis] = self.axes;
-        Function58 {
-            id_lines: self.id_lines,
-            function_type: FunctionType::from_code(self.function_type),
-            function_id: self.function_id,
-            version: self.version,
-            load_case: self.load_case,
-            response_entity: self.response_entity,
-            response_node: self.response_node,
-            response_direction: self.response_direction,
-            reference_entity: self.reference_entity,
-            reference_node: self.reference_node,
-            reference_direction: self.reference_direction,
-            ordinate_data_type: self.ordinate_data_type,
-            num_points: n,
-            z_axis_value: self.z_axis_value,
-            abscissa_axis,
-            ordinate_axis,
-            denominator_axis,
-            z_axis,
-            abscissa,
-            ordinate,
-            binary,
-            line: ctx.open_line,
+        let mut f = self.f;
+        if !self.even {
+            f.abscissa = Abscissa::Uneven(abscissa);
         }
+        f.ordinate = ordinate;
+        f.binary = binary;
+        f.line = ctx.open_line;
+        f
     }
 }
 
@@ -515,25 +473,40 @@ pub(super) fn parse_header_58(
             units_label: text_field(field(r, 46, 21)),
         };
     }
+    let [abscissa_axis, ordinate_axis, denominator_axis, z_axis] = axes;
     Ok(Header58 {
-        id_lines,
-        function_type: ints[0],
-        function_id: ints[1],
-        version: ints[2],
-        load_case: ints[3],
-        response_entity: resp_ent,
-        response_node: ints[4],
-        response_direction: ints[5],
-        reference_entity: ref_ent,
-        reference_node: ints[6],
-        reference_direction: ints[7],
-        ordinate_data_type,
-        num_points: vals[1] as usize,
+        f: Function58 {
+            id_lines,
+            function_type: FunctionType::from_code(ints[0]),
+            function_id: ints[1],
+            version: ints[2],
+            load_case: ints[3],
+            response_entity: resp_ent,
+            response_node: ints[4],
+            response_direction: ints[5],
+            reference_entity: ref_ent,
+            reference_node: ints[6],
+            reference_direction: ints[7],
+            ordinate_data_type,
+            num_points: vals[1] as usize,
+            z_axis_value: vals[5],
+            abscissa_axis,
+            ordinate_axis,
+            denominator_axis,
+            z_axis,
+            abscissa: if even {
+                Abscissa::Even {
+                    min: vals[3],
+                    increment: vals[4],
+                }
+            } else {
+                Abscissa::Uneven(Vec::new())
+            },
+            ordinate: Ordinate::Real(Vec::new()),
+            binary: false,
+            line: ctx.open_line,
+        },
         even,
-        abscissa_min: vals[3],
-        abscissa_increment: vals[4],
-        z_axis_value: vals[5],
-        axes,
     })
 }
 
@@ -578,12 +551,12 @@ fn read_58_ascii(cur: &mut Lines<'_>, ctx: Ctx) -> Result<Function58, UffIssue> 
     let data_line = cur.line;
     let line_of = |at: usize| line_at(&s[data_start..], at - data_start, data_line);
     let vpp = h.values_per_point();
-    let expected = h.num_points.saturating_mul(vpp);
+    let expected = h.f.num_points.saturating_mul(vpp);
     // Capacity bounded by what the bytes can hold (a hostile count must not allocate).
-    let cap = h.num_points.min((n - data_start) / (2 * vpp) + 1);
+    let cap = h.f.num_points.min((n - data_start) / (2 * vpp) + 1);
     let mut xs = Vec::with_capacity(if h.even { 0 } else { cap });
     let mut re = Vec::with_capacity(cap);
-    let mut im = Vec::with_capacity(if h.ordinate_data_type.is_complex() {
+    let mut im = Vec::with_capacity(if h.f.ordinate_data_type.is_complex() {
         cap
     } else {
         0
@@ -667,12 +640,12 @@ fn read_58_ascii(cur: &mut Lines<'_>, ctx: Ctx) -> Result<Function58, UffIssue> 
             line_of(last_start),
             IssueKind::WrongValueCount {
                 expected,
-                points: h.num_points,
+                points: h.f.num_points,
                 found,
             },
         ));
     }
-    let ordinate = if h.ordinate_data_type.is_complex() {
+    let ordinate = if h.f.ordinate_data_type.is_complex() {
         Ordinate::Complex { re, im }
     } else {
         Ordinate::Real(re)

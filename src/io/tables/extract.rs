@@ -92,7 +92,6 @@ pub fn read_ingest(dir: &Path) -> anyhow::Result<Vec<MeasurementInput>> {
         points.entry(p.measurement_id.clone()).or_default().push(p);
     }
     // Response and coherence records per measurement and node.
-    type Rec = (Vec<f64>, Option<Vec<f64>>, Vec<f64>);
     let mut resp: BTreeMap<String, BTreeMap<i64, (i32, Rec)>> = BTreeMap::new();
     let mut coh: BTreeMap<String, BTreeMap<i64, Vec<f64>>> = BTreeMap::new();
     let fpath = dir.join("frf.parquet");
@@ -129,15 +128,20 @@ pub fn read_ingest(dir: &Path) -> anyhow::Result<Vec<MeasurementInput>> {
     let mut vendor = read_vendor_modes(&dir.join("vendor_modes.parquet"))?;
     let mut out = vec![];
     for (id, board, setup) in meta {
-        let Some(recs) = resp.remove(&id) else {
-            // No response record: the lab's modes, at the scan points any of them covers.
-            if let Some(vm) = vendor.remove(&id) {
-                let pts: Vec<tables::ScanPointRow> = points
-                    .remove(&id)
-                    .unwrap_or_default()
-                    .into_iter()
-                    .filter(|p| p.has_record)
-                    .collect();
+        let pts_all = points.remove(&id).unwrap_or_default();
+        let (pts, spectra, given) = match resp.remove(&id) {
+            Some(recs) => {
+                let cohs = coh.remove(&id).unwrap_or_default();
+                let (pts, spectra) = response_spectra(pts_all, &recs, &cohs);
+                (pts, spectra, None)
+            }
+            None => {
+                // No response record: the lab's modes, at the scan points any of them covers.
+                let Some(vm) = vendor.remove(&id) else {
+                    continue;
+                };
+                let pts: Vec<tables::ScanPointRow> =
+                    pts_all.into_iter().filter(|p| p.has_record).collect();
                 let given = vm
                     .into_iter()
                     .map(|v| modal::GivenMode {
@@ -151,61 +155,66 @@ pub fn read_ingest(dir: &Path) -> anyhow::Result<Vec<MeasurementInput>> {
                             .collect(),
                     })
                     .collect();
-                out.push(MeasurementInput {
-                    measurement_id: id,
-                    board_id: board,
-                    setup,
-                    points: pts,
-                    spectra: MeasurementSpectra {
-                        freq_hz: vec![],
-                        points: vec![],
-                        kind: FunctionKind::Other,
-                    },
-                    given: Some(given),
-                });
+                let none = MeasurementSpectra {
+                    freq_hz: vec![],
+                    points: vec![],
+                    kind: FunctionKind::Other,
+                };
+                (pts, none, Some(given))
             }
-            continue;
         };
-        let pts_all = points.remove(&id).unwrap_or_default();
-        let cohs = coh.remove(&id).unwrap_or_default();
-        let mut pts = vec![];
-        let mut spectra = vec![];
-        let mut freq_hz = vec![];
-        let mut kind = FunctionKind::Other;
-        for p in pts_all.into_iter().filter(|p| p.has_record) {
-            let Some((ft, (re, im, f))) = recs.get(&p.node) else {
-                continue;
-            };
-            kind = match ft {
-                4 => FunctionKind::Mobility,
-                5 => FunctionKind::Transmissibility,
-                _ => FunctionKind::Other,
-            };
-            if freq_hz.is_empty() {
-                freq_hz = f.clone();
-            }
-            spectra.push(PointSpectrum {
-                node_id: p.node,
-                re: re.clone(),
-                im: im.clone().unwrap_or_else(|| vec![0.0; re.len()]),
-                coherence: cohs.get(&p.node).cloned(),
-            });
-            pts.push(p);
-        }
         out.push(MeasurementInput {
             measurement_id: id,
             board_id: board,
             setup,
             points: pts,
-            spectra: MeasurementSpectra {
-                freq_hz,
-                points: spectra,
-                kind,
-            },
-            given: None,
+            spectra,
+            given,
         });
     }
     Ok(out)
+}
+
+/// A response record's re, im (none for a real function) and frequencies.
+type Rec = (Vec<f64>, Option<Vec<f64>>, Vec<f64>);
+
+/// The spectra of one measurement's scan points with a response record (`recs` by node:
+/// function type, re, im, frequencies), with their coherence; the points in scan order.
+fn response_spectra(
+    pts_all: Vec<tables::ScanPointRow>,
+    recs: &BTreeMap<i64, (i32, Rec)>,
+    cohs: &BTreeMap<i64, Vec<f64>>,
+) -> (Vec<tables::ScanPointRow>, MeasurementSpectra) {
+    let mut pts = vec![];
+    let mut spectra = vec![];
+    let mut freq_hz = vec![];
+    let mut kind = FunctionKind::Other;
+    for p in pts_all.into_iter().filter(|p| p.has_record) {
+        let Some((ft, (re, im, f))) = recs.get(&p.node) else {
+            continue;
+        };
+        kind = match ft {
+            4 => FunctionKind::Mobility,
+            5 => FunctionKind::Transmissibility,
+            _ => FunctionKind::Other,
+        };
+        if freq_hz.is_empty() {
+            freq_hz = f.clone();
+        }
+        spectra.push(PointSpectrum {
+            node_id: p.node,
+            re: re.clone(),
+            im: im.clone().unwrap_or_else(|| vec![0.0; re.len()]),
+            coherence: cohs.get(&p.node).cloned(),
+        });
+        pts.push(p);
+    }
+    let spectra = MeasurementSpectra {
+        freq_hz,
+        points: spectra,
+        kind,
+    };
+    (pts, spectra)
 }
 
 /// A row of `vendor_modes.parquet`, its shape by node.

@@ -28,19 +28,7 @@ use std::io;
 use std::path::Path;
 use std::sync::Arc;
 
-/// Logical column types used in our tables (a small, pandas-friendly subset of Arrow's).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Col {
-    Utf8,
-    Int32,
-    Int64,
-    Float64,
-    Bool,
-    /// `list<float64>`: a spectrum or shape per row.
-    ListF64,
-    /// `list<int64>`: node ids aligned with a shape list.
-    ListI64,
-}
+pub use crate::table_spec::{c, Col, ColumnSpec, TableSpec};
 
 impl Col {
     pub fn arrow(self) -> DataType {
@@ -74,44 +62,6 @@ impl Col {
             Col::ListF64 => json!({"type": "array", "items": {"type": "number"}}),
             Col::ListI64 => json!({"type": "array", "items": {"type": "integer"}}),
         }
-    }
-}
-
-/// One column of a table.
-#[derive(Debug, Clone, Copy)]
-pub struct ColumnSpec {
-    pub name: &'static str,
-    pub ty: Col,
-    pub nullable: bool,
-    /// Unit (SI or derived), `""` for dimensionless/none.
-    pub unit: &'static str,
-    pub doc: &'static str,
-}
-
-/// A table: its file name, purpose and columns.
-#[derive(Debug, Clone, Copy)]
-pub struct TableSpec {
-    pub name: &'static str,
-    pub doc: &'static str,
-    pub columns: &'static [ColumnSpec],
-    /// True when the table may carry further columns not listed (e.g. extra sheet columns).
-    pub open: bool,
-}
-
-/// A column spec in one line (for the table constants of every stage).
-pub const fn c(
-    name: &'static str,
-    ty: Col,
-    nullable: bool,
-    unit: &'static str,
-    doc: &'static str,
-) -> ColumnSpec {
-    ColumnSpec {
-        name,
-        ty,
-        nullable,
-        unit,
-        doc,
     }
 }
 

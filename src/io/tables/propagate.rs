@@ -5,6 +5,7 @@
 use crate::fem::params::names;
 use crate::fem::Rom;
 use crate::findings::{Finding, Findings, Severity};
+use crate::io::tables::update::{MANIFEST_BOARDS, MANIFEST_JOINTS};
 use crate::io::tables::{self, c, Col, Cols, TableSpec};
 use crate::report::validation::Pred;
 use crate::uq::propagate::{self as uq, Posterior, Step1Particle, Step2Particle};
@@ -13,8 +14,6 @@ use arrow::array::{Array, ArrayRef, BooleanArray, Float64Array, Int32Array, Stri
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-
-use crate::io::tables::update::MANIFEST_BOARDS;
 
 pub const PREDICTIONS: TableSpec = TableSpec {
     name: "predictions",
@@ -112,20 +111,35 @@ fn f64_col<'a>(
     Ok(Cols { batch: b, path }.f64(name)?)
 }
 
-/// ε per label of a population table row set: the label's `eps_<label>` column when the
-/// label was updated, else the fixed value, else none.
-fn eps_columns(
-    b: &arrow::array::RecordBatch,
+/// The population ε per label of a population table's batch: the label's `eps_<label>` column
+/// when the label was updated, else none (the fixed value, or borrowed as for a validation
+/// mode). An updated `setup` label with neither a column nor a `fixed` ε is warned about
+/// once (`warned`).
+fn eps_arrays<'a>(
+    b: &'a arrow::array::RecordBatch,
+    pop_path: &'a Path,
     labels: &[String],
-    updated: &BTreeSet<String>,
-) -> Vec<Option<String>> {
-    labels
-        .iter()
-        .map(|l| {
-            let name = format!("eps_{l}");
-            (updated.contains(l) && b.column_by_name(&name).is_some()).then_some(name)
-        })
-        .collect()
+    (updated, fixed): (&BTreeSet<String>, Option<f64>),
+    setup: &str,
+    warned: &mut BTreeSet<String>,
+    findings: &mut Findings,
+) -> anyhow::Result<Vec<Option<&'a Float64Array>>> {
+    let mut out = Vec::with_capacity(labels.len());
+    for l in labels {
+        let name = format!("eps_{l}");
+        let col = (updated.contains(l) && b.column_by_name(&name).is_some())
+            .then(|| f64_col(b, &name, pop_path))
+            .transpose()?;
+        if col.is_none() && updated.contains(l) && fixed.is_none() && warned.insert(l.clone()) {
+            findings.push(Finding::new(
+                Severity::Warning,
+                "propagate.eps_missing",
+                format!("{setup} mode {l:?} was updated but {} has no eps_{l} column and no fixed ε is recorded; it borrows ε like a validation mode", pop_path.display()),
+            ));
+        }
+        out.push(col);
+    }
+    Ok(out)
 }
 
 /// The model-form discrepancy columns of a population table (`discrepancy_scale`,
@@ -266,20 +280,15 @@ pub fn read_step1(
                 ));
             }
         }
-        let eps_cols = eps_columns(b, labels, &updated);
-        let eps: Vec<Option<&Float64Array>> = eps_cols
-            .iter()
-            .map(|n| n.as_ref().map(|n| f64_col(b, n, &pop_path)).transpose())
-            .collect::<Result<_, _>>()?;
-        for (l, e) in labels.iter().zip(&eps) {
-            if e.is_none() && updated.contains(l) && fixed.is_none() && warned.insert(l.clone()) {
-                findings.push(Finding::new(
-                    Severity::Warning,
-                    "propagate.eps_missing",
-                    format!("free mode {l:?} was updated but {} has no eps_{l} column and no fixed ε is recorded; it borrows ε like a validation mode", pop_path.display()),
-                ));
-            }
-        }
+        let eps = eps_arrays(
+            b,
+            &pop_path,
+            labels,
+            (&updated, fixed),
+            "free",
+            &mut warned,
+            findings,
+        )?;
         let disc = DiscrepancyCols::read(b, labels, &pop_path)?;
         for r in 0..b.num_rows() {
             let mut om = vec![0.0; d * d];
@@ -371,7 +380,7 @@ pub fn read_step2(
 ) -> anyhow::Result<Vec<Step2Particle>> {
     let pop_path = dir.join("population.parquet");
     let updated = updated_labels(&dir.join("residuals.parquet"))?;
-    let fixed = fixed_eps(&dir.join("update_joints.manifest.json"));
+    let fixed = fixed_eps(&dir.join(MANIFEST_JOINTS));
     let mut out = vec![];
     let mut warned = BTreeSet::new();
     for b in tables::read_parquet(&pop_path)? {
@@ -381,20 +390,15 @@ pub fn read_step2(
         };
         let (br, bd) = (c.i32("boards_run")?, c.i32("boards_draw")?);
         let (mu, sg) = (c.f64("mu_ln_k_con")?, c.f64("sigma_ln_k_con")?);
-        let eps_cols = eps_columns(&b, labels, &updated);
-        let eps: Vec<Option<&Float64Array>> = eps_cols
-            .iter()
-            .map(|n| n.as_ref().map(|n| f64_col(&b, n, &pop_path)).transpose())
-            .collect::<Result<_, _>>()?;
-        for (l, e) in labels.iter().zip(&eps) {
-            if e.is_none() && updated.contains(l) && fixed.is_none() && warned.insert(l.clone()) {
-                findings.push(Finding::new(
-                    Severity::Warning,
-                    "propagate.eps_missing",
-                    format!("bolted mode {l:?} was updated but {} has no eps_{l} column; it borrows ε like a validation mode", pop_path.display()),
-                ));
-            }
-        }
+        let eps = eps_arrays(
+            &b,
+            &pop_path,
+            labels,
+            (&updated, fixed),
+            "bolted",
+            &mut warned,
+            findings,
+        )?;
         let disc = DiscrepancyCols::read(&b, labels, &pop_path)?;
         for r in 0..b.num_rows() {
             let key = (br.value(r), bd.value(r));

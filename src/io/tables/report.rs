@@ -5,6 +5,7 @@
 
 use crate::io::read_json;
 use crate::io::tables::{self, c, Col, Cols, TableSpec};
+use crate::io::work_dir::{self, WorkDir};
 use crate::report::diagnosis::{self, Cell, DiagnosisData, DiagnosisView, ModeMisfit};
 use crate::report::html::{Provenance, StepData, SummaryRow};
 use crate::report::sources;
@@ -469,8 +470,7 @@ pub fn write_section_table(
     t: &diagnosis::Table,
     prov: &BTreeMap<String, String>,
 ) -> anyhow::Result<Vec<PathBuf>> {
-    let spec = crate::io::tables::diagnose::section_spec(t.spec.name)
-        .ok_or_else(|| anyhow!("{}: no table spec", t.spec.name))?;
+    let spec = t.spec;
     let mut cols: Vec<ArrayRef> = vec![];
     for (k, col) in spec.columns.iter().enumerate() {
         let cells = t.rows.iter().map(|r| &r[k]);
@@ -579,9 +579,8 @@ pub struct Sources {
 /// Locate the inputs of the report of work directory `w`; an error when a required one is
 /// missing.
 pub fn locate(w: &Path) -> anyhow::Result<Sources> {
-    let step1 = w.join("update_boards");
-    let step2 = w.join("update_joints");
-    let prop = w.join("propagate");
+    let wd = WorkDir::new(w);
+    let (step1, step2, prop) = (wd.update_boards(), wd.update_joints(), wd.propagate());
     if !prop.join("predictions.parquet").is_file() {
         bail!(
             "{}: no predictions.parquet; run `hbmu propagate {} --out {}` first",
@@ -691,16 +690,10 @@ pub fn locate(w: &Path) -> anyhow::Result<Sources> {
 /// Manifests of every stage (provenance): their outputs' hashes only, no times.
 fn manifests(w: &Path) -> Vec<PathBuf> {
     let mut manifests = vec![];
-    for d in [
-        "ingest",
-        "extract",
-        "pair",
-        "fe",
-        "update_boards",
-        "update_joints",
-        "propagate",
-        "diagnose",
-    ] {
+    for d in work_dir::STAGES
+        .into_iter()
+        .filter(|&d| d != work_dir::REPORT)
+    {
         let mut v: Vec<PathBuf> = std::fs::read_dir(w.join(d))
             .map(|r| {
                 r.filter_map(|e| e.ok().map(|e| e.path()))

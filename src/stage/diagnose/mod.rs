@@ -28,6 +28,7 @@ use crate::findings::{Findings, Severity};
 use crate::io::diagnose_inputs::{read_inputs, refit_residuals, WorkDirRegions};
 use crate::io::manifest::StageSpec;
 use crate::io::tables::diagnose::{self as diagnose_tables, DiagnosisRow};
+use crate::io::work_dir::WorkDir;
 use crate::stage::{exit, StageOutcome, StageResult};
 use anyhow::anyhow;
 use refit::{
@@ -43,18 +44,15 @@ pub const JSON: &str = "diagnosis.json";
 /// The diagnosis stage.
 pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
     let w = &opts.work_dir;
-    let mut inputs = vec![
-        w.join("ingest/measurements.parquet"),
-        w.join("extract/modes.parquet"),
-        w.join("pair/pairs.parquet"),
-        w.join("update_boards/residuals.parquet"),
-        w.join("update_boards/population.parquet"),
-        w.join("update_boards/boards.parquet"),
-    ];
-    let step2 = w.join("update_joints/evidence.json").is_file();
+    let wd = WorkDir::new(w);
+    let mut inputs = vec![wd.measurements(), wd.modes(), wd.pairs()];
+    for f in ["residuals.parquet", "population.parquet", "boards.parquet"] {
+        inputs.push(wd.update_boards().join(f));
+    }
+    let step2 = wd.update_joints().join("evidence.json").is_file();
     if step2 {
         for f in ["residuals.parquet", "population.parquet", "evidence.json"] {
-            inputs.push(w.join("update_joints").join(f));
+            inputs.push(wd.update_joints().join(f));
         }
     }
     if let Some(b) = &opts.board {

@@ -15,9 +15,10 @@ use crate::diagnose::select::{self, NewModeNote, Refit};
 use crate::diagnose::verdict::{self, quantile};
 use crate::io::diagnose_inputs::{
     evidence_runs, joint_ratios, population_ess, population_r_hat, read_refit, refit_residuals,
-    sorted_column,
+    sorted_column, RefitSource,
 };
 use crate::io::read_json;
+use crate::io::work_dir::{self, WorkDir};
 pub(super) use crate::stage::update::load_board;
 use crate::stage::update::{ShapeWeighting, UpdateOptions, MAX_R_HAT};
 use crate::stage::StageOutcome;
@@ -27,32 +28,49 @@ use std::path::Path;
 /// A refit directory (or a baseline step) as a [`Refit`] ([`read_refit`]), its convergence
 /// gated at the updating's own level ([`MAX_R_HAT`]).
 pub(super) fn summarize_refit(
-    dir: &Path,
-    rel_dir: &str,
-    mechanism: Option<Mechanism>,
-    joint: Option<usize>,
+    src: RefitSource<'_>,
     step1_baseline: Option<&[f64]>,
     outliers: &[String],
 ) -> anyhow::Result<Refit> {
-    read_refit(
+    read_refit(src, step1_baseline, outliers, MAX_R_HAT)
+}
+
+/// A candidate's refit directory `out` (`rel` as the diagnosis names it).
+fn candidate_source<'a>(cand: &Candidate, out: &'a Path, rel: &'a str) -> RefitSource<'a> {
+    RefitSource {
+        dir: out,
+        rel_dir: rel,
+        mechanism: Some(cand.mechanism),
+        joint: cand.joint,
+    }
+}
+
+/// A baseline step's directory `dir` (`rel` as the diagnosis names it).
+fn baseline_source<'a>(dir: &'a Path, rel: &'a str) -> RefitSource<'a> {
+    RefitSource {
         dir,
-        rel_dir,
-        mechanism,
-        joint,
-        step1_baseline,
-        outliers,
-        MAX_R_HAT,
-    )
+        rel_dir: rel,
+        mechanism: None,
+        joint: None,
+    }
 }
 
 /// The options the work directory's step 2 ran with (its manifest's config).
 pub(super) fn step2_options(work: &Path) -> anyhow::Result<UpdateOptions> {
-    step_options(work, "update_joints", crate::stage::update::MANIFEST_JOINTS)
+    step_options(
+        work,
+        work_dir::UPDATE_JOINTS,
+        crate::stage::update::MANIFEST_JOINTS,
+    )
 }
 
 /// The options the work directory's step 1 ran with.
 pub(super) fn step1_options(work: &Path) -> anyhow::Result<UpdateOptions> {
-    step_options(work, "update_boards", crate::stage::update::MANIFEST_BOARDS)
+    step_options(
+        work,
+        work_dir::UPDATE_BOARDS,
+        crate::stage::update::MANIFEST_BOARDS,
+    )
 }
 
 fn step_options(work: &Path, dir: &str, manifest: &str) -> anyhow::Result<UpdateOptions> {
@@ -81,9 +99,10 @@ fn step_options(work: &Path, dir: &str, manifest: &str) -> anyhow::Result<Update
 /// The options of one candidate's refit: the step-2 options with the enrichment.
 fn refit_options(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate) -> UpdateOptions {
     let mut o = base.clone();
-    o.ingest_dir = opts.work_dir.join("ingest");
-    o.pair_dir = opts.work_dir.join("pair");
-    o.extract_dir = Some(opts.work_dir.join("extract"));
+    let wd = WorkDir::new(&opts.work_dir);
+    o.ingest_dir = wd.ingest();
+    o.pair_dir = wd.pair();
+    o.extract_dir = Some(wd.extract());
     o.board = opts.board.clone();
     o.out = opts.out.join(format!("refits/{}", cand.id()));
     o.force = opts.force;
@@ -173,7 +192,7 @@ pub(super) fn run_refit(
         run_gated(
             o,
             |o| {
-                let boards = opts.work_dir.join("update_boards");
+                let boards = WorkDir::new(&opts.work_dir).update_boards();
                 crate::stage::update::run_joints_with(o, &boards, &mut prep.borrow_mut(), verbose)
             },
             decided,
@@ -277,12 +296,12 @@ fn new_modes_refit(
         run_gated(
             o.clone(),
             |o| {
-                let boards = opts.work_dir.join("update_boards");
+                let boards = WorkDir::new(&opts.work_dir).update_boards();
                 crate::stage::update::run_joints_with(o, &boards, &mut prep.borrow_mut(), verbose)
             },
             &|| None,
         )
-        .and_then(|_| summarize_refit(&o.out, &nm_rel, Some(cand.mechanism), cand.joint, None, &[]))
+        .and_then(|_| summarize_refit(candidate_source(cand, &o.out, &nm_rel), None, &[]))
     });
     let (dir, why) = match step {
         Ok(nm) if nm.failed.is_none() && !nm.estimates.is_empty() => {
@@ -424,15 +443,7 @@ pub(super) fn cannot_be_favoured(
     let rel = format!("refits/{}", cand.id());
     let out = opts.out.join(&rel);
     let outliers = &a.located.measurements_after_covariates;
-    let mut r = summarize_refit(
-        &out,
-        &rel,
-        Some(cand.mechanism),
-        cand.joint,
-        Some(a.z1),
-        outliers,
-    )
-    .ok()?;
+    let mut r = summarize_refit(candidate_source(cand, &out, &rel), Some(a.z1), outliers).ok()?;
     let after = refit_residuals(&out).ok()?;
     with_shares(opts, cand, a, &mut r, &after);
     select::cannot_be_favoured(a.baseline, &r, &opts.select)
@@ -468,14 +479,7 @@ pub(super) fn refit(
     let out = opts.out.join(&rel);
     let decided = || cannot_be_favoured(opts, cand, against);
     let r = run_refit(opts, bases, cand, &decided, verbose).and_then(|_| {
-        let mut r = summarize_refit(
-            &out,
-            &rel,
-            Some(cand.mechanism),
-            cand.joint,
-            Some(z1),
-            outliers,
-        )?;
+        let mut r = summarize_refit(candidate_source(cand, &out, &rel), Some(z1), outliers)?;
         if crate::diagnose::library::is_every_joint(Some(cand.mechanism), cand.joint) {
             let by = joint_ratios(&out, board.holes.len())?;
             let (est, dev) = verdict::every_joint_estimates(by, board, outliers);
@@ -526,23 +530,12 @@ pub(super) fn refit(
 /// The baselines' summaries: step 1's, and where the campaign has a step 2, step 2's with
 /// step 1's free-free errors (a board mechanism changes both).
 pub(super) fn baselines(w: &Path, step2: bool) -> anyhow::Result<(Refit, Option<Refit>)> {
-    let baseline1 = summarize_refit(
-        &w.join("update_boards"),
-        "../update_boards",
-        None,
-        None,
-        None,
-        &[],
-    )?;
+    let wd = WorkDir::new(w);
+    let boards = wd.update_boards();
+    let baseline1 = summarize_refit(baseline_source(&boards, "../update_boards"), None, &[])?;
     let baseline = if step2 {
-        let mut b = summarize_refit(
-            &w.join("update_joints"),
-            "../update_joints",
-            None,
-            None,
-            None,
-            &[],
-        )?;
+        let joints = wd.update_joints();
+        let mut b = summarize_refit(baseline_source(&joints, "../update_joints"), None, &[])?;
         b.held_out.extend(baseline1.held_out.iter().cloned());
         b.updated.extend(baseline1.updated.iter().cloned());
         Some(b)

@@ -154,10 +154,10 @@ pub(crate) fn boards_attempt(
     // The surrogates model a unit's terms as a function of its ROM parameters alone; with a
     // covariate the terms also follow the unit's coefficient, so the ROM runs directly.
     let mut sopts = opts.clone();
-    sopts.sampler.surrogate &= bt.target.covariate.is_none();
+    sopts.sampler.surrogate &= bt.step.target.covariate.is_none();
     clock.lap("unit_data");
     let shape_weights = weigh_shapes(
-        &mut bt.target,
+        &mut bt.step.target,
         &opts.model.shape_weights,
         (&[], None),
         &labels.labels,
@@ -166,7 +166,14 @@ pub(crate) fn boards_attempt(
     )?;
     report_shape_weights(&shape_weights, "boards", verbose, &mut findings);
     clock.lap("shape_weights");
-    let (results, acceleration) = sample(&bt.target, &sopts.sampler, "boards", &[], None, verbose)?;
+    let (results, acceleration) = sample(
+        &bt.step.target,
+        &sopts.sampler,
+        "boards",
+        &[],
+        None,
+        verbose,
+    )?;
     let sampler_seconds = clock.lap("sampler");
     check_surrogate_edges(&acceleration, &mut findings);
     boards::check_board_box(&bm, &bt, &results, &opts.model)?;
@@ -189,11 +196,8 @@ pub(crate) fn boards_attempt(
     outputs.push(p);
     clock.lap("tables");
     let (res, lost) = residuals(
-        &bt.target,
-        &bt.all_pred,
-        &bm.all.labels,
-        &labels.labels,
-        &bt.units_all,
+        &bt.step,
+        (&bm.all.labels, &labels.labels),
         &results,
         "free",
         opts.sampler.residual_draws,
@@ -204,7 +208,7 @@ pub(crate) fn boards_attempt(
     write_residuals(&p, &res, &prov)?;
     outputs.push(p);
     let p = opts.out.join("rom.npz");
-    crate::io::atomic::write_bytes(&p, &bt.target.predictor.rom.to_npz_bytes())?;
+    crate::io::atomic::write_bytes(&p, &bt.step.target.predictor.rom.to_npz_bytes())?;
     outputs.push(p);
     let ev = boards::board_evidence(&bm, &bt, &results, &labels, &shape_weights)?;
     let p = opts.out.join("evidence.json");

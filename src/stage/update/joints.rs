@@ -219,8 +219,8 @@ pub(crate) fn joints_body(
             .map(|k| step1.draws.iter().map(|(_, d)| d[k]).sum::<f64>() / step1.draws.len() as f64)
             .collect(),
     };
-    jt.target.errors.discrepancy = discrepancy_for(
-        &jt.target,
+    jt.step.target.errors.discrepancy = discrepancy_for(
+        &jt.step.target,
         &draws_mean,
         // Off unless asked for (`--discrepancy-pct`): bolted, each measurement's joint
         // stiffness is already free, and a per-mode bias common to every assembly spans every
@@ -230,7 +230,7 @@ pub(crate) fn joints_body(
         &mut findings,
     )?;
     let shape_weights = weigh_shapes(
-        &mut jt.target,
+        &mut jt.step.target,
         &opts.model.shape_weights,
         (&draws_mean, Some(&centre)),
         &c.labels.labels,
@@ -240,7 +240,7 @@ pub(crate) fn joints_body(
     report_shape_weights(&shape_weights, "joints", verbose, &mut findings);
     clock.lap("shape_weights");
     let (results, acceleration) = sample(
-        &jt.target,
+        &jt.step.target,
         &sopts.sampler,
         "joints",
         &jt.aux,
@@ -253,23 +253,23 @@ pub(crate) fn joints_body(
         (&jm, &c),
         &centre,
         &results,
-        &jt.unit_names,
+        &jt.step.unit_names,
         &opts.model,
         verbose,
     )?;
     findings.push(joints::rom_posterior_finding(
-        &jm.model, &jt.target, &results, c.need,
+        &jm.model,
+        &jt.step.target,
+        &results,
+        c.need,
     ));
     let prov = provenance("update_joints", &prep.fingerprint);
     let tables = joints::joint_tables(&jm, &jt, &results, &c.labels, &inp.step1, opts.sampler.runs);
     let mut outputs = write_joint_tables(&opts.out, &tables, &results, &prov)?;
     clock.lap("tables");
     let (res, lost) = residuals(
-        &jt.target,
-        &jt.all_pred,
-        &c.all.labels,
-        &c.labels.labels,
-        &jt.units_all,
+        &jt.step,
+        (&c.all.labels, &c.labels.labels),
         &results,
         "bolted",
         opts.sampler.residual_draws,
@@ -280,11 +280,11 @@ pub(crate) fn joints_body(
     write_residuals(&p, &res, &prov)?;
     outputs.push(p);
     let p = opts.out.join("rom.npz");
-    crate::io::atomic::write_bytes(&p, &jt.target.predictor.rom.to_npz_bytes())?;
+    crate::io::atomic::write_bytes(&p, &jt.step.target.predictor.rom.to_npz_bytes())?;
     outputs.push(p);
     let ev = joints::joint_evidence(
         (&jm, &c),
-        &jt.target,
+        &jt.step.target,
         &results,
         &centre,
         &inp.step1_enrichment,
