@@ -29,7 +29,7 @@ pub mod target;
 #[cfg(test)]
 mod funnel_tests;
 #[cfg(test)]
-mod sbc_tests;
+pub(crate) mod sbc_tests;
 #[cfg(test)]
 mod surrogate_tests;
 #[cfg(test)]

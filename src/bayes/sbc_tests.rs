@@ -26,7 +26,7 @@ use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
 #[path = "sbc_driver.rs"]
-pub(super) mod driver;
+pub(crate) mod driver;
 
 use driver::*;
 

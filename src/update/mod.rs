@@ -26,4 +26,6 @@ pub mod prepare;
 pub mod problem;
 pub mod rom_box;
 pub mod sampler;
+#[cfg(test)]
+mod sampler_tests;
 pub mod step1;

@@ -7,8 +7,6 @@ use crate::findings::{Finding, Findings, Severity};
 use anyhow::anyhow;
 use std::sync::Arc;
 
-/// Independent runs of one target, with a progress bar over the tempering path.
-/// What the acceleration did (reference, surrogates, correction), for the report.
 /// How a step's posterior is sampled: nothing here changes the model or the data, only the
 /// draws (and the seed they come from).
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
@@ -27,7 +25,8 @@ pub struct SamplerParams {
     pub subspace: bool,
 }
 
-#[derive(Default, serde::Serialize)]
+/// What the acceleration did (reference, surrogates, correction), for the report.
+#[derive(Debug, Default, serde::Serialize)]
 pub struct Acceleration {
     pub start: &'static str,
     pub reference_model_evals: u64,
@@ -87,8 +86,7 @@ pub struct Acceleration {
 /// Particles of the pilot run whose posterior moments replace the Laplace reference of a run
 /// without groups (`bayes::reference::pilot_reference`, inflated by `PILOT_INFLATION`); a
 /// pilot runs only when the main runs have at least `PILOT_MIN_RATIO` times as many particles,
-/// so it costs a few per cent. On the demo's step 1 at 2000 × 4 it cut the tempering stages
-/// from 10 to 5 a run.
+/// so it costs a few per cent and saves tempering stages.
 pub const PILOT_PARTICLES: usize = 400;
 
 pub const PILOT_MIN_RATIO: usize = 4;
