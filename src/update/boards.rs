@@ -160,13 +160,8 @@ pub fn board_target(
         .iter()
         .map(|(n, _)| rom.map.names.iter().position(|m| m == n).unwrap_or(0))
         .collect();
-    let (predictor, all_pred) = predictors(
-        model,
-        rom,
-        (&labels.model_mode, &all.model_mode),
-        nominal_mass_g,
-        &point_masses,
-    )?;
+    let (predictor, all_pred) =
+        predictors((model, rom), [labels, all], nominal_mass_g, &point_masses)?;
     // Units: every board with free-free pairs or a mass.
     // The enrichment's covariate per free-free measurement, as offsets from their mean.
     let (cov_offsets, covariate) = match bm.enrichment.as_ref().and_then(|e| match &e.effect {

@@ -449,13 +449,8 @@ pub fn joint_target(
         p_board.values[i] = 0.0;
     }
     let nominal_mass_g = model.total_mass_kg(&p_board)? * 1e3;
-    let (predictor, all_pred) = predictors(
-        model,
-        rom,
-        (&labels.model_mode, &all.model_mode),
-        nominal_mass_g,
-        &point_masses,
-    )?;
+    let (predictor, all_pred) =
+        predictors((model, rom), [labels, all], nominal_mass_g, &point_masses)?;
     let wanted: BTreeSet<(String, i32)> = bolted_rows
         .iter()
         .map(|p| (p.measurement_id.clone(), p.mode))

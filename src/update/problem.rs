@@ -163,12 +163,12 @@ pub fn core_thickness_mass(model: &FeModel) -> anyhow::Result<Option<(usize, f64
 }
 
 /// The predictors of a step: over the updated labels' model modes and over all labels'
-/// (the residuals and the intervals), each with the point-mass coordinates `point_masses`
-/// and `model`'s core thickness ([`core_thickness_mass`]).
+/// (the residuals and the intervals), each at the nominal mass `nominal_mass_g`, with the
+/// point-mass coordinates `point_masses` and `model`'s core thickness
+/// ([`core_thickness_mass`]).
 pub fn predictors(
-    model: &FeModel,
-    rom: &Rom,
-    (updated, all): (&[usize], &[usize]),
+    (model, rom): (&FeModel, &Rom),
+    [updated, all]: [&Labels; 2],
     nominal_mass_g: f64,
     point_masses: &[usize],
 ) -> anyhow::Result<(ModalPredictor, ModalPredictor)> {
@@ -178,7 +178,7 @@ pub fn predictors(
             .with_point_masses(point_masses.to_vec())
             .with_core_thickness(thickness))
     };
-    Ok((make(updated)?, make(all)?))
+    Ok((make(&updated.model_mode)?, make(&all.model_mode)?))
 }
 
 /// A step's target and what its residuals need: the predictor over every label (not only
