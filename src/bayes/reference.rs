@@ -32,7 +32,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
-use super::smc::{stream_key, GlobalRole, Target};
+use super::smc::{stream_key, Target};
 use super::stats::{
     cholesky_jittered, lower_mul, lower_solve, lower_solve_sq_norm, mean_and_covariance, LN_2PI,
 };
@@ -960,15 +960,8 @@ pub fn laplace_reference<T: Target>(
 /// then pays for the mismatch in stages and the evidence in variance.
 ///
 /// Warm-started from `base`: per unit a few Newton iterations from its base optimum at g's
-/// base mean, then the population coordinates of g ([`GlobalRole::UnitPrior`]: where the
-/// moved units put their population) by an ascent of g's density given the units, with g's
-/// base covariance as the metric (no new Hessian of g), `rounds` times. The error scales keep
-/// the base's values: they are the model's and the measurements' errors, which one draw
-/// hardly changes, and g's density given the units has a ridge towards ε → 0 for a mode the
-/// units can fit exactly (one joint stiffness per bolted measurement fitting one bolted mode).
-/// Ascended there, the next round's units took the curvature of that ε and q's units came
-/// out 13× narrower than their posterior (the bolted step of a campaign on the independent
-/// truth: 12 tempering stages a run instead of 5). q_g keeps the base's spreads of g (the
+/// base mean, then g's mode given the units by an ascent with g's base covariance as the
+/// metric (no new Hessian of g), `rounds` times. q_g keeps the base's spreads of g (the
 /// spread of g given one draw hardly depends on which) and takes the units' new curvatures.
 /// Returns the reference and the model evaluations spent.
 pub fn reference_for_aux<T: Target>(
@@ -986,23 +979,6 @@ pub fn reference_for_aux<T: Target>(
     let mut xs: Vec<Vec<f64>> = base.units.iter().map(|u| u.mean.clone()).collect();
     let mut precs = vec![vec![0.0; d * d]; nu];
     let mut evals = 0u64;
-    // The population coordinates of g, which the ascent moves, and their block of the metric.
-    let ng = g.len();
-    let pop: Vec<usize> = (0..ng)
-        .filter(|&k| t.global_role(k) != GlobalRole::Likelihood)
-        .collect();
-    let pop_cov: Vec<f64> = pop
-        .iter()
-        .flat_map(|&i| pop.iter().map(move |&j| (i, j)))
-        .map(|(i, j)| g_cov[i * ng + j])
-        .collect();
-    let at = |g: &[f64], v: &[f64]| -> Vec<f64> {
-        let mut full = g.to_vec();
-        for (&k, x) in pop.iter().zip(v) {
-            full[k] = *x;
-        }
-        full
-    };
     for _ in 0..rounds.max(1) {
         let ctx = t.ctx(&g);
         for b in 0..nu {
@@ -1018,14 +994,7 @@ pub fn reference_for_aux<T: Target>(
         }
         let (given, e) = GivenUnits::new(t, aux, &g, &xs, &precs, opts.reform_curvature)?;
         evals += e;
-        let v0: Vec<f64> = pop.iter().map(|&k| g[k]).collect();
-        let v = ascend_in_metric(
-            &|v: &[f64]| given.log_density(&at(&g, v)),
-            &v0,
-            &pop_cov,
-            20,
-        );
-        g = at(&g, &v);
+        g = ascend_in_metric(&|v: &[f64]| given.log_density(v), &g, &g_cov, 20);
     }
     let global = Mvn::new(g, &base.global.covariance());
     let units = unit_references(&xs, &precs, c2);
