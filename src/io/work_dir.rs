@@ -39,7 +39,7 @@ impl<'a> WorkDir<'a> {
     }
 
     /// The directory of stage `name` (one of [`STAGES`]).
-    pub fn stage(&self, name: &str) -> PathBuf {
+    fn stage(&self, name: &str) -> PathBuf {
         self.root.join(name)
     }
 

@@ -17,7 +17,7 @@ use crate::io::tables::propagate::{
     classify, fixed_eps, read_rom, read_step1, read_step2, update_rom_options, updated_labels,
     write_predictions, Inputs,
 };
-use crate::io::tables::update::{read_residuals, MANIFEST_BOARDS};
+use crate::io::tables::update::{read_residuals, MANIFEST_BOARDS, MANIFEST_JOINTS};
 use crate::stage::{exit, StageOutcome, StageResult};
 use crate::uq::inputs;
 use crate::uq::propagate::{self as uq, LabelModel, Models, Posterior};
@@ -82,7 +82,7 @@ fn stage_spec(opts: &PropagateOptions, inp: &Inputs) -> anyhow::Result<(StageSpe
     config["step2"] = inp.step2.is_some().into();
     let (basis1, box1) = update_rom_options(&inp.step1.join(MANIFEST_BOARDS));
     let (basis2, _) = match &inp.step2 {
-        Some(s2) => update_rom_options(&s2.join("update_joints.manifest.json")),
+        Some(s2) => update_rom_options(&s2.join(MANIFEST_JOINTS)),
         None => (None, None),
     };
     config["rom_basis_step1"] = basis1.into();
@@ -90,7 +90,7 @@ fn stage_spec(opts: &PropagateOptions, inp: &Inputs) -> anyhow::Result<(StageSpe
     config["rom_box_step1"] = box1.into();
     config["eps_fixed_step1"] = fixed_eps(&inp.step1.join(MANIFEST_BOARDS)).into();
     if let Some(s2) = &inp.step2 {
-        config["eps_fixed_step2"] = fixed_eps(&s2.join("update_joints.manifest.json")).into();
+        config["eps_fixed_step2"] = fixed_eps(&s2.join(MANIFEST_JOINTS)).into();
     }
     let base = inp
         .step1
