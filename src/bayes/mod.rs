@@ -25,6 +25,7 @@ pub mod smc;
 pub mod stats;
 pub mod surrogate;
 pub mod target;
+pub mod unit_quadrature;
 
 #[cfg(test)]
 mod funnel_tests;

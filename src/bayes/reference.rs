@@ -164,6 +164,13 @@ pub struct ReferenceOptions {
     /// such a result).
     #[serde(default)]
     pub reform_curvature: bool,
+    /// Integrate units of one coordinate out of g's density by quadrature
+    /// ([`super::unit_quadrature`]) instead of the Laplace form: for a modular step's joints,
+    /// whose one stiffness per measurement can fit a mode it barely moves, where the Laplace
+    /// form puts a false peak at ε → 0. Needs the units' prior as a normal
+    /// ([`Target::unit_prior_normal`]); takes precedence over `reform_curvature`.
+    #[serde(default)]
+    pub quadrature_units: bool,
 }
 
 impl Default for ReferenceOptions {
@@ -175,6 +182,7 @@ impl Default for ReferenceOptions {
             g_steps: 20000,
             start: None,
             reform_curvature: false,
+            quadrature_units: false,
         }
     }
 }
@@ -794,6 +802,40 @@ impl<'a, T: Target> GivenUnits<'a, T> {
     }
 }
 
+/// g's density given the units: by quadrature over units of one coordinate
+/// (`ReferenceOptions::quadrature_units`), else the Laplace form ([`GivenUnits`]).
+enum GDensity<'a, T: Target> {
+    Laplace(GivenUnits<'a, T>),
+    Quadrature(super::unit_quadrature::QuadratureUnits<'a, T>),
+}
+
+impl<'a, T: Target> GDensity<'a, T> {
+    fn new(
+        t: &'a T,
+        aux: &[f64],
+        g_round: &[f64],
+        xs: &'a [Vec<f64>],
+        precs: &[Vec<f64>],
+        opts: &ReferenceOptions,
+    ) -> Result<(Self, u64), ReferenceError> {
+        if opts.quadrature_units && t.unit_dim() == 1 {
+            if let Some((q, e)) = super::unit_quadrature::QuadratureUnits::new(t, aux, g_round, xs)
+            {
+                return Ok((GDensity::Quadrature(q), e));
+            }
+        }
+        let (given, e) = GivenUnits::new(t, aux, g_round, xs, precs, opts.reform_curvature)?;
+        Ok((GDensity::Laplace(given), e))
+    }
+
+    fn log_density(&self, g: &[f64]) -> f64 {
+        match self {
+            GDensity::Laplace(u) => u.log_density(g),
+            GDensity::Quadrature(u) => u.log_density(g),
+        }
+    }
+}
+
 /// A later round's finite-difference steps on g: a fifth of the sd of the previous round's
 /// precision `g_prec` (ng × ng), but never above round 0's steps `hg0` (≥ 1e-8, so the
 /// range below is never empty) nor below 1e-10; `hg0` where that sd is not finite. See the
@@ -893,7 +935,7 @@ pub fn laplace_reference<T: Target>(
             evals += e;
         }
         // 3. g given the units.
-        let (given, e) = GivenUnits::new(t, aux, &g, &xs, &precs, opts.reform_curvature)?;
+        let (given, e) = GDensity::new(t, aux, &g, &xs, &precs, opts)?;
         evals += e;
         let log_g = |g: &[f64]| given.log_density(g);
         // Laplace on g first (its Hessian is the chain's proposal), then a random walk
@@ -992,7 +1034,7 @@ pub fn reference_for_aux<T: Target>(
             precs[b] = p;
             evals += e;
         }
-        let (given, e) = GivenUnits::new(t, aux, &g, &xs, &precs, opts.reform_curvature)?;
+        let (given, e) = GDensity::new(t, aux, &g, &xs, &precs, opts)?;
         evals += e;
         g = ascend_in_metric(&|v: &[f64]| given.log_density(v), &g, &g_cov, 20);
     }

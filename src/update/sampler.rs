@@ -233,20 +233,27 @@ fn base_reference(
         let mut ropts = ReferenceOptions {
             start: start.map(<[f64]>::to_vec),
             // A modular step whose units are one parameter (a joint's stiffness per bolted
-            // measurement) that can fit a mode exactly (see `ReferenceOptions`). With two
+            // measurement) that can fit a mode exactly (see `ReferenceOptions`): quadrature
+            // over the units (the re-formed quadratic where a unit's prior is not a normal;
+            // both fall back to the frozen one when degenerate). With two
             // (an enrichment's refit: ln K and ln k_rot per measurement) the re-formed
             // quadratic ran the demo's ε and δ to e^-75 … e^-244, a reference of zero spread.
             reform_curvature: modular && smc::Target::unit_dim(target) == 1,
+            quadrature_units: modular && smc::Target::unit_dim(target) == 1,
             ..ReferenceOptions::default()
         };
         let (mut q, mut info) = laplace_reference(target, &aux_mean, &ropts, opts.seed)
             .map_err(|e| anyhow!("{what}: building the reference: {e}"))?;
-        if let (Some(why), true) = (q.degeneracy(), ropts.reform_curvature) {
-            // The re-formed quadratic extrapolated past where it holds: the frozen one.
+        if let (Some(why), true) = (
+            q.degeneracy(),
+            ropts.reform_curvature || ropts.quadrature_units,
+        ) {
+            // The quadrature or re-formed quadratic gave a degenerate q: the frozen one.
             if verbose {
                 eprintln!("{what}: the re-formed reference is degenerate ({why}); frozen curvature instead");
             }
             ropts.reform_curvature = false;
+            ropts.quadrature_units = false;
             (q, info) = laplace_reference(target, &aux_mean, &ropts, opts.seed)
                 .map_err(|e| anyhow!("{what}: building the reference: {e}"))?;
         }
