@@ -17,9 +17,12 @@
 //! marginal is closed-form.
 
 use super::smc::Target;
+use super::stats::log_sum_exp;
 
-/// Nodes per unit: the spacing is then a twelfth of the prior's sd, finer than the
-/// integrand wherever the data do not pin the unit beyond the population's spread.
+/// Nodes per unit: the spacing is then a twelfth of the prior's sd (more where the unit's
+/// optimum lies beyond the prior's ±`PRIOR_SDS` sd). For a Gaussian integrand of sd w the
+/// midpoint rule's relative error is about 2 exp(−2π² w²/h²): 5e-9 at h = w, so the rule is
+/// exact for any unit the data pin no tighter than a twelfth of the population's spread.
 pub const NODES: usize = 120;
 
 /// The grid's half-width in the unit prior's sds (the prior density at its edge is e^-12.5
@@ -91,11 +94,11 @@ impl<'a, T: Target> QuadratureUnits<'a, T> {
                     f
                 }
             }));
-            let m = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-            if m == f64::NEG_INFINITY {
+            let l = log_sum_exp(&v);
+            if l == f64::NEG_INFINITY {
                 return f64::NEG_INFINITY;
             }
-            s += m + (v.iter().map(|a| (a - m).exp()).sum::<f64>() * self.spacing[b]).ln();
+            s += l + self.spacing[b].ln();
         }
         s
     }
@@ -191,7 +194,7 @@ mod tests {
     /// not peak falsely (a node within a few likelihood widths of a unit's peak could
     /// overestimate that unit's term; the grid's placement does not favour it).
     #[test]
-    fn quadrature_matches_the_closed_form_and_never_overestimates_a_needle() {
+    fn quadrature_matches_the_closed_form_and_raises_no_needle() {
         // Five units, x_b = 0.3 + 0.4 z, data with ε = 0.05.
         let z = [-1.2, -0.4, 0.1, 0.7, 1.5];
         let noise = [

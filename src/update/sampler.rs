@@ -234,8 +234,9 @@ fn base_reference(
             start: start.map(<[f64]>::to_vec),
             // A modular step whose units are one parameter (a joint's stiffness per bolted
             // measurement) that can fit a mode exactly (see `ReferenceOptions`): quadrature
-            // over the units (the re-formed quadratic where a unit's prior is not a normal;
-            // both fall back to the frozen one when degenerate). With two
+            // over the units; where a target offers no unit prior as a normal (the surrogate
+            // target of the group references), g's density keeps the point form; a
+            // degenerate q falls back to the frozen quadratic. With two
             // (an enrichment's refit: ln K and ln k_rot per measurement) the re-formed
             // quadratic ran the demo's ε and δ to e^-75 … e^-244, a reference of zero spread.
             reform_curvature: modular && smc::Target::unit_dim(target) == 1,
@@ -250,7 +251,7 @@ fn base_reference(
         ) {
             // The quadrature or re-formed quadratic gave a degenerate q: the frozen one.
             if verbose {
-                eprintln!("{what}: the re-formed reference is degenerate ({why}); frozen curvature instead");
+                eprintln!("{what}: the quadrature or re-formed reference is degenerate ({why}); frozen curvature instead");
             }
             ropts.reform_curvature = false;
             ropts.quadrature_units = false;
