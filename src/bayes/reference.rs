@@ -911,7 +911,10 @@ pub fn laplace_reference<T: Target>(
             (iqr / 1.35 * 1e-2).max(1e-8)
         })
         .collect();
-    for round in 0..opts.rounds.max(1) {
+    let rounds = opts.rounds.max(1);
+    // With quadrature: the units' moments on the last round's grid (see below).
+    let mut quad_moments: Option<Vec<Option<(f64, f64)>>> = None;
+    for round in 0..rounds {
         let ctx = t.ctx(&g);
         // 2. Units.
         let res: Vec<_> = (0..nu)
@@ -956,6 +959,25 @@ pub fn laplace_reference<T: Target>(
         let (g_hat, prec, _) = newton_mode(&mut fg, &g, &hg, 4 * opts.newton_iterations);
         g_prec = prec;
         let cov = spd_inverse(&g_prec, ng);
+        let quadrature = matches!(given, GDensity::Quadrature(_));
+        if quadrature && round + 1 < rounds {
+            // Under quadrature g's density depends on the round only through where the
+            // grids lie (the units' prior at the round's g), so an earlier round needs only
+            // g's mode to place the next grids, not the chain's mean: the chain, three
+            // quarters of the reference's cost, runs in the last round alone.
+            g = g_hat;
+            continue;
+        }
+        let given = match given {
+            GDensity::Quadrature(mut q) => {
+                // The chain evaluates g's density 2 × g_steps times: only nodes that weigh
+                // anywhere near g's mode count (see `QuadratureUnits::prune`).
+                q.prune(&sigma_points(&g_hat, &cov, PRUNE_SDS), PRUNE_NATS);
+                GDensity::Quadrature(q)
+            }
+            other => other,
+        };
+        let log_g = |g: &[f64]| given.log_density(g);
         let (chain, acc) = rwm(
             &log_g,
             &g_hat,
@@ -968,6 +990,13 @@ pub fn laplace_reference<T: Target>(
         g = (0..ng)
             .map(|k| chain.iter().map(|v| v[k]).sum::<f64>() / n)
             .collect();
+        if let (GDensity::Quadrature(q), true) = (&given, round + 1 == rounds) {
+            // The units' moments over g's spread: UNIT_MOMENT_DRAWS draws evenly spaced
+            // along the chain.
+            let k = (chain.len() / UNIT_MOMENT_DRAWS).max(1);
+            let gs: Vec<Vec<f64>> = chain.iter().step_by(k).cloned().collect();
+            quad_moments = Some(q.unit_moments(&gs));
+        }
         g_chain = chain;
     }
     // 4. q.
@@ -983,7 +1012,10 @@ pub fn laplace_reference<T: Target>(
     }
     cov.iter_mut().for_each(|v| *v *= c2);
     let global = Mvn::new(g, &cov);
-    let units = unit_references(&xs, &precs, c2);
+    let mut units = unit_references(&xs, &precs, c2);
+    if let Some(m) = &quad_moments {
+        moment_units(&mut units, m, c2);
+    }
     Ok((
         GaussianReference { global, units },
         ReferenceInfo {
@@ -1005,7 +1037,10 @@ pub fn laplace_reference<T: Target>(
 /// base mean, then g's mode given the units by an ascent with g's base covariance as the
 /// metric (no new Hessian of g), `rounds` times. q_g keeps the base's spreads of g (the
 /// spread of g given one draw hardly depends on which) and takes the units' new curvatures.
-/// Returns the reference and the model evaluations spent.
+/// With `opts.quadrature_units` (units of one coordinate) g's
+/// density integrates the units on small grids around the base's units and the group's
+/// optima ([`group_span`]), one round, and the units take their moments on those grids over
+/// q_g's spread. Returns the reference and the model evaluations spent.
 pub fn reference_for_aux<T: Target>(
     t: &T,
     base: &GaussianReference,
@@ -1021,7 +1056,11 @@ pub fn reference_for_aux<T: Target>(
     let mut xs: Vec<Vec<f64>> = base.units.iter().map(|u| u.mean.clone()).collect();
     let mut precs = vec![vec![0.0; d * d]; nu];
     let mut evals = 0u64;
-    for _ in 0..rounds.max(1) {
+    // The group's grids are placed by the base's units, so the quadrature needs no unit
+    // prior as a normal (the surrogate target offers none).
+    let quadrature = opts.quadrature_units && d == 1;
+    // Under quadrature g's density does not depend on the units' curvatures, so one round.
+    for _ in 0..if quadrature { 1 } else { rounds.max(1) } {
         let ctx = t.ctx(&g);
         for b in 0..nu {
             let h: Vec<f64> = base.units[b]
@@ -1034,13 +1073,98 @@ pub fn reference_for_aux<T: Target>(
             precs[b] = p;
             evals += e;
         }
+        if quadrature {
+            break;
+        }
         let (given, e) = GDensity::new(t, aux, &g, &xs, &precs, opts)?;
         evals += e;
         g = ascend_in_metric(&|v: &[f64]| given.log_density(v), &g, &g_cov, 20);
     }
+    let mut units = unit_references(&xs, &precs, c2);
+    if quadrature {
+        // The group's grids around where the base put each unit and where the group's draw
+        // moves its optimum (the base's units carry their spread over g, see
+        // `laplace_reference`), then g's mode by a short ascent from the base's (a group's
+        // g moves little from it), and the units' moments over q_g's spread.
+        let spans: Vec<super::unit_quadrature::Span> = (0..nu)
+            .map(|b| group_span(base.units[b].mean[0], base.units[b].sd()[0], xs[b][0]))
+            .collect();
+        let (q, e) = super::unit_quadrature::QuadratureUnits::with_spans(t, aux, &spans);
+        evals += e;
+        g = ascend_in_metric(
+            &|v: &[f64]| q.log_density(v),
+            &g,
+            &g_cov,
+            GROUP_ASCENT_STEPS,
+        );
+        let qg = Mvn::new(g.clone(), &g_cov);
+        // Fixed draws: the same inputs give the same reference.
+        let mut rng = ChaCha8Rng::seed_from_u64(stream_key(&[0x0A55_D4A5]));
+        let gs: Vec<Vec<f64>> = (0..UNIT_MOMENT_DRAWS)
+            .map(|_| qg.sample(&mut rng))
+            .collect();
+        moment_units(&mut units, &q.unit_moments(&gs), c2);
+    }
     let global = Mvn::new(g, &base.global.covariance());
-    let units = unit_references(&xs, &precs, c2);
     Ok((GaussianReference { global, units }, evals))
+}
+
+/// g's mode and the points `sds` of g's sds away along each axis of its covariance `cov`
+/// (the columns of its Cholesky factor), both ways.
+fn sigma_points(g: &[f64], cov: &[f64], sds: f64) -> Vec<Vec<f64>> {
+    let ng = g.len();
+    let l = Mvn::new(g.to_vec(), cov).chol;
+    let mut pts = vec![g.to_vec()];
+    for k in 0..ng {
+        for sign in [-1.0, 1.0] {
+            pts.push((0..ng).map(|i| g[i] + sign * sds * l[i * ng + k]).collect());
+        }
+    }
+    pts
+}
+
+/// Where a quadrature's nodes are pruned before g's chain: nodes below their unit's peak by
+/// more than `PRUNE_NATS` at g's mode and at `PRUNE_SDS` sds along every axis of its Laplace
+/// covariance. Such a node changes its unit's log integral by under 1e-13 there; only in g's
+/// far tail, which a reference need not fit, can it weigh more.
+const PRUNE_SDS: f64 = 3.0;
+const PRUNE_NATS: f64 = 30.0;
+
+/// Draws of g over which units take their quadrature moments
+/// ([`super::unit_quadrature::QuadratureUnits::unit_moments`]).
+const UNIT_MOMENT_DRAWS: usize = 16;
+
+/// Ascent steps of a group's g under quadrature (from the base's mean, in its metric).
+const GROUP_ASCENT_STEPS: usize = 6;
+
+/// A group's grid for one unit: the base's mean `m` and the group's optimum `x` widened by
+/// `GROUP_SDS` of the base's (inflated) sd `s` each way, at `NODES_PER_SD` nodes per sd (the
+/// midpoint rule's error on a Gaussian of sd s at spacing s/2 is ~1e-34), at most
+/// `unit_quadrature::NODES` (coarser on a wider span).
+fn group_span(m: f64, s: f64, x: f64) -> super::unit_quadrature::Span {
+    const GROUP_SDS: f64 = 6.0;
+    const NODES_PER_SD: f64 = 2.0;
+    let lo = m.min(x) - GROUP_SDS * s;
+    let hi = m.max(x) + GROUP_SDS * s;
+    let nodes = (((hi - lo) / s) * NODES_PER_SD).ceil();
+    let nodes = if nodes.is_finite() {
+        (nodes as usize).clamp(8, super::unit_quadrature::NODES)
+    } else {
+        super::unit_quadrature::NODES
+    };
+    super::unit_quadrature::Span { lo, hi, nodes }
+}
+
+/// Units of one coordinate replaced by their quadrature moments (variance × `c2`) where
+/// those are finite and positive.
+fn moment_units(units: &mut [Mvn], moments: &[Option<(f64, f64)>], c2: f64) {
+    for (u, m) in units.iter_mut().zip(moments) {
+        if let Some((mean, var)) = m {
+            if mean.is_finite() && var.is_finite() && *var > 0.0 {
+                *u = Mvn::new(vec![*mean], &[var * c2]);
+            }
+        }
+    }
 }
 
 /// A reference refitted to a pilot run's posterior: one small SMC from the Laplace reference

@@ -234,9 +234,8 @@ fn base_reference(
             start: start.map(<[f64]>::to_vec),
             // A modular step whose units are one parameter (a joint's stiffness per bolted
             // measurement) that can fit a mode exactly (see `ReferenceOptions`): quadrature
-            // over the units; where a target offers no unit prior as a normal (the surrogate
-            // target of the group references), g's density keeps the point form; a
-            // degenerate q falls back to the frozen quadratic. With two
+            // over the units, for the base and each group's reference; a degenerate q falls
+            // back to the frozen quadratic, and the groups with it. With two
             // (an enrichment's refit: ln K and ln k_rot per measurement) the re-formed
             // quadratic ran the demo's ε and δ to e^-75 … e^-244, a reference of zero spread.
             reform_curvature: modular && smc::Target::unit_dim(target) == 1,
