@@ -5,6 +5,11 @@
 //!
 //! `cargo bench --bench solid_truth [-- SIZE_MM ...]` (default sizes 3, 2, 1.5, 1 mm for the
 //! convergence; the distance table at the finest). Needs gmsh and ccx on the PATH.
+//!
+//! To take the distance apart: `SOLID_G_Z_PA` sets the solid's transverse shear moduli
+//! G_xz = G_yz (default 3.5 GPa; a hundredfold makes the solid nearly rigid in transverse
+//! shear, the plate's Kirchhoff assumption); `SOLID_ONLY` = `free` or `bolted` runs one setup,
+//! `SOLID_BOARD` = `default` or `realistic` one board.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -34,11 +39,19 @@ fn main() {
         ("default", include_str!("../data/boards/default.toml")),
         ("realistic", include_str!("../data/boards/realistic.toml")),
     ];
+    let env = |k: &str| std::env::var(k).ok();
+    let g_z_pa: Option<f64> = env("SOLID_G_Z_PA").map(|v| v.parse().expect("SOLID_G_Z_PA in Pa"));
     for (name, text) in boards {
+        if env("SOLID_BOARD").is_some_and(|b| b != name) {
+            continue;
+        }
         let board = Board::from_toml_str(text).unwrap();
         let points = board.scan_points_m();
         let k_bar = board.joint().k_con_n_per_m;
         for bolted in [false, true] {
+            if env("SOLID_ONLY").is_some_and(|o| o != if bolted { "bolted" } else { "free" }) {
+                continue;
+            }
             let n_modes = if bolted { 11 } else { 12 };
             let max_hz = if bolted { 4000.0 } else { 5000.0 };
             let st = State {
@@ -60,9 +73,12 @@ fn main() {
             let setup = if bolted { "bolted" } else { "free" };
             let mut last = None;
             for &h in &sizes_mm {
+                let d = SolidOptions::default();
                 let opts = SolidOptions {
                     element_size_m: 1e-3 * h,
-                    ..SolidOptions::default()
+                    g_xz_pa: g_z_pa.unwrap_or(d.g_xz_pa),
+                    g_yz_pa: g_z_pa.unwrap_or(d.g_yz_pa),
+                    ..d
                 };
                 let t0 = Instant::now();
                 let m = SolidModel::build(&board, &opts, bolted, None, solver.clone()).unwrap();
