@@ -32,6 +32,7 @@ pub mod gerber;
 pub mod grading;
 pub mod joints;
 pub mod laminate;
+pub mod mindlin;
 pub mod model;
 pub mod npz;
 pub mod params;

@@ -76,7 +76,7 @@ pub fn shape(xi: f64, eta: f64, a_m: f64, b_m: f64) -> [[f64; 16]; 6] {
 }
 
 /// Gauss–Legendre 4-point rule on [0,1]: (points, weights).
-fn gauss4() -> ([f64; 4], [f64; 4]) {
+pub(crate) fn gauss4() -> ([f64; 4], [f64; 4]) {
     let p1 = (3.0 / 7.0 - 2.0 / 7.0 * (6.0f64 / 5.0).sqrt()).sqrt();
     let p2 = (3.0 / 7.0 + 2.0 / 7.0 * (6.0f64 / 5.0).sqrt()).sqrt();
     let w1 = (18.0 + 30.0f64.sqrt()) / 36.0;
