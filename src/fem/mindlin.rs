@@ -273,20 +273,7 @@ mod tests {
         let r = free.len();
         let kf = faer::Mat::from_fn(r, r, |i, j| k[free[i] * n + free[j]]);
         let mf = faer::Mat::from_fn(r, r, |i, j| m[free[i] * n + free[j]]);
-        let llt = mf.llt(faer::Side::Lower).expect("positive mass");
-        let l = llt.L();
-        let mut c = kf;
-        faer::linalg::triangular_solve::solve_lower_triangular_in_place(
-            l,
-            c.as_mut(),
-            faer::Par::Seq,
-        );
-        let mut ct = c.transpose().to_owned();
-        faer::linalg::triangular_solve::solve_lower_triangular_in_place(
-            l,
-            ct.as_mut(),
-            faer::Par::Seq,
-        );
+        let (_, ct) = crate::fem::rom::whiten(kf, &mf).expect("positive mass");
         let mut a: Vec<f64> = (0..r * r).map(|q| ct[(q / r, q % r)]).collect();
         let e = crate::fem::dense::lowest_eigenpairs(&mut a, r, 0, 0);
         e.values[..count]

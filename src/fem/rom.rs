@@ -881,24 +881,7 @@ impl Rom {
         for (ci, mi) in cm.iter().zip(&self.m_r) {
             axpy_mat(&mut m, *ci, mi.as_ref());
         }
-        let llt = m
-            .llt(Side::Lower)
-            .map_err(|e| FemError::Factorisation(format!("reduced mass: {e:?}")))?;
-        let l = llt.L();
-        let mut c = k;
-        faer::linalg::triangular_solve::solve_lower_triangular_in_place(
-            l,
-            c.as_mut(),
-            faer::Par::Seq,
-        );
-        let mut ct = c.transpose().to_owned();
-        faer::linalg::triangular_solve::solve_lower_triangular_in_place(
-            l,
-            ct.as_mut(),
-            faer::Par::Seq,
-        );
-        symmetrize(&mut ct);
-        Ok((l.to_owned(), ct))
+        whiten(k, &m).map_err(|e| FemError::Factorisation(format!("reduced mass: {e}")))
     }
 
     /// [`Rom::eval_lowest`] for several mass terms (a point mass, the core thickness):
@@ -944,6 +927,20 @@ impl Rom {
             vectors,
         })
     }
+}
+
+/// The pencil (K, M) made standard: the lower Cholesky factor L of M and the symmetric
+/// C = L⁻¹ K L⁻ᵀ (symmetrised against rounding); Err with faer's reason where M is not
+/// positive-definite.
+pub(crate) fn whiten(k: Mat<f64>, m: &Mat<f64>) -> Result<(Mat<f64>, Mat<f64>), String> {
+    let llt = m.llt(Side::Lower).map_err(|e| format!("{e:?}"))?;
+    let l = llt.L();
+    let mut c = k;
+    faer::linalg::triangular_solve::solve_lower_triangular_in_place(l, c.as_mut(), faer::Par::Seq);
+    let mut ct = c.transpose().to_owned();
+    faer::linalg::triangular_solve::solve_lower_triangular_in_place(l, ct.as_mut(), faer::Par::Seq);
+    symmetrize(&mut ct);
+    Ok((l.to_owned(), ct))
 }
 
 /// The ROM restricted to a subspace of its reduced coordinates (a second-level Galerkin
