@@ -182,6 +182,58 @@ pub fn lagrange_basis(nodes: &[f64], s: f64) -> Vec<f64> {
         .collect()
 }
 
+/// One layer of a stack for [`transverse_shear_stiffness`]: between heights `z1_m < z2_m`,
+/// its plane-stress stiffness along the bending direction `q_pa` (Q11 for x, Q22 for y) and
+/// its transverse shear modulus in that plane `g_z_pa` (G_xz, G_yz).
+#[derive(Clone, Copy, Debug)]
+pub struct ShearLayer {
+    pub z1_m: f64,
+    pub z2_m: f64,
+    pub q_pa: f64,
+    pub g_z_pa: f64,
+}
+
+/// The transverse shear stiffness S (N/m) of a stack in one direction, energy-consistent
+/// (Whitney 1973; the laminate form of Reissner's 5/6): in cylindrical bending the shear
+/// stress follows from equilibrium, τ(z) = Q_x g(z)/D* with g(z) = ∫_bottom^z q (ζ − z_n) dζ
+/// about the neutral plane z_n = B/A, and S is set so that Q_x²/(2S) is its strain energy
+/// ½ ∫ τ²/G dz: S = D*² / ∫ g²/G dz. A homogeneous layer gives 5/6 G h; a sandwich of thin
+/// stiff faces on a soft core, G_core d²/c (faces' centroids d apart, core thickness c).
+/// Layers are taken in order of height; each layer's integral is exact (3-point Gauss on
+/// g², a quartic). Needs at least one layer with q > 0 and every g > 0.
+pub fn transverse_shear_stiffness(layers: &[ShearLayer]) -> f64 {
+    let mut ls = layers.to_vec();
+    ls.sort_by(|a, b| a.z1_m.total_cmp(&b.z1_m));
+    let a: f64 = ls.iter().map(|l| l.q_pa * (l.z2_m - l.z1_m)).sum();
+    let b: f64 = ls
+        .iter()
+        .map(|l| l.q_pa * 0.5 * (l.z2_m * l.z2_m - l.z1_m * l.z1_m))
+        .sum();
+    let zn = b / a;
+    let d_star: f64 = ls
+        .iter()
+        .map(|l| l.q_pa * ((l.z2_m - zn).powi(3) - (l.z1_m - zn).powi(3)) / 3.0)
+        .sum();
+    // 3-point Gauss-Legendre on [−1, 1].
+    let (gp, gw) = (
+        [-(0.6f64).sqrt(), 0.0, (0.6f64).sqrt()],
+        [5.0 / 9.0, 8.0 / 9.0, 5.0 / 9.0],
+    );
+    let mut g0 = 0.0;
+    let mut energy = 0.0;
+    for l in &ls {
+        let g = |z: f64| g0 + 0.5 * l.q_pa * ((z - zn).powi(2) - (l.z1_m - zn).powi(2));
+        let (mid, half) = (0.5 * (l.z1_m + l.z2_m), 0.5 * (l.z2_m - l.z1_m));
+        energy += gp
+            .iter()
+            .zip(&gw)
+            .map(|(p, w)| w * half * g(mid + half * p).powi(2) / l.g_z_pa)
+            .sum::<f64>();
+        g0 = g(l.z2_m);
+    }
+    d_star * d_star / energy
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -290,5 +342,82 @@ mod tests {
             .sum();
         let d_star = d[0] + corr[0];
         assert!((d_star - d_na).abs() < 1e-9 * d_na, "{d_star} vs {d_na}");
+    }
+
+    /// Against closed forms: a homogeneous layer gives 5/6 G h wherever it sits (to 1e-12); a
+    /// sandwich of thin faces (t = c/100, q 1e6 times the core's) on a soft core gives
+    /// G_core d²/c within 2 % (the faces' own shear and the core's bending are of order t/c
+    /// and q_core/q_face). The PCB stack's stiff copper faces make the core's shear stress
+    /// more uniform than a homogeneous layer's: its S (5.07e6 N/m) lies between the
+    /// homogeneous 5/6 G h of its thickness (4.58e6) and the sandwich limit G d²/c (5.50e6).
+    #[test]
+    fn transverse_shear_stiffness_against_closed_forms() {
+        use super::{transverse_shear_stiffness as s, ShearLayer as L};
+        let (g, h) = (3.5e9, 1.6e-3);
+        for z0 in [-0.8e-3, 0.0, 2.0e-3] {
+            let v = s(&[L {
+                z1_m: z0,
+                z2_m: z0 + h,
+                q_pa: 22e9,
+                g_z_pa: g,
+            }]);
+            let exact = 5.0 / 6.0 * g * h;
+            assert!((v / exact - 1.0).abs() < 1e-12, "{v} vs {exact}");
+        }
+        let (c, t, gc) = (10e-3, 0.1e-3, 50e6);
+        let layers = [
+            L {
+                z1_m: -0.5 * c - t,
+                z2_m: -0.5 * c,
+                q_pa: 70e9,
+                g_z_pa: 26e9,
+            },
+            L {
+                z1_m: -0.5 * c,
+                z2_m: 0.5 * c,
+                q_pa: 70e3,
+                g_z_pa: gc,
+            },
+            L {
+                z1_m: 0.5 * c,
+                z2_m: 0.5 * c + t,
+                q_pa: 70e9,
+                g_z_pa: 26e9,
+            },
+        ];
+        let exact = gc * (c + t).powi(2) / c;
+        let v = s(&layers);
+        assert!((v / exact - 1.0).abs() < 0.02, "sandwich {v} vs {exact}");
+        // The layers in any order give the same S.
+        let rev: Vec<L> = layers.iter().rev().copied().collect();
+        assert_eq!(v, s(&rev));
+        // PCB: 1.5 mm FR-4 core, 35 µm copper each side.
+        let (hc, tc) = (1.5e-3, 35e-6);
+        let pcb = [
+            L {
+                z1_m: -0.5 * hc - tc,
+                z2_m: -0.5 * hc,
+                q_pa: 131e9,
+                g_z_pa: 45e9,
+            },
+            L {
+                z1_m: -0.5 * hc,
+                z2_m: 0.5 * hc,
+                q_pa: 22e9,
+                g_z_pa: g,
+            },
+            L {
+                z1_m: 0.5 * hc,
+                z2_m: 0.5 * hc + tc,
+                q_pa: 131e9,
+                g_z_pa: 45e9,
+            },
+        ];
+        let v = s(&pcb);
+        let (homogeneous, sandwich) = (5.0 / 6.0 * g * (hc + 2.0 * tc), g * (hc + tc).powi(2) / hc);
+        assert!(
+            v > homogeneous && v < sandwich,
+            "{v} outside {homogeneous} … {sandwich}"
+        );
     }
 }
