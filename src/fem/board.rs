@@ -92,6 +92,21 @@ pub struct CoreMaterial {
     pub nu_xy: f64,
     /// Density, kg/m³.
     pub density_kg_per_m3: f64,
+    /// Transverse shear modulus in the x–z plane, Pa. Given (with `g_yz_pa`), the board is a
+    /// shear-deformable (Mindlin–Reissner) plate with rotary inertia ([`super::mindlin`]);
+    /// absent, a Kirchhoff plate.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub g_xz_pa: Option<f64>,
+    /// Transverse shear modulus in the y–z plane, Pa (see `g_xz_pa`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub g_yz_pa: Option<f64>,
+}
+
+impl CoreMaterial {
+    /// The transverse shear moduli (G_xz, G_yz), Pa, when the plate is shear-deformable.
+    pub fn transverse_shear(&self) -> Option<(f64, f64)> {
+        self.g_xz_pa.zip(self.g_yz_pa)
+    }
 }
 
 /// Which face of the core a copper layer is bonded to.
@@ -549,6 +564,18 @@ impl Board {
         pos("core.e_y_pa", c.e_y_pa)?;
         pos("core.g_xy_pa", c.g_xy_pa)?;
         pos("core.density_kg_per_m3", c.density_kg_per_m3)?;
+        match (c.g_xz_pa, c.g_yz_pa) {
+            (Some(gx), Some(gy)) => {
+                pos("core.g_xz_pa", gx)?;
+                pos("core.g_yz_pa", gy)?;
+            }
+            (None, None) => {}
+            _ => {
+                return Err(FemError::BoardInvalid(
+                    "core: expected both transverse shear moduli g_xz_pa and g_yz_pa (a shear-deformable plate) or neither (a Kirchhoff plate), found one".into(),
+                ))
+            }
+        }
         let nu_yx = c.nu_xy * c.e_y_pa / c.e_x_pa;
         if !(c.nu_xy.is_finite() && c.nu_xy * nu_yx < 1.0 && c.nu_xy > -1.0) {
             return Err(FemError::BoardInvalid(format!(

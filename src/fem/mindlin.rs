@@ -17,20 +17,30 @@
 //! Energies (D as in [`super::plate`], κ = (θx,x, θy,y, θx,y + θy,x)):
 //! U = ½ ∫ κᵀ D κ + ½ ∫ (S_x γx² + S_y γy²), T = ½ ω² ∫ (ρh w² + I |θ|²),
 //! with S = k G h (shear correction k, N/m) and the rotary inertia I = ∫ ρ z² dz (kg).
-//! Element DOFs: the BFS's 16 (node by node), then γx at the 4 nodes, then γy.
+//! Element DOFs: the BFS's 16 (node by node), then γx at the 4 nodes, then γy. With γ left
+//! out (the leading 16 × 16 blocks, `n` = [`BFS_DOFS`]) the matrices are the BFS element's
+//! own: the board model ([`super::model`]) takes them either way.
 
 use super::plate::{gauss4, shape, NODE_IJ};
 
-/// DOFs of one element.
+/// DOFs of one shear-deformable element; the first [`BFS_DOFS`] are the BFS element's.
 pub const DOFS: usize = 24;
+
+/// DOFs of the BFS (Kirchhoff) element: the same matrices' leading block.
+pub const BFS_DOFS: usize = 16;
 
 /// 24 × 24 element matrix, row-major.
 pub type Mat24 = [[f64; DOFS]; DOFS];
 
-/// The unit matrices of one `a_m × b_m` element: each times its coefficient and summed gives
-/// the element's stiffness or mass.
+/// The unit matrices of one element (or of part of it, see [`ElementMatrices::add_points`]):
+/// each times its coefficient and summed gives the element's stiffness or mass. Only the
+/// leading `n × n` block is used: `n` = [`BFS_DOFS`] is the Kirchhoff (BFS) element, whose
+/// matrices are exactly that block of the shear-deformable one (γ = 0), and whose shear and
+/// rotary-inertia matrices stay zero; `n` = [`DOFS`] the shear-deformable element.
 #[derive(Clone, Debug)]
 pub struct ElementMatrices {
+    /// DOFs in use: [`BFS_DOFS`] or [`DOFS`].
+    pub n: usize,
     /// Bending `[K₁₁, K₂₂, K₁₂, K₆₆]`, times D11, D22, D12, D66 (N·m).
     pub k_bend: [Mat24; 4],
     /// Transverse shear `[∫ γx², ∫ γy²]`, times S_x, S_y (N/m).
@@ -59,86 +69,126 @@ fn bilinear(xi: f64, eta: f64, a_m: f64, b_m: f64) -> [[f64; 4]; 3] {
     out
 }
 
-/// Integrate the unit matrices of an `a_m × b_m` element (4 × 4 Gauss points: exact, every
-/// integrand being of degree ≤ 6 in each direction).
-pub fn element_matrices(a_m: f64, b_m: f64) -> ElementMatrices {
-    let (pts, wts) = gauss4();
-    let z = [[0.0; DOFS]; DOFS];
-    let mut e = ElementMatrices {
-        k_bend: [z; 4],
-        k_shear: [z; 2],
-        m_trans: z,
-        m_rot: z,
-    };
-    let add = |m: &mut Mat24, w: f64, u: &[f64; DOFS], v: &[f64; DOFS]| {
-        for r in 0..DOFS {
-            if u[r] == 0.0 {
-                continue;
-            }
-            for c in 0..DOFS {
-                m[r][c] += w * u[r] * v[c];
-            }
+impl ElementMatrices {
+    /// All zero, with `n` DOFs in use ([`BFS_DOFS`] or [`DOFS`]).
+    pub fn zero(n: usize) -> ElementMatrices {
+        assert!(
+            n == BFS_DOFS || n == DOFS,
+            "an element has 16 or 24 DOFs, not {n}"
+        );
+        let z = [[0.0; DOFS]; DOFS];
+        ElementMatrices {
+            n,
+            k_bend: [z; 4],
+            k_shear: [z; 2],
+            m_trans: z,
+            m_rot: z,
         }
-    };
-    for (ix, &xi) in pts.iter().enumerate() {
-        for (iy, &eta) in pts.iter().enumerate() {
-            let w = wts[ix] * wts[iy] * a_m * b_m;
+    }
+
+    /// Add `sign` × the integrals over the quadrature points `pts` (global `(x_m, y_m,
+    /// weight_m2)`, all inside the element of size `a_m × b_m` whose lower-left corner is
+    /// `(x0_m, y0_m)`): with `sign = -1` and the points of a hole, the element's matrices
+    /// become integrals over its material part only (cut-cell quadrature).
+    pub fn add_points(
+        &mut self,
+        pts: &[(f64, f64, f64)],
+        x0_m: f64,
+        y0_m: f64,
+        a_m: f64,
+        b_m: f64,
+        sign: f64,
+    ) {
+        let nd = self.n;
+        let shear = nd == DOFS;
+        let add = |m: &mut Mat24, w: f64, u: &[f64; DOFS], v: &[f64; DOFS]| {
+            for r in 0..nd {
+                if u[r] == 0.0 {
+                    continue;
+                }
+                let wu = w * u[r];
+                for c in 0..nd {
+                    m[r][c] += wu * v[c];
+                }
+            }
+        };
+        for &(x, y, wq) in pts {
+            let (xi, eta) = ((x - x0_m) / a_m, (y - y0_m) / b_m);
+            let w = sign * wq;
             let n = shape(xi, eta, a_m, b_m);
-            let l = bilinear(xi, eta, a_m, b_m);
-            // Rows over the 24 DOFs: κ's three components, γ, θ and w.
+            // Rows over the DOFs: κ's three components, γ, θ and w.
             let mut kxx = [0.0; DOFS];
             let mut kyy = [0.0; DOFS];
             let mut kxy = [0.0; DOFS];
-            let mut gx = [0.0; DOFS];
-            let mut gy = [0.0; DOFS];
-            let mut tx = [0.0; DOFS];
-            let mut ty = [0.0; DOFS];
             let mut w0 = [0.0; DOFS];
-            for k in 0..16 {
+            for k in 0..BFS_DOFS {
                 kxx[k] = n[3][k];
                 kyy[k] = n[4][k];
                 kxy[k] = 2.0 * n[5][k];
-                tx[k] = n[1][k];
-                ty[k] = n[2][k];
                 w0[k] = n[0][k];
             }
-            for k in 0..4 {
-                let (ix_, iy_) = (16 + k, 20 + k);
-                kxx[ix_] = -l[1][k];
-                kyy[iy_] = -l[2][k];
-                kxy[ix_] = -l[2][k];
-                kxy[iy_] = -l[1][k];
-                gx[ix_] = l[0][k];
-                gy[iy_] = l[0][k];
-                tx[ix_] = -l[0][k];
-                ty[iy_] = -l[0][k];
+            if shear {
+                let l = bilinear(xi, eta, a_m, b_m);
+                let mut gx = [0.0; DOFS];
+                let mut gy = [0.0; DOFS];
+                let mut tx = [0.0; DOFS];
+                let mut ty = [0.0; DOFS];
+                tx[..BFS_DOFS].copy_from_slice(&n[1]);
+                ty[..BFS_DOFS].copy_from_slice(&n[2]);
+                for k in 0..4 {
+                    let (ix, iy) = (16 + k, 20 + k);
+                    kxx[ix] = -l[1][k];
+                    kyy[iy] = -l[2][k];
+                    kxy[ix] = -l[2][k];
+                    kxy[iy] = -l[1][k];
+                    gx[ix] = l[0][k];
+                    gy[iy] = l[0][k];
+                    tx[ix] = -l[0][k];
+                    ty[iy] = -l[0][k];
+                }
+                add(&mut self.k_shear[0], w, &gx, &gx);
+                add(&mut self.k_shear[1], w, &gy, &gy);
+                add(&mut self.m_rot, w, &tx, &tx);
+                add(&mut self.m_rot, w, &ty, &ty);
             }
-            add(&mut e.k_bend[0], w, &kxx, &kxx);
-            add(&mut e.k_bend[1], w, &kyy, &kyy);
-            add(&mut e.k_bend[2], w, &kxx, &kyy);
-            add(&mut e.k_bend[2], w, &kyy, &kxx);
-            add(&mut e.k_bend[3], w, &kxy, &kxy);
-            add(&mut e.k_shear[0], w, &gx, &gx);
-            add(&mut e.k_shear[1], w, &gy, &gy);
-            add(&mut e.m_trans, w, &w0, &w0);
-            add(&mut e.m_rot, w, &tx, &tx);
-            add(&mut e.m_rot, w, &ty, &ty);
+            add(&mut self.k_bend[0], w, &kxx, &kxx);
+            add(&mut self.k_bend[1], w, &kyy, &kyy);
+            add(&mut self.k_bend[2], w, &kxx, &kyy);
+            add(&mut self.k_bend[2], w, &kyy, &kxx);
+            add(&mut self.k_bend[3], w, &kxy, &kxy);
+            add(&mut self.m_trans, w, &w0, &w0);
+        }
+        // Exactly symmetric: (w·a)·b and (w·b)·a differ in the last bit.
+        for m in self
+            .k_bend
+            .iter_mut()
+            .chain(self.k_shear.iter_mut())
+            .chain([&mut self.m_trans, &mut self.m_rot])
+        {
+            for r in 0..nd {
+                for c in 0..r {
+                    let v = 0.5 * (m[r][c] + m[c][r]);
+                    m[r][c] = v;
+                    m[c][r] = v;
+                }
+            }
         }
     }
-    for m in e
-        .k_bend
-        .iter_mut()
-        .chain(e.k_shear.iter_mut())
-        .chain([&mut e.m_trans, &mut e.m_rot])
-    {
-        for r in 0..DOFS {
-            for c in 0..r {
-                let v = 0.5 * (m[r][c] + m[c][r]);
-                m[r][c] = v;
-                m[c][r] = v;
-            }
+}
+
+/// Integrate the unit matrices of an `a_m × b_m` element with `n` DOFs ([`BFS_DOFS`] or
+/// [`DOFS`]) by 4 × 4 Gauss points: exact, every integrand being of degree ≤ 6 in each
+/// direction.
+pub fn element_matrices(a_m: f64, b_m: f64, n: usize) -> ElementMatrices {
+    let (pts, wts) = gauss4();
+    let mut q = Vec::with_capacity(16);
+    for (ix, &xi) in pts.iter().enumerate() {
+        for (iy, &eta) in pts.iter().enumerate() {
+            q.push((xi * a_m, eta * b_m, wts[ix] * wts[iy] * a_m * b_m));
         }
     }
+    let mut e = ElementMatrices::zero(n);
+    e.add_points(&q, 0.0, 0.0, a_m, b_m, 1.0);
     e
 }
 
@@ -146,61 +196,11 @@ pub fn element_matrices(a_m: f64, b_m: f64) -> ElementMatrices {
 mod tests {
     use super::*;
 
-    /// An orthotropic plate a × b, thickness h (SI units).
-    struct Plate {
-        a: f64,
-        b: f64,
-        d: [f64; 4],
-        s: [f64; 2],
-        rho_h: f64,
-        inertia: f64,
-    }
+    use crate::fem::tests::helpers::MindlinPlate as Plate;
 
     fn plate(g_z_pa: f64) -> Plate {
-        let (a, b, h) = (0.16, 0.10, 1.6e-3);
-        let (ex, ey, nu, gxy, rho) = (22e9, 19e9, 0.13, 3.5e9, 1900.0);
-        let den = 1.0 - nu * nu * ey / ex;
-        let h3 = h * h * h / 12.0;
-        Plate {
-            a,
-            b,
-            d: [ex * h3 / den, ey * h3 / den, nu * ey * h3 / den, gxy * h3],
-            s: [5.0 / 6.0 * g_z_pa * h; 2],
-            rho_h: rho * h,
-            inertia: rho * h3,
-        }
-    }
-
-    /// Navier's solution of the hard simply supported Mindlin plate, mode (m, n): w = W sin sin,
-    /// θx = X cos sin, θy = Y sin cos; the lowest root of the 3 × 3 pencil, in Hz.
-    fn navier_hz(p: &Plate, m: usize, n: usize) -> f64 {
-        let (al, be) = (
-            m as f64 * std::f64::consts::PI / p.a,
-            n as f64 * std::f64::consts::PI / p.b,
-        );
-        let [d11, d22, d12, d66] = p.d;
-        let [sx, sy] = p.s;
-        let k = [
-            [sx * al * al + sy * be * be, -sx * al, -sy * be],
-            [
-                -sx * al,
-                d11 * al * al + d66 * be * be + sx,
-                (d12 + d66) * al * be,
-            ],
-            [
-                -sy * be,
-                (d12 + d66) * al * be,
-                d22 * be * be + d66 * al * al + sx,
-            ],
-        ];
-        // M = diag(ρh, I, I): the symmetric C = M^-½ K M^-½, its lowest eigenvalue by the
-        // dense solver of the ROM.
-        let ms = [p.rho_h, p.inertia, p.inertia];
-        let mut c: Vec<f64> = (0..9)
-            .map(|q| k[q / 3][q % 3] / (ms[q / 3] * ms[q % 3]).sqrt())
-            .collect();
-        let e = crate::fem::dense::lowest_eigenpairs(&mut c, 3, 0, 1);
-        e.values[0].sqrt() / (2.0 * std::f64::consts::PI)
+        let core = (22e9, 19e9, 3.5e9, 0.13);
+        Plate::homogeneous(0.16, 0.10, 1.6e-3, core, (g_z_pa, g_z_pa), 1900.0)
     }
 
     /// The lowest `count` frequencies (Hz) of the simply supported plate on an nx × ny mesh.
@@ -211,7 +211,7 @@ mod tests {
         let n = nodes * per;
         let mut k = vec![0.0; n * n];
         let mut m = vec![0.0; n * n];
-        let e = element_matrices(ea, eb);
+        let e = element_matrices(ea, eb, DOFS);
         let ke: Vec<f64> = (0..DOFS * DOFS)
             .map(|q| {
                 let (r, c) = (q / DOFS, q % DOFS);
@@ -282,18 +282,6 @@ mod tests {
             .collect()
     }
 
-    /// Kirchhoff's plate with rotary inertia (Rayleigh's), mode (m, n), in Hz: the limit of
-    /// [`navier_hz`] as the shear stiffness grows.
-    fn rayleigh_hz(p: &Plate, m: usize, n: usize) -> f64 {
-        let (al, be) = (
-            m as f64 * std::f64::consts::PI / p.a,
-            n as f64 * std::f64::consts::PI / p.b,
-        );
-        let [d11, d22, d12, d66] = p.d;
-        let k = d11 * al.powi(4) + 2.0 * (d12 + 2.0 * d66) * al * al * be * be + d22 * be.powi(4);
-        (k / (p.rho_h + p.inertia * (al * al + be * be))).sqrt() / (2.0 * std::f64::consts::PI)
-    }
-
     /// The simply supported orthotropic plate (16 × 10 elements) against Navier's Mindlin
     /// solution: the six lowest modes within 3e-4 (measured: 0.4–9.7e-5), where the shear
     /// makes them 0.55–2.8 % lower than Rayleigh's plate (G_z = 0.5 GPa). With ten thousand
@@ -307,8 +295,8 @@ mod tests {
             v
         };
         let p = plate(0.5e9);
-        let mindlin = sorted(modes.iter().map(|&(m, n)| navier_hz(&p, m, n)).collect());
-        let rayleigh = sorted(modes.iter().map(|&(m, n)| rayleigh_hz(&p, m, n)).collect());
+        let mindlin = sorted(modes.iter().map(|&(m, n)| p.navier_hz(m, n)).collect());
+        let rayleigh = sorted(modes.iter().map(|&(m, n)| p.rayleigh_hz(m, n)).collect());
         let fe = fe_hz(&p, 16, 10, modes.len());
         for ((f, exact), r) in fe.iter().zip(&mindlin).zip(&rayleigh) {
             let shear = r / exact - 1.0;

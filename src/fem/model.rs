@@ -35,10 +35,11 @@ use super::geometry::{
 use super::joints::{joint_terms, JointModel, Patch, Which};
 use super::laminate::{
     chebyshev_nodes, core_q_scale, coupling_correction, coupling_kernel, isotropic_q,
-    lagrange_basis, layer_factors, orthotropic_q, Comp4,
+    lagrange_basis, layer_factors, orthotropic_q, transverse_shear_stiffness, Comp4, ShearLayer,
 };
+use super::mindlin::{element_matrices, ElementMatrices, Mat24, BFS_DOFS, DOFS};
 use super::params::{names, Coef, Coefficients, ParamMap, Params};
-use super::plate::{element_matrices, part_integrals, shape, ElementMatrices, NODE_IJ};
+use super::plate::{part_integrals, shape, NODE_IJ};
 use super::sparse::Pattern;
 use super::FemError;
 
@@ -137,12 +138,10 @@ fn cut_cell_matrices(
 ) -> ElementMatrices {
     let (x0, y0) = (mesh.x_m[ex], mesh.y_m[ey]);
     let (a, b) = mesh.size(ex, ey);
+    let n = full.n;
     let mut m = match cc {
         CutCell::Material(pts) => {
-            let mut m = ElementMatrices {
-                k: [[[0.0; 16]; 16]; 4],
-                m: [[0.0; 16]; 16],
-            };
+            let mut m = ElementMatrices::zero(n);
             m.add_points(pts, x0, y0, a, b, 1.0);
             m
         }
@@ -152,10 +151,11 @@ fn cut_cell_matrices(
             m
         }
     };
-    for k in 0..4 {
-        for r in 0..16 {
-            for c in 0..16 {
-                m.k[k][r][c] += VOID_STIFFNESS * (full.k[k][r][c] - m.k[k][r][c]);
+    let stiff = m.k_bend.iter_mut().chain(m.k_shear.iter_mut());
+    for (mk, fk) in stiff.zip(full.k_bend.iter().chain(&full.k_shear)) {
+        for r in 0..n {
+            for c in 0..n {
+                mk[r][c] += VOID_STIFFNESS * (fk[r][c] - mk[r][c]);
             }
         }
     }
@@ -178,6 +178,10 @@ struct Stack {
     /// the surface (z from h/2 to h/2 + t) has (z₂³ − z₁³)/3 = h² t/4 + h t²/2 + t³/3.
     d_cu_pow: [Comp4; 3],
     rho_h_cu: f64,
+    /// Copper's rotary inertia Σ f ρ (z₂³ − z₁³)/3, kg, and the same split by powers of h
+    /// (as `d_cu_pow`).
+    rho_i_cu: f64,
+    rho_i_cu_pow: [f64; 3],
     s: f64,
     t: f64,
     /// t = h u + v: the coupling variable's parts, u = Σ ±f t_l/2 and v = Σ ±f t_l²/2.
@@ -249,8 +253,11 @@ pub struct Mesh {
     /// Fraction of element `ey * nx + ex` that is material (not hole), exact to
     /// quadrature accuracy (~1e-12).
     pub material_fraction: Vec<f64>,
-    /// First DOF of node `j * (nx + 1) + i`, if the node carries DOFs.
+    /// First DOF of node `j * (nx + 1) + i`, if the node carries DOFs: w, ∂w/∂x, ∂w/∂y,
+    /// ∂²w/∂x∂y from there, then γx, γy on a shear-deformable plate.
     pub node_dof: Vec<Option<usize>>,
+    /// DOFs per node: 4 (Kirchhoff) or 6 (shear-deformable).
+    pub dofs_per_node: usize,
 }
 
 /// Refinement of a bolted board's mesh at its joints ([`super::grading`]): elements at a
@@ -317,6 +324,7 @@ impl Mesh {
             active: vec![],
             material_fraction: vec![],
             node_dof: vec![],
+            dofs_per_node: 4,
         }
     }
 
@@ -357,14 +365,29 @@ impl Mesh {
         NODE_IJ.map(|(i, j)| (ey + j) * (self.nx + 1) + ex + i)
     }
 
-    /// DOFs of element (ex, ey) in BFS order, if all nodes carry DOFs.
-    fn element_dofs(&self, ex: usize, ey: usize) -> Option<[usize; 16]> {
+    /// DOFs per element: 16 (BFS) or 24 (shear-deformable, [`super::mindlin`]).
+    pub fn element_dof_count(&self) -> usize {
+        if self.dofs_per_node == 6 {
+            DOFS
+        } else {
+            BFS_DOFS
+        }
+    }
+
+    /// DOFs of element (ex, ey) in the element's order ([`super::mindlin`]: the BFS's 16,
+    /// then γx and γy at the four nodes; only the first [`Self::element_dof_count`] are
+    /// meaningful), if all nodes carry DOFs.
+    fn element_dofs(&self, ex: usize, ey: usize) -> Option<[usize; DOFS]> {
         let nodes = self.element_nodes(ex, ey);
-        let mut d = [0usize; 16];
+        let mut d = [0usize; DOFS];
         for (k, n) in nodes.iter().enumerate() {
             let base = self.node_dof[*n]?;
             for c in 0..4 {
                 d[4 * k + c] = base + c;
+            }
+            if self.dofs_per_node == 6 {
+                d[16 + k] = base + 4;
+                d[20 + k] = base + 5;
             }
         }
         Some(d)
@@ -404,15 +427,18 @@ pub struct FeModel {
 /// one takes ~10 µs).
 struct UnitMatrices<'m> {
     mesh: &'m Mesh,
+    /// DOFs per element.
+    n: usize,
     uniform: Option<ElementMatrices>,
 }
 
 impl<'m> UnitMatrices<'m> {
     fn new(mesh: &'m Mesh) -> Self {
+        let n = mesh.element_dof_count();
         let uniform = mesh
             .is_uniform()
-            .then(|| element_matrices(mesh.hx_m[0], mesh.hy_m[0]));
-        UnitMatrices { mesh, uniform }
+            .then(|| element_matrices(mesh.hx_m[0], mesh.hy_m[0], n));
+        UnitMatrices { mesh, n, uniform }
     }
 
     fn get(&self, ex: usize, ey: usize) -> std::borrow::Cow<'_, ElementMatrices> {
@@ -420,7 +446,7 @@ impl<'m> UnitMatrices<'m> {
             Some(em) => std::borrow::Cow::Borrowed(em),
             None => {
                 let (a, b) = self.mesh.size(ex, ey);
-                std::borrow::Cow::Owned(element_matrices(a, b))
+                std::borrow::Cow::Owned(element_matrices(a, b, self.n))
             }
         }
     }
@@ -576,9 +602,14 @@ fn cut_cells(board: &Board, mesh: &Mesh, nx: usize, ny: usize) -> CutCells {
     }
 }
 
-/// Per node, its first DOF (four per node; `None`: the node is in no active element),
-/// and the number of DOFs.
-fn number_dofs(active: &[bool], nx: usize, ny: usize) -> (Vec<Option<usize>>, usize) {
+/// Per node, its first DOF (`per_node` per node; `None`: the node is in no active
+/// element), and the number of DOFs.
+fn number_dofs(
+    active: &[bool],
+    nx: usize,
+    ny: usize,
+    per_node: usize,
+) -> (Vec<Option<usize>>, usize) {
     let n_nodes = (nx + 1) * (ny + 1);
     let mut used = vec![false; n_nodes];
     for ey in 0..ny {
@@ -595,7 +626,7 @@ fn number_dofs(active: &[bool], nx: usize, ny: usize) -> (Vec<Option<usize>>, us
     for (n, u) in used.iter().enumerate() {
         if *u {
             node_dof[n] = Some(n_dof);
-            n_dof += 4;
+            n_dof += per_node;
         }
     }
     (node_dof, n_dof)
@@ -644,42 +675,53 @@ fn thickness_power(i_h: Option<usize>, nominal_m: f64, base: Coef, power: i32) -
 }
 
 /// Appends Σ_k comp_k K[k] of the element with DOFs `dofs` to `t`.
-fn add_components(t: &mut Triplets, em: &ElementMatrices, dofs: &[usize; 16], comp: Comp4) {
-    for r in 0..16 {
-        for cc in 0..16 {
-            let v: f64 = (0..4).map(|k| comp[k] * em.k[k][r][cc]).sum::<f64>();
+fn add_components(t: &mut Triplets, em: &ElementMatrices, dofs: &[usize; DOFS], comp: Comp4) {
+    let n = em.n;
+    for r in 0..n {
+        for cc in 0..n {
+            let v: f64 = (0..4).map(|k| comp[k] * em.k_bend[k][r][cc]).sum::<f64>();
             t.push((dofs[r], dofs[cc], v));
         }
     }
 }
 
-/// Appends the element matrix `m` with DOFs `dofs` to `t`.
-fn push16(t: &mut Triplets, dofs: &[usize; 16], m: &[[f64; 16]; 16]) {
-    for r in 0..16 {
-        for cc in 0..16 {
+/// Appends the leading `n × n` block of the element matrix `m` with DOFs `dofs` to `t`.
+fn push_block(t: &mut Triplets, dofs: &[usize; DOFS], m: &Mat24, n: usize) {
+    for r in 0..n {
+        for cc in 0..n {
             t.push((dofs[r], dofs[cc], m[r][cc]));
         }
     }
 }
 
+/// dst += s × src on the leading `n × n` block.
+fn add_scaled(dst: &mut Mat24, s: f64, src: &Mat24, n: usize) {
+    if s == 0.0 {
+        return;
+    }
+    for r in 0..n {
+        for cc in 0..n {
+            dst[r][cc] += s * src[r][cc];
+        }
+    }
+}
+
 /// Σ over cells of Σ_k comp_k(cell) K_cell[k].
-fn combine(cells: &[Cell], eme: &ElementMatrices, f: &dyn Fn(&Cell) -> Comp4) -> [[f64; 16]; 16] {
-    let mut out = [[0.0; 16]; 16];
+fn combine(cells: &[Cell], eme: &ElementMatrices, f: &dyn Fn(&Cell) -> Comp4) -> Mat24 {
+    let mut out = [[0.0; DOFS]; DOFS];
     for cell in cells {
         let m = cell.matrices.as_ref().unwrap_or(eme);
         let comp = f(cell);
         for k in 0..4 {
-            if comp[k] == 0.0 {
-                continue;
-            }
-            for r in 0..16 {
-                for cc in 0..16 {
-                    out[r][cc] += comp[k] * m.k[k][r][cc];
-                }
-            }
+            add_scaled(&mut out, comp[k], &m.k_bend[k], eme.n);
         }
     }
     out
+}
+
+/// The BFS (w) DOFs among an element's DOFs.
+fn bfs_dofs(d: &[usize; DOFS]) -> [usize; BFS_DOFS] {
+    std::array::from_fn(|i| d[i])
 }
 
 /// What the element loop and the coupling expansion share: the board on its mesh with
@@ -696,6 +738,9 @@ struct Plate<'a> {
     a_core: f64,
     /// The core's thickness, m.
     h: f64,
+    /// The core's transverse shear moduli (G_xz, G_yz), Pa, when the plate is
+    /// shear-deformable.
+    g_z: Option<(f64, f64)>,
 }
 
 /// The element loop's triplets, per term.
@@ -708,6 +753,13 @@ struct PlateTriplets {
     mass: Triplets,
     mass_core: Triplets,
     any_corr: bool,
+    /// Shear-deformable plates: transverse shear (S per piece), rotary inertia (core and
+    /// copper together; with the thickness a parameter, the core's ∝ h³ and copper's split
+    /// by powers of h).
+    shear: Triplets,
+    rot: Triplets,
+    rot_core: Triplets,
+    rot_cu_pow: [Triplets; 3],
 }
 
 impl Plate<'_> {
@@ -730,10 +782,7 @@ impl Plate<'_> {
         pieces
             .into_iter()
             .map(|p| {
-                let mut m = ElementMatrices {
-                    k: [[[0.0; 16]; 16]; 4],
-                    m: [[0.0; 16]; 16],
-                };
+                let mut m = ElementMatrices::zero(self.units.n);
                 let pts = if self.cut_points[ey * nx + ex].is_some() {
                     piece_material_quadrature(&p.polygon, &self.board.holes)
                 } else {
@@ -758,6 +807,8 @@ impl Plate<'_> {
             d_cu: [0.0; 4],
             d_cu_pow: [[0.0; 4]; 3],
             rho_h_cu: 0.0,
+            rho_i_cu: 0.0,
+            rho_i_cu_pow: [0.0; 3],
             s: 0.0,
             t: 0.0,
             t_pow: [0.0; 2],
@@ -784,12 +835,69 @@ impl Plate<'_> {
                 }
             }
             st.rho_h_cu += frac * l.density_kg_per_m3 * l.thickness_m;
+            st.rho_i_cu += frac * l.density_kg_per_m3 * fd;
+            for (pw, f) in fd_pow.iter().enumerate() {
+                st.rho_i_cu_pow[pw] += frac * l.density_kg_per_m3 * f;
+            }
             st.s += frac * fa;
             st.t += frac * fb;
             st.t_pow[0] += sign * frac * tl / 2.0;
             st.t_pow[1] += sign * frac * tl * tl / 2.0;
         }
         st
+    }
+
+    /// The transverse shear stiffnesses (S_x, S_y), N/m, of a piece with copper coverage
+    /// `cov`, the core's moduli being `(g_xz, g_yz)`: each layer's coverage splits the piece
+    /// into the stacks with and without it, side by side (their S in parallel, weighted by
+    /// area, the layers' coverages taken as independent), and each stack's S is Whitney's
+    /// ([`transverse_shear_stiffness`]). It does not follow the moduli parameters: the
+    /// in-plane moduli move S only through the shape of the shear-stress profile, a
+    /// second-order effect on the frequencies the shear itself changes by a few per cent.
+    fn shear_stiffness(&self, cov: &[f64], (g_xz, g_yz): (f64, f64)) -> [f64; 2] {
+        let h = self.h;
+        let layers: Vec<(&super::board::CopperLayer, f64)> = self
+            .board
+            .copper
+            .iter()
+            .zip(cov)
+            .filter(|(_, f)| **f > 0.0)
+            .map(|(l, f)| (l, *f))
+            .collect();
+        let mut out = [0.0; 2];
+        for config in 0..(1usize << layers.len()) {
+            let mut weight = 1.0;
+            for (bit, (_, f)) in layers.iter().enumerate() {
+                weight *= if config >> bit & 1 == 1 { *f } else { 1.0 - f };
+            }
+            if weight == 0.0 {
+                continue;
+            }
+            for (axis, g_core) in [g_xz, g_yz].into_iter().enumerate() {
+                let mut stack = vec![ShearLayer {
+                    z1_m: -h / 2.0,
+                    z2_m: h / 2.0,
+                    q_pa: self.q_core[axis],
+                    g_z_pa: g_core,
+                }];
+                for (bit, (l, _)) in layers.iter().enumerate() {
+                    if config >> bit & 1 == 1 {
+                        let (z1_m, z2_m) = match l.side {
+                            LayerSide::Top => (h / 2.0, h / 2.0 + l.thickness_m),
+                            LayerSide::Bottom => (-h / 2.0 - l.thickness_m, -h / 2.0),
+                        };
+                        stack.push(ShearLayer {
+                            z1_m,
+                            z2_m,
+                            q_pa: isotropic_q(l.e_pa, l.nu)[axis],
+                            g_z_pa: l.e_pa / (2.0 * (1.0 + l.nu)),
+                        });
+                    }
+                }
+                out[axis] += weight * transverse_shear_stiffness(&stack);
+            }
+        }
+        out
     }
 
     /// The element matrices of (ex, ey) over its material part only.
@@ -838,14 +946,15 @@ impl Plate<'_> {
                     add_components(&mut t.core[k], eme, &dofs, unit);
                 }
                 let cells = self.cells_of(ex, ey);
+                let n = eme.n;
                 if has_cu && thickness {
                     for (pw, tp) in t.cu_pow.iter_mut().enumerate() {
                         let k_cu = combine(&cells, eme, &|c| self.stack(&c.coverage).d_cu_pow[pw]);
-                        push16(tp, &dofs, &k_cu);
+                        push_block(tp, &dofs, &k_cu, n);
                     }
                 } else if has_cu {
                     let k_cu = combine(&cells, eme, &|c| self.stack(&c.coverage).d_cu);
-                    push16(&mut t.cu, &dofs, &k_cu);
+                    push_block(&mut t.cu, &dofs, &k_cu, n);
                 }
                 if uniform_cu {
                     if cells.iter().any(|c| self.stack(&c.coverage).t != 0.0) {
@@ -858,37 +967,54 @@ impl Plate<'_> {
                     });
                     if corr.iter().flatten().any(|v| *v != 0.0) {
                         t.any_corr = true;
-                        push16(&mut t.corr, &dofs, &corr);
+                        push_block(&mut t.corr, &dofs, &corr, n);
                     }
                 }
-                let mut mass = [[0.0; 16]; 16];
+                let z = [[0.0; DOFS]; DOFS];
+                let (mut mass, mut shear, mut rot) = (z, z, z);
+                let mut rot_cu_pow = [z; 3];
                 let rho_core_h = self.board.core.density_kg_per_m3 * self.h;
+                let rho_core_i = rho_core_h * self.h * self.h / 12.0;
                 for cell in &cells {
-                    let mm = &cell.matrices.as_ref().unwrap_or(eme).m;
-                    let rho = self.stack(&cell.coverage).rho_h_cu;
-                    for r in 0..16 {
-                        for cc in 0..16 {
-                            mass[r][cc] += rho * mm[r][cc];
+                    let cm = cell.matrices.as_ref().unwrap_or(eme);
+                    let st = self.stack(&cell.coverage);
+                    add_scaled(&mut mass, st.rho_h_cu, &cm.m_trans, n);
+                    if let Some(g_z) = self.g_z {
+                        let [s_x, s_y] = self.shear_stiffness(&cell.coverage, g_z);
+                        add_scaled(&mut shear, s_x, &cm.k_shear[0], n);
+                        add_scaled(&mut shear, s_y, &cm.k_shear[1], n);
+                        if thickness {
+                            for (pw, r) in rot_cu_pow.iter_mut().enumerate() {
+                                add_scaled(r, st.rho_i_cu_pow[pw], &cm.m_rot, n);
+                            }
+                        } else {
+                            add_scaled(&mut rot, st.rho_i_cu, &cm.m_rot, n);
                         }
                     }
                 }
                 if thickness {
-                    // The core's mass in a term of its own (∝ h).
-                    let mut core = [[0.0; 16]; 16];
-                    for r in 0..16 {
-                        for cc in 0..16 {
-                            core[r][cc] = rho_core_h * eme.m[r][cc];
-                        }
-                    }
-                    push16(&mut t.mass_core, &dofs, &core);
+                    // The core's mass in a term of its own (∝ h), its rotary inertia too (∝ h³).
+                    let mut core = z;
+                    add_scaled(&mut core, rho_core_h, &eme.m_trans, n);
+                    push_block(&mut t.mass_core, &dofs, &core, n);
                 } else {
-                    for r in 0..16 {
-                        for cc in 0..16 {
-                            mass[r][cc] += rho_core_h * eme.m[r][cc];
+                    add_scaled(&mut mass, rho_core_h, &eme.m_trans, n);
+                }
+                push_block(&mut t.mass, &dofs, &mass, n);
+                if self.g_z.is_some() {
+                    push_block(&mut t.shear, &dofs, &shear, n);
+                    if thickness {
+                        let mut core = z;
+                        add_scaled(&mut core, rho_core_i, &eme.m_rot, n);
+                        push_block(&mut t.rot_core, &dofs, &core, n);
+                        for (tp, r) in t.rot_cu_pow.iter_mut().zip(&rot_cu_pow) {
+                            push_block(tp, &dofs, r, n);
                         }
+                    } else {
+                        add_scaled(&mut rot, rho_core_i, &eme.m_rot, n);
+                        push_block(&mut t.rot, &dofs, &rot, n);
                     }
                 }
-                push16(&mut t.mass, &dofs, &mass);
             }
         }
         (t, coupled)
@@ -971,8 +1097,9 @@ impl Plate<'_> {
             let Some(dofs) = self.mesh.element_dofs(ex, ey) else {
                 unreachable!("active element without DOFs")
             };
-            let idx: Vec<usize> = (0..256)
-                .map(|q| pattern.index(dofs[q / 16], dofs[q % 16]))
+            let nd = eme.n;
+            let idx: Vec<usize> = (0..nd * nd)
+                .map(|q| pattern.index(dofs[q / nd], dofs[q % nd]))
                 .collect();
             for cell in self.cells_of(ex, ey) {
                 let st = self.stack(&cell.coverage);
@@ -993,7 +1120,7 @@ impl Plate<'_> {
                             let w = -t2 * lk * scales[k][comp];
                             let v = &mut vals[pw * n_set + 4 * k + comp];
                             for (q, &iq) in idx.iter().enumerate() {
-                                v[iq] += w * m.k[comp][q / 16][q % 16];
+                                v[iq] += w * m.k_bend[comp][q / nd][q % nd];
                             }
                         }
                     }
@@ -1016,6 +1143,8 @@ impl PlateTriplets {
         i_h: Option<usize>,
         h_pow: &dyn Fn(Coef, i32) -> Coef,
     ) {
+        // A shear-deformable plate has shear triplets in every element.
+        let shear = !self.shear.is_empty();
         let has_cu = !board.copper.is_empty();
         let core_names = ["core_q11", "core_q22", "core_q12", "core_q66"];
         for (k, t) in self.core.into_iter().enumerate() {
@@ -1052,6 +1181,26 @@ impl PlateTriplets {
             };
             mb.push("core_mass", h_pow(coef, 1), self.mass_core);
         }
+        if !shear {
+            return;
+        }
+        // Transverse shear: S ∝ h to first order (the core carries the shear).
+        kb.push("transverse_shear", h_pow(Coef::Const, 1), self.shear);
+        let mass = Coef::Linear {
+            param: i_mass,
+            scale: 1.0,
+        };
+        if i_h.is_some() {
+            mb.push("rotary_inertia_core", h_pow(mass.clone(), 3), self.rot_core);
+            if has_cu {
+                for (pw, t) in self.rot_cu_pow.into_iter().enumerate() {
+                    let name = format!("rotary_inertia_copper_h{pw}");
+                    mb.push(&name, h_pow(mass.clone(), pw as i32), t);
+                }
+            }
+        } else {
+            mb.push("rotary_inertia", mass, self.rot);
+        }
     }
 }
 
@@ -1084,7 +1233,7 @@ fn joint_patches(board: &Board, mesh: &Mesh) -> Result<(Vec<Vec<usize>>, Vec<Pat
                 for k in 0..4 {
                     w_dofs.push(dofs[4 * k]);
                 }
-                parts.push((dofs, pi));
+                parts.push((bfs_dofs(&dofs), pi));
             }
         }
         let area_m2: f64 = parts.iter().map(|(_, p)| p.area_m2).sum();
@@ -1189,7 +1338,9 @@ impl FeModel {
         let (nx, ny) = (x_m.len() - 1, y_m.len() - 1);
         let mut mesh_data = Mesh::from_lines(x_m, y_m, board.length_x_m, board.width_y_m);
         let cuts = cut_cells(board, &mesh_data, nx, ny);
-        let (node_dof, mut n_dof) = number_dofs(&cuts.active, nx, ny);
+        let g_z = board.core.transverse_shear();
+        mesh_data.dofs_per_node = if g_z.is_some() { 6 } else { 4 };
+        let (node_dof, mut n_dof) = number_dofs(&cuts.active, nx, ny, mesh_data.dofs_per_node);
         mesh_data.active = cuts.active;
         mesh_data.material_fraction = cuts.material_fraction;
         mesh_data.node_dof = node_dof;
@@ -1234,6 +1385,7 @@ impl FeModel {
             q_core,
             a_core,
             h,
+            g_z,
         };
         let mut kb = TermBuilder::new();
         let mut mb = TermBuilder::new();
@@ -1542,10 +1694,10 @@ impl FeModel {
         for (dofs, disc) in elements {
             for k in 0..4 {
                 let s = (factor - 1.0) * qd[k];
-                for r in 0..16 {
-                    for cc in 0..16 {
+                for r in 0..disc.n {
+                    for cc in 0..disc.n {
                         let q = self.pattern.index(dofs[r], dofs[cc]);
-                        self.k_terms[idx[k]][q] += s * disc.k[k][r][cc];
+                        self.k_terms[idx[k]][q] += s * disc.k_bend[k][r][cc];
                     }
                 }
             }
@@ -1566,7 +1718,7 @@ impl FeModel {
         x_m: f64,
         y_m: f64,
         radius_m: f64,
-    ) -> (Vec<([usize; 16], ElementMatrices)>, [f64; 4]) {
+    ) -> (Vec<([usize; DOFS], ElementMatrices)>, [f64; 4]) {
         let c = &self.board.core;
         let h = c.thickness_m;
         let q_core = orthotropic_q(c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy);
@@ -1586,10 +1738,7 @@ impl FeModel {
                 let Some(dofs) = self.mesh.element_dofs(ex, ey) else {
                     continue;
                 };
-                let mut disc = ElementMatrices {
-                    k: [[[0.0; 16]; 16]; 4],
-                    m: [[0.0; 16]; 16],
-                };
+                let mut disc = ElementMatrices::zero(self.mesh.element_dof_count());
                 disc.add_points(&pts, rect.x0, rect.y0, a, b, 1.0);
                 out.push((dofs, disc));
             }
@@ -1614,27 +1763,24 @@ impl FeModel {
         let mut e = Mat::<f64>::zeros(n, n);
         let (elements, qd) = self.core_disc(x_m, y_m, radius_m);
         for (dofs, disc) in elements {
-            let mut kel = [[0.0; 16]; 16];
+            let nd = disc.n;
+            let mut kel = [[0.0; DOFS]; DOFS];
             for (k, q) in qd.iter().enumerate() {
-                for r in 0..16 {
-                    for c in 0..16 {
-                        kel[r][c] += q * disc.k[k][r][c];
-                    }
-                }
+                add_scaled(&mut kel, *q, &disc.k_bend[k], nd);
             }
             // K_el v_k restricted to the element, then v_jᵀ of it.
-            let kv: Vec<[f64; 16]> = (0..n)
+            let kv: Vec<[f64; DOFS]> = (0..n)
                 .map(|k| {
-                    let mut out = [0.0; 16];
-                    for r in 0..16 {
-                        out[r] = (0..16).map(|c| kel[r][c] * vectors[(dofs[c], k)]).sum();
+                    let mut out = [0.0; DOFS];
+                    for r in 0..nd {
+                        out[r] = (0..nd).map(|c| kel[r][c] * vectors[(dofs[c], k)]).sum();
                     }
                     out
                 })
                 .collect();
             for j in 0..n {
                 for k in j..n {
-                    let v: f64 = (0..16).map(|r| vectors[(dofs[r], j)] * kv[k][r]).sum();
+                    let v: f64 = (0..nd).map(|r| vectors[(dofs[r], j)] * kv[k][r]).sum();
                     e[(j, k)] += v;
                     if k != j {
                         e[(k, j)] += v;
@@ -1662,7 +1808,7 @@ impl FeModel {
         {
             return Err(out);
         }
-        let dofs = m.element_dofs(ex, ey).ok_or(out)?;
+        let dofs = bfs_dofs(&m.element_dofs(ex, ey).ok_or(out)?);
         let (a, b) = m.size(ex, ey);
         let xi = ((x_m - m.x_m[ex]) / a).clamp(0.0, 1.0);
         let eta = ((y_m - m.y_m[ey]) / b).clamp(0.0, 1.0);

@@ -92,78 +92,6 @@ pub(crate) fn gauss4() -> ([f64; 4], [f64; 4]) {
     )
 }
 
-/// The unit matrices of one `a_m × b_m` element.
-#[derive(Clone, Debug)]
-pub struct ElementMatrices {
-    /// `[K₁₁, K₂₂, K₁₂, K₆₆]`, each multiplied by the matching D component (N·m) gives N/m-consistent stiffness.
-    pub k: [Mat16; 4],
-    /// ∫ N Nᵀ dA (m²); multiply by ρh (kg/m²).
-    pub m: Mat16,
-}
-
-/// Integrate the unit stiffness and mass matrices of an `a_m × b_m` BFS element.
-pub fn element_matrices(a_m: f64, b_m: f64) -> ElementMatrices {
-    let (pts, wts) = gauss4();
-    let mut k = [[[0.0; 16]; 16]; 4];
-    let mut m = [[0.0; 16]; 16];
-    let area = a_m * b_m;
-    for (ix, &xi) in pts.iter().enumerate() {
-        for (iy, &eta) in pts.iter().enumerate() {
-            let w = wts[ix] * wts[iy] * area;
-            let n = shape(xi, eta, a_m, b_m);
-            for r in 0..16 {
-                for c in 0..16 {
-                    k[0][r][c] += w * n[3][r] * n[3][c];
-                    k[1][r][c] += w * n[4][r] * n[4][c];
-                    k[2][r][c] += w * (n[3][r] * n[4][c] + n[4][r] * n[3][c]);
-                    k[3][r][c] += w * 4.0 * n[5][r] * n[5][c];
-                    m[r][c] += w * n[0][r] * n[0][c];
-                }
-            }
-        }
-    }
-    // Make the matrices exactly symmetric: (w·a)·b and (w·b)·a differ in the last bit.
-    for mat in k.iter_mut().chain(std::iter::once(&mut m)) {
-        symmetrize16(mat);
-    }
-    ElementMatrices { k, m }
-}
-
-impl ElementMatrices {
-    /// Add `sign` × the integrals over the quadrature points `pts` (global `(x_m, y_m,
-    /// weight_m2)`, all inside the element whose lower-left corner is `(x0_m, y0_m)`)
-    /// to the unit matrices: with `sign = -1` and the points of a hole, the element's
-    /// matrices become integrals over its material part only (cut-cell quadrature).
-    pub fn add_points(
-        &mut self,
-        pts: &[(f64, f64, f64)],
-        x0_m: f64,
-        y0_m: f64,
-        a_m: f64,
-        b_m: f64,
-        sign: f64,
-    ) {
-        for &(x, y, w) in pts {
-            let n = shape((x - x0_m) / a_m, (y - y0_m) / b_m, a_m, b_m);
-            let w = sign * w;
-            for r in 0..16 {
-                let (nxx, nyy, nxy, n0) =
-                    (w * n[3][r], w * n[4][r], 4.0 * w * n[5][r], w * n[0][r]);
-                for c in 0..16 {
-                    self.k[0][r][c] += nxx * n[3][c];
-                    self.k[1][r][c] += nyy * n[4][c];
-                    self.k[2][r][c] += nxx * n[4][c] + nyy * n[3][c];
-                    self.k[3][r][c] += nxy * n[5][c];
-                    self.m[r][c] += n0 * n[0][c];
-                }
-            }
-        }
-        for mat in self.k.iter_mut().chain(std::iter::once(&mut self.m)) {
-            symmetrize16(mat);
-        }
-    }
-}
-
 /// Make a 16 × 16 matrix exactly symmetric (quadrature sums differ in the last bit).
 fn symmetrize16(mat: &mut Mat16) {
     for r in 0..16 {
@@ -236,36 +164,6 @@ mod tests {
                 assert!((n[1][k] - want(1)).abs() < 1e-9);
                 assert!((n[2][k] - want(2)).abs() < 1e-9);
                 assert!((n[5][k] - want(3)).abs() < 1e-6);
-            }
-        }
-    }
-
-    #[test]
-    fn element_mass_integrates_to_area_and_rigid_modes_have_no_energy() {
-        let (a, b) = (0.003, 0.002);
-        let em = element_matrices(a, b);
-        // Rigid translation w = 1: DOF vector (1,0,0,0) per node.
-        let mut r = [0.0; 16];
-        for node in 0..4 {
-            r[4 * node] = 1.0;
-        }
-        let mass: f64 = (0..16)
-            .flat_map(|i| (0..16).map(move |j| (i, j)))
-            .map(|(i, j)| r[i] * em.m[i][j] * r[j])
-            .sum();
-        assert!((mass - a * b).abs() < 1e-15, "∫1 dA = {mass} vs {}", a * b);
-        // Rigid rotation w = x: (x_node, 1, 0, 0).
-        let mut rx = [0.0; 16];
-        for (node, &(i, _)) in NODE_IJ.iter().enumerate() {
-            rx[4 * node] = i as f64 * a;
-            rx[4 * node + 1] = 1.0;
-        }
-        for kk in &em.k {
-            for v in [&r, &rx] {
-                for row in kk {
-                    let f: f64 = (0..16).map(|j| row[j] * v[j]).sum();
-                    assert!(f.abs() < 1e-6, "rigid mode produces force {f}");
-                }
             }
         }
     }

@@ -26,6 +26,8 @@ pub fn plain_board(lx: f64, ly: f64, h: f64, ex: f64, ey: f64, g: f64, nu: f64, 
             g_xy_pa: g,
             nu_xy: nu,
             density_kg_per_m3: rho,
+            g_xz_pa: None,
+            g_yz_pa: None,
         },
         copper: vec![],
         holes: vec![],
@@ -130,11 +132,20 @@ pub fn simply_supported_dofs(model: &FeModel) -> Vec<usize> {
             if on_x_edge || on_y_edge {
                 fixed.push(d);
             }
+            // Hard support: the tangential slope vanishes, and on a shear-deformable plate
+            // the tangential shear strain too (so does the normal's tangential rotation).
+            let shear = model.mesh.dofs_per_node == 6;
             if on_x_edge {
                 fixed.push(d + 2);
+                if shear {
+                    fixed.push(d + 5);
+                }
             }
             if on_y_edge {
                 fixed.push(d + 1);
+                if shear {
+                    fixed.push(d + 4);
+                }
             }
         }
     }
@@ -143,4 +154,84 @@ pub fn simply_supported_dofs(model: &FeModel) -> Vec<usize> {
 
 pub fn build(board: &Board, setup: Setup, nx: usize, ny: usize) -> FeModel {
     FeModel::build(board, setup, &MeshOptions { nx, ny }).unwrap()
+}
+
+/// A specially orthotropic plate for the shear-deformable references: size a × b (m),
+/// bending stiffnesses D = [D11, D22, D12, D66] (N·m), transverse shear stiffnesses
+/// S = [S_x, S_y] (N/m), mass per area ρh (kg/m²) and rotary inertia I = ρh³/12 (kg).
+#[derive(Clone, Copy, Debug)]
+pub struct MindlinPlate {
+    pub a: f64,
+    pub b: f64,
+    pub d: [f64; 4],
+    pub s: [f64; 2],
+    pub rho_h: f64,
+    pub inertia: f64,
+}
+
+impl MindlinPlate {
+    /// Of a homogeneous orthotropic core: S = 5/6 G h (Reissner), I = ρ h³/12.
+    pub fn homogeneous(
+        a: f64,
+        b: f64,
+        h: f64,
+        (ex, ey, gxy, nu): (f64, f64, f64, f64),
+        (gxz, gyz): (f64, f64),
+        rho: f64,
+    ) -> MindlinPlate {
+        let den = 1.0 - nu * nu * ey / ex;
+        let h3 = h * h * h / 12.0;
+        MindlinPlate {
+            a,
+            b,
+            d: [ex * h3 / den, ey * h3 / den, nu * ey * h3 / den, gxy * h3],
+            s: [5.0 / 6.0 * gxz * h, 5.0 / 6.0 * gyz * h],
+            rho_h: rho * h,
+            inertia: rho * h3,
+        }
+    }
+
+    /// Navier's solution of the hard simply supported plate, mode (m, n): w = W sin sin,
+    /// θx = X cos sin, θy = Y sin cos; the lowest root of the 3 × 3 pencil, in Hz.
+    pub fn navier_hz(&self, m: usize, n: usize) -> f64 {
+        let (al, be) = (
+            m as f64 * std::f64::consts::PI / self.a,
+            n as f64 * std::f64::consts::PI / self.b,
+        );
+        let [d11, d22, d12, d66] = self.d;
+        let [sx, sy] = self.s;
+        let k = [
+            [sx * al * al + sy * be * be, -sx * al, -sy * be],
+            [
+                -sx * al,
+                d11 * al * al + d66 * be * be + sx,
+                (d12 + d66) * al * be,
+            ],
+            [
+                -sy * be,
+                (d12 + d66) * al * be,
+                d22 * be * be + d66 * al * al + sy,
+            ],
+        ];
+        // M = diag(ρh, I, I): the symmetric C = M^-½ K M^-½, its lowest eigenvalue.
+        let ms = [self.rho_h, self.inertia, self.inertia];
+        let mut c: Vec<f64> = (0..9)
+            .map(|q| k[q / 3][q % 3] / (ms[q / 3] * ms[q % 3]).sqrt())
+            .collect();
+        let e = crate::fem::dense::lowest_eigenpairs(&mut c, 3, 0, 1);
+        e.values[0].sqrt() / (2.0 * std::f64::consts::PI)
+    }
+
+    /// Kirchhoff's plate with rotary inertia (Rayleigh's), mode (m, n), in Hz: the limit of
+    /// [`Self::navier_hz`] as the shear stiffness grows.
+    pub fn rayleigh_hz(&self, m: usize, n: usize) -> f64 {
+        let (al, be) = (
+            m as f64 * std::f64::consts::PI / self.a,
+            n as f64 * std::f64::consts::PI / self.b,
+        );
+        let [d11, d22, d12, d66] = self.d;
+        let k = d11 * al.powi(4) + 2.0 * (d12 + 2.0 * d66) * al * al * be * be + d22 * be.powi(4);
+        (k / (self.rho_h + self.inertia * (al * al + be * be))).sqrt()
+            / (2.0 * std::f64::consts::PI)
+    }
 }

@@ -6,5 +6,6 @@ pub(crate) mod helpers;
 mod joints;
 mod rom;
 mod sensitivity;
+mod shear;
 mod thickness;
 mod verification;

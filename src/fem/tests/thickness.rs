@@ -12,7 +12,7 @@ fn with_thickness(board: &Board, h_m: f64) -> Board {
 }
 
 /// Eigenvalues and mass of `model` at `p` against those of the board built at thickness `h`.
-fn compare(board: &Board, setup: Setup, h_m: f64, scale_e_x: f64) {
+fn compare(board: &Board, setup: Setup, h_m: f64, scale_e_x: f64, tol: f64) {
     let mesh = board.mesh_for(&setup).clone();
     let opts = ModelOptions {
         core_thickness: true,
@@ -31,8 +31,9 @@ fn compare(board: &Board, setup: Setup, h_m: f64, scale_e_x: f64) {
     let (a, b) = (para.modes(&p, 8).unwrap(), direct.modes(&q, 8).unwrap());
     for (k, (fa, fb)) in a.freq_hz.iter().zip(&b.freq_hz).enumerate() {
         assert!(
-            ((fa - fb) / fb).abs() < 1e-9,
-            "h {h_m} m, mode {k}: {fa} Hz with the thickness a parameter, {fb} Hz built at it"
+            ((fa - fb) / fb).abs() < tol,
+            "h {h_m} m, mode {k}: {fa} Hz with the thickness a parameter, {fb} Hz built at it ({:e})",
+            fa / fb - 1.0
         );
     }
     let (ma, mb) = (
@@ -49,11 +50,25 @@ fn the_thickness_parameter_reproduces_the_board_built_at_that_thickness() {
     let b = Board::default_board();
     let h0 = b.core.thickness_m;
     for h in [1.08 * h0, 0.9 * h0] {
-        compare(&b, Setup::Free, h, 1.05);
-        compare(&b, Setup::bolted(), h, 0.97);
+        compare(&b, Setup::Free, h, 1.05, 1e-9);
+        compare(&b, Setup::bolted(), h, 0.97, 1e-9);
     }
     // At the nominal thickness it is the standard model.
-    compare(&b, Setup::Free, h0, 1.0);
+    compare(&b, Setup::Free, h0, 1.0, 1e-9);
+}
+
+/// The same board shear-deformable: exact but for the transverse shear stiffness, taken
+/// ∝ h (the copper's share of Whitney's S moves a little with h); within 1e-4 at ±10 %.
+#[test]
+fn the_thickness_parameter_follows_a_shear_deformable_board() {
+    let mut b = Board::default_board();
+    b.core.g_xz_pa = Some(3e9);
+    b.core.g_yz_pa = Some(3e9);
+    let h0 = b.core.thickness_m;
+    for h in [1.1 * h0, 0.9 * h0] {
+        compare(&b, Setup::Free, h, 1.05, 1e-4);
+    }
+    compare(&b, Setup::Free, h0, 1.0, 1e-9);
 }
 
 /// A plain plate (no copper): eigenvalues scale as h² at fixed moduli and density scale
