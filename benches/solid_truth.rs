@@ -9,7 +9,8 @@
 //! To take the distance apart: `SOLID_G_Z_PA` sets the solid's transverse shear moduli
 //! G_xz = G_yz (default 3.5 GPa; a hundredfold makes the solid nearly rigid in transverse
 //! shear, the plate's Kirchhoff assumption); `SOLID_ONLY` = `free` or `bolted` runs one setup,
-//! `SOLID_BOARD` = `default` or `realistic` one board.
+//! `SOLID_BOARD` = `default` or `realistic` one board. `PLATE_G_Z_PA` makes the plate
+//! shear-deformable with those transverse shear moduli, `PLATE_MESH` = `nx,ny` sets its mesh.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -97,7 +98,22 @@ fn main() {
             let truth = last.unwrap();
             // The updating model at its own mesh, nominal parameters.
             let setup_fe = if bolted { Setup::bolted() } else { Setup::Free };
-            let fe = FeModel::build(&board, setup_fe.clone(), board.mesh_for(&setup_fe)).unwrap();
+            let mut board = board.clone();
+            if let Some(g) =
+                env("PLATE_G_Z_PA").map(|v| v.parse::<f64>().expect("PLATE_G_Z_PA in Pa"))
+            {
+                board.core.g_xz_pa = Some(g);
+                board.core.g_yz_pa = Some(g);
+            }
+            let mut mesh = board.mesh_for(&setup_fe).clone();
+            if let Some(m) = env("PLATE_MESH") {
+                let n: Vec<usize> = m
+                    .split(',')
+                    .map(|v| v.parse().expect("PLATE_MESH nx,ny"))
+                    .collect();
+                (mesh.nx, mesh.ny) = (n[0], n[1]);
+            }
+            let fe = FeModel::build(&board, setup_fe.clone(), &mesh).unwrap();
             let mut p = fe.nominal_params();
             if bolted {
                 p.set(names::K_CON, k_bar).unwrap();

@@ -15,10 +15,30 @@
 //! to the same number), which keeps Rayleigh–Ritz monotonicity across mesh doublings.
 //! A = 0 (or no centres) gives the uniform mesh x_i = i L / n exactly.
 
+/// One refined zone along an axis: the term A sech²((x − c)/w) of the node density.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Bump {
+    /// Centre c, m.
+    pub centre_m: f64,
+    /// Width w, m.
+    pub width_m: f64,
+    /// Refinement A (elements there about 1 + A times smaller).
+    pub amplitude: f64,
+}
+
 /// Node coordinates x_0 = 0 < x_1 < … < x_n = `len` along one axis (m), graded towards
 /// `centres` (m; centres closer than `width / 2` are merged into their mean, so two
 /// joints in one line refine it once) with refinement `amplitude` over `width` (m).
 pub fn node_lines(len: f64, n: usize, centres: &[f64], width: f64, amplitude: f64) -> Vec<f64> {
+    graded_lines(len, n, &merged_bumps(centres, width, amplitude))
+}
+
+/// The bumps of `centres` (m) of one width and refinement, centres closer than `width / 2`
+/// merged into their mean; none where the refinement or width is zero.
+pub fn merged_bumps(centres: &[f64], width: f64, amplitude: f64) -> Vec<Bump> {
+    if amplitude == 0.0 || !(width > 0.0) {
+        return vec![];
+    }
     let mut cs: Vec<f64> = centres.to_vec();
     cs.sort_by(f64::total_cmp);
     let mut merged: Vec<(f64, usize)> = vec![];
@@ -31,17 +51,36 @@ pub fn node_lines(len: f64, n: usize, centres: &[f64], width: f64, amplitude: f6
             _ => merged.push((c, 1)),
         }
     }
-    let cs: Vec<f64> = merged.into_iter().map(|(m, k)| m / k as f64).collect();
-    if amplitude == 0.0 || cs.is_empty() || !(width > 0.0) {
+    merged
+        .into_iter()
+        .map(|(m, k)| Bump {
+            centre_m: m / k as f64,
+            width_m: width,
+            amplitude,
+        })
+        .collect()
+}
+
+/// Node coordinates x_0 = 0 < x_1 < … < x_n = `len` along one axis (m) for the node
+/// density 1 + Σ_k A_k sech²((x − c_k)/w_k) of `bumps` (none: the uniform lines).
+pub fn graded_lines(len: f64, n: usize, bumps: &[Bump]) -> Vec<f64> {
+    if bumps.is_empty() {
         return uniform_lines(len, n);
     }
-    // Unnormalised cumulative density.
+    // Unnormalised cumulative density, summed over runs of bumps of one width and refinement
+    // (A w Σ_k …, the order of operations the single-width grading has always used).
     let cum = |x: f64| -> f64 {
-        x + amplitude
-            * width
-            * cs.iter()
-                .map(|c| ((x - c) / width).tanh() + (c / width).tanh())
-                .sum::<f64>()
+        let mut out = x;
+        for run in bumps.chunk_by(|a, b| a.width_m == b.width_m && a.amplitude == b.amplitude) {
+            let (a, w) = (run[0].amplitude, run[0].width_m);
+            out += a
+                * w
+                * run
+                    .iter()
+                    .map(|b| ((x - b.centre_m) / w).tanh() + (b.centre_m / w).tanh())
+                    .sum::<f64>();
+        }
+        out
     };
     let total = cum(len);
     (0..=n)

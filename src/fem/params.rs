@@ -42,6 +42,9 @@ pub mod names {
     /// Thickness of the FR-4 core, m: a parameter only in a model built with
     /// [`crate::fem::ModelOptions::core_thickness`] (a specimen's measured thickness).
     pub const CORE_THICKNESS: &str = "core_thickness_m";
+    /// Transverse shear modulus G_xz of the FR-4 core, Pa (G_yz keeps its ratio to it): a
+    /// parameter of shear-deformable boards (a core with `g_xz_pa` and `g_yz_pa`) only.
+    pub const G_Z: &str = "g_z_pa";
     /// Step 1's population coordinate of a modulus taken per unit mass scale
     /// (`update boards --board-coordinates per-mass`): `e_x_pa` → `e_x_per_mass_scale_pa`.
     pub fn per_mass_scale(param: &str) -> String {
