@@ -318,7 +318,7 @@ fn finding_doc(r: &Row) -> Option<FindingDoc> {
 
 /// `remaining_discrepancy` of `diagnosis.json`: what the verdict leaves unexplained, in words.
 pub fn remaining_discrepancy(
-    verdict: Verdict,
+    (verdict, model_form): (Verdict, &str),
     (located, boards_off): (&Located, &[(String, String)]),
     board_regions: &[BoardRegion],
     threshold: f64,
@@ -359,7 +359,7 @@ pub fn remaining_discrepancy(
             )
         };
         format!(
-            "model form: the model differs from every board alike by up to {:.3} % ({at}), above the {:.2} % practical threshold, in the free-free modes (the board itself, whatever its mounting), placed nowhere on the board, and {boards}: the form of the model (a thin plate without transverse shear and rotary inertia, copper homogenised into the laminate), not a concealed effect. It is in the predicted intervals as the model-form discrepancy; a richer model would narrow them. Located modes: {:?}",
+            "model form: the model differs from every board alike by up to {:.3} % ({at}), above the {:.2} % practical threshold, in the free-free modes (the board itself, whatever its mounting), placed nowhere on the board, and {boards}: the form of the model ({model_form}), not a concealed effect. It is in the predicted intervals as the model-form discrepancy; a richer model would narrow them. Located modes: {:?}",
             100.0 * v,
             100.0 * threshold,
             located.modes.iter().map(|m| format!("{}/{}", m.setup, m.label)).collect::<Vec<_>>(),
@@ -449,7 +449,7 @@ pub fn document(
     (board_regions, board_regions_note): (Vec<BoardRegion>, String),
     rows: &[Row],
     compared: &[Compared],
-    verdict: Verdict,
+    (verdict, model_form): (Verdict, &str),
     unexplained: Option<String>,
     findings: &mut Findings,
 ) -> DiagnosisDoc {
@@ -457,7 +457,7 @@ pub fn document(
     let threshold = opts.select.practical_threshold_rel;
     let largest = crate::diagnose::misfit::largest_mode_misfit(located);
     let remaining = remaining_discrepancy(
-        verdict,
+        (verdict, model_form),
         (located, boards_off),
         &board_regions,
         threshold,

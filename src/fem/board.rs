@@ -102,6 +102,17 @@ pub struct CoreMaterial {
     pub g_yz_pa: Option<f64>,
 }
 
+impl Board {
+    /// What the board's plate model leaves out, for the diagnosis's model-form sentence.
+    pub fn model_form(&self) -> &'static str {
+        if self.core.transverse_shear().is_some() {
+            "a first-order shear-deformable plate, its transverse shear stiffness Whitney's for the nominal stack, copper homogenised into the laminate, no through-thickness normal strain"
+        } else {
+            "a thin plate without transverse shear and rotary inertia, copper homogenised into the laminate"
+        }
+    }
+}
+
 impl CoreMaterial {
     /// The transverse shear moduli (G_xz, G_yz), Pa, when the plate is shear-deformable.
     pub fn transverse_shear(&self) -> Option<(f64, f64)> {

@@ -249,6 +249,29 @@ mod tests {
         }
     }
 
+    /// Bumps of two widths (joints and edges): nested, and each zone's elements about 1 + A
+    /// times smaller than the interior's, whatever the other bump.
+    #[test]
+    fn bumps_of_several_widths_are_nested_and_refine_each_zone() {
+        let mut bumps = merged_bumps(&[0.005, 0.075], 3e-3, 2.0);
+        bumps.extend(merged_bumps(&[0.0, 0.08], 1e-3, 15.0));
+        let l1 = graded_lines(0.08, 56, &bumps);
+        let l2 = graded_lines(0.08, 112, &bumps);
+        for i in 0..=56 {
+            assert_eq!(l1[i], l2[2 * i], "node {i} of 56 vs 112");
+        }
+        let h: Vec<f64> = l2.windows(2).map(|p| p[1] - p[0]).collect();
+        assert!(h.iter().all(|&d| d > 0.0));
+        let mid = h[element_of(&l2, 0.04)];
+        let (edge, joint) = (h[0], h[element_of(&l2, 0.005)]);
+        assert!(
+            (mid / edge - 16.0).abs() < 0.15 * 16.0,
+            "edge: {mid} / {edge}"
+        );
+        // At the joint 1 + A = 3 (the edge's bump, 5 of its widths away, adds 0.3 %).
+        assert!((mid / joint - 3.0).abs() < 0.1, "joint: {mid} / {joint}");
+    }
+
     fn iface(at_m: f64, weight: f64) -> Interface {
         Interface { at_m, weight }
     }
