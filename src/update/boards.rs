@@ -21,7 +21,7 @@ use crate::update::problem::{
     predictors, shape_map, thickness_obs, unit_and_residual_data, BoardCoordinates, Labels,
     MassRow, ModelErrorPrior, ModelSpec, ObsMeta, StepTarget,
 };
-use crate::update::rom_box::RomBoxViolation;
+use crate::update::rom_box::{RomBoxViolation, G_Z_LOG_BOX};
 use crate::update::sampler::{box_violations, particles_of, Results};
 use anyhow::{anyhow, bail};
 use std::collections::{BTreeMap, BTreeSet};
@@ -463,6 +463,7 @@ pub fn check_board_box(
         |x| bt.step.target.compose.relative_params(x),
         |k, x| match bm.log_axes.get(k.wrapping_sub(bt.d0)) {
             Some((_, w)) if k >= bt.d0 => x.abs() <= *w,
+            _ if bm.param_names[k] == names::G_Z => (1.0 + x).ln().abs() <= G_Z_LOG_BOX,
             _ => x.abs() <= spec.rom_box,
         },
         spec.box_tolerance,
@@ -476,7 +477,11 @@ pub fn check_board_box(
                 for x in &p.x {
                     let x = bt.step.target.compose.relative_params(x);
                     for (k, v) in x.iter().enumerate() {
-                        if k < bt.d0 || bm.log_axes.get(k.wrapping_sub(bt.d0)).is_none() {
+                        // A wider linear box does not hold the shear modulus (its own axis).
+                        let own_axis = bm.param_names[k] == names::G_Z;
+                        if !own_axis
+                            && (k < bt.d0 || bm.log_axes.get(k.wrapping_sub(bt.d0)).is_none())
+                        {
                             reach = reach.max(v.abs());
                         }
                     }

@@ -9,6 +9,23 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::update::problem::ModelSpec;
 use crate::update::sampler::{particles_of, Results};
 
+/// Half-width (ln) of a shear-deformable board's transverse shear modulus's ROM axis: × or ÷ 2
+/// about the board file's value. A ±20 % box, right for moduli a datasheet gives, is too narrow
+/// for a modulus known to ±30 % ([`crate::update::boards::G_Z_PRIOR_WIDTH`]) that also takes
+/// up the stiffness of shear-related physics the plate lacks: on the solid truth's null
+/// campaign its posterior sat 34 % above the micromechanical 3 GPa.
+pub const G_Z_LOG_BOX: f64 = std::f64::consts::LN_2;
+
+/// `log_axes` and the model's own logarithmic axes (the transverse shear modulus).
+pub fn model_log_axes(model: &FeModel, log_axes: &[(String, f64)]) -> Vec<(String, f64)> {
+    let mut out = log_axes.to_vec();
+    let has = |n: &str| model.map.names.iter().any(|m| m == n);
+    if has(names::G_Z) && !out.iter().any(|(n, _)| n == names::G_Z) {
+        out.push((names::G_Z.to_string(), G_Z_LOG_BOX));
+    }
+    out
+}
+
 pub fn rom_for(
     model: &FeModel,
     n_modes_needed: usize,
@@ -16,6 +33,7 @@ pub fn rom_for(
     opts: &ModelSpec,
 ) -> anyhow::Result<Rom> {
     let d = RomOptions::default();
+    let log_axes = &model_log_axes(model, log_axes);
     // A logarithmic axis needs more basis vectors: over e^{±3} of a joint's rotational
     // stiffness the bolted ROM's worst frequency error is 1.3e-4 with 64 vectors and 3.0e-5
     // with 80 (`rom_with_a_logarithmic_axis_matches_the_full_model_along_it`), so a cap
