@@ -341,6 +341,36 @@ mod prop {
     }
 }
 
+/// The worst relative frequency error and worst MAC (at the board's scan points) of `rom`
+/// against `model` over the first `n_modes` modes at every point of `sample`, the parameter `k`
+/// set along a logarithmic axis about `centre`: e^{w t} with t spread evenly over ±0.93 (between
+/// the axis's snapshot points, none beyond them).
+fn worst_along_log_axis(
+    (model, rom, board): (&FeModel, &Rom, &Board),
+    sample: &[crate::fem::Params],
+    (k, centre, w): (usize, f64, f64),
+    n_modes: usize,
+) -> (f64, f64) {
+    let pts = board.scan_points_m();
+    let sop = model.shape_operator(&pts).unwrap();
+    let rsop = rom.shape_operator(model, &pts).unwrap();
+    let (mut worst_f, mut worst_mac) = (0.0f64, 1.0f64);
+    for (i, p0) in sample.iter().enumerate() {
+        let mut p = p0.clone();
+        let t = -0.93 + 1.86 * (i as f64 + 0.5) / sample.len() as f64;
+        p.values[k] = centre * (w * t).exp();
+        let full = model.modes(&p, n_modes).unwrap();
+        let wf = sop.apply(full.shapes.as_ref());
+        let red = rom.eval(&p, &rsop).unwrap();
+        for j in 0..n_modes {
+            let e = (red.freq_hz[j] - full.freq_hz[j]).abs() / full.freq_hz[j];
+            worst_f = worst_f.max(e);
+            worst_mac = worst_mac.min(mac(&col(&wf, j), &col(&red.shapes_at_points, j)));
+        }
+    }
+    (worst_f, worst_mac)
+}
+
 /// A logarithmic axis (the diagnosis's enrichments): the ROM of a bolted model with a
 /// rotational joint restraint whose box spans e^{±3} (a factor 400 between its ends) matches
 /// the full model along that axis, at points between its snapshots, with the other
@@ -368,26 +398,10 @@ fn rom_with_a_logarithmic_axis_matches_the_full_model_along_it() {
         ..RomOptions::default()
     };
     let rom = Rom::build(&model, &opts).unwrap();
-    let pts = board.scan_points_m();
-    let sop = model.shape_operator(&pts).unwrap();
-    let rsop = rom.shape_operator(&model, &pts).unwrap();
     let k = model.map.nominal_params().position(names::K_ROT).unwrap();
     let sample = latin_hypercube_params(&model.map, 24, 0.2, 0x10_6A);
-    let (mut worst_f, mut worst_mac) = (0.0f64, 1.0f64);
-    for (i, p0) in sample.iter().enumerate() {
-        let mut p = p0.clone();
-        // Between the snapshot points of the axis (t = -1 + 2 i / 7), and beyond none.
-        let t = -0.93 + 1.86 * (i as f64 + 0.5) / sample.len() as f64;
-        p.values[k] = 2.0 * (w * t).exp();
-        let full = model.modes(&p, 7).unwrap();
-        let wf = sop.apply(full.shapes.as_ref());
-        let red = rom.eval(&p, &rsop).unwrap();
-        for j in 0..7 {
-            let e = (red.freq_hz[j] - full.freq_hz[j]).abs() / full.freq_hz[j];
-            worst_f = worst_f.max(e);
-            worst_mac = worst_mac.min(mac(&col(&wf, j), &col(&red.shapes_at_points, j)));
-        }
-    }
+    let (worst_f, worst_mac) =
+        worst_along_log_axis((&model, &rom, &board), &sample, (k, 2.0, w), 7);
     eprintln!(
         "log axis: worst freq error {worst_f:e}, worst MAC {worst_mac}, dim {}",
         rom.dim()
@@ -417,25 +431,10 @@ fn rom_of_a_shear_deformable_board_follows_its_shear_modulus() {
         ..RomOptions::default()
     };
     let rom = Rom::build(&model, &opts).unwrap();
-    let pts = board.scan_points_m();
-    let sop = model.shape_operator(&pts).unwrap();
-    let rsop = rom.shape_operator(&model, &pts).unwrap();
     let k = model.map.nominal_params().position(names::G_Z).unwrap();
     let sample = latin_hypercube_params(&model.map, 16, 0.2, 0x5E_A2);
-    let (mut worst_f, mut worst_mac) = (0.0f64, 1.0f64);
-    for (i, p0) in sample.iter().enumerate() {
-        let mut p = p0.clone();
-        let t = -0.95 + 1.9 * (i as f64 + 0.5) / sample.len() as f64;
-        p.values[k] = 3e9 * (w * t).exp();
-        let full = model.modes(&p, 8).unwrap();
-        let wf = sop.apply(full.shapes.as_ref());
-        let red = rom.eval(&p, &rsop).unwrap();
-        for j in 0..8 {
-            let e = (red.freq_hz[j] - full.freq_hz[j]).abs() / full.freq_hz[j];
-            worst_f = worst_f.max(e);
-            worst_mac = worst_mac.min(mac(&col(&wf, j), &col(&red.shapes_at_points, j)));
-        }
-    }
+    let (worst_f, worst_mac) =
+        worst_along_log_axis((&model, &rom, &board), &sample, (k, 3e9, w), 8);
     eprintln!(
         "shear axis: worst freq error {worst_f:e}, worst MAC {worst_mac}, dim {}",
         rom.dim()
