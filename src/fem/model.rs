@@ -18,7 +18,9 @@
 //! expansion in Chebyshev nodes of the copper variable whose coefficients follow the
 //! moduli (frozen at nominal only when copper layers differ in material; see
 //! [`super::laminate`]), and the joint terms; (mass): the board (∝ `mass_scale`),
-//! point masses (constant) and joint terms.
+//! point masses (constant) and joint terms. A core with transverse shear moduli makes the
+//! plate shear-deformable ([`super::mindlin`]: 6 DOFs a node), adding the transverse shear
+//! (∝ `g_z_pa`) and the rotary inertia (∝ `mass_scale`) terms.
 
 use std::sync::Arc;
 
@@ -1170,7 +1172,6 @@ impl PlateTriplets {
         (i_mass, i_h, i_gz): (usize, Option<usize>, Option<(usize, f64)>),
         h_pow: &dyn Fn(Coef, i32) -> Coef,
     ) {
-        // A shear-deformable plate has its shear modulus as a parameter.
         let has_cu = !board.copper.is_empty();
         let core_names = ["core_q11", "core_q22", "core_q12", "core_q66"];
         for (k, t) in self.core.into_iter().enumerate() {

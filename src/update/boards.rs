@@ -21,7 +21,7 @@ use crate::update::problem::{
     predictors, shape_map, thickness_obs, unit_and_residual_data, BoardCoordinates, Labels,
     MassRow, ModelErrorPrior, ModelSpec, ObsMeta, StepTarget,
 };
-use crate::update::rom_box::{RomBoxViolation, G_Z_LOG_BOX};
+use crate::update::rom_box::{model_log_axes, RomBoxViolation};
 use crate::update::sampler::{box_violations, particles_of, Results};
 use anyhow::{anyhow, bail};
 use std::collections::{BTreeMap, BTreeSet};
@@ -232,7 +232,7 @@ pub fn board_target(
             .params
             .iter()
             .map(|p| match p.as_str() {
-                crate::fem::params::names::G_Z => spec.prior_width.max(G_Z_PRIOR_WIDTH),
+                names::G_Z => spec.prior_width.max(G_Z_PRIOR_WIDTH),
                 _ => spec.prior_width,
             })
             .collect(),
@@ -456,15 +456,23 @@ pub fn check_board_box(
     results: &Results,
     spec: &ModelSpec,
 ) -> anyhow::Result<()> {
+    // The ROM's logarithmic axes by parameter: an enrichment's coordinate is its logarithm
+    // already (k ≥ d0), a board parameter's (the shear modulus) is relative.
+    let axes = model_log_axes(&bm.model, &bm.log_axes);
+    let log_box = |k: usize| {
+        axes.iter()
+            .find(|(n, _)| *n == bm.param_names[k])
+            .map(|(_, w)| *w)
+    };
     let violations = box_violations(
         results,
         &bt.step.unit_names,
         &bm.param_names,
         |x| bt.step.target.compose.relative_params(x),
-        |k, x| match bm.log_axes.get(k.wrapping_sub(bt.d0)) {
-            Some((_, w)) if k >= bt.d0 => x.abs() <= *w,
-            _ if bm.param_names[k] == names::G_Z => (1.0 + x).ln().abs() <= G_Z_LOG_BOX,
-            _ => x.abs() <= spec.rom_box,
+        |k, x| match log_box(k) {
+            Some(w) if k >= bt.d0 => x.abs() <= w,
+            Some(w) => (1.0 + x).ln().abs() <= w,
+            None => x.abs() <= spec.rom_box,
         },
         spec.box_tolerance,
     );
@@ -477,11 +485,8 @@ pub fn check_board_box(
                 for x in &p.x {
                     let x = bt.step.target.compose.relative_params(x);
                     for (k, v) in x.iter().enumerate() {
-                        // A wider linear box does not hold the shear modulus (its own axis).
-                        let own_axis = bm.param_names[k] == names::G_Z;
-                        if !own_axis
-                            && (k < bt.d0 || bm.log_axes.get(k.wrapping_sub(bt.d0)).is_none())
-                        {
+                        // A wider linear box does not hold a logarithmic axis.
+                        if log_box(k).is_none() {
                             reach = reach.max(v.abs());
                         }
                     }

@@ -10,10 +10,9 @@ use crate::update::problem::ModelSpec;
 use crate::update::sampler::{particles_of, Results};
 
 /// Half-width (ln) of a shear-deformable board's transverse shear modulus's ROM axis: × or ÷ 2
-/// about the board file's value. A ±20 % box, right for moduli a datasheet gives, is too narrow
-/// for a modulus known to ±30 % ([`crate::update::boards::G_Z_PRIOR_WIDTH`]) that also takes
-/// up the stiffness of shear-related physics the plate lacks: on the solid truth's null
-/// campaign its posterior sat 34 % above the micromechanical 3 GPa.
+/// about the board file's value, 2.3 of its prior sds (≥ 30 %,
+/// [`crate::update::boards::G_Z_PRIOR_WIDTH`]) either way. The ±20 % box, right for moduli a
+/// datasheet gives, spans less than one of them.
 pub const G_Z_LOG_BOX: f64 = std::f64::consts::LN_2;
 
 /// `log_axes` and the model's own logarithmic axes (the transverse shear modulus).
