@@ -147,8 +147,9 @@ impl ErrorModel {
     pub fn log_prior(&self, h: &[f64]) -> f64 {
         let n = Self::block(&self.eps, self.n_modes);
         let (a, _) = Self::lp_one(&self.eps, &h[..n]);
+        // δ's block only: the discrepancy's block follows it.
         let b = match &self.delta {
-            Some(d) => Self::lp_one(d, &h[n..]).0,
+            Some(d) => Self::lp_one(d, &h[n..self.scales_dim()]).0,
             None => 0.0,
         };
         let c = match &self.discrepancy {
@@ -738,6 +739,49 @@ mod tests {
                 let want = nominal[i] * f * (1.0 + beta * c);
                 assert!((v[i] / want - 1.0).abs() < 1e-14, "unit {b} parameter {i}");
             }
+        }
+    }
+
+    /// The error block's prior is the sum of its blocks' own priors: ε's and δ's log-normal
+    /// per mode, and the discrepancy's (ln τ, ln σ_u, w). A δ prior that read past its block
+    /// put its log-normal on ln τ, ln σ_u and w as well (measured: τ's prior median doubled
+    /// and its log-sd shrank to 0.83).
+    #[test]
+    fn the_error_prior_is_the_sum_of_its_blocks() {
+        use crate::bayes::discrepancy::Discrepancy;
+        let nm = 4;
+        let sens = [1.0, 0.9, 1.1, 0.4];
+        let disc = Discrepancy::new(&sens, nm, 1, &[], 0.005).expect("k = 3");
+        let eps = (0.004, 1.5);
+        let delta = (0.1, 1.5);
+        let e = ErrorModel {
+            n_modes: nm,
+            eps: ErrorPrior::Inferred {
+                median: eps.0,
+                log_sd: eps.1,
+            },
+            delta: Some(ErrorPrior::Inferred {
+                median: delta.0,
+                log_sd: delta.1,
+            }),
+            model_error_sd: None,
+            discrepancy: Some(disc.clone()),
+        };
+        let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(7);
+        for _ in 0..5 {
+            let h = e.sample(&mut rng);
+            assert_eq!(h.len(), 2 * nm + disc.dim());
+            let want = h[..nm]
+                .iter()
+                .map(|&v| normal_lpdf(v, eps.0.ln(), eps.1))
+                .sum::<f64>()
+                + h[nm..2 * nm]
+                    .iter()
+                    .map(|&v| normal_lpdf(v, delta.0.ln(), delta.1))
+                    .sum::<f64>()
+                + disc.log_prior(&h[2 * nm..]);
+            let got = e.log_prior(&h);
+            assert!((got - want).abs() < 1e-12, "{got} vs {want}");
         }
     }
 }
