@@ -39,6 +39,15 @@
 //!   [`UNIT_SHARE`] of τ₀.
 //!
 //! Global coordinates: ln τ, ln σ_u, then w₁..w_k.
+//!
+//! - The part the parameters absorb. Under the same exchangeable prior d ~ N(0, τ² I), the
+//!   part of d inside the span of S is a = (SᵀWS)⁻¹SᵀW d in unit coordinates: the data see
+//!   λ(x)(1 + S a) ≈ λ(x + a), so they identify the fitted coordinates x + a, never a. The
+//!   physical coordinates are x − a, with a at its prior given τ, N(0, τ² M Mᵀ), M =
+//!   (SᵀWS)⁻¹SᵀW ([`Discrepancy::confounded_shift`]): what Kennedy & O'Hagan's
+//!   unconstrained discrepancy gives the parameters (Brynjarsdóttir & O'Hagan 2014), to
+//!   first order. The predictions do not need it (x + a and d's orthogonal part reproduce
+//!   the data); a parameter's interval that claims to hold the board's physical value does.
 
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -94,6 +103,12 @@ pub struct Discrepancy {
     /// Median and log-sd of the per-unit scale σ_u's prior (relative eigenvalue).
     pub unit_scale_median: f64,
     pub unit_scale_log_sd: f64,
+    /// Unit coordinates (the columns of S).
+    pub unit_dim: usize,
+    /// L (unit_dim × unit_dim, lower, row-major) with L Lᵀ = M Mᵀ, M = (SᵀWS)⁻¹SᵀW over the
+    /// columns the modes see (the others' rows zero): a = τ L z, z ~ N(0, I), is the part of
+    /// an exchangeable discrepancy of scale τ that the parameters absorb (module doc).
+    pub confounded: Vec<f64>,
 }
 
 impl Discrepancy {
@@ -113,6 +128,7 @@ impl Discrepancy {
             .map(|i| sens[i] * weights.get(i / n_cols.max(1)).copied().unwrap_or(1.0))
             .collect();
         let (basis, k) = complement_basis(&ws, n_modes, n_cols);
+        let confounded = confounded_factor(sens, n_modes, n_cols, weights, &[]);
         (k > 0 && fidelity_freq > 0.0).then(|| Discrepancy {
             n_modes,
             basis,
@@ -121,7 +137,27 @@ impl Discrepancy {
             scale_log_sd: FIDELITY_LOG_SD,
             unit_scale_median: UNIT_SHARE * eigenvalue_of_freq(fidelity_freq),
             unit_scale_log_sd: UNIT_LOG_SD,
+            unit_dim: n_cols,
+            confounded,
         })
+    }
+
+    /// The same with the unit coordinates `pinned` held by data of their own (the balance's
+    /// mass, a measured thickness): those absorb nothing, and the others absorb what the
+    /// frequencies alone leave open ([`confounded_factor`]).
+    pub fn with_pinned(mut self, sens: &[f64], weights: &[f64], pinned: &[usize]) -> Self {
+        self.confounded = confounded_factor(sens, self.n_modes, self.unit_dim, weights, pinned);
+        self
+    }
+
+    /// The part a of a discrepancy of scale `tau` that the unit coordinates absorb, for the
+    /// standard normal draw `z` (unit_dim long): a = τ L z (module doc). The physical unit
+    /// coordinates are the fitted ones less a.
+    pub fn confounded_shift(&self, tau: f64, z: &[f64]) -> Vec<f64> {
+        crate::bayes::stats::lower_mul(&self.confounded, self.unit_dim, z)
+            .into_iter()
+            .map(|v| tau * v)
+            .collect()
     }
 
     /// Coordinates in the global vector: ln τ, ln σ_u and w.
@@ -210,6 +246,71 @@ pub fn sensitivities(
     Some(s)
 }
 
+/// Columns of S whose length is below this share of the longest are not seen by the modes
+/// (the mass scale where the moduli are per unit mass: zero up to the finite differences'
+/// round-off); their coordinates absorb nothing.
+const UNSEEN_COLUMN: f64 = 1e-6;
+
+/// L with L Lᵀ = M Mᵀ, M = (SᵀWS)⁻¹SᵀW over the seen columns of `sens` (n × c row-major;
+/// W = diag `weights`, empty: I) that are not `pinned` (held by data of their own, to
+/// first order exactly: a balance's 1e-4 against a discrepancy's 1e-3); zero rows and
+/// columns for the others (see [`Discrepancy::confounded`]).
+pub fn confounded_factor(
+    sens: &[f64],
+    n: usize,
+    c: usize,
+    weights: &[f64],
+    pinned: &[usize],
+) -> Vec<f64> {
+    use crate::bayes::stats::{cholesky_jittered, lower_solve, lower_transpose_solve};
+    let w = |m: usize| weights.get(m).copied().unwrap_or(1.0);
+    let norm = |j: usize| (0..n).map(|m| sens[m * c + j].powi(2)).sum::<f64>().sqrt();
+    let longest = (0..c).map(norm).fold(0.0, f64::max);
+    let seen: Vec<usize> = (0..c)
+        .filter(|&j| norm(j) > UNSEEN_COLUMN * longest && !pinned.contains(&j))
+        .collect();
+    let q = seen.len();
+    let mut out = vec![0.0; c * c];
+    if q == 0 {
+        return out;
+    }
+    // A = SᵀWS over the seen columns, M = A⁻¹ SᵀW (q × n), then C = M Mᵀ.
+    let mut a = vec![0.0; q * q];
+    for (i, &ci) in seen.iter().enumerate() {
+        for (j, &cj) in seen.iter().enumerate() {
+            a[i * q + j] = (0..n)
+                .map(|m| w(m) * sens[m * c + ci] * sens[m * c + cj])
+                .sum();
+        }
+    }
+    let (la, jitter) = cholesky_jittered(&a, q);
+    if !jitter.is_finite() {
+        return out;
+    }
+    let mut mt = vec![0.0; n * q];
+    for m in 0..n {
+        let b: Vec<f64> = seen.iter().map(|&cj| w(m) * sens[m * c + cj]).collect();
+        let y = lower_transpose_solve(&la, q, &lower_solve(&la, q, &b));
+        mt[m * q..(m + 1) * q].copy_from_slice(&y);
+    }
+    let mut cov = vec![0.0; q * q];
+    for i in 0..q {
+        for j in 0..q {
+            cov[i * q + j] = (0..n).map(|m| mt[m * q + i] * mt[m * q + j]).sum();
+        }
+    }
+    let (l, jitter) = cholesky_jittered(&cov, q);
+    if !jitter.is_finite() {
+        return out;
+    }
+    for (i, &ci) in seen.iter().enumerate() {
+        for (j, &cj) in seen.iter().enumerate() {
+            out[ci * c + cj] = l[i * q + j];
+        }
+    }
+    out
+}
+
 /// An orthonormal basis (n × k row-major) of the orthogonal complement of the span of the
 /// columns of `a` (n × c row-major), by modified Gram–Schmidt: first the columns of `a`,
 /// dropping those that add less than a 1e-8 share of their length, then the unit vectors
@@ -289,6 +390,50 @@ mod tests {
                 assert!(p.abs() < 1e-12, "column {col:?}: {p}");
             }
         }
+    }
+
+    /// With W = I, M Mᵀ = (SᵀS)⁻¹ (M = (SᵀS)⁻¹Sᵀ); a column the modes do not see (zero, as
+    /// the mass scale's is with moduli per unit mass) gets a zero row and column.
+    #[test]
+    fn the_confounded_part_is_the_least_squares_map_of_an_exchangeable_discrepancy() {
+        let (n, c) = (6, 3);
+        let cols = [
+            [0.9, 0.1, 0.5, 0.8, 0.2, 0.6],
+            [0.0; 6],
+            [0.1, 0.95, 0.4, 0.3, 0.7, 0.2],
+        ];
+        let s: Vec<f64> = (0..n)
+            .flat_map(|i| cols.iter().map(move |col| col[i]))
+            .collect();
+        let l = confounded_factor(&s, n, c, &[], &[]);
+        let llt = |i: usize, j: usize| (0..c).map(|k| l[i * c + k] * l[j * c + k]).sum::<f64>();
+        // (SᵀS)⁻¹ over columns 0 and 2 by the 2 × 2 closed form.
+        let dot = |a: &[f64; 6], b: &[f64; 6]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+        let (a, b, d) = (
+            dot(&cols[0], &cols[0]),
+            dot(&cols[0], &cols[2]),
+            dot(&cols[2], &cols[2]),
+        );
+        let det = a * d - b * b;
+        for (i, j, want) in [(0, 0, d / det), (0, 2, -b / det), (2, 2, a / det)] {
+            assert!((llt(i, j) - want).abs() < 1e-12 * want.abs(), "({i}, {j})");
+        }
+        for k in 0..c {
+            assert_eq!(llt(1, k), 0.0);
+        }
+        // The shift scales with τ.
+        let disc = Discrepancy::new(&s, n, c, &[], 0.005).expect("k = 4");
+        let z = [0.3, -1.2, 0.7];
+        let a1 = disc.confounded_shift(1e-3, &z);
+        let a2 = disc.confounded_shift(2e-3, &z);
+        for k in 0..c {
+            assert!((a2[k] - 2.0 * a1[k]).abs() < 1e-18);
+        }
+        assert_eq!(a1[1], 0.0);
+        // Column 2 pinned: column 0 alone absorbs, (s₀ᵀs₀)⁻¹.
+        let l = confounded_factor(&s, n, c, &[], &[2]);
+        assert!((l[0] * l[0] - 1.0 / a).abs() < 1e-12 / a);
+        assert!(l[2 * c..].iter().all(|v| *v == 0.0));
     }
 
     #[test]

@@ -4,8 +4,9 @@
 //! tables' rows and the evidence. `stage::update` reads the inputs, calls these in order and
 //! writes the outputs.
 
-use crate::bayes::modal::{CovariateEffect, UnitData};
+use crate::bayes::modal::{CovariateEffect, Terms, UnitData};
 use crate::bayes::population::PopulationPrior;
+use crate::bayes::smc::{stream_key, Particle};
 use crate::bayes::target::{Compose, ErrorModel, ModalTarget, PerMass};
 use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Params, Rom, Setup};
@@ -24,7 +25,13 @@ use crate::update::problem::{
 use crate::update::rom_box::{model_log_axes, RomBoxViolation};
 use crate::update::sampler::{box_violations, particles_of, Results};
 use anyhow::{anyhow, bail};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
 use std::collections::{BTreeMap, BTreeSet};
+
+/// The stream tag of the draws of the discrepancy's confounded part (`board_tables`).
+const CONFOUNDED_STREAM: u64 = 0x6d66_7061_7274;
 
 /// Prior sd (relative) of the population mean of a shear-deformable board's transverse shear
 /// modulus, at least: no datasheet gives it, and micromechanics (Halpin–Tsai, E-glass fibres
@@ -310,12 +317,25 @@ pub fn board_target(
             findings,
         ),
     };
+    // Coordinates held by data of their own absorb none of the discrepancy: the mass scale
+    // where a board was weighed, a thickness where the sheet measured it.
+    let mut pinned: Vec<usize> = target
+        .coord_obs
+        .iter()
+        .flatten()
+        .map(|&(k, _, _)| k)
+        .collect();
+    if target.units.iter().any(|u| u.mass.is_some()) {
+        pinned.extend(mass);
+    }
+    pinned.sort_unstable();
+    pinned.dedup();
     target.errors.discrepancy = discrepancy_for(
         &target,
         &[],
         spec.discrepancy_freq
             .unwrap_or(crate::bayes::discrepancy::FREE_FIDELITY_FREQ),
-        "boards",
+        (&pinned, "boards"),
         findings,
     )?;
     Ok(BoardTarget {
@@ -506,13 +526,16 @@ pub fn check_board_box(
     Ok(())
 }
 
-/// Step 1's draws as the tables' rows: the population, the boards, and the summary.
+/// Step 1's draws as the tables' rows: the population, the boards, and the summary. With a
+/// model-form discrepancy, the summary's physical quantiles are those of the draws less the
+/// discrepancy's part the parameters absorb (`Discrepancy::confounded_shift`), one draw of
+/// it per particle from the stream keyed by `seed`.
 pub fn board_tables(
     bm: &BoardModel,
     bt: &BoardTarget,
     results: &Results,
     labels: &Labels,
-    runs: usize,
+    (runs, seed): (usize, u64),
 ) -> (DrawTable, DrawTable, Vec<SummaryRow>) {
     let (pcols, pop_of) = population_columns(
         &bt.step.target,
@@ -532,20 +555,57 @@ pub fn board_tables(
         bcols.push((c.name.clone(), format!("1/(unit of {})", c.covariate)));
     }
     let mut boards = DrawTable::new(&bcols);
+    let mut pop_phys = DrawTable::new(&pcols);
+    let mut boards_phys = DrawTable::new(&bcols);
+    let target = &bt.step.target;
+    let disc = target.errors.discrepancy.as_ref();
+    let board_row = |p: &Particle<Terms>, b: usize, x: &[f64]| {
+        let v = target.values(&p.aux, b, x);
+        let mut row: Vec<f64> = bm.updated.iter().map(|&k| v[k]).collect();
+        row.push(target.predictor.mass_g(&v));
+        if bt.covariate.is_some() {
+            row.push(x[bt.d]);
+        }
+        row
+    };
     for (r, i, p) in particles_of(results) {
         pop.push(r, i, None, &pop_of(&p.g));
         for (b, name) in bt.step.unit_names.iter().enumerate() {
-            let v = bt.step.target.values(&p.aux, b, &p.x[b]);
-            let mut row: Vec<f64> = bm.updated.iter().map(|&k| v[k]).collect();
-            row.push(bt.step.target.predictor.mass_g(&v));
-            if bt.covariate.is_some() {
-                row.push(p.x[b][bt.d]);
-            }
-            boards.push(r, i, Some(name), &row);
+            boards.push(r, i, Some(name), &board_row(p, b, &p.x[b]));
+        }
+        let Some(disc) = disc else { continue };
+        // The population mean μ leads g, in the units' coordinates; the shift is common to
+        // every unit and to μ (d is shared), so the spreads do not move.
+        let h = &p.g[target.prior.dim()..];
+        let tau = target.errors.discrepancy_scale(h).unwrap_or(0.0);
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(stream_key(&[seed, CONFOUNDED_STREAM, r as u64, i as u64]));
+        let z: Vec<f64> = (0..disc.unit_dim)
+            .map(|_| StandardNormal.sample(&mut rng))
+            .collect();
+        let a = disc.confounded_shift(tau, &z);
+        let mut g = p.g.clone();
+        g.iter_mut().zip(&a).for_each(|(v, s)| *v -= s);
+        pop_phys.push(r, i, None, &pop_of(&g));
+        for (b, name) in bt.step.unit_names.iter().enumerate() {
+            let x: Vec<f64> = p.x[b]
+                .iter()
+                .enumerate()
+                .map(|(k, v)| v - a.get(k).copied().unwrap_or(0.0))
+                .collect();
+            boards_phys.push(r, i, Some(name), &board_row(p, b, &x));
         }
     }
     let mut summary = pop.summarize(runs, true);
     summary.extend(boards.summarize(runs, true));
+    if disc.is_some() {
+        let mut phys = pop_phys.summarize(runs, true);
+        phys.extend(boards_phys.summarize(runs, true));
+        for (row, ph) in summary.iter_mut().zip(phys) {
+            debug_assert!(row.parameter == ph.parameter && row.board_id == ph.board_id);
+            row.physical = Some(ph.s);
+        }
+    }
     (pop, boards, summary)
 }
 

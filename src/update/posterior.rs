@@ -56,6 +56,7 @@ impl DrawTable {
                     board_id: if key_is_board { k.clone() } else { None },
                     measurement_id: if key_is_board { None } else { k.clone() },
                     s,
+                    physical: None,
                 });
             }
         }
@@ -131,6 +132,9 @@ pub struct SummaryRow {
     pub board_id: Option<String>,
     pub measurement_id: Option<String>,
     pub s: crate::bayes::diagnostics::Summary,
+    /// The physical parameter's summary where a model-form discrepancy is inferred: the
+    /// draws less the discrepancy's part that the parameters absorb (`board_tables`).
+    pub physical: Option<crate::bayes::diagnostics::Summary>,
 }
 
 /// One residual row.
@@ -528,6 +532,7 @@ mod convergence_tests {
             board_id: None,
             measurement_id: Some("M001".into()),
             s: summarize(chains),
+            physical: None,
         }
     }
 

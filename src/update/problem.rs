@@ -660,13 +660,14 @@ pub fn model_error_prior(
 /// The model-form discrepancy of `target`'s updated modes ([`crate::bayes::discrepancy`]),
 /// orthogonal to the relative eigenvalue sensitivities of unit 0's coordinates at x = 0 (the
 /// reference point; step 2 with the auxiliary values `aux`, the step-1 posterior mean), its
-/// scale's prior median `fidelity_freq` (relative frequency). `None` (with an info finding)
-/// where the fidelity is 0, or where the units' coordinates span every mode.
+/// scale's prior median `fidelity_freq` (relative frequency); the unit coordinates `pinned`
+/// (held by data of their own) absorb none of it. `None` (with an info finding) where the
+/// fidelity is 0, or where the units' coordinates span every mode.
 pub fn discrepancy_for(
     target: &ModalTarget,
     aux: &[f64],
     fidelity_freq: f64,
-    what: &str,
+    (pinned, what): (&[usize], &str),
     findings: &mut Findings,
 ) -> anyhow::Result<Option<crate::bayes::discrepancy::Discrepancy>> {
     use crate::bayes::discrepancy::{sensitivities, Discrepancy};
@@ -723,7 +724,8 @@ pub fn discrepancy_for(
             }
         }
     }
-    let disc = Discrepancy::new(&sens, nm, d, &w, fidelity_freq);
+    let disc =
+        Discrepancy::new(&sens, nm, d, &w, fidelity_freq).map(|x| x.with_pinned(&sens, &w, pinned));
     if disc.is_none() {
         findings.push(Finding::new(
             Severity::Info,

@@ -83,6 +83,9 @@ pub const SUMMARY: TableSpec = TableSpec {
         c("r_hat", Col::Float64, false, "", "Rank-normalised split R-hat across runs."),
         c("ess_bulk", Col::Float64, false, "", "Bulk effective sample size."),
         c("ess_tail", Col::Float64, false, "", "Tail effective sample size."),
+        c("physical_q05", Col::Float64, true, "", "5 % quantile of the physical parameter (step 1 with a model-form discrepancy): the draws less the discrepancy's part that the parameters absorb, drawn from its prior at the inferred scale τ (the data cannot inform it). The draws in population/boards are the fitted values, which reproduce the data together with the inferred discrepancy; a board's physical value lies within these wider bounds. Null without a discrepancy."),
+        c("physical_q50", Col::Float64, true, "", "Median of the physical parameter (see physical_q05)."),
+        c("physical_q95", Col::Float64, true, "", "95 % quantile of the physical parameter (see physical_q05)."),
     ],
 };
 
@@ -343,6 +346,16 @@ pub fn write_summary(
         f(|s| s.ess_bulk),
         f(|s| s.ess_tail),
     ];
+    let mut cols = cols;
+    for g in [
+        (|s: &crate::bayes::diagnostics::Summary| s.q05) as fn(&_) -> f64,
+        |s| s.q50,
+        |s| s.q95,
+    ] {
+        cols.push(Arc::new(Float64Array::from_iter(
+            rows.iter().map(|r| r.physical.as_ref().map(g)),
+        )));
+    }
     write_table(path, &SUMMARY, cols, &[], prov)
 }
 

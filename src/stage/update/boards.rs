@@ -179,8 +179,13 @@ pub(crate) fn boards_attempt(
     boards::check_board_box(&bm, &bt, &results, &opts.model)?;
     let prov = provenance("update_boards", &prep.fingerprint);
     let mut outputs = vec![];
-    let (pop, boards_t, summary) =
-        boards::board_tables(&bm, &bt, &results, &labels, opts.sampler.runs);
+    let (pop, boards_t, summary) = boards::board_tables(
+        &bm,
+        &bt,
+        &results,
+        &labels,
+        (opts.sampler.runs, opts.sampler.seed),
+    );
     let p = opts.out.join("population.parquet");
     write_draws(&p, &POPULATION, &pop, false, &prov)?;
     outputs.push(p);

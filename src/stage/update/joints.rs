@@ -226,7 +226,7 @@ pub(crate) fn joints_body(
         // stiffness is already free, and a per-mode bias common to every assembly spans every
         // shift a common joint effect makes, so no refit could be told from it.
         opts.model.discrepancy_freq.unwrap_or(0.0),
-        "joints",
+        (&[], "joints"),
         &mut findings,
     )?;
     let shape_weights = weigh_shapes(
