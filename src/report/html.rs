@@ -40,6 +40,9 @@ pub struct SummaryRow {
     pub r_hat: f64,
     pub ess_bulk: f64,
     pub ess_tail: f64,
+    /// The physical parameter's 90 % bounds (NaN where there are none: summary.parquet).
+    pub physical_q05: f64,
+    pub physical_q95: f64,
 }
 
 /// A finding to show.
@@ -526,11 +529,11 @@ fn diagnostics_section(pg: &mut Page, md: &mut String, d: &ReportData) {
             max_rhat,
             min_ess
         );
-        let mut t = format!("<details><summary>Posterior summary, {} ({} rows)</summary><table data-table=\"summary\"><tr><th>parameter</th><th>board / measurement</th><th>mean</th><th>sd</th><th>q05</th><th>q50</th><th>q95</th><th>R-hat</th><th>ESS bulk</th><th>ESS tail</th></tr>\n", esc(&step.name), step.summary.len());
+        let mut t = format!("<details><summary>Posterior summary, {} ({} rows)</summary><table data-table=\"summary\"><tr><th>parameter</th><th>board / measurement</th><th>mean</th><th>sd</th><th>q05</th><th>q50</th><th>q95</th><th title=\"The physical parameter: the draws less the part of the model-form discrepancy the parameters absorb\">physical q05</th><th>physical q95</th><th>R-hat</th><th>ESS bulk</th><th>ESS tail</th></tr>\n", esc(&step.name), step.summary.len());
         for r in &step.summary {
             let _ = writeln!(
                 t,
-                "<tr>{}{}{}{}{}{}{}{}{}{}</tr>",
+                "<tr>{}{}{}{}{}{}{}{}{}{}{}{}</tr>",
                 txt("parameter", &r.parameter),
                 txt("unit", r.unit.as_deref().unwrap_or("")),
                 sci("mean", r.mean, 6),
@@ -538,6 +541,8 @@ fn diagnostics_section(pg: &mut Page, md: &mut String, d: &ReportData) {
                 sci("q05", r.q05, 6),
                 sci("q50", r.q50, 6),
                 sci("q95", r.q95, 6),
+                sci("physical_q05", r.physical_q05, 6),
+                sci("physical_q95", r.physical_q95, 6),
                 num("r_hat", r.r_hat, 4),
                 num("ess_bulk", r.ess_bulk, 0),
                 num("ess_tail", r.ess_tail, 0),

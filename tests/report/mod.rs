@@ -512,6 +512,8 @@ fn report_opens_in_chromium_without_errors_and_its_tables_equal_the_parquet() {
         "q05",
         "q50",
         "q95",
+        "physical_q05",
+        "physical_q95",
         "r_hat",
         "ess_bulk",
         "ess_tail",

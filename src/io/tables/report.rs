@@ -236,6 +236,12 @@ fn read_summary(path: &Path) -> anyhow::Result<Vec<SummaryRow>> {
         .iter()
         .map(|n| c.f64(n))
         .collect::<Result<_, _>>()?;
+        // Step 2's summary and an older step 1's have no physical bounds.
+        let phys: Option<(&Float64Array, &Float64Array)> =
+            match (c.f64("physical_q05"), c.f64("physical_q95")) {
+                (Ok(a), Ok(b)) => Some((a, b)),
+                _ => None,
+            };
         for i in 0..b.num_rows() {
             let unit = if !bid.is_null(i) {
                 Some(bid.value(i).to_string())
@@ -262,6 +268,20 @@ fn read_summary(path: &Path) -> anyhow::Result<Vec<SummaryRow>> {
                 r_hat: g(5),
                 ess_bulk: g(6),
                 ess_tail: g(7),
+                physical_q05: phys.map_or(f64::NAN, |(a, _)| {
+                    if a.is_null(i) {
+                        f64::NAN
+                    } else {
+                        a.value(i)
+                    }
+                }),
+                physical_q95: phys.map_or(f64::NAN, |(_, b)| {
+                    if b.is_null(i) {
+                        f64::NAN
+                    } else {
+                        b.value(i)
+                    }
+                }),
             });
         }
     }
