@@ -6,11 +6,14 @@
 //! - only the bolted setup misfits (free-free clean) → the joint mechanisms: they change
 //!   nothing in free-free. A recurring unpaired bolted mode (an extra resonance in every
 //!   bolted measurement) puts `fixture_compliance` first: only it adds a mode. Outlier
-//!   measurements without a mode-level shift put `joint_stiffness_per_joint` first: every
+//!   bolted measurements put `joint_stiffness_per_joint` next, with or without a mode-level
+//!   shift (a loose bolt in some assemblies moves the modes' means a little too): every
 //!   joint at once per measurement (which joint is loose may differ between assemblies),
-//!   then one candidate per joint; it acts on some measurements only. Otherwise the order is
-//!   `joint_rotation` (changes the bending pattern of all modes), `joint_mass`,
-//!   `fixture_compliance`, then the per-joint candidates when outliers were found too;
+//!   then one candidate per joint; it acts on some measurements only. Then
+//!   `joint_rotation` (changes the bending pattern of all modes), `joint_mass`, and
+//!   `fixture_compliance` when no unpaired mode recurs. A weakness: a few outliers on top
+//!   of a mode-level shift put the per-joint refit ahead of `joint_rotation`; ordering by
+//!   each mechanism's linearised share of the misfit would tell them apart;
 //! - a numeric covariate trend → `temperature_stiffness` when the column is a temperature
 //!   (its name or unit says so), with the covariate named;
 //! - free-free modes misfit without a covariate → `added_mass` and `local_stiffness_loss`
