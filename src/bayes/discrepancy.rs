@@ -115,20 +115,23 @@ impl Discrepancy {
     /// The discrepancy of `n_modes` modes orthogonal, in the metric of the per-mode weights
     /// `weights` (W, the data's precision; empty: equal), to the columns of `sens` (n_modes ×
     /// n_cols row-major, relative eigenvalue sensitivities), with the frequency fidelity
-    /// `fidelity_freq` as its scale's median. `None` where the sensitivities span every mode
-    /// (nothing is left that the parameters cannot absorb).
+    /// `fidelity_freq` as its scale's median; the columns `pinned` (coordinates held by data
+    /// of their own: the balance's mass, a measured thickness) absorb none of it
+    /// ([`confounded_factor`]). `None` where the sensitivities span every mode (nothing is
+    /// left that the parameters cannot absorb).
     pub fn new(
         sens: &[f64],
         n_modes: usize,
         n_cols: usize,
         weights: &[f64],
         fidelity_freq: f64,
+        pinned: &[usize],
     ) -> Option<Discrepancy> {
         let ws: Vec<f64> = (0..n_modes * n_cols)
             .map(|i| sens[i] * weights.get(i / n_cols.max(1)).copied().unwrap_or(1.0))
             .collect();
         let (basis, k) = complement_basis(&ws, n_modes, n_cols);
-        let confounded = confounded_factor(sens, n_modes, n_cols, weights, &[]);
+        let confounded = confounded_factor(sens, n_modes, n_cols, weights, pinned);
         (k > 0 && fidelity_freq > 0.0).then(|| Discrepancy {
             n_modes,
             basis,
@@ -140,14 +143,6 @@ impl Discrepancy {
             unit_dim: n_cols,
             confounded,
         })
-    }
-
-    /// The same with the unit coordinates `pinned` held by data of their own (the balance's
-    /// mass, a measured thickness): those absorb nothing, and the others absorb what the
-    /// frequencies alone leave open ([`confounded_factor`]).
-    pub fn with_pinned(mut self, sens: &[f64], weights: &[f64], pinned: &[usize]) -> Self {
-        self.confounded = confounded_factor(sens, self.n_modes, self.unit_dim, weights, pinned);
-        self
     }
 
     /// The part a of a discrepancy of scale `tau` that the unit coordinates absorb, for the
@@ -422,7 +417,7 @@ mod tests {
             assert_eq!(llt(1, k), 0.0);
         }
         // The shift scales with τ.
-        let disc = Discrepancy::new(&s, n, c, &[], 0.005).expect("k = 4");
+        let disc = Discrepancy::new(&s, n, c, &[], 0.005, &[]).expect("k = 4");
         let z = [0.3, -1.2, 0.7];
         let a1 = disc.confounded_shift(1e-3, &z);
         let a2 = disc.confounded_shift(2e-3, &z);
@@ -439,8 +434,8 @@ mod tests {
     #[test]
     fn as_many_independent_columns_as_modes_leave_no_discrepancy() {
         let a = vec![1.0, 0.0, 0.3, 1.0];
-        assert!(Discrepancy::new(&a, 2, 2, &[], 0.005).is_none());
-        assert!(Discrepancy::new(&a[..2], 2, 1, &[], 0.005).is_some());
+        assert!(Discrepancy::new(&a, 2, 2, &[], 0.005, &[]).is_none());
+        assert!(Discrepancy::new(&a[..2], 2, 1, &[], 0.005, &[]).is_some());
     }
 
     /// The prior's draws have the stated scale: the median of τ is τ₀, and d's covariance is
@@ -448,7 +443,7 @@ mod tests {
     #[test]
     fn prior_draws_follow_the_stated_fidelity() {
         let a = vec![1.0, 1.0, 1.0, 1.0];
-        let disc = Discrepancy::new(&a, 4, 1, &[], 0.005).expect("k = 3");
+        let disc = Discrepancy::new(&a, 4, 1, &[], 0.005, &[]).expect("k = 3");
         assert!((disc.scale_median - 0.010025).abs() < 1e-12);
         let mut rng = ChaCha8Rng::seed_from_u64(7);
         let n = 20_000;
@@ -492,7 +487,7 @@ mod tests {
             .flat_map(|i| cols.iter().map(move |col| col[i]))
             .collect();
         let w = [1.0, 25.0, 4.0, 0.5, 9.0];
-        let disc = Discrepancy::new(&a, n, c, &w, 0.005).expect("k = 3");
+        let disc = Discrepancy::new(&a, n, c, &w, 0.005, &[]).expect("k = 3");
         assert_eq!(disc.k, 3);
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         for _ in 0..20 {

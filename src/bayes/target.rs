@@ -751,7 +751,7 @@ mod tests {
         use crate::bayes::discrepancy::Discrepancy;
         let nm = 4;
         let sens = [1.0, 0.9, 1.1, 0.4];
-        let disc = Discrepancy::new(&sens, nm, 1, &[], 0.005).expect("k = 3");
+        let disc = Discrepancy::new(&sens, nm, 1, &[], 0.005, &[]).expect("k = 3");
         let eps = (0.004, 1.5);
         let delta = (0.1, 1.5);
         let e = ErrorModel {

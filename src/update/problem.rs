@@ -724,8 +724,7 @@ pub fn discrepancy_for(
             }
         }
     }
-    let disc =
-        Discrepancy::new(&sens, nm, d, &w, fidelity_freq).map(|x| x.with_pinned(&sens, &w, pinned));
+    let disc = Discrepancy::new(&sens, nm, d, &w, fidelity_freq, pinned);
     if disc.is_none() {
         findings.push(Finding::new(
             Severity::Info,

@@ -250,13 +250,7 @@ fn read_summary(path: &Path) -> anyhow::Result<Vec<SummaryRow>> {
             } else {
                 None
             };
-            let g = |k: usize| {
-                if f[k].is_null(i) {
-                    f64::NAN
-                } else {
-                    f[k].value(i)
-                }
-            };
+            let g = |k: usize| value_or_nan(f[k], i);
             out.push(SummaryRow {
                 parameter: p.value(i).into(),
                 unit,
@@ -268,20 +262,8 @@ fn read_summary(path: &Path) -> anyhow::Result<Vec<SummaryRow>> {
                 r_hat: g(5),
                 ess_bulk: g(6),
                 ess_tail: g(7),
-                physical_q05: phys.map_or(f64::NAN, |(a, _)| {
-                    if a.is_null(i) {
-                        f64::NAN
-                    } else {
-                        a.value(i)
-                    }
-                }),
-                physical_q95: phys.map_or(f64::NAN, |(_, b)| {
-                    if b.is_null(i) {
-                        f64::NAN
-                    } else {
-                        b.value(i)
-                    }
-                }),
+                physical_q05: phys.map_or(f64::NAN, |(a, _)| value_or_nan(a, i)),
+                physical_q95: phys.map_or(f64::NAN, |(_, b)| value_or_nan(b, i)),
             });
         }
     }
@@ -334,6 +316,15 @@ pub fn svgs(dir: &Path) -> Vec<PathBuf> {
         .unwrap_or_default();
     v.sort();
     v
+}
+
+/// Row i of a float column, null as NaN.
+fn value_or_nan(a: &Float64Array, i: usize) -> f64 {
+    if a.is_null(i) {
+        f64::NAN
+    } else {
+        a.value(i)
+    }
 }
 
 /// NaN and infinities as null.

@@ -327,7 +327,7 @@ pub fn write_summary(
     let f = |g: fn(&crate::bayes::diagnostics::Summary) -> f64| -> ArrayRef {
         Arc::new(Float64Array::from_iter_values(rows.iter().map(|r| g(&r.s))))
     };
-    let cols: Vec<ArrayRef> = vec![
+    let mut cols: Vec<ArrayRef> = vec![
         Arc::new(StringArray::from_iter_values(
             rows.iter().map(|r| r.parameter.as_str()),
         )),
@@ -346,7 +346,6 @@ pub fn write_summary(
         f(|s| s.ess_bulk),
         f(|s| s.ess_tail),
     ];
-    let mut cols = cols;
     for g in [
         (|s: &crate::bayes::diagnostics::Summary| s.q05) as fn(&_) -> f64,
         |s| s.q50,
