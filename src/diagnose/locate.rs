@@ -15,7 +15,10 @@
 //! 2. **Measurements** ([`MeasurementCheck`]): a joint outlier statistic over a measurement's
 //!    modes, robust to a contaminated minority (a loose bolt in 30 % of the bolted measurements).
 //! 3. **Covariates** ([`CovariateTest`]): every sheet column that varies within a setup,
-//!    numeric (regression slope) or categorical (one-way ANOVA), blocked by board.
+//!    numeric (regression slope) or categorical (one-way ANOVA), blocked by board and
+//!    adjusted for the measurements' own fitted parameters (a bolted measurement's contact
+//!    stiffness), so that a residual pattern the model's form ties to them is not read as a
+//!    sheet column's effect.
 //! 4. **Unpaired modes** ([`UnpairedCluster`], [`ModelModePresence`]): identified modes with no
 //!    accepted pair clustered by frequency; model modes never seen.
 //! 5. A summary ([`Located`]) and the [`Signature`] that screening regresses on sensitivities.
@@ -122,6 +125,13 @@ pub struct LocateInput {
     pub eps: Vec<EpsDraws>,
     pub identified: Vec<IdentifiedMode>,
     pub pairs: Vec<PairObs>,
+    /// The updating's own per-measurement parameters (step 2: each bolted measurement's
+    /// contact stiffness), ln of the posterior median: measurement id → values in
+    /// [`Self::unit_param_names`] order. They are nuisance regressors of the covariate tests
+    /// ([`CovariateTest::adjusted_for`]).
+    pub unit_params: BTreeMap<String, Vec<f64>>,
+    /// Names of [`Self::unit_params`]' values, e.g. `ln k_con_n_per_m`.
+    pub unit_param_names: Vec<String>,
 }
 
 /// The sheet column naming the board, tested as a covariate (boards that differ).
@@ -337,6 +347,16 @@ pub struct CovariateTest {
     /// absorb each board's mean, so only within-board variation is informative. False when
     /// the covariate is constant within boards (or is the board).
     pub blocked_by_board: bool,
+    /// The measurements' own fitted parameters held fixed as well ([`LocateInput::unit_params`],
+    /// e.g. `ln k_con_n_per_m` of the bolted measurements). A model whose form is off by an
+    /// amount that depends on a unit's parameter (the joint model's error grows as the
+    /// contact softens) leaves residuals that follow that parameter; a sheet column that
+    /// happens to trend with it (the contact stiffness of a board's successive assemblies
+    /// drifting by chance over the day) would otherwise take that model-form pattern for its
+    /// own effect. Only what the covariate explains beyond them counts. Empty when the setup
+    /// has no per-measurement parameters (free-free: the board's parameters are constant
+    /// within a board, and the board blocking already holds them).
+    pub adjusted_for: Vec<String>,
     /// Numeric: relative frequency change per unit of the covariate (e.g. per K).
     pub slope_rel_per_unit: Option<f64>,
     pub slope_se: Option<f64>,
@@ -1308,7 +1328,9 @@ fn covariate_tests(
                     .collect()
             };
             let is_board = cov.name == BOARD_COVARIATE;
-            let intercept = vec![vec![1.0; n]];
+            let (nuisance, adjusted_for) = unit_nuisance(input, &sel);
+            let mut intercept = vec![vec![1.0; n]];
+            intercept.extend(nuisance);
             let blocked = (!is_board)
                 .then(|| {
                     let mut base = intercept.clone();
@@ -1365,6 +1387,7 @@ fn covariate_tests(
                 unit: cov.unit.clone(),
                 n,
                 blocked_by_board,
+                adjusted_for,
                 slope_rel_per_unit: lm.slope.filter(|_| numeric).map(|s| s.0),
                 slope_se: lm.slope.filter(|_| numeric).map(|s| s.1),
                 f: lm.f,
@@ -1385,6 +1408,37 @@ fn covariate_tests(
         t.significant = q <= opts.fdr && t.effect_rel > opts.tolerance_rel;
     }
     (tests, skipped)
+}
+
+/// The nuisance columns of the covariate tests over the measurements `sel` (indices into
+/// [`LocateInput::measurements`]): each per-measurement parameter of the updating, centred,
+/// and its name; none unless every selected measurement has one (a setup without
+/// per-measurement parameters, or a table that does not cover it).
+fn unit_nuisance(input: &LocateInput, sel: &[usize]) -> (Vec<Vec<f64>>, Vec<String>) {
+    let rows: Option<Vec<&Vec<f64>>> = sel
+        .iter()
+        .map(|&i| {
+            input
+                .unit_params
+                .get(&input.measurements[i].measurement_id)
+                .filter(|v| {
+                    v.len() == input.unit_param_names.len() && v.iter().all(|x| x.is_finite())
+                })
+        })
+        .collect();
+    match rows {
+        Some(rows) if !rows.is_empty() && !input.unit_param_names.is_empty() => {
+            let cols = (0..input.unit_param_names.len())
+                .map(|k| {
+                    let c: Vec<f64> = rows.iter().map(|r| r[k]).collect();
+                    let m = mean(&c);
+                    c.iter().map(|x| x - m).collect()
+                })
+                .collect();
+            (cols, input.unit_param_names.clone())
+        }
+        _ => (vec![], vec![]),
+    }
 }
 
 /// The residual rows with the located numeric covariates' per-label slopes taken out.

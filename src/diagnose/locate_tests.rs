@@ -496,6 +496,77 @@ fn a_covariate_effect_below_the_tolerance_is_not_located() {
     assert!(loc.covariates.is_empty());
 }
 
+/// A bolted measurement's fitted ln k_con in the synthetic campaign: it follows the
+/// temperature by chance (0.1 per K) plus its own part, so the two are correlated but not
+/// collinear.
+fn fitted_ln_k(j: usize, temp: f64) -> f64 {
+    0.1 * (temp - 23.0) + 0.05 * (j as f64 * 1.7).sin()
+}
+
+/// The synthetic campaign with each bolted measurement's fitted ln k_con as its unit
+/// parameter, and `shift` given that ln k_con as well.
+fn with_unit_params(
+    synth: &Synth,
+    seed: u64,
+    shift: &dyn Fn(&str, f64, f64) -> f64,
+) -> LocateInput {
+    let f = |s: &str, _: &str, j: usize, t: f64| shift(s, t, fitted_ln_k(j, t));
+    let mut inp = synth.draw(seed, &f);
+    let CovariateValues::Numeric(temps) = inp.covariates[0].values.clone() else {
+        unreachable!()
+    };
+    let mut j = 0;
+    for (m, t) in inp.measurements.iter().zip(&temps) {
+        if m.setup == "bolted" {
+            inp.unit_params
+                .insert(m.measurement_id.clone(), vec![fitted_ln_k(j, t.unwrap())]);
+            j += 1;
+        }
+    }
+    inp.unit_param_names = vec!["ln k_con_n_per_m".into()];
+    inp
+}
+
+#[test]
+fn a_residual_that_follows_the_fitted_contact_stiffness_is_not_a_covariate_effect() {
+    // The joint model's error grows as the contact softens: every bolted residual moves by
+    // −2 % per unit of the measurement's fitted ln k_con, which follows the temperature by
+    // chance. Blocked by board alone, the temperature would take that pattern as its own.
+    let synth = Synth::paper();
+    let opts = LocateOptions::default();
+    let bolted_temp = |loc: &Located| {
+        loc.covariate_tests
+            .iter()
+            .find(|t| t.setup == "bolted" && t.covariate == "temperature_c")
+            .cloned()
+            .unwrap()
+    };
+    for seed in 0..3 {
+        let model_form = |s: &str, _: f64, lnk: f64| if s == "bolted" { -0.02 * lnk } else { 0.0 };
+        let mut inp = with_unit_params(&synth, seed, &model_form);
+        let t = bolted_temp(&locate(&inp, &opts));
+        assert_eq!(t.adjusted_for, vec!["ln k_con_n_per_m".to_string()]);
+        assert!(!t.significant && t.p_value > 0.01, "{t:?}");
+        // Without the unit parameters the same data show a "temperature trend".
+        inp.unit_params.clear();
+        let t = bolted_temp(&locate(&inp, &opts));
+        assert!(t.adjusted_for.is_empty());
+        assert!(t.significant, "{t:?}");
+        // A real temperature effect on top is still found, with its slope.
+        let both = |s: &str, t: f64, lnk: f64| {
+            if s == "bolted" {
+                -0.02 * lnk - 2e-3 * (t - 23.0)
+            } else {
+                0.0
+            }
+        };
+        let t = bolted_temp(&locate(&with_unit_params(&synth, seed, &both), &opts));
+        assert!(t.significant, "{t:?}");
+        let s = t.slope_rel_per_unit.unwrap();
+        assert!((s + 2e-3).abs() < 4.0 * t.slope_se.unwrap(), "slope {s}");
+    }
+}
+
 #[test]
 fn one_outlier_measurement_and_a_loose_bolt_minority_are_found() {
     let synth = Synth::paper();

@@ -143,6 +143,12 @@ pub fn read_inputs(work_dir: &Path) -> anyhow::Result<(LocateInput, Findings)> {
         }
         input.residuals.extend(rows);
     }
+    let joints = wd.update_joints().join("joints.parquet");
+    if joints.is_file() {
+        let (names, by_measurement) = read_unit_params(&joints)?;
+        input.unit_param_names = names;
+        input.unit_params = by_measurement;
+    }
     if input.residuals.is_empty() {
         bail!(
             "{}: no residuals of any update step (expected {} or {}): run `hbmu update boards` first",
@@ -502,6 +508,56 @@ pub fn population_worst(
         }
     }
     Ok(worst)
+}
+
+/// Measurement id → ln of its per-measurement parameters' posterior medians.
+type UnitParams = BTreeMap<String, Vec<f64>>;
+
+/// The per-measurement parameters of step 2's `joints.parquet` (every float64 column: the
+/// contact stiffness, a refit's extra coordinates), as ln of each measurement's posterior
+/// median, with their names (`ln <column>`). A column with a non-positive value is skipped
+/// (it has no logarithm; the baseline's are stiffnesses).
+fn read_unit_params(path: &Path) -> anyhow::Result<(Vec<String>, UnitParams)> {
+    let batches = tables::read_parquet(path)?;
+    let Some(first) = batches.first() else {
+        return Ok((vec![], BTreeMap::new()));
+    };
+    let cols: Vec<String> = first
+        .schema()
+        .fields()
+        .iter()
+        .filter(|f| f.data_type() == &DataType::Float64)
+        .map(|f| f.name().clone())
+        .collect();
+    // column → measurement → draws.
+    let mut by: Vec<BTreeMap<String, Vec<f64>>> = vec![BTreeMap::new(); cols.len()];
+    for b in &batches {
+        let c = Cols { batch: b, path };
+        let m = c.str("measurement_id")?;
+        for (k, name) in cols.iter().enumerate() {
+            let a = c.f64(name)?;
+            for i in 0..b.num_rows() {
+                by[k]
+                    .entry(m.value(i).to_string())
+                    .or_default()
+                    .push(a.value(i));
+            }
+        }
+    }
+    let keep: Vec<usize> = (0..cols.len())
+        .filter(|&k| by[k].values().flatten().all(|x| x.is_finite() && *x > 0.0))
+        .collect();
+    let mut out = UnitParams::new();
+    for &k in &keep {
+        for (m, v) in &mut by[k] {
+            v.sort_by(f64::total_cmp);
+            out.entry(m.clone())
+                .or_default()
+                .push(quantile(v, 0.5).ln());
+        }
+    }
+    let names = keep.iter().map(|&k| format!("ln {}", cols[k])).collect();
+    Ok((names, out))
 }
 
 /// Every value of a Float64 column of a Parquet table, sorted.

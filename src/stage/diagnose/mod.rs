@@ -51,7 +51,12 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
     }
     let step2 = wd.update_joints().join("evidence.json").is_file();
     if step2 {
-        for f in ["residuals.parquet", "population.parquet", "evidence.json"] {
+        for f in [
+            "residuals.parquet",
+            "population.parquet",
+            "evidence.json",
+            "joints.parquet",
+        ] {
             inputs.push(wd.update_joints().join(f));
         }
     }
