@@ -487,6 +487,11 @@ pub struct Located {
     /// mean, whichever fits better; see `adjust_for_covariates`): a
     /// temperature drift makes the measurements at the extremes outliers, a loose bolt stays.
     pub measurements_after_covariates: Vec<String>,
+    /// Outliers of [`Self::measurements`] whose deviation their board's other measurements in
+    /// the setup share ([`board_shared_outliers`]): the board differs from the population
+    /// (its assemblies alike), not this measurement from its board. A loose bolt, a slip or a
+    /// drift sets one measurement apart from the same board's others; these cannot be it.
+    pub board_shared: Vec<String>,
     pub covariates: Vec<LocatedCovariate>,
     /// Recurring clusters of unpaired identified modes.
     pub unpaired_clusters: Vec<UnpairedCluster>,
@@ -778,6 +783,7 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
         .filter(|m| m.outlier && m.single_mode.is_none())
         .map(|m| m.measurement_id.clone())
         .collect();
+    let board_shared = board_shared_outliers(&rows, &measurements, opts);
     let identification_outliers: Vec<IdentificationOutlier> = measurement_checks
         .iter()
         .filter(|m| m.outlier)
@@ -853,6 +859,7 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
         measurements,
         identification_outliers,
         measurements_after_covariates,
+        board_shared,
         covariates,
         unpaired_clusters: unpaired,
         never_seen,
@@ -1123,6 +1130,83 @@ fn single_mode(res: &[MeasurementResidual], alpha: f64) -> Option<(usize, f64)> 
         .collect();
     let p = chi2_sf(chi2_of(&rest), rest.len() as f64);
     (p > alpha).then_some((imax, p))
+}
+
+/// The outliers (`outliers`, measurement ids) whose deviation their board shares: each is
+/// tested against the median of its board's other measurements in its setup, mode by mode,
+/// z = (|x − median(mates)| − tolerance) / (s_w √(1 + π/(2m))) with m mates and s_w the
+/// label's pooled within-board sd over the measurements that are not outliers (the median's
+/// variance is π/(2m) σ² for normal scatter), Σ z² against χ²(k). An outlier with p ≥ fdr
+/// (nothing sets it apart from its board) is board-shared. One with no mates, or no mode to
+/// compare, is not: nothing tells. The mates include the board's other outliers: when a
+/// board's assemblies all deviate alike, each is flagged or not by chance, and each agrees
+/// with the others.
+pub fn board_shared_outliers(
+    rows: &[&ResidualObs],
+    outliers: &[String],
+    opts: &LocateOptions,
+) -> Vec<String> {
+    let out: BTreeSet<&str> = outliers.iter().map(|m| m.as_str()).collect();
+    // (setup, label) → board → [(measurement, residual)].
+    type ByBoard<'a> = BTreeMap<&'a str, Vec<(&'a str, f64)>>;
+    let mut by: BTreeMap<(&str, &str), ByBoard> = BTreeMap::new();
+    for r in rows {
+        by.entry((r.setup.as_str(), r.label.as_str()))
+            .or_default()
+            .entry(r.board_id.as_str())
+            .or_default()
+            .push((r.measurement_id.as_str(), r.rel_residual));
+    }
+    // Pooled within-board sd of the measurements that are not outliers, per (setup, label).
+    let s_w: BTreeMap<(&str, &str), f64> = by
+        .iter()
+        .filter_map(|(k, boards)| {
+            let (mut ss, mut dof) = (0.0, 0usize);
+            for v in boards.values() {
+                let clean: Vec<f64> = v
+                    .iter()
+                    .filter(|(m, _)| !out.contains(m))
+                    .map(|&(_, x)| x)
+                    .collect();
+                if clean.len() >= 2 {
+                    let m = mean(&clean);
+                    ss += clean.iter().map(|x| (x - m).powi(2)).sum::<f64>();
+                    dof += clean.len() - 1;
+                }
+            }
+            (dof >= 2 && ss > 0.0).then(|| (*k, (ss / dof as f64).sqrt()))
+        })
+        .collect();
+    let mut shared = vec![];
+    for id in outliers {
+        let mut zs = vec![];
+        for (k, boards) in &by {
+            let Some(&s) = s_w.get(k) else { continue };
+            for v in boards.values() {
+                let Some(&(_, x)) = v.iter().find(|(m, _)| m == id) else {
+                    continue;
+                };
+                let mut mates: Vec<f64> =
+                    v.iter().filter(|(m, _)| m != id).map(|&(_, x)| x).collect();
+                if mates.is_empty() {
+                    continue;
+                }
+                mates.sort_by(f64::total_cmp);
+                let m = mates.len() as f64;
+                let d = x - median(&mates);
+                let z = (d.abs() - opts.tolerance_rel).max(0.0)
+                    / (s * (1.0 + std::f64::consts::FRAC_PI_2 / m).sqrt());
+                zs.push(z);
+            }
+        }
+        if !zs.is_empty() {
+            let chi2: f64 = zs.iter().map(|z| z * z).sum();
+            if chi2_sf(chi2, zs.len() as f64) >= opts.fdr {
+                shared.push(id.clone());
+            }
+        }
+    }
+    shared
 }
 
 type ByMeasurement<'a> = BTreeMap<(String, String, String), Vec<&'a ResidualObs>>;

@@ -568,6 +568,47 @@ fn a_residual_that_follows_the_fitted_contact_stiffness_is_not_a_covariate_effec
 }
 
 #[test]
+fn a_board_whose_assemblies_all_deviate_alike_is_not_an_assembly_outlier() {
+    // Every bolted assembly of PCB-04 (bolted measurements 15-19) deviates by the same
+    // pattern (the board's own bolted misfit), and one assembly of PCB-02 (measurement 7)
+    // by a loose bolt's: the first are the board's, the second its own.
+    let synth = Synth::paper();
+    let pattern = |l: &str| match l {
+        "plate-0-0" => -3e-3,
+        "bending-y-1" => 2e-3,
+        "plate-2-2" => -2.5e-3,
+        "plate-0-1" => 1.5e-3,
+        _ => 0.0,
+    };
+    let shift = move |s: &str, l: &str, j: usize, _: f64| match s {
+        "bolted" if (15..20).contains(&j) || j == 7 => pattern(l),
+        _ => 0.0,
+    };
+    for seed in 0..5 {
+        let loc = locate(&synth.draw(seed, &shift), &LocateOptions::default());
+        let board: Vec<String> = (15..20).map(|j| format!("M{:03}", 31 + j)).collect();
+        let flagged: Vec<&String> = board
+            .iter()
+            .filter(|m| loc.measurements.contains(m))
+            .collect();
+        assert!(flagged.len() >= 4, "seed {seed}: {:?}", loc.measurements);
+        assert!(
+            flagged.iter().all(|m| loc.board_shared.contains(m)),
+            "seed {seed}: flagged {flagged:?}, shared {:?}",
+            loc.board_shared
+        );
+        assert!(
+            loc.measurements.contains(&"M038".to_string()),
+            "seed {seed}"
+        );
+        assert!(
+            !loc.board_shared.contains(&"M038".to_string()),
+            "seed {seed}"
+        );
+    }
+}
+
+#[test]
 fn one_outlier_measurement_and_a_loose_bolt_minority_are_found() {
     let synth = Synth::paper();
     // Bolted measurements 0, 3, 6, ... (10 of 30): a loose bolt leaves a pattern of 0.15 to
@@ -617,6 +658,15 @@ fn one_outlier_measurement_and_a_loose_bolt_minority_are_found() {
         assert!((o.centred_rel_residual - 1.5e-3).abs() < 1e-4, "{o:?}");
         // No covariate is located here, so the adjusted list is the same.
         assert_eq!(loc.measurements_after_covariates, loc.measurements);
+        // Each stands apart from its board's other assemblies (at most two of five loose).
+        assert!(
+            loose
+                .iter()
+                .chain(["M005".to_string()].iter())
+                .all(|m| !loc.board_shared.contains(m)),
+            "seed {seed}: {:?}",
+            loc.board_shared
+        );
         false_hits += found.len() - hits - 1;
     }
     // BH at 0.01 with 11 true outliers of 60: about 0.1 false ones expected per seed.

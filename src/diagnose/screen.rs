@@ -6,7 +6,9 @@
 //! - only the bolted setup misfits (free-free clean) → the joint mechanisms: they change
 //!   nothing in free-free. A recurring unpaired bolted mode (an extra resonance in every
 //!   bolted measurement) puts `fixture_compliance` first: only it adds a mode. Outlier
-//!   bolted measurements put `joint_stiffness_per_joint` next, with or without a mode-level
+//!   bolted measurements that stand apart from their board's other assemblies (not
+//!   [`Located::board_shared`]: a board whose assemblies all deviate alike is the board's
+//!   own misfit) put `joint_stiffness_per_joint` next, with or without a mode-level
 //!   shift (a loose bolt in some assemblies moves the modes' means a little too): every
 //!   joint at once per measurement (which joint is loose may differ between assemblies),
 //!   then one candidate per joint; it acts on some measurements only. Then
@@ -190,8 +192,10 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
     let setup_modes = |s: &str| located.modes.iter().filter(|m| m.setup == s).count();
     let bolted_modes = setup_modes("bolted");
     let free_modes = setup_modes("free");
-    // Outliers that remain once the located covariates are taken out: a temperature drift
-    // makes the measurements at its extremes outliers, a loose bolt stays one.
+    // Outliers that remain once the located covariates are taken out (a temperature drift
+    // makes the measurements at its extremes outliers, a loose bolt stays one) and that
+    // stand apart from their board's other assemblies (a board whose assemblies all deviate
+    // alike is the board's own, as in free-free, not a joint's of one assembly).
     let bolted_outliers: Vec<&String> = located
         .measurements_after_covariates
         .iter()
@@ -200,6 +204,7 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
                 .measurement_checks
                 .iter()
                 .any(|c| &c.measurement_id == *m && c.setup == "bolted")
+                && !located.board_shared.contains(m)
         })
         .collect();
     let recurring_bolted = located

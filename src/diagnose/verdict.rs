@@ -61,24 +61,29 @@ pub fn model_form_pattern(
         && located.unpaired_clusters.is_empty()
 }
 
-/// `Some(boards)` when every outlier measurement is one of all the measurements (at least two)
-/// of its board in its setup, and those boards differ from the others (`board_id` located in
-/// that setup): the repeat measurements of a board agree with each other, the board itself is
-/// off the population, as `(setup, board)` pairs. `Some(empty)` without outliers; `None` when
-/// some outlier stands apart from its board's other measurements (a measurement's own
-/// problem: a loose bolt, a drift, a slip).
+/// `Some(boards)` when every outlier measurement is its board's rather than its own: one of
+/// all the measurements (at least two) of its board in its setup, those boards differing from
+/// the others (`board_id` located in that setup), or an outlier whose board's other
+/// measurements share its deviation ([`Located::board_shared`]). The repeat measurements of a
+/// board agree with each other; the board itself is off the population, as `(setup, board)`
+/// pairs. `Some(empty)` without outliers; `None` when some outlier stands apart from its
+/// board's other measurements (a measurement's own problem: a loose bolt, a drift, a slip).
 pub fn whole_board_outliers(
     located: &Located,
     measurements: &[locate::MeasurementInfo],
 ) -> Option<Vec<(String, String)>> {
     let off: BTreeSet<&str> = located.measurements.iter().map(|m| m.as_str()).collect();
-    let mut per_board: BTreeMap<(&str, &str), (usize, usize)> = BTreeMap::new();
+    let shared: BTreeSet<&str> = located.board_shared.iter().map(|m| m.as_str()).collect();
+    // (setup, board) → (measurements, outliers, outliers its board shares).
+    let mut per_board: BTreeMap<(&str, &str), (usize, usize, usize)> = BTreeMap::new();
     for m in measurements {
         let e = per_board
             .entry((m.setup.as_str(), m.board_id.as_str()))
             .or_default();
+        let id = m.measurement_id.as_str();
         e.0 += 1;
-        e.1 += usize::from(off.contains(m.measurement_id.as_str()));
+        e.1 += usize::from(off.contains(id));
+        e.2 += usize::from(off.contains(id) && shared.contains(id));
     }
     let board_located = |setup: &str| {
         located
@@ -87,11 +92,12 @@ pub fn whole_board_outliers(
             .any(|c| c.setup == setup && c.covariate == crate::diagnose::locate::BOARD_COVARIATE)
     };
     let mut boards = vec![];
-    for ((setup, board), (n, n_off)) in per_board {
+    for ((setup, board), (n, n_off, n_shared)) in per_board {
         if n_off == 0 {
             continue;
         }
-        if n_off < n || n < 2 || !board_located(setup) {
+        let whole = n_off == n && n >= 2 && board_located(setup);
+        if !(whole || n_shared == n_off) {
             return None;
         }
         boards.push((setup.to_string(), board.to_string()));
