@@ -193,6 +193,8 @@ fn a_changed_stage_option_reruns_that_stage_and_those_after_it() {
     let other = format!("SCENARIO={}", d.dir.join("other.toml").display());
     let cases: Vec<(&str, &[&str])> = vec![
         ("UPDATE_ARGS=--rom-basis 20", &updating),
+        // Step 1's own options: step 2 reads step 1's posterior, so it reruns too.
+        ("UPDATE_BOARDS_ARGS=--hold-out PCB-03", &updating),
         ("UPDATE_PARTICLES=300", &updating),
         ("UPDATE_RUNS=3", &updating),
         ("UPDATE_SEED=7", &updating),
