@@ -164,24 +164,28 @@ pub struct NewModeNote {
 impl Refit {
     /// Mean log evidence and its standard error over the runs.
     pub fn evidence(&self) -> Option<(f64, f64)> {
-        let n = self.log_evidence_runs.len();
-        if n == 0 || self.failed.is_some() {
+        if self.failed.is_some() {
             return None;
         }
-        let m = self.log_evidence_runs.iter().sum::<f64>() / n as f64;
-        let se = if n > 1 {
-            let v = self
-                .log_evidence_runs
-                .iter()
-                .map(|x| (x - m).powi(2))
-                .sum::<f64>()
-                / (n - 1) as f64;
-            (v / n as f64).sqrt()
-        } else {
-            f64::NAN
-        };
-        Some((m, se))
+        runs_mean_se(&self.log_evidence_runs)
     }
+}
+
+/// The mean of independent runs' log evidences and its standard error (sd / √n; NaN with one
+/// run); `None` without runs.
+pub fn runs_mean_se(runs: &[f64]) -> Option<(f64, f64)> {
+    let n = runs.len();
+    if n == 0 {
+        return None;
+    }
+    let m = runs.iter().sum::<f64>() / n as f64;
+    let se = if n > 1 {
+        let v = runs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1) as f64;
+        (v / n as f64).sqrt()
+    } else {
+        f64::NAN
+    };
+    Some((m, se))
 }
 
 /// The decision rule. A candidate is favoured when its log Bayes factor exceeds `min_log_bf`

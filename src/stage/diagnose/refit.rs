@@ -383,10 +383,13 @@ pub(super) fn refine_point(
         if z.is_empty() || m.is_empty() {
             anyhow::bail!("{}: no log evidence or no mass", o.out.display());
         }
+        let (log_evidence, se) = select::runs_mean_se(&z).unwrap_or((f64::NAN, f64::NAN));
         let q = point_search::Probe {
             x_m: p[0],
             y_m: p[1],
-            log_evidence: z.iter().sum::<f64>() / z.len() as f64,
+            log_evidence,
+            // One run has no spread to go by: every difference then counts.
+            log_evidence_se: if se.is_finite() { se } else { 0.0 },
             ln_mass_kg: quantile(&m, 0.5).ln(),
         };
         eprintln!(
