@@ -927,6 +927,48 @@ fn summary_text(loc: &Located) -> String {
 /// the misfit is measured on its own, so a refit that removes one part explains that part
 /// and leaves the other, and only both refits together explain the whole.
 #[test]
+fn a_board_mechanism_is_judged_on_the_free_free_modes_and_a_joint_one_on_the_bolted() {
+    use crate::diagnose::library::Mechanism;
+    use crate::diagnose::misfit::RefitShares;
+    use crate::diagnose::screen::Candidate;
+    // A mass shifts free-free bending-x-1 by −0.3 %; the joint model's form shifts bolted
+    // plate-0-0 by +0.5 % and plate-2-2 by −0.4 %. The mass's refit removes the first only.
+    let synth = Synth::paper();
+    let opts = LocateOptions::default();
+    let mass = |s: &str, l: &str| {
+        if s == "free" && l == "bending-x-1" {
+            -3e-3
+        } else {
+            0.0
+        }
+    };
+    let joints = |s: &str, l: &str| match (s, l) {
+        ("bolted", "plate-0-0") => 5e-3,
+        ("bolted", "plate-2-2") => -4e-3,
+        _ => 0.0,
+    };
+    let cand = |m: Mechanism| Candidate::new(m, String::new());
+    for seed in 0..3 {
+        let both = synth.draw(seed, &|s, l, _, _| mass(s, l) + joints(s, l));
+        let loc = locate(&both, &opts);
+        let after_mass = synth.draw(seed, &|s, l, _, _| joints(s, l)).residuals;
+        let shares = RefitShares::new(&loc, &both, &after_mass, &opts);
+        let own = shares.own(&cand(Mechanism::AddedMass)).unwrap();
+        assert!(
+            own < 0.1,
+            "seed {seed}: the mass leaves {own} of the free-free shifts"
+        );
+        // Over every located mode the joints' part would have counted against it.
+        let all = crate::diagnose::misfit::remaining_share(&loc, &mode_means(&after_mass, &opts))
+            .unwrap();
+        assert!(all > 0.6, "seed {seed}: {all}");
+        // A joint mechanism is judged on the bolted modes, which the mass left.
+        let joint = shares.own(&cand(Mechanism::JointRotation)).unwrap();
+        assert!(joint > 0.9, "seed {seed}: {joint}");
+    }
+}
+
+#[test]
 fn two_effects_are_two_parts_each_explained_by_its_own_refit() {
     use crate::diagnose::library::Mechanism;
     use crate::diagnose::misfit::{self, MisfitParts, RefitShares};

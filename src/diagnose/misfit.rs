@@ -181,6 +181,11 @@ pub struct RefitShares {
     /// move a free-free mode, so the free-free misfit (the model's form, a board mechanism)
     /// is not its to explain (`None`: no bolted mode located).
     bolted_modes: Option<f64>,
+    /// Of the free-free modes' mean shifts, the part a board mechanism is judged on: the
+    /// free-free modes are the board's alone, while the bolted ones carry the joints' misfit
+    /// too (the joint model's form, a joint mechanism), which a mass or a local stiffness
+    /// cannot be asked to explain (`None`: no free-free mode located).
+    free_modes: Option<f64>,
     /// The largest reduction of a mean-shift mode's misfit ([`largest_reduction`]).
     modes_reduction: Option<f64>,
     /// Of each located covariate's trend: the share left, and the effect before (relative).
@@ -198,6 +203,7 @@ impl RefitShares {
         RefitShares {
             modes: remaining_share(located, &means),
             bolted_modes: remaining_share_in(located, &means, Some("bolted")),
+            free_modes: remaining_share_in(located, &means, Some("free")),
             modes_reduction: largest_reduction(located, &means),
             covariates: located
                 .covariates
@@ -217,14 +223,15 @@ impl RefitShares {
     }
 
     /// The candidate's own share: of its covariate's trend, of the bolted modes' mean shifts
-    /// for a joint mechanism, or of the mean shifts.
+    /// for a joint mechanism, of the free-free modes' for a board mechanism (either, when
+    /// its setup has no located mode: of all the mean shifts).
     pub fn own(&self, cand: &Candidate) -> Option<f64> {
         match &cand.covariate {
             Some(c) => self.covariates.get(c).and_then(|v| v.0),
             None if !super::library::is_board_mechanism(cand.mechanism) => {
                 self.bolted_modes.or(self.modes)
             }
-            None => self.modes,
+            None => self.free_modes.or(self.modes),
         }
     }
 
