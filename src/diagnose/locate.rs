@@ -1186,12 +1186,10 @@ pub fn board_shared_outliers(
                 let Some(&(_, x)) = v.iter().find(|(m, _)| m == id) else {
                     continue;
                 };
-                let mut mates: Vec<f64> =
-                    v.iter().filter(|(m, _)| m != id).map(|&(_, x)| x).collect();
+                let mates: Vec<f64> = v.iter().filter(|(m, _)| m != id).map(|&(_, x)| x).collect();
                 if mates.is_empty() {
                     continue;
                 }
-                mates.sort_by(f64::total_cmp);
                 let m = mates.len() as f64;
                 let d = x - median(&mates);
                 let z = (d.abs() - opts.tolerance_rel).max(0.0)

@@ -145,9 +145,22 @@ pub fn read_inputs(work_dir: &Path) -> anyhow::Result<(LocateInput, Findings)> {
     }
     let joints = wd.update_joints().join("joints.parquet");
     if joints.is_file() {
-        let (names, by_measurement) = read_unit_params(&joints)?;
+        let (names, by_measurement, skipped) = read_unit_params(&joints)?;
         input.unit_param_names = names;
         input.unit_params = by_measurement;
+        if !skipped.is_empty() {
+            findings.push(
+                Finding::new(
+                    Severity::Info,
+                    "diagnose.unit_param_skipped",
+                    format!(
+                        "column(s) {} hold a non-positive or non-finite value: no logarithm, so the covariate tests are not adjusted for them",
+                        skipped.join(", ")
+                    ),
+                )
+                .file(format!("{}/joints.parquet", work_dir::UPDATE_JOINTS)),
+            );
+        }
     }
     if input.residuals.is_empty() {
         bail!(
@@ -516,11 +529,11 @@ type UnitParams = BTreeMap<String, Vec<f64>>;
 /// The per-measurement parameters of step 2's `joints.parquet` (every float64 column: the
 /// contact stiffness, a refit's extra coordinates), as ln of each measurement's posterior
 /// median, with their names (`ln <column>`). A column with a non-positive value is skipped
-/// (it has no logarithm; the baseline's are stiffnesses).
-fn read_unit_params(path: &Path) -> anyhow::Result<(Vec<String>, UnitParams)> {
+/// (it has no logarithm; the baseline's are stiffnesses) and returned by name.
+fn read_unit_params(path: &Path) -> anyhow::Result<(Vec<String>, UnitParams, Vec<String>)> {
     let batches = tables::read_parquet(path)?;
     let Some(first) = batches.first() else {
-        return Ok((vec![], BTreeMap::new()));
+        return Ok((vec![], BTreeMap::new(), vec![]));
     };
     let cols: Vec<String> = first
         .schema()
@@ -557,7 +570,11 @@ fn read_unit_params(path: &Path) -> anyhow::Result<(Vec<String>, UnitParams)> {
         }
     }
     let names = keep.iter().map(|&k| format!("ln {}", cols[k])).collect();
-    Ok((names, out))
+    let skipped = (0..cols.len())
+        .filter(|k| !keep.contains(k))
+        .map(|k| cols[k].clone())
+        .collect();
+    Ok((names, out, skipped))
 }
 
 /// Every value of a Float64 column of a Parquet table, sorted.
@@ -1098,6 +1115,36 @@ mod tests {
             e.contains("no residuals") && e.contains("hbmu update boards"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn unit_parameters_are_the_ln_median_and_a_column_without_a_logarithm_is_named() {
+        use arrow::array::{Float64Array, StringArray};
+        use arrow::datatypes::{Field, Schema};
+        use arrow::record_batch::RecordBatch;
+        use std::sync::Arc;
+        let tmp = tempfile::tempdir().unwrap();
+        let p = tmp.path().join("joints.parquet");
+        let schema = Arc::new(Schema::new(vec![
+            Field::new("measurement_id", DataType::Utf8, false),
+            Field::new("k_con_n_per_m", DataType::Float64, false),
+            Field::new("shift", DataType::Float64, false),
+        ]));
+        let b = RecordBatch::try_new(
+            schema,
+            vec![
+                Arc::new(StringArray::from(vec!["M1", "M1", "M1", "M2"])),
+                Arc::new(Float64Array::from(vec![1e6, 4e6, 2e6, 3e6])),
+                Arc::new(Float64Array::from(vec![0.1, -0.2, 0.3, 0.0])),
+            ],
+        )
+        .unwrap();
+        tables::write_parquet(&p, &b).unwrap();
+        let (names, by, skipped) = read_unit_params(&p).unwrap();
+        assert_eq!(names, ["ln k_con_n_per_m"]);
+        assert_eq!(skipped, ["shift"]);
+        assert!((by["M1"][0] - 2e6f64.ln()).abs() < 1e-12);
+        assert!((by["M2"][0] - 3e6f64.ln()).abs() < 1e-12);
     }
 
     #[test]
