@@ -384,6 +384,11 @@ enum UpdateCommand {
         /// stiffness ratio in every measurement.
         #[arg(long)]
         enrich_joint: Option<usize>,
+        /// With `--enrich`: the bolted measurements (comma-separated ids) that get the
+        /// enrichment's own coordinates, e.g. the assemblies the diagnosis found apart from
+        /// their board's others; the rest keep the baseline's joint. Default: every one.
+        #[arg(long, value_delimiter = ',')]
+        enrich_units: Vec<String>,
         /// With `--enrich`: modes the enriched model carries and the baseline lacks (a
         /// fixture's own mode) join the updating where the campaign identified them but
         /// pair left them unpaired (MAC ≥ 0.9 with the enriched model's mode at the fitted
@@ -451,6 +456,7 @@ impl UpdateArgs {
                 rom_max_basis: self.rom_basis,
                 enrich: None,
                 enrich_joint: None,
+                enrich_units: vec![],
                 enrich_covariate: None,
                 enrich_location: None,
                 enrich_new_modes: false,
@@ -895,6 +901,7 @@ fn run_update(command: UpdateCommand, verbose: bool) -> anyhow::Result<i32> {
             sigma_scale,
             enrich,
             enrich_joint,
+            enrich_units,
             enrich_new_modes,
         } => {
             // Step 2 has neither a balance term nor a model-error term: say so rather than
@@ -910,6 +917,7 @@ fn run_update(command: UpdateCommand, verbose: bool) -> anyhow::Result<i32> {
             let mut opts = common.options(vec![], prior_width, sigma_scale);
             opts.model.enrich = enrich;
             opts.model.enrich_joint = enrich_joint;
+            opts.model.enrich_units = enrich_units;
             opts.model.enrich_new_modes = enrich_new_modes;
             // Step 2 has no model-error term (its manifest must not claim one).
             opts.model.model_error = false;

@@ -204,6 +204,10 @@ pub enum Compose {
         reference: Vec<(usize, f64)>,
         /// A step-1 covariate effect carried into step 2 (`None`: none).
         covariate: Option<JointsCovariate>,
+        /// Per unit: whether coordinates 1.. (an enrichment's own) act on it; `None`: on
+        /// every unit. Coordinate 0 (the contact stiffness) always acts. A unit they do not
+        /// act on keeps them as latent draws of the population, which its likelihood ignores.
+        enriched_units: Option<Vec<bool>>,
     },
 }
 
@@ -347,6 +351,7 @@ impl ModalTarget {
                 coords,
                 reference,
                 covariate,
+                enriched_units,
             } => {
                 let d1 = covariate.as_ref().map_or(board_params.len(), |c| c.block);
                 let o = unit_board[b] * d1;
@@ -364,7 +369,11 @@ impl ModalTarget {
                 for &(i, r) in reference {
                     v[i] = r;
                 }
+                let enriched = enriched_units.as_ref().is_none_or(|e| e[b]);
                 for (k, acts) in coords.iter().enumerate() {
+                    if k > 0 && !enriched {
+                        continue;
+                    }
                     for &(i, a) in acts {
                         v[i] *= (a * x[k]).exp();
                     }
@@ -716,6 +725,7 @@ mod tests {
                 scaled: scaled.clone(),
                 offsets: vec![2.5, -1.0],
             }),
+            enriched_units: None,
         };
         // Two boards: [e_x, e_y, g_xy, β] each.
         let aux: Vec<f64> = [1.0, 1.01]
@@ -740,6 +750,32 @@ mod tests {
                 assert!((v[i] / want - 1.0).abs() < 1e-14, "unit {b} parameter {i}");
             }
         }
+    }
+
+    /// With `enriched_units`, an enrichment's own coordinates (1..) act only on the units
+    /// named; the contact stiffness (coordinate 0) on every unit.
+    #[test]
+    fn an_enrichment_acts_only_on_its_units() {
+        let (t, scaled) = covariate_target();
+        let nominal = t.predictor.rom.map.nominal.clone();
+        let (i0, i1) = (scaled[0], scaled[1]);
+        let mut tj = t.clone();
+        tj.covariate = None;
+        tj.compose = Compose::Joints {
+            board_params: vec![],
+            unit_board: vec![0, 0],
+            coords: vec![vec![(i0, 1.0)], vec![(i1, 1.0)]],
+            reference: vec![],
+            covariate: None,
+            enriched_units: Some(vec![false, true]),
+        };
+        let x = [0.1, -0.4];
+        let v0 = tj.values(&[], 0, &x);
+        let v1 = tj.values(&[], 1, &x);
+        assert!((v0[i0] / (nominal[i0] * 0.1f64.exp()) - 1.0).abs() < 1e-14);
+        assert!((v0[i1] / nominal[i1] - 1.0).abs() < 1e-14, "not enriched");
+        assert!((v1[i0] / (nominal[i0] * 0.1f64.exp()) - 1.0).abs() < 1e-14);
+        assert!((v1[i1] / (nominal[i1] * (-0.4f64).exp()) - 1.0).abs() < 1e-14);
     }
 
     /// The error block's prior is the sum of its blocks' own priors: ε's and δ's log-normal

@@ -86,6 +86,10 @@ pub struct LocatedSummary {
     pub setups: Vec<String>,
     pub modes: Vec<crate::diagnose::locate::LocatedMode>,
     pub measurements: Vec<String>,
+    /// Outliers of `measurements` by their mode shapes (every mode's MAC against the model
+    /// lower than the setup's other measurements'), with the check of each
+    /// ([`crate::diagnose::shapes`]).
+    pub shape_outliers: Vec<crate::diagnose::shapes::ShapeCheck>,
     /// Outlier measurements whose deviation is one mode's alone (likely identification
     /// slips; not counted as misfit).
     pub identification_outliers: Vec<crate::diagnose::locate::IdentificationOutlier>,

@@ -26,6 +26,7 @@
 //! Multiplicity: Benjamini–Hochberg within each family (modes, measurements, covariates) at
 //! [`LocateOptions::fdr`]; see there for the default and why.
 
+use super::shapes::{shape_checks, ShapeCheck};
 use crate::bayes::stats::median;
 use serde::Serialize;
 use statrs::distribution::{ChiSquared, ContinuousCDF, FisherSnedecor, Normal, StudentsT};
@@ -55,6 +56,8 @@ pub struct ResidualObs {
     pub std_residual: f64,
     /// Whether the label's frequencies were used for updating (false: validation mode).
     pub used_for_updating: bool,
+    /// MAC of the measured and the model shape (None: no usable shape).
+    pub mac: Option<f64>,
 }
 
 /// Posterior draws of the inferred prediction-error scale of one mode: `eps_<label>` of an
@@ -476,9 +479,14 @@ pub struct Located {
     /// Setups with a located mode or outlier measurement.
     pub setups: Vec<String>,
     pub modes: Vec<LocatedMode>,
-    /// Outlier measurement ids (several modes off, or one mode with too few others to
-    /// tell; single-mode outliers are in `identification_outliers`).
+    /// Outlier measurement ids: several modes' frequencies off (or one mode with too few
+    /// others to tell; single-mode outliers are in `identification_outliers`), or the
+    /// measurement's mode shapes off in every mode ([`Self::shape_outliers`]).
     pub measurements: Vec<String>,
+    /// Outliers by their mode shapes ([`crate::diagnose::shapes`]): a loose bolt's
+    /// frequency drop is absorbed into the measurement's own contact stiffness, its
+    /// asymmetric shape change is not.
+    pub shape_outliers: Vec<String>,
     /// Outlier measurements whose deviation is one mode's alone: likely an identification
     /// slip, listed for the engineer to check, not counted as misfit.
     pub identification_outliers: Vec<IdentificationOutlier>,
@@ -502,6 +510,7 @@ pub struct Located {
     pub reference_eps: Option<f64>,
     pub mode_checks: Vec<ModeCheck>,
     pub measurement_checks: Vec<MeasurementCheck>,
+    pub shape_checks: Vec<ShapeCheck>,
     pub covariate_tests: Vec<CovariateTest>,
     pub skipped_covariates: Vec<SkippedCovariate>,
     pub all_unpaired_clusters: Vec<UnpairedCluster>,
@@ -572,7 +581,7 @@ pub fn benjamini_hochberg(p: &[f64]) -> Vec<f64> {
 }
 
 /// BH over optional p-values (None stays None).
-fn bh_opt(p: &[Option<f64>]) -> Vec<Option<f64>> {
+pub(crate) fn bh_opt(p: &[Option<f64>]) -> Vec<Option<f64>> {
     let idx: Vec<usize> = (0..p.len()).filter(|&i| p[i].is_some()).collect();
     let vals: Vec<f64> = idx.iter().map(|&i| p[i].unwrap_or(1.0)).collect();
     let q = benjamini_hochberg(&vals);
@@ -778,12 +787,43 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
             }
         })
         .collect();
-    let measurements: Vec<String> = measurement_checks
+    let freq_outliers: Vec<String> = measurement_checks
         .iter()
         .filter(|m| m.outlier && m.single_mode.is_none())
         .map(|m| m.measurement_id.clone())
         .collect();
-    let board_shared = board_shared_outliers(&rows, &measurements, opts);
+    let freq_shared = board_shared_outliers(&rows, &freq_outliers, opts);
+    // Shape outliers join the frequency ones (covariates move frequencies, not shapes, so
+    // they stay outliers after the covariates too). An outlier is board-shared only when
+    // each of its reasons is: a loose bolt's frequencies may look like its board-mates'
+    // while its shapes do not.
+    let shape_checks = shape_checks(&rows, opts);
+    let shape_outliers: Vec<String> = shape_checks
+        .iter()
+        .filter(|c| c.outlier)
+        .map(|c| c.measurement_id.clone())
+        .collect();
+    let mut measurements = freq_outliers.clone();
+    let mut measurements_after_covariates = measurements_after_covariates;
+    for m in &shape_outliers {
+        if !measurements.contains(m) {
+            measurements.push(m.clone());
+        }
+        if !measurements_after_covariates.contains(m) {
+            measurements_after_covariates.push(m.clone());
+        }
+    }
+    let board_shared: Vec<String> = measurements
+        .iter()
+        .filter(|m| {
+            (!freq_outliers.contains(m) || freq_shared.contains(m))
+                && shape_checks
+                    .iter()
+                    .filter(|c| &c.measurement_id == *m && c.outlier)
+                    .all(|c| c.board_shared)
+        })
+        .cloned()
+        .collect();
     let identification_outliers: Vec<IdentificationOutlier> = measurement_checks
         .iter()
         .filter(|m| m.outlier)
@@ -809,6 +849,12 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
                 .iter()
                 .filter(|m| m.outlier && m.single_mode.is_none())
                 .map(|m| m.setup.clone()),
+        )
+        .chain(
+            shape_checks
+                .iter()
+                .filter(|c| c.outlier)
+                .map(|c| c.setup.clone()),
         )
         .collect::<BTreeSet<_>>()
         .into_iter()
@@ -857,6 +903,7 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
         setups,
         modes,
         measurements,
+        shape_outliers,
         identification_outliers,
         measurements_after_covariates,
         board_shared,
@@ -867,6 +914,7 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
         reference_eps,
         mode_checks,
         measurement_checks,
+        shape_checks,
         covariate_tests,
         skipped_covariates,
         all_unpaired_clusters,

@@ -13,4 +13,5 @@ pub mod point_search;
 pub mod regions;
 pub mod screen;
 pub mod select;
+pub mod shapes;
 pub mod verdict;

@@ -51,6 +51,10 @@ pub struct Candidate {
     /// uncertainty. `None`: not located, and the point mechanism is not refitted.
     #[serde(default)]
     pub point_located: Option<PointLocated>,
+    /// The measurements a per-assembly mechanism acts on (the outliers that screened it):
+    /// its refit gives only them the mechanism's coordinates. Empty: every measurement.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub measurements: Vec<String>,
     /// Why it was kept, in words.
     pub reason: String,
 }
@@ -65,6 +69,7 @@ impl Candidate {
             covariate: None,
             point_xy_m: None,
             point_located: None,
+            measurements: vec![],
             reason,
         }
     }
@@ -200,10 +205,14 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
         .measurements_after_covariates
         .iter()
         .filter(|m| {
-            located
+            (located
                 .measurement_checks
                 .iter()
                 .any(|c| &c.measurement_id == *m && c.setup == "bolted")
+                || located
+                    .shape_checks
+                    .iter()
+                    .any(|c| &c.measurement_id == *m && c.setup == "bolted"))
                 && !located.board_shared.contains(m)
         })
         .collect();
@@ -249,6 +258,7 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
                 covariate: None,
                 point_xy_m: None,
                 point_located: None,
+                measurements: vec![],
                 reason: why.to_string(),
             })
             .collect()
@@ -291,7 +301,9 @@ pub fn screen(located: &Located, board: &Board) -> Vec<Candidate> {
         // their own measurements); the single joints follow.
         if !bolted_outliers.is_empty() {
             if board.holes.len() >= 2 {
-                joint_cands.push(cand(Mechanism::JointStiffnessPerJoint, why_out.clone()));
+                let mut every = cand(Mechanism::JointStiffnessPerJoint, why_out.clone());
+                every.measurements = bolted_outliers.iter().map(|m| m.to_string()).collect();
+                joint_cands.push(every);
             }
             joint_cands.extend(per_joint(&why_out));
         }
@@ -403,6 +415,36 @@ mod tests {
             ids(&c),
             ["joint_rotation", "joint_mass", "fixture_compliance"]
         );
+    }
+
+    /// A bolted outlier by its shapes alone (no frequency check of it) screens the joints.
+    #[test]
+    fn a_bolted_shape_outlier_screens_every_joint_first() {
+        let mut l = located();
+        l.measurements = vec!["M-07".into()];
+        l.measurements_after_covariates = vec!["M-07".into()];
+        l.shape_outliers = vec!["M-07".into()];
+        l.shape_checks = vec![crate::diagnose::shapes::ShapeCheck {
+            measurement_id: "M-07".into(),
+            board_id: "PCB-01".into(),
+            setup: "bolted".into(),
+            n_modes: 5,
+            z: 8.0,
+            p_value: Some(1e-15),
+            q_value: Some(1e-14),
+            outlier: true,
+            single_mode: None,
+            board_shared: false,
+            modes: vec![],
+        }];
+        let c = screen(&l, &Board::default_board());
+        assert_eq!(ids(&c)[0], "joint_stiffness_per_joint");
+        // Board-shared, it is the board's own: no per-joint candidate.
+        l.board_shared = vec!["M-07".into()];
+        let c = screen(&l, &Board::default_board());
+        assert!(ids(&c)
+            .iter()
+            .all(|i| !i.starts_with("joint_stiffness_per_joint")));
     }
 
     /// Bolted outlier measurements (free-free clean): every joint at once first, then each

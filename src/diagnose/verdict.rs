@@ -486,6 +486,12 @@ pub fn document(
             setups: located.setups.clone(),
             modes: located.modes.clone(),
             measurements: located.measurements.clone(),
+            shape_outliers: located
+                .shape_checks
+                .iter()
+                .filter(|c| c.outlier)
+                .cloned()
+                .collect(),
             identification_outliers: located.identification_outliers.clone(),
             covariates: located.covariates.clone(),
             unpaired_clusters: located.unpaired_clusters.clone(),

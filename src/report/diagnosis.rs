@@ -27,12 +27,23 @@ pub struct LocatedView {
     pub setups: Vec<String>,
     pub modes: Vec<LocatedModeView>,
     pub measurements: Vec<String>,
+    pub shape_outliers: Vec<ShapeOutlierView>,
     pub identification_outliers: Vec<IdentificationOutlierView>,
     pub covariates: Vec<CovariateView>,
     pub unpaired_clusters: Vec<ClusterView>,
     pub never_seen: Vec<NeverSeenView>,
     pub board_regions: Vec<RegionView>,
     pub board_regions_note: String,
+}
+
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(default)]
+pub struct ShapeOutlierView {
+    pub measurement_id: String,
+    pub board_id: String,
+    pub setup: String,
+    pub n_modes: usize,
+    pub q_value: Option<f64>,
 }
 
 #[derive(Clone, Debug, Default, Deserialize)]
@@ -237,7 +248,7 @@ pub const LOCATED_MODES: TableSpec = TableSpec {
 
 pub const OUTLIERS: TableSpec = TableSpec {
     name: "diagnosis_outliers",
-    doc: "Outlier measurements of the diagnosis (diagnosis.json: located.measurements, with their check from checks.measurement_checks): the joint statistic over the measurement's modes and its BH q-value, and whether it stays an outlier once the located covariates are taken out.",
+    doc: "Outlier measurements of the diagnosis (diagnosis.json: located.measurements, with their check from checks.measurement_checks): the joint statistic over the measurement's modes and its BH q-value, the shape check's q-value where the mode shapes make it one (located.shape_outliers), and whether it stays an outlier once the located covariates are taken out.",
     open: false,
     columns: &[
         c("measurement_id", Col::Utf8, false, "", "Measurement."),
@@ -246,6 +257,7 @@ pub const OUTLIERS: TableSpec = TableSpec {
         c("n_modes", Col::Int32, true, "", "Modes in the statistic."),
         c("chi2", Col::Float64, true, "", "Sum of squared normal scores over the modes (~chi2(n_modes) when like the others)."),
         c("q_value", Col::Float64, true, "", "Benjamini–Hochberg q-value over all measurements."),
+        c("shape_q_value", Col::Float64, true, "", "The shape check's BH q-value (every mode's MAC against the setup's; located.shape_outliers); null when not a shape outlier."),
         c("outlier_after_covariates", Col::Bool, false, "", "Still an outlier with the located covariates taken out."),
     ],
 };
@@ -464,13 +476,19 @@ fn outliers_table(doc: &DiagnosisView) -> Table {
                 .measurement_checks
                 .iter()
                 .find(|m| &m.measurement_id == id);
+            let shape = loc.shape_outliers.iter().find(|m| &m.measurement_id == id);
             vec![
                 s(id),
-                so(chk.map(|m| m.board_id.as_str())),
-                so(chk.map(|m| m.setup.as_str())),
+                so(chk
+                    .map(|m| m.board_id.as_str())
+                    .or(shape.map(|m| m.board_id.as_str()))),
+                so(chk
+                    .map(|m| m.setup.as_str())
+                    .or(shape.map(|m| m.setup.as_str()))),
                 Cell::Int(chk.map(|m| m.n_modes as i64)),
                 f(chk.and_then(|m| m.chi2)),
                 f(chk.and_then(|m| m.q_value)),
+                f(shape.and_then(|m| m.q_value)),
                 Cell::Bool(doc.checks.measurements_after_covariates.contains(id)),
             ]
         })
@@ -484,9 +502,10 @@ fn outliers_table(doc: &DiagnosisView) -> Table {
             "modes",
             "χ²",
             "q-value",
+            "shape q-value",
             "still an outlier without the covariates",
         ],
-        digits: &[0, 0, 0, 0, 1, 4, 0],
+        digits: &[0, 0, 0, 0, 1, 4, 4, 0],
         rows: outliers,
     }
 }
@@ -917,6 +936,7 @@ mod tests {
             covariate: None,
             point_xy_m: None,
             point_located: None,
+            measurements: vec![],
             reason: "6 bolted mode(s) misfit while free-free fits".into(),
         };
         let favoured = verdict == Verdict::MechanismFound;
@@ -954,6 +974,7 @@ mod tests {
                 setups: vec!["bolted".into()],
                 modes,
                 measurements: vec!["B03-bolted-2".into()],
+                shape_outliers: vec![],
                 identification_outliers: vec![crate::diagnose::locate::IdentificationOutlier {
                     measurement_id: "M040".into(),
                     board_id: "PCB-01".into(),

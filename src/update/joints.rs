@@ -564,6 +564,24 @@ pub fn joint_target(
     if units.is_empty() {
         bail!("no bolted measurement has data for step 2 (no paired bolted mode of a board with a step-1 posterior)");
     }
+    let enriched_units = if spec.enrich_units.is_empty() {
+        None
+    } else {
+        if spec.enrich.is_none() {
+            bail!("--enrich-units names the measurements an enrichment acts on; give --enrich too");
+        }
+        for m in &spec.enrich_units {
+            if !unit_names.contains(m) {
+                bail!("--enrich-units: {m} is not a bolted measurement of step 2 (expected one of {})", unit_names.join(", "));
+            }
+        }
+        Some(
+            unit_names
+                .iter()
+                .map(|u| spec.enrich_units.contains(u))
+                .collect(),
+        )
+    };
     let target = ModalTarget {
         predictor,
         compose: Compose::Joints {
@@ -572,6 +590,7 @@ pub fn joint_target(
             coords: jm.coords.clone(),
             reference: jm.reference.clone(),
             covariate: joints_cov,
+            enriched_units,
         },
         prior: PopulationPrior {
             mu_mean: vec![0.0; jm.coords.len()],

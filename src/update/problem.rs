@@ -49,6 +49,11 @@ pub struct ModelSpec {
     /// Step 2 with `joint_stiffness_per_joint`: the joint (1-based; `None`: every joint).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub enrich_joint: Option<usize>,
+    /// Step 2 with an enrichment: the bolted measurements that get its own coordinates (the
+    /// diagnosis's outlier assemblies for a per-assembly mechanism); the others keep the
+    /// baseline's joint. Empty: every measurement.
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub enrich_units: Vec<String>,
     /// Step 1 with `temperature_stiffness`: the numeric sheet column the FR-4 moduli follow.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub enrich_covariate: Option<String>,

@@ -605,6 +605,7 @@ pub fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
             c.f64("std_residual")?,
             c.bool("used_for_updating")?,
         );
+        let mac = c.f64("mac")?;
         for i in 0..b.num_rows() {
             out.push(ResidualObs {
                 measurement_id: mid.value(i).to_string(),
@@ -617,6 +618,7 @@ pub fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
                 rel_residual: rel.value(i),
                 std_residual: z.value(i),
                 used_for_updating: used.value(i),
+                mac: (!arrow::array::Array::is_null(mac, i)).then(|| mac.value(i)),
             });
         }
     }

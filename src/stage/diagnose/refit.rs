@@ -108,6 +108,7 @@ fn refit_options(opts: &DiagnoseOptions, base: &UpdateOptions, cand: &Candidate)
     o.force = opts.force;
     o.model.enrich = Some(cand.mechanism);
     o.model.enrich_joint = cand.joint;
+    o.model.enrich_units = cand.measurements.clone();
     o
 }
 

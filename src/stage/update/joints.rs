@@ -352,6 +352,7 @@ mod tests {
             rom_max_basis: None,
             enrich: Some(enrich),
             enrich_joint: None,
+            enrich_units: vec![],
             enrich_covariate: None,
             enrich_location: None,
             enrich_new_modes: false,
