@@ -372,11 +372,12 @@ pub fn remaining_discrepancy(
         )
     }
     Verdict::UnexplainedMisfit => format!(
-        "located but not explained by any refitted mechanism: setups {:?}, modes {:?}, measurements {:?}, covariates {:?}{}",
+        "located but not explained by any refitted mechanism: setups {:?}, modes {:?}, measurements {:?}, covariates {:?}{}{}",
         located.setups,
         located.modes.iter().map(|m| format!("{}/{}", m.setup, m.label)).collect::<Vec<_>>(),
         located.measurements,
         located.covariates.iter().map(|c| format!("{}/{}", c.setup, c.covariate)).collect::<Vec<_>>(),
+        shape_outlier_clause(located),
         board_regions
             .iter()
             .filter(|r| r.located)
@@ -384,6 +385,25 @@ pub fn remaining_discrepancy(
             .collect::<String>()
     ),
 }
+}
+
+/// The outliers by their mode shapes, in words ("" without any): in a bolted setup the
+/// assemblies a loose or mis-seated joint would single out.
+fn shape_outlier_clause(located: &Located) -> String {
+    let ids: Vec<String> = located
+        .shape_checks
+        .iter()
+        .filter(|c| c.outlier)
+        .map(|c| format!("{} ({}, {})", c.measurement_id, c.board_id, c.setup))
+        .collect();
+    if ids.is_empty() {
+        return String::new();
+    }
+    format!(
+        "; {} measurement(s) stand apart by their mode shapes, every mode further from the model's than in the setup's other measurements (a joint seated differently in those assemblies would do it): {}",
+        ids.len(),
+        ids.join(", ")
+    )
 }
 
 /// The stage's findings of the verdict: the verdict itself (unless no missing physics), a
@@ -569,10 +589,39 @@ pub fn with_located_point(r: &mut Refit, pl: PointLocated, point_xy_m: Option<[f
 
 #[cfg(test)]
 mod tests {
-    use super::{above_practical_threshold, model_form_pattern, whole_board_outliers};
+    use super::{
+        above_practical_threshold, model_form_pattern, shape_outlier_clause, whole_board_outliers,
+    };
     use crate::diagnose::library::Mechanism;
     use crate::diagnose::locate::{self, LocateInput, LocateOptions, LocatedMode};
     use crate::diagnose::regions::tests::region;
+
+    /// The unexplained verdict names the assemblies that stand apart by their shapes.
+    #[test]
+    fn the_shape_outliers_are_named() {
+        let mut loc = locate::locate(&LocateInput::default(), &LocateOptions::default());
+        assert_eq!(shape_outlier_clause(&loc), "");
+        let check = |id: &str, outlier: bool| crate::diagnose::shapes::ShapeCheck {
+            measurement_id: id.into(),
+            board_id: "PCB-04".into(),
+            setup: "bolted".into(),
+            n_modes: 5,
+            z: 9.0,
+            p_value: Some(1e-9),
+            q_value: Some(1e-8),
+            outlier,
+            single_mode: None,
+            board_shared: false,
+            modes: vec![],
+        };
+        loc.shape_checks = vec![check("M059", true), check("M058", false)];
+        let s = shape_outlier_clause(&loc);
+        assert!(
+            s.contains("1 measurement(s)") && s.contains("M059 (PCB-04, bolted)"),
+            "{s}"
+        );
+        assert!(!s.contains("M058"), "{s}");
+    }
 
     /// A located mean shift counts as a finding only at or above the practical threshold;
     /// an unexplained free-free misfit placed nowhere on the board is the model's form, and a
