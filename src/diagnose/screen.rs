@@ -429,7 +429,7 @@ mod tests {
             board_id: "PCB-01".into(),
             setup: "bolted".into(),
             n_modes: 5,
-            z: 8.0,
+            z: Some(8.0),
             p_value: Some(1e-15),
             q_value: Some(1e-14),
             outlier: true,

@@ -62,9 +62,9 @@ pub struct ShapeCheck {
     pub board_id: String,
     pub setup: String,
     pub n_modes: usize,
-    /// Stouffer's Σ z / √n over the modes (NaN: fewer than [`MIN_SHAPE_MODES`]); its p
+    /// Stouffer's Σ z / √n over the modes (None: fewer than [`MIN_SHAPE_MODES`]); its p
     /// standardizes it by the setup's median and MAD of it.
-    pub z: f64,
+    pub z: Option<f64>,
     /// One-sided p of `z` (None: fewer than [`MIN_SHAPE_MODES`] modes).
     pub p_value: Option<f64>,
     /// BH over all measurements with a p.
@@ -156,11 +156,7 @@ pub fn shape_checks(rows: &[&ResidualObs], opts: &LocateOptions) -> Vec<ShapeChe
                 board_id: board.clone(),
                 setup: setup.clone(),
                 n_modes: z.len(),
-                z: if z.len() >= MIN_SHAPE_MODES {
-                    stouffer(&z)
-                } else {
-                    f64::NAN
-                },
+                z: (z.len() >= MIN_SHAPE_MODES).then(|| stouffer(&z)),
                 p_value: None,
                 q_value: None,
                 outlier: false,
@@ -175,8 +171,10 @@ pub fn shape_checks(rows: &[&ResidualObs], opts: &LocateOptions) -> Vec<ShapeChe
     // modes share its noise level, so the raw sum's null spread is not 1 (0.9–1.8 on the
     // realistic lab's null campaigns); its median and MAD over the measurements are.
     let mut by_setup: BTreeMap<String, Vec<f64>> = BTreeMap::new();
-    for c in checks.iter().filter(|c| c.z.is_finite()) {
-        by_setup.entry(c.setup.clone()).or_default().push(c.z);
+    for c in &checks {
+        if let Some(z) = c.z {
+            by_setup.entry(c.setup.clone()).or_default().push(z);
+        }
     }
     let spread: BTreeMap<String, (f64, f64)> = by_setup
         .into_iter()
@@ -186,9 +184,7 @@ pub fn shape_checks(rows: &[&ResidualObs], opts: &LocateOptions) -> Vec<ShapeChe
         .collect();
     let standard = |setup: &str, z: f64| spread.get(setup).map(|(c, s)| (z - c) / s);
     for c in &mut checks {
-        if c.z.is_finite() {
-            c.p_value = standard(&c.setup, c.z).map(upper_p);
-        }
+        c.p_value = c.z.and_then(|z| standard(&c.setup, z)).map(upper_p);
     }
     let q = super::locate::bh_opt(&checks.iter().map(|c| c.p_value).collect::<Vec<_>>());
     for (c, q) in checks.iter_mut().zip(q) {

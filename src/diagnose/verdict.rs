@@ -606,7 +606,7 @@ mod tests {
             board_id: "PCB-04".into(),
             setup: "bolted".into(),
             n_modes: 5,
-            z: 9.0,
+            z: Some(9.0),
             p_value: Some(1e-9),
             q_value: Some(1e-8),
             outlier,
