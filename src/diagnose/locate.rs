@@ -606,7 +606,7 @@ fn sd(x: &[f64]) -> f64 {
 }
 
 /// 1.4826 × median absolute deviation: a consistent estimate of the normal sd.
-fn mad_sd(x: &[f64]) -> f64 {
+pub(crate) fn mad_sd(x: &[f64]) -> f64 {
     let m = median(x);
     let dev: Vec<f64> = x.iter().map(|v| (v - m).abs()).collect();
     1.4826 * median(&dev)

@@ -82,11 +82,9 @@ fn std_normal() -> Normal {
     Normal::new(0.0, 1.0).expect("standard normal")
 }
 
-/// Median and 1.4826 × MAD (a consistent estimate of the normal sd).
+/// Median and the locate step's robust sd (1.4826 × MAD).
 fn median_mad(x: &[f64]) -> (f64, f64) {
-    let c = median(x);
-    let dev: Vec<f64> = x.iter().map(|v| (v - c).abs()).collect();
-    (c, 1.4826 * median(&dev))
+    (median(x), super::locate::mad_sd(x))
 }
 
 fn stouffer(z: &[f64]) -> f64 {
