@@ -13,9 +13,11 @@
 //! - [`discrepancy`]: the model-form discrepancy shared by the units, orthogonal to what
 //!   the parameters absorb.
 //! - [`target`]: the hierarchical targets of step 1 (boards) and step 2 (joints).
+//! - [`laplace_is`]: a few coordinates' evidence by importance sampling at the Laplace point.
 
 pub mod diagnostics;
 pub mod discrepancy;
+pub mod laplace_is;
 pub mod modal;
 pub mod population;
 pub mod reference;

@@ -315,7 +315,7 @@ fn spd_solve(a: &[f64], d: usize, b: &[f64]) -> Vec<f64> {
 }
 
 /// Inverse of a symmetric positive-definite matrix.
-fn spd_inverse(a: &[f64], d: usize) -> Vec<f64> {
+pub(crate) fn spd_inverse(a: &[f64], d: usize) -> Vec<f64> {
     let mut inv = vec![0.0; d * d];
     for j in 0..d {
         let mut e = vec![0.0; d];
@@ -391,7 +391,7 @@ fn unit_mode<T: Target>(
 /// Damped Newton ascent of a black-box f from x0 with finite-difference derivatives (initial
 /// steps h0, then a fifth of the local sd); returns (x̂, precision −∇²f at x̂ made
 /// positive-definite, converged).
-fn newton_mode(
+pub(crate) fn newton_mode(
     f: &mut dyn FnMut(&[f64]) -> f64,
     x0: &[f64],
     h0: &[f64],
