@@ -119,6 +119,11 @@ pub struct Refit {
     /// stay this refit's, over the same data as the baseline's.
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
     pub new_modes: Vec<NewModeNote>,
+    /// The every-joint candidate's per-assembly screen ([`crate::update::joint_screen`]):
+    /// the Bayes factor of each outlier assembly's joints having stiffnesses of their own,
+    /// given the baseline's posterior, and which joint differs. Run before the refit.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub joint_screen: Option<crate::update::joint_screen::JointScreen>,
 }
 
 impl Refit {
@@ -442,6 +447,44 @@ fn fmt_estimate(median: f64, q05: f64, q95: f64) -> [String; 3] {
 /// The sentence of a finding, e.g. "The bolted joints restrain …; k_rot_nm_per_rad = 1.52
 /// (90 % interval 1.31–1.77; population median); log Bayes factor 38.2 ± 0.4 over the
 /// baseline; held-out bolted error 0.130 % → 0.020 %."
+/// The every-joint candidate's per-assembly screen in words: its Bayes factor given the
+/// baseline, and the joint that differs in each screened assembly.
+pub fn screen_clause(js: &crate::update::joint_screen::JointScreen) -> String {
+    if let Some(why) = &js.failed {
+        return format!("the per-assembly joint screen gave no result: {why}");
+    }
+    let each = js
+        .units
+        .iter()
+        .map(
+            |u| match u.deviating_joint.and_then(|j| u.joints.get(j - 1)) {
+                Some(j) => format!(
+                    "{} joint {} ({} of the others' stiffness, 90 % interval {}–{}; ln B {:.1})",
+                    u.measurement_id,
+                    j.joint,
+                    fmt_num(j.ratio_median),
+                    fmt_num(j.ratio_q05),
+                    fmt_num(j.ratio_q95),
+                    u.log_bayes_factor
+                ),
+                None => format!(
+                    "{} no joint apart by a practical amount (ln B {:.1}; modes moved {:.3} %)",
+                    u.measurement_id,
+                    u.log_bayes_factor,
+                    100.0 * u.freq_effect_rel
+                ),
+            },
+        )
+        .collect::<Vec<_>>()
+        .join(", ");
+    format!(
+        "the per-assembly screen (each outlier assembly's joints their own stiffness, given the baseline's posterior; log-sd {} a joint) has log Bayes factor {:.1} ± {:.1} over the baseline: {each}",
+        fmt_num(js.contrast_log_sd),
+        js.log_bayes_factor,
+        js.log_bayes_factor_se
+    )
+}
+
 pub fn sentence(c: &Compared) -> String {
     let what = match c.refit.mechanism {
         Some(m) => {
@@ -538,6 +581,9 @@ pub fn sentence(c: &Compared) -> String {
     if !held.is_empty() {
         parts.push(held);
     }
+    if let Some(js) = &c.refit.joint_screen {
+        parts.push(screen_clause(js));
+    }
     for m in &c.refit.new_modes {
         parts.push(format!(
             "the enriched model also has a mode the baseline lacks ({:.0} Hz where the refit started), seen in {} of {} bolted measurements at {:.0} Hz{}",
@@ -604,6 +650,59 @@ mod tests {
             failed: None,
             ..Default::default()
         }
+    }
+
+    /// A failed every-joint refit's sentence carries its per-assembly screen: the joint that
+    /// differs in each assembly with its ratio, and the screen's Bayes factor.
+    #[test]
+    fn the_screen_names_each_assemblys_joint() {
+        use crate::update::joint_screen::{JointScreen, ScreenJoint, ScreenUnit};
+        let j = |joint: usize, m: f64| ScreenJoint {
+            joint,
+            ratio_median: m,
+            ratio_q05: m * 0.85,
+            ratio_q95: m * 1.2,
+        };
+        let unit = |id: &str, dev: Option<usize>| ScreenUnit {
+            measurement_id: id.into(),
+            log_bayes_factor: 25.3,
+            log_bayes_factor_se: 0.7,
+            joints: vec![j(1, 1.26), j(2, 1.25), j(3, 0.47), j(4, 1.3)],
+            freq_effect_rel: 0.02,
+            deviating_joint: dev,
+            min_ess: 50.0,
+        };
+        let mut r = Refit::failed(
+            Some(Mechanism::JointStiffnessPerJoint),
+            None,
+            "refits/x".into(),
+            "over budget".into(),
+        );
+        r.joint_screen = Some(JointScreen {
+            units: vec![unit("M059", Some(3)), unit("M058", None)],
+            log_bayes_factor: 224.5,
+            log_bayes_factor_se: 1.0,
+            baseline_draws: 16,
+            contrast_log_sd: 0.7,
+            model_evals: 1000,
+            failed: None,
+        });
+        let base = refit(None, &[100.0, 100.2], 0.2);
+        let c = compare(&base, &[r], &SelectOptions::default());
+        assert!(!c[0].favoured, "a screen alone is no finding");
+        let s = sentence(&c[0]);
+        assert!(s.contains("no evidence: over budget"), "{s}");
+        assert!(s.contains("log Bayes factor 224.5 ± 1.0"), "{s}");
+        assert!(
+            s.contains(
+                "M059 joint 3 (0.4700 of the others' stiffness, 90 % interval 0.3995–0.5640"
+            ),
+            "{s}"
+        );
+        assert!(
+            s.contains("M058 no joint apart by a practical amount"),
+            "{s}"
+        );
     }
 
     /// A decisive Bayes factor is not enough: a mechanism that leaves most of the located

@@ -13,12 +13,14 @@
 //! - [`posterior`]: draws to tables' rows, summaries, convergence verdicts and residuals.
 //! - [`boards`]: step 1 (boards) phase by phase.
 //! - [`joints`]: step 2 (joints) phase by phase.
+//! - [`joint_screen`]: the per-assembly Bayes factor of a joint of its own, given step 2.
 //! - [`step1`]: the step-1 posterior as step 2 carries it.
 //! - [`new_modes`]: an enriched model's own modes paired with unpaired identified ones.
 
 pub mod boards;
 pub mod centre;
 pub mod enrichment;
+pub mod joint_screen;
 pub mod joints;
 pub mod new_modes;
 pub mod posterior;

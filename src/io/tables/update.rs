@@ -624,3 +624,86 @@ pub fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
     }
     Ok(out)
 }
+
+/// One row of step 2's `population.parquet` as the per-assembly screen reads it: the step-1
+/// draw the particle carried, the population of ln k_con, and per mode of `labels` the error
+/// scales (None where the column is absent: the scale was fixed) and the discrepancy.
+#[derive(Clone, Debug)]
+pub struct JointPopulationRow {
+    pub boards_run: i32,
+    pub boards_draw: i32,
+    pub mu_ln_k_con: f64,
+    pub sigma_ln_k_con: f64,
+    pub eps: Option<Vec<f64>>,
+    pub delta: Option<Vec<f64>>,
+    pub bias: Option<Vec<f64>>,
+    pub discrepancy_unit_scale: Option<f64>,
+}
+
+/// `count` rows of step 2's `population.parquet` at `path`, evenly spaced over the file
+/// (every row where it has fewer); `labels` the modes whose columns are read.
+pub fn read_joint_population(
+    path: &Path,
+    labels: &[String],
+    count: usize,
+) -> anyhow::Result<Vec<JointPopulationRow>> {
+    let batches = tables::read_parquet(path)?;
+    let mut rows = vec![];
+    for b in &batches {
+        let c = Cols { batch: b, path };
+        let has = |n: &str| b.schema().field_with_name(n).is_ok();
+        let per_mode = |prefix: &str| -> anyhow::Result<Option<Vec<&Float64Array>>> {
+            let names: Vec<String> = labels.iter().map(|l| format!("{prefix}_{l}")).collect();
+            let present = names.iter().filter(|n| has(n)).count();
+            if present == 0 {
+                return Ok(None);
+            }
+            if present < names.len() {
+                bail!(
+                    "{}: has some {prefix}_<mode> columns but not every one of {}",
+                    path.display(),
+                    names.join(", ")
+                );
+            }
+            Ok(Some(
+                names.iter().map(|n| c.f64(n)).collect::<Result<_, _>>()?,
+            ))
+        };
+        let (run, draw) = (c.i32("boards_run")?, c.i32("boards_draw")?);
+        let (mu, sigma) = (c.f64("mu_ln_k_con")?, c.f64("sigma_ln_k_con")?);
+        let (eps, delta, bias) = (
+            per_mode("eps")?,
+            per_mode("delta")?,
+            per_mode("discrepancy")?,
+        );
+        let unit = if has("discrepancy_unit_scale") {
+            Some(c.f64("discrepancy_unit_scale")?)
+        } else {
+            None
+        };
+        let at = |cols: &Option<Vec<&Float64Array>>, i: usize| -> Option<Vec<f64>> {
+            cols.as_ref()
+                .map(|v| v.iter().map(|a| a.value(i)).collect())
+        };
+        for i in 0..b.num_rows() {
+            rows.push(JointPopulationRow {
+                boards_run: run.value(i),
+                boards_draw: draw.value(i),
+                mu_ln_k_con: mu.value(i),
+                sigma_ln_k_con: sigma.value(i),
+                eps: at(&eps, i),
+                delta: at(&delta, i),
+                bias: at(&bias, i),
+                discrepancy_unit_scale: unit.map(|a| a.value(i)),
+            });
+        }
+    }
+    if rows.is_empty() {
+        bail!("{}: no rows: step 2's posterior is empty", path.display());
+    }
+    let n = rows.len();
+    let k = count.min(n).max(1);
+    Ok((0..k)
+        .map(|i| rows[(i * n + n / (2 * k)) / k % n].clone())
+        .collect())
+}

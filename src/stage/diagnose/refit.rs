@@ -482,6 +482,87 @@ pub(super) fn refit(
     let rel = format!("refits/{}", cand.id());
     let out = opts.out.join(&rel);
     let decided = || cannot_be_favoured(opts, cand, against);
+    // The every-joint candidate on its outlier assemblies: screened first, and refitted only
+    // where the screen's Bayes factor could clear the evidence bar.
+    let screen = match bases.1 {
+        Some(base2)
+            if crate::diagnose::library::is_every_joint(Some(cand.mechanism), cand.joint)
+                && !cand.measurements.is_empty() =>
+        {
+            let t0 = std::time::Instant::now();
+            let s = joint_screen(opts, base2, cand, verbose);
+            eprintln!(
+                "diagnose: per-assembly joint screen of {} assemblies in {:.1} s: {}",
+                cand.measurements.len(),
+                t0.elapsed().as_secs_f64(),
+                match &s {
+                    Ok(s) if s.failed.is_none() => format!(
+                        "ln B {:.1} ± {:.1}",
+                        s.log_bayes_factor, s.log_bayes_factor_se
+                    ),
+                    Ok(s) => format!("failed: {}", s.failed.clone().unwrap_or_default()),
+                    Err(e) => format!("failed: {e:#}"),
+                }
+            );
+            match s {
+                Ok(s) => {
+                    if verbose {
+                        for u in &s.units {
+                            eprintln!(
+                                "  {}: ln B {:.1} ± {:.1}, frequency effect {:.3} %, min ESS {:.0}, ratios {}",
+                                u.measurement_id,
+                                u.log_bayes_factor,
+                                u.log_bayes_factor_se,
+                                100.0 * u.freq_effect_rel,
+                                u.min_ess,
+                                u.joints
+                                    .iter()
+                                    .map(|j| format!(
+                                        "j{} {:.2} ({:.2}–{:.2})",
+                                        j.joint, j.ratio_median, j.ratio_q05, j.ratio_q95
+                                    ))
+                                    .collect::<Vec<_>>()
+                                    .join(", ")
+                            );
+                        }
+                    }
+                    Some(s)
+                }
+                Err(e) => {
+                    eprintln!("diagnose: the joint screen failed; the refit runs: {e:#}");
+                    None
+                }
+            }
+        }
+        _ => None,
+    };
+    let not_worth = screen.as_ref().filter(|s| s.failed.is_none()).and_then(|s| {
+        if s.log_bayes_factor + opts.select.min_z * s.log_bayes_factor_se < opts.select.min_log_bf
+        {
+            Some(format!(
+                "not refitted: the per-assembly screen's Bayes factor, ln B = {:.1} ± {:.1}, cannot clear the evidence bar (ln B > {})",
+                s.log_bayes_factor, s.log_bayes_factor_se, opts.select.min_log_bf
+            ))
+        } else if s
+            .units
+            .iter()
+            .all(|u| u.freq_effect_rel.is_finite() && u.freq_effect_rel < opts.select.practical_threshold_rel)
+        {
+            Some(format!(
+                "not refitted: in the per-assembly screen no assembly's joints of their own move a mode by the practical threshold, {:.2} % (largest {:.3} %)",
+                100.0 * opts.select.practical_threshold_rel,
+                100.0 * s.units.iter().map(|u| u.freq_effect_rel).fold(0.0, f64::max)
+            ))
+        } else {
+            None
+        }
+    });
+    if let (Some(s), Some(why)) = (&screen, not_worth) {
+        return Refit {
+            joint_screen: Some(s.clone()),
+            ..Refit::failed(Some(cand.mechanism), cand.joint, rel, why)
+        };
+    }
     let r = run_refit(opts, bases, cand, &decided, verbose).and_then(|_| {
         let mut r = summarize_refit(candidate_source(cand, &out, &rel), Some(z1), outliers)?;
         if crate::diagnose::library::is_every_joint(Some(cand.mechanism), cand.joint) {
@@ -517,7 +598,7 @@ pub(super) fn refit(
         }
         Ok(r)
     });
-    match r {
+    let mut r = match r {
         Ok(r) => r,
         Err(e) => Refit {
             location_note,
@@ -528,7 +609,36 @@ pub(super) fn refit(
                 format!("{e:#}").replace('\n', " "),
             )
         },
-    }
+    };
+    r.joint_screen = screen;
+    r
+}
+
+/// Importance draws per assembly and baseline draw, and baseline draws averaged over, of the
+/// per-assembly joint screen: the IS standard error of one assembly's ln Z is then ~0.05
+/// where its ESS is ~half the draws, and 16 of the baseline's draws span its posterior of
+/// the error scales.
+const SCREEN_IS_DRAWS: usize = 300;
+const SCREEN_BASELINE_DRAWS: usize = 16;
+
+/// The every-joint candidate's per-assembly screen on its outlier assemblies
+/// ([`crate::update::joint_screen`]), with the step-2 options of its refit.
+fn joint_screen(
+    opts: &DiagnoseOptions,
+    base2: &UpdateOptions,
+    cand: &Candidate,
+    verbose: bool,
+) -> anyhow::Result<crate::update::joint_screen::JointScreen> {
+    let o = refit_options(opts, base2, cand);
+    let wd = WorkDir::new(&opts.work_dir);
+    crate::stage::update::screen_joint_units(
+        &o,
+        &wd.update_boards(),
+        &wd.update_joints(),
+        (SCREEN_BASELINE_DRAWS, SCREEN_IS_DRAWS),
+        opts.select.practical_threshold_rel,
+        verbose,
+    )
 }
 
 /// The baselines' summaries: step 1's, and where the campaign has a step 2, step 2's with

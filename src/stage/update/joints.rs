@@ -34,15 +34,7 @@ pub fn run_joints_with(
     memo: &mut Option<JointPrep>,
     verbose: bool,
 ) -> anyhow::Result<StageOutcome> {
-    let extract_dir = opts.extract_dir();
-    let paths = JointPaths {
-        pairs: opts.pair_dir.join("pairs.parquet"),
-        presence: opts.pair_dir.join("presence.parquet"),
-        modes: extract_dir.join("modes.parquet"),
-        step1: boards_dir.join("boards.parquet"),
-        step1_evidence: boards_dir.join("evidence.json"),
-        measurements: opts.ingest_dir.join("measurements.parquet"),
-    };
+    let paths = joint_paths(opts, boards_dir);
     let mut inputs = vec![
         paths.pairs.clone(),
         paths.presence.clone(),
@@ -131,114 +123,25 @@ pub(crate) fn joints_body(
     if !pairs.iter().any(|p| p.setup == "bolted") {
         return no_bolted_data(opts, &paths.measurements, findings);
     }
-    let inp = read_joint_inputs(opts, paths, pairs)?;
-    let (step1_source, ev_source) = (
-        paths.step1.display().to_string(),
-        paths.step1_evidence.display().to_string(),
-    );
-    let labels = select_labels(
-        &inp.pairs,
-        "bolted",
-        &opts.model.modes,
-        &inp.presence,
-        &mut findings,
-    )?;
-    let bolted_rows: Vec<&PairRow> = inp.pairs.iter().filter(|p| p.setup == "bolted").collect();
-    let mut jm = joints::joint_models(
+    let PreparedJoints {
+        inp,
+        jm,
+        c,
+        centre,
+        jt,
+        sopts,
+        shape_weights,
+    } = prepare_joints(
+        opts,
         board,
-        &opts.model,
-        &labels,
-        &inp.pairs,
-        &inp.step1,
-        &step1_source,
-        &inp.step1_enrichment,
+        paths,
+        pairs,
+        joint_prep_key(prep, &opts.model),
+        memo,
+        &mut clock,
         &mut findings,
+        verbose,
     )?;
-    clock.lap("models");
-    let t_centre = std::time::Instant::now();
-    let key = joint_prep_key(prep, &opts.model);
-    let remembered = memo.take().filter(|m| m.key == key);
-    let centre = match &remembered {
-        Some(m) => m.centre.clone(),
-        None => joints::fit_joint_centre_of(&jm, &labels, &bolted_rows)?,
-    };
-    if verbose {
-        eprintln!(
-            "joints: ROM centre {:?} = {centre:.4?} (ln, relative to the priors' centres), {} in {:.1} s",
-            jm.enr.coordinates.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(),
-            if remembered.is_some() { "as prepared by the caller's previous run of the same step" } else { "fitted" },
-            t_centre.elapsed().as_secs_f64()
-        );
-    }
-    let c = joints::centred(
-        &mut jm,
-        &centre,
-        &labels,
-        &opts.model,
-        &inp.mode_rows,
-        &bolted_rows,
-        &mut findings,
-    )?;
-    let bolted_rows: Vec<&PairRow> = bolted_rows.into_iter().chain(&c.new_rows).collect();
-    clock.lap("centre_fit");
-    let rom = match remembered {
-        Some(m) => m.rom,
-        None => rom_for(&jm.model, c.need, &c.log_axes, &opts.model)?,
-    };
-    *memo = Some(JointPrep {
-        key,
-        centre: centre.clone(),
-        rom: rom.clone(),
-    });
-    rom_centre_check(&jm.model, &rom, c.need, &mut findings)?;
-    clock.lap("rom_build");
-    let measurements_source = paths.measurements.display().to_string();
-    let mut jt = joints::joint_target(
-        &jm,
-        &c,
-        &rom,
-        &bolted_rows,
-        &inp.mode_rows,
-        (&inp.step1, &step1_source),
-        (&inp.step1_enrichment, &ev_source),
-        inp.covariate
-            .as_deref()
-            .map(|v| (v, measurements_source.as_str())),
-        &opts.model,
-        &opts.sampler,
-        &mut findings,
-    )?;
-    let mut sopts = opts.clone();
-    sopts.sampler = jt.sampler.clone();
-    clock.lap("unit_data");
-    // The units located for the weights with the step-1 posterior mean of the boards.
-    let step1 = &inp.step1;
-    let draws_mean: Vec<f64> = match step1.draws.first() {
-        None => vec![],
-        Some((_, d0)) => (0..d0.len())
-            .map(|k| step1.draws.iter().map(|(_, d)| d[k]).sum::<f64>() / step1.draws.len() as f64)
-            .collect(),
-    };
-    jt.step.target.errors.discrepancy = discrepancy_for(
-        &jt.step.target,
-        &draws_mean,
-        // Off unless asked for (`--discrepancy-pct`): bolted, each measurement's joint
-        // stiffness is already free, and a per-mode bias common to every assembly spans every
-        // shift a common joint effect makes, so no refit could be told from it.
-        opts.model.discrepancy_freq.unwrap_or(0.0),
-        (&[], "joints"),
-        &mut findings,
-    )?;
-    let shape_weights = weigh_shapes(
-        &mut jt.step.target,
-        &opts.model.shape_weights,
-        (&draws_mean, Some(&centre)),
-        &c.labels.labels,
-        opts.sampler.seed,
-        "joints",
-    )?;
-    report_shape_weights(&shape_weights, "joints", verbose, &mut findings);
-    clock.lap("shape_weights");
     let (results, acceleration) = sample(
         &jt.step.target,
         &sopts.sampler,
@@ -309,6 +212,285 @@ pub(crate) fn joints_body(
         &acceleration,
         &clock,
     )
+}
+
+/// Step 2's input files for the options `opts` and the step-1 directory `boards_dir`.
+fn joint_paths(opts: &UpdateOptions, boards_dir: &Path) -> JointPaths {
+    let extract_dir = opts.extract_dir();
+    JointPaths {
+        pairs: opts.pair_dir.join("pairs.parquet"),
+        presence: opts.pair_dir.join("presence.parquet"),
+        modes: extract_dir.join("modes.parquet"),
+        step1: boards_dir.join("boards.parquet"),
+        step1_evidence: boards_dir.join("evidence.json"),
+        measurements: opts.ingest_dir.join("measurements.parquet"),
+    }
+}
+
+/// The per-assembly screen of `joint_stiffness_per_joint` ([`crate::update::joint_screen`]):
+/// step 2 prepared with `opts` (the every-joint enrichment, on `opts.model.enrich_units`),
+/// integrated over `draws` rows of the baseline step 2's posterior in `baseline_dir`, each
+/// assembly's integrals by `is_draws` importance draws; a joint is named only where it moves
+/// the assembly's modes by `practical_rel` (relative frequency). Nothing is written.
+pub fn screen_joint_units(
+    opts: &UpdateOptions,
+    boards_dir: &Path,
+    baseline_dir: &Path,
+    (draws, is_draws): (usize, usize),
+    practical_rel: f64,
+    verbose: bool,
+) -> anyhow::Result<crate::update::joint_screen::JointScreen> {
+    use crate::update::joint_screen::{screen_joints, BaselineDraw, ScreenOptions};
+    let (board, _) = load_board(opts.board.as_deref())?;
+    let paths = joint_paths(opts, boards_dir);
+    let pairs = read_pairs(&paths.pairs)?;
+    let mut findings = Findings::default();
+    let mut clock = PhaseClock::new("diagnose joint screen", verbose);
+    let p = prepare_joints(
+        opts,
+        &board,
+        &paths,
+        pairs,
+        String::new(),
+        &mut None,
+        &mut clock,
+        &mut findings,
+        verbose,
+    )?;
+    let target = &p.jt.step.target;
+    let labels = &p.c.labels.labels;
+    let pop_path = baseline_dir.join("population.parquet");
+    let rows = crate::io::tables::update::read_joint_population(&pop_path, labels, draws)?;
+    // x0 = ln(k / k_ref): the baseline's and the enrichment's coordinate 0 share k_ref.
+    let k_ref = p.jm.enr.coordinates[0].report_ref;
+    let fixed = |e: &crate::bayes::target::ErrorPrior| match e {
+        crate::bayes::target::ErrorPrior::Fixed { value } => Some(vec![*value; labels.len()]),
+        crate::bayes::target::ErrorPrior::Inferred { .. } => None,
+    };
+    let mut baseline = vec![];
+    for r in rows {
+        let aux = p
+            .inp
+            .step1
+            .draws
+            .iter()
+            .find(|(k, _)| *k == (r.boards_run, r.boards_draw))
+            .map(|(_, v)| std::sync::Arc::new(v.clone()))
+            .ok_or_else(|| {
+                anyhow!(
+                    "{}: step-1 draw (run {}, draw {}) is not in {}",
+                    pop_path.display(),
+                    r.boards_run,
+                    r.boards_draw,
+                    paths.step1.display()
+                )
+            })?;
+        let eps = r
+            .eps
+            .or_else(|| fixed(&target.errors.eps))
+            .ok_or_else(|| anyhow!("{}: no eps_<mode> columns", pop_path.display()))?;
+        let delta = match &target.errors.delta {
+            None => vec![],
+            Some(d) => r
+                .delta
+                .or_else(|| fixed(d))
+                .ok_or_else(|| anyhow!("{}: no delta_<mode> columns", pop_path.display()))?,
+        };
+        let u2 = r.discrepancy_unit_scale.map(|s| s * s);
+        let unit_sd = match (&target.errors.model_error_sd, u2) {
+            (Some(sd), Some(v)) => sd.iter().map(|s| (s * s + v).sqrt()).collect(),
+            (Some(sd), None) => sd.clone(),
+            (None, Some(v)) => vec![v.sqrt(); labels.len()],
+            (None, None) => vec![],
+        };
+        baseline.push(BaselineDraw {
+            aux,
+            mu: r.mu_ln_k_con - k_ref.ln(),
+            sigma: r.sigma_ln_k_con,
+            eps,
+            delta,
+            bias: r.bias.unwrap_or_default(),
+            unit_sd,
+        });
+    }
+    let units: Vec<(usize, String)> = opts
+        .model
+        .enrich_units
+        .iter()
+        .map(|m| {
+            p.jt.step
+                .unit_names
+                .iter()
+                .position(|u| u == m)
+                .map(|b| (b, m.clone()))
+                .ok_or_else(|| anyhow!("--enrich-units {m}: not a bolted measurement of step 2"))
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let contrast_log_sd =
+        p.jm.enr
+            .coordinates
+            .get(1)
+            .map(|c| c.prior_sd)
+            .ok_or_else(|| anyhow!("the screen needs the every-joint enrichment's contrasts"))?;
+    let screen = screen_joints(
+        target,
+        board.holes.len(),
+        &units,
+        &baseline,
+        &ScreenOptions {
+            contrast_log_sd,
+            is_draws,
+            seed: opts.sampler.seed,
+            practical_rel,
+        },
+    );
+    clock.lap("screen");
+    Ok(screen)
+}
+
+/// Step 2's model and target as prepared for sampling: the bolted models with the
+/// enrichment, the ROM's centre and the ROM, the target with its shape-term weights.
+pub(crate) struct PreparedJoints {
+    pub(crate) inp: JointInputs,
+    pub(crate) jm: crate::update::joints::JointModels,
+    pub(crate) c: crate::update::joints::Centred,
+    pub(crate) centre: Vec<f64>,
+    pub(crate) jt: crate::update::joints::JointTarget,
+    pub(crate) sopts: UpdateOptions,
+    pub(crate) shape_weights: Vec<crate::bayes::shape_weight::ShapeWeight>,
+}
+
+/// Prepare step 2 up to the sampler ([`PreparedJoints`]); `key` keys the caller's `memo`
+/// (a preparation of the same inputs and model spec spares the centre fit and the ROM).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn prepare_joints(
+    opts: &UpdateOptions,
+    board: &Board,
+    paths: &JointPaths,
+    pairs: Vec<PairRow>,
+    key: String,
+    memo: &mut Option<JointPrep>,
+    clock: &mut PhaseClock,
+    findings: &mut Findings,
+    verbose: bool,
+) -> anyhow::Result<PreparedJoints> {
+    use crate::update::joints;
+    let inp = read_joint_inputs(opts, paths, pairs)?;
+    let (step1_source, ev_source) = (
+        paths.step1.display().to_string(),
+        paths.step1_evidence.display().to_string(),
+    );
+    let labels = select_labels(
+        &inp.pairs,
+        "bolted",
+        &opts.model.modes,
+        &inp.presence,
+        findings,
+    )?;
+    let bolted_rows: Vec<&PairRow> = inp.pairs.iter().filter(|p| p.setup == "bolted").collect();
+    let mut jm = joints::joint_models(
+        board,
+        &opts.model,
+        &labels,
+        &inp.pairs,
+        &inp.step1,
+        &step1_source,
+        &inp.step1_enrichment,
+        findings,
+    )?;
+    clock.lap("models");
+    let t_centre = std::time::Instant::now();
+    let remembered = memo.take().filter(|m| m.key == key);
+    let centre = match &remembered {
+        Some(m) => m.centre.clone(),
+        None => joints::fit_joint_centre_of(&jm, &labels, &bolted_rows)?,
+    };
+    if verbose {
+        eprintln!(
+            "joints: ROM centre {:?} = {centre:.4?} (ln, relative to the priors' centres), {} in {:.1} s",
+            jm.enr.coordinates.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(),
+            if remembered.is_some() { "as prepared by the caller's previous run of the same step" } else { "fitted" },
+            t_centre.elapsed().as_secs_f64()
+        );
+    }
+    let c = joints::centred(
+        &mut jm,
+        &centre,
+        &labels,
+        &opts.model,
+        &inp.mode_rows,
+        &bolted_rows,
+        findings,
+    )?;
+    let bolted_rows: Vec<&PairRow> = bolted_rows.into_iter().chain(&c.new_rows).collect();
+    clock.lap("centre_fit");
+    let rom = match remembered {
+        Some(m) => m.rom,
+        None => rom_for(&jm.model, c.need, &c.log_axes, &opts.model)?,
+    };
+    *memo = Some(JointPrep {
+        key,
+        centre: centre.clone(),
+        rom: rom.clone(),
+    });
+    rom_centre_check(&jm.model, &rom, c.need, findings)?;
+    clock.lap("rom_build");
+    let measurements_source = paths.measurements.display().to_string();
+    let mut jt = joints::joint_target(
+        &jm,
+        &c,
+        &rom,
+        &bolted_rows,
+        &inp.mode_rows,
+        (&inp.step1, &step1_source),
+        (&inp.step1_enrichment, &ev_source),
+        inp.covariate
+            .as_deref()
+            .map(|v| (v, measurements_source.as_str())),
+        &opts.model,
+        &opts.sampler,
+        findings,
+    )?;
+    let mut sopts = opts.clone();
+    sopts.sampler = jt.sampler.clone();
+    clock.lap("unit_data");
+    // The units located for the weights with the step-1 posterior mean of the boards.
+    let step1 = &inp.step1;
+    let draws_mean: Vec<f64> = match step1.draws.first() {
+        None => vec![],
+        Some((_, d0)) => (0..d0.len())
+            .map(|k| step1.draws.iter().map(|(_, d)| d[k]).sum::<f64>() / step1.draws.len() as f64)
+            .collect(),
+    };
+    jt.step.target.errors.discrepancy = discrepancy_for(
+        &jt.step.target,
+        &draws_mean,
+        // Off unless asked for (`--discrepancy-pct`): bolted, each measurement's joint
+        // stiffness is already free, and a per-mode bias common to every assembly spans every
+        // shift a common joint effect makes, so no refit could be told from it.
+        opts.model.discrepancy_freq.unwrap_or(0.0),
+        (&[], "joints"),
+        findings,
+    )?;
+    let shape_weights = weigh_shapes(
+        &mut jt.step.target,
+        &opts.model.shape_weights,
+        (&draws_mean, Some(&centre)),
+        &c.labels.labels,
+        opts.sampler.seed,
+        "joints",
+    )?;
+    report_shape_weights(&shape_weights, "joints", verbose, findings);
+    clock.lap("shape_weights");
+    Ok(PreparedJoints {
+        inp,
+        jm,
+        c,
+        centre,
+        jt,
+        sopts,
+        shape_weights,
+    })
 }
 
 #[cfg(test)]
