@@ -18,7 +18,7 @@ use rayon::prelude::*;
 
 use super::population::ln_gamma;
 use super::reference::{newton_mode, spd_inverse};
-use super::stats::{cholesky_jittered, log_sum_exp, lower_mul};
+use super::stats::{cholesky_jittered, ess, log_mean_exp, log_sum_exp, lower_mul, LN_2PI};
 
 /// Degrees of freedom of the proposal.
 const NU: f64 = 5.0;
@@ -105,7 +105,7 @@ pub fn laplace_is(
             (z, log_q)
         })
         .collect();
-    let log_2pi_half = 0.5 * d as f64 * (2.0 * std::f64::consts::PI).ln();
+    let log_2pi_half = 0.5 * d as f64 * LN_2PI;
     let lw: Vec<f64> = proposals
         .par_iter()
         .map(|(z, log_q)| f(z) - log_2pi_half - log_q)
@@ -116,9 +116,9 @@ pub fn laplace_is(
         return None;
     }
     let log_w: Vec<f64> = lw.iter().map(|v| v - lse).collect();
-    let ess = 1.0 / log_w.iter().map(|v| (2.0 * v).exp()).sum::<f64>();
+    let ess = ess(&lw);
     Some(IsEvidence {
-        log_z: lse - (n as f64).ln(),
+        log_z: log_mean_exp(&lw),
         log_z_se: (1.0 / ess - 1.0 / n as f64).max(0.0).sqrt(),
         ess,
         draws: proposals.iter().map(|(z, _)| y_of(z)).collect(),

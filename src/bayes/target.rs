@@ -95,7 +95,12 @@ impl ErrorModel {
     /// The sd per mode of the per-unit model error integrated out ([`modal::log_lik_with`]):
     /// the fixed `model_error_sd` and the discrepancy's σ_u together (empty: none).
     pub fn unit_model_error_sd(&self, h: &[f64]) -> Vec<f64> {
-        let u2 = self.discrepancy_unit_scale(h).map(|s| s * s);
+        self.unit_model_error_sd_with(self.discrepancy_unit_scale(h))
+    }
+    /// [`ErrorModel::unit_model_error_sd`] with the discrepancy's σ_u given (`None`: none), as
+    /// a posterior table reports it.
+    pub fn unit_model_error_sd_with(&self, unit_scale: Option<f64>) -> Vec<f64> {
+        let u2 = unit_scale.map(|s| s * s);
         match (&self.model_error_sd, u2) {
             (Some(sd), Some(v)) => sd.iter().map(|s| (s * s + v).sqrt()).collect(),
             (Some(sd), None) => sd.clone(),

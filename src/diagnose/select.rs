@@ -447,6 +447,35 @@ fn fmt_estimate(median: f64, q05: f64, q95: f64) -> [String; 3] {
 /// The sentence of a finding, e.g. "The bolted joints restrain …; k_rot_nm_per_rad = 1.52
 /// (90 % interval 1.31–1.77; population median); log Bayes factor 38.2 ± 0.4 over the
 /// baseline; held-out bolted error 0.130 % → 0.020 %."
+/// Why the every-joint candidate is not refitted after its per-assembly screen, if it is
+/// not: the screen's ln B + `min_z` se stays below the evidence bar, or no assembly's joints
+/// of their own move a mode by the practical threshold (its refit could not be favoured).
+/// None where the screen failed: the refit decides.
+pub fn screen_says_skip(
+    s: &crate::update::joint_screen::JointScreen,
+    opts: &SelectOptions,
+) -> Option<String> {
+    if s.failed.is_some() {
+        return None;
+    }
+    if s.log_bayes_factor + opts.min_z * s.log_bayes_factor_se < opts.min_log_bf {
+        return Some(format!(
+            "not refitted: the per-assembly screen's Bayes factor, ln B = {:.1} ± {:.1}, cannot clear the evidence bar (ln B > {})",
+            s.log_bayes_factor, s.log_bayes_factor_se, opts.min_log_bf
+        ));
+    }
+    let below = |u: &crate::update::joint_screen::ScreenUnit| {
+        u.freq_effect_rel.is_finite() && u.freq_effect_rel < opts.practical_threshold_rel
+    };
+    s.units.iter().all(below).then(|| {
+        format!(
+            "not refitted: in the per-assembly screen no assembly's joints of their own move a mode by the practical threshold, {:.2} % (largest {:.3} %)",
+            100.0 * opts.practical_threshold_rel,
+            100.0 * s.units.iter().map(|u| u.freq_effect_rel).fold(0.0, f64::max)
+        )
+    })
+}
+
 /// The every-joint candidate's per-assembly screen in words: its Bayes factor given the
 /// baseline, and the joint that differs in each screened assembly.
 pub fn screen_clause(js: &crate::update::joint_screen::JointScreen) -> String {
@@ -703,6 +732,49 @@ mod tests {
             s.contains("M058 no joint apart by a practical amount"),
             "{s}"
         );
+    }
+
+    /// The screen skips the refit when its Bayes factor cannot clear the evidence bar, or
+    /// when no assembly's modes move by the practical threshold; a decisive and practical
+    /// screen, or a failed one, leaves the decision to the refit.
+    #[test]
+    fn the_screen_skips_a_refit_that_could_not_be_favoured() {
+        use crate::update::joint_screen::{JointScreen, ScreenUnit};
+        let unit = |effect: f64| ScreenUnit {
+            measurement_id: "M1".into(),
+            log_bayes_factor: 10.0,
+            log_bayes_factor_se: 0.5,
+            joints: vec![],
+            freq_effect_rel: effect,
+            deviating_joint: None,
+            min_ess: 50.0,
+        };
+        let screen = |lbf: f64, se: f64, effects: &[f64]| JointScreen {
+            units: effects.iter().map(|&e| unit(e)).collect(),
+            log_bayes_factor: lbf,
+            log_bayes_factor_se: se,
+            baseline_draws: 16,
+            contrast_log_sd: 0.7,
+            model_evals: 0,
+            failed: None,
+        };
+        let o = SelectOptions::default();
+        assert_eq!(
+            screen_says_skip(&screen(224.5, 1.0, &[0.0014, 0.003]), &o),
+            None
+        );
+        let weak = screen_says_skip(&screen(3.0, 0.5, &[0.003]), &o).unwrap();
+        assert!(weak.contains("cannot clear the evidence bar"), "{weak}");
+        // ln B 4 ± 1: ln B + 3 se = 7 reaches the bar, so it is not skipped on evidence.
+        assert_eq!(screen_says_skip(&screen(4.0, 1.0, &[0.003]), &o), None);
+        let small = screen_says_skip(&screen(500.0, 1.0, &[0.0001, 0.0009]), &o).unwrap();
+        assert!(
+            small.contains("practical threshold, 0.10 % (largest 0.090 %)"),
+            "{small}"
+        );
+        let mut failed = screen(f64::NAN, f64::NAN, &[]);
+        failed.failed = Some("no draws".into());
+        assert_eq!(screen_says_skip(&failed, &o), None);
     }
 
     /// A decisive Bayes factor is not enough: a mechanism that leaves most of the located

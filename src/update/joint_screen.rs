@@ -31,7 +31,7 @@ use serde::Serialize;
 use crate::bayes::laplace_is::{laplace_is, IsEvidence};
 use crate::bayes::modal::{log_lik_with, ErrorLogs};
 use crate::bayes::smc::{self, Target};
-use crate::bayes::stats::{cholesky_jittered, log_sum_exp};
+use crate::bayes::stats::{cholesky_jittered, ess, log_mean_exp, normalize};
 use crate::bayes::target::ModalTarget;
 
 /// One draw of the baseline step 2's posterior, as the screen needs it.
@@ -133,12 +133,11 @@ pub fn joint_prior(n: usize, mu: f64, sigma: f64, s: f64) -> (Vec<f64>, Vec<f64>
 /// (1/ESS − 1/R of the weights) and the IS errors `se2` (variances) averaged by the
 /// weights; and the normalised weights.
 fn mean_exp(d: &[f64], se2: &[f64]) -> (f64, f64, Vec<f64>) {
-    let lse = log_sum_exp(d);
-    let w: Vec<f64> = d.iter().map(|v| (v - lse).exp()).collect();
-    let ess = 1.0 / w.iter().map(|v| v * v).sum::<f64>();
+    let w = normalize(d);
     let r = d.len() as f64;
-    let var = (1.0 / ess - 1.0 / r).max(0.0) + w.iter().zip(se2).map(|(a, b)| a * b).sum::<f64>();
-    (lse - r.ln(), var.sqrt(), w)
+    let var =
+        (1.0 / ess(d) - 1.0 / r).max(0.0) + w.iter().zip(se2).map(|(a, b)| a * b).sum::<f64>();
+    (log_mean_exp(d), var.sqrt(), w)
 }
 
 /// Weighted quantile q of values v (weights w summing to 1).
@@ -172,13 +171,10 @@ pub fn screen_joints(
     let one = |u: usize, r: usize| -> Option<(IsEvidence, IsEvidence)> {
         let b = units[u].0;
         let d = &draws[r];
-        let mut logs = ErrorLogs::new(&d.eps, &d.delta);
-        if !d.unit_sd.is_empty() {
-            logs = logs.with_model_error(&d.unit_sd);
-        }
-        if !d.bias.is_empty() {
-            logs = logs.with_bias(&d.bias);
-        }
+        // As the target's context forms them (empty: no model error, no discrepancy).
+        let logs = ErrorLogs::new(&d.eps, &d.delta)
+            .with_model_error(&d.unit_sd)
+            .with_bias(&d.bias);
         let ll = |y: &[f64]| -> Option<f64> {
             let x = coords_of(y);
             let t = target.model(&d.aux, b, &x)?;

@@ -483,7 +483,8 @@ pub(super) fn refit(
     let out = opts.out.join(&rel);
     let decided = || cannot_be_favoured(opts, cand, against);
     // The every-joint candidate on its outlier assemblies: screened first, and refitted only
-    // where the screen's Bayes factor could clear the evidence bar.
+    // where the screen could clear the evidence bar and the practical threshold
+    // (select::screen_says_skip).
     let screen = match bases.1 {
         Some(base2)
             if crate::diagnose::library::is_every_joint(Some(cand.mechanism), cand.joint)
@@ -507,24 +508,7 @@ pub(super) fn refit(
             match s {
                 Ok(s) => {
                     if verbose {
-                        for u in &s.units {
-                            eprintln!(
-                                "  {}: ln B {:.1} ± {:.1}, frequency effect {:.3} %, min ESS {:.0}, ratios {}",
-                                u.measurement_id,
-                                u.log_bayes_factor,
-                                u.log_bayes_factor_se,
-                                100.0 * u.freq_effect_rel,
-                                u.min_ess,
-                                u.joints
-                                    .iter()
-                                    .map(|j| format!(
-                                        "j{} {:.2} ({:.2}–{:.2})",
-                                        j.joint, j.ratio_median, j.ratio_q05, j.ratio_q95
-                                    ))
-                                    .collect::<Vec<_>>()
-                                    .join(", ")
-                            );
-                        }
+                        print_screen(&s);
                     }
                     Some(s)
                 }
@@ -536,27 +520,9 @@ pub(super) fn refit(
         }
         _ => None,
     };
-    let not_worth = screen.as_ref().filter(|s| s.failed.is_none()).and_then(|s| {
-        if s.log_bayes_factor + opts.select.min_z * s.log_bayes_factor_se < opts.select.min_log_bf
-        {
-            Some(format!(
-                "not refitted: the per-assembly screen's Bayes factor, ln B = {:.1} ± {:.1}, cannot clear the evidence bar (ln B > {})",
-                s.log_bayes_factor, s.log_bayes_factor_se, opts.select.min_log_bf
-            ))
-        } else if s
-            .units
-            .iter()
-            .all(|u| u.freq_effect_rel.is_finite() && u.freq_effect_rel < opts.select.practical_threshold_rel)
-        {
-            Some(format!(
-                "not refitted: in the per-assembly screen no assembly's joints of their own move a mode by the practical threshold, {:.2} % (largest {:.3} %)",
-                100.0 * opts.select.practical_threshold_rel,
-                100.0 * s.units.iter().map(|u| u.freq_effect_rel).fold(0.0, f64::max)
-            ))
-        } else {
-            None
-        }
-    });
+    let not_worth = screen
+        .as_ref()
+        .and_then(|s| select::screen_says_skip(s, &opts.select));
     if let (Some(s), Some(why)) = (&screen, not_worth) {
         return Refit {
             joint_screen: Some(s.clone()),
@@ -612,6 +578,28 @@ pub(super) fn refit(
     };
     r.joint_screen = screen;
     r
+}
+
+/// The screen per assembly, for `-v`.
+fn print_screen(s: &crate::update::joint_screen::JointScreen) {
+    for u in &s.units {
+        eprintln!(
+            "  {}: ln B {:.1} ± {:.1}, frequency effect {:.3} %, min ESS {:.0}, ratios {}",
+            u.measurement_id,
+            u.log_bayes_factor,
+            u.log_bayes_factor_se,
+            100.0 * u.freq_effect_rel,
+            u.min_ess,
+            u.joints
+                .iter()
+                .map(|j| format!(
+                    "j{} {:.2} ({:.2}–{:.2})",
+                    j.joint, j.ratio_median, j.ratio_q05, j.ratio_q95
+                ))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
 }
 
 /// Importance draws per assembly and baseline draw, and baseline draws averaged over, of the

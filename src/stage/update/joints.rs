@@ -296,13 +296,9 @@ pub fn screen_joint_units(
                 .or_else(|| fixed(d))
                 .ok_or_else(|| anyhow!("{}: no delta_<mode> columns", pop_path.display()))?,
         };
-        let u2 = r.discrepancy_unit_scale.map(|s| s * s);
-        let unit_sd = match (&target.errors.model_error_sd, u2) {
-            (Some(sd), Some(v)) => sd.iter().map(|s| (s * s + v).sqrt()).collect(),
-            (Some(sd), None) => sd.clone(),
-            (None, Some(v)) => vec![v.sqrt(); labels.len()],
-            (None, None) => vec![],
-        };
+        let unit_sd = target
+            .errors
+            .unit_model_error_sd_with(r.discrepancy_unit_scale);
         baseline.push(BaselineDraw {
             aux,
             mu: r.mu_ln_k_con - k_ref.ln(),
