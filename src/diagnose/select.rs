@@ -455,23 +455,29 @@ pub fn screen_says_skip(
     s: &crate::update::joint_screen::JointScreen,
     opts: &SelectOptions,
 ) -> Option<String> {
-    if s.failed.is_some() {
+    let (Some(lbf), Some(se), None) = (s.log_bayes_factor, s.log_bayes_factor_se, &s.failed) else {
         return None;
-    }
-    if s.log_bayes_factor + opts.min_z * s.log_bayes_factor_se < opts.min_log_bf {
+    };
+    if lbf + opts.min_z * se < opts.min_log_bf {
         return Some(format!(
-            "not refitted: the per-assembly screen's Bayes factor, ln B = {:.1} ± {:.1}, cannot clear the evidence bar (ln B > {})",
-            s.log_bayes_factor, s.log_bayes_factor_se, opts.min_log_bf
+            "not refitted: the per-assembly screen's Bayes factor, ln B = {lbf:.1} ± {se:.1}, cannot clear the evidence bar (ln B > {})",
+            opts.min_log_bf
         ));
     }
+    // An assembly whose effect could not be computed is not "below": the refit decides.
     let below = |u: &crate::update::joint_screen::ScreenUnit| {
-        u.freq_effect_rel.is_finite() && u.freq_effect_rel < opts.practical_threshold_rel
+        u.freq_effect_rel
+            .is_some_and(|e| e < opts.practical_threshold_rel)
     };
     s.units.iter().all(below).then(|| {
         format!(
             "not refitted: in the per-assembly screen no assembly's joints of their own move a mode by the practical threshold, {:.2} % (largest {:.3} %)",
             100.0 * opts.practical_threshold_rel,
-            100.0 * s.units.iter().map(|u| u.freq_effect_rel).fold(0.0, f64::max)
+            100.0
+                * s.units
+                    .iter()
+                    .filter_map(|u| u.freq_effect_rel)
+                    .fold(0.0, f64::max)
         )
     })
 }
@@ -479,9 +485,11 @@ pub fn screen_says_skip(
 /// The every-joint candidate's per-assembly screen in words: its Bayes factor given the
 /// baseline, and the joint that differs in each screened assembly.
 pub fn screen_clause(js: &crate::update::joint_screen::JointScreen) -> String {
-    if let Some(why) = &js.failed {
+    let (Some(lbf), Some(se), None) = (js.log_bayes_factor, js.log_bayes_factor_se, &js.failed)
+    else {
+        let why = js.failed.as_deref().unwrap_or("no Bayes factor");
         return format!("the per-assembly joint screen gave no result: {why}");
-    }
+    };
     let each = js
         .units
         .iter()
@@ -497,10 +505,13 @@ pub fn screen_clause(js: &crate::update::joint_screen::JointScreen) -> String {
                     u.log_bayes_factor
                 ),
                 None => format!(
-                    "{} no joint apart by a practical amount (ln B {:.1}; modes moved {:.3} %)",
+                    "{} no joint apart by a practical amount (ln B {:.1}; {})",
                     u.measurement_id,
                     u.log_bayes_factor,
-                    100.0 * u.freq_effect_rel
+                    match u.freq_effect_rel {
+                        Some(e) => format!("modes moved {:.3} %", 100.0 * e),
+                        None => "its modes could not be evaluated".into(),
+                    }
                 ),
             },
         )
@@ -509,8 +520,8 @@ pub fn screen_clause(js: &crate::update::joint_screen::JointScreen) -> String {
     format!(
         "the per-assembly screen (each outlier assembly's joints their own stiffness, given the baseline's posterior; log-sd {} a joint) has log Bayes factor {:.1} ± {:.1} over the baseline: {each}",
         fmt_num(js.contrast_log_sd),
-        js.log_bayes_factor,
-        js.log_bayes_factor_se
+        lbf,
+        se
     )
 }
 
@@ -697,7 +708,7 @@ mod tests {
             log_bayes_factor: 25.3,
             log_bayes_factor_se: 0.7,
             joints: vec![j(1, 1.26), j(2, 1.25), j(3, 0.47), j(4, 1.3)],
-            freq_effect_rel: 0.02,
+            freq_effect_rel: Some(0.02),
             deviating_joint: dev,
             min_ess: 50.0,
         };
@@ -709,8 +720,8 @@ mod tests {
         );
         r.joint_screen = Some(JointScreen {
             units: vec![unit("M059", Some(3)), unit("M058", None)],
-            log_bayes_factor: 224.5,
-            log_bayes_factor_se: 1.0,
+            log_bayes_factor: Some(224.5),
+            log_bayes_factor_se: Some(1.0),
             baseline_draws: 16,
             contrast_log_sd: 0.7,
             model_evals: 1000,
@@ -745,14 +756,14 @@ mod tests {
             log_bayes_factor: 10.0,
             log_bayes_factor_se: 0.5,
             joints: vec![],
-            freq_effect_rel: effect,
+            freq_effect_rel: Some(effect),
             deviating_joint: None,
             min_ess: 50.0,
         };
         let screen = |lbf: f64, se: f64, effects: &[f64]| JointScreen {
             units: effects.iter().map(|&e| unit(e)).collect(),
-            log_bayes_factor: lbf,
-            log_bayes_factor_se: se,
+            log_bayes_factor: Some(lbf),
+            log_bayes_factor_se: Some(se),
             baseline_draws: 16,
             contrast_log_sd: 0.7,
             model_evals: 0,
@@ -772,9 +783,13 @@ mod tests {
             small.contains("practical threshold, 0.10 % (largest 0.090 %)"),
             "{small}"
         );
-        let mut failed = screen(f64::NAN, f64::NAN, &[]);
-        failed.failed = Some("no draws".into());
+        let failed = JointScreen::failed("no draws".into());
         assert_eq!(screen_says_skip(&failed, &o), None);
+        assert!(screen_clause(&failed).contains("gave no result: no draws"));
+        // An assembly whose modes could not be evaluated is not below the threshold.
+        let mut unknown = screen(500.0, 1.0, &[0.0001]);
+        unknown.units[0].freq_effect_rel = None;
+        assert_eq!(screen_says_skip(&unknown, &o), None);
     }
 
     /// A decisive Bayes factor is not enough: a mechanism that leaves most of the located

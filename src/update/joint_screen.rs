@@ -82,8 +82,9 @@ pub struct ScreenUnit {
     pub log_bayes_factor_se: f64,
     pub joints: Vec<ScreenJoint>,
     /// The largest change of an updated mode's frequency, relative, between the assembly's
-    /// fit with one stiffness and with the joints' own (at the posterior means).
-    pub freq_effect_rel: f64,
+    /// fit with one stiffness and with the joints' own (at the posterior means); None where
+    /// the model could not be evaluated there.
+    pub freq_effect_rel: Option<f64>,
     /// The joint whose ratio is furthest from 1 with its 90 % interval excluding 1, where
     /// `freq_effect_rel` reaches the practical threshold (None: no joint differs).
     pub deviating_joint: Option<usize>,
@@ -95,9 +96,10 @@ pub struct ScreenUnit {
 #[derive(Clone, Debug, Serialize, PartialEq, schemars::JsonSchema)]
 pub struct JointScreen {
     pub units: Vec<ScreenUnit>,
-    /// The Bayes factor of all the listed assemblies' joints at once (the refit's question).
-    pub log_bayes_factor: f64,
-    pub log_bayes_factor_se: f64,
+    /// The Bayes factor of all the listed assemblies' joints at once (the refit's question);
+    /// None where the screen failed.
+    pub log_bayes_factor: Option<f64>,
+    pub log_bayes_factor_se: Option<f64>,
     /// Baseline posterior draws averaged over.
     pub baseline_draws: usize,
     pub contrast_log_sd: f64,
@@ -105,6 +107,21 @@ pub struct JointScreen {
     /// Why there is no screen (a unit whose integrand could not be evaluated).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub failed: Option<String>,
+}
+
+impl JointScreen {
+    /// A screen that could not be run, and why (recorded, so the diagnosis says so).
+    pub fn failed(why: String) -> JointScreen {
+        JointScreen {
+            units: vec![],
+            log_bayes_factor: None,
+            log_bayes_factor_se: None,
+            baseline_draws: 0,
+            contrast_log_sd: 0.0,
+            model_evals: 0,
+            failed: Some(why),
+        }
+    }
 }
 
 /// The unit coordinates (x0, contrasts) of joint log-stiffnesses y (relative to k_ref):
@@ -211,8 +228,8 @@ pub fn screen_joints(
         .sum();
     let empty = |why: String| JointScreen {
         units: vec![],
-        log_bayes_factor: f64::NAN,
-        log_bayes_factor_se: f64::NAN,
+        log_bayes_factor: None,
+        log_bayes_factor_se: None,
         baseline_draws: draws.len(),
         contrast_log_sd: opts.contrast_log_sd,
         model_evals,
@@ -289,16 +306,17 @@ pub fn screen_joints(
                 .map(|t| t.lambda)
         };
         let freq_effect_rel = match (lambda(&y_mean), lambda(&vec![at(u, r_top).0.mode[0]; n])) {
-            (Some(a), Some(b)) => a
-                .iter()
-                .zip(&b)
-                .map(|(x, y)| ((x / y).sqrt() - 1.0).abs())
-                .fold(0.0, f64::max),
-            _ => f64::NAN,
+            (Some(a), Some(b)) => Some(
+                a.iter()
+                    .zip(&b)
+                    .map(|(x, y)| ((x / y).sqrt() - 1.0).abs())
+                    .fold(0.0, f64::max),
+            ),
+            _ => None,
         };
         let deviating_joint = joints
             .iter()
-            .filter(|_| freq_effect_rel >= opts.practical_rel)
+            .filter(|_| freq_effect_rel.is_some_and(|e| e >= opts.practical_rel))
             .filter(|j| j.ratio_q95 < 1.0 || j.ratio_q05 > 1.0)
             .max_by(|a, b| {
                 a.ratio_median
@@ -323,8 +341,8 @@ pub fn screen_joints(
     let (lbf, se, _) = mean_exp(&total_d, &total_se2);
     JointScreen {
         units: out_units,
-        log_bayes_factor: lbf,
-        log_bayes_factor_se: se,
+        log_bayes_factor: Some(lbf),
+        log_bayes_factor_se: Some(se),
         baseline_draws: draws.len(),
         contrast_log_sd: opts.contrast_log_sd,
         model_evals,

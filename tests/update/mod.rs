@@ -679,8 +679,13 @@ fn residual_rows(path: &Path, label: &str) -> Vec<(String, f64, bool)> {
 /// own stiffness in every measurement. joints.parquet reports each joint's stiffness over the
 /// mean of the others' there; in every measurement the lab's loose joint is the one with the
 /// lowest ratio, well below the others', and the other joints stay near each other.
+///
+/// The diagnosis's per-assembly joint screen on the same campaign (one lab run for both:
+/// each costs CI minutes) names every measurement's loose joint from the baseline step 2,
+/// its ratio to the others' with an interval covering the lab's 0.4, and a decisive Bayes
+/// factor.
 #[test]
-fn every_joint_refit_finds_the_loose_joint_of_each_measurement() {
+fn every_joint_refit_and_the_joint_screen_find_the_loose_joint_of_each_measurement() {
     let w = Work::with_scenario(LOOSE);
     w.chain();
     let o = w.update("u", "coarse.toml", PARAMS, &[]);
@@ -757,106 +762,87 @@ fn every_joint_refit_finds_the_loose_joint_of_each_measurement() {
             }
         }
     }
+    // The screen, from the baseline step 2.
+    let o = w.joints("b", "u", &["--particles", "100", "--runs", "1"]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let (s, ids) = joint_screen(&w, "u", "b");
+    assert_eq!(ids.len(), 6);
+    for (u, m) in s.units.iter().zip(&ids) {
+        let j = loose[m];
+        assert_eq!(u.deviating_joint, Some(j), "{u:?}");
+        let r = &u.joints[j - 1];
+        assert!(r.ratio_q05 < 0.4 && 0.4 < r.ratio_q95, "{m}: {u:?}");
+        assert!(u.log_bayes_factor > 5.0, "{u:?}");
+    }
+    let (b, se) = (s.log_bayes_factor.unwrap(), s.log_bayes_factor_se.unwrap());
+    assert!(b - 3.0 * se > 5.0, "{b} ± {se}");
 }
 
 /// The diagnosis's per-assembly joint screen (`stage::update::screen_joint_units`: given the
-/// baseline step 2, each assembly's Bayes factor of joints with stiffnesses of their own):
-/// on the loose-bolt campaign it names every measurement's loose joint, its ratio to the
-/// others' interval covering the lab's 0.4, with a decisive Bayes factor; on the campaign
-/// without a loose bolt it names no joint: no joint of its own moves a mode by the practical
-/// threshold.
-#[test]
-fn the_joint_screen_finds_each_loose_joint_and_nothing_without_one() {
-    for (scenario, loose_bolts) in [(LOOSE, true), (BOLTED, false)] {
-        let w = Work::with_scenario(scenario);
-        w.chain();
-        let o = w.update("u", "coarse.toml", PARAMS, &[]);
-        assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
-        let o = w.joints("b", "u", &["--particles", "100", "--runs", "1"]);
-        assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
-        let json = |p: PathBuf| -> serde_json::Value {
-            serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
-        };
-        let truth = json(w.p("truth.json"));
-        let bolted: Vec<(String, Option<u64>)> = truth["measurements"]
-            .as_array()
+/// baseline step 2 in `baseline`, each assembly's Bayes factor of joints with stiffnesses of
+/// their own) on every bolted measurement of that baseline, with the options the diagnosis
+/// gives it: the baseline's, its shape weights fixed, the every-joint enrichment on the
+/// screened measurements. Returns the screen and the screened measurement ids, in order.
+fn joint_screen(
+    w: &Work,
+    boards: &str,
+    baseline: &str,
+) -> (hbmu::update::joint_screen::JointScreen, Vec<String>) {
+    let json = |p: PathBuf| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
+    };
+    let base = w.p(baseline);
+    let ids: std::collections::BTreeSet<String> =
+        hbmu::io::tables::read_parquet(&base.join("joints.parquet"))
             .unwrap()
             .iter()
-            .filter(|m| m["setup"] == "bolted")
-            .map(|m| {
-                (
-                    m["measurement_id"].as_str().unwrap().to_string(),
-                    m["loose_joint"].as_u64(),
-                )
+            .flat_map(|b| {
+                let path = base.join("joints.parquet");
+                let c = hbmu::io::tables::Cols {
+                    batch: b,
+                    path: &path,
+                };
+                let m = c.str("measurement_id").unwrap();
+                (0..b.num_rows())
+                    .map(|i| m.value(i).to_string())
+                    .collect::<Vec<_>>()
             })
             .collect();
-        assert_eq!(bolted.len(), 6);
-        // The options the diagnosis gives the screen: the baseline's, its shape weights
-        // fixed, the every-joint enrichment on the screened measurements.
-        let manifest = json(w.p("b/update_joints.manifest.json"));
-        let mut opts: hbmu::stage::update::UpdateOptions =
-            serde_json::from_value(manifest["config"].clone()).unwrap();
-        opts.model.shape_weights =
-            hbmu::stage::update::ShapeWeighting::from_evidence(&w.p("b/evidence.json")).unwrap();
-        opts.model.enrich = Some(hbmu::update::enrichment::Mechanism::JointStiffnessPerJoint);
-        opts.model.enrich_units = bolted.iter().map(|(m, _)| m.clone()).collect();
-        opts.ingest_dir = w.p("ingest");
-        opts.pair_dir = w.p("pair");
-        opts.board = Some(w.p("coarse.toml"));
-        let s = hbmu::stage::update::screen_joint_units(
-            &opts,
-            &w.p("u"),
-            &w.p("b"),
-            (8, 300),
-            hbmu::diagnose::select::DEFAULT_PRACTICAL_THRESHOLD_REL,
-            false,
-        )
-        .unwrap();
-        assert!(s.failed.is_none(), "{s:?}");
-        assert_eq!(s.units.len(), 6);
-        for u in &s.units {
-            eprintln!(
-                "{}: ln B {:.1}, frequency effect {:.4} %, joint {:?}",
-                u.measurement_id,
-                u.log_bayes_factor,
-                100.0 * u.freq_effect_rel,
-                u.deviating_joint
-            );
-        }
-        for (u, (m, loose)) in s.units.iter().zip(&bolted) {
-            assert_eq!(&u.measurement_id, m);
-            if loose_bolts {
-                let j = loose.expect("every bolted measurement has a loose joint") as usize;
-                assert_eq!(u.deviating_joint, Some(j), "{u:?}");
-                let r = &u.joints[j - 1];
-                assert!(r.ratio_q05 < 0.4 && 0.4 < r.ratio_q95, "{m}: {u:?}");
-                assert!(u.log_bayes_factor > 5.0, "{u:?}");
-            } else {
-                assert_eq!(loose, &None);
-                assert_eq!(u.deviating_joint, None, "{u:?}");
-            }
-        }
-        if loose_bolts {
-            assert!(
-                s.log_bayes_factor - 3.0 * s.log_bayes_factor_se > 5.0,
-                "{} ± {}",
-                s.log_bayes_factor,
-                s.log_bayes_factor_se
-            );
-        } else {
-            // The Bayes factor alone would claim (the coarse model's discretization error
-            // is what contrasts of a few % absorb, with data this precise), but no joint of
-            // its own moves a mode by the practical threshold, so none is named and the
-            // diagnosis does not refit.
-            assert!(
-                s.units
-                    .iter()
-                    .all(|u| u.freq_effect_rel
-                        < hbmu::diagnose::select::DEFAULT_PRACTICAL_THRESHOLD_REL),
-                "{s:?}"
-            );
-        }
+    let manifest = json(base.join("update_joints.manifest.json"));
+    let mut opts: hbmu::stage::update::UpdateOptions =
+        serde_json::from_value(manifest["config"].clone()).unwrap();
+    opts.model.shape_weights =
+        hbmu::stage::update::ShapeWeighting::from_evidence(&base.join("evidence.json")).unwrap();
+    opts.model.enrich = Some(hbmu::update::enrichment::Mechanism::JointStiffnessPerJoint);
+    opts.model.enrich_units = ids.iter().cloned().collect();
+    opts.ingest_dir = w.p("ingest");
+    opts.pair_dir = w.p("pair");
+    opts.board = Some(w.p("coarse.toml"));
+    let s = hbmu::stage::update::screen_joint_units(
+        &opts,
+        &w.p(boards),
+        &base,
+        (8, 300),
+        hbmu::diagnose::select::DEFAULT_PRACTICAL_THRESHOLD_REL,
+        false,
+    )
+    .unwrap();
+    assert!(s.failed.is_none(), "{s:?}");
+    for u in &s.units {
+        eprintln!(
+            "{}: ln B {:.1}, frequency effect {:?}, joint {:?}",
+            u.measurement_id, u.log_bayes_factor, u.freq_effect_rel, u.deviating_joint
+        );
     }
+    let ids: Vec<String> = ids.into_iter().collect();
+    assert_eq!(
+        s.units
+            .iter()
+            .map(|u| u.measurement_id.clone())
+            .collect::<Vec<_>>(),
+        ids
+    );
+    (s, ids)
 }
 
 /// Three boards, each free-free and bolted, no concealed effect.
@@ -871,8 +857,14 @@ seed = 13
 
 /// A bolted measurement of a board that has no step-1 posterior (held out of step 1): a
 /// warning naming the measurement and the board, and step 2 goes through on the others.
+///
+/// On this campaign without a loose bolt (one lab run for both checks), the diagnosis's
+/// per-assembly joint screen names no joint: no joint of its own moves a mode by the
+/// practical threshold. The Bayes factor alone would claim (ln B up to ~190 an assembly: the
+/// coarse model's discretization error is what contrasts of a few % absorb, with data this
+/// precise); that is the case for the practical threshold.
 #[test]
-fn a_bolted_measurement_of_a_board_without_a_step1_posterior_is_reported_and_the_rest_used() {
+fn a_bolted_measurement_without_a_step1_posterior_is_reported_and_the_screen_names_no_joint() {
     let w = Work::with_scenario(BOLTED);
     w.chain();
     let ids = |path: &Path, col: &str| -> std::collections::BTreeSet<String> {
@@ -902,6 +894,16 @@ fn a_bolted_measurement_of_a_board_without_a_step1_posterior_is_reported_and_the
     let expected: std::collections::BTreeSet<String> =
         boards.iter().filter(|b| **b != held).cloned().collect();
     assert_eq!(in_step2, expected);
+    let (s, screened) = joint_screen(&w, "u", "j");
+    assert_eq!(screened.len(), 4);
+    for u in &s.units {
+        assert_eq!(u.deviating_joint, None, "{u:?}");
+        let e = u.freq_effect_rel.expect("the modes are evaluated");
+        assert!(
+            e < hbmu::diagnose::select::DEFAULT_PRACTICAL_THRESHOLD_REL,
+            "{u:?}"
+        );
+    }
 }
 
 /// The shape terms' weights (`--shape-weights`): `auto` records one per updated mode in

@@ -22,6 +22,7 @@ use crate::io::work_dir::{self, WorkDir};
 pub(super) use crate::stage::update::load_board;
 use crate::stage::update::{ShapeWeighting, UpdateOptions, MAX_R_HAT};
 use crate::stage::StageOutcome;
+use crate::update::joint_screen::JointScreen;
 use anyhow::{anyhow, Context};
 use std::path::Path;
 
@@ -497,10 +498,11 @@ pub(super) fn refit(
                 cand.measurements.len(),
                 t0.elapsed().as_secs_f64(),
                 match &s {
-                    Ok(s) if s.failed.is_none() => format!(
-                        "ln B {:.1} ± {:.1}",
-                        s.log_bayes_factor, s.log_bayes_factor_se
-                    ),
+                    Ok(JointScreen {
+                        log_bayes_factor: Some(b),
+                        log_bayes_factor_se: Some(se),
+                        ..
+                    }) => format!("ln B {b:.1} ± {se:.1}"),
                     Ok(s) => format!("failed: {}", s.failed.clone().unwrap_or_default()),
                     Err(e) => format!("failed: {e:#}"),
                 }
@@ -512,10 +514,8 @@ pub(super) fn refit(
                     }
                     Some(s)
                 }
-                Err(e) => {
-                    eprintln!("diagnose: the joint screen failed; the refit runs: {e:#}");
-                    None
-                }
+                // Recorded in diagnosis.json; the refit decides.
+                Err(e) => Some(JointScreen::failed(format!("{e:#}").replace('\n', " "))),
             }
         }
         _ => None,
@@ -581,14 +581,14 @@ pub(super) fn refit(
 }
 
 /// The screen per assembly, for `-v`.
-fn print_screen(s: &crate::update::joint_screen::JointScreen) {
+fn print_screen(s: &JointScreen) {
     for u in &s.units {
         eprintln!(
             "  {}: ln B {:.1} ± {:.1}, frequency effect {:.3} %, min ESS {:.0}, ratios {}",
             u.measurement_id,
             u.log_bayes_factor,
             u.log_bayes_factor_se,
-            100.0 * u.freq_effect_rel,
+            100.0 * u.freq_effect_rel.unwrap_or(f64::NAN),
             u.min_ess,
             u.joints
                 .iter()
@@ -616,7 +616,7 @@ fn joint_screen(
     base2: &UpdateOptions,
     cand: &Candidate,
     verbose: bool,
-) -> anyhow::Result<crate::update::joint_screen::JointScreen> {
+) -> anyhow::Result<JointScreen> {
     let o = refit_options(opts, base2, cand);
     let wd = WorkDir::new(&opts.work_dir);
     crate::stage::update::screen_joint_units(
