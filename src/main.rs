@@ -694,8 +694,11 @@ fn run(cli: Cli) -> anyhow::Result<i32> {
                 select,
                 max_refits,
             };
-            let o = stage::diagnose::run(&opts, cli.verbose)?;
-            Ok(report("diagnose", &opts.out, &o))
+            // None: `--only` on a candidate its screen does not refit (printed there).
+            Ok(match stage::diagnose::run(&opts, cli.verbose)? {
+                Some(o) => report("diagnose", &opts.out, &o),
+                None => 0,
+            })
         }
         Command::Propagate {
             update_dirs,

@@ -41,8 +41,9 @@ use std::path::Path;
 pub const MANIFEST: &str = "diagnose.manifest.json";
 pub const JSON: &str = "diagnosis.json";
 
-/// The diagnosis stage.
-pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome> {
+/// The diagnosis stage. None: `--only` named a candidate that its screen says not to refit
+/// (the reason is printed; the gathering run records it).
+pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<StageOutcome>> {
     let w = &opts.work_dir;
     let wd = WorkDir::new(w);
     let mut inputs = vec![wd.measurements(), wd.modes(), wd.pairs()];
@@ -103,8 +104,12 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             baseline: baseline.as_ref().unwrap_or(&baseline1),
             z1: &baseline1.log_evidence_runs,
         };
+        if let (_, Some(why)) = refit::screen_first(opts, base.as_ref(), &cand, verbose) {
+            eprintln!("diagnose --only {only}: {why}");
+            return Ok(None);
+        }
         let decided = || cannot_be_favoured(opts, &cand, &against);
-        return run_refit(opts, (&base1, base.as_ref()), &cand, &decided, verbose);
+        return run_refit(opts, (&base1, base.as_ref()), &cand, &decided, verbose).map(Some);
     }
     crate::stage::run(spec, opts.force, |_prep| {
         let mut findings = Findings::default();
@@ -211,6 +216,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<StageOutcome
             verbose,
         )
     })
+    .map(Some)
 }
 
 /// The board regions and the screened candidates, a located point mass attached (the same

@@ -468,25 +468,18 @@ fn with_shares(
     r.explained_rel = shares.explained(cand);
 }
 
-/// Run (or find up to date) one candidate's refit.
-pub(super) fn refit(
+/// The every-joint candidate on its outlier assemblies is screened first, and refitted only
+/// where the screen could clear the evidence bar and the practical threshold: its screen
+/// (None for other candidates, or without a step 2) and why it is not refitted, if it is not
+/// (select::screen_says_skip). Shared by the diagnosis and `--only`, so a cluster's fan-out
+/// skips what the local run skips.
+pub(super) fn screen_first(
     opts: &DiagnoseOptions,
-    board: &crate::fem::Board,
-    bases: (&UpdateOptions, Option<&UpdateOptions>),
+    base2: Option<&UpdateOptions>,
     cand: &Candidate,
-    against: &Against,
     verbose: bool,
-) -> Refit {
-    let (outliers, z1) = (&against.located.measurements_after_covariates, against.z1);
-    let (refined, probes, location_note) = refine_point(opts, board, bases.0, cand, verbose);
-    let cand = &refined;
-    let rel = format!("refits/{}", cand.id());
-    let out = opts.out.join(&rel);
-    let decided = || cannot_be_favoured(opts, cand, against);
-    // The every-joint candidate on its outlier assemblies: screened first, and refitted only
-    // where the screen could clear the evidence bar and the practical threshold
-    // (select::screen_says_skip).
-    let screen = match bases.1 {
+) -> (Option<JointScreen>, Option<String>) {
+    let screen = match base2 {
         Some(base2)
             if crate::diagnose::library::is_every_joint(Some(cand.mechanism), cand.joint)
                 && !cand.measurements.is_empty() =>
@@ -523,9 +516,28 @@ pub(super) fn refit(
     let not_worth = screen
         .as_ref()
         .and_then(|s| select::screen_says_skip(s, &opts.select));
-    if let (Some(s), Some(why)) = (&screen, not_worth) {
+    (screen, not_worth)
+}
+
+/// Run (or find up to date) one candidate's refit.
+pub(super) fn refit(
+    opts: &DiagnoseOptions,
+    board: &crate::fem::Board,
+    bases: (&UpdateOptions, Option<&UpdateOptions>),
+    cand: &Candidate,
+    against: &Against,
+    verbose: bool,
+) -> Refit {
+    let (outliers, z1) = (&against.located.measurements_after_covariates, against.z1);
+    let (refined, probes, location_note) = refine_point(opts, board, bases.0, cand, verbose);
+    let cand = &refined;
+    let rel = format!("refits/{}", cand.id());
+    let out = opts.out.join(&rel);
+    let decided = || cannot_be_favoured(opts, cand, against);
+    let (screen, not_worth) = screen_first(opts, bases.1, cand, verbose);
+    if let Some(why) = not_worth {
         return Refit {
-            joint_screen: Some(s.clone()),
+            joint_screen: screen,
             ..Refit::failed(Some(cand.mechanism), cand.joint, rel, why)
         };
     }
