@@ -444,9 +444,6 @@ fn fmt_estimate(median: f64, q05: f64, q95: f64) -> [String; 3] {
     [median, q05, q95].map(|v| format!("{v:.decimals$}"))
 }
 
-/// The sentence of a finding, e.g. "The bolted joints restrain …; k_rot_nm_per_rad = 1.52
-/// (90 % interval 1.31–1.77; population median); log Bayes factor 38.2 ± 0.4 over the
-/// baseline; held-out bolted error 0.130 % → 0.020 %."
 /// Why the every-joint candidate is not refitted after its per-assembly screen, if it is
 /// not: the screen's ln B + `min_z` se stays below the evidence bar, or no assembly's joints
 /// of their own move a mode by the practical threshold (its refit could not be favoured).
@@ -525,6 +522,9 @@ pub fn screen_clause(js: &crate::update::joint_screen::JointScreen) -> String {
     )
 }
 
+/// The sentence of a finding, e.g. "The bolted joints restrain …; k_rot_nm_per_rad = 1.52
+/// (90 % interval 1.31–1.77; population median); log Bayes factor 38.2 ± 0.4 over the
+/// baseline; held-out bolted error 0.130 % → 0.020 %."
 pub fn sentence(c: &Compared) -> String {
     let what = match c.refit.mechanism {
         Some(m) => {

@@ -227,13 +227,10 @@ pub fn screen_joints(
         .map(|(a, b)| a.evals + b.evals)
         .sum();
     let empty = |why: String| JointScreen {
-        units: vec![],
-        log_bayes_factor: None,
-        log_bayes_factor_se: None,
         baseline_draws: draws.len(),
         contrast_log_sd: opts.contrast_log_sd,
         model_evals,
-        failed: Some(why),
+        ..JointScreen::failed(why)
     };
     if draws.is_empty() || units.is_empty() {
         return empty("no baseline draws or no assemblies to screen".into());

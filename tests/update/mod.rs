@@ -205,6 +205,17 @@ fn board_draws(path: &Path, board: &str, col: &str) -> Vec<f64> {
     out
 }
 
+/// The distinct values of a string column of a Parquet table.
+fn column_set(path: &Path, col: &str) -> std::collections::BTreeSet<String> {
+    let mut out = std::collections::BTreeSet::new();
+    for b in hbmu::io::tables::read_parquet(path).unwrap() {
+        let c = hbmu::io::tables::Cols { batch: &b, path };
+        let v = c.str(col).unwrap();
+        out.extend((0..b.num_rows()).map(|i| v.value(i).to_string()));
+    }
+    out
+}
+
 fn sd(v: &[f64]) -> f64 {
     let m = v.iter().sum::<f64>() / v.len() as f64;
     (v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
@@ -792,22 +803,7 @@ fn joint_screen(
         serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
     };
     let base = w.p(baseline);
-    let ids: std::collections::BTreeSet<String> =
-        hbmu::io::tables::read_parquet(&base.join("joints.parquet"))
-            .unwrap()
-            .iter()
-            .flat_map(|b| {
-                let path = base.join("joints.parquet");
-                let c = hbmu::io::tables::Cols {
-                    batch: b,
-                    path: &path,
-                };
-                let m = c.str("measurement_id").unwrap();
-                (0..b.num_rows())
-                    .map(|i| m.value(i).to_string())
-                    .collect::<Vec<_>>()
-            })
-            .collect();
+    let ids = column_set(&base.join("joints.parquet"), "measurement_id");
     let manifest = json(base.join("update_joints.manifest.json"));
     let mut opts: hbmu::stage::update::UpdateOptions =
         serde_json::from_value(manifest["config"].clone()).unwrap();
@@ -867,16 +863,7 @@ seed = 13
 fn a_bolted_measurement_without_a_step1_posterior_is_reported_and_the_screen_names_no_joint() {
     let w = Work::with_scenario(BOLTED);
     w.chain();
-    let ids = |path: &Path, col: &str| -> std::collections::BTreeSet<String> {
-        let mut out = std::collections::BTreeSet::new();
-        for b in hbmu::io::tables::read_parquet(path).unwrap() {
-            let c = hbmu::io::tables::Cols { batch: &b, path };
-            let v = c.str(col).unwrap();
-            out.extend((0..b.num_rows()).map(|i| v.value(i).to_string()));
-        }
-        out
-    };
-    let boards = ids(&w.p("ingest/measurements.parquet"), "board_id");
+    let boards = column_set(&w.p("ingest/measurements.parquet"), "board_id");
     let held = boards.iter().next_back().unwrap().clone();
     let o = w.update("u", "coarse.toml", PARAMS, &["--hold-out", &held]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
@@ -890,7 +877,7 @@ fn a_bolted_measurement_without_a_step1_posterior_is_reported_and_the_screen_nam
         assert!(x["message"].as_str().unwrap().contains(&held), "{x}");
         assert!(x["measurement_id"].is_string(), "{x}");
     }
-    let in_step2 = ids(&w.p("j/joints.parquet"), "board_id");
+    let in_step2 = column_set(&w.p("j/joints.parquet"), "board_id");
     let expected: std::collections::BTreeSet<String> =
         boards.iter().filter(|b| **b != held).cloned().collect();
     assert_eq!(in_step2, expected);
