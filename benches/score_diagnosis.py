@@ -115,7 +115,8 @@ def main():
         j = (f.get("location") or {}).get("joint")
         meas = {m["measurement_id"]: m for m in t["measurements"]}
         loose = {m["measurement_id"]: m["loose_joint"] for m in t["measurements"] if m.get("loose_joint")}
-        per = {e["scope"].split()[-1]: e for e in f["estimates"] if e["scope"].startswith("measurement")}
+        # scope "measurement <id>[, …][; …]"
+        per = {e["scope"].split()[1].rstrip(",;"): e for e in f["estimates"] if e["scope"].startswith("measurement")}
         fac = eff["parameters"]["stiffness_factor"]
 
         def joint_of(e):

@@ -953,7 +953,7 @@ fn a_board_mechanism_is_judged_on_the_free_free_modes_and_a_joint_one_on_the_bol
         let both = synth.draw(seed, &|s, l, _, _| mass(s, l) + joints(s, l));
         let loc = locate(&both, &opts);
         let after_mass = synth.draw(seed, &|s, l, _, _| joints(s, l)).residuals;
-        let shares = RefitShares::new(&loc, &both, &after_mass, &opts);
+        let shares = RefitShares::new(&loc, &both, &after_mass, &opts, &[]);
         let own = shares.own(&cand(Mechanism::AddedMass)).unwrap();
         assert!(
             own < 0.1,
@@ -1010,8 +1010,8 @@ fn two_effects_are_two_parts_each_explained_by_its_own_refit() {
         };
         let t = cand(Mechanism::TemperatureStiffness, Some("temperature_c"));
         let m = cand(Mechanism::AddedMass, None);
-        let shares_t = RefitShares::new(&loc, &both, &after_temperature, &opts);
-        let shares_m = RefitShares::new(&loc, &both, &after_mass, &opts);
+        let shares_t = RefitShares::new(&loc, &both, &after_temperature, &opts, &[]);
+        let shares_m = RefitShares::new(&loc, &both, &after_mass, &opts, &[]);
         let own_t = shares_t.own(&t).unwrap();
         let own_m = shares_m.own(&m).unwrap();
         assert!(

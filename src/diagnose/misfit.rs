@@ -73,6 +73,132 @@ pub fn largest_reduction(located: &Located, after: &[ModeCheck]) -> Option<f64> 
         .reduce(f64::max)
 }
 
+/// The part of the misfit that the measurements a mechanism acts on carry alone, before a
+/// refit and after it: the share the refit leaves, and how much it changes (for the practical
+/// threshold). `after` holds the refit's rows; a row it lacks keeps `before`'s (a setup it did
+/// not refit). `None` without such a row.
+///
+/// A mechanism that acts on some assemblies only (a loose bolt) is judged on this part: it
+/// makes them stand apart from the others, which a mechanism acting on every assembly alike
+/// cannot do, while the mean shifts common to every assembly (the joint model's form, or a
+/// mechanism of all assemblies) are not its to remove. Each measurement is judged on what
+/// made it an outlier:
+/// - its frequencies (`freq_ms`): Σ over its rows of |r − c|, r the relative residual and c
+///   the mean of its label's over the setup's other measurements; the change is the largest
+///   reduction of one row's term;
+/// - its shapes (`shape_ms`, [`super::shapes`]): Σ over its rows of (x − c)⁺, x = ln(1 − MAC)
+///   and c the median of its label's over the other measurements (how much further its
+///   shapes are from the model's than the others'); the change is the largest change of one
+///   of its modes' predicted frequencies, relative (a loose bolt's frequency drop is largely
+///   absorbed by the assembly's own contact stiffness: its shapes are what set it apart).
+///
+/// With both kinds, the larger share left and the larger change count: each part must be
+/// explained.
+pub fn assemblies_part(
+    before: &[ResidualObs],
+    after: &[ResidualObs],
+    (freq_ms, shape_ms): (&[String], &[String]),
+) -> Option<(f64, f64)> {
+    let key = |r: &ResidualObs| (r.measurement_id.clone(), r.label.clone());
+    let refitted: BTreeSet<(String, String)> = after.iter().map(key).collect();
+    let merged: Vec<&ResidualObs> = after
+        .iter()
+        .chain(before.iter().filter(|r| !refitted.contains(&key(r))))
+        .collect();
+    let before: Vec<&ResidualObs> = before.iter().collect();
+    let acting = |r: &ResidualObs| {
+        freq_ms.contains(&r.measurement_id) || shape_ms.contains(&r.measurement_id)
+    };
+    // Per row of `ms` (measurement, label), its term against the other measurements' centre
+    // of `value` (None: the row has none).
+    let terms = |rows: &[&ResidualObs],
+                 ms: &[String],
+                 value: &dyn Fn(&ResidualObs) -> Option<f64>,
+                 centre: &dyn Fn(&mut Vec<f64>) -> f64,
+                 term: &dyn Fn(f64, f64) -> f64|
+     -> BTreeMap<(String, String), f64> {
+        let setups: BTreeSet<&str> = rows
+            .iter()
+            .filter(|r| ms.contains(&r.measurement_id))
+            .map(|r| r.setup.as_str())
+            .collect();
+        let mut others: BTreeMap<(&str, &str), Vec<f64>> = BTreeMap::new();
+        for r in rows
+            .iter()
+            .filter(|r| setups.contains(r.setup.as_str()) && !acting(r))
+        {
+            if let Some(v) = value(r) {
+                others.entry((&r.setup, &r.label)).or_default().push(v);
+            }
+        }
+        let centres: BTreeMap<(&str, &str), f64> = others
+            .into_iter()
+            .map(|(k, mut v)| (k, centre(&mut v)))
+            .collect();
+        rows.iter()
+            .filter(|r| ms.contains(&r.measurement_id))
+            .filter_map(|r| {
+                let c = centres.get(&(r.setup.as_str(), r.label.as_str()))?;
+                Some((key(r), term(value(r)?, *c)))
+            })
+            .collect()
+    };
+    let mean = |v: &mut Vec<f64>| v.iter().sum::<f64>() / v.len() as f64;
+    let median = |v: &mut Vec<f64>| crate::bayes::stats::median(v);
+    let rel = |r: &ResidualObs| r.rel_residual.is_finite().then_some(r.rel_residual);
+    let gap = |r: &ResidualObs| {
+        r.mac
+            .filter(|m| m.is_finite())
+            .map(|m| (1.0 - m).max(super::shapes::MAC_GAP_FLOOR).ln())
+    };
+    let mut parts: Vec<(f64, f64)> = vec![];
+    // Frequencies.
+    let abs_dev = |x: f64, c: f64| (x - c).abs();
+    let b = terms(&before, freq_ms, &rel, &mean, &abs_dev);
+    let a = terms(&merged, freq_ms, &rel, &mean, &abs_dev);
+    let both: Vec<(f64, f64)> = b
+        .iter()
+        .filter_map(|(k, x)| Some((*x, *a.get(k)?)))
+        .collect();
+    let total: f64 = both.iter().map(|p| p.0).sum();
+    if total > 0.0 {
+        parts.push((
+            both.iter().map(|p| p.1).sum::<f64>() / total,
+            both.iter()
+                .map(|p| p.0 - p.1)
+                .fold(f64::NEG_INFINITY, f64::max),
+        ));
+    }
+    // Shapes.
+    let excess = |x: f64, c: f64| (x - c).max(0.0);
+    let b = terms(&before, shape_ms, &gap, &median, &excess);
+    let a = terms(&merged, shape_ms, &gap, &median, &excess);
+    let total: f64 = b
+        .iter()
+        .filter(|(k, _)| a.contains_key(*k))
+        .map(|(_, x)| x)
+        .sum();
+    if total > 0.0 {
+        let left: f64 = b.keys().filter_map(|k| a.get(k)).sum();
+        let moved = |r: &&&ResidualObs| shape_ms.contains(&r.measurement_id);
+        let model_before: BTreeMap<(String, String), f64> = before
+            .iter()
+            .filter(moved)
+            .map(|r| (key(r), r.model_freq_hz_mean))
+            .collect();
+        let change = merged
+            .iter()
+            .filter(moved)
+            .filter_map(|r| Some((r.model_freq_hz_mean / model_before.get(&key(r))? - 1.0).abs()))
+            .filter(|v| v.is_finite())
+            .fold(0.0, f64::max);
+        parts.push((left / total, change));
+    }
+    parts
+        .into_iter()
+        .reduce(|x, y| (x.0.max(y.0), x.1.max(y.1)))
+}
+
 /// The largest located structured misfit, relative: the largest |mean relative residual| of
 /// a located mode and the largest effect of a located covariate trend, with where it is
 /// (`setup/label` or `setup/covariate`). `None` when nothing of either kind is located.
@@ -190,6 +316,9 @@ pub struct RefitShares {
     modes_reduction: Option<f64>,
     /// Of each located covariate's trend: the share left, and the effect before (relative).
     covariates: BTreeMap<String, (Option<f64>, f64)>,
+    /// Of the part the candidate's measurements carry ([`assemblies_part`]), for a joint
+    /// mechanism acting on some assemblies only: the share left and the largest reduction.
+    assemblies: Option<(f64, f64)>,
 }
 
 impl RefitShares {
@@ -198,9 +327,23 @@ impl RefitShares {
         input: &locate::LocateInput,
         after: &[ResidualObs],
         lopts: &LocateOptions,
+        acting_on: &[String],
     ) -> Self {
         let means = locate::mode_means(after, lopts);
         RefitShares {
+            assemblies: {
+                let shape: Vec<String> = acting_on
+                    .iter()
+                    .filter(|m| located.shape_outliers.contains(m))
+                    .cloned()
+                    .collect();
+                let freq: Vec<String> = acting_on
+                    .iter()
+                    .filter(|m| !shape.contains(m))
+                    .cloned()
+                    .collect();
+                assemblies_part(&input.residuals, after, (&freq, &shape))
+            },
             modes: remaining_share(located, &means),
             bolted_modes: remaining_share_in(located, &means, Some("bolted")),
             free_modes: remaining_share_in(located, &means, Some("free")),
@@ -222,28 +365,32 @@ impl RefitShares {
         }
     }
 
-    /// The candidate's own share: of its covariate's trend, of the bolted modes' mean shifts
-    /// for a joint mechanism, of the free-free modes' for a board mechanism (either, when
-    /// its setup has no located mode: of all the mean shifts).
+    /// The candidate's own share: of its covariate's trend; for a joint mechanism acting on
+    /// some assemblies only, of the part they carry ([`assemblies_part`]); of the bolted
+    /// modes' mean shifts for another joint mechanism, of the free-free modes' for a board
+    /// mechanism (either, when its setup has no located mode: of all the mean shifts).
     pub fn own(&self, cand: &Candidate) -> Option<f64> {
+        let board = super::library::is_board_mechanism(cand.mechanism);
         match &cand.covariate {
             Some(c) => self.covariates.get(c).and_then(|v| v.0),
-            None if !super::library::is_board_mechanism(cand.mechanism) => {
-                self.bolted_modes.or(self.modes)
-            }
+            None if !board && !cand.measurements.is_empty() => self.assemblies.map(|a| a.0),
+            None if !board => self.bolted_modes.or(self.modes),
             None => self.free_modes.or(self.modes),
         }
     }
 
     /// How much misfit the candidate explains, relative (for the practical threshold): of its
-    /// covariate's trend, the effect it removes; else the largest reduction of a mean-shift
-    /// mode's misfit.
+    /// covariate's trend, the effect it removes; for a joint mechanism acting on some
+    /// assemblies only, the largest reduction of their part in one mode; else the largest
+    /// reduction of a mean-shift mode's misfit.
     pub fn explained(&self, cand: &Candidate) -> Option<f64> {
+        let board = super::library::is_board_mechanism(cand.mechanism);
         match &cand.covariate {
             Some(c) => self
                 .covariates
                 .get(c)
                 .and_then(|(share, before)| share.map(|s| (1.0 - s) * before)),
+            None if !board && !cand.measurements.is_empty() => self.assemblies.map(|a| a.1),
             None => self.modes_reduction,
         }
     }
@@ -291,5 +438,100 @@ impl MisfitParts {
             }
         }
         (!parts.is_empty()).then(|| parts.join(" and "))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(m: &str, label: &str, rel: f64) -> ResidualObs {
+        ResidualObs {
+            measurement_id: m.into(),
+            board_id: "B".into(),
+            setup: "bolted".into(),
+            label: label.into(),
+            freq_hz: 100.0 * (1.0 + rel),
+            model_freq_hz_mean: 100.0,
+            predictive_sd_hz: 0.1,
+            rel_residual: rel,
+            std_residual: 10.0 * rel,
+            used_for_updating: true,
+            mac: None,
+        }
+    }
+
+    /// The part the outlier carries is its deviation from the other measurements' mean: a
+    /// refit that brings it to the others leaves none of it, whatever their common shift; a
+    /// row the refit lacks keeps the baseline's.
+    #[test]
+    fn the_assemblies_part_is_their_deviation_from_the_others() {
+        let ms = vec!["M4".to_string()];
+        let before: Vec<ResidualObs> = ["M1", "M2", "M3"]
+            .iter()
+            .flat_map(|m| [row(m, "a", 0.002), row(m, "b", -0.001)])
+            .chain([row("M4", "a", 0.012), row("M4", "b", -0.005)])
+            .collect();
+        // M4 brought to the others (all shifted by the same 0.001): nothing left.
+        let after: Vec<ResidualObs> = ["M1", "M2", "M3", "M4"]
+            .iter()
+            .flat_map(|m| [row(m, "a", 0.003), row(m, "b", 0.0)])
+            .collect();
+        let (share, red) = assemblies_part(&before, &after, (&ms, &[])).unwrap();
+        assert!(share.abs() < 1e-12, "{share}");
+        assert!((red - 0.010).abs() < 1e-12, "{red}");
+        // Only M4's rows refitted, half way: half left; the others keep the baseline's.
+        let half = vec![row("M4", "a", 0.007), row("M4", "b", -0.003)];
+        let (share, red) = assemblies_part(&before, &half, (&ms, &[])).unwrap();
+        assert!((share - 0.5).abs() < 1e-12, "{share}");
+        assert!((red - 0.005).abs() < 1e-12, "{red}");
+        assert_eq!(assemblies_part(&before, &after, (&[], &[])), None);
+    }
+
+    /// A shape outlier is judged on how much further its shapes are from the model's than
+    /// the others' (ln(1 − MAC) above their median), and its change is the largest change of
+    /// its predicted frequencies.
+    #[test]
+    fn a_shape_outlier_is_judged_on_its_shapes() {
+        let ms = vec!["M4".to_string()];
+        let with_mac = |m: &str, label: &str, mac: f64, model_hz: f64| ResidualObs {
+            mac: Some(mac),
+            model_freq_hz_mean: model_hz,
+            ..row(m, label, 0.0)
+        };
+        let mut before: Vec<ResidualObs> = ["M1", "M2", "M3"]
+            .iter()
+            .flat_map(|m| {
+                [
+                    with_mac(m, "a", 0.9999, 100.0),
+                    with_mac(m, "b", 0.9999, 200.0),
+                ]
+            })
+            .collect();
+        // M4's gaps 1e-3 against the others' 1e-4: ln 10 above in each mode.
+        before.extend([
+            with_mac("M4", "a", 0.999, 100.0),
+            with_mac("M4", "b", 0.999, 200.0),
+        ]);
+        // Refitted: mode a back to the others' (its frequency moved 0.3 %), b half way in ln.
+        let after = vec![
+            with_mac("M4", "a", 0.9999, 99.7),
+            with_mac("M4", "b", 1.0 - 10f64.powf(-3.5), 200.0),
+        ];
+        let (share, change) = assemblies_part(&before, &after, (&[], &ms)).unwrap();
+        assert!((share - 0.25).abs() < 1e-9, "{share}");
+        assert!((change - 0.003).abs() < 1e-9, "{change}");
+        // Frequencies and shapes at once: the larger share left counts. M4's frequencies
+        // 1 % off the others' before and after: all of that part is left.
+        let off = |rows: &mut Vec<ResidualObs>| {
+            for r in rows.iter_mut().filter(|r| r.measurement_id == "M4") {
+                r.rel_residual = 0.01;
+            }
+        };
+        let (mut before, mut after) = (before, after);
+        off(&mut before);
+        off(&mut after);
+        let (share, _) = assemblies_part(&before, &after, (&ms, &ms)).unwrap();
+        assert!((share - 1.0).abs() < 1e-12, "{share}");
     }
 }

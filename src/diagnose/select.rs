@@ -124,6 +124,11 @@ pub struct Refit {
     /// given the baseline's posterior, and which joint differs. Run before the refit.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub joint_screen: Option<crate::update::joint_screen::JointScreen>,
+    /// The refit is the screen's model importance-sampled from the baseline's posterior
+    /// (`joint_screen`), not a sampler's run: its Bayes factor is the screen's, and its
+    /// residuals those of the screened assemblies under the screen's posterior.
+    #[serde(skip_serializing_if = "std::ops::Not::not", default)]
+    pub from_screen: bool,
 }
 
 impl Refit {
@@ -341,8 +346,11 @@ pub fn compare(baseline: &Refit, candidates: &[Refit], opts: &SelectOptions) -> 
     let mut out: Vec<Compared> = candidates
         .iter()
         .map(|c| {
-            let (lbf, se) = match (base, c.evidence()) {
-                (Some((b, bse)), Some((m, mse))) => {
+            let (lbf, se) = match (base, c.evidence(), &c.joint_screen) {
+                (_, _, Some(js)) if c.from_screen && c.failed.is_none() => {
+                    (js.log_bayes_factor, js.log_bayes_factor_se)
+                }
+                (Some((b, bse)), Some((m, mse)), _) => {
                     (Some(m - b), Some((bse * bse + mse * mse).sqrt()))
                 }
                 _ => (None, None),
@@ -573,11 +581,16 @@ pub fn sentence(c: &Compared) -> String {
         .join(", ");
     let bf = match (c.log_bayes_factor, c.log_bayes_factor_se) {
         (Some(l), Some(s)) => format!(
-            "log Bayes factor {l:.1} ± {s:.1} over the baseline{}",
+            "log Bayes factor {l:.1} ± {s:.1} over the baseline{}{}",
             c.refit
                 .log_location_occam
                 .map(|o| format!(" (the location's Occam factor {o:.1} included)"))
-                .unwrap_or_default()
+                .unwrap_or_default(),
+            if c.refit.from_screen {
+                " (the per-assembly screen's: the model importance-sampled from the baseline's posterior, no sampler's refit)"
+            } else {
+                ""
+            }
         ),
         _ => format!(
             "no evidence: {}",
@@ -600,6 +613,8 @@ pub fn sentence(c: &Compared) -> String {
         // shifts (crate::diagnose::misfit).
         let part = if c.refit.mechanism == Some(Mechanism::TemperatureStiffness) {
             "the located covariate trend"
+        } else if crate::update::enrichment::is_every_joint(c.refit.mechanism, c.refit.joint) {
+            "the misfit that sets its assemblies apart from the others"
         } else {
             "the located misfit"
         };
@@ -711,6 +726,7 @@ mod tests {
             freq_effect_rel: Some(0.02),
             deviating_joint: dev,
             min_ess: 50.0,
+            posterior: vec![],
         };
         let mut r = Refit::failed(
             Some(Mechanism::JointStiffnessPerJoint),
@@ -726,9 +742,10 @@ mod tests {
             contrast_log_sd: 0.7,
             model_evals: 1000,
             failed: None,
+            untracked: vec![],
         });
         let base = refit(None, &[100.0, 100.2], 0.2);
-        let c = compare(&base, &[r], &SelectOptions::default());
+        let c = compare(&base, &[r.clone()], &SelectOptions::default());
         assert!(!c[0].favoured, "a screen alone is no finding");
         let s = sentence(&c[0]);
         assert!(s.contains("no evidence: over budget"), "{s}");
@@ -743,6 +760,29 @@ mod tests {
             s.contains("M058 no joint apart by a practical amount"),
             "{s}"
         );
+        // Judged on the screen (no sampler's refit): the screen's Bayes factor is the refit's,
+        // under the same bars.
+        let judged = |lbf: f64, remaining: f64| {
+            let mut j = r.clone();
+            j.failed = None;
+            j.from_screen = true;
+            j.remaining_share = Some(remaining);
+            j.explained_rel = Some(0.003);
+            if let Some(js) = j.joint_screen.as_mut() {
+                js.log_bayes_factor = Some(lbf);
+            }
+            compare(&base, &[j], &SelectOptions::default()).remove(0)
+        };
+        let c = judged(224.5, 0.2);
+        assert!(c.favoured, "{c:?}");
+        assert_eq!(c.log_bayes_factor, Some(224.5));
+        let s = sentence(&c);
+        assert!(
+            s.contains("log Bayes factor 224.5 ± 1.0 over the baseline (the per-assembly screen's"),
+            "{s}"
+        );
+        assert!(!judged(4.0, 0.2).favoured);
+        assert!(!judged(224.5, 0.6).favoured);
     }
 
     /// The screen skips the refit when its Bayes factor cannot clear the evidence bar, or
@@ -759,6 +799,7 @@ mod tests {
             freq_effect_rel: Some(effect),
             deviating_joint: None,
             min_ess: 50.0,
+            posterior: vec![],
         };
         let screen = |lbf: f64, se: f64, effects: &[f64]| JointScreen {
             units: effects.iter().map(|&e| unit(e)).collect(),
@@ -768,6 +809,7 @@ mod tests {
             contrast_log_sd: 0.7,
             model_evals: 0,
             failed: None,
+            untracked: vec![],
         };
         let o = SelectOptions::default();
         assert_eq!(

@@ -204,6 +204,53 @@ pub fn every_joint_estimates(
     (est, dev)
 }
 
+/// The every-joint candidate judged on its per-assembly screen: per screened assembly, the
+/// joint whose ratio to the others' is furthest from 1 as an estimate (parameter
+/// k_ratio_<j>, scope "measurement <id>, per-assembly screen"), and the joint the screen
+/// names as deviating (its interval excludes 1 and it moves a mode by the practical
+/// threshold), if any.
+pub fn screen_estimates(
+    js: &crate::update::joint_screen::JointScreen,
+    board: &crate::fem::Board,
+) -> (Vec<Estimate>, Vec<DeviatingJoint>) {
+    let (mut est, mut dev) = (vec![], vec![]);
+    for u in &js.units {
+        let furthest = u.joints.iter().max_by(|a, b| {
+            a.ratio_median
+                .ln()
+                .abs()
+                .total_cmp(&b.ratio_median.ln().abs())
+        });
+        let Some(j) = u
+            .deviating_joint
+            .and_then(|d| u.joints.get(d - 1))
+            .or(furthest)
+        else {
+            continue;
+        };
+        est.push(Estimate {
+            parameter: format!("k_ratio_{}", j.joint),
+            scope: format!("measurement {}, per-assembly screen", u.measurement_id),
+            median: j.ratio_median,
+            q05: j.ratio_q05,
+            q95: j.ratio_q95,
+        });
+        if u.deviating_joint == Some(j.joint) {
+            let h = &board.holes[j.joint - 1];
+            dev.push(DeviatingJoint {
+                measurement_id: u.measurement_id.clone(),
+                joint: j.joint,
+                x_m: h.x_m,
+                y_m: h.y_m,
+                ratio_median: j.ratio_median,
+                ratio_q05: j.ratio_q05,
+                ratio_q95: j.ratio_q95,
+            });
+        }
+    }
+    (est, dev)
+}
+
 /// One row of the diagnosis: a screened candidate, with its refit's comparison when it had
 /// one.
 #[derive(Clone, Debug)]
@@ -346,8 +393,8 @@ pub fn remaining_discrepancy(
         None => "none: no setup, mode, measurement or covariate misfits beyond the tolerance".to_string(),
     },
     Verdict::MechanismFound => match &unexplained {
-        Some(p) => format!("{p}: no favoured mechanism explains this part of the located misfit (none leaves at most {:.0} % of it); the favoured refits' residuals are in refits/<id>/residuals.parquet, the located evidence below is the baseline's", 100.0 * STOP_REMAINING_SHARE),
-        None => "see the best candidate's refit residuals (refits/<id>/residuals.parquet); the located evidence below is the baseline's".to_string(),
+        Some(p) => format!("{p}: no favoured mechanism explains this part of the located misfit (none leaves at most {:.0} % of it); the favoured refits' residuals are in their directories (`dir`: refits/<id>, or refits/<id>/screen for a candidate judged on its screen), the located evidence below is the baseline's", 100.0 * STOP_REMAINING_SHARE),
+        None => "see the best candidate's refit residuals (residuals.parquet in its `dir`: refits/<id>, or refits/<id>/screen for a candidate judged on its screen); the located evidence below is the baseline's".to_string(),
     },
     Verdict::ModelForm => {
         let (at, v) = crate::diagnose::misfit::largest_structured(located)

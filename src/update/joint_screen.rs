@@ -23,13 +23,14 @@
 
 use std::sync::Arc;
 
-use rand::SeedableRng;
+use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::bayes::laplace_is::{laplace_is, IsEvidence};
 use crate::bayes::modal::{log_lik_with, ErrorLogs};
+use crate::bayes::resample::systematic;
 use crate::bayes::smc::{self, Target};
 use crate::bayes::stats::{cholesky_jittered, ess, log_mean_exp, normalize};
 use crate::bayes::target::ModalTarget;
@@ -61,6 +62,8 @@ pub struct ScreenOptions {
     /// The practical threshold, relative frequency: a joint is named only where its own
     /// stiffness moves the assembly's modes by at least this much.
     pub practical_rel: f64,
+    /// Equally weighted posterior draws kept per assembly ([`ScreenUnit::posterior`]).
+    pub posterior_draws: usize,
 }
 
 /// One joint's stiffness over the geometric mean of the assembly's other joints.
@@ -90,6 +93,12 @@ pub struct ScreenUnit {
     pub deviating_joint: Option<usize>,
     /// The smallest effective sample size of its importance weights over the draws.
     pub min_ess: f64,
+    /// Equally weighted draws of the assembly's posterior under the screen's model (its
+    /// joints' own stiffnesses), resampled from the pooled importance draws: the baseline
+    /// draw each was drawn under (an index into the screen's draws) and the joints'
+    /// log-stiffnesses y. For its posterior-predictive residuals; not written.
+    #[serde(skip)]
+    pub posterior: Vec<(usize, Vec<f64>)>,
 }
 
 /// The screen of every listed assembly together.
@@ -107,6 +116,10 @@ pub struct JointScreen {
     /// Why there is no screen (a unit whose integrand could not be evaluated).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub failed: Option<String>,
+    /// Rows of the screened assemblies' residuals averaged over part of the posterior draws
+    /// or left out: a label whose mode could not be tracked, with the share of draws it was.
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub untracked: Vec<String>,
 }
 
 impl JointScreen {
@@ -120,6 +133,7 @@ impl JointScreen {
             contrast_log_sd: 0.0,
             model_evals: 0,
             failed: Some(why),
+            untracked: vec![],
         }
     }
 }
@@ -262,12 +276,12 @@ pub fn screen_joints(
         // share of the Bayes factor).
         let mut ratios: Vec<Vec<f64>> = vec![vec![]; n];
         let mut weights = vec![];
-        let mut pooled: Vec<&Vec<f64>> = vec![];
+        let mut pooled: Vec<(usize, &Vec<f64>)> = vec![];
         for (r, wr) in w.iter().enumerate() {
             let z1 = &at(u, r).1;
             for (y, lw) in z1.draws.iter().zip(&z1.log_w) {
                 weights.push(wr * lw.exp());
-                pooled.push(y);
+                pooled.push((r, y));
                 for (j, rj) in ratios.iter_mut().enumerate() {
                     let others = (y.iter().sum::<f64>() - y[j]) / (n - 1) as f64;
                     rj.push((y[j] - others).exp());
@@ -292,7 +306,7 @@ pub fn screen_joints(
             .max_by(|&a, &b| w[a].total_cmp(&w[b]))
             .unwrap_or(0);
         let mut y_mean = vec![0.0; n];
-        for (y, wi) in pooled.iter().zip(&weights) {
+        for ((_, y), wi) in pooled.iter().zip(&weights) {
             for (m, v) in y_mean.iter_mut().zip(y.iter()) {
                 *m += wi * v;
             }
@@ -325,6 +339,12 @@ pub fn screen_joints(
         let min_ess = (0..draws.len())
             .map(|r| at(u, r).1.ess.min(at(u, r).0.ess))
             .fold(f64::INFINITY, f64::min);
+        let u0 = ChaCha8Rng::seed_from_u64(smc::stream_key(&[opts.seed, 0x16, u as u64]))
+            .random::<f64>();
+        let posterior = systematic(&weights, opts.posterior_draws, u0)
+            .into_iter()
+            .map(|i| (pooled[i].0, pooled[i].1.clone()))
+            .collect();
         out_units.push(ScreenUnit {
             measurement_id: name.clone(),
             log_bayes_factor: lbf,
@@ -333,6 +353,7 @@ pub fn screen_joints(
             freq_effect_rel,
             deviating_joint,
             min_ess,
+            posterior,
         });
     }
     let (lbf, se, _) = mean_exp(&total_d, &total_se2);
@@ -344,6 +365,7 @@ pub fn screen_joints(
         contrast_log_sd: opts.contrast_log_sd,
         model_evals,
         failed: None,
+        untracked: vec![],
     }
 }
 

@@ -138,6 +138,7 @@ pub struct SummaryRow {
 }
 
 /// One residual row.
+#[derive(Clone, Debug)]
 pub struct Residual {
     pub measurement_id: String,
     pub board_id: String,
@@ -335,128 +336,167 @@ pub fn residuals(
     model_error_sd: Option<&[f64]>,
 ) -> (Vec<Residual>, Vec<Lost>) {
     use rayon::prelude::*;
-    let (target, all_pred, units_all) = (&st.target, &st.all_pred, &st.units_all);
-    let upd_idx: Vec<Option<usize>> = all_labels
-        .iter()
-        .map(|l| updated.iter().position(|u| u == l))
-        .collect();
-    type Row = Result<(Residual, Option<Lost>), Lost>;
-    let out: Vec<Row> = units_all
-        .par_iter()
-        .enumerate()
-        .flat_map_iter(|(b, (data, meta))| {
-            let nf = data.freq.len();
-            let mut s1 = vec![0.0; nf];
-            let mut s2 = vec![0.0; nf];
-            let mut se = vec![0.0; nf];
-            let mut mac = vec![0.0; data.shapes.len()];
-            let mut nmac = vec![0.0; data.shapes.len()];
-            let mut nk = vec![0.0; nf];
-            let mut n_all = 0.0;
-            for r in results {
-                let step = (r.particles.len() / draws_per_run.max(1)).max(1);
-                for p in r.particles.iter().step_by(step) {
-                    let v = target.values(&p.aux, b, &p.x[b]);
-                    n_all += 1.0;
-                    // A label lost at this draw (its mode not trackable) leaves the others.
-                    // With a covariate effect: one prediction per condition.
-                    let vs = target
-                        .condition_values(b, &v, &p.x[b])
-                        .unwrap_or_else(|| vec![Some(v.clone())]);
-                    let Some(tracked_preds) = vs
-                        .iter()
-                        .map(|vk| all_pred.predict_tracked(vk.as_ref()?))
-                        .collect::<Option<Vec<_>>>()
-                    else {
-                        continue;
-                    };
-                    let nm = all_labels.len();
-                    let tracked: Vec<bool> = tracked_preds
-                        .iter()
-                        .flat_map(|(_, t)| t.iter().copied())
-                        .collect();
-                    let preds: Vec<_> = tracked_preds.into_iter().map(|(p, _)| p).collect();
-                    let t = all_pred.terms_conditions(&preds, data, &v);
-                    let ctx = smc::Target::ctx(target, &p.g);
-                    for (k, f) in data.freq.iter().enumerate() {
-                        let slot = f.cond * nm + f.mode;
-                        if !tracked[slot] {
-                            continue;
-                        }
-                        let fm = t.lambda[slot].max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
-                        s1[k] += fm;
-                        s2[k] += fm * fm;
-                        nk[k] += 1.0;
-                        if let Some(u) = upd_idx[f.mode] {
-                            let e = ctx.eps[u] * fm / 2.0;
-                            se[k] += e * e;
-                        }
-                        // The model-error term's spread (relative on λ: half on f).
-                        if let Some(sd) = model_error_sd {
-                            let e = sd[f.mode] * fm / 2.0;
-                            se[k] += e * e;
-                        }
-                    }
-                    for (k, omm) in t.one_minus_mac.iter().enumerate() {
-                        let sh = &data.shapes[k];
-                        if tracked[sh.cond * nm + sh.mode] {
-                            mac[k] += 1.0 - omm;
-                            nmac[k] += 1.0;
-                        }
-                    }
-                }
-            }
-            meta.iter()
-                .enumerate()
-                .map(|(k, m)| {
-                    let label = all_labels[m.label].clone();
-                    let n = nk[k];
-                    if n == 0.0 {
-                        return Err(Lost {
-                            measurement_id: m.measurement_id.clone(),
-                            label,
-                            share_tracked: 0.0,
-                        });
-                    }
-                    let mean = s1[k] / n;
-                    let var = (s2[k] / n - mean * mean).max(0.0);
-                    Ok((
-                        Residual {
-                            measurement_id: m.measurement_id.clone(),
-                            board_id: m.board_id.clone(),
-                            setup: setup.to_string(),
-                            label: label.clone(),
-                            freq_hz: m.freq_hz,
-                            mean,
-                            sd: var.sqrt(),
-                            pred_sd: (var + se[k] / n).sqrt().max(1e-12),
-                            mac: m
-                                .shape
-                                .and_then(|i| (nmac[i] > 0.0).then(|| mac[i] / nmac[i])),
-                            used: upd_idx[m.label].is_some(),
-                        },
-                        (n < 0.9 * n_all).then(|| Lost {
-                            measurement_id: m.measurement_id.clone(),
-                            label,
-                            share_tracked: n / n_all,
-                        }),
-                    ))
+    let target = &st.target;
+    let out: Vec<Vec<ResidualRow>> = (0..st.units_all.len())
+        .into_par_iter()
+        .map(|b| {
+            let draws: Vec<PredDraw<'_>> = results
+                .iter()
+                .flat_map(|r| {
+                    let step = (r.particles.len() / draws_per_run.max(1)).max(1);
+                    r.particles.iter().step_by(step)
                 })
-                .collect::<Vec<_>>()
+                .map(|p| PredDraw {
+                    aux: &p.aux,
+                    x: &p.x[b],
+                    eps: smc::Target::ctx(target, &p.g).eps,
+                })
+                .collect();
+            unit_residuals(st, (all_labels, updated), b, &draws, setup, model_error_sd)
         })
         .collect();
-    let mut rows = vec![];
+    split_rows(out.into_iter().flatten())
+}
+
+/// One posterior draw of a unit, as its predictions need it: the step-1 draw it carries, the
+/// unit's coordinates and the error scales ε per updated mode.
+pub struct PredDraw<'a> {
+    pub aux: &'a [f64],
+    pub x: &'a [f64],
+    pub eps: Vec<f64>,
+}
+
+/// A unit's residual row, or the label lost at every draw; with the share of draws it was
+/// tracked at when below 90 %.
+pub type ResidualRow = Result<(Residual, Option<Lost>), Lost>;
+
+/// The rows and the lost labels of [`unit_residuals`]' results.
+pub fn split_rows(rows: impl Iterator<Item = ResidualRow>) -> (Vec<Residual>, Vec<Lost>) {
+    let mut out = vec![];
     let mut lost = vec![];
-    for r in out {
+    for r in rows {
         match r {
             Ok((row, partial)) => {
-                rows.push(row);
+                out.push(row);
                 lost.extend(partial);
             }
             Err(l) => lost.push(l),
         }
     }
-    (rows, lost)
+    (out, lost)
+}
+
+/// Posterior-predictive residuals of unit `b`'s accepted paired modes over equally weighted
+/// `draws` of its posterior: the model frequency's mean and sd over the draws, and the
+/// predictive sd with the inferred error ε/2 · f of an updated mode (and `model_error_sd`).
+pub fn unit_residuals(
+    st: &StepTarget,
+    (all_labels, updated): (&[String], &[String]),
+    b: usize,
+    draws: &[PredDraw<'_>],
+    setup: &str,
+    model_error_sd: Option<&[f64]>,
+) -> Vec<ResidualRow> {
+    let (target, all_pred) = (&st.target, &st.all_pred);
+    let (data, meta) = &st.units_all[b];
+    let upd_idx: Vec<Option<usize>> = all_labels
+        .iter()
+        .map(|l| updated.iter().position(|u| u == l))
+        .collect();
+    let nf = data.freq.len();
+    let mut s1 = vec![0.0; nf];
+    let mut s2 = vec![0.0; nf];
+    let mut se = vec![0.0; nf];
+    let mut mac = vec![0.0; data.shapes.len()];
+    let mut nmac = vec![0.0; data.shapes.len()];
+    let mut nk = vec![0.0; nf];
+    let mut n_all = 0.0;
+    for p in draws {
+        let v = target.values(p.aux, b, p.x);
+        n_all += 1.0;
+        // A label lost at this draw (its mode not trackable) leaves the others.
+        // With a covariate effect: one prediction per condition.
+        let vs = target
+            .condition_values(b, &v, p.x)
+            .unwrap_or_else(|| vec![Some(v.clone())]);
+        let Some(tracked_preds) = vs
+            .iter()
+            .map(|vk| all_pred.predict_tracked(vk.as_ref()?))
+            .collect::<Option<Vec<_>>>()
+        else {
+            continue;
+        };
+        let nm = all_labels.len();
+        let tracked: Vec<bool> = tracked_preds
+            .iter()
+            .flat_map(|(_, t)| t.iter().copied())
+            .collect();
+        let preds: Vec<_> = tracked_preds.into_iter().map(|(p, _)| p).collect();
+        let t = all_pred.terms_conditions(&preds, data, &v);
+        for (k, f) in data.freq.iter().enumerate() {
+            let slot = f.cond * nm + f.mode;
+            if !tracked[slot] {
+                continue;
+            }
+            let fm = t.lambda[slot].max(0.0).sqrt() / (2.0 * std::f64::consts::PI);
+            s1[k] += fm;
+            s2[k] += fm * fm;
+            nk[k] += 1.0;
+            if let Some(u) = upd_idx[f.mode] {
+                let e = p.eps[u] * fm / 2.0;
+                se[k] += e * e;
+            }
+            // The model-error term's spread (relative on λ: half on f).
+            if let Some(sd) = model_error_sd {
+                let e = sd[f.mode] * fm / 2.0;
+                se[k] += e * e;
+            }
+        }
+        for (k, omm) in t.one_minus_mac.iter().enumerate() {
+            let sh = &data.shapes[k];
+            if tracked[sh.cond * nm + sh.mode] {
+                mac[k] += 1.0 - omm;
+                nmac[k] += 1.0;
+            }
+        }
+    }
+    meta.iter()
+        .enumerate()
+        .map(|(k, m)| {
+            let label = all_labels[m.label].clone();
+            let n = nk[k];
+            if n == 0.0 {
+                return Err(Lost {
+                    measurement_id: m.measurement_id.clone(),
+                    label,
+                    share_tracked: 0.0,
+                });
+            }
+            let mean = s1[k] / n;
+            let var = (s2[k] / n - mean * mean).max(0.0);
+            Ok((
+                Residual {
+                    measurement_id: m.measurement_id.clone(),
+                    board_id: m.board_id.clone(),
+                    setup: setup.to_string(),
+                    label: label.clone(),
+                    freq_hz: m.freq_hz,
+                    mean,
+                    sd: var.sqrt(),
+                    pred_sd: (var + se[k] / n).sqrt().max(1e-12),
+                    mac: m
+                        .shape
+                        .and_then(|i| (nmac[i] > 0.0).then(|| mac[i] / nmac[i])),
+                    used: upd_idx[m.label].is_some(),
+                },
+                (n < 0.9 * n_all).then(|| Lost {
+                    measurement_id: m.measurement_id.clone(),
+                    label,
+                    share_tracked: n / n_all,
+                }),
+            ))
+        })
+        .collect()
 }
 
 /// A residual row whose label could not be tracked at every posterior draw (the row is left

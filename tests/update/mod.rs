@@ -776,7 +776,8 @@ fn every_joint_refit_and_the_joint_screen_find_the_loose_joint_of_each_measureme
     // The screen, from the baseline step 2.
     let o = w.joints("b", "u", &["--particles", "100", "--runs", "1"]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
-    let (s, ids) = joint_screen(&w, "u", "b");
+    let (run, ids) = joint_screen(&w, "u", "b");
+    let s = &run.screen;
     assert_eq!(ids.len(), 6);
     for (u, m) in s.units.iter().zip(&ids) {
         let j = loose[m];
@@ -787,6 +788,36 @@ fn every_joint_refit_and_the_joint_screen_find_the_loose_joint_of_each_measureme
     }
     let (b, se) = (s.log_bayes_factor.unwrap(), s.log_bayes_factor_se.unwrap());
     assert!(b - 3.0 * se > 5.0, "{b} ± {se}");
+    // Its posterior-predictive residuals (the diagnosis judges the candidate on them): one
+    // row per row of the baseline's; the model frequencies those of the every-joint SMC refit
+    // above (nearly the same model, sampled by another method: the refit also refits the
+    // population) within 2 predictive sd; and the assemblies fitted better than by the
+    // baseline.
+    let res = |p: &str| hbmu::io::tables::update::read_residuals(&w.p(p)).unwrap();
+    let (before, smc) = (res("b/residuals.parquet"), res("j/residuals.parquet"));
+    let p = w.p("screen_residuals.parquet");
+    hbmu::io::tables::update::write_residuals(&p, &run.residuals, &Default::default()).unwrap();
+    let after = hbmu::io::tables::update::read_residuals(&p).unwrap();
+    assert_eq!(
+        after.len(),
+        before.len(),
+        "{}",
+        run.screen.untracked.join("; ")
+    );
+    let key = |r: &hbmu::diagnose::locate::ResidualObs| (r.measurement_id.clone(), r.label.clone());
+    for (a, r) in after.iter().zip(&smc) {
+        assert_eq!(key(a), key(r));
+        let z = (a.model_freq_hz_mean - r.model_freq_hz_mean) / r.predictive_sd_hz;
+        assert!(z.abs() < 2.0, "{a:?}\n{r:?}");
+    }
+    let total = |rows: &[hbmu::diagnose::locate::ResidualObs]| -> f64 {
+        rows.iter()
+            .filter(|r| r.used_for_updating)
+            .map(|r| r.rel_residual.abs())
+            .sum()
+    };
+    let (tb, ta) = (total(&before), total(&after));
+    assert!(ta < tb, "Σ |relative residual| {tb:.3e} -> {ta:.3e}");
 }
 
 /// The diagnosis's per-assembly joint screen (`stage::update::screen_joint_units`: given the
@@ -798,7 +829,7 @@ fn joint_screen(
     w: &Work,
     boards: &str,
     baseline: &str,
-) -> (hbmu::update::joint_screen::JointScreen, Vec<String>) {
+) -> (hbmu::stage::update::ScreenRun, Vec<String>) {
     let json = |p: PathBuf| -> serde_json::Value {
         serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
     };
@@ -823,8 +854,8 @@ fn joint_screen(
         false,
     )
     .unwrap();
-    assert!(s.failed.is_none(), "{s:?}");
-    for u in &s.units {
+    assert!(s.screen.failed.is_none(), "{:?}", s.screen);
+    for u in &s.screen.units {
         eprintln!(
             "{}: ln B {:.1}, frequency effect {:?}, joint {:?}",
             u.measurement_id, u.log_bayes_factor, u.freq_effect_rel, u.deviating_joint
@@ -832,7 +863,8 @@ fn joint_screen(
     }
     let ids: Vec<String> = ids.into_iter().collect();
     assert_eq!(
-        s.units
+        s.screen
+            .units
             .iter()
             .map(|u| u.measurement_id.clone())
             .collect::<Vec<_>>(),
@@ -883,7 +915,7 @@ fn a_bolted_measurement_without_a_step1_posterior_is_reported_and_the_screen_nam
     assert_eq!(in_step2, expected);
     let (s, screened) = joint_screen(&w, "u", "j");
     assert_eq!(screened.len(), 4);
-    for u in &s.units {
+    for u in &s.screen.units {
         assert_eq!(u.deviating_joint, None, "{u:?}");
         let e = u.freq_effect_rel.expect("the modes are evaluated");
         assert!(

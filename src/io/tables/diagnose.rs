@@ -38,7 +38,7 @@ pub const DIAGNOSIS: TableSpec = TableSpec {
 
 pub const MODES: TableSpec = TableSpec {
     name: "diagnosis_modes",
-    doc: "Each mode's misfit before and after the candidates: per model (`baseline` = the work directory's update steps, or a refitted candidate's id) and (setup, label), the mean relative residual r = (f_measured − f̄_model)/f̄_model over the measurements (the mean of the board means with at least `min_boards_for_board_test` boards, as locate's mode check) with its standard error. The baseline rows are locate's mode checks; a refit's rows the same computation over refits/<id>/residuals.parquet (its setups only). Failed refits have no rows.",
+    doc: "Each mode's misfit before and after the candidates: per model (`baseline` = the work directory's update steps, or a refitted candidate's id) and (setup, label), the mean relative residual r = (f_measured − f̄_model)/f̄_model over the measurements (the mean of the board means with at least `min_boards_for_board_test` boards, as locate's mode check) with its standard error. The baseline rows are locate's mode checks; a refit's rows the same computation over the residuals.parquet of its directory (refits/<id>, or refits/<id>/screen for the every-joint candidate judged on its screen; its setups only). Failed refits have no rows.",
     open: false,
     columns: &[
         c("model", Col::Utf8, false, "", "`baseline` or the refitted candidate's id (its directory under refits/)."),

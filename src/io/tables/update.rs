@@ -443,6 +443,43 @@ pub fn write_residuals(
     write_table(path, &RESIDUALS, cols, &[], prov)
 }
 
+/// The rows of a residuals.parquet ([`RESIDUALS`]), as [`write_residuals`] takes them.
+pub fn read_residual_rows(path: &Path) -> anyhow::Result<Vec<Residual>> {
+    let mut out = vec![];
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let (m, bid, setup, label) = (
+            c.str("measurement_id")?,
+            c.str("board_id")?,
+            c.str("setup")?,
+            c.str("label")?,
+        );
+        let (f, mean, sd, psd, mac, used) = (
+            c.f64("freq_hz")?,
+            c.f64("model_freq_hz_mean")?,
+            c.f64("model_freq_hz_sd")?,
+            c.f64("predictive_sd_hz")?,
+            c.f64("mac")?,
+            c.bool("used_for_updating")?,
+        );
+        for i in 0..b.num_rows() {
+            out.push(Residual {
+                measurement_id: m.value(i).to_string(),
+                board_id: bid.value(i).to_string(),
+                setup: setup.value(i).to_string(),
+                label: label.value(i).to_string(),
+                freq_hz: f.value(i),
+                mean: mean.value(i),
+                sd: sd.value(i),
+                pred_sd: psd.value(i),
+                mac: arrow::array::Array::is_valid(mac, i).then(|| mac.value(i)),
+                used: used.value(i),
+            });
+        }
+    }
+    Ok(out)
+}
+
 /// The `enrichment` of a step-1 refit's evidence.json (null for the baseline).
 pub fn read_step1_enrichment(path: &Path) -> anyhow::Result<serde_json::Value> {
     Ok(crate::io::read_json(path)?["enrichment"].clone())

@@ -104,8 +104,16 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
             baseline: baseline.as_ref().unwrap_or(&baseline1),
             z1: &baseline1.log_evidence_runs,
         };
-        if let (_, Some(why)) = refit::screen_first(opts, base.as_ref(), &cand, verbose) {
+        let screened = refit::screen_first(opts, base.as_ref(), &cand, verbose);
+        if let Some(why) = screened.skip {
             eprintln!("diagnose --only {only}: {why}");
+            return Ok(None);
+        }
+        if screened
+            .screen
+            .is_some_and(|s| s.log_bayes_factor.is_some())
+        {
+            eprintln!("diagnose --only {only}: judged on its per-assembly screen, no sampler's refit: the diagnosis screens it again and records it");
             return Ok(None);
         }
         let decided = || cannot_be_favoured(opts, &cand, &against);
@@ -160,7 +168,13 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
                 );
                 let shares = if r.failed.is_none() {
                     let after = refit_residuals(&opts.out.join(&r.dir))?;
-                    let shares = RefitShares::new(&located, &input, &after, &opts.locate);
+                    let shares = RefitShares::new(
+                        &located,
+                        &input,
+                        &after,
+                        &opts.locate,
+                        &cand.measurements,
+                    );
                     r.remaining_share = shares.own(cand);
                     r.explained_rel = shares.explained(cand);
                     Some(shares)

@@ -13,16 +13,21 @@ use crate::diagnose::regions;
 use crate::diagnose::screen::Candidate;
 use crate::diagnose::select::{self, NewModeNote, Refit};
 use crate::diagnose::verdict::{self, quantile};
+use crate::io::diagnose_inputs::setup_errors;
 use crate::io::diagnose_inputs::{
     evidence_runs, joint_ratios, population_ess, population_r_hat, read_refit, refit_residuals,
     sorted_column, RefitSource,
 };
 use crate::io::read_json;
+use crate::io::tables::update::{
+    provenance as update_provenance, read_residual_rows, write_residuals,
+};
 use crate::io::work_dir::{self, WorkDir};
 pub(super) use crate::stage::update::load_board;
-use crate::stage::update::{ShapeWeighting, UpdateOptions, MAX_R_HAT};
+use crate::stage::update::{ScreenRun, ShapeWeighting, UpdateOptions, MAX_R_HAT};
 use crate::stage::StageOutcome;
 use crate::update::joint_screen::JointScreen;
+use crate::update::posterior::Residual;
 use anyhow::{anyhow, Context};
 use std::path::Path;
 
@@ -463,9 +468,18 @@ fn with_shares(
     r: &mut Refit,
     after: &[locate::ResidualObs],
 ) {
-    let shares = RefitShares::new(a.located, a.input, after, &opts.locate);
+    let shares = RefitShares::new(a.located, a.input, after, &opts.locate, &cand.measurements);
     r.remaining_share = shares.own(cand);
     r.explained_rel = shares.explained(cand);
+}
+
+/// The every-joint candidate's screen ([`screen_first`]): the screen, the screened
+/// assemblies' residuals under its model, and why the candidate is not refitted, if it is
+/// not.
+pub(super) struct Screened {
+    pub screen: Option<JointScreen>,
+    pub residuals: Vec<Residual>,
+    pub skip: Option<String>,
 }
 
 /// The every-joint candidate on its outlier assemblies is screened first, and refitted only
@@ -478,8 +492,8 @@ pub(super) fn screen_first(
     base2: Option<&UpdateOptions>,
     cand: &Candidate,
     verbose: bool,
-) -> (Option<JointScreen>, Option<String>) {
-    let screen = match base2 {
+) -> Screened {
+    let (screen, residuals) = match base2 {
         Some(base2)
             if crate::diagnose::library::is_every_joint(Some(cand.mechanism), cand.joint)
                 && !cand.measurements.is_empty() =>
@@ -491,32 +505,105 @@ pub(super) fn screen_first(
                 cand.measurements.len(),
                 t0.elapsed().as_secs_f64(),
                 match &s {
-                    Ok(JointScreen {
-                        log_bayes_factor: Some(b),
-                        log_bayes_factor_se: Some(se),
+                    Ok(ScreenRun {
+                        screen:
+                            JointScreen {
+                                log_bayes_factor: Some(b),
+                                log_bayes_factor_se: Some(se),
+                                ..
+                            },
                         ..
                     }) => format!("ln B {b:.1} ± {se:.1}"),
-                    Ok(s) => format!("failed: {}", s.failed.clone().unwrap_or_default()),
+                    Ok(s) => format!("failed: {}", s.screen.failed.clone().unwrap_or_default()),
                     Err(e) => format!("failed: {e:#}"),
                 }
             );
             match s {
                 Ok(s) => {
                     if verbose {
-                        print_screen(&s);
+                        print_screen(&s.screen);
                     }
-                    Some(s)
+                    (Some(s.screen), s.residuals)
                 }
                 // Recorded in diagnosis.json; the refit decides.
-                Err(e) => Some(JointScreen::failed(format!("{e:#}").replace('\n', " "))),
+                Err(e) => (
+                    Some(JointScreen::failed(format!("{e:#}").replace('\n', " "))),
+                    vec![],
+                ),
             }
         }
-        _ => None,
+        _ => (None, vec![]),
     };
-    let not_worth = screen
+    let skip = screen
         .as_ref()
         .and_then(|s| select::screen_says_skip(s, &opts.select));
-    (screen, not_worth)
+    Screened {
+        screen,
+        residuals,
+        skip,
+    }
+}
+
+/// The every-joint candidate judged on its screen (no sampler's refit): the screen's model
+/// (each screened assembly's joints their own stiffnesses, the rest the baseline's) is the
+/// baseline's posterior reweighted by importance sampling, so it has the evidence, the
+/// estimates and the predictions a refit has. Its Bayes factor is the screen's; its
+/// residuals (`refits/<id>/screen/residuals.parquet`) are the baseline step 2's with the
+/// screened assemblies' rows from the screen's posterior. The other assemblies keep the
+/// baseline's predictions: the screen's model leaves their likelihood as it was, and the
+/// one thing it changes for them, the weights of the baseline's draws of the population,
+/// is neglected (the screen keeps too few draws, 16, to resample their predictions from).
+/// The step-2 seed and inputs fix every byte.
+fn screen_refit(
+    opts: &DiagnoseOptions,
+    board: &crate::fem::Board,
+    cand: &Candidate,
+    screen: JointScreen,
+    rows: Vec<Residual>,
+) -> anyhow::Result<Refit> {
+    let rel = format!("refits/{}/screen", cand.id());
+    let out = opts.out.join(&rel);
+    let joints = WorkDir::new(&opts.work_dir).update_joints();
+    let screened: std::collections::BTreeSet<&str> = screen
+        .units
+        .iter()
+        .map(|u| u.measurement_id.as_str())
+        .collect();
+    let base = read_residual_rows(&joints.join("residuals.parquet"))?;
+    let mut merged: Vec<Residual> = base
+        .into_iter()
+        .filter(|r| !screened.contains(r.measurement_id.as_str()))
+        .collect();
+    merged.extend(rows);
+    merged.sort_by(|a, b| (&a.measurement_id, &a.label).cmp(&(&b.measurement_id, &b.label)));
+    let fingerprint = read_json(&joints.join(crate::stage::update::MANIFEST_JOINTS))?
+        ["fingerprint"]
+        .as_str()
+        .unwrap_or_default()
+        .to_string();
+    std::fs::create_dir_all(&out)?;
+    let p = out.join("residuals.parquet");
+    write_residuals(
+        &p,
+        &merged,
+        &update_provenance(
+            "diagnose joint screen",
+            &format!("{fingerprint}; {}", cand.id()),
+        ),
+    )?;
+    let (estimates, deviating_joints) = verdict::screen_estimates(&screen, board);
+    Ok(Refit {
+        mechanism: Some(cand.mechanism),
+        joint: cand.joint,
+        dir: rel,
+        held_out: setup_errors(&p, false)?,
+        updated: setup_errors(&p, true)?,
+        estimates,
+        deviating_joints,
+        joint_screen: Some(screen),
+        from_screen: true,
+        ..Default::default()
+    })
 }
 
 /// Run (or find up to date) one candidate's refit.
@@ -534,12 +621,28 @@ pub(super) fn refit(
     let rel = format!("refits/{}", cand.id());
     let out = opts.out.join(&rel);
     let decided = || cannot_be_favoured(opts, cand, against);
-    let (screen, not_worth) = screen_first(opts, bases.1, cand, verbose);
-    if let Some(why) = not_worth {
+    let Screened {
+        screen,
+        residuals,
+        skip,
+    } = screen_first(opts, bases.1, cand, verbose);
+    if let Some(why) = skip {
         return Refit {
             joint_screen: screen,
             ..Refit::failed(Some(cand.mechanism), cand.joint, rel, why)
         };
+    }
+    // A screen with a result is the refit; a failed one leaves it to the sampler.
+    if let Some(s) = screen.as_ref().filter(|s| s.log_bayes_factor.is_some()) {
+        return screen_refit(opts, board, cand, s.clone(), residuals).unwrap_or_else(|e| Refit {
+            joint_screen: screen.clone(),
+            ..Refit::failed(
+                Some(cand.mechanism),
+                cand.joint,
+                format!("{rel}/screen"),
+                format!("{e:#}").replace('\n', " "),
+            )
+        });
     }
     let r = run_refit(opts, bases, cand, &decided, verbose).and_then(|_| {
         let mut r = summarize_refit(candidate_source(cand, &out, &rel), Some(z1), outliers)?;
@@ -628,7 +731,7 @@ fn joint_screen(
     base2: &UpdateOptions,
     cand: &Candidate,
     verbose: bool,
-) -> anyhow::Result<JointScreen> {
+) -> anyhow::Result<ScreenRun> {
     let o = refit_options(opts, base2, cand);
     let wd = WorkDir::new(&opts.work_dir);
     crate::stage::update::screen_joint_units(

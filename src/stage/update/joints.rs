@@ -231,7 +231,8 @@ fn joint_paths(opts: &UpdateOptions, boards_dir: &Path) -> JointPaths {
 /// step 2 prepared with `opts` (the every-joint enrichment, on `opts.model.enrich_units`),
 /// integrated over `draws` rows of the baseline step 2's posterior in `baseline_dir`, each
 /// assembly's integrals by `is_draws` importance draws; a joint is named only where it moves
-/// the assembly's modes by `practical_rel` (relative frequency). Nothing is written.
+/// the assembly's modes by `practical_rel` (relative frequency); with the screened
+/// assemblies' residuals under the screen's model ([`ScreenRun`]). Nothing is written.
 pub fn screen_joint_units(
     opts: &UpdateOptions,
     boards_dir: &Path,
@@ -239,7 +240,7 @@ pub fn screen_joint_units(
     (draws, is_draws): (usize, usize),
     practical_rel: f64,
     verbose: bool,
-) -> anyhow::Result<crate::update::joint_screen::JointScreen> {
+) -> anyhow::Result<ScreenRun> {
     use crate::update::joint_screen::{screen_joints, BaselineDraw, ScreenOptions};
     let (board, _) = load_board(opts.board.as_deref())?;
     let paths = joint_paths(opts, boards_dir);
@@ -338,10 +339,71 @@ pub fn screen_joint_units(
             is_draws,
             seed: opts.sampler.seed,
             practical_rel,
+            posterior_draws: SCREEN_RESIDUAL_DRAWS,
         },
     );
     clock.lap("screen");
-    Ok(screen)
+    // The screened assemblies' posterior-predictive residuals under the screen's model, as
+    // step 2 forms them (no model-error term in the predictive sd).
+    let rows = units
+        .iter()
+        .zip(&screen.units)
+        .flat_map(|(&(b, _), u)| {
+            let coords: Vec<Vec<f64>> = u
+                .posterior
+                .iter()
+                .map(|(_, y)| crate::update::joint_screen::coords_of(y))
+                .collect();
+            let draws: Vec<crate::update::posterior::PredDraw<'_>> = u
+                .posterior
+                .iter()
+                .zip(&coords)
+                .map(|((r, _), x)| crate::update::posterior::PredDraw {
+                    aux: &baseline[*r].aux,
+                    x,
+                    eps: baseline[*r].eps.clone(),
+                })
+                .collect();
+            crate::update::posterior::unit_residuals(
+                &p.jt.step,
+                (&p.c.all.labels, labels),
+                b,
+                &draws,
+                "bolted",
+                None,
+            )
+        })
+        .collect::<Vec<_>>();
+    let (residuals, lost) = crate::update::posterior::split_rows(rows.into_iter());
+    clock.lap("screen residuals");
+    Ok(ScreenRun {
+        screen: crate::update::joint_screen::JointScreen {
+            untracked: lost
+                .iter()
+                .map(|l| {
+                    format!(
+                        "{} {} (tracked at {:.0} % of the draws)",
+                        l.measurement_id,
+                        l.label,
+                        100.0 * l.share_tracked
+                    )
+                })
+                .collect(),
+            ..screen
+        },
+        residuals,
+    })
+}
+
+/// Equally weighted posterior draws per screened assembly for its residuals: the mean model
+/// frequency's Monte Carlo error is then ~1/8 of its posterior sd.
+const SCREEN_RESIDUAL_DRAWS: usize = 64;
+
+/// The per-assembly joint screen, and the screened assemblies' posterior-predictive
+/// residuals under its model (each assembly's joints their own stiffnesses).
+pub struct ScreenRun {
+    pub screen: crate::update::joint_screen::JointScreen,
+    pub residuals: Vec<crate::update::posterior::Residual>,
 }
 
 /// Step 2's model and target as prepared for sampling: the bolted models with the

@@ -51,7 +51,7 @@ mod boards;
 mod joints;
 
 pub use boards::run_boards;
-pub use joints::{run_joints, run_joints_with, screen_joint_units};
+pub use joints::{run_joints, run_joints_with, screen_joint_units, ScreenRun};
 
 pub use crate::io::tables::update::{MANIFEST_BOARDS, MANIFEST_JOINTS};
 
