@@ -625,41 +625,25 @@ pub fn write_joint_tables(
     Ok(outputs)
 }
 
-/// The rows of an update step's residuals.parquet as the later stages use them.
+/// The rows of an update step's residuals.parquet as the later stages use them: its relative
+/// and standardized residuals as [`write_residuals`] forms them.
 pub fn read_residuals(path: &Path) -> anyhow::Result<Vec<ResidualObs>> {
-    let mut out = vec![];
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let (mid, bid, setup, label, f, fm, psd, rel, z, used) = (
-            c.str("measurement_id")?,
-            c.str("board_id")?,
-            c.str("setup")?,
-            c.str("label")?,
-            c.f64("freq_hz")?,
-            c.f64("model_freq_hz_mean")?,
-            c.f64("predictive_sd_hz")?,
-            c.f64("rel_residual")?,
-            c.f64("std_residual")?,
-            c.bool("used_for_updating")?,
-        );
-        let mac = c.f64("mac")?;
-        for i in 0..b.num_rows() {
-            out.push(ResidualObs {
-                measurement_id: mid.value(i).to_string(),
-                board_id: bid.value(i).to_string(),
-                setup: setup.value(i).to_string(),
-                label: label.value(i).to_string(),
-                freq_hz: f.value(i),
-                model_freq_hz_mean: fm.value(i),
-                predictive_sd_hz: psd.value(i),
-                rel_residual: rel.value(i),
-                std_residual: z.value(i),
-                used_for_updating: used.value(i),
-                mac: (!arrow::array::Array::is_null(mac, i)).then(|| mac.value(i)),
-            });
-        }
-    }
-    Ok(out)
+    Ok(read_residual_rows(path)?
+        .into_iter()
+        .map(|r| ResidualObs {
+            rel_residual: (r.freq_hz - r.mean) / r.mean,
+            std_residual: (r.freq_hz - r.mean) / r.pred_sd,
+            measurement_id: r.measurement_id,
+            board_id: r.board_id,
+            setup: r.setup,
+            label: r.label,
+            freq_hz: r.freq_hz,
+            model_freq_hz_mean: r.mean,
+            predictive_sd_hz: r.pred_sd,
+            used_for_updating: r.used,
+            mac: r.mac,
+        })
+        .collect())
 }
 
 /// One row of step 2's `population.parquet` as the per-assembly screen reads it: the step-1
