@@ -699,11 +699,15 @@ pub(super) fn refit(
 fn print_screen(s: &JointScreen) {
     for u in &s.units {
         eprintln!(
-            "  {}: ln B {:.1} ± {:.1}, frequency effect {:.3} %, min ESS {:.0}, ratios {}",
+            "  {}: ln B {:.1} ± {:.1}, frequency effect {}, min ESS {:.0}, ratios {}",
             u.measurement_id,
             u.log_bayes_factor,
             u.log_bayes_factor_se,
-            100.0 * u.freq_effect_rel.unwrap_or(f64::NAN),
+            u.freq_effect_rel
+                .map_or("not evaluated".to_string(), |e| format!(
+                    "{:.3} %",
+                    100.0 * e
+                )),
             u.min_ess,
             u.joints
                 .iter()
