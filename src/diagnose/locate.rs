@@ -272,7 +272,9 @@ pub struct MeasurementResidual {
 /// p > `fdr`). Every mechanism of the library acts on the structure and moves each mode
 /// whose energy lies where it acts, so it shifts several modes of a measurement together;
 /// a lone pole that slipped (a biased fit, a neighbouring spurious pole) moves one. Reported
-/// as a data-quality finding, not as a located misfit.
+/// as a data-quality finding, not as a located misfit, unless the board's other measurements
+/// share the deviation (a slip does not recur from fit to fit; see
+/// `recurring_slips_are_the_boards`).
 #[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
 pub struct IdentificationOutlier {
     pub measurement_id: String,
@@ -309,8 +311,9 @@ pub struct MeasurementCheck {
     /// BH over all measurements.
     pub q_value: Option<f64>,
     pub outlier: bool,
-    /// An outlier whose deviation is one mode's alone (see [`IdentificationOutlier`]): the
-    /// label; such a measurement is not among [`Located::measurements`].
+    /// An outlier whose deviation is one mode's alone and not its board's (see
+    /// [`IdentificationOutlier`]): the label; such a measurement is not among
+    /// [`Located::measurements`].
     pub single_mode: Option<String>,
     /// Left out of the clean centre and scale by the robust first pass.
     pub left_out_of_scale: bool,
@@ -752,12 +755,14 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
     let reference_eps = reference_setup.as_ref().map(|s| setup_level[s]);
 
     let mode_checks = mode_checks(&rows, &eps_med, reference_eps, opts);
-    let (measurement_checks, signature_measurements) = measurement_checks(&rows, opts);
+    let (mut measurement_checks, signature_measurements) = measurement_checks(&rows, opts);
+    recurring_slips_are_the_boards(&mut measurement_checks, &rows, opts);
     let (covariate_tests, skipped_covariates) = covariate_tests(input, &rows, opts);
     let adjusted = adjust_for_covariates(input, &rows, &covariate_tests);
     let adjusted_refs: Vec<&ResidualObs> = adjusted.iter().collect();
-    let measurements_after_covariates: Vec<String> = self::measurement_checks(&adjusted_refs, opts)
-        .0
+    let mut adjusted_checks = self::measurement_checks(&adjusted_refs, opts).0;
+    recurring_slips_are_the_boards(&mut adjusted_checks, &adjusted_refs, opts);
+    let measurements_after_covariates: Vec<String> = adjusted_checks
         .into_iter()
         .filter(|m| m.outlier && m.single_mode.is_none())
         .map(|m| m.measurement_id)
@@ -826,7 +831,7 @@ pub fn locate(input: &LocateInput, opts: &LocateOptions) -> Located {
         .collect();
     let identification_outliers: Vec<IdentificationOutlier> = measurement_checks
         .iter()
-        .filter(|m| m.outlier)
+        .filter(|m| m.outlier && m.single_mode.is_some())
         .filter_map(|m| {
             let (i, p) = single_mode(&m.residuals, opts.fdr)?;
             let r = &m.residuals[i];
@@ -1178,6 +1183,31 @@ fn single_mode(res: &[MeasurementResidual], alpha: f64) -> Option<(usize, f64)> 
         .collect();
     let p = chi2_sf(chi2_of(&rest), rest.len() as f64);
     (p > alpha).then_some((imax, p))
+}
+
+/// A single-mode outlier whose board's other measurements share its deviation is the
+/// board's, not a slip of its modal fit: each measurement's poles are fitted to its own FRFs,
+/// so a slip does not recur in the board's separate measurements, while a per-board
+/// deviation (the model's form erring differently on a board whose moduli stand apart, a
+/// board's own defect) recurs in every one. Such an outlier loses its `single_mode` mark: it
+/// is a located outlier, and [`board_shared_outliers`] names it the board's. One whose board
+/// has no other measurement stays a slip: nothing tells.
+fn recurring_slips_are_the_boards(
+    checks: &mut [MeasurementCheck],
+    rows: &[&ResidualObs],
+    opts: &LocateOptions,
+) {
+    let slips: Vec<String> = checks
+        .iter()
+        .filter(|c| c.outlier && c.single_mode.is_some())
+        .map(|c| c.measurement_id.clone())
+        .collect();
+    let shared = board_shared_outliers(rows, &slips, opts);
+    for c in checks.iter_mut() {
+        if shared.contains(&c.measurement_id) {
+            c.single_mode = None;
+        }
+    }
 }
 
 /// The outliers (`outliers`, measurement ids) whose deviation their board shares: each is

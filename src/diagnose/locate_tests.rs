@@ -615,6 +615,36 @@ fn a_board_whose_assemblies_all_deviate_alike_is_not_an_assembly_outlier() {
     }
 }
 
+/// A deviation in one mode that every free-free measurement of a board shares (PCB-03,
+/// M011-M015) is the board's, not five slips of five separate modal fits; a lone one in
+/// another board (M023) stays a slip.
+#[test]
+fn a_one_mode_deviation_every_measurement_of_a_board_shares_is_the_boards() {
+    let synth = Synth::paper();
+    let shift = |s: &str, l: &str, j: usize, _: f64| match (s, j, l) {
+        ("free", 10..=14, "bending-x-1") => 1.5e-3,
+        ("free", 22, "bending-y-1") => 1.5e-3,
+        _ => 0.0,
+    };
+    for seed in 0..5 {
+        let loc = locate(&synth.draw(seed, &shift), &LocateOptions::default());
+        let slips: Vec<&str> = loc
+            .identification_outliers
+            .iter()
+            .map(|o| o.measurement_id.as_str())
+            .collect();
+        assert_eq!(slips, ["M023"], "seed {seed}");
+        for m in (11..=15).map(|k| format!("M{k:03}")) {
+            assert!(loc.measurements.contains(&m), "seed {seed}: {m} located");
+            assert!(
+                loc.board_shared.contains(&m),
+                "seed {seed}: {m} the board's"
+            );
+        }
+        assert!(!loc.measurements.contains(&"M023".to_string()));
+    }
+}
+
 #[test]
 fn one_outlier_measurement_and_a_loose_bolt_minority_are_found() {
     let synth = Synth::paper();
