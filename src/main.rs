@@ -320,13 +320,11 @@ enum UpdateCommand {
     Boards {
         #[command(flatten)]
         common: UpdateArgs,
-        /// Updated board parameters (names as in `fe sensitivity`).
-        #[arg(
-            long,
-            value_delimiter = ',',
-            default_value = "e_x_pa,e_y_pa,g_xy_pa,mass_scale"
-        )]
-        params: Vec<String>,
+        /// Updated board parameters (names as in `fe sensitivity`); default
+        /// `e_x_pa,e_y_pa,g_xy_pa,mass_scale`, and `g_z_pa` too on a shear-deformable board
+        /// (its transverse shear modulus is on no datasheet).
+        #[arg(long, value_delimiter = ',')]
+        params: Option<Vec<String>>,
         /// Prior sd of the population means, relative to the board file's nominal values.
         #[arg(long, default_value_t = 0.1)]
         prior_width: f64,
@@ -878,7 +876,8 @@ fn run_update(command: UpdateCommand, verbose: bool) -> anyhow::Result<i32> {
             board_coordinates,
         } => {
             use hbmu::diagnose::library::Mechanism;
-            let mut opts = common.options(params, prior_width, sigma_scale);
+            // Empty: the stage chooses the default for the board it loads.
+            let mut opts = common.options(params.unwrap_or_default(), prior_width, sigma_scale);
             opts.model.sigma_prior = sigma_prior.into();
             opts.model.enrich = enrich;
             opts.model.hold_out_boards = hold_out;

@@ -39,6 +39,23 @@ const CONFOUNDED_STREAM: u64 = 0x6d66_7061_7274;
 /// fractions of common prepregs (0.35–0.5), ±17 % about its middle: taken 30 %.
 pub const G_Z_PRIOR_WIDTH: f64 = 0.3;
 
+/// Step 1's parameters when the user names none: the paper's (the in-plane moduli and the
+/// mass scale), and on a shear-deformable board its transverse shear modulus too. That one is
+/// uncertain by ±17 % or more ([`G_Z_PRIOR_WIDTH`]). Mindlin's lowering of a mode,
+/// (π²/12)(E/κG)(h/λ)², is 1–3 % for a 1.5 mm FR-4 core (E/κG ≈ 10) at half-wavelengths of
+/// 25–40 mm, and changes in proportion to G's relative error: 0.2–0.5 % over that range. Held
+/// at its nominal value, that error would be read as the model's form, above the diagnosis's
+/// practical threshold (0.1 %).
+pub fn default_params(board: &crate::fem::board::Board) -> Vec<String> {
+    let mut p: Vec<String> = [names::E_X, names::E_Y, names::G_XY, names::MASS_SCALE]
+        .map(String::from)
+        .to_vec();
+    if board.core.transverse_shear().is_some() {
+        p.push(names::G_Z.into());
+    }
+    p
+}
+
 /// The free model of step 1: a board enrichment's parameter added, the updated parameters and
 /// their nominal values, the labels it tracks.
 pub struct BoardModel {
@@ -646,4 +663,26 @@ pub fn board_evidence(
     ev["shape_weights"] = serde_json::to_value(shape_weights)?;
     ev["discrepancy"] = discrepancy_json(&bt.step.target, &labels.labels);
     Ok(ev)
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::fem::board::Board;
+
+    /// The default parameters follow the board: a thin plate's four, and a shear-deformable
+    /// plate's transverse shear modulus beside them.
+    #[test]
+    fn the_default_parameters_add_the_shear_modulus_of_a_shear_deformable_board() {
+        let mut board = Board::default_board();
+        assert_eq!(
+            super::default_params(&board),
+            ["e_x_pa", "e_y_pa", "g_xy_pa", "mass_scale"]
+        );
+        board.core.g_xz_pa = Some(3.0e9);
+        board.core.g_yz_pa = Some(3.0e9);
+        assert_eq!(
+            super::default_params(&board),
+            ["e_x_pa", "e_y_pa", "g_xy_pa", "mass_scale", "g_z_pa"]
+        );
+    }
 }

@@ -24,6 +24,16 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             opts.model.mass_floor_rel
         );
     }
+    let with_defaults;
+    let opts = if opts.model.params.is_empty() {
+        let (board, _) = load_board(opts.board.as_deref())?;
+        let mut o = opts.clone();
+        o.model.params = crate::update::boards::default_params(&board);
+        with_defaults = o;
+        &with_defaults
+    } else {
+        opts
+    };
     let mut inputs = vec![
         pairs_path.clone(),
         presence_path.clone(),
