@@ -414,9 +414,10 @@ pub enum Verdict {
     MechanismFound,
     UnexplainedMisfit,
     /// A structured misfit above the practical threshold that no mechanism explains, common
-    /// to every board in the free-free modes and not localised, with no covariate trend,
-    /// outlier measurement or recurring unpaired mode: the model's form, not a concealed
-    /// effect (the stage decides it from the located evidence, `stage::diagnose`).
+    /// to every board in the free-free modes and not localised, or common to every assembly
+    /// in the bolted modes alone within the bolted model's stated fidelity, with no covariate
+    /// trend, outlier measurement or recurring unpaired mode: the model's form, not a
+    /// concealed effect (the stage decides it from the located evidence, `stage::diagnose`).
     ModelForm,
 }
 
