@@ -206,7 +206,7 @@ pub struct BoardMean {
 }
 
 /// Check of one (setup, label) over its measurements.
-#[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, schemars::JsonSchema)]
 pub struct ModeCheck {
     pub setup: String,
     pub label: String,

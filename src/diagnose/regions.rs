@@ -173,6 +173,9 @@ pub struct FreeBasis {
     /// Per free-free label (the order of `free`), its model mode.
     index: Vec<usize>,
     free: Vec<ModeCheck>,
+    /// Free-free labels left out: seen in one measurement only, so without a standard error
+    /// to weigh their mean residual by (a mode pair found once, near the band's edge).
+    pub left_out: Vec<String>,
     nuisance: Vec<Vec<f64>>,
     /// The boards were weighed and the mass scale followed the balance (not a nuisance).
     weighed: bool,
@@ -193,11 +196,16 @@ impl FreeBasis {
             residual_model_freq,
             ..
         } = *inp;
-        let free: Vec<ModeCheck> = checks
+        let (free, without_se): (Vec<ModeCheck>, Vec<ModeCheck>) = checks
             .iter()
             .filter(|c| c.setup == "free")
             .cloned()
-            .collect();
+            .partition(|c| {
+                c.se_rel_residual.is_finite()
+                    && c.se_rel_residual > 0.0
+                    && c.mean_rel_residual.is_finite()
+            });
+        let left_out: Vec<String> = without_se.into_iter().map(|c| c.label).collect();
         if free.is_empty() {
             return Err(anyhow!("no free-free mode residuals"));
         }
@@ -271,6 +279,7 @@ impl FreeBasis {
             rigid,
             index,
             free,
+            left_out,
             nuisance,
             weighed,
             board_mass_kg,
@@ -1012,6 +1021,75 @@ pub(crate) mod tests {
             combined_delta_chi2: combined,
             ..BoardRegion::located_fit(mechanism, fit, "Fit.")
         }
+    }
+
+    /// A free-free mode seen in one measurement has no standard error: the localisations
+    /// leave it out and say so, and run on the others (before, the mode failed both with "no
+    /// point mass fits the free-free residuals").
+    #[test]
+    fn a_mode_seen_once_is_left_out_of_the_localisations_not_fatal_to_them() {
+        use super::{point_mass_region, FreeBasis, MeasuredShape, RegionFiles, RegionInput};
+        use crate::diagnose::locate::{LocateOptions, ModeCheck};
+        use crate::fem::{Board, FeModel, Setup};
+        struct Nominal(FeModel);
+        impl RegionFiles for Nominal {
+            fn posterior_centre(&self, params: &[String]) -> anyhow::Result<Vec<f64>> {
+                let p = self.0.nominal_params();
+                params.iter().map(|n| Ok(p.get(n)?)).collect()
+            }
+            fn weighed(&self) -> anyhow::Result<bool> {
+                Ok(false)
+            }
+            fn shape_errors(&self, _: &[(String, usize)]) -> anyhow::Result<Option<Vec<f64>>> {
+                Ok(None)
+            }
+            fn measured_shapes(
+                &self,
+                _: &dyn Fn(&str, i32) -> bool,
+            ) -> anyhow::Result<Vec<MeasuredShape>> {
+                Ok(vec![])
+            }
+        }
+        let board = Board::default_board();
+        let model = FeModel::build(&board, Setup::Free, &board.mesh).unwrap();
+        let modes = model.modes(&model.nominal_params(), 8).unwrap();
+        let labels: Vec<String> = (1..=8).map(|k| format!("mode-{k}")).collect();
+        let freq: Vec<(String, f64)> = labels
+            .iter()
+            .cloned()
+            .zip(modes.freq_hz.iter().copied())
+            .collect();
+        // A misfit in seven modes seen 35 times each, and the eighth seen once (se 0).
+        let checks: Vec<ModeCheck> = labels
+            .iter()
+            .enumerate()
+            .map(|(k, l)| ModeCheck {
+                setup: "free".into(),
+                label: l.clone(),
+                n: if k == 7 { 1 } else { 35 },
+                mean_rel_residual: 1e-3 * ((k as f64) - 3.5) / 3.5,
+                se_rel_residual: if k == 7 { 0.0 } else { 5e-5 },
+                ..ModeCheck::default()
+            })
+            .collect();
+        let params: Vec<String> = ["e_x_pa", "e_y_pa", "g_xy_pa", "mass_scale"]
+            .map(String::from)
+            .to_vec();
+        let files = Nominal(model);
+        let opts = LocateOptions::default();
+        let inp = RegionInput {
+            files: &files,
+            board: &board,
+            params: &params,
+            checks: &checks,
+            residual_model_freq: &freq,
+            locate: &opts,
+            pairs: &[],
+        };
+        let fb = FreeBasis::new(&inp).unwrap();
+        let r = point_mass_region(&inp, &fb);
+        assert!(r.is_ok(), "{:?}", r.err());
+        assert_eq!(fb.left_out, ["mode-8"]);
     }
 
     /// Two signatures that explain the frequencies alike: with shape terms the combined Δχ²

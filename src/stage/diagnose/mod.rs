@@ -278,6 +278,12 @@ fn board_regions(
         Err(e) => return (vec![], format!("localisation failed: {e:#}")),
     };
     let mut note = vec![];
+    if !fb.left_out.is_empty() {
+        note.push(format!(
+            "free-free modes left out of the localisations (seen in one measurement, no standard error): {}",
+            fb.left_out.join(", ")
+        ));
+    }
     let mut out = vec![];
     match regions::point_mass_region(&inp, &fb) {
         Ok(r) => {
