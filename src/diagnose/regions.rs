@@ -173,8 +173,8 @@ pub struct FreeBasis {
     /// Per free-free label (the order of `free`), its model mode.
     index: Vec<usize>,
     free: Vec<ModeCheck>,
-    /// Free-free labels left out: seen in one measurement only, so without a standard error
-    /// to weigh their mean residual by (a mode pair found once, near the band's edge).
+    /// Free-free labels left out: without a finite standard error (or mean) to weigh their
+    /// mean residual by, as a mode paired in one measurement only (near the band's edge).
     pub left_out: Vec<String>,
     nuisance: Vec<Vec<f64>>,
     /// The boards were weighed and the mass scale followed the balance (not a nuisance).
@@ -207,7 +207,14 @@ impl FreeBasis {
             });
         let left_out: Vec<String> = without_se.into_iter().map(|c| c.label).collect();
         if free.is_empty() {
-            return Err(anyhow!("no free-free mode residuals"));
+            return Err(if left_out.is_empty() {
+                anyhow!("no free-free mode residuals")
+            } else {
+                anyhow!(
+                    "no free-free mode with a standard error (left out: {})",
+                    left_out.join(", ")
+                )
+            });
         }
         let centre = files.posterior_centre(params)?;
         let model = FeModel::build(board, Setup::Free, &board.mesh)?;

@@ -52,7 +52,7 @@ pub fn model_form_pattern(
     region_limit_m: f64,
     boards_only_outliers: bool,
 ) -> bool {
-    (located.modes.iter().any(|m| m.setup == "free") || bolted_within_fidelity(located))
+    (free_modes_located(located) || bolted_within_fidelity(located))
         && !regions
             .iter()
             .any(|r| r.located && r.fit.region_radius_m <= region_limit_m)
@@ -62,6 +62,11 @@ pub fn model_form_pattern(
             .all(|c| c.covariate == crate::diagnose::locate::BOARD_COVARIATE)
         && (located.measurements.is_empty() || boards_only_outliers)
         && located.unpaired_clusters.is_empty()
+}
+
+/// Whether a free-free mode is among the located ones: the misfit is the board's own.
+fn free_modes_located(located: &Located) -> bool {
+    located.modes.iter().any(|m| m.setup == "free")
 }
 
 /// Whether the located modes are bolted ones alone, each mean shift within the bolted model's
@@ -434,7 +439,7 @@ pub fn remaining_discrepancy(
             .iter()
             .map(|m| format!("{}/{}", m.setup, m.label))
             .collect::<Vec<_>>();
-        if located.modes.iter().any(|m| m.setup == "free") {
+        if free_modes_located(located) {
             format!(
                 "model form: the model differs from every board alike by up to {:.3} % ({at}), above the {:.2} % practical threshold, in the free-free modes (the board itself, whatever its mounting), placed nowhere on the board, and {boards}: the form of the model ({model_form}), not a concealed effect. It is in the predicted intervals as the model-form discrepancy; a richer model would narrow them. Located modes: {modes:?}",
                 100.0 * v,

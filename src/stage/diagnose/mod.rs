@@ -280,7 +280,7 @@ fn board_regions(
     let mut note = vec![];
     if !fb.left_out.is_empty() {
         note.push(format!(
-            "free-free modes left out of the localisations (seen in one measurement, no standard error): {}",
+            "free-free modes left out of the localisations (no standard error, as a mode seen in one measurement): {}",
             fb.left_out.join(", ")
         ));
     }
