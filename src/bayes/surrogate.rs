@@ -324,10 +324,7 @@ pub fn fit_unit(
         .collect();
     let (centre, cov) = super::stats::mean_and_covariance(w.iter().map(Vec::as_slice));
     let chol = cholesky_jittered(&cov, d).0;
-    let rom_terms = |v: &[f64]| -> Option<Terms> {
-        let p = target.predictor.predict(v)?;
-        Some(target.predictor.terms(&p, data, v))
-    };
+    let rom_terms = |w: &[f64]| target.rom_terms_at(b, w);
     let mut rng = ChaCha8Rng::seed_from_u64(stream_key(&[seed, 0x5u64, b as u64]));
     let mut evals = 0u64;
     let mut errors = vec![];
@@ -361,7 +358,7 @@ pub fn fit_unit(
                 degree: p,
                 exps,
                 coef: vec![],
-                n_modes: target.predictor.refs.len(),
+                n_modes: target.n_lambda(b),
                 n_shapes: data.shapes.len(),
                 max_abs_dll: f64::NAN,
                 rom_evals: 0,
@@ -500,7 +497,7 @@ impl Target for SurrogateTarget<'_> {
     }
     fn model(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Terms> {
         if let Some(Some(s)) = self.surrogates.get(b) {
-            let v = self.inner.values(aux, b, x);
+            let v = self.inner.surrogate_inputs(aux, b, x);
             if let Some(t) = s.terms(&v) {
                 return Some(t.with_sufficient(&self.inner.units[b], self.inner.errors.n_modes));
             }
@@ -519,7 +516,7 @@ impl Target for SurrogateTarget<'_> {
     /// it rejects cost no ROM evaluation; the ROM still decides the rest.
     fn screen(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Terms> {
         let s = self.surrogates.get(b)?.as_ref()?;
-        let v = self.inner.values(aux, b, x);
+        let v = self.inner.surrogate_inputs(aux, b, x);
         if s.box_position(&v) <= 1.0 {
             return None;
         }

@@ -414,17 +414,75 @@ impl ModalTarget {
         v: &[f64],
         x: &[f64],
     ) -> Option<Vec<Option<Vec<f64>>>> {
+        let beta = x[self.covariate_coordinate()?];
+        self.conditions_at(b, v, beta)
+    }
+
+    /// The unit coordinate holding the covariate's coefficient β_b (`None`: no covariate).
+    fn covariate_coordinate(&self) -> Option<usize> {
+        self.covariate.as_ref()?;
+        match &self.compose {
+            Compose::Boards { updated, .. } => Some(updated.len()),
+            Compose::Joints { .. } => None,
+        }
+    }
+
+    fn conditions_at(&self, b: usize, v: &[f64], beta: f64) -> Option<Vec<Option<Vec<f64>>>> {
         let e = self.covariate.as_ref()?;
-        let Compose::Boards { updated, .. } = &self.compose else {
-            return None;
-        };
-        let beta = x[updated.len()];
         let conds = &self.units[b].conditions;
         Some(if conds.is_empty() {
             vec![Some(v.to_vec())]
         } else {
             conds.iter().map(|&c| e.at(v, beta, c)).collect()
         })
+    }
+
+    /// What unit b's terms are a function of, the inputs of its surrogate
+    /// (`surrogate::fit_unit`): the ROM parameter vector, then, with a covariate, the unit's
+    /// coefficient β_b (its terms then follow β_b through every condition's scaled moduli).
+    pub fn surrogate_inputs(&self, aux: &[f64], b: usize, x: &[f64]) -> Vec<f64> {
+        let mut v = self.values(aux, b, x);
+        if let Some(k) = self.covariate_coordinate() {
+            v.push(x[k]);
+        }
+        v
+    }
+
+    /// The eigenvalues unit b's terms carry: one per mode and condition.
+    pub fn n_lambda(&self, b: usize) -> usize {
+        let conds = match self.covariate_coordinate() {
+            Some(_) => self.units[b].conditions.len().max(1),
+            None => 1,
+        };
+        conds * self.predictor.refs.len()
+    }
+
+    /// Unit b's terms by the full ROM at surrogate inputs w ([`Self::surrogate_inputs`]);
+    /// None where the ROM cannot track the updated modes (or a condition's stiffness is not
+    /// positive).
+    pub fn rom_terms_at(&self, b: usize, w: &[f64]) -> Option<Terms> {
+        let data = &self.units[b];
+        match self.covariate_coordinate() {
+            None => {
+                let p = self.predictor.predict(w)?;
+                Some(self.predictor.terms(&p, data, w))
+            }
+            Some(_) => {
+                let (v, beta) = w.split_at(w.len() - 1);
+                let preds = self
+                    .conditions_at(b, v, beta[0])?
+                    .iter()
+                    .map(|vk| self.predictor.predict(vk.as_ref()?))
+                    .collect::<Option<Vec<_>>>()?;
+                Some(self.predictor.terms_conditions(&preds, data, v))
+            }
+        }
+    }
+
+    /// Whether unit terms follow a covariate (then [`Target::model`] solves the full ROM at
+    /// every condition and ignores [`Self::subspaces`]).
+    pub fn has_covariate(&self) -> bool {
+        self.covariate_coordinate().is_some()
     }
 }
 
@@ -488,29 +546,22 @@ impl Target for ModalTarget {
         g[..x.len()].copy_from_slice(x);
     }
     fn model(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Terms> {
-        let v = self.values(aux, b, x);
         let data = &self.units[b];
-        let t = match self.condition_values(b, &v, x) {
-            None => {
-                let local = match self.subspaces.get(b) {
-                    Some(Some(s)) if s.region.box_position(&v) <= 1.0 => {
-                        self.predictor.predict_in_modes(&s.subs, &v)
-                    }
-                    _ => None,
-                };
-                let pred = match local {
-                    Some(p) => p,
-                    None => self.predictor.predict(&v)?,
-                };
-                self.predictor.terms(&pred, data, &v)
-            }
-            Some(vs) => {
-                let preds = vs
-                    .iter()
-                    .map(|vk| self.predictor.predict(vk.as_ref()?))
-                    .collect::<Option<Vec<_>>>()?;
-                self.predictor.terms_conditions(&preds, data, &v)
-            }
+        let t = if self.has_covariate() {
+            self.rom_terms_at(b, &self.surrogate_inputs(aux, b, x))?
+        } else {
+            let v = self.values(aux, b, x);
+            let local = match self.subspaces.get(b) {
+                Some(Some(s)) if s.region.box_position(&v) <= 1.0 => {
+                    self.predictor.predict_in_modes(&s.subs, &v)
+                }
+                _ => None,
+            };
+            let pred = match local {
+                Some(p) => p,
+                None => self.predictor.predict(&v)?,
+            };
+            self.predictor.terms(&pred, data, &v)
         };
         Some(t.with_sufficient(data, self.errors.n_modes))
     }
@@ -661,6 +712,73 @@ mod tests {
         };
         let (at, zero, near) = (ll(-0.004), ll(0.0), ll(-0.003));
         assert!(at - zero > 100.0 && at - near > 10.0, "{at} {zero} {near}");
+    }
+
+    /// With a covariate the surrogate's inputs end with the unit's coefficient β_b: the
+    /// surrogate fitted over (moduli, β) holds both conditions' eigenvalues, and on fresh
+    /// points its log-likelihood is the per-condition ROM's within its verified tolerance,
+    /// β moving it as the ROM does (before, a covariate refit ran without surrogates).
+    #[test]
+    fn a_covariate_surrogate_follows_the_coefficient_through_every_condition() {
+        use crate::bayes::surrogate::{fit_unit, SurrogateOptions};
+        use rand::RngExt;
+        let (mut t, _) = covariate_target();
+        let x0 = [0.01, -0.02, 0.015, -0.004];
+        let exact = t.model(&[], 0, &x0).expect("terms");
+        t.units[0].freq = (0..8)
+            .map(|s| FreqObs {
+                cond: s / 4,
+                ..FreqObs::new(s % 4, exact.lambda[s])
+            })
+            .collect();
+        assert_eq!(t.n_lambda(0), 8);
+        let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(3);
+        let spread = [2e-4, 2e-4, 2e-4, 2e-4];
+        let near = |rng: &mut ChaCha8Rng| -> Vec<f64> {
+            x0.iter()
+                .zip(&spread)
+                .map(|(v, s)| v + s * (2.0 * rng.random::<f64>() - 1.0))
+                .collect()
+        };
+        let samples: Vec<Vec<f64>> = (0..300)
+            .map(|_| t.surrogate_inputs(&[], 0, &near(&mut rng)))
+            .collect();
+        let w = samples[0].len();
+        assert_eq!(w, t.values(&[], 0, &x0).len() + 1);
+        let eps = vec![1e-4; 4];
+        let opts = SurrogateOptions::default();
+        let s = fit_unit(&t, 0, &samples, &eps, &[], &opts, 5).expect("a surrogate");
+        assert!(s.inputs.contains(&(w - 1)), "β is an input: {:?}", s.inputs);
+        let ll = |c: &Terms| modal::log_lik(&t.units[0], c, &eps, &[]);
+        let (mut inside, mut worst) = (0, 0.0f64);
+        for _ in 0..200 {
+            let x = near(&mut rng);
+            let Some(ts) = s.terms(&t.surrogate_inputs(&[], 0, &x)) else {
+                continue;
+            };
+            inside += 1;
+            assert_eq!(ts.lambda.len(), 8);
+            let tr = t.model(&[], 0, &x).expect("ROM");
+            worst = worst.max((ll(&ts) - ll(&tr)).abs());
+        }
+        assert!(inside > 150, "{inside} of 200 in the box");
+        assert!(
+            worst <= 3.0 * opts.tolerance_dll,
+            "max |Δ log L| {worst:.3e}"
+        );
+        // β alone moves the surrogate's likelihood as it moves the ROM's.
+        let mut xb = x0;
+        xb[3] += 1e-4;
+        let ts = s.terms(&t.surrogate_inputs(&[], 0, &xb)).expect("inside");
+        let tr = t.model(&[], 0, &xb).expect("ROM");
+        let drop_rom = ll(&exact) - ll(&tr);
+        assert!(drop_rom > 1.0, "{drop_rom}");
+        assert!(
+            (ll(&ts) - ll(&tr)).abs() < 0.1 * drop_rom,
+            "{} vs {}",
+            ll(&ts),
+            ll(&tr)
+        );
     }
 
     /// Moduli per unit mass: p_k = reference_k (1 + x_k)(1 + x_m) for a modulus, the mass

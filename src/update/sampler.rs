@@ -381,7 +381,7 @@ fn fit_surrogates(
                             } else {
                                 all_aux[(i * 7919) % all_aux.len()]
                             };
-                            target.values(a, b, &unit_q.sample(&mut rng))
+                            target.surrogate_inputs(a, b, &unit_q.sample(&mut rng))
                         })
                         .collect();
                     fit_unit(target, b, &samples, &ctx.eps, &ctx.delta, &so, opts.seed)
@@ -424,7 +424,11 @@ fn fit_subspaces(
     use crate::bayes::surrogate::{fit_subspace, SubspaceOptions};
     use rayon::prelude::*;
     match (&base_ref, opts.subspace) {
-        (Some((q, _)), true) if surrogates.iter().any(Option::is_some) => {
+        // With a covariate the ROM is solved per condition and the subspaces (one box of
+        // ROM parameters) do not apply (`ModalTarget::model`).
+        (Some((q, _)), true)
+            if surrogates.iter().any(Option::is_some) && !target.has_covariate() =>
+        {
             let ctx = smc::Target::ctx(target, &q.global.mean);
             let so = SubspaceOptions::default();
             let fits: Vec<Option<Result<_, String>>> = surrogates
@@ -678,7 +682,7 @@ fn edge_fraction(
             for (b, s) in sur.surrogates.iter().enumerate() {
                 if let Some(s) = s {
                     n_all += 1;
-                    if s.box_position(&target.values(&p.aux, b, &p.x[b])) > 1.0 {
+                    if s.box_position(&target.surrogate_inputs(&p.aux, b, &p.x[b])) > 1.0 {
                         n_edge += 1;
                     }
                 }

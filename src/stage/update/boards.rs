@@ -161,10 +161,6 @@ pub(crate) fn boards_attempt(
         &thickness_m,
         &mut findings,
     )?;
-    // The surrogates model a unit's terms as a function of its ROM parameters alone; with a
-    // covariate the terms also follow the unit's coefficient, so the ROM runs directly.
-    let mut sopts = opts.clone();
-    sopts.sampler.surrogate &= bt.step.target.covariate.is_none();
     clock.lap("unit_data");
     let shape_weights = weigh_shapes(
         &mut bt.step.target,
@@ -176,14 +172,8 @@ pub(crate) fn boards_attempt(
     )?;
     report_shape_weights(&shape_weights, "boards", verbose, &mut findings);
     clock.lap("shape_weights");
-    let (results, acceleration) = sample(
-        &bt.step.target,
-        &sopts.sampler,
-        "boards",
-        &[],
-        None,
-        verbose,
-    )?;
+    let (results, acceleration) =
+        sample(&bt.step.target, &opts.sampler, "boards", &[], None, verbose)?;
     let sampler_seconds = clock.lap("sampler");
     check_surrogate_edges(&acceleration, &mut findings);
     boards::check_board_box(&bm, &bt, &results, &opts.model)?;
