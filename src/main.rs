@@ -151,7 +151,9 @@ enum Command {
         /// Board file the work directory was updated with (default: the built-in board).
         #[arg(long = "board", alias = "model", value_name = "BOARD_TOML")]
         model: Option<PathBuf>,
-        /// Refit at most this many screened candidates (0: locate and screen only).
+        /// Refit at most this many screened candidates per part of the located misfit (its
+        /// mean shifts, each covariate trend, the outlier assemblies; 0: locate and screen
+        /// only). A part a favoured refit explains takes no more.
         #[arg(long, default_value_t = 3)]
         max_refits: usize,
         /// Run only this candidate's refit (e.g. joint_rotation, joint_stiffness_per_joint_2)

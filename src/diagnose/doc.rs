@@ -120,6 +120,7 @@ pub struct DiagnoseOptions {
     pub only: Option<String>,
     pub locate: LocateOptions,
     pub select: SelectOptions,
-    /// Refit at most this many screened candidates (0: locate and screen only).
+    /// Refit at most this many screened candidates per part of the located misfit
+    /// (`misfit::Part`; 0: locate and screen only).
     pub max_refits: usize,
 }

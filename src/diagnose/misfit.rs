@@ -371,11 +371,11 @@ impl RefitShares {
     /// mechanism (either, when its setup has no located mode: of all the mean shifts).
     pub fn own(&self, cand: &Candidate) -> Option<f64> {
         let board = super::library::is_board_mechanism(cand.mechanism);
-        match &cand.covariate {
-            Some(c) => self.covariates.get(c).and_then(|v| v.0),
-            None if !board && !cand.measurements.is_empty() => self.assemblies.map(|a| a.0),
-            None if !board => self.bolted_modes.or(self.modes),
-            None => self.free_modes.or(self.modes),
+        match Part::of(cand) {
+            Part::Covariate(c) => self.covariates.get(&c).and_then(|v| v.0),
+            Part::Assemblies => self.assemblies.map(|a| a.0),
+            Part::Modes if !board => self.bolted_modes.or(self.modes),
+            Part::Modes => self.free_modes.or(self.modes),
         }
     }
 
@@ -396,7 +396,74 @@ impl RefitShares {
     }
 }
 
+/// The part of the located misfit a candidate is refitted for, the unit of the refit budget
+/// (`--max-refits` per part): two effects at once (a temperature trend and a concealed mass)
+/// are two parts, and one refit spent on the first must not leave the second unexamined.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Part {
+    /// The located modes' mean shifts (a board mechanism: the free-free ones; a joint
+    /// mechanism on every assembly: the bolted ones).
+    Modes,
+    /// The trend with this sheet column.
+    Covariate(String),
+    /// The outlier assemblies a per-assembly joint mechanism acts on.
+    Assemblies,
+}
+
+impl Part {
+    /// The part `cand` is judged on ([`RefitShares::own`]).
+    pub fn of(cand: &Candidate) -> Part {
+        let board = super::library::is_board_mechanism(cand.mechanism);
+        match &cand.covariate {
+            Some(c) => Part::Covariate(c.clone()),
+            None if !board && !cand.measurements.is_empty() => Part::Assemblies,
+            None => Part::Modes,
+        }
+    }
+}
+
+/// The refit budget: at most `per_part` refits for each [`Part`], none for a part a favoured
+/// refit has already explained.
+#[derive(Debug)]
+pub struct RefitBudget {
+    per_part: usize,
+    spent: BTreeMap<Part, usize>,
+}
+
+impl RefitBudget {
+    pub fn new(per_part: usize) -> Self {
+        RefitBudget {
+            per_part,
+            spent: BTreeMap::new(),
+        }
+    }
+    /// Whether `cand` is refitted (candidates come in the screen's order); counts it if so.
+    pub fn admit(&mut self, cand: &Candidate, parts: &MisfitParts, share: f64) -> bool {
+        let part = Part::of(cand);
+        if parts.explained(&part, share) {
+            return false;
+        }
+        let n = self.spent.entry(part).or_default();
+        if *n >= self.per_part {
+            return false;
+        }
+        *n += 1;
+        true
+    }
+}
+
 impl MisfitParts {
+    /// Whether a favoured refit left at most `share` of `part` (never for the assemblies'
+    /// part, which only its own refits address).
+    pub fn explained(&self, part: &Part, share: f64) -> bool {
+        let done = |v: &Vec<f64>| v.iter().any(|s| *s <= share);
+        match part {
+            Part::Modes => self.modes.as_ref().is_some_and(done),
+            Part::Covariate(c) => self.covariates.get(c).is_some_and(done),
+            Part::Assemblies => false,
+        }
+    }
+
     pub fn new(located: &Located) -> Self {
         MisfitParts {
             modes: remaining_share(located, &[]).map(|_| vec![]),
@@ -459,6 +526,42 @@ mod tests {
             used_for_updating: true,
             mac: None,
         }
+    }
+
+    /// Two effects are two parts: with one refit per part, a temperature trend and the mean
+    /// shifts each get theirs (in the screen's order), a second candidate for a part does
+    /// not, and a part a favoured refit has explained takes none.
+    #[test]
+    fn the_refit_budget_is_per_part_of_the_misfit() {
+        use crate::update::enrichment::Mechanism;
+        let mut temp = Candidate::new(Mechanism::TemperatureStiffness, String::new());
+        temp.covariate = Some("temperature_c".into());
+        let rot = Candidate::new(Mechanism::JointRotation, String::new());
+        let jmass = Candidate::new(Mechanism::JointMass, String::new());
+        let mut loose = Candidate::new(Mechanism::JointStiffnessPerJoint, String::new());
+        loose.measurements = vec!["M7".into()];
+        let parts = MisfitParts {
+            modes: Some(vec![]),
+            covariates: [("temperature_c".to_string(), vec![])].into(),
+        };
+        let mut b = RefitBudget::new(1);
+        let admitted: Vec<bool> = [&temp, &rot, &jmass, &loose]
+            .iter()
+            .map(|c| b.admit(c, &parts, 0.2))
+            .collect();
+        assert_eq!(admitted, [true, true, false, true]);
+        let mut b = RefitBudget::new(2);
+        assert!(b.admit(&rot, &parts, 0.2) && b.admit(&jmass, &parts, 0.2));
+        assert!(!b.admit(&rot, &parts, 0.2));
+        // The mean shifts explained (a favoured refit left 10 %): no refit for them.
+        let explained = MisfitParts {
+            modes: Some(vec![0.1]),
+            covariates: [("temperature_c".to_string(), vec![0.5])].into(),
+        };
+        let mut b = RefitBudget::new(1);
+        assert!(!b.admit(&rot, &explained, 0.2));
+        assert!(b.admit(&temp, &explained, 0.2));
+        assert!(!RefitBudget::new(0).admit(&temp, &parts, 0.2));
     }
 
     /// The part the outlier carries is its deviation from the other measurements' mean: a

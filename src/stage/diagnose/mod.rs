@@ -17,7 +17,7 @@ pub use crate::diagnose::doc::{
 };
 use crate::diagnose::library::is_board_mechanism;
 use crate::diagnose::locate::{self, LocateOptions, Located};
-use crate::diagnose::misfit::{MisfitParts, RefitShares};
+use crate::diagnose::misfit::{MisfitParts, RefitBudget, RefitShares};
 use crate::diagnose::regions::{self, demote_weaker_regions, BoardRegion};
 use crate::diagnose::screen::{self, Candidate};
 use crate::diagnose::select::{self, Compared, Refit, Verdict};
@@ -152,11 +152,16 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
                 baseline: base_ref,
                 z1: &baseline1.log_evidence_runs,
             };
+            // The budget is per part of the misfit (`misfit::Part`): a part a favoured refit
+            // has explained takes no more, the others keep theirs.
+            let mut budget = RefitBudget::new(opts.max_refits);
             for cand in candidates
                 .iter()
                 .filter(|c| c.refittable() && (step2 || is_board_mechanism(c.mechanism)))
-                .take(opts.max_refits)
             {
+                if !budget.admit(cand, &parts, STOP_REMAINING_SHARE) {
+                    continue;
+                }
                 let t0 = std::time::Instant::now();
                 let mut r = refit::refit(
                     opts,
