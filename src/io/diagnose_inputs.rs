@@ -487,19 +487,31 @@ pub fn evidence_runs(dir: &Path) -> anyhow::Result<Vec<f64>> {
 /// The population-level parameter (no board, no measurement) with the largest R-hat in a
 /// summary table, with that R-hat; None without such rows or R-hats (one run).
 pub fn population_r_hat(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
-    population_worst(path, "r_hat", |a, b| a > b)
+    population_worst(path, "r_hat", |a, b| a > b, &Default::default())
 }
 
-/// The population-level parameter with the smallest bulk ESS, with that ESS.
-pub fn population_ess(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
-    population_worst(path, "ess_bulk", |a, b| a < b)
+/// Of the population-level parameters of the summary table at `path` that the one at
+/// `baseline` lacks (a refit's own), the one with the smallest bulk ESS, with that ESS.
+pub fn population_ess(path: &Path, baseline: &Path) -> anyhow::Result<Option<(String, f64)>> {
+    let mut known = std::collections::BTreeSet::new();
+    for b in tables::read_parquet(baseline)? {
+        let c = Cols {
+            batch: &b,
+            path: baseline,
+        };
+        let name = c.str("parameter")?;
+        known.extend((0..b.num_rows()).map(|i| name.value(i).to_string()));
+    }
+    population_worst(path, "ess_bulk", |a, b| a < b, &known)
 }
 
-/// The population-level row of a summary table whose finite `col` is worst by `worse`.
-pub fn population_worst(
+/// The population-level row of a summary table, its parameter not in `except`, whose finite
+/// `col` is worst by `worse`.
+fn population_worst(
     path: &Path,
     col: &str,
     worse: impl Fn(f64, f64) -> bool,
+    except: &std::collections::BTreeSet<String>,
 ) -> anyhow::Result<Option<(String, f64)>> {
     let mut worst: Option<(String, f64)> = None;
     for b in tables::read_parquet(path)? {
@@ -512,7 +524,11 @@ pub fn population_worst(
         );
         for i in 0..b.num_rows() {
             use arrow::array::Array;
-            if board.is_valid(i) || meas.is_valid(i) || !r.value(i).is_finite() {
+            if board.is_valid(i)
+                || meas.is_valid(i)
+                || !r.value(i).is_finite()
+                || except.contains(name.value(i))
+            {
                 continue;
             }
             if worst.as_ref().is_none_or(|(_, w)| worse(r.value(i), *w)) {
