@@ -1037,6 +1037,50 @@ pub fn read_refit(
 mod tests {
     use super::*;
 
+    /// The refit's ESS gate reads its own population-level parameters only: a nuisance
+    /// parameter the baseline has too (however low its ESS) and per-board rows are not the
+    /// mechanism's.
+    #[test]
+    fn the_ess_gate_reads_the_parameters_the_baseline_lacks() {
+        use crate::update::posterior::SummaryRow;
+        let row = |p: &str, board: Option<&str>, ess: f64| SummaryRow {
+            parameter: p.into(),
+            board_id: board.map(String::from),
+            measurement_id: None,
+            s: crate::bayes::diagnostics::Summary {
+                mean: 0.0,
+                sd: 1.0,
+                q05: -1.6,
+                q50: 0.0,
+                q95: 1.6,
+                r_hat: 1.0,
+                ess_bulk: ess,
+                ess_tail: ess,
+            },
+            physical: None,
+        };
+        let d = tempfile::tempdir().unwrap();
+        let (base, refit) = (
+            d.path().join("base.parquet"),
+            d.path().join("refit.parquet"),
+        );
+        let prov = Default::default();
+        tables::update::write_summary(&base, &[row("mu_g_z_pa", None, 300.0)], &prov).unwrap();
+        let rows = [
+            row("mu_g_z_pa", None, 81.0),
+            row("temperature_coefficient_per_k", Some("PCB-01"), 20.0),
+            row("mu_temperature_coefficient_per_k", None, 150.0),
+        ];
+        tables::update::write_summary(&refit, &rows, &prov).unwrap();
+        assert_eq!(
+            population_ess(&refit, &base).unwrap(),
+            Some(("mu_temperature_coefficient_per_k".to_string(), 150.0))
+        );
+        assert_eq!(population_r_hat(&refit).unwrap().map(|r| r.1), Some(1.0));
+        let missing = d.path().join("none.parquet");
+        assert!(population_ess(&refit, &missing).is_err());
+    }
+
     /// The demo work directory (when `make -C pipelines demo` has run) reads without error,
     /// with both steps, ε of every updated label and the sheet's covariates.
     #[test]

@@ -95,6 +95,8 @@ fn step_options(work: &Path, dir: &str, manifest: &str) -> anyhow::Result<Update
     })?;
     // A refit's likelihood must be the baseline's: its shape terms take the weights the
     // baseline estimated, not weights of its own (their evidences would not compare).
+    // Where the baseline's outputs are (the options carry no output directory).
+    o.out = work.join(dir);
     if o.model.shape_weights == ShapeWeighting::Auto {
         o.model.shape_weights =
             ShapeWeighting::from_evidence(&work.join(dir).join("evidence.json"))?;
