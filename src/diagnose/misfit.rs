@@ -203,12 +203,7 @@ pub fn assemblies_part(
 /// a located mode and the largest effect of a located covariate trend, with where it is
 /// (`setup/label` or `setup/covariate`). `None` when nothing of either kind is located.
 pub fn largest_structured(located: &Located) -> Option<(String, f64)> {
-    let modes = located.modes.iter().map(|m| {
-        (
-            format!("{} {}", m.setup, m.label),
-            m.mean_rel_residual.abs(),
-        )
-    });
+    let modes = located_modes(located, None);
     let covs = located
         .covariate_tests
         .iter()
@@ -221,6 +216,32 @@ pub fn largest_structured(located: &Located) -> Option<(String, f64)> {
         });
     modes
         .chain(covs)
+        .filter(|(_, v)| v.is_finite())
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+/// The located modes (of `setup`, or every setup) as (`setup label`, |mean relative
+/// residual|).
+fn located_modes<'a>(
+    located: &'a Located,
+    setup: Option<&'a str>,
+) -> impl Iterator<Item = (String, f64)> + 'a {
+    located
+        .modes
+        .iter()
+        .filter(move |m| setup.is_none_or(|s| m.setup == s))
+        .map(|m| {
+            (
+                format!("{} {}", m.setup, m.label),
+                m.mean_rel_residual.abs(),
+            )
+        })
+}
+
+/// The located mode of `setup` with the largest |mean relative residual| (`setup label`,
+/// value).
+pub fn largest_located_mode(located: &Located, setup: &str) -> Option<(String, f64)> {
+    located_modes(located, Some(setup))
         .filter(|(_, v)| v.is_finite())
         .max_by(|a, b| a.1.total_cmp(&b.1))
 }
@@ -452,11 +473,16 @@ impl RefitBudget {
     }
 }
 
+/// Whether one of the favoured refits' remaining shares `v` is at most `share`.
+fn explains(v: &[f64], share: f64) -> bool {
+    v.iter().any(|s| *s <= share)
+}
+
 impl MisfitParts {
     /// Whether a favoured refit left at most `share` of `part` (never for the assemblies'
     /// part, which only its own refits address).
     pub fn explained(&self, part: &Part, share: f64) -> bool {
-        let done = |v: &Vec<f64>| v.iter().any(|s| *s <= share);
+        let done = |v: &Vec<f64>| explains(v, share);
         match part {
             Part::Modes => self.modes.as_ref().is_some_and(done),
             Part::Covariate(c) => self.covariates.get(c).is_some_and(done),
@@ -488,13 +514,13 @@ impl MisfitParts {
     }
     /// Every part explained: a favoured refit left at most `share` of it.
     pub fn all_explained(&self, share: f64) -> bool {
-        let done = |v: &Vec<f64>| v.iter().any(|s| *s <= share);
+        let done = |v: &Vec<f64>| explains(v, share);
         self.modes.as_ref().is_none_or(done) && self.covariates.values().all(done)
     }
 
     /// The parts no favoured refit explained, in words (`None`: all explained).
     pub fn unexplained(&self, share: f64) -> Option<String> {
-        let done = |v: &Vec<f64>| v.iter().any(|s| *s <= share);
+        let done = |v: &Vec<f64>| explains(v, share);
         let mut parts = vec![];
         if self.modes.as_ref().is_some_and(|v| !done(v)) {
             parts.push("the located modes' mean shifts".to_string());

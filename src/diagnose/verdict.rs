@@ -442,13 +442,8 @@ pub fn remaining_discrepancy(
         if free_modes_located(located) {
             // The free-free form's size is quoted from the free-free modes: the bolted ones
             // carry the joint model's form too.
-            let (at, v) = located
-                .modes
-                .iter()
-                .filter(|m| m.setup == "free" && m.mean_rel_residual.is_finite())
-                .map(|m| (format!("free {}", m.label), m.mean_rel_residual.abs()))
-                .max_by(|a, b| a.1.total_cmp(&b.1))
-                .unwrap_or((at, v));
+            let (at, v) =
+                crate::diagnose::misfit::largest_located_mode(located, "free").unwrap_or((at, v));
             format!(
                 "model form: the model differs from every board alike by up to {:.3} % ({at}), above the {:.2} % practical threshold, in the free-free modes (the board itself, whatever its mounting), placed nowhere on the board, and {boards}: the form of the model ({model_form}), not a concealed effect. It is in the predicted intervals as the model-form discrepancy; a richer model would narrow them. Located modes: {modes:?}",
                 100.0 * v,

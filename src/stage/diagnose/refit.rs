@@ -93,13 +93,12 @@ fn step_options(work: &Path, dir: &str, manifest: &str) -> anyhow::Result<Update
             dir.trim_start_matches("update_")
         )
     })?;
+    // The manifest's options carry no output directory: the baseline's is where they ran.
+    o.out = work.join(dir);
     // A refit's likelihood must be the baseline's: its shape terms take the weights the
     // baseline estimated, not weights of its own (their evidences would not compare).
-    // Where the baseline's outputs are (the options carry no output directory).
-    o.out = work.join(dir);
     if o.model.shape_weights == ShapeWeighting::Auto {
-        o.model.shape_weights =
-            ShapeWeighting::from_evidence(&work.join(dir).join("evidence.json"))?;
+        o.model.shape_weights = ShapeWeighting::from_evidence(&o.out.join("evidence.json"))?;
     }
     Ok(o)
 }
@@ -232,13 +231,9 @@ const MIN_ESS_PER_RUN: f64 = 100.0;
 /// candidate whose nuisance scale mixed slowly gave no Bayes factor at all. The ESS rule is
 /// Vehtari et al.'s for the quantiles one reports; the baseline's own parameters are reported
 /// by the baseline, which no such rule reruns, and the Bayes factor's reliability is the
-/// runs' agreement (R-hat, the evidence's spread). On the realistic two-effect campaign with
-/// the shear-deformable board a weakly identified transverse shear modulus (bulk ESS 110 of
-/// 400) set off a 4 × 400 rerun of the temperature refit that took 170 s and left its ESS
-/// at 81. More runs, not only more
-/// particles: two runs that settle on different trade-offs between the modes' error scales
-/// stay apart however many particles each has, and R-hat from two runs is itself too noisy
-/// to tell. The retry replaces the first attempt's outputs; if it still disagrees, the gate
+/// runs' agreement (R-hat, the evidence's spread). More runs, not only more particles: two
+/// runs that settle on different trade-offs between the modes' error scales stay apart
+/// however many particles each has, and R-hat from two runs is itself too noisy to tell. The retry replaces the first attempt's outputs; if it still disagrees, the gate
 /// reports it.
 ///
 /// The retry is for the Bayes factor. Before it, `decided` says whether the first attempt
