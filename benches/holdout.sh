@@ -51,6 +51,10 @@ holdout=holdout${HOLDOUT_LABEL:+-$HOLDOUT_LABEL}
 # free-free modes are held out: step 1 predicts a new board, whatever the campaign's bolted
 # measurements.
 #
+# HOLDOUT_BOLTED=1 also runs step 2 per fold (HOLDOUT_JOINTS_ARGS: its extra options, e.g.
+# --board) and scores the held-out boards' bolted measurements against the new board's bolted
+# prediction (a new board in a new mounting).
+#
 # HBMU=binary runs that binary (e.g. a frozen copy while the tree is being edited; the
 # pipeline's make honours it too); otherwise the tree's debug build, built first.
 if [ -n "${HBMU:-}" ]; then
@@ -96,7 +100,17 @@ EOF
     SECONDS=0
     "$hbmu" update boards "$f/ingest" "$f/pair" --extract "$f/extract" --particles "$particles" --runs "$runs" \
       --seed 20261122 --rom-basis 30 --hold-out "$b" ${HOLDOUT_UPDATE_ARGS:-} --out "$f/update_boards" > "$f/log" 2>&1
-    "$hbmu" propagate "$f/update_boards" --fe "$work/fe" --draws "$draws" --out "$f/propagate" >> "$f/log" 2>&1
+    joints=()
+    if [ -n "${HOLDOUT_BOLTED:-}" ]; then
+      # Step 2 without the held-out board (it has no step-1 posterior: its bolted
+      # measurements are left out, and the report compares them with the new board's
+      # bolted prediction, a new board in a new mounting).
+      "$hbmu" update joints "$f/ingest" "$f/pair" --extract "$f/extract" --boards "$f/update_boards" \
+        --particles "$particles" --runs "$runs" --seed 20261122 ${HOLDOUT_JOINTS_ARGS:-} \
+        --out "$f/update_joints" >> "$f/log" 2>&1
+      joints=("$f/update_joints")
+    fi
+    "$hbmu" propagate "$f/update_boards" "${joints[@]}" --fe "$work/fe" --draws "$draws" --out "$f/propagate" >> "$f/log" 2>&1
     "$hbmu" report "$f" --out "$f/report" >> "$f/log" 2>&1
     echo "seed $s board $b: $(grep -o 'free-free coverage.*' "$f/log" | head -1) (${SECONDS} s)"
   done
@@ -131,6 +145,22 @@ p = stats.binomtest(k, n, 0.9).pvalue if n else float("nan")
 print(f"held-out boards: {k}/{n} measurements inside the new board's 90 % interval ({100 * k / max(n, 1):.1f} %, binomial p = {p:.3g} against 90 %; measurements of a board are not independent)")
 print(f"  folds with every held-out measurement inside: {sum(per_board)}/{len(per_board)}")
 print(f"in-sample (the other boards, same intervals): {ins[0]}/{ins[1]} ({100 * ins[0] / max(ins[1], 1):.1f} %)")
+# Bolted (HOLDOUT_BOLTED=1): the held-out boards' bolted measurements against the new board's
+# bolted 90 % interval (report/intervals.parquet), per label.
+bolted = []
+for s in seeds:
+    for f in sorted((base / f"{tag}-{s}" / holdout).glob("*")):
+        p = f / "report" / "intervals.parquet"
+        if (f / "update_joints").is_dir() and p.exists():
+            iv = pd.read_parquet(p)
+            bolted.append(iv[(iv.scope == "new_board") & (iv.setup == "bolted")])
+if bolted:
+    b = pd.concat(bolted).groupby("label")[["n_held_out", "n_held_out_inside_90"]].sum()
+    k, n = int(b.n_held_out_inside_90.sum()), int(b.n_held_out.sum())
+    p = stats.binomtest(k, n, 0.9).pvalue if n else float("nan")
+    print(f"held-out boards, bolted: {k}/{n} measurements inside the new board's bolted 90 % interval ({100 * k / max(n, 1):.1f} %, binomial p = {p:.3g}); per label:")
+    for lab, r in b.iterrows():
+        print(f"  {lab}: {int(r.n_held_out_inside_90)}/{int(r.n_held_out)}")
 for m in sorted(nb):
     t = stats.t.ppf(0.95, m - 1)
     z = t * t * (m + 1) / (m - 1) ** 2

@@ -3,6 +3,7 @@
 //! of the posterior against the ROM's box and the full model, the tables' rows and the evidence.
 //! `stage::update` reads the inputs, calls these in order and writes the outputs.
 
+use crate::bayes::discrepancy::CutScale;
 use crate::bayes::population::PopulationPrior;
 use crate::bayes::smc;
 use crate::bayes::target::{Compose, ErrorModel, ErrorPrior, JointsCovariate, ModalTarget};
@@ -26,6 +27,8 @@ use crate::update::rom_box::rom_posterior_check;
 use crate::update::sampler::{box_violations, particles_of, Results, SamplerParams};
 use crate::update::step1::{step1_point_mass, Step1, Step1PointMass};
 use anyhow::{anyhow, bail};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
@@ -738,7 +741,56 @@ pub struct JointTables {
     pub summary: Vec<SummaryRow>,
 }
 
-/// The rows of step 2's tables from the runs' particles.
+/// The cut estimate of the model-form scale of step 2 ([`CutScale`]) from its
+/// posterior-predictive residuals `res`: per updated label of `labels` (the target's
+/// order), the mean relative eigenvalue residual ((f / f̂)² − 1) over its measurements and
+/// its standard error. `None` without a basis, or where a label has fewer than two
+/// measurements (no standard error).
+pub fn cut_scale(
+    basis: Option<&crate::bayes::discrepancy::Discrepancy>,
+    res: &[crate::update::posterior::Residual],
+    labels: &[String],
+) -> Option<CutScale> {
+    let basis = basis?;
+    let mut mean = vec![];
+    let mut se = vec![];
+    for l in labels {
+        let r: Vec<f64> = res
+            .iter()
+            .filter(|r| r.used && &r.label == l)
+            .map(|r| (r.freq_hz / r.mean).powi(2) - 1.0)
+            .collect();
+        if r.len() < 2 {
+            return None;
+        }
+        let n = r.len() as f64;
+        let m = r.iter().sum::<f64>() / n;
+        let var = r.iter().map(|v| (v - m).powi(2)).sum::<f64>() / (n - 1.0);
+        mean.push(m);
+        se.push((var / n).sqrt());
+    }
+    CutScale::new(basis, &mean, &se)
+}
+
+/// evidence.json's `predictive_discrepancy`: the cut scale's posterior (null without one).
+pub fn cut_scale_json(cut: Option<&CutScale>) -> serde_json::Value {
+    use crate::bayes::discrepancy::freq_of_eigenvalue;
+    match cut {
+        None => serde_json::Value::Null,
+        Some(c) => serde_json::json!({
+            "note": "cut estimate of the model-form scale tau (relative eigenvalue) from the updated bolted modes' mean residuals; it widens the predictions of the bolted modes step 2 did not update, and nothing else (bayes::discrepancy::CutScale)",
+            "fidelity_freq": crate::bayes::discrepancy::BOLTED_FIDELITY_FREQ,
+            "scale_q05": c.quantile(0.05),
+            "scale_q50": c.quantile(0.5),
+            "scale_q95": c.quantile(0.95),
+            "freq_q50": freq_of_eigenvalue(c.quantile(0.5)),
+        }),
+    }
+}
+
+/// The rows of step 2's tables from the runs' particles; with a cut scale `cut` (and its
+/// seed), a `predictive_discrepancy_scale` column of its draws, one per particle.
+#[allow(clippy::too_many_arguments)]
 pub fn joint_tables(
     jm: &JointModels,
     jt_: &JointTarget,
@@ -746,6 +798,7 @@ pub fn joint_tables(
     labels: &Labels,
     step1: &Step1,
     runs: usize,
+    cut: Option<(&CutScale, u64)>,
 ) -> JointTables {
     let target = &jt_.step.target;
     // population.parquet (step 2).
@@ -782,6 +835,10 @@ pub fn joint_tables(
     if with_discrepancy {
         pcols.extend(discrepancy_columns(&labels.labels));
     }
+    let mut cut_rng = cut.map(|(c, seed)| (c, ChaCha8Rng::seed_from_u64(seed)));
+    if cut_rng.is_some() {
+        pcols.push(("predictive_discrepancy_scale".into(), String::new()));
+    }
     let mut pop = DrawTable::new(&pcols);
     let jcols: Vec<(String, String)> = enr
         .coordinates
@@ -806,6 +863,9 @@ pub fn joint_tables(
         }
         if with_discrepancy {
             row.extend(discrepancy_values(target, &p.g, &ctx));
+        }
+        if let Some((c, rng)) = cut_rng.as_mut() {
+            row.push(c.draw(rng));
         }
         pop.push(r, i, None, &row);
         let g = i / jt_.group;

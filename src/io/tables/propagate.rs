@@ -144,26 +144,39 @@ fn eps_arrays<'a>(
 
 /// The model-form discrepancy columns of a population table (`discrepancy_scale`,
 /// `discrepancy_<label>` of the updated labels); both `None` where the step ran without one.
+/// A step without one in its likelihood may carry the cut estimate of its scale
+/// (`predictive_discrepancy_scale`, step 2: `bayes::discrepancy::CutScale`): then every
+/// label in `updated` has d = 0 (its ε holds its misfit) and the others draw d ~ N(0, τ²).
 struct DiscrepancyCols<'a> {
     scale: Option<&'a Float64Array>,
     unit_scale: Option<&'a Float64Array>,
     d: Vec<Option<&'a Float64Array>>,
+    /// With the cut scale: per label, whether it was updated (d = 0).
+    cut_updated: Option<Vec<bool>>,
 }
 
 impl<'a> DiscrepancyCols<'a> {
     fn read(
         b: &'a arrow::array::RecordBatch,
         labels: &[String],
+        updated: &BTreeSet<String>,
         path: &'a Path,
     ) -> anyhow::Result<DiscrepancyCols<'a>> {
         if b.column_by_name("discrepancy_scale").is_none() {
+            let cut = b
+                .column_by_name("predictive_discrepancy_scale")
+                .is_some()
+                .then(|| f64_col(b, "predictive_discrepancy_scale", path))
+                .transpose()?;
             return Ok(DiscrepancyCols {
-                scale: None,
+                scale: cut,
                 unit_scale: None,
                 d: vec![None; labels.len()],
+                cut_updated: cut.map(|_| labels.iter().map(|l| updated.contains(l)).collect()),
             });
         }
         Ok(DiscrepancyCols {
+            cut_updated: None,
             scale: Some(f64_col(b, "discrepancy_scale", path)?),
             unit_scale: b
                 .column_by_name("discrepancy_unit_scale")
@@ -184,8 +197,12 @@ impl<'a> DiscrepancyCols<'a> {
     }
 
     fn at(&self, r: usize) -> uq::Discrepancy {
+        let d = match &self.cut_updated {
+            Some(u) => u.iter().map(|&u| u.then_some(0.0)).collect(),
+            None => self.d.iter().map(|c| c.map(|a| a.value(r))).collect(),
+        };
         uq::Discrepancy {
-            d: self.d.iter().map(|c| c.map(|a| a.value(r))).collect(),
+            d,
             scale: self.scale.map(|a| a.value(r)),
             unit_scale: self.unit_scale.map(|a| a.value(r)),
         }
@@ -289,7 +306,7 @@ pub fn read_step1(
             &mut warned,
             findings,
         )?;
-        let disc = DiscrepancyCols::read(b, labels, &pop_path)?;
+        let disc = DiscrepancyCols::read(b, labels, &BTreeSet::new(), &pop_path)?;
         for r in 0..b.num_rows() {
             let mut om = vec![0.0; d * d];
             for i in 0..d {
@@ -399,7 +416,7 @@ pub fn read_step2(
             &mut warned,
             findings,
         )?;
-        let disc = DiscrepancyCols::read(&b, labels, &pop_path)?;
+        let disc = DiscrepancyCols::read(&b, labels, &updated, &pop_path)?;
         for r in 0..b.num_rows() {
             let key = (br.value(r), bd.value(r));
             let step1 = *index.get(&key).ok_or_else(|| {
@@ -556,4 +573,49 @@ fn eps_at(
             None => None,
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use arrow::array::RecordBatch;
+    use arrow::datatypes::{DataType, Field, Schema};
+
+    fn batch(cols: &[(&str, Vec<f64>)]) -> RecordBatch {
+        let schema = Schema::new(
+            cols.iter()
+                .map(|(n, _)| Field::new(*n, DataType::Float64, false))
+                .collect::<Vec<_>>(),
+        );
+        let arrays: Vec<ArrayRef> = cols
+            .iter()
+            .map(|(_, v)| Arc::new(Float64Array::from(v.clone())) as ArrayRef)
+            .collect();
+        RecordBatch::try_new(Arc::new(schema), arrays).unwrap()
+    }
+
+    /// Step 2's cut scale: the updated labels keep d = 0, the others draw at the row's τ;
+    /// without the column, no discrepancy; with the likelihood's own columns, those.
+    #[test]
+    fn the_cut_scale_spreads_only_the_labels_step_2_did_not_update() {
+        let labels = vec!["plate-0-0".to_string(), "bending-x-2".to_string()];
+        let updated: BTreeSet<String> = ["plate-0-0".to_string()].into();
+        let path = Path::new("population.parquet");
+        let b = batch(&[("predictive_discrepancy_scale", vec![0.01, 0.02])]);
+        let d = DiscrepancyCols::read(&b, &labels, &updated, path).unwrap();
+        let at = d.at(1);
+        assert_eq!(at.d, vec![Some(0.0), None]);
+        assert_eq!((at.scale, at.unit_scale), (Some(0.02), None));
+        let none = batch(&[("eps_plate-0-0", vec![0.01, 0.02])]);
+        let d = DiscrepancyCols::read(&none, &labels, &updated, path).unwrap();
+        assert_eq!(d.at(0), uq::Discrepancy::none(2));
+        let own = batch(&[
+            ("discrepancy_scale", vec![0.03]),
+            ("discrepancy_plate-0-0", vec![0.004]),
+            ("predictive_discrepancy_scale", vec![0.5]),
+        ]);
+        let d = DiscrepancyCols::read(&own, &labels, &updated, path).unwrap();
+        let at = d.at(0);
+        assert_eq!((at.d, at.scale), (vec![Some(0.004), None], Some(0.03)));
+    }
 }

@@ -131,6 +131,7 @@ pub(crate) fn joints_body(
         jt,
         sopts,
         shape_weights,
+        cut_basis,
     } = prepare_joints(
         opts,
         board,
@@ -167,9 +168,6 @@ pub(crate) fn joints_body(
         c.need,
     ));
     let prov = provenance("update_joints", &prep.fingerprint);
-    let tables = joints::joint_tables(&jm, &jt, &results, &c.labels, &inp.step1, opts.sampler.runs);
-    let mut outputs = write_joint_tables(&opts.out, &tables, &results, &prov)?;
-    clock.lap("tables");
     let (res, lost) = residuals(
         &jt.step,
         (&c.all.labels, &c.labels.labels),
@@ -179,6 +177,27 @@ pub(crate) fn joints_body(
         None,
     );
     lost_finding(&lost, &mut findings);
+    let cut = joints::cut_scale(cut_basis.as_ref(), &res, &c.labels.labels);
+    if cut_basis.is_some() && cut.is_none() {
+        findings.push(Finding::new(
+            Severity::Warning,
+            "update.cut_scale_none",
+            "joints: no model-form scale for the bolted modes step 2 did not update (an updated mode has fewer than two measurements, or its residuals are not finite): their predictions carry ε alone".to_string(),
+        ));
+    }
+    // Its own stream of the seed: the draws do not move the sampler's.
+    let cut_seed = opts.sampler.seed ^ 0x6375_745f_7363_616c;
+    let tables = joints::joint_tables(
+        &jm,
+        &jt,
+        &results,
+        &c.labels,
+        &inp.step1,
+        opts.sampler.runs,
+        cut.as_ref().map(|c| (c, cut_seed)),
+    );
+    let mut outputs = write_joint_tables(&opts.out, &tables, &results, &prov)?;
+    clock.lap("tables");
     let p = opts.out.join("residuals.parquet");
     write_residuals(&p, &res, &prov)?;
     outputs.push(p);
@@ -194,6 +213,8 @@ pub(crate) fn joints_body(
         &shape_weights,
         &opts.model,
     )?;
+    let mut ev = ev;
+    ev["predictive_discrepancy"] = joints::cut_scale_json(cut.as_ref());
     let p = opts.out.join("evidence.json");
     crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
     outputs.push(p);
@@ -416,6 +437,10 @@ pub(crate) struct PreparedJoints {
     pub(crate) jt: crate::update::joints::JointTarget,
     pub(crate) sopts: UpdateOptions,
     pub(crate) shape_weights: Vec<crate::bayes::shape_weight::ShapeWeight>,
+    /// Without a discrepancy in the likelihood, the basis of its cut scale
+    /// (`bayes::discrepancy::CutScale`): the complement of the units' sensitivities with the
+    /// bolted model's stated fidelity as the scale's prior.
+    pub(crate) cut_basis: Option<crate::bayes::discrepancy::Discrepancy>,
 }
 
 /// Prepare step 2 up to the sampler ([`PreparedJoints`]); `key` keys the caller's `memo`
@@ -530,6 +555,17 @@ pub(crate) fn prepare_joints(
         (&[], "joints"),
         findings,
     )?;
+    let cut_basis = match jt.step.target.errors.discrepancy {
+        Some(_) => None,
+        None => discrepancy_for(
+            &jt.step.target,
+            &draws_mean,
+            crate::bayes::discrepancy::BOLTED_FIDELITY_FREQ,
+            (&[], "joints"),
+            &mut Findings::default(),
+        )
+        .unwrap_or(None),
+    };
     let shape_weights = weigh_shapes(
         &mut jt.step.target,
         &opts.model.shape_weights,
@@ -548,6 +584,7 @@ pub(crate) fn prepare_joints(
         jt,
         sopts,
         shape_weights,
+        cut_basis,
     })
 }
 
