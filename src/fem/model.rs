@@ -285,6 +285,17 @@ pub const EDGE_GRADING: f64 = 15.0;
 /// Width of the refined zone at an edge, in boundary-layer lengths δ.
 pub const EDGE_GRADING_WIDTH: f64 = 2.0;
 
+/// Refinement of a shear-deformable free board's mesh at its holes ([`super::grading`]): a
+/// hole's rim is a free edge too, with the same boundary layer, but cut through elements
+/// (cut cells) rather than followed by them, so it converges slower still. Measured on the
+/// built-in board with G_xz = G_yz = 3 GPa (δ 0.67 mm, holes Ø 2.7 mm), free-free, first 8
+/// modes at 56 × 35 against 160 × 100 on the same grading: uniform at the holes 1149 ppm;
+/// over r + 2δ, A = 3: 395, A = 5: 343, A = 8: 293, A = 15: 411 ppm (A = 8 over r + δ: 333,
+/// over r + 4δ: 322). Against the ungraded 160 × 100 the order is the same (A = 8: 215 ppm).
+/// The rest converges at about O(h^1.5) (56, 80, 160: 293, 139 ppm), the rim's cut cells.
+/// Bolted, the clamp holds the rim and the joints' own grading applies.
+pub const HOLE_GRADING: f64 = 8.0;
+
 /// The decay length δ (m) of a shear-deformable board's edge boundary layer, or `None` for
 /// a Kirchhoff board (see [`EDGE_GRADING`]); the softer of the two transverse shear moduli.
 pub fn shear_boundary_layer_m(board: &Board) -> Option<f64> {
@@ -299,7 +310,7 @@ impl Mesh {
     /// field varies on the scale of the clamp: a small stiff support is resolved by the
     /// mesh's total element count rather than by a uniformly finer mesh (see
     /// `fem::tests::convergence`). A shear-deformable board's are also graded towards its
-    /// edges ([`EDGE_GRADING`]). The map does not depend on nx, ny: meshes n ⊂ 2n stay
+    /// edges ([`EDGE_GRADING`]) and, free, its holes ([`HOLE_GRADING`]). The map does not depend on nx, ny: meshes n ⊂ 2n stay
     /// nested. Then the lines nearest the copper's edges move onto them
     /// ([`super::grading::snap_to_interfaces`]), so no stiffness jump lies inside an
     /// element where a line can take it.
@@ -321,6 +332,17 @@ impl Mesh {
             let w = EDGE_GRADING_WIDTH * delta;
             bx.extend(super::grading::merged_bumps(&[0.0, lx], w, EDGE_GRADING));
             by.extend(super::grading::merged_bumps(&[0.0, ly], w, EDGE_GRADING));
+            if matches!(setup, Setup::Free) {
+                let r = board
+                    .holes
+                    .iter()
+                    .map(|h| 0.5 * h.diameter_m)
+                    .fold(0.0, f64::max);
+                let cx: Vec<f64> = board.holes.iter().map(|h| h.x_m).collect();
+                let cy: Vec<f64> = board.holes.iter().map(|h| h.y_m).collect();
+                bx.extend(super::grading::merged_bumps(&cx, r + w, HOLE_GRADING));
+                by.extend(super::grading::merged_bumps(&cy, r + w, HOLE_GRADING));
+            }
         }
         let (x_m, y_m) = (
             super::grading::graded_lines(lx, nx, &bx),

@@ -167,3 +167,47 @@ fn default_board_meshes_are_within_the_frequency_noise() {
         assert!(e < tol, "{} × {}: {e:e} off 160 × 100", mesh.nx, mesh.ny);
     }
 }
+
+/// A shear-deformable free board's holes: their rims carry the plate's free-edge boundary
+/// layer across cut cells, and the mesh graded towards them ([`crate::fem::model::HOLE_GRADING`])
+/// must at least halve the error of the same element count graded at the edges alone.
+/// Built-in board with G_xz = G_yz = 3 GPa (its holes Ø 2.7 mm, 5 mm from the edges), first
+/// 8 free-free modes at 40 × 25 against 120 × 75 on the holes' grading. Measured: 654 ppm
+/// graded at the holes against 1542 ppm at the edges alone.
+#[test]
+fn a_shear_deformable_board_is_graded_towards_its_holes() {
+    use crate::fem::grading::{graded_lines, merged_bumps, snap_to_interfaces};
+    use crate::fem::model::{shear_boundary_layer_m, Mesh, EDGE_GRADING, EDGE_GRADING_WIDTH};
+    let mut b = Board::default_board();
+    b.core.g_xz_pa = Some(3.0e9);
+    b.core.g_yz_pa = Some(3.0e9);
+    let modes = |m: FeModel| m.modes(&m.nominal_params(), 8).unwrap().freq_hz;
+    let reference = freqs(&b, Setup::Free, 120, 75, 8);
+    let (nx, ny) = (40, 25);
+    let (x, y) = Mesh::lines(&b, &Setup::Free, nx, ny);
+    let graded = modes(FeModel::build_on_lines(&b, Setup::Free, x, y).unwrap());
+    // The same mesh without the holes' bumps.
+    let w = EDGE_GRADING_WIDTH * shear_boundary_layer_m(&b).unwrap();
+    let (at_x, at_y) = b.copper_interfaces();
+    let edge = |len: f64, n: usize, at| {
+        snap_to_interfaces(
+            &graded_lines(len, n, &merged_bumps(&[0.0, len], w, EDGE_GRADING)),
+            at,
+        )
+    };
+    let (x, y) = (edge(b.length_x_m, nx, &at_x), edge(b.width_y_m, ny, &at_y));
+    let edges_only = modes(FeModel::build_on_lines(&b, Setup::Free, x, y).unwrap());
+    let err = |f: &[f64]| {
+        f.iter()
+            .zip(&reference)
+            .map(|(a, r)| (a / r - 1.0).abs())
+            .fold(0.0, f64::max)
+    };
+    let (e_holes, e_edges) = (err(&graded), err(&edges_only));
+    eprintln!(
+        "graded at the holes {:.0} ppm, at the edges alone {:.0} ppm",
+        1e6 * e_holes,
+        1e6 * e_edges
+    );
+    assert!(e_holes < 0.5 * e_edges, "{e_holes:e} vs {e_edges:e}");
+}
