@@ -290,10 +290,12 @@ pub const EDGE_GRADING_WIDTH: f64 = 2.0;
 /// (cut cells) rather than followed by them, so it converges slower still. Measured on the
 /// built-in board with G_xz = G_yz = 3 GPa (δ 0.67 mm, holes Ø 2.7 mm), free-free, first 8
 /// modes at 56 × 35 against 160 × 100 on the same grading: uniform at the holes 1149 ppm;
-/// over r + 2δ, A = 3: 395, A = 5: 343, A = 8: 293, A = 15: 411 ppm (A = 8 over r + δ: 333,
+/// over r + 2δ, A = 3: 395, A = 5: 343, A = 8: 293, A = 15: 425 ppm (A = 8 over r + δ: 333,
 /// over r + 4δ: 322). Against the ungraded 160 × 100 the order is the same (A = 8: 215 ppm).
-/// The rest converges at about O(h^1.5) (56, 80, 160: 293, 139 ppm), the rim's cut cells.
-/// Bolted, the clamp holds the rim and the joints' own grading applies.
+/// The rest converges between O(h) and O(h^1.5) (56 × 35 and 80 × 50 against 160 × 100:
+/// 293 and 153 ppm), the rim's cut cells. The width follows the physics (the hole and its
+/// boundary layer); the amplitude is a discretisation choice, the best of those five on this
+/// one board. Bolted, the clamp holds the rim and the joints' own grading applies.
 pub const HOLE_GRADING: f64 = 8.0;
 
 /// The decay length δ (m) of a shear-deformable board's edge boundary layer, or `None` for
@@ -310,17 +312,18 @@ impl Mesh {
     /// field varies on the scale of the clamp: a small stiff support is resolved by the
     /// mesh's total element count rather than by a uniformly finer mesh (see
     /// `fem::tests::convergence`). A shear-deformable board's are also graded towards its
-    /// edges ([`EDGE_GRADING`]) and, free, its holes ([`HOLE_GRADING`]). The map does not depend on nx, ny: meshes n ⊂ 2n stay
-    /// nested. Then the lines nearest the copper's edges move onto them
+    /// edges ([`EDGE_GRADING`]) and, free, its holes ([`HOLE_GRADING`]). The map does not
+    /// depend on nx, ny: meshes n ⊂ 2n stay nested. Then the lines nearest the copper's
+    /// edges move onto them
     /// ([`super::grading::snap_to_interfaces`]), so no stiffness jump lies inside an
     /// element where a line can take it.
     pub fn lines(board: &Board, setup: &Setup, nx: usize, ny: usize) -> (Vec<f64>, Vec<f64>) {
         let (lx, ly) = (board.length_x_m, board.width_y_m);
+        let cx: Vec<f64> = board.holes.iter().map(|h| h.x_m).collect();
+        let cy: Vec<f64> = board.holes.iter().map(|h| h.y_m).collect();
         let (mut bx, mut by) = match setup {
             Setup::Bolted(_) => {
                 let w = JOINT_GRADING_WIDTH * 0.5 * board.joint().clamp_diameter_m;
-                let cx: Vec<f64> = board.holes.iter().map(|h| h.x_m).collect();
-                let cy: Vec<f64> = board.holes.iter().map(|h| h.y_m).collect();
                 (
                     super::grading::merged_bumps(&cx, w, JOINT_GRADING),
                     super::grading::merged_bumps(&cy, w, JOINT_GRADING),
@@ -338,8 +341,6 @@ impl Mesh {
                     .iter()
                     .map(|h| 0.5 * h.diameter_m)
                     .fold(0.0, f64::max);
-                let cx: Vec<f64> = board.holes.iter().map(|h| h.x_m).collect();
-                let cy: Vec<f64> = board.holes.iter().map(|h| h.y_m).collect();
                 bx.extend(super::grading::merged_bumps(&cx, r + w, HOLE_GRADING));
                 by.extend(super::grading::merged_bumps(&cy, r + w, HOLE_GRADING));
             }

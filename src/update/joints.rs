@@ -763,11 +763,9 @@ pub fn cut_scale(
         if r.len() < 2 {
             return None;
         }
-        let n = r.len() as f64;
-        let m = r.iter().sum::<f64>() / n;
-        let var = r.iter().map(|v| (v - m).powi(2)).sum::<f64>() / (n - 1.0);
+        let (m, sd) = crate::report::validation::mean_sd(&r);
         mean.push(m);
-        se.push((var / n).sqrt());
+        se.push(sd / (r.len() as f64).sqrt());
     }
     CutScale::new(basis, &mean, &se)
 }

@@ -233,8 +233,9 @@ const MIN_ESS_PER_RUN: f64 = 100.0;
 /// by the baseline, which no such rule reruns, and the Bayes factor's reliability is the
 /// runs' agreement (R-hat, the evidence's spread). More runs, not only more particles: two
 /// runs that settle on different trade-offs between the modes' error scales stay apart
-/// however many particles each has, and R-hat from two runs is itself too noisy to tell. The retry replaces the first attempt's outputs; if it still disagrees, the gate
-/// reports it.
+/// however many particles each has, and R-hat from two runs is itself too noisy to tell.
+/// The retry replaces the first attempt's outputs; if it still disagrees, the gate reports
+/// it.
 ///
 /// The retry is for the Bayes factor. Before it, `decided` says whether the first attempt
 /// already misses a bar of the decision rule that the evidence does not set

@@ -204,7 +204,7 @@ pub(crate) fn joints_body(
     let p = opts.out.join("rom.npz");
     crate::io::atomic::write_bytes(&p, &jt.step.target.predictor.rom.to_npz_bytes())?;
     outputs.push(p);
-    let ev = joints::joint_evidence(
+    let mut ev = joints::joint_evidence(
         (&jm, &c),
         &jt.step.target,
         &results,
@@ -213,7 +213,6 @@ pub(crate) fn joints_body(
         &shape_weights,
         &opts.model,
     )?;
-    let mut ev = ev;
     ev["predictive_discrepancy"] = joints::cut_scale_json(cut.as_ref());
     let p = opts.out.join("evidence.json");
     crate::io::atomic::write_bytes(&p, serde_json::to_string_pretty(&ev)?.as_bytes())?;
