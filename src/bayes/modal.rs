@@ -731,7 +731,7 @@ pub(crate) mod tests {
     /// The default board free-free, its FE model and a 30-vector ROM (shared with the
     /// target's tests).
     pub(crate) fn free_rom() -> (Board, FeModel, crate::fem::Rom) {
-        let board = Board::default_board();
+        let board = crate::fem::tests::helpers::thin_board();
         let model = FeModel::build(&board, Setup::Free, &board.mesh).expect("model");
         let rom = crate::fem::Rom::build(
             &model,

@@ -57,7 +57,10 @@ pub struct Problem {
 
 /// The step-1 target of `p` with empty data slots (λ̂ = NaN until [`simulate`] fills them).
 pub fn build_target(p: &Problem) -> ModalTarget {
-    let mut board = Board::default_board();
+    // The built-in board as a thin plate: the SBC checks the sampler, and the thin plate's
+    // ROM is the smaller one (`data/boards/paper_thin.toml`).
+    let mut board = Board::from_toml_str(include_str!("../../data/boards/paper_thin.toml"))
+        .expect("data/boards/paper_thin.toml parses");
     board.mesh = MeshOptions {
         nx: p.mesh.0,
         ny: p.mesh.1,

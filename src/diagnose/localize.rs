@@ -817,7 +817,7 @@ mod tests {
 mod exact_tests {
     use super::*;
     use crate::fem::eigen::EigenOptions;
-    use crate::fem::{Board, FeModel, Setup};
+    use crate::fem::{FeModel, Setup};
 
     /// The secular equation in a modal basis of the measured modes + 40 against the FE
     /// model with the point mass assembled (M + m N Nᵀ): a 0.25 g and a 1 g mass (2 % and
@@ -827,7 +827,7 @@ mod exact_tests {
     /// order's 1.7e-3 (12 % of the shift) and 2.4e-2.
     #[test]
     fn exact_localisation_matches_the_fe_model_with_the_point_mass() {
-        let board = Board::default_board();
+        let board = crate::fem::tests::helpers::thin_board();
         let model = FeModel::build(&board, Setup::Free, &board.mesh).unwrap();
         let p = model.nominal_params();
         let (modes, rigid) = model

@@ -1037,7 +1037,7 @@ pub(crate) mod tests {
     fn a_mode_seen_once_is_left_out_of_the_localisations_not_fatal_to_them() {
         use super::{point_mass_region, FreeBasis, MeasuredShape, RegionFiles, RegionInput};
         use crate::diagnose::locate::{LocateOptions, ModeCheck};
-        use crate::fem::{Board, FeModel, Setup};
+        use crate::fem::{FeModel, Setup};
         struct Nominal(FeModel);
         impl RegionFiles for Nominal {
             fn posterior_centre(&self, params: &[String]) -> anyhow::Result<Vec<f64>> {
@@ -1057,7 +1057,7 @@ pub(crate) mod tests {
                 Ok(vec![])
             }
         }
-        let board = Board::default_board();
+        let board = crate::fem::tests::helpers::thin_board();
         let model = FeModel::build(&board, Setup::Free, &board.mesh).unwrap();
         let modes = model.modes(&model.nominal_params(), 8).unwrap();
         let labels: Vec<String> = (1..=8).map(|k| format!("mode-{k}")).collect();

@@ -402,7 +402,7 @@ mod tests {
     fn nothing_located_screens_nothing() {
         let mut l = located();
         l.any = false;
-        assert!(screen(&l, &Board::default_board()).is_empty());
+        assert!(screen(&l, &crate::fem::tests::helpers::thin_board()).is_empty());
     }
 
     /// Bolted modes misfit, free-free clean: the joint mechanisms only, rotation first.
@@ -410,7 +410,7 @@ mod tests {
     fn a_bolted_misfit_screens_the_joint_mechanisms() {
         let mut l = located();
         l.modes = vec![mode("bolted")];
-        let c = screen(&l, &Board::default_board());
+        let c = screen(&l, &crate::fem::tests::helpers::thin_board());
         assert_eq!(
             ids(&c),
             ["joint_rotation", "joint_mass", "fixture_compliance"]
@@ -437,11 +437,11 @@ mod tests {
             board_shared: false,
             modes: vec![],
         }];
-        let c = screen(&l, &Board::default_board());
+        let c = screen(&l, &crate::fem::tests::helpers::thin_board());
         assert_eq!(ids(&c)[0], "joint_stiffness_per_joint");
         // Board-shared, it is the board's own: no per-joint candidate.
         l.board_shared = vec!["M-07".into()];
-        let c = screen(&l, &Board::default_board());
+        let c = screen(&l, &crate::fem::tests::helpers::thin_board());
         assert!(ids(&c)
             .iter()
             .all(|i| !i.starts_with("joint_stiffness_per_joint")));
@@ -470,7 +470,7 @@ mod tests {
                 residuals: vec![],
             })
             .collect();
-        let b = Board::default_board();
+        let b = crate::fem::tests::helpers::thin_board();
         let c = screen(&l, &b);
         let n = b.holes.len();
         let mut want = vec!["joint_stiffness_per_joint".to_string()];
@@ -498,7 +498,7 @@ mod tests {
             recurring: true,
             measurement_ids: vec![],
         }];
-        let c = screen(&l, &Board::default_board());
+        let c = screen(&l, &crate::fem::tests::helpers::thin_board());
         assert_eq!(c[0].mechanism, Mechanism::FixtureCompliance);
         assert_eq!(
             c.iter()
@@ -515,7 +515,7 @@ mod tests {
         let mut l = located();
         l.modes = vec![mode("free"), mode("bolted")];
         l.covariates = vec![temperature_trend()];
-        let c = screen(&l, &Board::default_board());
+        let c = screen(&l, &crate::fem::tests::helpers::thin_board());
         assert_eq!(c[0].mechanism, Mechanism::TemperatureStiffness);
         assert_eq!(c[0].covariate.as_deref(), Some("temperature_c"));
         assert!(!c.iter().any(|c| c.mechanism == Mechanism::AddedMass));
@@ -527,7 +527,7 @@ mod tests {
     fn a_free_free_misfit_puts_the_board_mechanisms_first_and_a_located_mass_leads() {
         let mut l = located();
         l.modes = vec![mode("free"), mode("bolted")];
-        let mut c = screen(&l, &Board::default_board());
+        let mut c = screen(&l, &crate::fem::tests::helpers::thin_board());
         assert_eq!(
             ids(&c)[..3],
             ["added_mass", "local_stiffness_loss", "joint_rotation"]
@@ -548,7 +548,7 @@ mod tests {
         assert_eq!(c[0].location_json()["x_m"], 0.056);
         assert!(c[0].reason.ends_with("a point mass there explains it"));
         // Not located: it keeps its place.
-        let mut d = screen(&l, &Board::default_board());
+        let mut d = screen(&l, &crate::fem::tests::helpers::thin_board());
         d.swap(0, 1);
         attach_point_mass(&mut d, [0.01, 0.01], None, "weak");
         assert_eq!(d[1].mechanism, Mechanism::AddedMass);
@@ -568,7 +568,7 @@ mod tests {
         let mut l = located();
         l.modes = vec![mode("free"), mode("bolted")];
         l.covariates = vec![temperature_trend()];
-        let mut c = screen(&l, &Board::default_board());
+        let mut c = screen(&l, &crate::fem::tests::helpers::thin_board());
         let before = c.len();
         attach_point_mass(&mut c, [0.01, 0.01], None, "weak");
         assert_eq!(c.len(), before, "a point not located adds nothing");

@@ -315,7 +315,7 @@ mod tests {
 
     #[test]
     fn pieces_partition_the_element_with_max_and_cutout_rules() {
-        let mut b = Board::default_board();
+        let mut b = crate::fem::tests::helpers::thin_board();
         b.copper.truncate(1);
         let rect = |x0, y0, x1, y1, fraction| Region::Rect {
             x0_m: x0,
@@ -421,7 +421,7 @@ mod tests {
             }),
         ])
         .unwrap();
-        let mut b = Board::default_board();
+        let mut b = crate::fem::tests::helpers::thin_board();
         b.copper.truncate(1);
         b.copper[0].coverage.clear();
         b.copper[0].gerber = Some("top.gbr".into());

@@ -63,6 +63,24 @@ pub struct RomOptions {
 /// Snapshots along each logarithmic axis (besides the centre).
 pub const LOG_AXIS_POINTS: usize = 8;
 
+/// Half-width (ln) of a shear-deformable board's transverse shear modulus's ROM axis: × or ÷ 2
+/// about the board file's value, 2.3 of its prior sds (≥ 30 %,
+/// [`crate::update::boards::G_Z_PRIOR_WIDTH`]) either way. The ±20 % box, right for moduli a
+/// datasheet gives, spans less than one of them.
+pub const G_Z_LOG_BOX: f64 = std::f64::consts::LN_2;
+
+/// `log_axes` and the parameter map's own logarithmic axes (the transverse shear modulus,
+/// [`G_Z_LOG_BOX`]): every ROM of a model, the updating's and the `fe rom` stage's that the
+/// propagation reads, spans the same box.
+pub fn with_own_log_axes(map: &ParamMap, log_axes: &[(String, f64)]) -> Vec<(String, f64)> {
+    let mut out = log_axes.to_vec();
+    let g_z = super::params::names::G_Z;
+    if map.names.iter().any(|m| m == g_z) && !out.iter().any(|(n, _)| n == g_z) {
+        out.push((g_z.to_string(), G_Z_LOG_BOX));
+    }
+    out
+}
+
 impl Default for RomOptions {
     fn default() -> Self {
         RomOptions {

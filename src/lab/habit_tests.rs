@@ -40,7 +40,7 @@ fn scenario(habits: Habits) -> Scenario {
 
 fn simulate_and_ingest(habits: Habits) -> (SimulatedCampaign, crate::campaign::Campaign) {
     let s = scenario(habits);
-    let c = simulate(&s, &Board::default_board(), 11).expect("simulation runs");
+    let c = simulate(&s, &crate::fem::tests::helpers::thin_board(), 11).expect("simulation runs");
     let ing = read_campaign(&InMemory(&c.files), &IngestConfig::default(), &|| {})
         .expect("the campaign ingests");
     (c, ing)
@@ -472,7 +472,7 @@ fn scan_grids_differ_between_setups_and_sessions() {
     }
     // Every bolted measurement has the coarser grid, every free one the board's; all come
     // through.
-    let board = Board::default_board();
+    let board = crate::fem::tests::helpers::thin_board();
     let n_free = board.scan_grid.nx * board.scan_grid.ny;
     for m in &ing.measurements {
         assert!(m.quarantine.is_none());
@@ -574,7 +574,7 @@ fn gaps_in_temperature_and_date_are_noted_and_the_rows_kept() {
 fn the_realistic_preset_ingests_with_every_habit_found() {
     let mut s = scenario(Habits::default());
     s.preset = Preset::Realistic;
-    let c = simulate(&s, &Board::default_board(), 5).unwrap();
+    let c = simulate(&s, &crate::fem::tests::helpers::thin_board(), 5).unwrap();
     let ing = read_campaign(&InMemory(&c.files), &IngestConfig::default(), &|| {}).unwrap();
     assert_population(&c, &ing);
     for code in [

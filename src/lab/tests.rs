@@ -30,7 +30,7 @@ fn small(mut s: Scenario) -> Scenario {
 
 fn run(name: &str, seed: u64) -> SimulatedCampaign {
     let s = small(builtin_scenario(name).expect("built-in scenario parses"));
-    simulate(&s, &Board::default_board(), seed).expect("simulation runs")
+    simulate(&s, &crate::fem::tests::helpers::thin_board(), seed).expect("simulation runs")
 }
 
 /// Parsed response spectra of one measurement: node → complex spectrum, plus the axis.
@@ -249,7 +249,7 @@ fn bad_scenarios_name_the_field() {
 #[test]
 fn same_scenario_and_seed_give_same_bytes_whatever_the_thread_count() {
     let s = small(builtin_scenario("loose_bolt").unwrap());
-    let b = Board::default_board();
+    let b = crate::fem::tests::helpers::thin_board();
     let one = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
@@ -273,7 +273,7 @@ fn same_scenario_and_seed_give_same_bytes_whatever_the_thread_count() {
 fn campaign_follows_the_contract_for_our_readers() {
     let mut s = small(builtin_scenario("paper").unwrap());
     s.balance.garbled_prob = 0.2; // make sure the deliberate balance glitch occurs
-    let c = simulate(&s, &Board::default_board(), 11).unwrap();
+    let c = simulate(&s, &crate::fem::tests::helpers::thin_board(), 11).unwrap();
     let t = &c.truth;
     // Layout: the sheet, one UFF per row, scale logs; nothing else.
     for name in c.files.keys() {
@@ -290,7 +290,7 @@ fn campaign_follows_the_contract_for_our_readers() {
     assert!(sheet.extra_columns.is_empty());
     let free_grid = c.truth.measurements.len();
     assert!(free_grid > 0);
-    let board = Board::default_board();
+    let board = crate::fem::tests::helpers::thin_board();
     let grid = board.scan_points_m();
     for (row, mt) in sheet.rows.iter().zip(&t.measurements) {
         assert_eq!(row.measurement_id, mt.measurement_id);
@@ -699,7 +699,7 @@ fn pyuff_and_pandas_read_the_campaign() {
     );
     let rows = v["rows"].as_array().unwrap();
     assert_eq!(rows.len(), c.truth.measurements.len());
-    let grid = Board::default_board().scan_points_m();
+    let grid = crate::fem::tests::helpers::thin_board().scan_points_m();
     for (row, mt) in rows.iter().zip(&c.truth.measurements) {
         assert_eq!(row["measurement_id"], mt.measurement_id.as_str());
         assert_eq!(row["setup"], mt.setup.as_str());
@@ -740,7 +740,7 @@ fn default_campaign_is_modest() {
     // test fails on a busy machine and proves nothing on an idle one.
     let s = builtin_scenario("paper").unwrap();
     let t = std::time::Instant::now();
-    let c = simulate(&s, &Board::default_board(), s.seed).unwrap();
+    let c = simulate(&s, &crate::fem::tests::helpers::thin_board(), s.seed).unwrap();
     let secs = t.elapsed().as_secs_f64();
     let bytes: usize = c.files.values().map(|v| v.len()).sum();
     eprintln!(

@@ -26,7 +26,7 @@ fn small_thick(rel_std: f64, sheet_dimensions: bool) -> Scenario {
 
 #[test]
 fn thickness_draw_is_nominal_at_zero_and_leaves_the_other_draws_alone() {
-    let board = Board::default_board();
+    let board = crate::fem::tests::helpers::thin_board();
     let h0 = board.core.thickness_m;
     let mut s = builtin_scenario("null").unwrap();
     s.campaign.n_boards = 7;
@@ -72,7 +72,7 @@ fn thickness_draw_is_nominal_at_zero_and_leaves_the_other_draws_alone() {
 
 #[test]
 fn truth_of_a_thick_board_is_the_board_built_at_its_thickness() {
-    let board = Board::default_board();
+    let board = crate::fem::tests::helpers::thin_board();
     let mut s = small_thick(0.05, false);
     s.population.rel_std = [0.0; 4]; // the thickness alone makes the boards differ
     let seed = 5;
@@ -174,7 +174,7 @@ fn sheet_rows(bytes: &[u8]) -> (Vec<String>, Vec<Vec<String>>) {
 
 #[test]
 fn sheet_gives_each_boards_dimensions_when_asked_and_only_then() {
-    let board = Board::default_board();
+    let board = crate::fem::tests::helpers::thin_board();
     let seed = 9;
     let mut on = small_thick(0.045, true);
     // Gaps and spellings on the sheet leave the dimension columns alone.

@@ -667,13 +667,11 @@ pub fn board_evidence(
 
 #[cfg(test)]
 mod tests {
-    use crate::fem::board::Board;
-
     /// The default parameters follow the board: a thin plate's four, and a shear-deformable
     /// plate's transverse shear modulus beside them.
     #[test]
     fn the_default_parameters_add_the_shear_modulus_of_a_shear_deformable_board() {
-        let mut board = Board::default_board();
+        let mut board = crate::fem::tests::helpers::thin_board();
         assert_eq!(
             super::default_params(&board),
             ["e_x_pa", "e_y_pa", "g_xy_pa", "mass_scale"]

@@ -1011,7 +1011,7 @@ mod thickness_tests {
     /// mass share: the same board without its copper weighs its core.
     #[test]
     fn measured_thickness_is_an_observation_of_the_boards_coordinate() {
-        let board = Board::default_board();
+        let board = crate::fem::tests::helpers::thin_board();
         let h0 = board.core.thickness_m;
         let params: Vec<String> = ["e_x_pa", "mass_scale", names::CORE_THICKNESS]
             .map(String::from)

@@ -9,20 +9,9 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::update::problem::ModelSpec;
 use crate::update::sampler::{particles_of, Results};
 
-/// Half-width (ln) of a shear-deformable board's transverse shear modulus's ROM axis: × or ÷ 2
-/// about the board file's value, 2.3 of its prior sds (≥ 30 %,
-/// [`crate::update::boards::G_Z_PRIOR_WIDTH`]) either way. The ±20 % box, right for moduli a
-/// datasheet gives, spans less than one of them.
-pub const G_Z_LOG_BOX: f64 = std::f64::consts::LN_2;
-
-/// `log_axes` and the model's own logarithmic axes (the transverse shear modulus).
+/// `log_axes` and the model's own logarithmic axes ([`crate::fem::rom::with_own_log_axes`]).
 pub fn model_log_axes(model: &FeModel, log_axes: &[(String, f64)]) -> Vec<(String, f64)> {
-    let mut out = log_axes.to_vec();
-    let has = |n: &str| model.map.names.iter().any(|m| m == n);
-    if has(names::G_Z) && !out.iter().any(|(n, _)| n == names::G_Z) {
-        out.push((names::G_Z.to_string(), G_Z_LOG_BOX));
-    }
-    out
+    crate::fem::rom::with_own_log_axes(&model.map, log_axes)
 }
 
 pub fn rom_for(

@@ -66,6 +66,9 @@ pub struct LabelModel {
     n_track: usize,
     /// Half-width of the ROM's verified box, relative to its centre.
     pub box_rel: f64,
+    /// Per parameter, the half-width in ln p of a logarithmic axis of the box (the model's
+    /// own, [`crate::fem::rom::with_own_log_axes`]), or `None` for a ±`box_rel` one.
+    log_box: Vec<Option<f64>>,
     /// Per label, the relative eigenvalue error its repeat measurements show
     /// ([`repeatability_eps`]); used for labels without an inferred ε.
     pub repeatability_eps: Vec<Option<f64>>,
@@ -107,12 +110,20 @@ impl LabelModel {
             })
             .collect();
         let n = labels.len();
+        let axes = crate::fem::rom::with_own_log_axes(&rom.map, &[]);
+        let log_box = rom
+            .map
+            .names
+            .iter()
+            .map(|p| axes.iter().find(|(a, _)| a == p).map(|(_, w)| *w))
+            .collect();
         Ok(LabelModel {
             rom,
             labels,
             refs,
             n_track,
             box_rel,
+            log_box,
             repeatability_eps: vec![None; n],
             model_error_sd: vec![0.0; n],
         })
@@ -168,7 +179,12 @@ impl LabelModel {
             .nominal
             .iter()
             .zip(values)
-            .all(|(c, v)| *c == 0.0 || ((v - c) / c).abs() <= self.box_rel * (1.0 + 1e-12))
+            .zip(&self.log_box)
+            .all(|((c, v), w)| match w {
+                _ if *c == 0.0 => true,
+                Some(w) => (v / c).ln().abs() <= w * (1.0 + 1e-12),
+                None => ((v - c) / c).abs() <= self.box_rel * (1.0 + 1e-12),
+            })
     }
 }
 
@@ -733,6 +749,35 @@ mod tests {
         )
         .unwrap();
         LabelModel::new(rom, vec!["m1".into(), "m2".into()], &[0, 1], 0.2).unwrap()
+    }
+
+    /// A shear-deformable board's G_z is inside the box over × or ÷ 2 (its ROM's logarithmic
+    /// axis, as `fe rom` and the updating build it), the moduli over ±20 % only.
+    #[test]
+    fn the_box_check_follows_the_transverse_shear_modulus_log_axis() {
+        let mut board = plain_board(0.2, 0.15, 1.6e-3, 24e9, 20e9, 8e9, 0.15, 1900.0);
+        board.core.g_xz_pa = Some(3e9);
+        board.core.g_yz_pa = Some(3e9);
+        let fe = build(&board, Setup::Free, 6, 4);
+        let ro = RomOptions {
+            n_modes: 3,
+            n_random: 2,
+            derivative_snapshots: false,
+            log_axes: crate::fem::rom::with_own_log_axes(&fe.map, &[]),
+            ..RomOptions::default()
+        };
+        assert_eq!(ro.log_axes.len(), 1);
+        let lm =
+            LabelModel::new(Rom::build(&fe, &ro).unwrap(), vec!["m1".into()], &[0], 0.2).unwrap();
+        let at = |name: &str, factor: f64| {
+            let mut v = lm.rom.map.nominal.clone();
+            let k = lm.rom.map.names.iter().position(|n| n == name).unwrap();
+            v[k] *= factor;
+            lm.inside_box(&v)
+        };
+        assert!(at(names::G_Z, 1.9) && at(names::G_Z, 0.55));
+        assert!(!at(names::G_Z, 2.1) && !at(names::G_Z, 0.45));
+        assert!(at(names::E_X, 1.19) && !at(names::E_X, 1.25));
     }
 
     /// Free-free models of `lm` whose one updated parameter is mass_scale.

@@ -5,6 +5,8 @@ use crate::fem::model::{FeModel, Setup};
 
 #[test]
 fn default_board_mass_and_frequencies_resemble_the_paper() {
+    // The in-plane moduli are the least-squares fit of this shear-deformable board to all
+    // eight of the paper's means (data/boards/default.toml): -1.8 ... +2.9 % measured.
     let b = Board::default_board();
     let m = FeModel::build(&b, Setup::Free, &b.mesh).unwrap();
     let p = m.nominal_params();
@@ -196,7 +198,7 @@ fn results_do_not_depend_on_faer_parallelism() {
 #[test]
 fn density_map_equals_the_same_pattern_as_regions() {
     use crate::fem::board::{DensityMap, Grid, Region};
-    let mut regions = Board::default_board();
+    let mut regions = crate::fem::tests::helpers::thin_board();
     let (nx, ny) = (16usize, 10usize);
     let mut values = vec![0.0; nx * ny];
     for j in 1..7 {

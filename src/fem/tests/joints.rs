@@ -9,7 +9,7 @@ use crate::fem::params::names;
 use crate::fem::rom::{latin_hypercube_params, Rom, RomOptions};
 
 fn board() -> Board {
-    Board::default_board()
+    crate::fem::tests::helpers::thin_board()
 }
 
 fn model(features: Vec<JointFeature>) -> FeModel {

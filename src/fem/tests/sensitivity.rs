@@ -1,13 +1,12 @@
 //! Analytic eigen-derivatives against central finite differences of the full model, and
 //! the qualitative pattern of the paper's Table 1.
 
-use crate::fem::board::Board;
 use crate::fem::model::{FeModel, Setup};
 use crate::fem::params::names;
 use crate::fem::sensitivity::{eigen_derivatives, table_percent_per_percent};
 
 fn check_derivatives(setup: Setup, n_modes: usize) {
-    let board = Board::default_board();
+    let board = crate::fem::tests::helpers::thin_board();
     let model = FeModel::build(&board, setup, &board.mesh).unwrap();
     let p = model.nominal_params();
     let modes = model.modes(&p, n_modes).unwrap();
@@ -75,7 +74,7 @@ fn bolted_derivatives_match_central_differences() {
 /// every frequency falls with mass as f ∝ m^(-1/2), i.e. exactly −0.5 %/%.
 #[test]
 fn table_shows_the_papers_pattern() {
-    let board = Board::default_board();
+    let board = crate::fem::tests::helpers::thin_board();
     let model = FeModel::build(&board, Setup::Free, &board.mesh).unwrap();
     let p = model.nominal_params();
     let rows = table_percent_per_percent(&model, &p, 8).unwrap();
@@ -132,7 +131,7 @@ fn table_shows_the_papers_pattern() {
 #[test]
 fn affine_stiffness_equals_direct_assembly_anywhere_in_the_box() {
     use crate::fem::params::names;
-    let b = crate::fem::Board::default_board();
+    let b = crate::fem::tests::helpers::thin_board();
     let mesh = crate::fem::MeshOptions { nx: 20, ny: 13 };
     let m0 = crate::fem::FeModel::build(&b, crate::fem::Setup::Free, &mesh).unwrap();
     assert!(m0.k_term_names.iter().any(|n| n.starts_with("coupling_s")));

@@ -49,7 +49,7 @@ fn compare(board: &Board, setup: Setup, h_m: f64, scale_e_x: f64, tol: f64) {
 /// bolted, 8 % thicker and 10 % thinner, with a modulus off nominal.
 #[test]
 fn the_thickness_parameter_reproduces_the_board_built_at_that_thickness() {
-    let b = Board::default_board();
+    let b = crate::fem::tests::helpers::thin_board();
     let h0 = b.core.thickness_m;
     for h in [1.08 * h0, 0.9 * h0] {
         compare(&b, Setup::Free, h, 1.05, 1e-9);
@@ -63,7 +63,7 @@ fn the_thickness_parameter_reproduces_the_board_built_at_that_thickness() {
 /// ∝ h (the copper's share of Whitney's S moves a little with h); within 1e-4 at ±10 %.
 #[test]
 fn the_thickness_parameter_follows_a_shear_deformable_board() {
-    let mut b = Board::default_board();
+    let mut b = crate::fem::tests::helpers::thin_board();
     b.core.g_xz_pa = Some(3e9);
     b.core.g_yz_pa = Some(3e9);
     let h0 = b.core.thickness_m;
@@ -97,7 +97,7 @@ fn a_plate_without_copper_scales_its_eigenvalues_with_h_squared() {
 /// differences, the coupling terms' included.
 #[test]
 fn thickness_coefficient_gradients_match_finite_differences() {
-    let b = Board::default_board();
+    let b = crate::fem::tests::helpers::thin_board();
     let opts = ModelOptions {
         core_thickness: true,
     };
@@ -147,7 +147,7 @@ fn thickness_coefficient_gradients_match_finite_differences() {
 #[test]
 fn the_rom_hot_path_with_two_mass_terms_matches_its_full_path_and_the_model() {
     use crate::fem::rom::{latin_hypercube_params, Rom, RomOptions};
-    let b = Board::default_board();
+    let b = crate::fem::tests::helpers::thin_board();
     let mesh = crate::fem::MeshOptions { nx: 20, ny: 12 };
     let opts = ModelOptions {
         core_thickness: true,
