@@ -17,8 +17,17 @@ fn small_scenario() -> PathBuf {
     repo().join("tests/nightly/small.toml")
 }
 
+/// The board these tests' pipelines run on: the built-in board as a thin plate
+/// (`data/boards/paper_thin.toml`). What they check (bytes, caching, scheduling, recovery
+/// from a cancel) does not depend on the plate theory, and the thin plate's models build in
+/// a fifth of the shear-deformable built-in board's time; that board runs end to end in the
+/// demo (CI's main job), tests/lab and tests/report.
+fn thin_board() -> PathBuf {
+    repo().join("data/boards/paper_thin.toml")
+}
+
 /// `make -C pipelines ARGS` with our binary, never rebuilding it (CARGO=true), and no model
-/// cache unless `envs` names one (HBMU_CACHE).
+/// cache unless `envs` names one (HBMU_CACHE); on [`thin_board`] unless ARGS name a BOARD.
 fn make(args: &[String], envs: &[(&str, &Path)]) -> Output {
     let mut c = Command::new("make");
     c.arg("-C")
@@ -28,6 +37,9 @@ fn make(args: &[String], envs: &[(&str, &Path)]) -> Output {
         .args(args)
         .env("CI", "1")
         .env("HBMU_CACHE", "");
+    if !args.iter().any(|a| a.starts_with("BOARD=")) {
+        c.arg(format!("BOARD={}", thin_board().display()));
+    }
     for (k, v) in envs {
         c.env(k, v);
     }
@@ -152,10 +164,9 @@ fn model_artifacts_are_built_once_for_campaigns_with_the_same_board() {
     let cache = t.path().join("cache");
     let board_copy = t.path().join("boards/same-board.toml");
     std::fs::create_dir_all(board_copy.parent().unwrap()).unwrap();
-    let default_board = repo().join("data/boards/default.toml");
-    std::fs::copy(&default_board, &board_copy).unwrap();
+    std::fs::copy(thin_board(), &board_copy).unwrap();
     let changed = t.path().join("boards/thicker.toml");
-    let text = std::fs::read_to_string(&default_board).unwrap();
+    let text = std::fs::read_to_string(thin_board()).unwrap();
     assert!(text.contains("thickness_m = 1.5e-3"));
     std::fs::write(
         &changed,
@@ -442,6 +453,8 @@ fn simulate(campaign: &Path, truth: &Path, seed: u64) {
         "lab",
         "simulate",
         small_scenario().to_str().unwrap(),
+        "--board",
+        thin_board().to_str().unwrap(),
         "--out",
         campaign.to_str().unwrap(),
         "--truth",
@@ -489,6 +502,7 @@ fn slurm_nightly_matches_local_recovers_a_cancel_and_redoes_only_what_changed() 
             // The scheduling is what this test is about: the measurement-side stages of each
             // campaign (the whole chain, `all`, is the other test's and the demo's).
             "NIGHTLY_GOAL=prepare".into(),
+            format!("BOARD={}", thin_board().display()),
         ]
     };
     let conf = cl.conf.clone();
