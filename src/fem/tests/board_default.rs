@@ -170,7 +170,7 @@ fn scan_grid_points_lie_on_the_board_and_avoid_holes() {
 fn results_do_not_depend_on_faer_parallelism() {
     // The kernels call faer with explicit `Par::Seq`, so its global setting (which the
     // CLI may raise) cannot change a single bit of the modes or of the ROM artifact.
-    let b = Board::default_board();
+    let b = crate::fem::tests::helpers::thin_board();
     let m = FeModel::build(&b, Setup::bolted(), &b.mesh).unwrap();
     let p = m.nominal_params();
     let opts = crate::fem::rom::RomOptions {
