@@ -373,10 +373,13 @@ pub fn run_rom(
     crate::stage::run(spec, force, |prep| {
         through_cache("fe-rom", &cache_key(prep), "npz", out, |out| {
             let (model, _) = build_model(&board, opts)?;
-            // The model's own logarithmic axes (a shear-deformable board's G_z), as the
-            // updating's ROM has them: the propagation checks its draws against this box.
+            // The model's own logarithmic axes (a shear-deformable board's G_z) and the basis
+            // they need, as the updating's ROM has them: the propagation checks its draws
+            // against this box.
+            let log_axes = fem::rom::with_own_log_axes(&model.map, &rom_opts.log_axes);
             let ro = fem::RomOptions {
-                log_axes: fem::rom::with_own_log_axes(&model.map, &rom_opts.log_axes),
+                max_basis: fem::rom::basis_cap(rom_opts.max_basis, log_axes.len()),
+                log_axes,
                 ..rom_opts.clone()
             };
             let rom = fem::Rom::build(&model, &ro)?;

@@ -22,16 +22,9 @@ pub fn rom_for(
 ) -> anyhow::Result<Rom> {
     let d = RomOptions::default();
     let log_axes = &model_log_axes(model, log_axes);
-    // A logarithmic axis needs more basis vectors: over e^{±3} of a joint's rotational
-    // stiffness the bolted ROM's worst frequency error is 1.3e-4 with 64 vectors and 3.0e-5
-    // with 80 (`rom_with_a_logarithmic_axis_matches_the_full_model_along_it`), so a cap
-    // chosen for the ±20 % box is raised to 64 + 8 per such axis.
-    let cap = opts.rom_max_basis.unwrap_or(d.max_basis);
-    let max_basis = if log_axes.is_empty() {
-        cap
-    } else {
-        cap.max(d.max_basis) + 8 * log_axes.len()
-    };
+    // A logarithmic axis needs more basis vectors ([`crate::fem::rom::basis_cap`]).
+    let max_basis =
+        crate::fem::rom::basis_cap(opts.rom_max_basis.unwrap_or(d.max_basis), log_axes.len());
     // The core thickness splits the mass into two terms: the three rigid-body vectors then
     // lead the basis (`fem::rom`) and take three of its vectors, which a cap chosen for the
     // elastic modes must not lose (at a cap of 12 the labels could no longer be tracked).

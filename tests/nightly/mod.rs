@@ -20,7 +20,7 @@ fn small_scenario() -> PathBuf {
 /// The board these tests' pipelines run on: the built-in board as a thin plate
 /// (`data/boards/paper_thin.toml`). What they check (bytes, caching, scheduling, recovery
 /// from a cancel) does not depend on the plate theory, and the thin plate's models build in
-/// a fifth of the shear-deformable built-in board's time; that board runs end to end in the
+/// a fifth of a shear-deformable board's time; the built-in board runs end to end in the
 /// demo (CI's main job), tests/lab and tests/report.
 fn thin_board() -> PathBuf {
     repo().join("data/boards/paper_thin.toml")

@@ -46,8 +46,9 @@ impl Work {
         let w = Work { dir };
         std::fs::write(w.p("small.toml"), scenario).unwrap();
         // The built-in board as a thin plate, for the lab and the model alike: these tests
-        // check the updating's mechanics, and the thin plate's models build in a fifth of the
-        // shear-deformable board's time (that one runs end to end in tests/lab and the demo).
+        // check the updating's mechanics, and the thin plate's models build in a fifth of a
+        // shear-deformable board's time (the built-in board runs end to end in tests/lab and
+        // the demo).
         let thin = repo().join("data/boards/paper_thin.toml");
         let o = hbmu(&[
             "lab",
