@@ -22,7 +22,7 @@ use crate::update::problem::{
     predictors, shape_map, thickness_obs, unit_and_residual_data, BoardCoordinates, Labels,
     MassRow, ModelErrorPrior, ModelSpec, ObsMeta, StepTarget,
 };
-use crate::update::rom_box::{model_log_axes, RomBoxViolation};
+use crate::update::rom_box::RomBoxViolation;
 use crate::update::sampler::{box_violations, particles_of, Results};
 use anyhow::{anyhow, bail};
 use rand::SeedableRng;
@@ -495,7 +495,7 @@ pub fn check_board_box(
 ) -> anyhow::Result<()> {
     // The ROM's logarithmic axes by parameter: an enrichment's coordinate is its logarithm
     // already (k ≥ d0), a board parameter's (the shear modulus) is relative.
-    let axes = model_log_axes(&bm.model, &bm.log_axes);
+    let axes = crate::fem::rom::with_own_log_axes(&bm.model.map, &bm.log_axes);
     let log_box = |k: usize| {
         axes.iter()
             .find(|(n, _)| *n == bm.param_names[k])

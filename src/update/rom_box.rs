@@ -9,11 +9,6 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::update::problem::ModelSpec;
 use crate::update::sampler::{particles_of, Results};
 
-/// `log_axes` and the model's own logarithmic axes ([`crate::fem::rom::with_own_log_axes`]).
-pub fn model_log_axes(model: &FeModel, log_axes: &[(String, f64)]) -> Vec<(String, f64)> {
-    crate::fem::rom::with_own_log_axes(&model.map, log_axes)
-}
-
 pub fn rom_for(
     model: &FeModel,
     n_modes_needed: usize,
@@ -21,7 +16,7 @@ pub fn rom_for(
     opts: &ModelSpec,
 ) -> anyhow::Result<Rom> {
     let d = RomOptions::default();
-    let log_axes = &model_log_axes(model, log_axes);
+    let log_axes = &crate::fem::rom::with_own_log_axes(&model.map, log_axes);
     // A logarithmic axis needs more basis vectors ([`crate::fem::rom::basis_cap`]).
     let max_basis =
         crate::fem::rom::basis_cap(opts.rom_max_basis.unwrap_or(d.max_basis), log_axes.len());
