@@ -81,6 +81,25 @@ pub fn basis_cap(cap: usize, n_log_axes: usize) -> usize {
     }
 }
 
+/// The basis of the updating's ROM on `map` (`update::rom_box::rom_for`) when its cap is `cap`
+/// and its extra logarithmic axes `log_axes`: [`basis_cap`] over those and the map's own axes,
+/// plus the three rigid-body vectors that lead the basis when the core thickness splits the
+/// mass into two terms (a cap chosen for the elastic modes must not lose them: at a cap of 12
+/// the labels could no longer be tracked). The propagation truncates the `fe rom` stage's ROM
+/// to it, so that it predicts with the reduced model the posterior was computed with.
+pub fn updating_basis(map: &ParamMap, cap: usize, log_axes: &[(String, f64)]) -> usize {
+    let b = basis_cap(cap, with_own_log_axes(map, log_axes).len());
+    if map
+        .names
+        .iter()
+        .any(|n| n == super::params::names::CORE_THICKNESS)
+    {
+        b + 3
+    } else {
+        b
+    }
+}
+
 /// `log_axes` and the parameter map's own logarithmic axes (the transverse shear modulus,
 /// [`G_Z_LOG_BOX`]): every ROM of a model, the updating's and the `fe rom` stage's that the
 /// propagation reads, spans the same box.

@@ -148,7 +148,7 @@ fn free_side(
     // The same reduced model the posterior was computed with: a basis capped in the
     // update (`--rom-basis`) is the prefix of the fe stage's basis.
     if let Some(r) = caps.basis1 {
-        rom_free = inputs::truncate_rom(rom_free, r);
+        rom_free = inputs::as_updated(rom_free, r);
     }
     let pairs = read_pairs(&inp.pairs)?;
     let (free_labels, free_modes) =
@@ -220,7 +220,7 @@ fn bolted_side(
     };
     let mut rom_b = read_rom(&inp.rom_bolted)?;
     if let Some(r) = caps.basis2 {
-        rom_b = inputs::truncate_rom(rom_b, r);
+        rom_b = inputs::as_updated(rom_b, r);
     }
     let pairs = read_pairs(&inp.pairs)?;
     let (bl, bm) = inputs::labels_of(label_keys(&pairs), "bolted", rom_b.n_modes, findings);

@@ -3,7 +3,6 @@
 
 use crate::bayes::smc::{self};
 use crate::bayes::target::ModalTarget;
-use crate::fem::params::names;
 use crate::fem::{FeModel, Rom, RomOptions};
 use crate::findings::{Finding, Findings, Severity};
 use crate::update::problem::ModelSpec;
@@ -16,18 +15,12 @@ pub fn rom_for(
     opts: &ModelSpec,
 ) -> anyhow::Result<Rom> {
     let d = RomOptions::default();
+    let max_basis = crate::fem::rom::updating_basis(
+        &model.map,
+        opts.rom_max_basis.unwrap_or(d.max_basis),
+        log_axes,
+    );
     let log_axes = &crate::fem::rom::with_own_log_axes(&model.map, log_axes);
-    // A logarithmic axis needs more basis vectors ([`crate::fem::rom::basis_cap`]).
-    let max_basis =
-        crate::fem::rom::basis_cap(opts.rom_max_basis.unwrap_or(d.max_basis), log_axes.len());
-    // The core thickness splits the mass into two terms: the three rigid-body vectors then
-    // lead the basis (`fem::rom`) and take three of its vectors, which a cap chosen for the
-    // elastic modes must not lose (at a cap of 12 the labels could no longer be tracked).
-    let max_basis = if model.map.names.iter().any(|n| n == names::CORE_THICKNESS) {
-        max_basis + 3
-    } else {
-        max_basis
-    };
     let ro = RomOptions {
         n_modes: n_modes_needed.max(d.n_modes),
         box_rel: opts.rom_box,

@@ -242,12 +242,98 @@ pub fn truncate_rom(rom: Rom, r: usize) -> Rom {
     )
 }
 
+/// The `fe rom` stage's ROM cut to the one an update step sampled on when it ran with the
+/// basis cap `cap` (`--rom-basis`): the updating raises that cap for the model's own
+/// logarithmic axes and a split mass ([`crate::fem::rom::updating_basis`]), and so must the cut.
+/// Cut to the bare cap, a shear-deformable board's ROM lost the vectors its G_z axis needs.
+pub fn as_updated(rom: Rom, cap: usize) -> Rom {
+    let r = crate::fem::rom::updating_basis(&rom.map, cap, &[]);
+    truncate_rom(rom, r)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::fem::model::Setup;
     use crate::fem::rom::RomOptions;
     use crate::fem::tests::helpers::{build, plain_board};
+
+    /// On a shear-deformable board the `fe rom` stage's ROM, cut for a step that ran with a cap
+    /// of 12, is the ROM that step built (`update::rom_box::rom_for`), along the G_z axis as
+    /// well. Cut to the bare 12 it was not: on the realistic null it put the free bending-y-1
+    /// 8e-4 above the full model at the boards' posterior medians.
+    #[test]
+    fn the_fe_rom_cut_for_a_capped_step_is_that_steps_rom_on_a_shear_deformable_board() {
+        let mut board = plain_board(0.2, 0.15, 1.6e-3, 24e9, 20e9, 8e9, 0.15, 1900.0);
+        board.core.g_xz_pa = Some(3e9);
+        board.core.g_yz_pa = Some(3e9);
+        let fe = build(&board, Setup::Free, 8, 6);
+        // As `fe rom` builds it (src/stage/fe.rs).
+        let axes = crate::fem::rom::with_own_log_axes(&fe.map, &[]);
+        assert_eq!(axes.len(), 1, "G_z is a log axis");
+        let stage_rom = Rom::build(
+            &fe,
+            &RomOptions {
+                max_basis: crate::fem::rom::basis_cap(RomOptions::default().max_basis, 1),
+                log_axes: axes,
+                ..RomOptions::default()
+            },
+        )
+        .unwrap();
+        let spec = crate::update::problem::ModelSpec {
+            modes: vec![],
+            params: vec![],
+            prior_width: 0.1,
+            sigma_scale: 0.05,
+            sigma_prior: Default::default(),
+            lkj_eta: 2.0,
+            eps: crate::bayes::target::ErrorPrior::Fixed { value: 1e-3 },
+            delta: None,
+            rom_box: 0.2,
+            box_tolerance: 0.01,
+            rom_max_basis: Some(12),
+            enrich: None,
+            enrich_joint: None,
+            enrich_units: vec![],
+            enrich_covariate: None,
+            enrich_location: None,
+            enrich_new_modes: false,
+            model_error: false,
+            discrepancy_freq: None,
+            hold_out_boards: vec![],
+            board_coordinates: Default::default(),
+            mass_floor_rel: crate::update::problem::ModelSpec::DEFAULT_MASS_FLOOR_REL,
+            shape_weights: Default::default(),
+        };
+        let step_rom = crate::update::rom_box::rom_for(&fe, 4, &[], &spec).unwrap();
+        let cut = as_updated(stage_rom.clone(), 12);
+        assert!(step_rom.dim() > 12, "the cap is raised: {}", step_rom.dim());
+        assert_eq!(cut.dim(), step_rom.dim());
+        let bare = truncate_rom(stage_rom, 12);
+        let k = fe
+            .map
+            .nominal_params()
+            .position(crate::fem::params::names::G_Z)
+            .unwrap();
+        let mut worst_bare = 0.0f64;
+        for mut p in crate::fem::rom::latin_hypercube_params(&fe.map, 4, 0.2, 5) {
+            for g in [1.6e9, 3e9, 5.8e9] {
+                p.values[k] = g;
+                let c = fe.map.coefficients(&p).unwrap();
+                let a = step_rom.eval_lowest(&c.k, &c.m, 4).unwrap();
+                let b = cut.eval_lowest(&c.k, &c.m, 4).unwrap();
+                let z = bare.eval_lowest(&c.k, &c.m, 4).unwrap();
+                for j in 0..4 {
+                    let e = (a.eigenvalues[j] - b.eigenvalues[j]).abs() / a.eigenvalues[j];
+                    assert!(e < 1e-9, "G_z {g:e}, mode {j}: step vs cut differ by {e:e}");
+                    let e = (a.eigenvalues[j] - z.eigenvalues[j]).abs() / a.eigenvalues[j];
+                    worst_bare = worst_bare.max(e);
+                }
+            }
+        }
+        // What the cut must not lose: the bare cap is visibly another model.
+        assert!(worst_bare > 1e-6, "bare cap differs by only {worst_bare:e}");
+    }
 
     #[test]
     fn a_truncated_rom_is_the_rom_built_with_that_cap() {
