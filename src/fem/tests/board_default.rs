@@ -5,6 +5,8 @@ use crate::fem::model::{FeModel, Setup};
 
 #[test]
 fn default_board_mass_and_frequencies_resemble_the_paper() {
+    // The in-plane moduli are the least-squares fit of this shear-deformable board to all
+    // eight of the paper's means (data/boards/default.toml): -1.8 ... +2.9 % measured.
     let b = Board::default_board();
     let m = FeModel::build(&b, Setup::Free, &b.mesh).unwrap();
     let p = m.nominal_params();

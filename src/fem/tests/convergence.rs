@@ -146,17 +146,24 @@ fn build_on_lines_refuses_bad_node_lines() {
     );
 }
 
-/// The built-in board's own meshes (`data/boards/default.toml`): free 56 × 35 within 20 ppm
-/// of 160 × 100 on the first 8 frequencies, bolted 80 × 50 (graded) within 10 ppm of
-/// 160 × 100, at nominal K_con. Their node lines sit on the copper's edges; before they
-/// did, 56 × 35 free was 124 ppm off (bending-y-1, whose curvature peaks between the top
-/// pours' edges at y = 22 and 28 mm) and 80 × 50 bolted 59 ppm. Measured: 11 and 4 ppm.
+/// The built-in board's own meshes (`data/boards/default.toml`, a shear-deformable plate),
+/// against 160 × 100 on the first 8 frequencies at nominal K_con: free 80 × 50 within `fe
+/// modes`'s 0.02 % rule; bolted 80 × 50 within half the diagnosis's 0.1 % practical threshold,
+/// so that the discretization cannot pass that bar on its own. The shear-deformable plate's
+/// boundary layers (δ ≈ 0.7 mm at the free edges, the holes' rims and the clamps' rims)
+/// converge more slowly than the thin plate's O(h⁴) (its 56 × 35 and 80 × 50 were within 11
+/// and 4 ppm). Measured: 144 and 390 ppm.
 #[test]
-fn default_board_meshes_are_within_the_frequency_noise() {
+fn default_board_meshes_are_within_the_mesh_rule() {
     let b = Board::default_board();
+    assert!(b.core.transverse_shear().is_some());
     for (setup, mesh, tol) in [
-        (Setup::Free, b.mesh.clone(), 2e-5),
-        (Setup::bolted(), b.mesh_for(&Setup::bolted()).clone(), 1e-5),
+        (Setup::Free, b.mesh.clone(), DEFAULT_MESH_TOL),
+        (
+            Setup::bolted(),
+            b.mesh_for(&Setup::bolted()).clone(),
+            0.5 * crate::diagnose::select::DEFAULT_PRACTICAL_THRESHOLD_REL,
+        ),
     ] {
         let f = freqs(&b, setup.clone(), mesh.nx, mesh.ny, 8);
         let r = freqs(&b, setup.clone(), 160, 100, 8);

@@ -9,9 +9,9 @@ use crate::fem::eigen::{shift_invert_lanczos, EigenOptions};
 use crate::fem::model::{FeModel, Setup};
 use crate::fem::sparse::Pattern;
 
-/// The built-in board as a thin (Kirchhoff) plate (`data/boards/paper_thin.toml`): the
-/// fixture of the kernels' tests, whose references and tolerances are the thin plate's and
-/// whose meshes it converges on, whichever plate theory the built-in board takes.
+/// The built-in board as a thin (Kirchhoff) plate (`data/boards/paper_thin.toml`, the
+/// built-in board before it became shear-deformable): the fixture of the kernels' tests,
+/// whose references and tolerances are the thin plate's and whose meshes it converges on.
 pub fn thin_board() -> Board {
     Board::from_toml_str(include_str!("../../../data/boards/paper_thin.toml"))
         .expect("data/boards/paper_thin.toml parses")
