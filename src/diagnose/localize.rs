@@ -259,6 +259,11 @@ pub struct LocalFit {
     /// ratios. A fit at a fixed point is conditional on it; this is what the point's
     /// uncertainty adds.
     pub location_ln_amplitude_sd: f64,
+    /// What one grid step moves: the largest change, over the fitted modes and the best
+    /// point's grid neighbours, of the relative frequency shift the fitted amplitude predicts
+    /// (first order). The refit's point search refines the point only by steps that change a
+    /// frequency by the practical threshold or more. 0 where not computed.
+    pub step_shift_rel: f64,
     /// Δχ² of every candidate point (the order of `points_m`; 0 where no amplitude of the
     /// allowed sign fits) and the χ² inflation s of the region threshold; not written out.
     #[serde(skip)]
@@ -504,6 +509,7 @@ pub fn localize_point_mass_at(
         alternatives,
         log_location_occam,
         location_ln_amplitude_sd,
+        step_shift_rel: 0.0,
         delta_chi2: fits.iter().map(|f| f.0).collect(),
         inflation,
         amplitude_at: fits.iter().map(|f| f.1).collect(),

@@ -118,6 +118,34 @@ pub struct SearchPlan {
     pub max_probes: usize,
 }
 
+impl SearchPlan {
+    /// The schedule for a point the localisation map placed on its grid of step `grid_m`:
+    /// steps halve from half a grid step (the map's point is within one step of its
+    /// optimum) to an eighth, but only while a step can still change a fitted frequency by
+    /// `threshold_rel` or more: `step_shift_rel` is what a whole grid step changes
+    /// ([`crate::diagnose::localize::LocalFit::step_shift_rel`]), first order in the step.
+    /// A finer point would be a statistical refinement the user cannot see in any
+    /// frequency, at four refits a stencil. `None`: not even the first step reaches the
+    /// threshold, and the map's point stands. A `step_shift_rel` ≤ 0 (not known) keeps the
+    /// whole schedule.
+    pub fn for_point(grid_m: f64, step_shift_rel: f64, threshold_rel: f64) -> Option<SearchPlan> {
+        let (first, finest) = (0.5 * grid_m, 0.125 * grid_m);
+        let moves = |h: f64| step_shift_rel <= 0.0 || step_shift_rel * h / grid_m >= threshold_rel;
+        if !moves(first) {
+            return None;
+        }
+        let mut last = first;
+        while last > finest * (1.0 + 1e-9) && moves(0.5 * last) {
+            last *= 0.5;
+        }
+        Some(SearchPlan {
+            first_step_m: first,
+            last_step_m: last,
+            max_probes: 24,
+        })
+    }
+}
+
 /// What [`search`] found.
 #[derive(Clone, Debug)]
 pub struct SearchResult {
@@ -209,6 +237,7 @@ pub fn refined(
         c.point_located = Some(PointLocated {
             log_occam: post.log_occam,
             location_ln_mass_sd: post.ln_mass_sd,
+            step_shift_rel: cand.point_located.map_or(0.0, |p| p.step_shift_rel),
         });
         c.reason = format!(
             "{}; the point refined by the refits' evidence to ({:.2}, {:.2}) mm (sd {:.2}, {:.2} mm)",
@@ -232,6 +261,25 @@ pub fn refined(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The schedule stops halving where a step no longer moves a frequency by the threshold
+    /// (a 2 mm grid, a 0.1 % threshold).
+    #[test]
+    fn the_search_refines_only_by_steps_a_frequency_can_show() {
+        let g = 2e-3;
+        // 0.4 % a grid step: 1 mm moves 0.2 %, 0.5 mm 0.1 %, 0.25 mm 0.05 %.
+        let p = SearchPlan::for_point(g, 4e-3, 1e-3).unwrap();
+        assert!((p.first_step_m - 1e-3).abs() < 1e-12);
+        assert!((p.last_step_m - 0.5e-3).abs() < 1e-12, "{}", p.last_step_m);
+        // 2 % a grid step: down to an eighth of it.
+        let p = SearchPlan::for_point(g, 2e-2, 1e-3).unwrap();
+        assert!((p.last_step_m - 0.25e-3).abs() < 1e-12);
+        // 0.15 %: half a grid step moves 0.075 %, under the threshold: no search.
+        assert!(SearchPlan::for_point(g, 1.5e-3, 1e-3).is_none());
+        // Not known: the whole schedule.
+        let p = SearchPlan::for_point(g, 0.0, 1e-3).unwrap();
+        assert!((p.last_step_m - 0.25e-3).abs() < 1e-12);
+    }
 
     /// A log evidence peaked at `(x0, y0)` with sd `s` along each axis; ln mass linear.
     fn field(x0: f64, y0: f64, s: [f64; 2]) -> impl Fn([f64; 2]) -> Probe {

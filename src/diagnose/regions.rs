@@ -400,6 +400,13 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
             (fit.region_radius_m, fit.region_points) = freq_region;
         }
     }
+    fit.step_shift_rel = step_shift_rel(
+        points,
+        &signature,
+        [fit.x_m, fit.y_m],
+        grid_step_m(inp.board),
+        fit.amplitude,
+    );
     let located = passes_rule(&fit, locate);
     let alt = alternatives_clause(&fit, d.chosen_by_shapes, d.shape_scores.len());
     let skipped = if d.shapes.skipped > 0 {
@@ -432,6 +439,34 @@ pub fn point_mass_region(inp: &RegionInput, fb: &FreeBasis) -> anyhow::Result<Bo
         )
     };
     Ok(d.region(Mechanism::AddedMass, "kg", located, fit, sentence))
+}
+
+/// [`LocalFit::step_shift_rel`] of a point mass `amplitude` kg at the grid point `at`:
+/// `signature[i][j]` = ∂ ln f_j/∂m of a point mass at `points[i]`; the neighbours are the
+/// grid points one `step` away along x or y (fewer beside a hole or an edge). 0 when `at` is
+/// not a grid point.
+fn step_shift_rel(
+    points: &[[f64; 2]],
+    signature: &[Vec<f64>],
+    at: [f64; 2],
+    step: f64,
+    amplitude: f64,
+) -> f64 {
+    let dist = |p: &[f64; 2]| (p[0] - at[0]).hypot(p[1] - at[1]);
+    let Some(i0) = points.iter().position(|p| dist(p) < 0.25 * step) else {
+        return 0.0;
+    };
+    points
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| (dist(p) - step).abs() < 0.25 * step)
+        .flat_map(|(i, _)| {
+            signature[i]
+                .iter()
+                .zip(&signature[i0])
+                .map(|(a, b)| (amplitude * (a - b)).abs())
+        })
+        .fold(0.0, f64::max)
 }
 
 /// Radius of the disc of a stiffness change's signature, m: a spot the size of a component's

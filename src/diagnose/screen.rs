@@ -115,6 +115,11 @@ pub struct PointLocated {
     /// ([`crate::diagnose::localize::LocalFit::location_ln_amplitude_sd`]): the refit's mass
     /// interval, conditional on the point, is widened by it.
     pub location_ln_mass_sd: f64,
+    /// The largest change of a fitted mode's frequency that moving the point one grid step
+    /// makes ([`crate::diagnose::localize::LocalFit::step_shift_rel`]), relative: the point
+    /// search refines only by steps that change a frequency by the practical threshold.
+    #[serde(default)]
+    pub step_shift_rel: f64,
 }
 
 /// Attach a point mass to the `added_mass` candidate: its location, the reason, and when
@@ -346,6 +351,7 @@ pub fn attach_regions(candidates: &mut Vec<Candidate>, regions: &[BoardRegion]) 
                 r.located.then_some(PointLocated {
                     log_occam: r.fit.log_location_occam,
                     location_ln_mass_sd: r.fit.location_ln_amplitude_sd,
+                    step_shift_rel: r.fit.step_shift_rel,
                 }),
                 &r.sentence,
             ),
@@ -539,6 +545,7 @@ mod tests {
             Some(PointLocated {
                 log_occam: -4.0,
                 location_ln_mass_sd: 0.02,
+                step_shift_rel: 0.0,
             }),
             "a point mass there explains it",
         );
@@ -578,6 +585,7 @@ mod tests {
             Some(PointLocated {
                 log_occam: -5.0,
                 location_ln_mass_sd: 0.02,
+                step_shift_rel: 0.0,
             }),
             "a point mass there explains the free-free mean shifts",
         );

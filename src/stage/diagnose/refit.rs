@@ -365,7 +365,9 @@ fn new_modes_refit(
 /// The located point of an `added_mass` candidate, refined by the refits' own evidence
 /// ([`crate::diagnose::point_search`]): step-1 refits with the point fixed at the probes of
 /// a compass search (`refits/<id>/location/x<mm>_y<mm>`, each a hashed stage of its own)
-/// from the localisation's grid point, steps halving from 1 mm to 0.25 mm. Returns the candidate at the
+/// from the localisation's grid point, steps halving from half a grid step to an eighth while
+/// a step can still move a frequency by the practical threshold
+/// ([`point_search::SearchPlan::for_point`]). Returns the candidate at the
 /// refined point, with the location's Laplace posterior in place of the map's Occam factor
 /// and ln(mass) spread, and every probe. Any other candidate, or a search that could not
 /// run (a probe off the board, a failed refit), is returned as it was; that, and a last
@@ -383,13 +385,22 @@ pub(super) fn refine_point(
     else {
         return (cand.clone(), vec![], None);
     };
-    // From half the map's grid step (its point is within one of the map's optimum) to an
-    // eighth; each probe with half the refit's particles (the log evidence between probes
-    // differs by tens to hundreds, its error across runs is a few).
-    let plan = point_search::SearchPlan {
-        first_step_m: 0.5 * regions::grid_step_m(board),
-        last_step_m: 0.125 * regions::grid_step_m(board),
-        max_probes: 24,
+    // Each probe with half the refit's particles (the log evidence between probes differs by
+    // tens to hundreds, its error across runs is a few).
+    let grid = regions::grid_step_m(board);
+    let shift = cand.point_located.map_or(0.0, |p| p.step_shift_rel);
+    let threshold = opts.select.practical_threshold_rel;
+    let Some(plan) = point_search::SearchPlan::for_point(grid, shift, threshold) else {
+        let why = format!(
+            "the point not refined: moving the fitted mass by {:.2} mm changes no fitted frequency by more than {:.3} %, under the {:.2} % practical threshold",
+            0.5 * grid * 1e3,
+            100.0 * 0.5 * shift,
+            100.0 * threshold
+        );
+        eprintln!("diagnose: {}: {why}", cand.id());
+        let mut c = cand.clone();
+        c.reason = format!("{}; {why}", c.reason);
+        return (c, vec![], None);
     };
     let probe = |p: [f64; 2]| -> anyhow::Result<point_search::Probe> {
         let mut o = board_refit_options(opts, base1, cand, Some(p));
