@@ -26,6 +26,27 @@ pub struct Probe {
     /// The standard error of `log_evidence`: its runs' spread (sd / √runs; 0 with one run).
     pub log_evidence_se: f64,
     pub ln_mass_kg: f64,
+    /// The largest |mean relative frequency residual| of a free-free mode the refit left
+    /// ([`worst_mean_residual`]): what the point changes in the fit, in the practical
+    /// threshold's terms. NaN when not known.
+    pub misfit_rel: f64,
+}
+
+/// The largest |mean relative residual| over the free-free labels of a refit's residuals
+/// (each label's mean over its measurements); NaN without any.
+pub fn worst_mean_residual(rows: &[crate::diagnose::locate::ResidualObs]) -> f64 {
+    let mut by: std::collections::BTreeMap<&str, (f64, usize)> = Default::default();
+    for r in rows
+        .iter()
+        .filter(|r| r.setup == "free" && r.rel_residual.is_finite())
+    {
+        let e = by.entry(r.label.as_str()).or_default();
+        e.0 += r.rel_residual;
+        e.1 += 1;
+    }
+    by.values()
+        .map(|(s, n)| (s / *n as f64).abs())
+        .fold(f64::NAN, f64::max)
 }
 
 /// A probe is a better point than another only when its log evidence is higher by more than
@@ -116,6 +137,11 @@ pub struct SearchPlan {
     pub last_step_m: f64,
     /// Probes at most (the search then ends at its best centre).
     pub max_probes: usize,
+    /// The practical threshold (relative frequency): the search ends at a stencil none of
+    /// whose arms changes the fit's worst mode ([`Probe::misfit_rel`]) by this much from the
+    /// centre's, whatever their evidence: a finer or further point would be one the user
+    /// cannot see in any frequency. `None`: the evidence alone decides.
+    pub practical_rel: Option<f64>,
 }
 
 impl SearchPlan {
@@ -142,6 +168,7 @@ impl SearchPlan {
             first_step_m: first,
             last_step_m: last,
             max_probes: 24,
+            practical_rel: Some(threshold_rel),
         })
     }
 }
@@ -204,6 +231,20 @@ pub fn search<E>(
             h_m: h,
         };
         let out_of_probes = probes.len() + 4 > plan.max_probes;
+        let flat = plan.practical_rel.is_some_and(|t| {
+            centre.misfit_rel.is_finite()
+                && arms
+                    .iter()
+                    .all(|a| (a.misfit_rel - centre.misfit_rel).abs() < t)
+        });
+        if flat {
+            let best = if best.beats(&centre) { best } else { centre };
+            return Ok(SearchResult {
+                probes,
+                last: st,
+                end_xy_m: [best.x_m, best.y_m],
+            });
+        }
         if best.beats(&centre) && !out_of_probes {
             centre = best;
             continue;
@@ -291,7 +332,66 @@ mod tests {
                 - 0.5 * ((p[1] - y0) / s[1]).powi(2),
             log_evidence_se: 0.0,
             ln_mass_kg: -8.0 + 50.0 * (p[0] - x0) - 20.0 * (p[1] - y0),
+            // The worst mode's misfit grows by 0.05 % a millimetre from the peak.
+            misfit_rel: 1e-3 + 0.5 * (p[0] - x0).hypot(p[1] - y0),
         }
+    }
+
+    /// With a practical threshold the search ends at the first stencil whose arms change
+    /// the worst mode's misfit by less than it, at the best probe, where the evidence alone
+    /// would go on halving its step.
+    #[test]
+    fn the_search_ends_where_no_arm_changes_the_fit_by_the_practical_threshold() {
+        let (x0, y0) = (0.0553, 0.0312);
+        let f = field(x0, y0, [6e-5, 8e-5]);
+        let plan = |practical_rel| SearchPlan {
+            first_step_m: 1e-3,
+            last_step_m: 2.5e-4,
+            max_probes: 30,
+            practical_rel,
+        };
+        let by_evidence = search([0.054, 0.032], &plan(None), |p| Ok::<_, ()>(f(p))).unwrap();
+        // 1 mm arms change the misfit by up to 0.05 %: under 0.1 %, one stencil.
+        let practical = search([0.054, 0.032], &plan(Some(1e-3)), |p| Ok::<_, ()>(f(p))).unwrap();
+        assert_eq!(practical.probes.len(), 5);
+        assert!(by_evidence.probes.len() > 5);
+        // The best of those five: the +x arm, nearer the peak.
+        assert_eq!(practical.end_xy_m, [0.055, 0.032]);
+        // Arms that change it by 0.05 % pass a 0.04 % threshold: the search goes on.
+        let finer = search([0.054, 0.032], &plan(Some(4e-4)), |p| Ok::<_, ()>(f(p))).unwrap();
+        assert!(finer.probes.len() > 5);
+        // Unknown misfits never end it.
+        let nan = |p| Probe {
+            misfit_rel: f64::NAN,
+            ..f(p)
+        };
+        let unknown = search([0.054, 0.032], &plan(Some(1e-3)), |p| Ok::<_, ()>(nan(p))).unwrap();
+        assert_eq!(unknown.probes.len(), by_evidence.probes.len());
+    }
+
+    #[test]
+    fn the_worst_mean_residual_is_over_free_free_labels() {
+        let row = |setup: &str, label: &str, rel: f64| crate::diagnose::locate::ResidualObs {
+            measurement_id: "M1".into(),
+            board_id: "B1".into(),
+            setup: setup.into(),
+            label: label.into(),
+            freq_hz: 1.0,
+            model_freq_hz_mean: 1.0,
+            predictive_sd_hz: 1.0,
+            rel_residual: rel,
+            std_residual: 0.0,
+            used_for_updating: true,
+            mac: None,
+        };
+        let rows = [
+            row("free", "a", 1e-3),
+            row("free", "a", -3e-3),
+            row("free", "b", 5e-4),
+            row("bolted", "c", 1e-2),
+        ];
+        assert!((worst_mean_residual(&rows) - 1e-3).abs() < 1e-15);
+        assert!(worst_mean_residual(&rows[3..]).is_nan());
     }
 
     #[test]
@@ -303,6 +403,7 @@ mod tests {
             first_step_m: 1e-3,
             last_step_m: 2.5e-4,
             max_probes: 30,
+            practical_rel: None,
         };
         let SearchResult {
             probes,
@@ -344,12 +445,14 @@ mod tests {
                     + 0.5 * (p[0] * 7.3e4 + p[1] * 3.1e4).sin(),
                 log_evidence_se: se,
                 ln_mass_kg: -8.0,
+                misfit_rel: f64::NAN,
             }
         };
         let plan = SearchPlan {
             first_step_m: 1e-3,
             last_step_m: 2.5e-4,
             max_probes: 40,
+            practical_rel: None,
         };
         let exact = search([0.055, 0.030], &plan, |p| Ok::<_, ()>(noisy(0.0)(p))).unwrap();
         let aware = search([0.055, 0.030], &plan, |p| Ok::<_, ()>(noisy(0.5)(p))).unwrap();
@@ -374,6 +477,7 @@ mod tests {
             log_evidence: 0.0,
             log_evidence_se: 0.0,
             ln_mass_kg: 0.0,
+            misfit_rel: f64::NAN,
         };
         let at = |x: f64, y: f64, l: f64| Probe {
             x_m: x,
@@ -381,6 +485,7 @@ mod tests {
             log_evidence: l,
             log_evidence_se: 0.0,
             ln_mass_kg: 0.0,
+            misfit_rel: f64::NAN,
         };
         // Rising along +x: no maximum along x.
         let st = Stencil {
@@ -398,6 +503,7 @@ mod tests {
             first_step_m: 1e-3,
             last_step_m: 1e-3,
             max_probes: 10,
+            practical_rel: None,
         };
         let mut n = 0;
         let r = search([0.0, 0.0], &plan, |_| {

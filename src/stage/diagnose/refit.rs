@@ -428,14 +428,16 @@ pub(super) fn refine_point(
             // One run has no spread to go by: every difference then counts.
             log_evidence_se: if se.is_finite() { se } else { 0.0 },
             ln_mass_kg: quantile(&m, 0.5).ln(),
+            misfit_rel: point_search::worst_mean_residual(&refit_residuals(&o.out)?),
         };
         eprintln!(
-            "diagnose: {}: point ({:.3}, {:.3}) mm: log evidence {:.2}, mass {:.4} g",
+            "diagnose: {}: point ({:.3}, {:.3}) mm: log evidence {:.2}, mass {:.4} g, worst free-free mode {:.3} %",
             cand.id(),
             p[0] * 1e3,
             p[1] * 1e3,
             q.log_evidence,
-            q.ln_mass_kg.exp() * 1e3
+            q.ln_mass_kg.exp() * 1e3,
+            100.0 * q.misfit_rel
         );
         Ok(q)
     };
