@@ -458,7 +458,8 @@ pub(super) fn refine_point(
             return (cand.clone(), vec![], Some(note));
         }
     };
-    let (c, note) = point_search::refined(cand, end, &last, board.length_x_m * board.width_y_m);
+    let (c, note) =
+        point_search::refined(cand, end, last.as_ref(), board.length_x_m * board.width_y_m);
     if let Some(n) = &note {
         eprintln!("diagnose: {}: {n}", cand.id());
     }
