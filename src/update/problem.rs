@@ -97,6 +97,39 @@ fn default_mass_floor_rel() -> f64 {
     ModelSpec::DEFAULT_MASS_FLOOR_REL
 }
 
+#[cfg(test)]
+impl ModelSpec {
+    /// A spec for tests: no modes, parameters or enrichment chosen, a fixed ε, no shape
+    /// terms, the default ROM box; tests set what they exercise.
+    pub(crate) fn for_tests() -> ModelSpec {
+        ModelSpec {
+            modes: vec![],
+            params: vec![],
+            prior_width: 1.0,
+            sigma_scale: 0.5,
+            sigma_prior: Default::default(),
+            lkj_eta: 2.0,
+            eps: ErrorPrior::Fixed { value: 1e-3 },
+            delta: None,
+            rom_box: ModelSpec::DEFAULT_ROM_BOX,
+            box_tolerance: 0.01,
+            rom_max_basis: None,
+            enrich: None,
+            enrich_joint: None,
+            enrich_units: vec![],
+            enrich_covariate: None,
+            enrich_location: None,
+            enrich_new_modes: false,
+            model_error: false,
+            discrepancy_freq: None,
+            hold_out_boards: vec![],
+            board_coordinates: Default::default(),
+            mass_floor_rel: ModelSpec::DEFAULT_MASS_FLOOR_REL,
+            shape_weights: Default::default(),
+        }
+    }
+}
+
 impl ModelSpec {
     /// Default floor of the mass term's sd, relative to the weighed mass (`mass_obs`).
     pub const DEFAULT_MASS_FLOOR_REL: f64 = 2e-4;

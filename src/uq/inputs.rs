@@ -281,29 +281,8 @@ mod tests {
         )
         .unwrap();
         let spec = crate::update::problem::ModelSpec {
-            modes: vec![],
-            params: vec![],
-            prior_width: 0.1,
-            sigma_scale: 0.05,
-            sigma_prior: Default::default(),
-            lkj_eta: 2.0,
-            eps: crate::bayes::target::ErrorPrior::Fixed { value: 1e-3 },
-            delta: None,
-            rom_box: 0.2,
-            box_tolerance: 0.01,
             rom_max_basis: Some(12),
-            enrich: None,
-            enrich_joint: None,
-            enrich_units: vec![],
-            enrich_covariate: None,
-            enrich_location: None,
-            enrich_new_modes: false,
-            model_error: false,
-            discrepancy_freq: None,
-            hold_out_boards: vec![],
-            board_coordinates: Default::default(),
-            mass_floor_rel: crate::update::problem::ModelSpec::DEFAULT_MASS_FLOOR_REL,
-            shape_weights: Default::default(),
+            ..crate::update::problem::ModelSpec::for_tests()
         };
         let step_rom = crate::update::rom_box::rom_for(&fe, 4, &[], &spec).unwrap();
         let cut = as_updated(stage_rom.clone(), 12);

@@ -590,7 +590,6 @@ pub(crate) fn prepare_joints(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bayes::target::ErrorPrior;
     use crate::io::manifest::{FileHash, Prepared};
 
     fn prepared(input_blake3: &str) -> Prepared {
@@ -615,29 +614,9 @@ mod tests {
 
     fn spec(rom_box: f64, enrich: Mechanism) -> ModelSpec {
         ModelSpec {
-            modes: vec![],
-            params: vec![],
-            prior_width: 1.0,
-            sigma_scale: 0.5,
-            sigma_prior: Default::default(),
-            lkj_eta: 2.0,
-            eps: ErrorPrior::Fixed { value: 1e-3 },
-            delta: None,
             rom_box,
-            box_tolerance: 0.01,
-            rom_max_basis: None,
             enrich: Some(enrich),
-            enrich_joint: None,
-            enrich_units: vec![],
-            enrich_covariate: None,
-            enrich_location: None,
-            enrich_new_modes: false,
-            model_error: false,
-            discrepancy_freq: None,
-            hold_out_boards: vec![],
-            board_coordinates: Default::default(),
-            mass_floor_rel: ModelSpec::DEFAULT_MASS_FLOOR_REL,
-            shape_weights: Default::default(),
+            ..ModelSpec::for_tests()
         }
     }
 
