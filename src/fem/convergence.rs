@@ -110,7 +110,7 @@ pub fn mesh_check(
 }
 
 /// Outcome of [`mesh_spread`].
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct MeshSpread {
     /// The mesh of the model, `[nx, ny]`.
     pub mesh: [usize; 2],

@@ -117,16 +117,9 @@ impl ElementMatrices {
             let w = sign * wq;
             let n = shape(xi, eta, a_m, b_m);
             // Rows over the DOFs: κ's three components, γ, θ and w.
-            let mut kxx = [0.0; DOFS];
-            let mut kyy = [0.0; DOFS];
-            let mut kxy = [0.0; DOFS];
+            let [kxx, kyy, kxy] = curvature_rows(&n, xi, eta, a_m, b_m, shear);
             let mut w0 = [0.0; DOFS];
-            for k in 0..BFS_DOFS {
-                kxx[k] = n[3][k];
-                kyy[k] = n[4][k];
-                kxy[k] = 2.0 * n[5][k];
-                w0[k] = n[0][k];
-            }
+            w0[..BFS_DOFS].copy_from_slice(&n[0]);
             if shear {
                 let l = bilinear(xi, eta, a_m, b_m);
                 let mut gx = [0.0; DOFS];
@@ -137,10 +130,6 @@ impl ElementMatrices {
                 ty[..BFS_DOFS].copy_from_slice(&n[2]);
                 for k in 0..4 {
                     let (ix, iy) = (16 + k, 20 + k);
-                    kxx[ix] = -l[1][k];
-                    kyy[iy] = -l[2][k];
-                    kxy[ix] = -l[2][k];
-                    kxy[iy] = -l[1][k];
                     gx[ix] = l[0][k];
                     gy[iy] = l[0][k];
                     tx[ix] = -l[0][k];
@@ -174,6 +163,39 @@ impl ElementMatrices {
             }
         }
     }
+}
+
+/// The curvature rows of an element at (ξ, η), over its DOFs: κxx, κyy and 2κxy (the
+/// engineering twist) of the bending rotations, `n` being [`shape`] there. On a
+/// shear-deformable element the rotations are w's slopes less the shear strains' bilinear
+/// fields (DOFs 16–23), else w's slopes alone.
+pub fn curvature_rows(
+    n: &[[f64; 16]; 6],
+    xi: f64,
+    eta: f64,
+    a_m: f64,
+    b_m: f64,
+    shear: bool,
+) -> [[f64; DOFS]; 3] {
+    let mut kxx = [0.0; DOFS];
+    let mut kyy = [0.0; DOFS];
+    let mut kxy = [0.0; DOFS];
+    for k in 0..BFS_DOFS {
+        kxx[k] = n[3][k];
+        kyy[k] = n[4][k];
+        kxy[k] = 2.0 * n[5][k];
+    }
+    if shear {
+        let l = bilinear(xi, eta, a_m, b_m);
+        for k in 0..4 {
+            let (ix, iy) = (16 + k, 20 + k);
+            kxx[ix] = -l[1][k];
+            kyy[iy] = -l[2][k];
+            kxy[ix] = -l[2][k];
+            kxy[iy] = -l[1][k];
+        }
+    }
+    [kxx, kyy, kxy]
 }
 
 /// Integrate the unit matrices of an `a_m × b_m` element with `n` DOFs ([`BFS_DOFS`] or

@@ -1530,6 +1530,49 @@ impl FeModel {
         })
     }
 
+    /// BLAKE3 of everything a computation on this model reads: the setup, the DOF layout, the
+    /// parameter map, the sparse pattern, every stiffness and mass term and the joint
+    /// patches, the mesh lines and the board. Two models with the same hash give the same
+    /// bytes from any deterministic computation on them (a reduced model, a mesh study):
+    /// the key under which the model cache keeps those (`io::cache`).
+    pub fn content_blake3(&self) -> String {
+        let mut h = blake3::Hasher::new();
+        let words = |h: &mut blake3::Hasher, v: &[usize]| {
+            h.update(&(v.len() as u64).to_le_bytes());
+            for x in v {
+                h.update(&(*x as u64).to_le_bytes());
+            }
+        };
+        let floats = |h: &mut blake3::Hasher, v: &[f64]| {
+            h.update(&(v.len() as u64).to_le_bytes());
+            for x in v {
+                h.update(&x.to_bits().to_le_bytes());
+            }
+        };
+        // Debug of these plain structs prints every f64 in its shortest round-trip form and
+        // holds no hash map: a deterministic, complete text.
+        h.update(format!("{:?}\0{:?}\0{:?}\0", self.setup, self.board, self.map).as_bytes());
+        h.update(format!("{:?}\0{}\0{:?}\0", self.mesh, self.n_dof, self.fixture_dof).as_bytes());
+        words(
+            &mut h,
+            &[
+                self.pattern.n,
+                self.k_terms.len(),
+                self.m_terms.len(),
+                self.patches.len(),
+            ],
+        );
+        words(&mut h, &self.pattern.col_ptr);
+        words(&mut h, &self.pattern.row_idx);
+        for t in self.k_terms.iter().chain(&self.m_terms) {
+            floats(&mut h, t);
+        }
+        for p in &self.patches {
+            words(&mut h, p);
+        }
+        h.finalize().to_hex().to_string()
+    }
+
     /// The nominal parameters of this model (from the board).
     pub fn nominal_params(&self) -> Params {
         self.map.nominal_params()
@@ -1782,26 +1825,38 @@ impl FeModel {
         let q_core = orthotropic_q(c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy);
         let (_, _, d_core) = layer_factors(-h / 2.0, h / 2.0);
         let mut out = vec![];
-        for ey in 0..self.mesh.ny {
-            for ex in 0..self.mesh.nx {
-                if !self.mesh.active[ey * self.mesh.nx + ex] {
-                    continue;
-                }
-                let rect = self.mesh.rect(ex, ey);
-                let (a, b) = self.mesh.size(ex, ey);
-                let pts = annulus_rect_quadrature(x_m, y_m, 0.0, radius_m, &rect);
-                if pts.is_empty() {
-                    continue;
-                }
-                let Some(dofs) = self.mesh.element_dofs(ex, ey) else {
-                    continue;
-                };
-                let mut disc = ElementMatrices::zero(self.mesh.element_dof_count());
-                disc.add_points(&pts, rect.x0, rect.y0, a, b, 1.0);
-                out.push((dofs, disc));
+        for (ex, ey) in self.disc_elements(x_m, y_m, radius_m) {
+            let rect = self.mesh.rect(ex, ey);
+            let (a, b) = self.mesh.size(ex, ey);
+            let pts = annulus_rect_quadrature(x_m, y_m, 0.0, radius_m, &rect);
+            if pts.is_empty() {
+                continue;
             }
+            let Some(dofs) = self.mesh.element_dofs(ex, ey) else {
+                continue;
+            };
+            let mut disc = ElementMatrices::zero(self.mesh.element_dof_count());
+            disc.add_points(&pts, rect.x0, rect.y0, a, b, 1.0);
+            out.push((dofs, disc));
         }
         (out, q_core.map(|q| q * d_core))
+    }
+
+    /// The active elements of the bounding box of the disc of radius `radius_m` at (x_m,
+    /// y_m), one more each way (only these can overlap it), row by row.
+    fn disc_elements(&self, x_m: f64, y_m: f64, radius_m: f64) -> Vec<(usize, usize)> {
+        let m = &self.mesh;
+        let (ex0, ey0) = m.element_at(x_m - radius_m, y_m - radius_m);
+        let (ex1, ey1) = m.element_at(x_m + radius_m, y_m + radius_m);
+        let mut out = vec![];
+        for ey in ey0.saturating_sub(1)..(ey1 + 2).min(m.ny) {
+            for ex in ex0.saturating_sub(1)..(ex1 + 2).min(m.nx) {
+                if m.active[ey * m.nx + ex] {
+                    out.push((ex, ey));
+                }
+            }
+        }
+        out
     }
 
     /// The core's bending stiffness over a disc, as a form on the columns of `vectors`
@@ -1817,28 +1872,106 @@ impl FeModel {
         radius_m: f64,
         vectors: faer::MatRef<'_, f64>,
     ) -> Mat<f64> {
+        // Per element, the core's bending stiffness over the disc (one matrix, Σ_k q_k of
+        // the bending unit matrices, accumulated as Bᵀ D B at each quadrature point, upper
+        // triangle only), then its form on the vectors: the diagnosis asks for this form at
+        // ~600 discs, and building all six unit matrices of each cut element at every point
+        // of the cut-cell quadrature (`core_disc`) took 80 s of it on the default board.
         let n = vectors.ncols();
         let mut e = Mat::<f64>::zeros(n, n);
-        let (elements, qd) = self.core_disc(x_m, y_m, radius_m);
-        for (dofs, disc) in elements {
-            let nd = disc.n;
-            let mut kel = [[0.0; DOFS]; DOFS];
-            for (k, q) in qd.iter().enumerate() {
-                add_scaled(&mut kel, *q, &disc.k_bend[k], nd);
+        let c = &self.board.core;
+        let q = orthotropic_q(c.e_x_pa, c.e_y_pa, c.g_xy_pa, c.nu_xy);
+        let (_, _, d_core) = layer_factors(-c.thickness_m / 2.0, c.thickness_m / 2.0);
+        let q = q.map(|q| q * d_core);
+        let nd = self.mesh.element_dof_count();
+        let shear = nd == DOFS;
+        let (g, gw) = super::plate::gauss4();
+        for (ex, ey) in self.disc_elements(x_m, y_m, radius_m) {
+            let rect = self.mesh.rect(ex, ey);
+            let (a, b) = self.mesh.size(ex, ey);
+            let Some(dofs) = self.mesh.element_dofs(ex, ey) else {
+                continue;
+            };
+            let corners = [
+                (rect.x0, rect.y0),
+                (rect.x1, rect.y0),
+                (rect.x0, rect.y1),
+                (rect.x1, rect.y1),
+            ];
+            let inside = corners
+                .iter()
+                .all(|(px, py)| (px - x_m).hypot(py - y_m) <= radius_m);
+            // An element inside the disc: its own 4 × 4 Gauss rule, exact (the integrand's
+            // degree is ≤ 6 each way); a cut one: the disc's cut-cell quadrature.
+            let pts: Vec<(f64, f64, f64)> = if inside {
+                (0..16)
+                    .map(|i| {
+                        let (ix, iy) = (i / 4, i % 4);
+                        (
+                            rect.x0 + g[ix] * a,
+                            rect.y0 + g[iy] * b,
+                            gw[ix] * gw[iy] * a * b,
+                        )
+                    })
+                    .collect()
+            } else {
+                annulus_rect_quadrature(x_m, y_m, 0.0, radius_m, &rect)
+            };
+            if pts.is_empty() {
+                continue;
             }
-            // K_el v_k restricted to the element, then v_jᵀ of it.
-            let kv: Vec<[f64; DOFS]> = (0..n)
+            let mut kel = [[0.0; DOFS]; DOFS];
+            for (px, py, w) in pts {
+                let (xi, eta) = ((px - rect.x0) / a, (py - rect.y0) / b);
+                let sh = shape(xi, eta, a, b);
+                let [kx, ky, kt] = super::mindlin::curvature_rows(&sh, xi, eta, a, b, shear);
+                for r in 0..nd {
+                    // Row r of Bᵀ D, times the weight.
+                    let (ux, uy, ut) = (
+                        w * (q[0] * kx[r] + q[2] * ky[r]),
+                        w * (q[2] * kx[r] + q[1] * ky[r]),
+                        w * q[3] * kt[r],
+                    );
+                    if ux == 0.0 && uy == 0.0 && ut == 0.0 {
+                        continue;
+                    }
+                    for c in r..nd {
+                        kel[r][c] += ux * kx[c] + uy * ky[c] + ut * kt[c];
+                    }
+                }
+            }
+            for r in 0..nd {
+                for c in 0..r {
+                    kel[r][c] = kel[c][r];
+                }
+            }
+            // The vectors' values at the element's DOFs (contiguous), K_el v_k, then v_jᵀ of it.
+            let vloc: Vec<[f64; DOFS]> = (0..n)
                 .map(|k| {
                     let mut out = [0.0; DOFS];
-                    for r in 0..nd {
-                        out[r] = (0..nd).map(|c| kel[r][c] * vectors[(dofs[c], k)]).sum();
+                    for (o, &d) in out.iter_mut().zip(&dofs[..nd]) {
+                        *o = vectors[(d, k)];
+                    }
+                    out
+                })
+                .collect();
+            let kv: Vec<[f64; DOFS]> = vloc
+                .iter()
+                .map(|v| {
+                    let mut out = [0.0; DOFS];
+                    for (o, row) in out.iter_mut().zip(&kel[..nd]) {
+                        *o = row[..nd].iter().zip(&v[..nd]).map(|(a, b)| a * b).sum();
                     }
                     out
                 })
                 .collect();
             for j in 0..n {
                 for k in j..n {
-                    let v: f64 = (0..nd).map(|r| vectors[(dofs[r], j)] * kv[k][r]).sum();
+                    let v: f64 = vloc[j][..nd]
+                        .iter()
+                        .zip(&kv[k][..nd])
+                        .map(|(a, b)| a * b)
+                        .sum();
                     e[(j, k)] += v;
                     if k != j {
                         e[(k, j)] += v;

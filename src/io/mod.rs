@@ -11,6 +11,7 @@ pub mod external;
 pub mod ingest_outputs;
 pub mod manifest;
 pub mod mcap_writer;
+pub mod model_cache;
 pub mod modes_table;
 pub mod tables;
 pub mod work_dir;

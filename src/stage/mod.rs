@@ -103,3 +103,45 @@ pub fn progress_bar(len: u64, what: &str) -> indicatif::ProgressBar {
     pb.set_message(what.to_string());
     pb
 }
+
+/// Wall time per phase of a stage (an update step, the diagnosis): printed with `--verbose` as each phase ends, and
+/// kept in the manifest's summary (`phase_seconds`), never in an output table (outputs stay
+/// byte-identical between runs). Where the time goes is an acceptance point of the updating and of the diagnosis.
+pub(crate) struct PhaseClock {
+    last: std::time::Instant,
+    laps: Vec<(&'static str, f64)>,
+    verbose: bool,
+    what: &'static str,
+}
+
+impl PhaseClock {
+    pub(crate) fn new(what: &'static str, verbose: bool) -> PhaseClock {
+        PhaseClock {
+            last: std::time::Instant::now(),
+            laps: vec![],
+            verbose,
+            what,
+        }
+    }
+
+    /// End the phase `name` now; returns its seconds.
+    pub(crate) fn lap(&mut self, name: &'static str) -> f64 {
+        let now = std::time::Instant::now();
+        let s = now.duration_since(self.last).as_secs_f64();
+        self.last = now;
+        if self.verbose {
+            eprintln!("{}: {name} {s:.1} s", self.what);
+        }
+        self.laps.push((name, s));
+        s
+    }
+
+    pub(crate) fn summary(&self) -> serde_json::Value {
+        serde_json::Value::Object(
+            self.laps
+                .iter()
+                .map(|(n, s)| (n.to_string(), serde_json::json!(s)))
+                .collect(),
+        )
+    }
+}

@@ -18,9 +18,9 @@ use crate::update::posterior::{
 };
 use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
-    all_labels, covariate_offsets, discrepancy_for, mass_obs, model_error_prior, modes_needed,
-    predictors, shape_map, thickness_obs, unit_and_residual_data, BoardCoordinates, Labels,
-    MassRow, ModelErrorPrior, ModelSpec, ObsMeta, StepTarget,
+    all_labels, covariate_offsets, discrepancy_for, mass_obs, modes_needed, predictors, shape_map,
+    thickness_obs, unit_and_residual_data, BoardCoordinates, Labels, MassRow, ModelErrorPrior,
+    ModelSpec, ObsMeta, StepTarget,
 };
 use crate::update::rom_box::RomBoxViolation;
 use crate::update::sampler::{box_violations, particles_of, Results};
@@ -167,11 +167,14 @@ pub struct BoardTarget {
 
 /// Step 1's target: the boards with free-free pairs or a mass are its units. `masses`: the
 /// balance's per board; `covariate_values`: a temperature enrichment's column per measurement
-/// with its source; `thickness_m`: the boards' measured core thickness.
+/// with its source; `thickness_m`: the boards' measured core thickness; `model_error`: the
+/// model-error term's prior where the step has one ([`crate::update::problem::model_error_from`] of the mesh
+/// study [`crate::update::problem::model_error_study`] names).
 #[allow(clippy::too_many_arguments)]
 pub fn board_target(
     board: &Board,
     bm: &BoardModel,
+    model_error: Option<ModelErrorPrior>,
     rom: &Rom,
     spec: &ModelSpec,
     (labels, pairs, mode_rows): (&Labels, &[PairRow], &[ModeRow]),
@@ -180,10 +183,6 @@ pub fn board_target(
     thickness_m: &BTreeMap<String, f64>,
     findings: &mut Findings,
 ) -> anyhow::Result<BoardTarget> {
-    let model_error = spec
-        .model_error
-        .then(|| model_error_prior(board, &bm.board_nominal, labels, &bm.all))
-        .transpose()?;
     let (model, all, log_axes, nominal_mass_g) =
         (&bm.model, &bm.all, &bm.log_axes, bm.nominal_mass_g);
     let point_masses: Vec<usize> = log_axes

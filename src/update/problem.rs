@@ -7,7 +7,7 @@ use crate::bayes::shape_weight::{point_key, PointShape, ShapeWeight};
 use crate::bayes::smc::{self};
 use crate::bayes::target::{ErrorPrior, ModalTarget};
 use crate::fem::params::names;
-use crate::fem::{Board, FeModel, Rom, Setup};
+use crate::fem::{Board, FeModel, Rom};
 use crate::findings::{Finding, Findings, Severity};
 use crate::modal::rows::{ModeRow, PairRow};
 use crate::update::enrichment::Mechanism;
@@ -653,31 +653,35 @@ pub struct ModelErrorPrior {
 /// frequency happens to agree between the meshes compared is not thereby exact.
 pub const MODEL_ERROR_FLOOR_SHARE: f64 = 0.1;
 
-/// The model-error prior of the labels: b_m ~ N(0, s_m²), s_m = 2 × the mode's relative
-/// frequency spread over the √2 and 2 × finer meshes (λ = ω², so twice the frequency's
-/// relative error), floored at a tenth of the largest s of the labels (and 1e-7).
-pub fn model_error_prior(
-    board: &Board,
+/// The mesh study the model-error term needs ([`model_error_from`]): the free board's
+/// `fem::convergence::mesh_spread` on its own mesh, at these parameters, over this many modes.
+pub fn model_error_study(
     nominal: &crate::fem::Params,
     updated: &Labels,
     all: &Labels,
-) -> anyhow::Result<ModelErrorPrior> {
+) -> (crate::fem::Params, usize) {
     let n = modes_needed(updated, all);
     // The mesh study's models are the standard ones: a known thickness is at its nominal in
     // `nominal`, so it is simply left out.
-    let (names_std, values_std) = nominal
+    let (names, values) = nominal
         .names
         .iter()
         .zip(&nominal.values)
         .filter(|(n, _)| *n != names::CORE_THICKNESS)
         .map(|(n, v)| (n.clone(), *v))
         .unzip();
-    let nominal = &crate::fem::Params {
-        names: names_std,
-        values: values_std,
-    };
-    let spread = crate::fem::convergence::mesh_spread(board, &Setup::Free, &board.mesh, nominal, n)
-        .map_err(|e| anyhow!("the model-error term's mesh study: {e}"))?;
+    (crate::fem::Params { names, values }, n)
+}
+
+/// The model-error prior of the labels: b_m ~ N(0, s_m²), s_m = 2 × the mode's relative
+/// frequency spread over the √2 and 2 × finer meshes (λ = ω², so twice the frequency's
+/// relative error), floored at a tenth of the largest s of the labels (and 1e-7).
+/// `spread` is the outcome of the study [`model_error_study`] names.
+pub fn model_error_from(
+    spread: crate::fem::convergence::MeshSpread,
+    updated: &Labels,
+    all: &Labels,
+) -> ModelErrorPrior {
     let raw = |mm: usize| 2.0 * spread.rel_spread.get(mm).copied().unwrap_or(0.0);
     let top = all
         .model_mode
@@ -687,12 +691,12 @@ pub fn model_error_prior(
         .fold(0.0, f64::max);
     let floor = (MODEL_ERROR_FLOOR_SHARE * top).max(1e-7);
     let sd_of = |mm: usize| raw(mm).max(floor);
-    Ok(ModelErrorPrior {
+    ModelErrorPrior {
         labels: all.labels.clone(),
         sd: all.model_mode.iter().map(|&mm| sd_of(mm)).collect(),
         sd_updated: updated.model_mode.iter().map(|&mm| sd_of(mm)).collect(),
         spread,
-    })
+    }
 }
 
 /// The model-form discrepancy of `target`'s updated modes ([`crate::bayes::discrepancy`]),
@@ -1037,6 +1041,7 @@ mod mass_term_tests {
 #[cfg(test)]
 mod thickness_tests {
     use super::*;
+    use crate::fem::Setup;
 
     /// A board's measured core thickness becomes an observation of its thickness coordinate
     /// (relative to the board file's, sd THICKNESS_SD_M relative); a board the sheet gives

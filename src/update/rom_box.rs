@@ -8,12 +8,27 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::update::problem::ModelSpec;
 use crate::update::sampler::{particles_of, Results};
 
+/// The updating's ROM of `model` ([`rom_options_for`]).
 pub fn rom_for(
     model: &FeModel,
     n_modes_needed: usize,
     log_axes: &[(String, f64)],
     opts: &ModelSpec,
 ) -> anyhow::Result<Rom> {
+    Ok(Rom::build(
+        model,
+        &rom_options_for(model, n_modes_needed, log_axes, opts),
+    )?)
+}
+
+/// The options of the updating's ROM of `model`: `n_modes_needed` modes, the step's box, the
+/// basis cap raised for the log axes ([`crate::fem::rom::updating_basis`]).
+pub fn rom_options_for(
+    model: &FeModel,
+    n_modes_needed: usize,
+    log_axes: &[(String, f64)],
+    opts: &ModelSpec,
+) -> RomOptions {
     let d = RomOptions::default();
     let max_basis = crate::fem::rom::updating_basis(
         &model.map,
@@ -21,14 +36,13 @@ pub fn rom_for(
         log_axes,
     );
     let log_axes = &crate::fem::rom::with_own_log_axes(&model.map, log_axes);
-    let ro = RomOptions {
+    RomOptions {
         n_modes: n_modes_needed.max(d.n_modes),
         box_rel: opts.rom_box,
         max_basis,
         log_axes: log_axes.to_vec(),
         ..d
-    };
-    Ok(Rom::build(model, &ro)?)
+    }
 }
 
 /// Widest ROM box step 1 rebuilds to, relative half-width: beyond it a parameter is so far from

@@ -640,10 +640,18 @@ fn core_stiffness_change_integrates_the_disc_exactly_and_softens() {
 /// a core stiffness change there per (factor − 1), checked against the assembled change
 /// (central differences at factors 1 ± 0.01, so the second order cancels), and on w = x²/2 it is the closed
 /// form Q₁₁ h³/12 · π r² (as the assembled change is).
+/// On the thin fixture and on the shear-deformable default board (whose curvatures carry the
+/// shear strains' fields).
 #[test]
 fn core_stiffness_form_is_the_first_order_eigenvalue_change() {
-    let b = board();
-    let m0 = FeModel::build(&b, Setup::Free, &b.mesh).unwrap();
+    check_core_stiffness_form(board(), None);
+    let shear = Board::from_toml_str(crate::fem::board::DEFAULT_BOARD_TOML).unwrap();
+    assert!(shear.core.transverse_shear().is_some());
+    check_core_stiffness_form(shear, Some(MeshOptions { nx: 40, ny: 25 }));
+}
+
+fn check_core_stiffness_form(b: Board, mesh: Option<MeshOptions>) {
+    let m0 = FeModel::build(&b, Setup::Free, mesh.as_ref().unwrap_or(&b.mesh)).unwrap();
     let p = m0.nominal_params();
     let (x, y, r) = (0.0241, 0.0327, 0.004);
     let modes = m0.modes(&p, 8).unwrap();

@@ -29,7 +29,7 @@ use crate::io::diagnose_inputs::{read_inputs, refit_residuals, WorkDirRegions};
 use crate::io::manifest::StageSpec;
 use crate::io::tables::diagnose::{self as diagnose_tables, DiagnosisRow};
 use crate::io::work_dir::WorkDir;
-use crate::stage::{exit, StageOutcome, StageResult};
+use crate::stage::{exit, PhaseClock, StageOutcome, StageResult};
 use anyhow::anyhow;
 use refit::{
     baselines, cannot_be_favoured, load_board, refine_point, run_refit, step1_options,
@@ -88,7 +88,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
             &base1.model.params,
             &input,
             &located,
-            &opts.locate,
+            (&opts.locate, verbose),
         );
         let cand = cands.iter().find(|c| c.id() == *only).ok_or_else(|| {
             anyhow!(
@@ -120,10 +120,13 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
         return run_refit(opts, (&base1, base.as_ref()), &cand, &decided, verbose).map(Some);
     }
     crate::stage::run(spec, opts.force, |_prep| {
+        let mut clock = PhaseClock::new("diagnose", verbose);
         let mut findings = Findings::default();
         let (input, in_findings) = read_inputs(w)?;
         findings.0.extend(in_findings.0);
+        clock.lap("inputs");
         let located = locate::locate(&input, &opts.locate);
+        clock.lap("locate");
         let (board, _) = load_board(opts.board.as_deref())?;
         let (regions, candidates) = screen_candidates(
             w,
@@ -131,8 +134,9 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
             &base1.model.params,
             &input,
             &located,
-            &opts.locate,
+            (&opts.locate, verbose),
         );
+        clock.lap("regions_and_screen");
         let mut refits: Vec<Refit> = vec![];
         let (baseline1, baseline) = baselines(w, step2)?;
         let mut parts = MisfitParts::new(&located);
@@ -208,6 +212,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
                 }
             }
         }
+        clock.lap("refits");
         // Against the baseline over the same data: both steps where the campaign has a
         // step 2 (summarize_refit), else step 1 (only board mechanisms are refitted then).
         let compared = select::compare(
@@ -223,7 +228,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
         {
             verdict = Verdict::ModelForm;
         }
-        write_outputs(
+        let mut result = write_outputs(
             opts,
             (&located, above, &boards_off.unwrap_or_default()),
             regions,
@@ -233,7 +238,12 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
             parts.unexplained(STOP_REMAINING_SHARE),
             findings,
             verbose,
-        )
+        )?;
+        clock.lap("outputs");
+        result
+            .summary
+            .insert("phase_seconds".into(), clock.summary());
+        Ok(result)
     })
     .map(Some)
 }
@@ -246,9 +256,9 @@ fn screen_candidates(
     params: &[String],
     input: &locate::LocateInput,
     located: &Located,
-    lopts: &LocateOptions,
+    (lopts, verbose): (&LocateOptions, bool),
 ) -> ((Vec<BoardRegion>, String), Vec<Candidate>) {
-    let regions = board_regions(work, board, (params, input, located), lopts);
+    let regions = board_regions(work, board, (params, input, located), lopts, verbose);
     let mut candidates = screen::screen(located, board);
     screen::attach_regions(&mut candidates, &regions.0);
     (regions, candidates)
@@ -260,6 +270,7 @@ fn board_regions(
     board: &crate::fem::Board,
     (params, input, located): (&[String], &locate::LocateInput, &Located),
     lopts: &LocateOptions,
+    verbose: bool,
 ) -> (Vec<BoardRegion>, String) {
     if !located.setups.iter().any(|s| s == "free") {
         return (
@@ -278,10 +289,12 @@ fn board_regions(
         locate: lopts,
         pairs: &input.pairs,
     };
+    let mut clock = PhaseClock::new("diagnose", verbose);
     let fb = match regions::FreeBasis::new(&inp) {
         Ok(fb) => fb,
         Err(e) => return (vec![], format!("localisation failed: {e:#}")),
     };
+    clock.lap("free_basis");
     let mut note = vec![];
     if !fb.left_out.is_empty() {
         note.push(format!(
@@ -297,6 +310,7 @@ fn board_regions(
         }
         Err(e) => note.push(format!("point-mass localisation failed: {e:#}")),
     }
+    clock.lap("point_mass_region");
     match regions::stiffness_region(&inp, &fb) {
         Ok(r) => {
             note.push(format!("stiffness localisation (first-order signature of a change of the core's bending stiffness over a {:.0} mm disc, either sign, the board parameters projected off, the measured shapes choosing as for the point mass)", 2e3 * regions::STIFFNESS_RADIUS_M));
@@ -304,6 +318,7 @@ fn board_regions(
         }
         Err(e) => note.push(format!("stiffness localisation failed: {e:#}")),
     }
+    clock.lap("stiffness_region");
     demote_weaker_regions(&mut out);
     (out, note.join("; "))
 }

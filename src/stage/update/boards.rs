@@ -124,7 +124,12 @@ pub(crate) fn boards_attempt(
     )?;
     let need = bm.need;
     clock.lap("models");
-    let rom = rom_for(&bm.model, need, &bm.log_axes, &opts.model)?;
+    let cache = crate::io::cache::Cache::from_env();
+    let rom = model_cache::rom(
+        cache.as_ref(),
+        &bm.model,
+        &rom_options_for(&bm.model, need, &bm.log_axes, &opts.model),
+    )?;
     rom_centre_check(&bm.model, &rom, need, &mut findings)?;
     clock.lap("rom_build");
     if opts.model.rom_box > ModelSpec::DEFAULT_ROM_BOX {
@@ -148,9 +153,19 @@ pub(crate) fn boards_attempt(
     };
     let mode_rows = read_modes_table(&paths.modes)?;
     let measurements_source = paths.measurements.display().to_string();
+    let model_error = if opts.model.model_error {
+        let (p, n) = model_error_study(&bm.board_nominal, &labels, &bm.all);
+        let spread =
+            model_cache::mesh_study(cache.as_ref(), board, &Setup::Free, &board.mesh, &p, n)
+                .context("the model-error term's mesh study")?;
+        Some(model_error_from(spread, &labels, &bm.all))
+    } else {
+        None
+    };
     let mut bt = boards::board_target(
         board,
         &bm,
+        model_error,
         &rom,
         &opts.model,
         (&labels, &pairs, &mode_rows),

@@ -508,7 +508,11 @@ pub(crate) fn prepare_joints(
     clock.lap("centre_fit");
     let rom = match remembered {
         Some(m) => m.rom,
-        None => rom_for(&jm.model, c.need, &c.log_axes, &opts.model)?,
+        None => model_cache::rom(
+            crate::io::cache::Cache::from_env().as_ref(),
+            &jm.model,
+            &rom_options_for(&jm.model, c.need, &c.log_axes, &opts.model),
+        )?,
     };
     *memo = Some(JointPrep {
         key,

@@ -16,8 +16,10 @@ use crate::bayes::shape_weight::ShapeWeight;
 use crate::bayes::smc::{self, StageInfo};
 use crate::fem::params::names;
 use crate::fem::Board;
+use crate::fem::Setup;
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::manifest::StageSpec;
+use crate::io::model_cache;
 use crate::io::modes_table::read_modes_table;
 use crate::io::tables::update::{
     provenance, read_masses, read_pairs, read_presence, read_specimen_thickness, read_step1,
@@ -28,15 +30,16 @@ use crate::io::tables::update::{read_covariate, write_joint_tables};
 use crate::io::tables::{self, Cols};
 use crate::modal::rows::ModeRow;
 use crate::modal::rows::PairRow;
-use crate::stage::{exit, StageOutcome, StageResult};
+use crate::stage::{exit, PhaseClock, StageOutcome, StageResult};
 use crate::update::enrichment::{is_board_mechanism, Mechanism};
 use crate::update::posterior::{convergence_finding, lost_finding, residuals, SummaryRow};
 use crate::update::prepare::JointPrep;
 use crate::update::problem::{
-    discrepancy_for, report_shape_weights, select_labels, weigh_shapes, ModelSpec,
+    discrepancy_for, model_error_from, model_error_study, report_shape_weights, select_labels,
+    weigh_shapes, ModelSpec,
 };
 use crate::update::rom_box::{
-    rom_box_check, rom_centre_check, rom_for, RomBoxViolation, MAX_ROM_BOX,
+    rom_box_check, rom_centre_check, rom_options_for, RomBoxViolation, MAX_ROM_BOX,
 };
 use crate::update::sampler::{check_surrogate_edges, run_smc, Acceleration, SamplerParams};
 use crate::update::step1::Step1;
@@ -271,48 +274,6 @@ fn progress_to(pb: &indicatif::ProgressBar) -> impl Fn(u64, String) + Sync + '_ 
     move |position, message| {
         pb.set_position(position);
         pb.set_message(message);
-    }
-}
-
-/// Wall time per phase of an update step: printed with `--verbose` as each phase ends, and
-/// kept in the manifest's summary (`phase_seconds`), never in an output table (outputs stay
-/// byte-identical between runs). Where the time goes is an acceptance point of the updating.
-struct PhaseClock {
-    last: std::time::Instant,
-    laps: Vec<(&'static str, f64)>,
-    verbose: bool,
-    what: &'static str,
-}
-
-impl PhaseClock {
-    fn new(what: &'static str, verbose: bool) -> PhaseClock {
-        PhaseClock {
-            last: std::time::Instant::now(),
-            laps: vec![],
-            verbose,
-            what,
-        }
-    }
-
-    /// End the phase `name` now; returns its seconds.
-    fn lap(&mut self, name: &'static str) -> f64 {
-        let now = std::time::Instant::now();
-        let s = now.duration_since(self.last).as_secs_f64();
-        self.last = now;
-        if self.verbose {
-            eprintln!("{}: {name} {s:.1} s", self.what);
-        }
-        self.laps.push((name, s));
-        s
-    }
-
-    fn summary(&self) -> serde_json::Value {
-        serde_json::Value::Object(
-            self.laps
-                .iter()
-                .map(|(n, s)| (n.to_string(), serde_json::json!(s)))
-                .collect(),
-        )
     }
 }
 
