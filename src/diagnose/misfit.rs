@@ -24,6 +24,38 @@ pub fn mean_shift_modes(located: &Located) -> Vec<&locate::LocatedMode> {
     }
 }
 
+/// The located bolted modes whose mean shifts a joint mechanism acting on every assembly is
+/// judged on ([`RefitShares::own`]).
+pub fn bolted_shift_labels(located: &Located) -> Vec<&str> {
+    mean_shift_modes(located)
+        .into_iter()
+        .filter(|m| m.setup == "bolted")
+        .map(|m| m.label.as_str())
+        .collect()
+}
+
+/// The share of the located bolted mean shifts (`labels`) a joint refit would leave, predicted
+/// before its sampler from step 2's centre fits, the population-level least-squares fit of a
+/// model to the median bolted frequencies (`update::centre`): Σ |r_refit| / Σ |r_base| over
+/// the labels both fits have, r each label's relative misfit at its model's centre, the
+/// baseline's (`base`) and the enriched model's (`refit`). The sampler's refit moves its
+/// population-level coordinates to the same data, so its mean shifts follow its centre fit's;
+/// what it adds (each assembly's own contact stiffness, the priors) scatters the units about
+/// the population and does not remove a shift common to them. `None` without such a label
+/// or with no baseline misfit.
+pub fn centre_fit_share(
+    labels: &[&str],
+    base: &[(String, f64)],
+    refit: &[(String, f64)],
+) -> Option<f64> {
+    let of = |v: &[(String, f64)], l: &str| v.iter().find(|(m, _)| m == l).map(|(_, r)| *r);
+    let (b, a) = labels
+        .iter()
+        .filter_map(|l| Some((of(base, l)?, of(refit, l)?)))
+        .fold((0.0, 0.0), |(b, a), (x, y)| (b + x.abs(), a + y.abs()));
+    (b > 0.0).then(|| a / b)
+}
+
 /// Σ |mean relative residual| over the mean-shift modes ([`mean_shift_modes`]) after a refit
 /// (`after`) over the same before; a located mode the refit has no row for (a setup it did
 /// not refit) keeps its baseline value. `None` without such a mode.
@@ -552,6 +584,21 @@ mod tests {
             used_for_updating: true,
             mac: None,
         }
+    }
+
+    /// The predicted share is Σ|refit| / Σ|base| over the labels both centre fits have.
+    #[test]
+    fn the_centre_fit_share_compares_the_fits_over_the_located_labels() {
+        let v = |x: &[(&str, f64)]| -> Vec<(String, f64)> {
+            x.iter().map(|(l, r)| (l.to_string(), *r)).collect()
+        };
+        let base = v(&[("a", 0.012), ("b", -0.006), ("c", 0.5)]);
+        let refit = v(&[("a", -0.003), ("b", 0.0015), ("d", 0.0)]);
+        // c: not located; d: not in the baseline; the share over a and b.
+        let s = centre_fit_share(&["a", "b", "d"], &base, &refit).unwrap();
+        assert!((s - 0.0045 / 0.018).abs() < 1e-12, "{s}");
+        assert_eq!(centre_fit_share(&["c"], &base, &refit), None);
+        assert_eq!(centre_fit_share(&[], &base, &refit), None);
     }
 
     /// Two effects are two parts: with one refit per part, a temperature trend and the mean

@@ -8,6 +8,14 @@ use crate::update::enrichment::JointEnrichment;
 use crate::update::new_modes::match_modes;
 use crate::update::problem::Labels;
 
+/// A step-2 centre fit: the coordinates, and each label's relative residual there,
+/// (model − median measured) / median measured, the labels with a measured median only.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CentreFit {
+    pub coords: Vec<f64>,
+    pub rel_residuals: Vec<(String, f64)>,
+}
+
 /// The ROM's centre in the enrichment's coordinates (ln, relative to the priors' centres).
 #[allow(clippy::too_many_arguments)]
 pub fn fit_centre(
@@ -20,8 +28,8 @@ pub fn fit_centre(
     (labels, bolted_rows): (&Labels, &[&PairRow]),
     (w_labels, points): (&faer::Mat<f64>, &[[f64; 2]]),
     n_track: usize,
-) -> anyhow::Result<Vec<f64>> {
-    let mut fit = fit_joint_centre(
+) -> anyhow::Result<CentreFit> {
+    let (mut fit, mut rel_residuals) = fit_joint_centre(
         model,
         p_base,
         &coords[..n_fit],
@@ -48,7 +56,7 @@ pub fn fit_centre(
                 p_held.values[i] *= (a * centre[k]).exp();
             }
         }
-        centre[0] = fit_joint_centre(
+        let (k_con, r) = fit_joint_centre(
             model,
             &p_held,
             &coords[..1],
@@ -57,13 +65,18 @@ pub fn fit_centre(
             bolted_rows,
             (w_labels, points),
             n_track,
-        )?[0];
+        )?;
+        centre[0] = k_con[0];
+        rel_residuals = r;
     }
-    Ok(centre)
+    Ok(CentreFit {
+        coords: centre,
+        rel_residuals,
+    })
 }
 
-/// The centre of a step-2 model's ROM: the unit coordinates that best fit the median
-/// bolted frequency of every label at the boards' posterior mean (`p_base`, reference
+/// The centre of a step-2 model's ROM, with each label's relative residual there: the unit
+/// coordinates that best fit the median bolted frequency of every label at the boards' posterior mean (`p_base`, reference
 /// values of the joint parameters), by Levenberg–Marquardt within ±`spans[k]`, with the
 /// full FE model. The ROM
 /// is built around it: its box is ±20 % and the nominal joint can be off by far more.
@@ -87,7 +100,7 @@ pub fn fit_joint_centre(
     rows: &[&PairRow],
     (w_ref, points): (&faer::Mat<f64>, &[[f64; 2]]),
     n_modes: usize,
-) -> anyhow::Result<Vec<f64>> {
+) -> anyhow::Result<(Vec<f64>, Vec<(String, f64)>)> {
     // Median measured frequency per label.
     let med: Vec<Option<f64>> = labels
         .labels
@@ -156,5 +169,8 @@ pub fn fit_joint_centre(
             }
         }
     }
-    Ok(best.1)
+    let at = resid(&best.1)?;
+    let measured = labels.labels.iter().zip(&med).filter(|(_, m)| m.is_some());
+    let rel_residuals = measured.map(|(l, _)| l.clone()).zip(at).collect();
+    Ok((best.1, rel_residuals))
 }

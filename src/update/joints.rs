@@ -236,7 +236,7 @@ pub fn fit_joint_centre_of(
     jm: &JointModels,
     labels: &Labels,
     bolted_rows: &[&PairRow],
-) -> anyhow::Result<Vec<f64>> {
+) -> anyhow::Result<crate::update::centre::CentreFit> {
     let n_fit = if jm.enr.every_joint() {
         1
     } else {
@@ -903,7 +903,7 @@ pub fn joint_evidence(
     (jm, c): (&JointModels, &Centred),
     target: &ModalTarget,
     results: &Results,
-    centre: &[f64],
+    centre: &crate::update::centre::CentreFit,
     step1_enrichment: &serde_json::Value,
     shape_weights: &[crate::bayes::shape_weight::ShapeWeight],
     spec: &ModelSpec,
@@ -934,7 +934,15 @@ pub fn joint_evidence(
         ev["board_mechanism"] = serde_json::to_value(m)?;
         ev["boards_dir_evidence"] = step1_enrichment.clone();
     }
-    ev["rom_centre_coordinates"] = serde_json::to_value(centre)?;
+    ev["rom_centre_coordinates"] = serde_json::to_value(&centre.coords)?;
+    // Each label's relative misfit at the centre (the population-level least-squares fit):
+    // the diagnosis's screen of a joint refit compares its own with the baseline's.
+    ev["rom_centre_rel_residuals"] = centre
+        .rel_residuals
+        .iter()
+        .map(|(l, r)| (l.clone(), serde_json::json!(r)))
+        .collect::<serde_json::Map<_, _>>()
+        .into();
     ev["shape_weights"] = serde_json::to_value(shape_weights)?;
     ev["discrepancy"] = discrepancy_json(target, &c.labels.labels);
     Ok(ev)

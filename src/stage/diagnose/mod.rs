@@ -32,7 +32,7 @@ use crate::io::work_dir::WorkDir;
 use crate::stage::{exit, PhaseClock, StageOutcome, StageResult};
 use anyhow::anyhow;
 use refit::{
-    baselines, cannot_be_favoured, load_board, refine_point, run_refit, step1_options,
+    baselines, cannot_be_favoured, centre_gate, load_board, refine_point, run_refit, step1_options,
     step2_options, Against,
 };
 use std::collections::BTreeMap;
@@ -117,7 +117,15 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
             return Ok(None);
         }
         let decided = || cannot_be_favoured(opts, &cand, &against);
-        return run_refit(opts, (&base1, base.as_ref()), &cand, &decided, verbose).map(Some);
+        let gate = centre_gate(opts, base.as_ref(), &cand, &located);
+        return run_refit(
+            opts,
+            (&base1, base.as_ref()),
+            &cand,
+            (&decided, gate.as_deref()),
+            verbose,
+        )
+        .map(Some);
     }
     crate::stage::run(spec, opts.force, |_prep| {
         let mut clock = PhaseClock::new("diagnose", verbose);

@@ -7,7 +7,7 @@
 use super::DiagnoseOptions;
 use crate::diagnose::library::{is_board_mechanism, Mechanism};
 use crate::diagnose::locate::{self, Located};
-use crate::diagnose::misfit::RefitShares;
+use crate::diagnose::misfit::{self, Part, RefitShares};
 use crate::diagnose::point_search;
 use crate::diagnose::regions;
 use crate::diagnose::screen::Candidate;
@@ -26,8 +26,10 @@ use crate::io::work_dir::{self, WorkDir};
 pub(super) use crate::stage::update::load_board;
 use crate::stage::update::{ScreenRun, ShapeWeighting, UpdateOptions, MAX_R_HAT};
 use crate::stage::StageOutcome;
+use crate::update::centre::CentreFit;
 use crate::update::joint_screen::JointScreen;
 use crate::update::posterior::Residual;
+use crate::update::prepare::CentreGate;
 use anyhow::{anyhow, Context};
 use std::path::Path;
 
@@ -164,7 +166,7 @@ pub(super) fn run_refit(
     opts: &DiagnoseOptions,
     (base1, base2): (&UpdateOptions, Option<&UpdateOptions>),
     cand: &Candidate,
-    decided: &dyn Fn() -> Option<String>,
+    (decided, gate): (&dyn Fn() -> Option<String>, Option<&CentreGate>),
     verbose: bool,
 ) -> anyhow::Result<StageOutcome> {
     if is_board_mechanism(cand.mechanism) {
@@ -194,7 +196,15 @@ pub(super) fn run_refit(
         run_gated(
             o2,
             &base.out,
-            |o| crate::stage::update::run_joints_with(o, &boards, &mut prep.borrow_mut(), verbose),
+            |o| {
+                crate::stage::update::run_joints_with(
+                    o,
+                    &boards,
+                    &mut prep.borrow_mut(),
+                    None,
+                    verbose,
+                )
+            },
             decided,
         )
     } else {
@@ -211,11 +221,67 @@ pub(super) fn run_refit(
             &base.out,
             |o| {
                 let boards = WorkDir::new(&opts.work_dir).update_boards();
-                crate::stage::update::run_joints_with(o, &boards, &mut prep.borrow_mut(), verbose)
+                crate::stage::update::run_joints_with(
+                    o,
+                    &boards,
+                    &mut prep.borrow_mut(),
+                    gate,
+                    verbose,
+                )
             },
             decided,
         )
     }
+}
+
+/// The gate of a joint mechanism's refit that is judged on the located bolted mean shifts
+/// (one acting on every assembly alike): after its centre fit, before its ROM and sampler
+/// (`update::prepare::CentreGate`), the share of those shifts it would leave
+/// ([`misfit::centre_fit_share`], against the baseline step 2's centre fit in its
+/// evidence.json); above the decision rule's `max_remaining_share` the refit cannot be
+/// favoured ([`select::cannot_be_favoured`]) and is stopped there, with the reason. On the
+/// default board the sampler's part of such a refit (its ROM, surrogates and tempering) took
+/// 2–3 minutes; a refit of the misfit of the joint model's own form was stopped after none of
+/// it. None for other candidates, or where the baseline recorded no centre fit.
+pub(super) fn centre_gate(
+    opts: &DiagnoseOptions,
+    base2: Option<&UpdateOptions>,
+    cand: &Candidate,
+    located: &Located,
+) -> Option<Box<CentreGate<'static>>> {
+    if is_board_mechanism(cand.mechanism) || Part::of(cand) != Part::Modes {
+        return None;
+    }
+    let labels: Vec<String> = misfit::bolted_shift_labels(located)
+        .into_iter()
+        .map(str::to_string)
+        .collect();
+    let ev = read_json(&base2?.out.join("evidence.json")).ok()?;
+    let base: Vec<(String, f64)> = ev["rom_centre_rel_residuals"]
+        .as_object()?
+        .iter()
+        .filter_map(|(l, r)| Some((l.clone(), r.as_f64()?)))
+        .collect();
+    if labels.is_empty() || base.is_empty() {
+        return None;
+    }
+    let (id, max_share) = (cand.id(), opts.select.max_remaining_share);
+    Some(Box::new(move |fit: &CentreFit| {
+        let refs: Vec<&str> = labels.iter().map(String::as_str).collect();
+        let share = misfit::centre_fit_share(&refs, &base, &fit.rel_residuals)?;
+        eprintln!(
+            "diagnose: {id}: its centre fit leaves {:.0} % of the located bolted mean shifts ({})",
+            100.0 * share,
+            refs.join(", ")
+        );
+        (share > max_share).then(|| {
+            format!(
+                "not refitted: its centre fit (the enriched model's population-level least-squares fit to the median bolted frequencies) leaves {:.0} % of the located bolted mean shifts against the baseline's centre fit, more than the {:.0} % a favoured refit may leave",
+                100.0 * share,
+                100.0 * max_share
+            )
+        })
+    }))
 }
 
 /// The bulk ESS per run below which a refit's population-level parameter is resampled
@@ -323,7 +389,13 @@ fn new_modes_refit(
             &base.out,
             |o| {
                 let boards = WorkDir::new(&opts.work_dir).update_boards();
-                crate::stage::update::run_joints_with(o, &boards, &mut prep.borrow_mut(), verbose)
+                crate::stage::update::run_joints_with(
+                    o,
+                    &boards,
+                    &mut prep.borrow_mut(),
+                    None,
+                    verbose,
+                )
             },
             &|| None,
         )
@@ -677,7 +749,8 @@ pub(super) fn refit(
             )
         });
     }
-    let r = run_refit(opts, bases, cand, &decided, verbose).and_then(|_| {
+    let gate = centre_gate(opts, bases.1, cand, against.located);
+    let r = run_refit(opts, bases, cand, (&decided, gate.as_deref()), verbose).and_then(|_| {
         let mut r = summarize_refit(candidate_source(cand, &out, &rel), Some(z1), outliers)?;
         if crate::diagnose::library::is_every_joint(Some(cand.mechanism), cand.joint) {
             let by = joint_ratios(&out, board.holes.len())?;

@@ -23,7 +23,7 @@ pub fn run_joints(
     boards_dir: &Path,
     verbose: bool,
 ) -> anyhow::Result<StageOutcome> {
-    run_joints_with(opts, boards_dir, &mut None, verbose)
+    run_joints_with(opts, boards_dir, &mut None, None, verbose)
 }
 
 /// [`run_joints`] with the caller's preparation: a `memo` prepared for the same model spec and
@@ -32,6 +32,7 @@ pub fn run_joints_with(
     opts: &UpdateOptions,
     boards_dir: &Path,
     memo: &mut Option<JointPrep>,
+    gate: Option<&CentreGate>,
     verbose: bool,
 ) -> anyhow::Result<StageOutcome> {
     let paths = joint_paths(opts, boards_dir);
@@ -54,7 +55,7 @@ pub fn run_joints_with(
         MANIFEST_JOINTS,
     )?;
     crate::stage::run(spec, opts.force, |prep| {
-        joints_body(opts, &board, &paths, prep, memo, verbose)
+        joints_body(opts, &board, &paths, prep, (memo, gate), verbose)
     })
 }
 
@@ -113,7 +114,7 @@ pub(crate) fn joints_body(
     board: &Board,
     paths: &JointPaths,
     prep: &crate::io::manifest::Prepared,
-    memo: &mut Option<JointPrep>,
+    (memo, gate): (&mut Option<JointPrep>, Option<&CentreGate>),
     verbose: bool,
 ) -> anyhow::Result<StageResult> {
     use crate::update::joints;
@@ -138,7 +139,7 @@ pub(crate) fn joints_body(
         paths,
         pairs,
         joint_prep_key(prep, &opts.model),
-        memo,
+        (memo, gate),
         &mut clock,
         &mut findings,
         verbose,
@@ -148,14 +149,14 @@ pub(crate) fn joints_body(
         &sopts.sampler,
         "joints",
         &jt.aux,
-        Some(&centre),
+        Some(&centre.coords),
         verbose,
     )?;
     let sampler_seconds = clock.lap("sampler");
     check_surrogate_edges(&acceleration, &mut findings);
     joints::check_joint_box(
         (&jm, &c),
-        &centre,
+        &centre.coords,
         &results,
         &jt.step.unit_names,
         &opts.model,
@@ -273,7 +274,7 @@ pub fn screen_joint_units(
         &paths,
         pairs,
         String::new(),
-        &mut None,
+        (&mut None, None),
         &mut clock,
         &mut findings,
         verbose,
@@ -432,7 +433,7 @@ pub(crate) struct PreparedJoints {
     pub(crate) inp: JointInputs,
     pub(crate) jm: crate::update::joints::JointModels,
     pub(crate) c: crate::update::joints::Centred,
-    pub(crate) centre: Vec<f64>,
+    pub(crate) centre: crate::update::centre::CentreFit,
     pub(crate) jt: crate::update::joints::JointTarget,
     pub(crate) sopts: UpdateOptions,
     pub(crate) shape_weights: Vec<crate::bayes::shape_weight::ShapeWeight>,
@@ -451,7 +452,7 @@ pub(crate) fn prepare_joints(
     paths: &JointPaths,
     pairs: Vec<PairRow>,
     key: String,
-    memo: &mut Option<JointPrep>,
+    (memo, gate): (&mut Option<JointPrep>, Option<&CentreGate>),
     clock: &mut PhaseClock,
     findings: &mut Findings,
     verbose: bool,
@@ -483,10 +484,11 @@ pub(crate) fn prepare_joints(
     clock.lap("models");
     let t_centre = std::time::Instant::now();
     let remembered = memo.take().filter(|m| m.key == key);
-    let centre = match &remembered {
+    let fit = match &remembered {
         Some(m) => m.centre.clone(),
         None => joints::fit_joint_centre_of(&jm, &labels, &bolted_rows)?,
     };
+    let centre = fit.coords.clone();
     if verbose {
         eprintln!(
             "joints: ROM centre {:?} = {centre:.4?} (ln, relative to the priors' centres), {} in {:.1} s",
@@ -506,6 +508,9 @@ pub(crate) fn prepare_joints(
     )?;
     let bolted_rows: Vec<&PairRow> = bolted_rows.into_iter().chain(&c.new_rows).collect();
     clock.lap("centre_fit");
+    if let Some(why) = gate.and_then(|g| g(&fit)) {
+        bail!("{why}");
+    }
     let rom = match remembered {
         Some(m) => m.rom,
         None => model_cache::rom(
@@ -516,7 +521,7 @@ pub(crate) fn prepare_joints(
     };
     *memo = Some(JointPrep {
         key,
-        centre: centre.clone(),
+        centre: fit.clone(),
         rom: rom.clone(),
     });
     rom_centre_check(&jm.model, &rom, c.need, findings)?;
@@ -583,7 +588,7 @@ pub(crate) fn prepare_joints(
         inp,
         jm,
         c,
-        centre,
+        centre: fit,
         jt,
         sopts,
         shape_weights,

@@ -33,7 +33,7 @@ use crate::modal::rows::PairRow;
 use crate::stage::{exit, PhaseClock, StageOutcome, StageResult};
 use crate::update::enrichment::{is_board_mechanism, Mechanism};
 use crate::update::posterior::{convergence_finding, lost_finding, residuals, SummaryRow};
-use crate::update::prepare::JointPrep;
+use crate::update::prepare::{CentreGate, JointPrep};
 use crate::update::problem::{
     discrepancy_for, model_error_from, model_error_study, report_shape_weights, select_labels,
     weigh_shapes, ModelSpec,
