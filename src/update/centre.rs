@@ -29,7 +29,10 @@ pub fn fit_centre(
     (w_labels, points): (&faer::Mat<f64>, &[[f64; 2]]),
     n_track: usize,
 ) -> anyhow::Result<CentreFit> {
-    let (mut fit, mut rel_residuals) = fit_joint_centre(
+    let CentreFit {
+        coords: mut fit,
+        mut rel_residuals,
+    } = fit_joint_centre(
         model,
         p_base,
         &coords[..n_fit],
@@ -56,7 +59,7 @@ pub fn fit_centre(
                 p_held.values[i] *= (a * centre[k]).exp();
             }
         }
-        let (k_con, r) = fit_joint_centre(
+        let k_con = fit_joint_centre(
             model,
             &p_held,
             &coords[..1],
@@ -66,8 +69,8 @@ pub fn fit_centre(
             (w_labels, points),
             n_track,
         )?;
-        centre[0] = k_con[0];
-        rel_residuals = r;
+        centre[0] = k_con.coords[0];
+        rel_residuals = k_con.rel_residuals;
     }
     Ok(CentreFit {
         coords: centre,
@@ -100,7 +103,7 @@ pub fn fit_joint_centre(
     rows: &[&PairRow],
     (w_ref, points): (&faer::Mat<f64>, &[[f64; 2]]),
     n_modes: usize,
-) -> anyhow::Result<(Vec<f64>, Vec<(String, f64)>)> {
+) -> anyhow::Result<CentreFit> {
     // Median measured frequency per label.
     let med: Vec<Option<f64>> = labels
         .labels
@@ -172,5 +175,8 @@ pub fn fit_joint_centre(
     let at = resid(&best.1)?;
     let measured = labels.labels.iter().zip(&med).filter(|(_, m)| m.is_some());
     let rel_residuals = measured.map(|(l, _)| l.clone()).zip(at).collect();
-    Ok((best.1, rel_residuals))
+    Ok(CentreFit {
+        coords: best.1,
+        rel_residuals,
+    })
 }
