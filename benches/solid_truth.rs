@@ -9,8 +9,10 @@
 //! To take the distance apart: `SOLID_G_Z_PA` sets the solid's transverse shear moduli
 //! G_xz = G_yz (default 3.5 GPa; a hundredfold makes the solid nearly rigid in transverse
 //! shear, the plate's Kirchhoff assumption); `SOLID_ONLY` = `free` or `bolted` runs one setup,
-//! `SOLID_BOARD` = `default` or `realistic` one board. `PLATE_G_Z_PA` makes the plate
-//! shear-deformable with those transverse shear moduli, `PLATE_MESH` = `nx,ny` sets its mesh.
+//! `SOLID_BOARD` = `default` or `realistic` one board, `SOLID_RIDING_KG` the mass riding on
+//! each clamped patch. `PLATE_G_Z_PA` makes the plate
+//! shear-deformable with those transverse shear moduli, `PLATE_MESH` = `nx,ny` sets its mesh,
+//! `PLATE_TANGENTIAL` its joint's `tangential_over_normal` (0: the contact slides freely).
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -79,6 +81,9 @@ fn main() {
                     element_size_m: 1e-3 * h,
                     g_xz_pa: g_z_pa.unwrap_or(d.g_xz_pa),
                     g_yz_pa: g_z_pa.unwrap_or(d.g_yz_pa),
+                    riding_mass_kg: env("SOLID_RIDING_KG").map_or(d.riding_mass_kg, |v| {
+                        v.parse().expect("SOLID_RIDING_KG in kg")
+                    }),
                     ..d
                 };
                 let t0 = Instant::now();
@@ -104,6 +109,9 @@ fn main() {
             {
                 board.core.g_xz_pa = Some(g);
                 board.core.g_yz_pa = Some(g);
+            }
+            if let (Some(t), Some(j)) = (env("PLATE_TANGENTIAL"), board.joint.as_mut()) {
+                j.tangential_over_normal = t.parse().expect("PLATE_TANGENTIAL: a ratio");
             }
             let mut mesh = board.mesh_for(&setup_fe).clone();
             if let Some(m) = env("PLATE_MESH") {

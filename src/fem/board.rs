@@ -389,6 +389,22 @@ pub struct JointData {
     pub k_con_n_per_m: f64,
     /// Mass of one bolt with nut and washers, kg (used by the joint-mass variant).
     pub bolt_mass_kg: f64,
+    /// Tangential over normal stiffness of the clamped contact. A stuck (not slipping)
+    /// contact holds the board's faces in-plane as well as out of it; the in-plane springs
+    /// act half the board's thickness from its mid-plane, so they restrain the slopes by
+    /// `tangential_over_normal × k_con × (h/2)²` per joint and axis
+    /// ([`crate::fem::joints`]). Default Mindlin's 2(1 − ν)/(2 − ν) at ν = 0.3 (steel, and
+    /// FR-4 through its thickness): 0.82. 0 leaves the contact free to slide.
+    #[serde(default = "JointData::mindlin_tangential_over_normal")]
+    pub tangential_over_normal: f64,
+}
+
+impl JointData {
+    /// Mindlin's tangential over normal compliance ratio of an elastic contact at ν = 0.3
+    /// ("Compliance of elastic bodies in contact", J. Appl. Mech. 16, 1949).
+    pub fn mindlin_tangential_over_normal() -> f64 {
+        2.0 * (1.0 - 0.3) / (2.0 - 0.3)
+    }
 }
 
 /// Structured mesh density: `nx × ny` Bogner–Fox–Schmit rectangles.
@@ -678,11 +694,15 @@ impl Board {
             Some(joint) => {
                 pos("joint.clamp_diameter_m", joint.clamp_diameter_m)?;
                 pos("joint.k_con_n_per_m", joint.k_con_n_per_m)?;
-                if !(joint.bolt_mass_kg >= 0.0) {
-                    return Err(FemError::BoardInvalid(format!(
-                        "joint.bolt_mass_kg: expected >= 0, found {}",
-                        joint.bolt_mass_kg
-                    )));
+                for (what, v) in [
+                    ("bolt_mass_kg", joint.bolt_mass_kg),
+                    ("tangential_over_normal", joint.tangential_over_normal),
+                ] {
+                    if !(v >= 0.0 && v.is_finite()) {
+                        return Err(FemError::BoardInvalid(format!(
+                            "joint.{what}: expected a finite value >= 0, found {v}"
+                        )));
+                    }
                 }
             }
         }

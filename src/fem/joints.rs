@@ -10,7 +10,20 @@
 //!
 //! Features combine; each adds affine terms and parameters:
 //! - [`JointFeature::Translational`] (the paper's baseline): out-of-plane springs of total
-//!   stiffness K_con (`k_con_n_per_m`, head and nut contacts in parallel) per joint;
+//!   stiffness K_con (`k_con_n_per_m`, head and nut contacts in parallel) per joint, and the
+//!   contact's tangential stiffness: a stuck contact holds the board's face in-plane with
+//!   `tangential_over_normal` × K_con (Mindlin 1949; the board file's
+//!   [`super::board::JointData::tangential_over_normal`]). The face lies h/2 from the
+//!   mid-plane, where a slope w,x moves it by (h/2) w,x, so these springs restrain the slopes
+//!   by ratio × K_con × (h/2)² per joint and axis, less what the board's in-plane rigid
+//!   motion (three DOFs of the model, [`Contact::inplane_dofs`]) gives way: a mode whose
+//!   slopes at the joints push all the faces one way slides the board rather than strain the
+//!   springs. The membrane is otherwise rigid (its stiffness E h is some ten times the
+//!   contact's). The contact is at the bottom face, the standoff's: the screw head's own
+//!   friction acts through the shank, which bends in its clearance hole. On the
+//!   shear-deformable plate the face moves with the normal's rotation θ = ∇w − γ; the layer
+//!   takes ∇w, the shear strain under the clamp being a few per cent of the slope. Scaled
+//!   with K_con, it adds no parameter;
 //! - [`JointFeature::PerJointTranslational`]: the same with one `k_con_{j}_n_per_m` per joint;
 //! - [`JointFeature::RotationalRestraint`]: a layer on the slopes ∂w/∂x and ∂w/∂y, total
 //!   `k_rot_nm_per_rad` per joint and axis (a uniform rotation θ stores ½ k_rot θ²);
@@ -132,6 +145,9 @@ pub struct JointTerm {
     pub param: String,
     pub nominal: f64,
     pub scale: f64,
+    /// Power of the core thickness (over its nominal) the term goes with, when the thickness
+    /// is a parameter: 0 for all but the contact's face-offset terms.
+    pub h_power: i32,
     pub triplets: Vec<(usize, usize, f64)>,
 }
 
@@ -187,42 +203,157 @@ fn layer(
     }
 }
 
+/// The normal contact stiffness of a joint and its stuck contact's tangential stiffness.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Contact {
+    /// Nominal K_con per joint, N/m (the board's `k_con_n_per_m`).
+    pub k_con_nominal: f64,
+    /// Tangential over normal stiffness (the board's `tangential_over_normal`).
+    pub tangential_over_normal: f64,
+    /// Half the core's nominal thickness and half the copper's, m: the contact face (the
+    /// board's bottom face) lies their sum below the mid-plane.
+    pub half_core_m: f64,
+    pub half_copper_m: f64,
+    /// Whether the core thickness is a parameter: the face offset then follows it, and the
+    /// contact's terms are split by power of the thickness.
+    pub thickness_param: bool,
+    /// The board's in-plane rigid motion `[u, v, φ]` (m, m, rad about the frame's z axis):
+    /// the DOFs the tangential springs pull on. `None` holds the board fixed in-plane.
+    pub inplane_dofs: Option<[usize; 3]>,
+}
+
+impl Contact {
+    /// The board's contact at its bottom face, the board's in-plane rigid motion at
+    /// `inplane_dofs`.
+    pub fn of_board(
+        board: &super::Board,
+        thickness_param: bool,
+        inplane_dofs: Option<[usize; 3]>,
+    ) -> Contact {
+        let j = board.joint();
+        Contact {
+            k_con_nominal: j.k_con_n_per_m,
+            tangential_over_normal: j.tangential_over_normal,
+            half_core_m: 0.5 * board.core.thickness_m,
+            half_copper_m: 0.5 * board.copper_thickness_m(),
+            thickness_param,
+            inplane_dofs,
+        }
+    }
+}
+
+type Triplets = Vec<(usize, usize, f64)>;
+
+/// A contact's triplets by order in the face offset c: `[c⁰, c¹, c²]`, each at c = 1.
+type ByOffset = [Triplets; 3];
+
+/// Normal springs of total `k` over `p` (to the fixture DOF `to` if any) and the stuck
+/// contact's tangential springs of total `ratio × k` at the bottom face, to the ground.
+/// The face at (x, y) moves in-plane by (u − φ y + c w_x, v + φ x + c w_y), c the face's
+/// offset below the mid-plane (Kirchhoff kinematics; [`JointFeature::Translational`]).
+fn contact_layer(t: &mut ByOffset, p: &Patch, to: Option<usize>, k: f64, contact: &Contact) {
+    spring_layer(&mut t[0], p, to, k);
+    let kt = contact.tangential_over_normal * k;
+    if kt <= 0.0 {
+        return;
+    }
+    layer(&mut t[2], p, kt, |pi| &pi.grad);
+    let Some([u, v, phi]) = contact.inplane_dofs else {
+        return;
+    };
+    let kpa = kt / p.area_m2;
+    let sym = |t: &mut Triplets, r: usize, q: usize, x: f64| {
+        t.push((r, q, x));
+        if r != q {
+            t.push((q, r, x));
+        }
+    };
+    for (dofs, pi) in &p.parts {
+        sym(&mut t[0], u, u, kpa * pi.area_m2);
+        sym(&mut t[0], v, v, kpa * pi.area_m2);
+        sym(&mut t[0], phi, phi, kpa * pi.r2_m4);
+        sym(&mut t[0], u, phi, -kpa * pi.y_m3);
+        sym(&mut t[0], v, phi, kpa * pi.x_m3);
+        for r in 0..16 {
+            sym(&mut t[1], u, dofs[r], kpa * pi.n_x[r]);
+            sym(&mut t[1], v, dofs[r], kpa * pi.n_y[r]);
+            sym(&mut t[1], phi, dofs[r], kpa * pi.n_rot[r]);
+        }
+    }
+}
+
+/// The stiffness terms of one contact parameter from its triplets by face offset. The offset
+/// is c = (h/h₀) c_core + c_cu: with the thickness a parameter, the terms go by its power
+/// (`h_power` 0, 1, 2); else one term at the nominal offset.
+fn contact_terms(param: String, k_nominal: f64, t: ByOffset, contact: &Contact) -> Vec<JointTerm> {
+    let (hc, cu) = (contact.half_core_m, contact.half_copper_m);
+    let [t0, t1, t2] = t;
+    let combine = |parts: [(&Triplets, f64); 3]| -> Triplets {
+        parts
+            .iter()
+            .filter(|(_, f)| *f != 0.0)
+            .flat_map(|(t, f)| t.iter().map(move |&(r, c, x)| (r, c, f * x)))
+            .collect()
+    };
+    let by_power: Vec<(i32, Triplets)> = if contact.thickness_param {
+        vec![
+            (0, combine([(&t0, 1.0), (&t1, cu), (&t2, cu * cu)])),
+            (1, combine([(&t0, 0.0), (&t1, hc), (&t2, 2.0 * hc * cu)])),
+            (2, combine([(&t0, 0.0), (&t1, 0.0), (&t2, hc * hc)])),
+        ]
+    } else {
+        let c = hc + cu;
+        vec![(0, combine([(&t0, 1.0), (&t1, c), (&t2, c * c)]))]
+    };
+    by_power
+        .into_iter()
+        .filter(|(_, t)| !t.is_empty())
+        .map(|(h_power, triplets)| JointTerm {
+            which: Which::K,
+            param: param.clone(),
+            nominal: k_nominal,
+            scale: k_nominal,
+            h_power,
+            triplets,
+        })
+        .collect()
+}
+
 /// The affine terms of `model` for the given patches. `fixture_dof` is the index of
-/// the fixture z-DOF when the model has one. `k_con_nominal` comes from the board.
+/// the fixture z-DOF when the model has one.
 pub fn joint_terms(
     model: &JointModel,
     patches: &[Patch],
     fixture_dof: Option<usize>,
-    k_con_nominal: f64,
+    contact: Contact,
 ) -> Vec<JointTerm> {
+    let k_con_nominal = contact.k_con_nominal;
     let mut out = Vec::new();
     let ref_or = |v: f64, r: f64| if v > 0.0 { v } else { r };
     for f in &model.features {
         match f {
             JointFeature::Translational => {
-                let mut t = Vec::new();
+                let mut t = ByOffset::default();
                 for p in patches {
-                    spring_layer(&mut t, p, fixture_dof, k_con_nominal);
+                    contact_layer(&mut t, p, fixture_dof, k_con_nominal, &contact);
                 }
-                out.push(JointTerm {
-                    which: Which::K,
-                    param: names::K_CON.to_string(),
-                    nominal: k_con_nominal,
-                    scale: k_con_nominal,
-                    triplets: t,
-                });
+                out.extend(contact_terms(
+                    names::K_CON.to_string(),
+                    k_con_nominal,
+                    t,
+                    &contact,
+                ));
             }
             JointFeature::PerJointTranslational => {
                 for (j, p) in patches.iter().enumerate() {
-                    let mut t = Vec::new();
-                    spring_layer(&mut t, p, fixture_dof, k_con_nominal);
-                    out.push(JointTerm {
-                        which: Which::K,
-                        param: names::k_con_joint(j + 1),
-                        nominal: k_con_nominal,
-                        scale: k_con_nominal,
-                        triplets: t,
-                    });
+                    let mut t = ByOffset::default();
+                    contact_layer(&mut t, p, fixture_dof, k_con_nominal, &contact);
+                    out.extend(contact_terms(
+                        names::k_con_joint(j + 1),
+                        k_con_nominal,
+                        t,
+                        &contact,
+                    ));
                 }
             }
             JointFeature::RotationalRestraint { k_rot_nm_per_rad } => {
@@ -238,6 +369,7 @@ pub fn joint_terms(
                     param: names::K_ROT.to_string(),
                     nominal: *k_rot_nm_per_rad,
                     scale,
+                    h_power: 0,
                     triplets: t,
                 });
             }
@@ -253,6 +385,7 @@ pub fn joint_terms(
                     param: names::JOINT_MASS.to_string(),
                     nominal: *mass_kg,
                     scale,
+                    h_power: 0,
                     triplets: t,
                 });
             }
@@ -267,6 +400,7 @@ pub fn joint_terms(
                     param: names::K_FIX.to_string(),
                     nominal: *k_fix_n_per_m,
                     scale: *k_fix_n_per_m,
+                    h_power: 0,
                     triplets: vec![(fdof, fdof, *k_fix_n_per_m)],
                 });
                 let scale = ref_or(*m_fix_kg, 1e-2);
@@ -275,6 +409,7 @@ pub fn joint_terms(
                     param: names::M_FIX.to_string(),
                     nominal: *m_fix_kg,
                     scale,
+                    h_power: 0,
                     triplets: vec![(fdof, fdof, scale)],
                 });
             }

@@ -34,7 +34,7 @@ use super::eigen::{self, EigenOptions};
 use super::geometry::{
     annulus_convex_quadrature, annulus_rect_quadrature, polygon_quadrature, QPoint, Rect,
 };
-use super::joints::{joint_terms, JointModel, Patch, Which};
+use super::joints::{joint_terms, Contact, JointModel, Patch, Which};
 use super::laminate::{
     chebyshev_nodes, core_q_scale, coupling_correction, coupling_kernel, isotropic_q,
     lagrange_basis, layer_factors, orthotropic_q, transverse_shear_stiffness, Comp4, ShearLayer,
@@ -459,6 +459,10 @@ pub struct FeModel {
     pub n_dof: usize,
     /// Index of the fixture DOF, if any.
     pub fixture_dof: Option<usize>,
+    /// The board's in-plane rigid motion `[u, v, φ]` (m, m, rad about z at the frame's
+    /// origin), when bolted joints hold it through tangential springs
+    /// ([`super::joints::Contact`]). Its mass is the board's own, in-plane.
+    pub inplane_dofs: Option<[usize; 3]>,
     /// Parameter names, nominal values and coefficient map.
     pub map: ParamMap,
     /// Human-readable name of each stiffness / mass term.
@@ -1302,6 +1306,58 @@ fn joint_patches(board: &Board, mesh: &Mesh) -> Result<(Vec<Vec<usize>>, Vec<Pat
     Ok((patches, jpatches))
 }
 
+/// The deflection fields w = 1, w = x and w = y as DOF vectors (exact in the Hermite
+/// element: w, w_x at every node), whose quadratic forms in a mass term give that mass's
+/// in-plane rigid inertia: an in-plane motion (u − φ y, v + φ x) has the kinetic energy of
+/// the same mass moving out of plane. (The rotary inertia adds I × area to the w = x form,
+/// (h/L)²/12 of it, negligible.)
+struct RigidFields {
+    one: Vec<f64>,
+    x: Vec<f64>,
+    y: Vec<f64>,
+}
+
+impl RigidFields {
+    fn new(mesh: &Mesh, n_dof: usize) -> RigidFields {
+        let (mut one, mut x, mut y) = (vec![0.0; n_dof], vec![0.0; n_dof], vec![0.0; n_dof]);
+        for (n, d) in mesh.node_dof.iter().enumerate() {
+            if let Some(d) = *d {
+                let (xn, yn) = mesh.node_xy(n);
+                one[d] = 1.0;
+                (x[d], x[d + 1]) = (xn, 1.0);
+                (y[d], y[d + 2]) = (yn, 1.0);
+            }
+        }
+        RigidFields { one, x, y }
+    }
+
+    /// The in-plane inertia triplets `[u, v, φ]` of the mass term `t`.
+    fn inplane_mass(
+        &self,
+        t: &[(usize, usize, f64)],
+        [u, v, phi]: [usize; 3],
+    ) -> Vec<(usize, usize, f64)> {
+        let form =
+            |a: &[f64], b: &[f64]| -> f64 { t.iter().map(|&(r, c, m)| a[r] * m * b[c]).sum() };
+        let m = form(&self.one, &self.one);
+        let mx = form(&self.one, &self.x);
+        let my = form(&self.one, &self.y);
+        let j = form(&self.x, &self.x) + form(&self.y, &self.y);
+        if m == 0.0 && j == 0.0 {
+            return Vec::new();
+        }
+        vec![
+            (u, u, m),
+            (v, v, m),
+            (phi, phi, j),
+            (u, phi, -my),
+            (phi, u, -my),
+            (v, phi, mx),
+            (phi, v, mx),
+        ]
+    }
+}
+
 /// Adds the joint terms `terms` to the stiffness (`kb`) or mass (`mb`) terms, each joint
 /// parameter appended to `pnames` and `nominal` when first seen.
 fn push_joint_terms(
@@ -1310,6 +1366,7 @@ fn push_joint_terms(
     nominal: &mut Vec<f64>,
     kb: &mut TermBuilder,
     mb: &mut TermBuilder,
+    h_pow: &dyn Fn(Coef, i32) -> Coef,
 ) {
     for t in terms {
         let param = match pnames.iter().position(|n| *n == t.param) {
@@ -1323,6 +1380,11 @@ fn push_joint_terms(
         let coef = Coef::Linear {
             param,
             scale: t.scale,
+        };
+        let coef = if t.h_power == 0 {
+            coef
+        } else {
+            h_pow(coef, t.h_power)
         };
         match t.which {
             Which::K => kb.push(&t.param, coef, t.triplets),
@@ -1454,6 +1516,7 @@ impl FeModel {
         // Joints.
         let mut patches = Vec::new();
         let mut fixture_dof = None;
+        let mut inplane_dofs = None;
         if let Setup::Bolted(jm) = &setup {
             let jpatches;
             (patches, jpatches) = joint_patches(board, &mesh_data)?;
@@ -1461,8 +1524,20 @@ impl FeModel {
                 fixture_dof = Some(n_dof);
                 n_dof += 1;
             }
-            let terms = joint_terms(jm, &jpatches, fixture_dof, board.joint().k_con_n_per_m);
-            push_joint_terms(terms, &mut pnames, &mut nominal, &mut kb, &mut mb);
+            if board.joint().tangential_over_normal > 0.0 {
+                inplane_dofs = Some([n_dof, n_dof + 1, n_dof + 2]);
+                n_dof += 3;
+            }
+            let contact = Contact::of_board(board, i_h.is_some(), inplane_dofs);
+            let terms = joint_terms(jm, &jpatches, fixture_dof, contact);
+            push_joint_terms(terms, &mut pnames, &mut nominal, &mut kb, &mut mb, &h_pow);
+            if let Some(ip) = inplane_dofs {
+                let rigid = RigidFields::new(&mesh_data, n_dof);
+                for t in &mut mb.trip {
+                    let extra = rigid.inplane_mass(t, ip);
+                    t.extend(extra);
+                }
+            }
         }
 
         // Shared pattern: all element blocks plus joint entries.
@@ -1519,6 +1594,7 @@ impl FeModel {
             mesh: mesh_data,
             n_dof,
             fixture_dof,
+            inplane_dofs,
             map,
             k_term_names: kb.names,
             m_term_names: mb.names,
@@ -1552,7 +1628,13 @@ impl FeModel {
         // Debug of these plain structs prints every f64 in its shortest round-trip form and
         // holds no hash map: a deterministic, complete text.
         h.update(format!("{:?}\0{:?}\0{:?}\0", self.setup, self.board, self.map).as_bytes());
-        h.update(format!("{:?}\0{}\0{:?}\0", self.mesh, self.n_dof, self.fixture_dof).as_bytes());
+        h.update(
+            format!(
+                "{:?}\0{}\0{:?}\0{:?}\0",
+                self.mesh, self.n_dof, self.fixture_dof, self.inplane_dofs
+            )
+            .as_bytes(),
+        );
         words(
             &mut h,
             &[
@@ -1696,7 +1778,29 @@ impl FeModel {
                 self.m_terms[idx][q] += mass_kg * wr * wc;
             }
         }
+        for (r, c, m) in self.inplane_point_mass(x_m, y_m, mass_kg) {
+            let q = self.pattern.index(r, c);
+            self.m_terms[idx][q] += m;
+        }
         Ok(())
+    }
+
+    /// The in-plane inertia entries of a point mass `mass_kg` at (x_m, y_m) moving with the
+    /// board's in-plane rigid motion (none when the model has none).
+    fn inplane_point_mass(&self, x_m: f64, y_m: f64, mass_kg: f64) -> Vec<(usize, usize, f64)> {
+        let Some([u, v, phi]) = self.inplane_dofs else {
+            return Vec::new();
+        };
+        let m = mass_kg;
+        vec![
+            (u, u, m),
+            (v, v, m),
+            (phi, phi, m * (x_m * x_m + y_m * y_m)),
+            (u, phi, -m * y_m),
+            (phi, u, -m * y_m),
+            (v, phi, m * x_m),
+            (phi, v, m * x_m),
+        ]
     }
 
     /// Add a lumped mass at (x_m, y_m) whose value is a parameter `name` (kg, nominal
@@ -1728,6 +1832,9 @@ impl FeModel {
             for &(c, wc) in &row {
                 term[self.pattern.index(r, c)] += wr * wc;
             }
+        }
+        for (r, c, m) in self.inplane_point_mass(x_m, y_m, 1.0) {
+            term[self.pattern.index(r, c)] += m;
         }
         self.map.names.push(name.to_string());
         self.map.nominal.push(nominal_kg);

@@ -105,7 +105,8 @@ fn symmetrize16(mat: &mut Mat16) {
 
 /// Integrals of one element's shape functions over part of it (a joint patch):
 /// `nn` = ∫ N Nᵀ dA (m²), `n` = ∫ N dA (m²), `grad` = ∫ (N_x N_xᵀ + N_y N_yᵀ) dA
-/// (dimensionless), `area_m2` = ∫ dA.
+/// (dimensionless), `area_m2` = ∫ dA, and the moments a stuck contact's in-plane springs
+/// need (x, y in the board's frame).
 #[derive(Clone, Debug)]
 pub struct PartIntegrals {
     /// ∫ N Nᵀ dA, m².
@@ -116,6 +117,16 @@ pub struct PartIntegrals {
     pub grad: Mat16,
     /// ∫ dA, m².
     pub area_m2: f64,
+    /// ∫ N_x dA and ∫ N_y dA, m.
+    pub n_x: [f64; 16],
+    pub n_y: [f64; 16],
+    /// ∫ (x N_y − y N_x) dA, m²: the slopes' work against an in-plane rotation about z.
+    pub n_rot: [f64; 16],
+    /// ∫ x dA and ∫ y dA, m³.
+    pub x_m3: f64,
+    pub y_m3: f64,
+    /// ∫ (x² + y²) dA, m⁴.
+    pub r2_m4: f64,
 }
 
 /// [`PartIntegrals`] over the quadrature points `pts` of the element with lower-left
@@ -132,12 +143,24 @@ pub fn part_integrals(
         n: [0.0; 16],
         grad: [[0.0; 16]; 16],
         area_m2: 0.0,
+        n_x: [0.0; 16],
+        n_y: [0.0; 16],
+        n_rot: [0.0; 16],
+        x_m3: 0.0,
+        y_m3: 0.0,
+        r2_m4: 0.0,
     };
     for &(x, y, w) in pts {
         let s = shape((x - x0_m) / a_m, (y - y0_m) / b_m, a_m, b_m);
         out.area_m2 += w;
+        out.x_m3 += w * x;
+        out.y_m3 += w * y;
+        out.r2_m4 += w * (x * x + y * y);
         for r in 0..16 {
             out.n[r] += w * s[0][r];
+            out.n_x[r] += w * s[1][r];
+            out.n_y[r] += w * s[2][r];
+            out.n_rot[r] += w * (x * s[2][r] - y * s[1][r]);
             for c in 0..16 {
                 out.nn[r][c] += w * s[0][r] * s[0][c];
                 out.grad[r][c] += w * (s[1][r] * s[1][c] + s[2][r] * s[2][c]);

@@ -288,8 +288,12 @@ fn joint_totals_are_exact_on_every_mesh() {
                 }
             }
         }
-        // Translational part: K_con ∫ x² dA / A per joint; rotational part n_j k_rot.
+        // Translational part: K_con ∫ x² dA / A per joint; rotational part n_j k_rot; the
+        // stuck contact's tangential springs ratio K_con at the face c below the mid-plane,
+        // n_j ratio K_con c² (the in-plane DOFs held at 0).
         let e_r = energy(&rx, &pj);
+        let c_face = 0.5 * (b.core.thickness_m + b.copper_thickness_m());
+        let tangential = n_j * b.joint().tangential_over_normal * k_con * c_face * c_face;
         let r_h = 0.5 * b.holes[0].diameter_m;
         let r_c = 0.5 * b.joint().clamp_diameter_m;
         let area = std::f64::consts::PI * (r_c * r_c - r_h * r_h);
@@ -298,7 +302,8 @@ fn joint_totals_are_exact_on_every_mesh() {
             .holes
             .iter()
             .map(|h| k_con * (h.x_m * h.x_m + i_xx / area) + k_rot)
-            .sum();
+            .sum::<f64>()
+            + tangential;
         assert!(
             (e_r - want).abs() < 1e-9 * want,
             "{nx} × {ny}: rotation energy {e_r}, expected {want}"
@@ -425,6 +430,10 @@ fn sliver_free_joint_board() -> (Board, MeshOptions) {
         h.diameter_m = 1.0e-3;
     }
     b.joint.as_mut().unwrap().clamp_diameter_m = 9.6e-3;
+    // The normal layer alone: the contact's tangential springs would bring the in-plane DOFs,
+    // which the limits' constrained solves lack (they are checked against closed forms in
+    // `tangential_contact_matches_closed_forms`).
+    b.joint.as_mut().unwrap().tangential_over_normal = 0.0;
     let mesh = MeshOptions { nx: 16, ny: 10 };
     let (a, bb) = (b.length_x_m / 16.0, b.width_y_m / 10.0);
     for h in &b.holes {
@@ -689,4 +698,132 @@ fn check_core_stiffness_form(b: Board, mesh: Option<MeshOptions>) {
     let want = q11 * c.thickness_m.powi(3) / 12.0 * std::f64::consts::PI * r * r;
     let got = m0.core_stiffness_form(x, y, r, w.as_ref())[(0, 0)];
     assert!((got / want - 1.0).abs() < 1e-6, "{got} vs {want}");
+}
+
+/// The stuck contact's tangential springs ([`crate::fem::joints::Contact`]) against closed
+/// forms, on a plain plate (no copper) with four holes: the in-plane stiffness of the board's
+/// rigid motion is n k_t (u, v) and k_t Σ (x_c² + y_c² + (r_c² + r_h²)/2) (φ about the
+/// origin); a rigid tilt w = x (w_x = 1) pulls u by n k_t c and φ by −k_t c Σ y_c, and stores
+/// n k_t c² in the springs besides the normal springs' share; the in-plane inertia is the
+/// plate's mass and its polar moment about the corner, m (L_x² + L_y²)/3 less the holes', and
+/// a point mass adds m and m r².
+#[test]
+fn tangential_contact_matches_closed_forms() {
+    use std::f64::consts::PI;
+    let (lx, ly, h, rho) = (0.08, 0.05, 1.5e-3, 2000.0);
+    let mut b = crate::fem::tests::helpers::plain_board(lx, ly, h, 25e9, 25e9, 6e9, 0.14, rho);
+    let ratio = 0.8;
+    let (d_hole, d_clamp) = (2.7e-3, 6e-3);
+    b.holes = [
+        (0.005, 0.005),
+        (0.075, 0.007),
+        (0.006, 0.045),
+        (0.074, 0.044),
+    ]
+    .iter()
+    .map(|&(x_m, y_m)| crate::fem::board::Hole {
+        x_m,
+        y_m,
+        diameter_m: d_hole,
+    })
+    .collect();
+    let j = b.joint.as_mut().unwrap();
+    (j.clamp_diameter_m, j.tangential_over_normal) = (d_clamp, ratio);
+    let k_con = j.k_con_n_per_m;
+    let (nx, ny) = (40, 25);
+    let mut m = FeModel::build(&b, Setup::bolted(), &MeshOptions { nx, ny }).unwrap();
+    let p = m.nominal_params();
+    let [u, v, phi] = m.inplane_dofs.expect("a stuck contact gives in-plane DOFs");
+    let n_dof = m.n_dof;
+    let unit = |i: usize| {
+        let mut e = vec![0.0; n_dof];
+        e[i] = 1.0;
+        e
+    };
+    let form = |a: &[f64], ka: &[f64]| -> f64 { a.iter().zip(ka).map(|(x, y)| x * y).sum() };
+    let kt = ratio * k_con;
+    let c = 0.5 * h;
+    let (r_h, r_c) = (0.5 * d_hole, 0.5 * d_clamp);
+    let n = b.holes.len() as f64;
+    let close = |got: f64, want: f64, what: &str| {
+        assert!(
+            (got - want).abs() <= 1e-8 * want.abs().max(1e-30),
+            "{what}: {got}, expected {want}"
+        );
+    };
+    let k_u = m.stiffness_apply(&p, &unit(u)).unwrap();
+    let k_phi = m.stiffness_apply(&p, &unit(phi)).unwrap();
+    close(k_u[u], n * kt, "K_uu");
+    close(m.stiffness_apply(&p, &unit(v)).unwrap()[v], n * kt, "K_vv");
+    let polar: f64 = b
+        .holes
+        .iter()
+        .map(|o| o.x_m * o.x_m + o.y_m * o.y_m + 0.5 * (r_c * r_c + r_h * r_h))
+        .sum();
+    close(k_phi[phi], kt * polar, "K_φφ");
+    close(
+        k_u[phi],
+        -kt * b.holes.iter().map(|o| o.y_m).sum::<f64>(),
+        "K_uφ",
+    );
+    // Rigid tilt w = x.
+    let mut rx = vec![0.0; m.n_dof];
+    for jn in 0..=ny {
+        for i in 0..=nx {
+            if let Some(d) = m.mesh.node_dof[jn * (nx + 1) + i] {
+                (rx[d], rx[d + 1]) = (m.mesh.x_m[i], 1.0);
+            }
+        }
+    }
+    close(form(&rx, &k_u), n * kt * c, "uᵀK(w = x)");
+    close(
+        form(&rx, &k_phi),
+        -kt * c * b.holes.iter().map(|o| o.y_m).sum::<f64>(),
+        "φᵀK(w = x)",
+    );
+    let area = PI * (r_c * r_c - r_h * r_h);
+    let i_yy = PI * (r_c.powi(4) - r_h.powi(4)) / 4.0;
+    let normal: f64 = b
+        .holes
+        .iter()
+        .map(|o| k_con * (o.x_m * o.x_m + i_yy / area))
+        .sum();
+    close(
+        form(&rx, &m.stiffness_apply(&p, &rx).unwrap()),
+        normal + n * kt * c * c,
+        "(w = x)ᵀK(w = x)",
+    );
+    // In-plane inertia.
+    let holes_area = n * PI * r_h * r_h;
+    let mass = rho * h * (lx * ly - holes_area);
+    let polar_m = rho
+        * h
+        * (lx * ly * (lx * lx + ly * ly) / 3.0
+            - b.holes
+                .iter()
+                .map(|o| PI * r_h * r_h * (o.x_m * o.x_m + o.y_m * o.y_m + 0.5 * r_h * r_h))
+                .sum::<f64>());
+    let m_u = m.mass_apply(&p, &unit(u)).unwrap();
+    // The holes are cut cells, exact to the quadrature's ~1e-12; the thin plate has no
+    // rotary inertia.
+    close(m_u[u], mass, "M_uu");
+    let m_phi = m.mass_apply(&p, &unit(phi)).unwrap()[phi];
+    close(m_phi, polar_m, "M_φφ");
+    close(
+        m_u[phi],
+        -rho * h
+            * (lx * ly * ly / 2.0 - holes_area / n * b.holes.iter().map(|o| o.y_m).sum::<f64>()),
+        "M_uφ",
+    );
+    let (xm, ym, pm) = (0.03, 0.02, 2e-3);
+    m.add_point_mass(xm, ym, pm).unwrap();
+    let m_u2 = m.mass_apply(&p, &unit(u)).unwrap();
+    close(m_u2[u] - m_u[u], pm, "point mass in u");
+    let m_phi2 = m.mass_apply(&p, &unit(phi)).unwrap()[phi];
+    close(m_phi2 - m_phi, pm * (xm * xm + ym * ym), "point mass in φ");
+    // Without the tangential share the model has no in-plane DOFs.
+    b.joint.as_mut().unwrap().tangential_over_normal = 0.0;
+    let m0 = FeModel::build(&b, Setup::bolted(), &MeshOptions { nx, ny }).unwrap();
+    assert!(m0.inplane_dofs.is_none());
+    assert_eq!(m0.n_dof + 3, m.n_dof);
 }
