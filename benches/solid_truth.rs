@@ -10,7 +10,8 @@
 //! G_xz = G_yz (default 3.5 GPa; a hundredfold makes the solid nearly rigid in transverse
 //! shear, the plate's Kirchhoff assumption); `SOLID_ONLY` = `free` or `bolted` runs one setup,
 //! `SOLID_BOARD` = `default` or `realistic` one board, `SOLID_RIDING_KG` the mass riding on
-//! each clamped patch. `PLATE_G_Z_PA` makes the plate
+//! each clamped patch, `SOLID_K_ROT` the lab's added rotational restraint per joint (N·m/rad,
+//! the `rotational_restraint` effect). `PLATE_G_Z_PA` makes the plate
 //! shear-deformable with those transverse shear moduli, `PLATE_MESH` = `nx,ny` sets its mesh,
 //! `PLATE_TANGENTIAL` its joint's `tangential_over_normal` (0: the contact slides freely).
 
@@ -67,7 +68,11 @@ fn main() {
                 } else {
                     vec![]
                 },
-                k_rot_nm_per_rad: None,
+                k_rot_nm_per_rad: if bolted {
+                    env("SOLID_K_ROT").map(|v| v.parse().expect("SOLID_K_ROT in N·m/rad"))
+                } else {
+                    None
+                },
                 point_mass: None,
                 underfill_factor: None,
                 fixture: None,
@@ -134,13 +139,13 @@ fn main() {
             // relative frequency over the in-band modes, a log grid ×1/4 … ×16 of K̄), the
             // residual a step-2 update could not remove.
             let best_k = if bolted {
-                let mut best = (f64::MAX, k_bar);
-                for i in 0..=24 {
-                    let k = k_bar * 2f64.powf(-2.0 + 6.0 * i as f64 / 24.0);
+                let misfit = |k: f64| -> f64 {
                     let mut p = fe.nominal_params();
                     p.set(names::K_CON, k).unwrap();
                     let um = fe.modes(&p, n_modes + 2).unwrap();
                     let sh = fe.w_at(&um, &points).unwrap();
+                    let s =
+                        |j: usize| -> Vec<f64> { (0..points.len()).map(|o| sh[(o, j)]).collect() };
                     let mut ss = 0.0;
                     for (r, f) in truth
                         .freq_hz
@@ -150,20 +155,33 @@ fn main() {
                     {
                         let j = (0..um.freq_hz.len())
                             .max_by(|a, b| {
-                                let s = |j: usize| -> Vec<f64> {
-                                    (0..points.len()).map(|o| sh[(o, j)]).collect()
-                                };
                                 mac(&truth.shapes[r], &s(*a))
                                     .total_cmp(&mac(&truth.shapes[r], &s(*b)))
                             })
                             .unwrap();
                         ss += (um.freq_hz[j] / f - 1.0).powi(2);
                     }
-                    if ss < best.0 {
-                        best = (ss, k);
+                    ss
+                };
+                // A log grid, then golden-section search on ln K between the best point's
+                // neighbours (to 0.1 % in K).
+                let lnk = |i: f64| k_bar.ln() + std::f64::consts::LN_2 * (-2.0 + 6.0 * i / 24.0);
+                let i_best = (0..=24)
+                    .map(|i| (i, misfit(lnk(i as f64).exp())))
+                    .min_by(|a, b| a.1.total_cmp(&b.1))
+                    .unwrap()
+                    .0 as f64;
+                let (mut lo, mut hi) = (lnk(i_best - 1.0), lnk(i_best + 1.0));
+                let g = (5f64.sqrt() - 1.0) / 2.0;
+                while hi - lo > 1e-3 {
+                    let (a, b) = (hi - g * (hi - lo), lo + g * (hi - lo));
+                    if misfit(a.exp()) < misfit(b.exp()) {
+                        hi = b;
+                    } else {
+                        lo = a;
                     }
                 }
-                Some(best.1)
+                Some((0.5 * (lo + hi)).exp())
             } else {
                 None
             };
