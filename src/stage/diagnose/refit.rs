@@ -256,13 +256,24 @@ pub(super) fn centre_gate(
         .into_iter()
         .map(str::to_string)
         .collect();
+    if labels.is_empty() {
+        return None;
+    }
     let ev = read_json(&base2?.out.join("evidence.json")).ok()?;
-    let base: Vec<(String, f64)> = ev["rom_centre_rel_residuals"]
-        .as_object()?
+    let Some(base) = ev["rom_centre_rel_residuals"].as_object() else {
+        // A step 2 written before the centre fit's residuals were kept: say why the refit
+        // runs in full rather than skip the gate silently.
+        eprintln!(
+            "diagnose: {}: no centre-fit gate: the baseline step 2's evidence.json has no rom_centre_rel_residuals (written by an older hbmu; rerun update joints to have it)",
+            cand.id()
+        );
+        return None;
+    };
+    let base: Vec<(String, f64)> = base
         .iter()
         .filter_map(|(l, r)| Some((l.clone(), r.as_f64()?)))
         .collect();
-    if labels.is_empty() || base.is_empty() {
+    if base.is_empty() {
         return None;
     }
     let (id, max_share) = (cand.id(), opts.select.max_remaining_share);
