@@ -1340,22 +1340,33 @@ impl RigidFields {
         let form =
             |a: &[f64], b: &[f64]| -> f64 { t.iter().map(|&(r, c, m)| a[r] * m * b[c]).sum() };
         let m = form(&self.one, &self.one);
-        let mx = form(&self.one, &self.x);
-        let my = form(&self.one, &self.y);
+        let (mx, my) = (form(&self.one, &self.x), form(&self.one, &self.y));
         let j = form(&self.x, &self.x) + form(&self.y, &self.y);
         if m == 0.0 && j == 0.0 {
             return Vec::new();
         }
-        vec![
-            (u, u, m),
-            (v, v, m),
-            (phi, phi, j),
-            (u, phi, -my),
-            (phi, u, -my),
-            (v, phi, mx),
-            (phi, v, mx),
-        ]
+        inplane_inertia([u, v, phi], m, [mx, my], j)
     }
+}
+
+/// The in-plane inertia triplets on `[u, v, φ]` (φ about the frame's z axis) of a mass `m`
+/// (kg) with first moments `[∫x dm, ∫y dm]` and polar moment `j` about the origin: the
+/// kinetic energy of the motion (u − φ y, v + φ x).
+fn inplane_inertia(
+    [u, v, phi]: [usize; 3],
+    m: f64,
+    [mx, my]: [f64; 2],
+    j: f64,
+) -> Vec<(usize, usize, f64)> {
+    vec![
+        (u, u, m),
+        (v, v, m),
+        (phi, phi, j),
+        (u, phi, -my),
+        (phi, u, -my),
+        (v, phi, mx),
+        (phi, v, mx),
+    ]
 }
 
 /// Adds the joint terms `terms` to the stiffness (`kb`) or mass (`mb`) terms, each joint
@@ -1788,19 +1799,11 @@ impl FeModel {
     /// The in-plane inertia entries of a point mass `mass_kg` at (x_m, y_m) moving with the
     /// board's in-plane rigid motion (none when the model has none).
     fn inplane_point_mass(&self, x_m: f64, y_m: f64, mass_kg: f64) -> Vec<(usize, usize, f64)> {
-        let Some([u, v, phi]) = self.inplane_dofs else {
+        let Some(dofs) = self.inplane_dofs else {
             return Vec::new();
         };
         let m = mass_kg;
-        vec![
-            (u, u, m),
-            (v, v, m),
-            (phi, phi, m * (x_m * x_m + y_m * y_m)),
-            (u, phi, -m * y_m),
-            (phi, u, -m * y_m),
-            (v, phi, m * x_m),
-            (phi, v, m * x_m),
-        ]
+        inplane_inertia(dofs, m, [m * x_m, m * y_m], m * (x_m * x_m + y_m * y_m))
     }
 
     /// Add a lumped mass at (x_m, y_m) whose value is a parameter `name` (kg, nominal

@@ -21,6 +21,17 @@ fn freqs(m: &FeModel, n: usize) -> Vec<f64> {
     m.modes(&m.nominal_params(), n).unwrap().freq_hz
 }
 
+/// The rigid tilt w = x (w_x = 1 at every node) as a DOF vector of `m`.
+fn tilt_x(m: &FeModel) -> Vec<f64> {
+    let mut rx = vec![0.0; m.n_dof];
+    for (n, d) in m.mesh.node_dof.iter().enumerate() {
+        if let Some(d) = *d {
+            (rx[d], rx[d + 1]) = (m.mesh.node_xy(n).0, 1.0);
+        }
+    }
+    rx
+}
+
 fn close(a: &[f64], b: &[f64], tol: f64) -> bool {
     a.iter().zip(b).all(|(x, y)| (x - y).abs() <= tol * y.abs())
 }
@@ -279,15 +290,7 @@ fn joint_totals_are_exact_on_every_mesh() {
             n_j * k_con
         );
         // Rigid rotation about y through the origin: w = x, w_x = 1.
-        let mut rx = vec![0.0; m.n_dof];
-        for j in 0..=ny {
-            for i in 0..=nx {
-                if let Some(d) = m.mesh.node_dof[j * (nx + 1) + i] {
-                    rx[d] = m.mesh.x_m[i];
-                    rx[d + 1] = 1.0;
-                }
-            }
-        }
+        let rx = tilt_x(&m);
         // Translational part: K_con ∫ x² dA / A per joint; rotational part n_j k_rot; the
         // stuck contact's tangential springs ratio K_con at the face c below the mid-plane,
         // n_j ratio K_con c² (the in-plane DOFs held at 0).
@@ -767,14 +770,7 @@ fn tangential_contact_matches_closed_forms() {
         "K_uφ",
     );
     // Rigid tilt w = x.
-    let mut rx = vec![0.0; m.n_dof];
-    for jn in 0..=ny {
-        for i in 0..=nx {
-            if let Some(d) = m.mesh.node_dof[jn * (nx + 1) + i] {
-                (rx[d], rx[d + 1]) = (m.mesh.x_m[i], 1.0);
-            }
-        }
-    }
+    let rx = tilt_x(&m);
     close(form(&rx, &k_u), n * kt * c, "uᵀK(w = x)");
     close(
         form(&rx, &k_phi),
