@@ -414,8 +414,8 @@ impl ModalPredictor {
 
     /// One subspace of the ROM per updated mode, each spanned by that mode's vectors in
     /// `snaps[m]` (reduced coordinates, e.g. [`Prediction::vectors`] at points of a box) to
-    /// within `rel_tol` ([`crate::fem::rom::Rom::subspace`]). None where the ROM has several
-    /// mass terms, a mode has no vector, or `snaps` does not hold one list per updated mode.
+    /// within `rel_tol` ([`crate::fem::rom::Rom::subspace`]). None where a mode has no
+    /// vector or `snaps` does not hold one list per updated mode.
     pub fn mode_subspaces(
         &self,
         snaps: &[Vec<Vec<f64>>],

@@ -665,7 +665,7 @@ pub fn fit_subspace(
     for _ in 0..=opts.max_rounds {
         let subs = pred
             .mode_subspaces(&snaps, opts.rel_tol)
-            .ok_or("the ROM has several mass terms")?;
+            .ok_or("a mode has no vector to span its subspace")?;
         if let Some(q) = subs
             .iter()
             .map(|s| s.sub.dim())

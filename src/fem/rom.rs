@@ -993,7 +993,8 @@ pub(crate) fn whiten(k: Mat<f64>, m: &Mat<f64>) -> Result<(Mat<f64>, Mat<f64>), 
 }
 
 /// The ROM restricted to a subspace of its reduced coordinates (a second-level Galerkin
-/// reduction): Kˢ = Wᵀ Kʳ W for W (r × q) with orthonormal columns. Built by
+/// reduction): Kˢ = Wᵀ Kʳ W for W (r × q) with orthonormal columns, and Mˢ = Wᵀ Mʳ W where
+/// the ROM has several mass terms (with one, Mʳ = d₀ I and Mˢ = d₀ I). Built by
 /// [`Rom::subspace`] from one mode's eigenvectors at a few points of a small parameter box,
 /// it reproduces that mode there at a fraction of the cost (q³ instead of r³,
 /// [`Rom::eval_nearest_in`]), its eigenvalue's error quadratic in the distance of the ROM's
@@ -1007,6 +1008,8 @@ pub struct SubspaceRom {
     w: Vec<f64>,
     /// Wᵀ Kᵢʳ W, q × q each, upper triangle packed ([`super::dense::packed_upper`]).
     k_flat: Vec<Vec<f64>>,
+    /// Wᵀ Mⱼʳ W, packed as `k_flat`; empty where the ROM has one mass term (Mʳ = d₀ I).
+    m_flat: Vec<Vec<f64>>,
 }
 
 impl SubspaceRom {
@@ -1030,11 +1033,10 @@ impl Rom {
     /// An orthonormal basis of the span of `vectors` (reduced coordinates, length r), picked
     /// greedily (largest remaining component first, orthogonalised twice) until every vector
     /// lies within `rel_tol` (relative to its norm) of the span, and the ROM projected on it.
-    /// None where the ROM has several mass terms (the subspace needs Mʳ = d₀ I) or no vector
-    /// is given.
+    /// None where no vector is given.
     pub fn subspace(&self, vectors: &[Vec<f64>], rel_tol: f64) -> Option<SubspaceRom> {
         let r = self.dim();
-        if self.m_r.len() != 1 || vectors.is_empty() || vectors.iter().any(|v| v.len() != r) {
+        if vectors.is_empty() || vectors.iter().any(|v| v.len() != r) {
             return None;
         }
         let mut rest: Vec<Vec<f64>> = vectors
@@ -1084,16 +1086,24 @@ impl Rom {
             }
         }
         let wm = Mat::from_fn(r, q, |i, j| w[i * q + j]);
-        let k_flat = self
-            .k_r
-            .iter()
-            .map(|k| {
-                let kw = product_seq(k.as_ref(), wm.as_ref());
-                let ks = product_seq(wm.transpose(), kw.as_ref());
-                super::dense::packed_upper(q, |i, j| ks[(i, j)])
-            })
-            .collect();
-        Some(SubspaceRom { r, q, w, k_flat })
+        let project = |k: &Mat<f64>| {
+            let kw = product_seq(k.as_ref(), wm.as_ref());
+            let ks = product_seq(wm.transpose(), kw.as_ref());
+            super::dense::packed_upper(q, |i, j| ks[(i, j)])
+        };
+        let k_flat = self.k_r.iter().map(project).collect();
+        let m_flat = if self.m_r.len() == 1 {
+            vec![]
+        } else {
+            self.m_r.iter().map(project).collect()
+        };
+        Some(SubspaceRom {
+            r,
+            q,
+            w,
+            k_flat,
+            m_flat,
+        })
     }
 
     /// One mode in the subspace `sub`, built from that mode's own eigenvectors over a
@@ -1117,57 +1127,120 @@ impl Rom {
         target: &[f64],
     ) -> Result<(f64, Vec<f64>, f64), FemError> {
         let (r, q) = (sub.r, sub.q);
-        if r != self.dim() || cm.len() != 1 || ck.len() != sub.k_flat.len() || target.len() != q {
+        let n_mass = sub.m_flat.len().max(1);
+        if r != self.dim()
+            || cm.len() != n_mass
+            || ck.len() != sub.k_flat.len()
+            || target.len() != q
+        {
             return Err(FemError::Request(format!(
-                "subspace: expected a ROM of dimension {r} with one mass term, {} stiffness terms and a target of length {q}",
+                "subspace: expected a ROM of dimension {r} with {n_mass} mass term(s), {} stiffness terms and a target of length {q}",
                 sub.k_flat.len()
             )));
         }
-        let d0 = cm[0];
-        let mut a = super::dense::upper_sum(ck, &sub.k_flat, q);
-        let overlap_of = |z: &[f64]| z.iter().zip(target).map(|(a, b)| a * b).sum::<f64>().abs();
-        // Rayleigh-quotient iteration from the reference: where it lands on a vector that
-        // overlaps the reference by more than 1/√2, that is the nearest Ritz pair (no other
-        // can overlap as much); otherwise the Ritz values nearest the reference's Rayleigh
-        // quotient, their vectors compared.
-        let (value, z, overlap) = match super::dense::rayleigh_quotient_iteration(&a, q, target)
-            .map(|(v, z)| {
-                let o = overlap_of(&z);
-                (v, z, o)
-            })
-            .filter(|t| t.2 > std::f64::consts::FRAC_1_SQRT_2)
-        {
-            Some(found) => found,
-            None => {
-                let (mut num, mut den) = (0.0, 0.0);
-                for i in 0..q {
-                    let row = &a[i * q + i + 1..(i + 1) * q];
-                    let off: f64 = row.iter().zip(&target[i + 1..]).map(|(x, y)| x * y).sum();
-                    num += target[i] * (a[i * q + i] * target[i] + 2.0 * off);
-                    den += target[i] * target[i];
-                }
-                let se = super::dense::nearest_eigenpairs(&mut a, q, num / den, 3);
-                let (k, o) = se
-                    .vectors
-                    .iter()
-                    .map(|z| overlap_of(z))
-                    .enumerate()
-                    .fold((0, -1.0f64), |a, b| if b.1 > a.1 { b } else { a });
-                (se.values[k], se.vectors[k].clone(), o)
-            }
+        let lift = |z: &[f64]| -> Vec<f64> {
+            (0..r)
+                .map(|i| {
+                    sub.w[i * q..(i + 1) * q]
+                        .iter()
+                        .zip(z)
+                        .map(|(a, b)| a * b)
+                        .sum::<f64>()
+                })
+                .collect()
         };
-        let z = &z;
-        let y = (0..r)
-            .map(|i| {
-                sub.w[i * q..(i + 1) * q]
-                    .iter()
-                    .zip(z)
-                    .map(|(a, b)| a * b)
-                    .sum::<f64>()
+        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+        if sub.m_flat.is_empty() {
+            let d0 = cm[0];
+            let mut a = super::dense::upper_sum(ck, &sub.k_flat, q);
+            let (value, z, overlap) =
+                nearest_ritz(&mut a, q, target, |z: &[f64]| dot(z, target).abs());
+            return Ok((
+                value / d0,
+                mass_normalised(lift(&z), 1.0 / d0.sqrt()),
+                overlap,
+            ));
+        }
+        // Several mass terms: the projected pencil (Kˢ, Mˢ) made standard by Mˢ = L Lᵀ,
+        // A = L⁻¹ Kˢ L⁻ᵀ; an eigenvector z of A is s = L⁻ᵀ z in the subspace's coordinates
+        // (Mˢ-normalised, so y = W s is Mʳ-normalised). The search starts from Lᵀ t, whose
+        // s is the reference t itself; overlaps are measured on s, as the ROM's labels are.
+        let full = |u: &[f64]| {
+            Mat::from_fn(
+                q,
+                q,
+                |i, j| if j >= i { u[i * q + j] } else { u[j * q + i] },
+            )
+        };
+        let ks = super::dense::upper_sum(ck, &sub.k_flat, q);
+        let ms = super::dense::upper_sum(cm, &sub.m_flat, q);
+        let (l, c) = whiten(full(&ks), &full(&ms))
+            .map_err(|e| FemError::Factorisation(format!("subspace mass: {e}")))?;
+        let mut a: Vec<f64> = (0..q * q)
+            .map(|p| {
+                if p % q >= p / q {
+                    c[(p / q, p % q)]
+                } else {
+                    0.0
+                }
             })
             .collect();
-        Ok((value / d0, mass_normalised(y, 1.0 / d0.sqrt()), overlap))
+        let start: Vec<f64> = (0..q)
+            .map(|i| (i..q).map(|j| l[(j, i)] * target[j]).sum())
+            .collect();
+        // s = L⁻ᵀ z by back substitution (Lᵀ is upper triangular).
+        let back = |z: &[f64]| -> Vec<f64> {
+            let mut s = z.to_vec();
+            for i in (0..q).rev() {
+                let t: f64 = (i + 1..q).map(|j| l[(j, i)] * s[j]).sum();
+                s[i] = (s[i] - t) / l[(i, i)];
+            }
+            s
+        };
+        let overlap_of = |z: &[f64]| {
+            let s = back(z);
+            dot(&s, target).abs() / dot(&s, &s).sqrt()
+        };
+        let (value, z, overlap) = nearest_ritz(&mut a, q, &start, overlap_of);
+        Ok((value, mass_normalised(lift(&back(&z)), 1.0), overlap))
     }
+}
+
+/// The eigenpair of the symmetric `a` (row-major q × q, upper triangle read, overwritten)
+/// whose vector overlaps `start` most by `overlap_of`, for [`Rom::eval_nearest_in`].
+/// Rayleigh-quotient iteration from `start`: where it lands on a vector that overlaps by
+/// more than 1/√2, that is the nearest Ritz pair (no other can overlap as much); otherwise
+/// the Ritz values nearest `start`'s Rayleigh quotient, their vectors compared.
+fn nearest_ritz(
+    a: &mut [f64],
+    q: usize,
+    start: &[f64],
+    overlap_of: impl Fn(&[f64]) -> f64,
+) -> (f64, Vec<f64>, f64) {
+    if let Some(found) = super::dense::rayleigh_quotient_iteration(a, q, start)
+        .map(|(v, z)| {
+            let o = overlap_of(&z);
+            (v, z, o)
+        })
+        .filter(|t| t.2 > std::f64::consts::FRAC_1_SQRT_2)
+    {
+        return found;
+    }
+    let (mut num, mut den) = (0.0, 0.0);
+    for i in 0..q {
+        let row = &a[i * q + i + 1..(i + 1) * q];
+        let off: f64 = row.iter().zip(&start[i + 1..]).map(|(x, y)| x * y).sum();
+        num += start[i] * (a[i * q + i] * start[i] + 2.0 * off);
+        den += start[i] * start[i];
+    }
+    let se = super::dense::nearest_eigenpairs(a, q, num / den, 3);
+    let (k, o) = se
+        .vectors
+        .iter()
+        .map(|z| overlap_of(z))
+        .enumerate()
+        .fold((0, -1.0f64), |a, b| if b.1 > a.1 { b } else { a });
+    (se.values[k], se.vectors[k].clone(), o)
 }
 
 /// A · B as one sequential faer product: the same bits whatever the thread count.

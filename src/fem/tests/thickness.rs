@@ -188,3 +188,94 @@ fn the_rom_hot_path_with_two_mass_terms_matches_its_full_path_and_the_model() {
         }
     }
 }
+
+/// A mode's subspace of a ROM with several mass terms (`Rom::subspace`, the pencil
+/// (Wᵀ Kʳ W, Wᵀ Mʳ W)): at the points whose vectors span it, the mode exactly (its vector
+/// lies in the span); elsewhere a Ritz pair of the ROM, checked on the ROM's own matrices:
+/// yᵀ Mʳ y = 1, the Galerkin residual Wᵀ (Kʳ − λ Mʳ) y = 0, and λ above the ROM's
+/// eigenvalue by no more than the square of the vector's error allows.
+#[test]
+fn a_mode_subspace_with_two_mass_terms_gives_ritz_pairs_of_the_rom() {
+    use crate::fem::rom::{latin_hypercube_params, Rom, RomOptions};
+    let b = crate::fem::tests::helpers::thin_board();
+    let mesh = crate::fem::MeshOptions { nx: 20, ny: 12 };
+    let opts = ModelOptions {
+        core_thickness: true,
+    };
+    let model = FeModel::build_with(&b, Setup::Free, &mesh, opts).unwrap();
+    assert_eq!(model.map.m_coefs.len(), 2, "core and copper mass terms");
+    let rom = Rom::build(
+        &model,
+        &RomOptions {
+            n_modes: 6,
+            n_random: 8,
+            ..RomOptions::default()
+        },
+    )
+    .unwrap();
+    let r = rom.dim();
+    let j = 2usize;
+    let coefs = |p: &crate::fem::Params| rom.map.coefficient_values(&p.values);
+    let snaps = latin_hypercube_params(&model.map, 8, 0.1, 5);
+    let vectors: Vec<Vec<f64>> = snaps
+        .iter()
+        .map(|p| {
+            let (k, m) = coefs(p);
+            rom.eval_lowest(&k, &m, 6).unwrap().vectors[j].clone()
+        })
+        .collect();
+    let sub = rom.subspace(&vectors, 1e-9).expect("a subspace");
+    assert!(sub.dim() < r, "q = {} of r = {r}", sub.dim());
+    let unit = |v: &[f64]| {
+        let n = v.iter().map(|a| a * a).sum::<f64>().sqrt();
+        v.iter().map(|a| a / n).collect::<Vec<f64>>()
+    };
+    let target = sub.project(&unit(&vectors[0]));
+    let times = |a: &faer::Mat<f64>, y: &[f64]| -> Vec<f64> {
+        (0..r)
+            .map(|i| (0..r).map(|k| a[(i, k)] * y[k]).sum())
+            .collect()
+    };
+    let sum = |c: &[f64], terms: &[faer::Mat<f64>]| {
+        let mut s = faer::Mat::<f64>::zeros(r, r);
+        for (ci, t) in c.iter().zip(terms) {
+            s += faer::Scale(*ci) * t;
+        }
+        s
+    };
+    for (which, points) in [
+        ("spanning", snaps.clone()),
+        ("new", latin_hypercube_params(&model.map, 6, 0.1, 77)),
+    ] {
+        for p in &points {
+            let (k, m) = coefs(p);
+            let rom_mode = rom.eval_lowest(&k, &m, 6).unwrap();
+            let (lam, y, overlap) = rom.eval_nearest_in(&sub, &k, &m, &target).unwrap();
+            let lam_rom = rom_mode.eigenvalues[j];
+            assert!(overlap > 0.9, "{which}: overlap {overlap}");
+            let (kr, mr) = (sum(&k, &rom.k_r), sum(&m, &rom.m_r));
+            let (ky, my) = (times(&kr, &y), times(&mr, &y));
+            let ymy: f64 = y.iter().zip(&my).map(|(a, b)| a * b).sum();
+            assert!((ymy - 1.0).abs() < 1e-10, "{which}: yᵀMy = {ymy}");
+            let res: Vec<f64> = ky.iter().zip(&my).map(|(a, b)| a - lam * b).collect();
+            let g = sub.project(&res);
+            let gn = g.iter().map(|a| a * a).sum::<f64>().sqrt();
+            let kn = ky.iter().map(|a| a * a).sum::<f64>().sqrt();
+            assert!(gn < 1e-9 * kn, "{which}: Galerkin residual {gn} of {kn}");
+            let rel = (lam - lam_rom) / lam_rom;
+            if which == "spanning" {
+                assert!(rel.abs() < 1e-10, "{which}: λ {lam} vs the ROM's {lam_rom}");
+                let d = y
+                    .iter()
+                    .zip(&rom_mode.vectors[j])
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
+                assert!(d < 1e-6, "{which}: vectors differ by {d}");
+            } else {
+                // Rayleigh–Ritz: the error is of the order of the square of the vector's
+                // distance from the span.
+                assert!(rel.abs() < 1e-3, "{which}: λ off by {rel:e}");
+            }
+        }
+    }
+}
