@@ -454,6 +454,7 @@ impl UpdateArgs {
                 rom_box: hbmu::update::problem::ModelSpec::DEFAULT_ROM_BOX,
                 box_tolerance: 0.01,
                 rom_max_basis: self.rom_basis,
+                g_z_log_box: None,
                 enrich: None,
                 enrich_joint: None,
                 enrich_units: vec![],

@@ -494,7 +494,7 @@ pub fn check_board_box(
 ) -> anyhow::Result<()> {
     // The ROM's logarithmic axes by parameter: an enrichment's coordinate is its logarithm
     // already (k ≥ d0), a board parameter's (the shear modulus) is relative.
-    let axes = crate::fem::rom::with_own_log_axes(&bm.model.map, &bm.log_axes);
+    let axes = crate::update::rom_box::rom_log_axes(&bm.model.map, &bm.log_axes, spec);
     let log_box = |k: usize| {
         axes.iter()
             .find(|(n, _)| *n == bm.param_names[k])
@@ -514,8 +514,13 @@ pub fn check_board_box(
     );
     if !violations.is_empty() {
         // The half-width that holds every sampled value of the relative coordinates, with
-        // a margin, to the next 5 %.
-        let mut reach = 0.0f64;
+        // a margin, to the next 5 %; the same in ln for the shear modulus's axis.
+        let g_z = bm
+            .param_names
+            .iter()
+            .position(|n| n == crate::fem::params::names::G_Z)
+            .filter(|&k| k < bt.d0);
+        let (mut reach, mut reach_g_z) = (0.0f64, 0.0f64);
         for r in results {
             for p in &r.particles {
                 for x in &p.x {
@@ -524,11 +529,23 @@ pub fn check_board_box(
                         // A wider linear box does not hold a logarithmic axis.
                         if log_box(k).is_none() {
                             reach = reach.max(v.abs());
+                        } else if Some(k) == g_z {
+                            // A modulus at or below 0 is beyond any box.
+                            let l = if *v > -1.0 {
+                                (1.0 + v).ln().abs()
+                            } else {
+                                f64::INFINITY
+                            };
+                            reach_g_z = reach_g_z.max(l);
                         }
                     }
                 }
             }
         }
+        let needed_g_z_log_box = g_z
+            .and_then(log_box)
+            .filter(|w| reach_g_z > *w)
+            .map(|_| (reach_g_z * 1.15 / 0.05).ceil() * 0.05);
         return Err(RomBoxViolation {
         message: format!(
             "the posterior presses against the ROM's ±{:.0} % box (relative to the board file's nominal values):\n  {}\nThe ROM is not verified there. Re-centre the model: put the posterior means in the board file (--board) and run again, or leave an uninformed parameter out (--params).",
@@ -536,6 +553,7 @@ pub fn check_board_box(
             violations.join("\n  ")
         ),
         needed_half_width: (reach * 1.15 / 0.05).ceil() * 0.05,
+        needed_g_z_log_box,
     }
     .into());
     }

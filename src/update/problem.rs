@@ -43,6 +43,10 @@ pub struct ModelSpec {
     /// Cap on the ROM's basis (None: the physics core's default). A smaller basis is faster
     /// and less accurate; the ROM accuracy test states the error of the default.
     pub rom_max_basis: Option<usize>,
+    /// Half-width (ln) of the ROM's transverse-shear-modulus axis where step 1 widened it
+    /// (`None`: [`crate::fem::rom::G_Z_LOG_BOX`]; at most [`crate::update::rom_box::MAX_G_Z_LOG_BOX`]).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub g_z_log_box: Option<f64>,
     /// Step 2: refit with a joint enrichment of the diagnosis's library (`None`: the baseline).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub enrich: Option<Mechanism>,
@@ -114,6 +118,7 @@ impl ModelSpec {
             rom_box: ModelSpec::DEFAULT_ROM_BOX,
             box_tolerance: 0.01,
             rom_max_basis: None,
+            g_z_log_box: None,
             enrich: None,
             enrich_joint: None,
             enrich_units: vec![],

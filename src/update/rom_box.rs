@@ -30,12 +30,12 @@ pub fn rom_options_for(
     opts: &ModelSpec,
 ) -> RomOptions {
     let d = RomOptions::default();
+    let log_axes = &rom_log_axes(&model.map, log_axes, opts);
     let max_basis = crate::fem::rom::updating_basis(
         &model.map,
         opts.rom_max_basis.unwrap_or(d.max_basis),
         log_axes,
     );
-    let log_axes = &crate::fem::rom::with_own_log_axes(&model.map, log_axes);
     RomOptions {
         n_modes: n_modes_needed.max(d.n_modes),
         box_rel: opts.rom_box,
@@ -45,17 +45,43 @@ pub fn rom_options_for(
     }
 }
 
+/// The logarithmic axes of the updating's ROM of a model with parameter map `map`:
+/// `log_axes` (an enrichment's), the transverse shear modulus's at the spec's width where step 1
+/// widened it, then the map's own ([`crate::fem::rom::with_own_log_axes`]).
+pub fn rom_log_axes(
+    map: &crate::fem::params::ParamMap,
+    log_axes: &[(String, f64)],
+    opts: &ModelSpec,
+) -> Vec<(String, f64)> {
+    let g_z = crate::fem::params::names::G_Z;
+    let mut axes = log_axes.to_vec();
+    if let Some(w) = opts.g_z_log_box {
+        if map.names.iter().any(|n| n == g_z) && !axes.iter().any(|(n, _)| n == g_z) {
+            axes.push((g_z.to_string(), w));
+        }
+    }
+    crate::fem::rom::with_own_log_axes(map, &axes)
+}
+
+/// Widest half-width (ln) of the transverse shear modulus's axis step 1 rebuilds to: × or ÷ 4
+/// about the board file's value. Micromechanics puts woven FR-4's modulus within ±17 % of its
+/// middle (`update::boards::G_Z_PRIOR_WIDTH`); a posterior beyond a factor 4 has the parameter
+/// absorbing something else, and the board file or `--params` needs changing, not the ROM.
+pub const MAX_G_Z_LOG_BOX: f64 = 1.3862943611198906;
+
 /// Widest ROM box step 1 rebuilds to, relative half-width: beyond it a parameter is so far from
 /// the board file's value, or so little informed, that the board file (or `--params`) needs
 /// changing, not the ROM.
 pub const MAX_ROM_BOX: f64 = 0.5;
 
 /// The step-1 posterior pressing against the ROM's box: the stage's message, and the relative
-/// half-width that would hold what was sampled.
+/// half-width (and, where the transverse shear modulus's axis is pressed, its ln half-width)
+/// that would hold what was sampled.
 #[derive(Debug)]
 pub struct RomBoxViolation {
     pub message: String,
     pub needed_half_width: f64,
+    pub needed_g_z_log_box: Option<f64>,
 }
 
 impl std::fmt::Display for RomBoxViolation {
@@ -65,6 +91,25 @@ impl std::fmt::Display for RomBoxViolation {
 }
 
 impl std::error::Error for RomBoxViolation {}
+
+/// The spec step 1 runs again with after `v`: its box widened to what holds the posterior,
+/// the shear modulus's axis too where it was pressed; `None` where that exceeds
+/// [`MAX_ROM_BOX`] or [`MAX_G_Z_LOG_BOX`], or widens nothing (the stage then stops with
+/// `v`'s message).
+pub fn widened(spec: &ModelSpec, v: &RomBoxViolation) -> Option<ModelSpec> {
+    let g_z = v.needed_g_z_log_box;
+    if v.needed_half_width > MAX_ROM_BOX
+        || g_z.is_some_and(|w| w > MAX_G_Z_LOG_BOX)
+        || (v.needed_half_width <= spec.rom_box && g_z.is_none())
+    {
+        return None;
+    }
+    Some(ModelSpec {
+        rom_box: v.needed_half_width.max(spec.rom_box),
+        g_z_log_box: g_z.or(spec.g_z_log_box),
+        ..spec.clone()
+    })
+}
 
 /// The ROM against the full model at the ROM's centre (one full solve): the worst relative
 /// frequency error of the `n_modes` lowest modes, as an info finding, a warning above 1e-5
@@ -165,4 +210,44 @@ pub fn rom_posterior_check(
         })
         .fold(f64::INFINITY, f64::min);
     Ok((worst, noise))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn violation(linear: f64, g_z: Option<f64>) -> RomBoxViolation {
+        RomBoxViolation {
+            message: String::new(),
+            needed_half_width: linear,
+            needed_g_z_log_box: g_z,
+        }
+    }
+
+    /// Step 1 widens what the posterior pressed, up to the widest boxes, and nothing else.
+    #[test]
+    fn the_box_widens_what_was_pressed_and_stops_beyond_the_widest() {
+        let spec = ModelSpec::for_tests();
+        let w = widened(&spec, &violation(0.3, None)).expect("a wider linear box");
+        assert_eq!((w.rom_box, w.g_z_log_box), (0.3, None));
+        // The shear modulus's axis alone: the linear box stays.
+        let w = widened(&spec, &violation(0.15, Some(1.0))).expect("a wider shear axis");
+        assert_eq!((w.rom_box, w.g_z_log_box), (spec.rom_box, Some(1.0)));
+        // The ROM's own axes follow the spec: the shear modulus's at the wider width.
+        let model = crate::fem::FeModel::build(
+            &crate::fem::Board::default_board(),
+            crate::fem::Setup::Free,
+            &crate::fem::MeshOptions { nx: 16, ny: 10 },
+        )
+        .unwrap();
+        let g_z = crate::fem::params::names::G_Z.to_string();
+        let axes = rom_log_axes(&model.map, &[], &w);
+        assert_eq!(axes, vec![(g_z.clone(), 1.0)]);
+        let axes = rom_log_axes(&model.map, &[], &spec);
+        assert_eq!(axes, vec![(g_z, crate::fem::rom::G_Z_LOG_BOX)]);
+        // Beyond the widest, or nothing to widen: the stage stops.
+        assert!(widened(&spec, &violation(MAX_ROM_BOX + 0.05, None)).is_none());
+        assert!(widened(&spec, &violation(0.3, Some(MAX_G_Z_LOG_BOX + 0.05))).is_none());
+        assert!(widened(&spec, &violation(spec.rom_box, None)).is_none());
+    }
 }

@@ -282,6 +282,7 @@ mod tests {
         .unwrap();
         let spec = crate::update::problem::ModelSpec {
             rom_max_basis: Some(12),
+            g_z_log_box: None,
             ..crate::update::problem::ModelSpec::for_tests()
         };
         let step_rom = crate::update::rom_box::rom_for(&fe, 4, &[], &spec).unwrap();

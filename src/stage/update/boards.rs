@@ -252,7 +252,9 @@ pub(crate) fn boards_attempt(
 }
 
 /// Runs a step-1 attempt; when its posterior presses against the ROM's box and a box up to
-/// [`MAX_ROM_BOX`] would hold it, rebuilds the ROM over that box and runs once more (the
+/// [`crate::update::rom_box::MAX_ROM_BOX`] (the shear modulus's axis up to
+/// [`crate::update::rom_box::MAX_G_Z_LOG_BOX`]) would hold it,
+/// rebuilds the ROM over that box and runs once more (the
 /// finding `update.rom_box_widened` says so, and the new ROM is checked against the full
 /// model). A posterior that still presses, or needs more, stops the stage with the message.
 pub(crate) fn widen_rom_box_once(
@@ -266,11 +268,14 @@ pub(crate) fn widen_rom_box_once(
     let Some(v) = e.downcast_ref::<RomBoxViolation>() else {
         return Err(e);
     };
-    if v.needed_half_width > MAX_ROM_BOX || v.needed_half_width <= opts.model.rom_box {
+    let Some(model) = widened(&opts.model, v) else {
         return Err(e);
-    }
-    let mut wider = opts.clone();
-    wider.model.rom_box = v.needed_half_width;
+    };
+    let g_z_wider = v.needed_g_z_log_box;
+    let wider = UpdateOptions {
+        model,
+        ..opts.clone()
+    };
     let what = v
         .message
         .lines()
@@ -281,10 +286,14 @@ pub(crate) fn widen_rom_box_once(
         Severity::Warning,
         "update.rom_box_widened",
         format!(
-            "the posterior pressed against the ROM's ±{:.0} % box ({}): the ROM was rebuilt over ±{:.0} % around the board file's values, checked against the full model (update.rom_box_check), and the sampling run again",
+            "the posterior pressed against the ROM's ±{:.0} % box ({}): the ROM was rebuilt over ±{:.0} % around the board file's values{}, checked against the full model (update.rom_box_check), and the sampling run again",
             100.0 * opts.model.rom_box,
             what.trim(),
-            100.0 * wider.model.rom_box
+            100.0 * wider.model.rom_box,
+            match g_z_wider {
+                Some(w) => format!(", the transverse shear modulus's axis over × or ÷ {:.2}", w.exp()),
+                None => String::new(),
+            }
         ),
     );
     eprintln!("update boards: {}", note.message);

@@ -39,7 +39,7 @@ use crate::update::problem::{
     weigh_shapes, ModelSpec,
 };
 use crate::update::rom_box::{
-    rom_box_check, rom_centre_check, rom_options_for, RomBoxViolation, MAX_ROM_BOX,
+    rom_box_check, rom_centre_check, rom_options_for, widened, RomBoxViolation,
 };
 use crate::update::sampler::{check_surrogate_edges, run_smc, Acceleration, SamplerParams};
 use crate::update::step1::Step1;
