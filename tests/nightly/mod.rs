@@ -221,7 +221,10 @@ fn concurrent_jobs_on_one_cache_key_leave_a_valid_artifact() {
     let children: Vec<_> = (0..4)
         .map(|i| {
             Command::new(env!("CARGO_BIN_EXE_hbmu"))
-                .args(["fe", "rom", "--setup", "free", "--out"])
+                // A coarse mesh and few modes: the race is on the cache key, not the model
+                // (the default board's ROM took 70 s of CPU per job here).
+                .args(["fe", "rom", "--setup", "free", "--mesh", "16", "10"])
+                .args(["--n-modes", "4", "--out"])
                 .arg(t.path().join(format!("w{i}/rom_free.npz")))
                 .env("HBMU_CACHE", &cache)
                 .env("CI", "1")
