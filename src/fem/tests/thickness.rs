@@ -140,13 +140,10 @@ fn thickness_coefficient_gradients_match_finite_differences() {
     assert_eq!(mm, c.m);
 }
 
-/// The ROM of a model with several mass terms (the core thickness splits the mass): its hot
-/// path (`eval_lowest`, the wanted eigenpairs of L⁻¹ Kʳ L⁻ᵀ) gives the full path's
-/// (`eval_coefs`, a complete eigen-decomposition) eigenvalues and vectors, and the full
-/// model's frequencies, at points across the box.
-#[test]
-fn the_rom_hot_path_with_two_mass_terms_matches_its_full_path_and_the_model() {
-    use crate::fem::rom::{latin_hypercube_params, Rom, RomOptions};
+/// The thin board's free model with its core thickness as a parameter (two mass terms: core
+/// and copper) on a 20 × 12 mesh, and its ROM of 6 modes.
+fn two_mass_rom() -> (FeModel, crate::fem::rom::Rom) {
+    use crate::fem::rom::{Rom, RomOptions};
     let b = crate::fem::tests::helpers::thin_board();
     let mesh = crate::fem::MeshOptions { nx: 20, ny: 12 };
     let opts = ModelOptions {
@@ -163,6 +160,17 @@ fn the_rom_hot_path_with_two_mass_terms_matches_its_full_path_and_the_model() {
         },
     )
     .unwrap();
+    (model, rom)
+}
+
+/// The ROM of a model with several mass terms (the core thickness splits the mass): its hot
+/// path (`eval_lowest`, the wanted eigenpairs of L⁻¹ Kʳ L⁻ᵀ) gives the full path's
+/// (`eval_coefs`, a complete eigen-decomposition) eigenvalues and vectors, and the full
+/// model's frequencies, at points across the box.
+#[test]
+fn the_rom_hot_path_with_two_mass_terms_matches_its_full_path_and_the_model() {
+    use crate::fem::rom::latin_hypercube_params;
+    let (model, rom) = two_mass_rom();
     let none = rom.shape_operator(&model, &[]).unwrap();
     for p in latin_hypercube_params(&model.map, 6, 0.15, 11) {
         let c = rom.map.coefficients(&p).unwrap();
@@ -192,27 +200,12 @@ fn the_rom_hot_path_with_two_mass_terms_matches_its_full_path_and_the_model() {
 /// A mode's subspace of a ROM with several mass terms (`Rom::subspace`, the pencil
 /// (Wᵀ Kʳ W, Wᵀ Mʳ W)): at the points whose vectors span it, the mode exactly (its vector
 /// lies in the span); elsewhere a Ritz pair of the ROM, checked on the ROM's own matrices:
-/// yᵀ Mʳ y = 1, the Galerkin residual Wᵀ (Kʳ − λ Mʳ) y = 0, and λ above the ROM's
-/// eigenvalue by no more than the square of the vector's error allows.
+/// yᵀ Mʳ y = 1, the Galerkin residual Wᵀ (Kʳ − λ Mʳ) y = 0, and λ within 1e-3 of the ROM's
+/// eigenvalue.
 #[test]
 fn a_mode_subspace_with_two_mass_terms_gives_ritz_pairs_of_the_rom() {
-    use crate::fem::rom::{latin_hypercube_params, Rom, RomOptions};
-    let b = crate::fem::tests::helpers::thin_board();
-    let mesh = crate::fem::MeshOptions { nx: 20, ny: 12 };
-    let opts = ModelOptions {
-        core_thickness: true,
-    };
-    let model = FeModel::build_with(&b, Setup::Free, &mesh, opts).unwrap();
-    assert_eq!(model.map.m_coefs.len(), 2, "core and copper mass terms");
-    let rom = Rom::build(
-        &model,
-        &RomOptions {
-            n_modes: 6,
-            n_random: 8,
-            ..RomOptions::default()
-        },
-    )
-    .unwrap();
+    use crate::fem::rom::latin_hypercube_params;
+    let (model, rom) = two_mass_rom();
     let r = rom.dim();
     let j = 2usize;
     let coefs = |p: &crate::fem::Params| rom.map.coefficient_values(&p.values);
