@@ -944,23 +944,10 @@ impl Rom {
     ) -> Result<ReducedModes, FemError> {
         let r = self.dim();
         let up = super::dense::upper_sum(ck, &self.k_flat, r);
-        let k = Mat::from_fn(
-            r,
-            r,
-            |i, j| if j >= i { up[i * r + j] } else { up[j * r + i] },
-        );
-        let (l, ct) = self.whitened(k, cm)?;
+        let (l, ct) = self.whitened(symmetric_from_upper(&up, r), cm)?;
         let l = l.as_ref();
         // Only the upper triangle is read by the solver.
-        let mut a: Vec<f64> = (0..r * r)
-            .map(|q| {
-                if q % r >= q / r {
-                    ct[(q / r, q % r)]
-                } else {
-                    0.0
-                }
-            })
-            .collect();
+        let mut a = upper_row_major(&ct);
         let se = super::dense::wanted_eigenpairs(&mut a, r, self.n_rigid, count);
         let mut y = Mat::from_fn(r, count, |i, j| se.vectors[j][i]);
         faer::linalg::triangular_solve::solve_upper_triangular_in_place(
@@ -976,6 +963,30 @@ impl Rom {
             vectors,
         })
     }
+}
+
+/// The symmetric r × r matrix whose upper triangle is `u`'s (row-major, as
+/// [`super::dense::upper_sum`] leaves it).
+fn symmetric_from_upper(u: &[f64], r: usize) -> Mat<f64> {
+    Mat::from_fn(
+        r,
+        r,
+        |i, j| if j >= i { u[i * r + j] } else { u[j * r + i] },
+    )
+}
+
+/// `m`'s upper triangle, row-major, its lower triangle 0: what the dense solvers read.
+fn upper_row_major(m: &Mat<f64>) -> Vec<f64> {
+    let r = m.nrows();
+    (0..r * r)
+        .map(|p| {
+            if p % r >= p / r {
+                m[(p / r, p % r)]
+            } else {
+                0.0
+            }
+        })
+        .collect()
 }
 
 /// The pencil (K, M) made standard: the lower Cholesky factor L of M and the symmetric
@@ -1165,26 +1176,11 @@ impl Rom {
         // A = L⁻¹ Kˢ L⁻ᵀ; an eigenvector z of A is s = L⁻ᵀ z in the subspace's coordinates
         // (Mˢ-normalised, so y = W s is Mʳ-normalised). The search starts from Lᵀ t, whose
         // s is the reference t itself; overlaps are measured on s, as the ROM's labels are.
-        let full = |u: &[f64]| {
-            Mat::from_fn(
-                q,
-                q,
-                |i, j| if j >= i { u[i * q + j] } else { u[j * q + i] },
-            )
-        };
         let ks = super::dense::upper_sum(ck, &sub.k_flat, q);
         let ms = super::dense::upper_sum(cm, &sub.m_flat, q);
-        let (l, c) = whiten(full(&ks), &full(&ms))
+        let (l, c) = whiten(symmetric_from_upper(&ks, q), &symmetric_from_upper(&ms, q))
             .map_err(|e| FemError::Factorisation(format!("subspace mass: {e}")))?;
-        let mut a: Vec<f64> = (0..q * q)
-            .map(|p| {
-                if p % q >= p / q {
-                    c[(p / q, p % q)]
-                } else {
-                    0.0
-                }
-            })
-            .collect();
+        let mut a = upper_row_major(&c);
         let start: Vec<f64> = (0..q)
             .map(|i| (i..q).map(|j| l[(j, i)] * target[j]).sum())
             .collect();
