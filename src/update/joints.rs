@@ -23,7 +23,7 @@ use crate::update::problem::{
     all_labels, covariate_offsets, identified_modes, match_points, modes_needed, predictors,
     shape_map, unit_and_residual_data, Labels, ModelSpec, StepTarget,
 };
-use crate::update::rom_box::rom_posterior_check;
+use crate::update::rom_box::{rom_posterior_check, MAX_G_Z_LOG_BOX};
 use crate::update::sampler::{box_violations, particles_of, Results, SamplerParams};
 use crate::update::step1::{step1_point_mass, Step1, Step1PointMass};
 use anyhow::{anyhow, bail};
@@ -415,6 +415,39 @@ pub fn centred(
         log_axes,
         point_masses,
     })
+}
+
+/// `spec` with the ROM's transverse-shear-modulus axis wide enough to hold every step-1 draw
+/// of it the cut posterior carries (step 1 widens its own axis when its posterior needs it,
+/// `update::rom_box::widened`), relative to `nominal`'s value (the board file's, where step 2
+/// centres its ROM), with step 1's margin, up to [`MAX_G_Z_LOG_BOX`]; `spec` unchanged where
+/// the default axis holds them or the model has no such parameter.
+pub fn holding_step1_g_z(spec: &ModelSpec, step1: &Step1, nominal: &Params) -> ModelSpec {
+    let g_z = crate::fem::params::names::G_Z;
+    let (Some(k), Ok(g0)) = (step1.params.iter().position(|p| p == g_z), nominal.get(g_z)) else {
+        return spec.clone();
+    };
+    let d1 = step1.block();
+    let reach = step1
+        .draws
+        .iter()
+        .flat_map(|(_, v)| (0..step1.board_ids.len()).map(move |b| v[b * d1 + k]))
+        .map(|g| {
+            if g > 0.0 {
+                (g / g0).ln().abs()
+            } else {
+                f64::INFINITY
+            }
+        })
+        .fold(0.0, f64::max);
+    let held = spec.g_z_log_box.unwrap_or(crate::fem::rom::G_Z_LOG_BOX);
+    if reach <= held {
+        return spec.clone();
+    }
+    ModelSpec {
+        g_z_log_box: Some(((reach * 1.15 / 0.05).ceil() * 0.05).min(MAX_G_Z_LOG_BOX)),
+        ..spec.clone()
+    }
 }
 
 /// The cut posterior's target and its groups: every unit a bolted measurement, every group of
@@ -946,4 +979,47 @@ pub fn joint_evidence(
     ev["shape_weights"] = serde_json::to_value(shape_weights)?;
     ev["discrepancy"] = discrepancy_json(target, &c.labels.labels);
     Ok(ev)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Step 2's ROM holds the step-1 draws of the shear modulus it carries: the default axis
+    /// where it holds them, step 1's margin beyond it, at most the widest axis.
+    #[test]
+    fn the_shear_modulus_axis_holds_the_step1_draws() {
+        let g_z = names::G_Z.to_string();
+        let nominal = Params {
+            names: vec!["e_x_pa".into(), g_z.clone()],
+            values: vec![24e9, 3e9],
+        };
+        let step1 = |g: &[f64]| Step1 {
+            board_ids: vec!["A".into(), "B".into()],
+            params: vec!["e_x_pa".into(), g_z.clone()],
+            coefs: vec![],
+            draws: g
+                .chunks(2)
+                .enumerate()
+                .map(|(i, p)| ((0, i as i32), vec![24e9, p[0], 24e9, p[1]]))
+                .collect(),
+        };
+        let spec = ModelSpec::for_tests();
+        // Within × or ÷ 2: unchanged.
+        let s = holding_step1_g_z(&spec, &step1(&[3e9, 2.9e9, 1.6e9, 5.9e9]), &nominal);
+        assert_eq!(s.g_z_log_box, None);
+        // The underfill campaign's × 0.47: ln 0.47 = −0.755, × 1.15 = 0.869, to 0.90.
+        let s = holding_step1_g_z(&spec, &step1(&[3e9, 1.41e9, 2.9e9, 3.1e9]), &nominal);
+        assert!((s.g_z_log_box.unwrap() - 0.9).abs() < 1e-12, "{s:?}");
+        // Beyond × 4: the widest axis (the ROM's posterior check then warns).
+        let s = holding_step1_g_z(&spec, &step1(&[3e9, 0.5e9, 3e9, 3e9]), &nominal);
+        assert_eq!(s.g_z_log_box, Some(MAX_G_Z_LOG_BOX));
+        // A model without the parameter: unchanged.
+        let thin = Params {
+            names: vec!["e_x_pa".into()],
+            values: vec![24e9],
+        };
+        let s = holding_step1_g_z(&spec, &step1(&[3e9, 0.5e9, 3e9, 3e9]), &thin);
+        assert_eq!(s.g_z_log_box, None);
+    }
 }

@@ -516,7 +516,12 @@ pub(crate) fn prepare_joints(
         None => model_cache::rom(
             crate::io::cache::Cache::from_env().as_ref(),
             &jm.model,
-            &rom_options_for(&jm.model, c.need, &c.log_axes, &opts.model),
+            &rom_options_for(
+                &jm.model,
+                c.need,
+                &c.log_axes,
+                &joints::holding_step1_g_z(&opts.model, &inp.step1, &jm.nominal),
+            ),
         )?,
     };
     *memo = Some(JointPrep {
