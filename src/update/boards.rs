@@ -545,14 +545,14 @@ pub fn check_board_box(
         let needed_g_z_log_box = g_z
             .and_then(log_box)
             .filter(|w| reach_g_z > *w)
-            .map(|_| (reach_g_z * 1.15 / 0.05).ceil() * 0.05);
+            .map(|_| crate::update::rom_box::holding(reach_g_z));
         return Err(RomBoxViolation {
         message: format!(
             "the posterior presses against the ROM's ±{:.0} % box (relative to the board file's nominal values):\n  {}\nThe ROM is not verified there. Re-centre the model: put the posterior means in the board file (--board) and run again, or leave an uninformed parameter out (--params).",
             100.0 * spec.rom_box,
             violations.join("\n  ")
         ),
-        needed_half_width: (reach * 1.15 / 0.05).ceil() * 0.05,
+        needed_half_width: crate::update::rom_box::holding(reach),
         needed_g_z_log_box,
     }
     .into());

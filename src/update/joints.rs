@@ -23,7 +23,7 @@ use crate::update::problem::{
     all_labels, covariate_offsets, identified_modes, match_points, modes_needed, predictors,
     shape_map, unit_and_residual_data, Labels, ModelSpec, StepTarget,
 };
-use crate::update::rom_box::{rom_posterior_check, MAX_G_Z_LOG_BOX};
+use crate::update::rom_box::{holding, rom_posterior_check, MAX_G_Z_LOG_BOX};
 use crate::update::sampler::{box_violations, particles_of, Results, SamplerParams};
 use crate::update::step1::{step1_point_mass, Step1, Step1PointMass};
 use anyhow::{anyhow, bail};
@@ -445,7 +445,7 @@ pub fn holding_step1_g_z(spec: &ModelSpec, step1: &Step1, nominal: &Params) -> M
         return spec.clone();
     }
     ModelSpec {
-        g_z_log_box: Some(((reach * 1.15 / 0.05).ceil() * 0.05).min(MAX_G_Z_LOG_BOX)),
+        g_z_log_box: Some(holding(reach).min(MAX_G_Z_LOG_BOX)),
         ..spec.clone()
     }
 }

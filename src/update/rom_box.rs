@@ -63,6 +63,12 @@ pub fn rom_log_axes(
     crate::fem::rom::with_own_log_axes(map, &axes)
 }
 
+/// The half-width that holds a sampled reach (relative, or ln on a log axis): 15 % beyond it,
+/// rounded up to the next 0.05. Step 1's box and both steps' shear-modulus axis use it.
+pub fn holding(reach: f64) -> f64 {
+    (reach * 1.15 / 0.05).ceil() * 0.05
+}
+
 /// Widest half-width (ln) of the transverse shear modulus's axis step 1 rebuilds to: × or ÷ 4
 /// about the board file's value. Micromechanics puts woven FR-4's modulus within ±17 % of its
 /// middle (`update::boards::G_Z_PRIOR_WIDTH`); a posterior beyond a factor 4 has the parameter
