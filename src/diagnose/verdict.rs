@@ -46,13 +46,21 @@ pub fn above_practical_threshold(located: &Located, threshold: f64) -> bool {
 /// (`boards_only_outliers`, [`whole_board_outliers`]) are those boards differing from the
 /// others, the same per-unit part. The stage's limit is a quarter of the board's shorter
 /// side (12.5 mm on the 80 × 50 mm board).
+///
+/// Outlier bolted measurements in `joint_form` ([`joint_form_outliers`]) are the joint model's
+/// per-assembly form, the same argument one level down: with no located mode beside them they
+/// are the bolted form by themselves, and `boards_only_outliers` is then judged on the other
+/// outliers.
 pub fn model_form_pattern(
     located: &Located,
     regions: &[BoardRegion],
     region_limit_m: f64,
     boards_only_outliers: bool,
+    joint_form: &[String],
 ) -> bool {
-    (free_modes_located(located) || bolted_within_fidelity(located))
+    let bolted_form =
+        bolted_within_fidelity(located) || (located.modes.is_empty() && !joint_form.is_empty());
+    (free_modes_located(located) || bolted_form)
         && !regions
             .iter()
             .any(|r| r.located && r.fit.region_radius_m <= region_limit_m)
@@ -60,8 +68,55 @@ pub fn model_form_pattern(
             .covariates
             .iter()
             .all(|c| c.covariate == crate::diagnose::locate::BOARD_COVARIATE)
-        && (located.measurements.is_empty() || boards_only_outliers)
+        && (located.measurements.iter().all(|m| joint_form.contains(m)) || boards_only_outliers)
         && located.unpaired_clusters.is_empty()
+}
+
+/// The outlier measurements that are the joint model's per-assembly form rather than a
+/// concealed effect: bolted, every mode within the bolted model's stated fidelity of the other
+/// assemblies ([`crate::bayes::discrepancy::BOLTED_FIDELITY_FREQ`], centred residuals), and
+/// screened by the per-assembly joint screen (`screens`), which found the data against its
+/// joints having stiffnesses of their own (ln B < 0) and no joint apart.
+///
+/// The joint model gives an assembly one contact stiffness over each clamped annulus. Real
+/// joints of one assembly differ from each other and from the model's contact (preload
+/// scatter of torque-tightened bolts, seating, the contact's pressure and slip), so each
+/// assembly's modes scatter about the others' by a pattern its one stiffness cannot take up;
+/// the same form that shifts every assembly alike ([`bolted_within_fidelity`]), erring
+/// differently on each. The concealed effects that single out assemblies (a loose bolt, a
+/// missing washer) are joints apart, which the screen tests for; an outlier it clears, within
+/// the stated fidelity, is left to the form. Beyond the fidelity, or unscreened, it stays
+/// unexplained.
+pub fn joint_form_outliers(
+    located: &Located,
+    screens: &[&crate::update::joint_screen::JointScreen],
+) -> Vec<String> {
+    let cleared = |m: &str| {
+        screens.iter().any(|s| {
+            s.failed.is_none()
+                && s.log_bayes_factor.is_some()
+                && s.units.iter().any(|u| {
+                    u.measurement_id == m && u.log_bayes_factor < 0.0 && u.deviating_joint.is_none()
+                })
+        })
+    };
+    let within = |m: &str| {
+        located
+            .measurement_checks
+            .iter()
+            .find(|c| c.measurement_id == m && c.setup == "bolted")
+            .is_some_and(|c| {
+                c.residuals.iter().all(|r| {
+                    r.centred_rel_residual.abs() <= crate::bayes::discrepancy::BOLTED_FIDELITY_FREQ
+                })
+            })
+    };
+    located
+        .measurements
+        .iter()
+        .filter(|m| within(m) && cleared(m))
+        .cloned()
+        .collect()
 }
 
 /// Whether a free-free mode is among the located ones: the misfit is the board's own.
@@ -395,7 +450,7 @@ fn finding_doc(r: &Row) -> Option<FindingDoc> {
 /// `remaining_discrepancy` of `diagnosis.json`: what the verdict leaves unexplained, in words.
 pub fn remaining_discrepancy(
     (verdict, model_form): (Verdict, &str),
-    (located, boards_off): (&Located, &[(String, String)]),
+    (located, boards_off, joint_form): (&Located, &[(String, String)], &[String]),
     board_regions: &[BoardRegion],
     threshold: f64,
     largest: &Option<(String, f64)>,
@@ -422,8 +477,23 @@ pub fn remaining_discrepancy(
     Verdict::ModelForm => {
         let (at, v) = crate::diagnose::misfit::largest_structured(located)
             .unwrap_or_else(|| ("?".into(), f64::NAN));
-        let boards = if boards_off.is_empty() {
+        let boards = if boards_off.is_empty() && joint_form.is_empty() {
             "with no covariate trend, outlier measurement or unpaired mode".to_string()
+        } else if boards_off.is_empty() {
+            format!(
+                "with no covariate trend or unpaired mode; {}",
+                joint_form_clause(joint_form)
+            )
+        } else if !joint_form.is_empty() {
+            format!(
+                "with no covariate trend or unpaired mode; outlier measurements are every measurement of {} (the per-board part of the same form), and {}",
+                boards_off
+                    .iter()
+                    .map(|(s, b)| format!("{b} ({s})"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                joint_form_clause(joint_form)
+            )
         } else {
             format!(
                 "with no covariate trend or unpaired mode; the outlier measurements are every measurement of {} (their repeat measurements agree, the boards themselves differ from the others beyond the model's parameters: the per-board part of the same form)",
@@ -449,6 +519,10 @@ pub fn remaining_discrepancy(
                 100.0 * v,
                 100.0 * threshold,
             )
+        } else if located.modes.is_empty() {
+            format!(
+                "model form: no mode is off for every assembly alike, {boards}; no joint mechanism of the library refitted explains them: the form of the joint model, or a joint effect outside the library, which these data cannot tell apart",
+            )
         } else {
             format!(
                 "model form: the bolted model differs from every assembly alike by up to {:.3} % ({at}), above the {:.2} % practical threshold but within the {:.1} % its joint model is stated to hold (the paper's validation error of its bolted model), in the bolted modes alone, and {boards}; no joint mechanism of the library refitted explains it: the form of the joint model (the contact as springs over the clamped annulus), or a joint effect outside the library, which these data cannot tell apart. Located modes: {modes:?}",
@@ -472,6 +546,15 @@ pub fn remaining_discrepancy(
             .collect::<String>()
     ),
 }
+}
+
+/// The joint model's per-assembly form ([`joint_form_outliers`]), in words.
+fn joint_form_clause(joint_form: &[String]) -> String {
+    format!(
+        "the outlier bolted measurement(s) {} stand apart from the other assemblies within the {:.1} % the joint model is stated to hold, and the per-assembly joint screen finds no joint of theirs apart (the data are against their joints having stiffnesses of their own): the joint model's per-assembly form (one contact stiffness per assembly), erring differently on each assembly",
+        joint_form.join(", "),
+        100.0 * crate::bayes::discrepancy::BOLTED_FIDELITY_FREQ
+    )
 }
 
 /// The outliers by their mode shapes, in words ("" without any): in a bolted setup the
@@ -558,7 +641,7 @@ pub fn verdict_findings(
 #[allow(clippy::too_many_arguments)]
 pub fn document(
     opts: &DiagnoseOptions,
-    (located, above, boards_off): (&Located, bool, &[(String, String)]),
+    (located, above, boards_off, joint_form): (&Located, bool, &[(String, String)], &[String]),
     (board_regions, board_regions_note): (Vec<BoardRegion>, String),
     rows: &[Row],
     compared: &[Compared],
@@ -571,7 +654,7 @@ pub fn document(
     let largest = crate::diagnose::misfit::largest_mode_misfit(located);
     let remaining = remaining_discrepancy(
         (verdict, model_form),
-        (located, boards_off),
+        (located, boards_off, joint_form),
         &board_regions,
         threshold,
         &largest,
@@ -730,12 +813,12 @@ mod tests {
         assert!(above_practical_threshold(&loc, 1e-3));
         loc.modes.push(shift("bolted", 0.007));
         assert!(above_practical_threshold(&loc, 3e-3));
-        assert!(model_form_pattern(&loc, &[], 0.0125, false));
+        assert!(model_form_pattern(&loc, &[], 0.0125, false, &[]));
         // The free-free form is quoted from the free-free modes (0.11 %), not from the bolted
         // ones (0.7 %), which carry the joint model's form too.
         let said = super::remaining_discrepancy(
             (crate::diagnose::select::Verdict::ModelForm, "a thin plate"),
-            (&loc, &[]),
+            (&loc, &[], &[]),
             &[],
             1e-3,
             &None,
@@ -748,14 +831,15 @@ mod tests {
             &loc,
             std::slice::from_ref(&placed),
             0.0125,
-            false
+            false,
+            &[]
         ));
         let mut wide = placed;
         wide.fit.region_radius_m = 0.055;
-        assert!(model_form_pattern(&loc, &[wide], 0.0125, false));
+        assert!(model_form_pattern(&loc, &[wide], 0.0125, false, &[]));
         let mut one = loc.clone();
         one.measurements = vec!["M040".into()];
-        assert!(!model_form_pattern(&one, &[], 0.0125, false));
+        assert!(!model_form_pattern(&one, &[], 0.0125, false, &[]));
         // Boards that differ are the per-unit discrepancy's; a temperature trend is not.
         let cov = |name: &str| locate::LocatedCovariate {
             setup: "free".into(),
@@ -766,21 +850,21 @@ mod tests {
         };
         let mut boards = loc.clone();
         boards.covariates = vec![cov("board_id")];
-        assert!(model_form_pattern(&boards, &[], 0.0125, false));
+        assert!(model_form_pattern(&boards, &[], 0.0125, false, &[]));
         boards.covariates.push(cov("temperature_c"));
-        assert!(!model_form_pattern(&boards, &[], 0.0125, false));
+        assert!(!model_form_pattern(&boards, &[], 0.0125, false, &[]));
         // A bolted-only misfit common to every assembly is the joint model's form within the
         // bolted model's stated fidelity (1.5 %), and unexplained beyond it or with an
         // outlier assembly.
         let mut bolted = loc.clone();
         bolted.modes.remove(0);
-        assert!(model_form_pattern(&bolted, &[], 0.0125, false));
+        assert!(model_form_pattern(&bolted, &[], 0.0125, false, &[]));
         bolted.modes.push(shift("bolted", -0.016));
         assert!(!super::bolted_within_fidelity(&bolted));
-        assert!(!model_form_pattern(&bolted, &[], 0.0125, false));
+        assert!(!model_form_pattern(&bolted, &[], 0.0125, false, &[]));
         bolted.modes.pop();
         bolted.measurements = vec!["M040".into()];
-        assert!(!model_form_pattern(&bolted, &[], 0.0125, false));
+        assert!(!model_form_pattern(&bolted, &[], 0.0125, false, &[]));
 
         // Outliers that are all of a board's measurements (with boards located as differing)
         // are the board; one that stands apart from its board's other measurements is not.
@@ -802,7 +886,7 @@ mod tests {
             whole_board_outliers(&whole, &ms),
             Some(vec![("free".to_string(), "B1".to_string())])
         );
-        assert!(model_form_pattern(&whole, &[], 0.0125, true));
+        assert!(model_form_pattern(&whole, &[], 0.0125, true, &[]));
         whole.measurements = vec!["M1".into()];
         assert_eq!(whole_board_outliers(&whole, &ms), None);
         whole.measurements = vec!["M1".into(), "M2".into()];
@@ -814,6 +898,122 @@ mod tests {
         );
         whole.measurements.clear();
         assert_eq!(whole_board_outliers(&whole, &ms), Some(vec![]));
+    }
+
+    /// An outlier assembly within the bolted model's stated fidelity that the per-assembly
+    /// joint screen clears (ln B < 0, no joint apart) is the joint model's per-assembly form;
+    /// one beyond the fidelity, one the screen finds a joint apart in or favours, a free-free
+    /// one and an unscreened one are not.
+    #[test]
+    fn outlier_assemblies_the_joint_screen_clears_are_the_joint_models_form() {
+        use crate::diagnose::select::Verdict;
+        use crate::update::joint_screen::{JointScreen, ScreenUnit};
+        let mut loc = locate::locate(&LocateInput::default(), &LocateOptions::default());
+        let res = |label: &str, c: f64| locate::MeasurementResidual {
+            label: label.into(),
+            rel_residual: c,
+            centred_rel_residual: c,
+            z: 6.8,
+            df: 18.0,
+        };
+        let check = |id: &str, setup: &str, c: f64| locate::MeasurementCheck {
+            measurement_id: id.into(),
+            board_id: "PCB-05".into(),
+            setup: setup.into(),
+            n_modes: 2,
+            chi2: 95.7,
+            p_value: Some(1e-19),
+            q_value: Some(1e-17),
+            outlier: true,
+            single_mode: None,
+            left_out_of_scale: true,
+            residuals: vec![res("plate-0-0", c), res("plate-1-0", 0.002)],
+        };
+        let ids = ["M063", "M043", "M010", "M050", "M051"];
+        loc.any = true;
+        loc.measurement_checks = vec![
+            check("M063", "bolted", 0.0027),
+            check("M043", "bolted", -0.02),
+            check("M010", "free", 0.0027),
+            check("M050", "bolted", 0.0027),
+            check("M051", "bolted", 0.0027),
+        ];
+        loc.measurements = ids.map(String::from).to_vec();
+        let unit = |id: &str, lbf: f64, dev: Option<usize>| ScreenUnit {
+            measurement_id: id.into(),
+            log_bayes_factor: lbf,
+            log_bayes_factor_se: 0.1,
+            joints: vec![],
+            freq_effect_rel: Some(3e-4),
+            deviating_joint: dev,
+            min_ess: 110.0,
+            posterior: vec![],
+        };
+        let screen = JointScreen {
+            units: vec![
+                unit("M063", -6.7, None),
+                unit("M043", -8.1, None),
+                unit("M010", -6.0, None),
+                unit("M050", 4.0, None),
+                unit("M051", -1.0, Some(2)),
+            ],
+            log_bayes_factor: Some(-14.7),
+            log_bayes_factor_se: Some(0.13),
+            baseline_draws: 16,
+            contrast_log_sd: 0.7,
+            model_evals: 19520,
+            failed: None,
+            untracked: vec![],
+        };
+        let jf = super::joint_form_outliers(&loc, &[&screen]);
+        assert_eq!(jf, vec!["M063".to_string()]);
+        assert!(
+            super::joint_form_outliers(&loc, &[]).is_empty(),
+            "unscreened"
+        );
+        let failed = JointScreen::failed("no draws".into());
+        assert!(super::joint_form_outliers(&loc, &[&failed]).is_empty());
+
+        // With a bolted shift common to every assembly, or alone, such outliers are the form;
+        // with another outlier beside them the misfit stays unexplained.
+        assert!(!model_form_pattern(&loc, &[], 0.0125, false, &jf));
+        loc.measurements = vec!["M063".into()];
+        loc.modes = vec![LocatedMode {
+            setup: "bolted".into(),
+            label: "plate-0-0".into(),
+            mean_rel_residual: 0.0043,
+            reasons: vec!["mean_shift".into()],
+        }];
+        assert!(!model_form_pattern(&loc, &[], 0.0125, false, &[]));
+        assert!(model_form_pattern(&loc, &[], 0.0125, false, &jf));
+        let said = super::remaining_discrepancy(
+            (Verdict::ModelForm, "a thin plate"),
+            (&loc, &[], &jf),
+            &[],
+            1e-3,
+            &None,
+            &None,
+        );
+        assert!(
+            said.contains("by up to 0.430 %")
+                && said.contains("M063")
+                && said.contains("per-assembly form"),
+            "{said}"
+        );
+        loc.modes.clear();
+        assert!(model_form_pattern(&loc, &[], 0.0125, false, &jf));
+        let said = super::remaining_discrepancy(
+            (Verdict::ModelForm, "a thin plate"),
+            (&loc, &[], &jf),
+            &[],
+            1e-3,
+            &None,
+            &None,
+        );
+        assert!(
+            said.contains("no mode is off for every assembly alike") && said.contains("M063"),
+            "{said}"
+        );
     }
 
     /// A refit whose runs disagree a little keeps its Bayes factor (its estimates are said

@@ -230,15 +230,38 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
         );
         let mut verdict = select::verdict(above, &compared);
         let region_limit_m = board.length_x_m.min(board.width_y_m) / 4.0;
-        let boards_off = whole_board_outliers(&located, &input.measurements);
+        let screens: Vec<_> = refits
+            .iter()
+            .filter_map(|r| r.joint_screen.as_ref())
+            .collect();
+        let joint_form = verdict::joint_form_outliers(&located, &screens);
+        let mut others = located.clone();
+        others.measurements.retain(|m| !joint_form.contains(m));
+        let boards_off = whole_board_outliers(&others, &input.measurements);
         if verdict == Verdict::UnexplainedMisfit
-            && model_form_pattern(&located, &regions.0, region_limit_m, boards_off.is_some())
+            && model_form_pattern(
+                &located,
+                &regions.0,
+                region_limit_m,
+                boards_off.is_some(),
+                &joint_form,
+            )
         {
             verdict = Verdict::ModelForm;
         }
+        let joint_form = if verdict == Verdict::ModelForm {
+            joint_form
+        } else {
+            vec![]
+        };
         let mut result = write_outputs(
             opts,
-            (&located, above, &boards_off.unwrap_or_default()),
+            (
+                &located,
+                above,
+                &boards_off.unwrap_or_default(),
+                &joint_form,
+            ),
             regions,
             &candidates,
             &compared,
@@ -336,7 +359,7 @@ fn board_regions(
 #[allow(clippy::too_many_arguments)]
 fn write_outputs(
     opts: &DiagnoseOptions,
-    (located, above, boards_off): (&Located, bool, &[(String, String)]),
+    (located, above, boards_off, joint_form): (&Located, bool, &[(String, String)], &[String]),
     regions: (Vec<BoardRegion>, String),
     candidates: &[Candidate],
     compared: &[Compared],
@@ -348,7 +371,7 @@ fn write_outputs(
     let rows = verdict::rows(candidates, compared);
     let doc = verdict::document(
         opts,
-        (located, above, boards_off),
+        (located, above, boards_off, joint_form),
         regions,
         &rows,
         compared,
