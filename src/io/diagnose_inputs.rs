@@ -490,8 +490,10 @@ pub fn population_r_hat(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
     population_worst(path, "r_hat", |a, b| a > b, &Default::default())
 }
 
-/// Of the population-level parameters of the summary table at `path` that the one at
-/// `baseline` lacks (a refit's own), the one with the smallest bulk ESS, with that ESS.
+/// Of the population locations (`mu_…`) of the summary table at `path` that the one at
+/// `baseline` lacks (a refit's own: the finding's estimates, `refit_estimates`), the one with
+/// the smallest bulk ESS, with that ESS. A refit's population scales (`sigma_…`) are nuisance
+/// parameters no finding reports; the runs' agreement on them is R-hat's to judge.
 pub fn population_ess(path: &Path, baseline: &Path) -> anyhow::Result<Option<(String, f64)>> {
     let mut known = std::collections::BTreeSet::new();
     for b in tables::read_parquet(baseline)? {
@@ -501,6 +503,16 @@ pub fn population_ess(path: &Path, baseline: &Path) -> anyhow::Result<Option<(St
         };
         let name = c.str("parameter")?;
         known.extend((0..b.num_rows()).map(|i| name.value(i).to_string()));
+    }
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let name = c.str("parameter")?;
+        known.extend(
+            (0..b.num_rows())
+                .map(|i| name.value(i))
+                .filter(|n| !n.starts_with("mu_"))
+                .map(String::from),
+        );
     }
     population_worst(path, "ess_bulk", |a, b| a < b, &known)
 }
@@ -1037,9 +1049,9 @@ pub fn read_refit(
 mod tests {
     use super::*;
 
-    /// The refit's ESS gate reads its own population-level parameters only: a nuisance
-    /// parameter the baseline has too (however low its ESS) and per-board rows are not the
-    /// mechanism's.
+    /// The refit's ESS gate reads its own population locations only (the finding's
+    /// estimates): a parameter the baseline has too (however low its ESS), per-board rows and
+    /// its population scale (a nuisance no finding reports) are not them.
     #[test]
     fn the_ess_gate_reads_the_parameters_the_baseline_lacks() {
         use crate::update::posterior::SummaryRow;
@@ -1070,6 +1082,7 @@ mod tests {
             row("mu_g_z_pa", None, 81.0),
             row("temperature_coefficient_per_k", Some("PCB-01"), 20.0),
             row("mu_temperature_coefficient_per_k", None, 150.0),
+            row("sigma_temperature_coefficient_per_k", None, 65.0),
         ];
         tables::update::write_summary(&refit, &rows, &prov).unwrap();
         assert_eq!(

@@ -300,17 +300,33 @@ pub(super) fn centre_gate(
 /// posterior quantiles are to be trusted.
 const MIN_ESS_PER_RUN: f64 = 100.0;
 
+/// The particles' factor that brings a bulk ESS of `ess` to `min_ess`: the ESS of an SMC
+/// population grows in proportion to its particles, so the ratio rounded up, at least 2 (a
+/// retry that only just reaches the bar would miss it half the time) and at most 4.
+fn ess_particle_factor(ess: f64, min_ess: f64) -> usize {
+    let r = (min_ess / ess.max(1.0)).ceil();
+    if r.is_finite() {
+        (r as usize).clamp(2, 4)
+    } else {
+        4
+    }
+}
+
 /// Run one update step of a refit; when its independent runs disagree on a population-level
-/// parameter (R-hat above [`MAX_R_HAT`], the gate [`summarize_refit`] applies) or one of the
-/// mechanism's own population-level parameters (those the baseline at `baseline` lacks: the
-/// finding's estimates) has fewer than [`MIN_ESS_PER_RUN`] effective draws a run, run it once
-/// more with twice the particles and twice the runs (at least 4): without this a decisive
-/// candidate whose nuisance scale mixed slowly gave no Bayes factor at all. The ESS rule is
-/// Vehtari et al.'s for the quantiles one reports; the baseline's own parameters are reported
-/// by the baseline, which no such rule reruns, and the Bayes factor's reliability is the
-/// runs' agreement (R-hat, the evidence's spread). More runs, not only more particles: two
-/// runs that settle on different trade-offs between the modes' error scales stay apart
-/// however many particles each has, and R-hat from two runs is itself too noisy to tell.
+/// parameter (R-hat above [`MAX_R_HAT`], the gate [`summarize_refit`] applies), run it once
+/// more with twice the particles and twice the runs (at least 4); when one of the mechanism's
+/// own population locations (those the baseline at `baseline` lacks: the finding's estimates)
+/// has fewer than [`MIN_ESS_PER_RUN`] effective draws a run, once more with the particles
+/// that bring it there ([`ess_particle_factor`]) and the same runs: without this a decisive
+/// candidate whose runs disagreed on a nuisance scale gave no Bayes factor at all, and an
+/// estimate's quantiles rested on too few draws. The ESS rule is Vehtari et al.'s for the
+/// quantiles one reports, so it reads the finding's estimates only; the baseline's own
+/// parameters are reported by the baseline, which no such rule reruns, and the Bayes factor's
+/// reliability is the runs' agreement (R-hat, the evidence's spread). For disagreeing runs
+/// more runs, not only more particles: two runs that settle on different trade-offs between
+/// the modes' error scales stay apart however many particles each has, and R-hat from two
+/// runs is itself too noisy to tell. For too few effective draws, more particles: the ESS of
+/// each run grows with them, and the bar grows with the runs.
 /// The retry replaces the first attempt's outputs; if it still disagrees, the gate reports
 /// it.
 ///
@@ -327,13 +343,22 @@ fn run_gated(
     let r = step(&o)?;
     let summary = o.out.join("summary.parquet");
     let min_ess = MIN_ESS_PER_RUN * o.sampler.runs as f64;
-    let why = if let Some((name, rh)) = population_r_hat(&summary)?.filter(|(_, r)| *r > MAX_R_HAT)
+    let (why, more_runs, factor) = if let Some((name, rh)) =
+        population_r_hat(&summary)?.filter(|(_, r)| *r > MAX_R_HAT)
     {
-        format!("R-hat across runs of {name} {rh:.3} > {MAX_R_HAT}")
+        (
+            format!("R-hat across runs of {name} {rh:.3} > {MAX_R_HAT}"),
+            true,
+            2,
+        )
     } else if let Some((name, ess)) =
         population_ess(&summary, &baseline.join("summary.parquet"))?.filter(|(_, e)| *e < min_ess)
     {
-        format!("bulk ESS of {name} {ess:.0} < {min_ess:.0} ({MIN_ESS_PER_RUN} a run)")
+        (
+            format!("bulk ESS of {name} {ess:.0} < {min_ess:.0} ({MIN_ESS_PER_RUN} a run)"),
+            false,
+            ess_particle_factor(ess, min_ess),
+        )
     } else {
         return Ok(r);
     };
@@ -344,8 +369,10 @@ fn run_gated(
         );
         return Ok(r);
     }
-    o.sampler.smc.n_particles *= 2;
-    o.sampler.runs = (2 * o.sampler.runs).max(4);
+    o.sampler.smc.n_particles *= factor;
+    if more_runs {
+        o.sampler.runs = (2 * o.sampler.runs).max(4);
+    }
     eprintln!(
         "diagnose: {}: {why}: rerun with {} runs of {} particles",
         o.out.display(),
@@ -891,4 +918,20 @@ pub(super) fn baselines(w: &Path, step2: bool) -> anyhow::Result<(Refit, Option<
         None
     };
     Ok((baseline1, baseline))
+}
+
+#[cfg(test)]
+mod tests {
+    /// An ESS short of the bar asks for the particles that reach it (ESS grows with them), at
+    /// least twice and at most four times the first attempt's.
+    #[test]
+    fn the_ess_retry_scales_the_particles_to_the_shortfall() {
+        use super::ess_particle_factor;
+        assert_eq!(ess_particle_factor(165.0, 200.0), 2);
+        assert_eq!(ess_particle_factor(199.0, 200.0), 2);
+        assert_eq!(ess_particle_factor(65.0, 200.0), 4);
+        assert_eq!(ess_particle_factor(90.0, 200.0), 3);
+        assert_eq!(ess_particle_factor(0.0, 200.0), 4);
+        assert_eq!(ess_particle_factor(f64::NAN, 200.0), 4);
+    }
 }
