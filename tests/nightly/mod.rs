@@ -745,10 +745,32 @@ fn a_plate_of_another_size_without_holes_runs_free_free_only() {
         &[],
     );
     assert_ok(&o, "make all on the 300 x 200 x 3 mm plate");
-    assert!(w.join("fe/rom_free.npz").is_file());
+    // Step 1 samples on its own ROM and the propagation reads it; `make all` builds no model
+    // artifact nothing reads, and `make fe` would build no bolted ROM for a board without holes.
+    assert!(w.join("update_boards/rom.npz").is_file());
     assert!(
-        !w.join("fe/rom_bolted.npz").exists(),
-        "a bolted ROM for a board without holes"
+        !w.join("fe/rom_free.npz").exists(),
+        "fe's ROM is not in all"
+    );
+    let prop = std::fs::read_to_string(w.join("propagate/propagate.manifest.json")).unwrap();
+    assert!(prop.contains("update_boards/rom.npz"), "{prop}");
+    let dry = make(
+        &[
+            "-n".into(),
+            "fe".into(),
+            format!("SCENARIO={}", scenario.display()),
+            format!("BOARD={}", board.display()),
+            format!("WORK={}", w.display()),
+            format!("HBMU={}", env!("CARGO_BIN_EXE_hbmu")),
+        ],
+        &[],
+    );
+    assert_ok(&dry, "make -n fe on the plate without holes");
+    let dry = String::from_utf8_lossy(&dry.stdout);
+    assert!(dry.contains("--setup free"), "{dry}");
+    assert!(
+        !dry.contains("--setup bolted"),
+        "a bolted ROM for a board without holes: {dry}"
     );
     let joints = std::fs::read_to_string(w.join("update_joints/update_report.json")).unwrap();
     assert!(joints.contains("update.no_bolted_data"), "{joints}");
