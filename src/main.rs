@@ -130,7 +130,8 @@ enum Command {
         /// Directory with rom_free.npz and rom_bolted.npz (default: `fe` beside the step-1 directory).
         #[arg(long)]
         fe: Option<PathBuf>,
-        /// Half-width of the ROMs' verified box, relative (as built by `fe rom --box-rel`).
+        /// Half-width of the ROMs' verified box, relative (as built by `fe rom --box-rel`), for
+        /// a ROM that does not record the box it was built over (one written before it did).
         #[arg(long, default_value_t = 0.2)]
         rom_box: f64,
         #[arg(long)]

@@ -8,7 +8,10 @@
 //! - `basis.npy`: float64, shape (n_dof, r), the basis V (w, ∂w/∂x, ∂w/∂y, ∂²w/∂x∂y
 //!   per node, node-major);
 //! - `meta_json.npy`: uint8, shape (len,), UTF-8 JSON with `names`, `nominal`,
-//!   `k_coefs`, `m_coefs`, `core_idx`, `n_rigid`, `n_modes`, `setup`.
+//!   `k_coefs`, `m_coefs`, `core_idx`, `n_rigid`, `n_modes`, `setup`, and `built_box`
+//!   (`{"box_rel": b, "log_axes": [[name, w], …]}`: the box the snapshots spanned, ±b
+//!   relative about `nominal` except the named parameters over e^{±w}; absent from files
+//!   written before it was recorded).
 //!
 //! The model at parameters p is K(p) = Σᵢ cᵢ(p) Kᵢʳ, M(p) = Σⱼ dⱼ(p) Mⱼʳ with each
 //! coefficient given in `k_coefs` / `m_coefs` as one of
@@ -38,6 +41,9 @@ struct Meta {
     n_rigid: usize,
     n_modes: usize,
     setup: String,
+    /// The box the ROM was built over (absent from older files).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    built_box: Option<super::rom::RomBox>,
 }
 
 fn crc32(data: &[u8]) -> u32 {
@@ -158,6 +164,7 @@ pub(crate) fn rom_to_npz(rom: &Rom) -> Vec<u8> {
         n_rigid: rom.n_rigid,
         n_modes: rom.n_modes,
         setup: rom.setup.clone(),
+        built_box: rom.built_box.clone(),
     };
     // Serialising plain data with string keys cannot fail.
     let meta = serde_json::to_vec(&meta).unwrap_or_default();
@@ -325,7 +332,7 @@ pub(crate) fn rom_from_npz(bytes: &[u8]) -> Result<Rom, FemError> {
             .map(|t| Mat::from_fn(r, r, |i, j| v[t * r * r + i * r + j]))
             .collect()
     };
-    Ok(Rom::from_parts(
+    let mut rom = Rom::from_parts(
         meta.map,
         unstack(ks[0], &kv),
         unstack(ms[0], &mv),
@@ -333,7 +340,9 @@ pub(crate) fn rom_from_npz(bytes: &[u8]) -> Result<Rom, FemError> {
         meta.n_rigid,
         meta.n_modes,
         meta.setup,
-    ))
+    );
+    rom.built_box = meta.built_box;
+    Ok(rom)
 }
 
 #[cfg(test)]

@@ -147,6 +147,19 @@ pub struct Rom {
     pub setup: String,
     /// Upper triangles of `k_r`, packed ([`super::dense::packed_upper`]), for the hot path.
     pub(crate) k_flat: Vec<Vec<f64>>,
+    /// The box the ROM was built over (its snapshots span it), about `map.nominal`; None for a
+    /// ROM read from an NPZ written before it was recorded.
+    pub built_box: Option<RomBox>,
+}
+
+/// The parameter box a ROM was built over, about its centre: ±`box_rel` relative, except the
+/// logarithmic axes (name, w), over e^{±w}. Whoever evaluates the ROM (the propagation)
+/// checks its draws against this box, the one the snapshots spanned and the update steps
+/// checked the ROM over (a step that widened it records the wider one).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RomBox {
+    pub box_rel: f64,
+    pub log_axes: Vec<(String, f64)>,
 }
 
 /// Reduced operator from reduced coordinates to w at given points: P = S V.
@@ -456,7 +469,7 @@ impl Rom {
         };
         let k_r = model.k_terms.par_iter().map(project).collect();
         let m_r = model.m_terms.par_iter().map(project).collect();
-        Ok(Rom::from_parts(
+        let mut rom = Rom::from_parts(
             model.map.clone(),
             k_r,
             m_r,
@@ -464,7 +477,12 @@ impl Rom {
             n_rigid,
             opts.n_modes,
             if free { "free".into() } else { "bolted".into() },
-        ))
+        );
+        rom.built_box = Some(RomBox {
+            box_rel: opts.box_rel,
+            log_axes: opts.log_axes.clone(),
+        });
+        Ok(rom)
     }
 
     /// Assemble a ROM from its parts (used by the builder and the NPZ loader).
@@ -490,6 +508,7 @@ impl Rom {
             n_modes,
             setup,
             k_flat,
+            built_box: None,
         }
     }
 

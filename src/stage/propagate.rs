@@ -136,7 +136,9 @@ fn free_side(
     Vec<String>,
 )> {
     let mut rom_free = read_rom(&inp.rom_free)?;
-    if let Some(b) = caps.box1 {
+    // A ROM that records the box it was built over is checked against that box; --rom-box is
+    // for one that does not.
+    if let Some(b) = caps.box1.filter(|_| rom_free.built_box.is_none()) {
         if (b - opts.rom_box).abs() > 1e-12 {
             findings.push(Finding::new(
                 Severity::Warning,
@@ -287,7 +289,18 @@ pub fn run(opts: &PropagateOptions, verbose: bool) -> anyhow::Result<StageOutcom
             findings.push(Finding::new(
                 Severity::Warning,
                 "propagate.outside_rom_box",
-                format!("{} of {} evaluations ({} of {} new free-free boards) lie outside the ROM's ±{:.0} % box, where it is not verified", counts.outside_rom_box, counts.evaluations, counts.new_board_outside_box, opts.draws, 100.0 * opts.rom_box),
+                format!(
+                    "{} of {} evaluations ({} of {} new free-free boards) lie outside the box their ROM was built over (free-free {}{}), where it is not verified",
+                    counts.outside_rom_box,
+                    counts.evaluations,
+                    counts.new_board_outside_box,
+                    opts.draws,
+                    free.box_description(),
+                    bolted_model
+                        .as_ref()
+                        .map(|(m, _, _)| format!(", bolted {}", m.box_description()))
+                        .unwrap_or_default()
+                ),
             ));
         }
         let prov = BTreeMap::from([

@@ -231,7 +231,7 @@ pub fn truncate_rom(rom: Rom, r: usize) -> Rom {
         return rom;
     }
     let lead = |m: &faer::Mat<f64>| faer::Mat::from_fn(r, r, |i, j| m[(i, j)]);
-    Rom::from_parts(
+    let mut cut = Rom::from_parts(
         rom.map.clone(),
         rom.k_r.iter().map(lead).collect(),
         rom.m_r.iter().map(lead).collect(),
@@ -239,7 +239,9 @@ pub fn truncate_rom(rom: Rom, r: usize) -> Rom {
         rom.n_rigid,
         rom.n_modes,
         rom.setup.clone(),
-    )
+    );
+    cut.built_box = rom.built_box;
+    cut
 }
 
 /// The `fe rom` stage's ROM cut to the one an update step sampled on when it ran with the

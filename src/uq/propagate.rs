@@ -66,8 +66,8 @@ pub struct LabelModel {
     n_track: usize,
     /// Half-width of the ROM's verified box, relative to its centre.
     pub box_rel: f64,
-    /// Per parameter, the half-width in ln p of a logarithmic axis of the box (the model's
-    /// own, [`crate::fem::rom::with_own_log_axes`]), or `None` for a ±`box_rel` one.
+    /// Per parameter, the half-width in ln p of a logarithmic axis of the box, or `None` for a
+    /// ±`box_rel` one.
     log_box: Vec<Option<f64>>,
     /// Per label, the relative eigenvalue error its repeat measurements show
     /// ([`repeatability_eps`]); used for labels without an inferred ε.
@@ -77,7 +77,11 @@ pub struct LabelModel {
 }
 
 impl LabelModel {
-    /// `modes[l]`: the 0-based ROM mode at the centre that label `labels[l]` pairs with.
+    /// `modes[l]`: the 0-based ROM mode at the centre that label `labels[l]` pairs with. The
+    /// box is the one the ROM was built over ([`Rom::built_box`]: an update step that widened
+    /// its box or its shear modulus's axis built its ROM over the wider one); for a ROM that
+    /// does not record it, ±`box_rel` with the model's own logarithmic axes
+    /// ([`crate::fem::rom::with_own_log_axes`]).
     pub fn new(
         rom: Rom,
         labels: Vec<String>,
@@ -110,7 +114,10 @@ impl LabelModel {
             })
             .collect();
         let n = labels.len();
-        let axes = crate::fem::rom::with_own_log_axes(&rom.map, &[]);
+        let (box_rel, axes) = match &rom.built_box {
+            Some(b) => (b.box_rel, b.log_axes.clone()),
+            None => (box_rel, crate::fem::rom::with_own_log_axes(&rom.map, &[])),
+        };
         let log_box = rom
             .map
             .names
@@ -170,6 +177,23 @@ impl LabelModel {
             .into_iter()
             .map(|a| a.map(|j| modes.eigenvalues[j]))
             .collect::<Option<Vec<f64>>>()
+    }
+
+    /// The box in words: "±20 % (g_z_pa × or ÷ 2.00)".
+    pub fn box_description(&self) -> String {
+        let logs: Vec<String> = self
+            .rom
+            .map
+            .names
+            .iter()
+            .zip(&self.log_box)
+            .filter_map(|(n, w)| w.map(|w| format!("{n} × or ÷ {:.2}", w.exp())))
+            .collect();
+        if logs.is_empty() {
+            format!("±{:.0} %", 100.0 * self.box_rel)
+        } else {
+            format!("±{:.0} % ({})", 100.0 * self.box_rel, logs.join(", "))
+        }
     }
 
     /// True when every parameter lies inside the ROM's box around its centre.
@@ -778,6 +802,32 @@ mod tests {
         assert!(at(names::G_Z, 1.9) && at(names::G_Z, 0.55));
         assert!(!at(names::G_Z, 2.1) && !at(names::G_Z, 0.45));
         assert!(at(names::E_X, 1.19) && !at(names::E_X, 1.25));
+        assert_eq!(lm.box_description(), "±20 % (g_z_pa × or ÷ 2.00)");
+
+        // A ROM built over a wider box (an update step that widened its box and its G_z
+        // axis) is checked over that box, whatever the fallback given; one that does not
+        // record its box (an older NPZ) over the fallback and the model's own axes.
+        let wide = RomOptions {
+            box_rel: 0.3,
+            log_axes: vec![(names::G_Z.to_string(), 4f64.ln())],
+            ..ro
+        };
+        let rom = Rom::build(&fe, &wide).unwrap();
+        let back = Rom::from_npz_bytes(&rom.to_npz_bytes()).unwrap();
+        assert_eq!(back.built_box, rom.built_box);
+        let lm = LabelModel::new(back, vec!["m1".into()], &[0], 0.2).unwrap();
+        let at = |lm: &LabelModel, name: &str, factor: f64| {
+            let mut v = lm.rom.map.nominal.clone();
+            let k = lm.rom.map.names.iter().position(|n| n == name).unwrap();
+            v[k] *= factor;
+            lm.inside_box(&v)
+        };
+        assert!(at(&lm, names::G_Z, 0.3) && !at(&lm, names::G_Z, 0.2));
+        assert!(at(&lm, names::E_X, 1.25) && !at(&lm, names::E_X, 1.35));
+        let mut old = rom;
+        old.built_box = None;
+        let lm = LabelModel::new(old, vec!["m1".into()], &[0], 0.2).unwrap();
+        assert!(!at(&lm, names::G_Z, 0.3) && !at(&lm, names::E_X, 1.25));
     }
 
     /// Free-free models of `lm` whose one updated parameter is mass_scale.

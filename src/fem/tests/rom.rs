@@ -181,6 +181,13 @@ fn rom_npz_round_trip_preserves_every_number() {
     assert_eq!(back.basis, rom.basis);
     assert_eq!(back.k_r, rom.k_r);
     assert_eq!(back.m_r, rom.m_r);
+    assert_eq!(
+        back.built_box,
+        Some(crate::fem::rom::RomBox {
+            box_rel: opts.box_rel,
+            log_axes: vec![]
+        })
+    );
     // Deterministic bytes.
     assert_eq!(back.to_npz_bytes(), bytes);
     // Corruption is detected.
