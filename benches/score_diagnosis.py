@@ -168,6 +168,10 @@ def main():
         b, a = h["before_percent"], h["after_percent"]
         ratio = b / a if a and a > 0 else float("inf")
         print(f"   held-out {h['setup']}: {'PASS' if ratio >= 2 else 'FAIL'} {b:.3f} % → {a:.3f} % ({ratio:.2f}x)")
+    for h in f.get("held_out_error_outliers", []):
+        b, a = h["before_percent"], h["after_percent"]
+        ratio = b / a if a and a > 0 else float("inf")
+        print(f"   held-out {h['setup']}, outlier assemblies alone (info): {b:.3f} % → {a:.3f} % ({ratio:.2f}x)")
 
 
 if __name__ == "__main__":

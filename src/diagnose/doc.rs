@@ -24,6 +24,10 @@ pub struct FindingDoc {
     pub log_bayes_factor_se: Option<f64>,
     /// Held-out mean absolute frequency error before and after, per setup, percent.
     pub held_out_error: Vec<HeldOut>,
+    /// The same over the outlier measurements the locate step singled out, where the
+    /// mechanism acts on some assemblies only (absent without outliers).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub held_out_error_outliers: Vec<HeldOut>,
     /// The refit's directory, relative to the diagnosis directory.
     pub refit_dir: String,
     pub sentence: String,

@@ -20,7 +20,7 @@ use crate::diagnose::locate::{
     ResidualObs,
 };
 use crate::diagnose::regions::{MeasuredShape, RegionFiles};
-use crate::diagnose::select::{Estimate, Refit, SetupError};
+use crate::diagnose::select::{Estimate, MeasurementError, Refit, SetupError};
 use crate::diagnose::verdict::{quantile, r_hat_gate};
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::modes_table::read_modes_table;
@@ -442,17 +442,27 @@ fn read_eps(path: &Path, setup: &str) -> anyhow::Result<Vec<EpsDraws>> {
 /// Mean absolute relative error per setup of the held-out (`used == false`) or updated modes
 /// in a residuals table.
 pub fn setup_errors(path: &Path, used: bool) -> anyhow::Result<Vec<SetupError>> {
-    let mut acc: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    let by_m = measurement_errors(path, used)?;
+    let all: Vec<String> = by_m.iter().map(|e| e.measurement_id.clone()).collect();
+    Ok(crate::diagnose::select::setup_errors_of(&by_m, &all))
+}
+
+/// [`setup_errors`]' terms per (setup, measurement).
+pub fn measurement_errors(path: &Path, used: bool) -> anyhow::Result<Vec<MeasurementError>> {
+    let mut acc: BTreeMap<(String, String), (f64, usize)> = BTreeMap::new();
     for b in tables::read_parquet(path)? {
         let c = Cols { batch: &b, path };
-        let (setup, rel, u) = (
+        let (setup, mid, rel, u) = (
             c.str("setup")?,
+            c.str("measurement_id")?,
             c.f64("rel_residual")?,
             c.bool("used_for_updating")?,
         );
         for i in 0..b.num_rows() {
             if u.value(i) == used && rel.value(i).is_finite() {
-                let e = acc.entry(setup.value(i).to_string()).or_default();
+                let e = acc
+                    .entry((setup.value(i).to_string(), mid.value(i).to_string()))
+                    .or_default();
                 e.0 += rel.value(i).abs();
                 e.1 += 1;
             }
@@ -460,11 +470,14 @@ pub fn setup_errors(path: &Path, used: bool) -> anyhow::Result<Vec<SetupError>> 
     }
     Ok(acc
         .into_iter()
-        .map(|(setup, (s, n))| SetupError {
-            setup,
-            mean_abs_error_percent: 100.0 * s / n.max(1) as f64,
-            n,
-        })
+        .map(
+            |((setup, measurement_id), (sum_abs_rel, n))| MeasurementError {
+                setup,
+                measurement_id,
+                sum_abs_rel,
+                n,
+            },
+        )
         .collect())
 }
 
@@ -1025,11 +1038,13 @@ pub fn read_refit(
         }
     }
     let mut held_out = setup_errors(&res, false)?;
+    let mut held_out_by_measurement = measurement_errors(&res, false)?;
     let mut updated = setup_errors(&res, true)?;
     if board_mech && has2 {
         // The free-free predictions of its step 1 too.
         let res1 = dir1.join("residuals.parquet");
         held_out.extend(setup_errors(&res1, false)?);
+        held_out_by_measurement.extend(measurement_errors(&res1, false)?);
         updated.extend(setup_errors(&res1, true)?);
     }
     Ok(Refit {
@@ -1038,6 +1053,8 @@ pub fn read_refit(
         dir: rel_dir.to_string(),
         log_evidence_runs,
         held_out,
+        held_out_by_measurement,
+        outliers: outliers.to_vec(),
         updated,
         estimates,
         failed,

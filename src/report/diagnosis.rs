@@ -952,6 +952,7 @@ mod tests {
                 0.12947891045305393,
                 0.07104580650339282,
             )],
+            held_out_outliers_before_after: vec![],
         };
         let mass = Compared {
             refit: refit(
@@ -964,6 +965,7 @@ mod tests {
             explains: true,
             practical: true,
             held_out_before_after: vec![],
+            held_out_outliers_before_after: vec![],
         };
         DiagnosisDoc {
             verdict,
@@ -1027,6 +1029,7 @@ mod tests {
                         before_percent: 0.12947891045305393,
                         after_percent: 0.07104580650339282,
                     }],
+                    held_out_error_outliers: vec![],
                     refit_dir: "refits/joint_rotation".into(),
                     sentence: "The bolted joints restrain the board's rotation.".into(),
                 }]

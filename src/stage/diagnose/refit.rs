@@ -13,11 +13,11 @@ use crate::diagnose::regions;
 use crate::diagnose::screen::Candidate;
 use crate::diagnose::select::{self, NewModeNote, Refit};
 use crate::diagnose::verdict::{self, quantile};
-use crate::io::diagnose_inputs::setup_errors;
 use crate::io::diagnose_inputs::{
     evidence_runs, joint_ratios, population_ess, population_r_hat, read_refit, refit_residuals,
     sorted_column, RefitSource,
 };
+use crate::io::diagnose_inputs::{measurement_errors, setup_errors};
 use crate::io::read_json;
 use crate::io::tables::update::{
     provenance as update_provenance, read_residual_rows, write_residuals,
@@ -747,6 +747,8 @@ fn screen_refit(
         joint: cand.joint,
         dir: rel,
         held_out: setup_errors(&p, false)?,
+        held_out_by_measurement: measurement_errors(&p, false)?,
+        outliers: screened.iter().map(|m| m.to_string()).collect(),
         updated: setup_errors(&p, true)?,
         estimates,
         deviating_joints,
@@ -912,6 +914,8 @@ pub(super) fn baselines(w: &Path, step2: bool) -> anyhow::Result<(Refit, Option<
         let joints = wd.update_joints();
         let mut b = summarize_refit(baseline_source(&joints, "../update_joints"), None, &[])?;
         b.held_out.extend(baseline1.held_out.iter().cloned());
+        b.held_out_by_measurement
+            .extend(baseline1.held_out_by_measurement.iter().cloned());
         b.updated.extend(baseline1.updated.iter().cloned());
         Some(b)
     } else {
