@@ -34,10 +34,10 @@ pub struct MeasurementError {
     pub n: usize,
 }
 
-/// The [`SetupError`]s of the measurements `ids` alone.
-pub fn setup_errors_of(v: &[MeasurementError], ids: &[String]) -> Vec<SetupError> {
+/// The [`SetupError`]s of the measurements `keep` accepts.
+pub fn setup_errors_of(v: &[MeasurementError], keep: impl Fn(&str) -> bool) -> Vec<SetupError> {
     let mut acc: std::collections::BTreeMap<&str, (f64, usize)> = Default::default();
-    for e in v.iter().filter(|e| ids.contains(&e.measurement_id)) {
+    for e in v.iter().filter(|e| keep(&e.measurement_id)) {
         let a = acc.entry(e.setup.as_str()).or_default();
         a.0 += e.sum_abs_rel;
         a.1 += e.n;
@@ -108,8 +108,9 @@ pub struct Refit {
     /// restricts it to the outlier measurements.
     #[serde(skip)]
     pub held_out_by_measurement: Vec<MeasurementError>,
-    /// The outlier measurements the locate step singled out when the refit was read.
-    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    /// The outlier measurements the locate step singled out when the refit was read (not
+    /// written: diagnosis.json has them in its checks).
+    #[serde(skip)]
     pub outliers: Vec<String>,
     /// Updated modes, per setup.
     pub updated: Vec<SetupError>,
@@ -439,10 +440,13 @@ pub fn compare(baseline: &Refit, candidates: &[Refit], opts: &SelectOptions) -> 
                 explains,
                 practical,
                 held_out_before_after: held,
-                held_out_outliers_before_after: before_after(
-                    &setup_errors_of(&baseline.held_out_by_measurement, &c.outliers),
-                    &setup_errors_of(&c.held_out_by_measurement, &c.outliers),
-                ),
+                held_out_outliers_before_after: {
+                    let outlier = |m: &str| c.outliers.iter().any(|o| o == m);
+                    before_after(
+                        &setup_errors_of(&baseline.held_out_by_measurement, outlier),
+                        &setup_errors_of(&c.held_out_by_measurement, outlier),
+                    )
+                },
             }
         })
         .collect();
@@ -737,7 +741,7 @@ mod tests {
             n: 2,
         };
         let refit = |by_m: Vec<MeasurementError>, outliers: &[&str]| Refit {
-            held_out: setup_errors_of(&by_m, &["M1".into(), "M2".into(), "M3".into()]),
+            held_out: setup_errors_of(&by_m, |_| true),
             held_out_by_measurement: by_m,
             outliers: outliers.iter().map(|m| m.to_string()).collect(),
             mechanism: Some(Mechanism::JointStiffnessPerJoint),

@@ -20,7 +20,7 @@ use crate::diagnose::locate::{
     ResidualObs,
 };
 use crate::diagnose::regions::{MeasuredShape, RegionFiles};
-use crate::diagnose::select::{Estimate, MeasurementError, Refit, SetupError};
+use crate::diagnose::select::{setup_errors_of, Estimate, MeasurementError, Refit, SetupError};
 use crate::diagnose::verdict::{quantile, r_hat_gate};
 use crate::findings::{Finding, Findings, Severity};
 use crate::io::modes_table::read_modes_table;
@@ -442,9 +442,7 @@ fn read_eps(path: &Path, setup: &str) -> anyhow::Result<Vec<EpsDraws>> {
 /// Mean absolute relative error per setup of the held-out (`used == false`) or updated modes
 /// in a residuals table.
 pub fn setup_errors(path: &Path, used: bool) -> anyhow::Result<Vec<SetupError>> {
-    let by_m = measurement_errors(path, used)?;
-    let all: Vec<String> = by_m.iter().map(|e| e.measurement_id.clone()).collect();
-    Ok(crate::diagnose::select::setup_errors_of(&by_m, &all))
+    Ok(setup_errors_of(&measurement_errors(path, used)?, |_| true))
 }
 
 /// [`setup_errors`]' terms per (setup, measurement).
@@ -500,7 +498,7 @@ pub fn evidence_runs(dir: &Path) -> anyhow::Result<Vec<f64>> {
 /// The population-level parameter (no board, no measurement) with the largest R-hat in a
 /// summary table, with that R-hat; None without such rows or R-hats (one run).
 pub fn population_r_hat(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
-    population_worst(path, "r_hat", |a, b| a > b, &Default::default())
+    population_worst(path, "r_hat", |a, b| a > b, |_| true)
 }
 
 /// Of the population locations (`mu_…`) of the summary table at `path` that the one at
@@ -517,26 +515,21 @@ pub fn population_ess(path: &Path, baseline: &Path) -> anyhow::Result<Option<(St
         let name = c.str("parameter")?;
         known.extend((0..b.num_rows()).map(|i| name.value(i).to_string()));
     }
-    for b in tables::read_parquet(path)? {
-        let c = Cols { batch: &b, path };
-        let name = c.str("parameter")?;
-        known.extend(
-            (0..b.num_rows())
-                .map(|i| name.value(i))
-                .filter(|n| !n.starts_with("mu_"))
-                .map(String::from),
-        );
-    }
-    population_worst(path, "ess_bulk", |a, b| a < b, &known)
+    population_worst(
+        path,
+        "ess_bulk",
+        |a, b| a < b,
+        |n| n.starts_with("mu_") && !known.contains(n),
+    )
 }
 
-/// The population-level row of a summary table, its parameter not in `except`, whose finite
+/// The population-level row of a summary table, its parameter one `keep` accepts, whose finite
 /// `col` is worst by `worse`.
 fn population_worst(
     path: &Path,
     col: &str,
     worse: impl Fn(f64, f64) -> bool,
-    except: &std::collections::BTreeSet<String>,
+    keep: impl Fn(&str) -> bool,
 ) -> anyhow::Result<Option<(String, f64)>> {
     let mut worst: Option<(String, f64)> = None;
     for b in tables::read_parquet(path)? {
@@ -552,7 +545,7 @@ fn population_worst(
             if board.is_valid(i)
                 || meas.is_valid(i)
                 || !r.value(i).is_finite()
-                || except.contains(name.value(i))
+                || !keep(name.value(i))
             {
                 continue;
             }
@@ -1037,16 +1030,15 @@ pub fn read_refit(
             e.scope = format!("{}; {note}", e.scope);
         }
     }
-    let mut held_out = setup_errors(&res, false)?;
     let mut held_out_by_measurement = measurement_errors(&res, false)?;
     let mut updated = setup_errors(&res, true)?;
     if board_mech && has2 {
         // The free-free predictions of its step 1 too.
         let res1 = dir1.join("residuals.parquet");
-        held_out.extend(setup_errors(&res1, false)?);
         held_out_by_measurement.extend(measurement_errors(&res1, false)?);
         updated.extend(setup_errors(&res1, true)?);
     }
+    let held_out = setup_errors_of(&held_out_by_measurement, |_| true);
     Ok(Refit {
         mechanism,
         joint,

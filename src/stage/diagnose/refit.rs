@@ -11,7 +11,7 @@ use crate::diagnose::misfit::{self, Part, RefitShares};
 use crate::diagnose::point_search;
 use crate::diagnose::regions;
 use crate::diagnose::screen::Candidate;
-use crate::diagnose::select::{self, NewModeNote, Refit};
+use crate::diagnose::select::{self, setup_errors_of, NewModeNote, Refit};
 use crate::diagnose::verdict::{self, quantile};
 use crate::io::diagnose_inputs::{
     evidence_runs, joint_ratios, population_ess, population_r_hat, read_refit, refit_residuals,
@@ -742,12 +742,13 @@ fn screen_refit(
         ),
     )?;
     let (estimates, deviating_joints) = verdict::screen_estimates(&screen, board);
+    let held_out_by_measurement = measurement_errors(&p, false)?;
     Ok(Refit {
         mechanism: Some(cand.mechanism),
         joint: cand.joint,
         dir: rel,
-        held_out: setup_errors(&p, false)?,
-        held_out_by_measurement: measurement_errors(&p, false)?,
+        held_out: setup_errors_of(&held_out_by_measurement, |_| true),
+        held_out_by_measurement,
         outliers: screened.iter().map(|m| m.to_string()).collect(),
         updated: setup_errors(&p, true)?,
         estimates,
