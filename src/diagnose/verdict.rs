@@ -470,31 +470,27 @@ pub fn remaining_discrepancy(
     Verdict::ModelForm => {
         let (at, v) = crate::diagnose::misfit::largest_structured(located)
             .unwrap_or_else(|| ("?".into(), f64::NAN));
-        let boards = if boards_off.is_empty() && joint_form.is_empty() {
-            "with no covariate trend, outlier measurement or unpaired mode".to_string()
-        } else if boards_off.is_empty() {
-            format!(
-                "with no covariate trend or unpaired mode; {}",
-                joint_form_clause(joint_form)
-            )
-        } else if !joint_form.is_empty() {
-            format!(
-                "with no covariate trend or unpaired mode; outlier measurements are every measurement of {} (the per-board part of the same form), and {}",
-                boards_off
-                    .iter()
-                    .map(|(s, b)| format!("{b} ({s})"))
-                    .collect::<Vec<_>>()
-                    .join(", "),
-                joint_form_clause(joint_form)
-            )
-        } else {
-            format!(
-                "with no covariate trend or unpaired mode; the outlier measurements are every measurement of {} (their repeat measurements agree, the boards themselves differ from the others beyond the model's parameters: the per-board part of the same form)",
+        // The outliers the form accounts for: whole boards, then single assemblies.
+        let mut outliers = vec![];
+        if !boards_off.is_empty() {
+            outliers.push(format!(
+                "the outlier measurements are every measurement of {} (their repeat measurements agree, the boards themselves differ from the others beyond the model's parameters: the per-board part of the same form)",
                 boards_off
                     .iter()
                     .map(|(s, b)| format!("{b} ({s})"))
                     .collect::<Vec<_>>()
                     .join(", ")
+            ));
+        }
+        if !joint_form.is_empty() {
+            outliers.push(joint_form_clause(joint_form));
+        }
+        let boards = if outliers.is_empty() {
+            "with no covariate trend, outlier measurement or unpaired mode".to_string()
+        } else {
+            format!(
+                "with no covariate trend or unpaired mode; {}",
+                outliers.join("; and ")
             )
         };
         let modes = located
