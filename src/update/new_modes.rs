@@ -149,6 +149,19 @@ pub fn match_modes(
     w_ref: &faer::Mat<f64>,
     points: &[[f64; 2]],
 ) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
+    let (idx, m) = match_modes_of(model, p, n_modes, w_ref, points)?;
+    let f = idx.iter().map(|&b| m.freq_hz[b]).collect();
+    Ok((idx, f))
+}
+
+/// [`match_modes`] with the solved modes themselves (for their derivatives).
+pub fn match_modes_of(
+    model: &FeModel,
+    p: &crate::fem::Params,
+    n_modes: usize,
+    w_ref: &faer::Mat<f64>,
+    points: &[[f64; 2]],
+) -> anyhow::Result<(Vec<usize>, crate::fem::Modes)> {
     let m = model.modes(p, n_modes)?;
     let w = model.w_at(&m, points)?;
     let nr = w_ref.ncols();
@@ -173,6 +186,5 @@ pub fn match_modes(
             taken[b] = true;
         }
     }
-    let f = idx.iter().map(|&b| m.freq_hz[b]).collect();
-    Ok((idx, f))
+    Ok((idx, m))
 }
