@@ -501,6 +501,37 @@ pub fn population_r_hat(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
     population_worst(path, "r_hat", |a, b| a > b, |_| true)
 }
 
+/// The physical 5/50/95 % quantiles of the population-level `parameter` in the summary table
+/// at `path` (those of a step with a model-form discrepancy); None where the table has no
+/// finite ones for it (no discrepancy) or no such row.
+pub fn physical_quantiles(path: &Path, parameter: &str) -> anyhow::Result<Option<(f64, f64, f64)>> {
+    for b in tables::read_parquet(path)? {
+        let c = Cols { batch: &b, path };
+        let name = c.str("parameter")?;
+        let (board, unit) = (c.str("board_id")?, c.str("measurement_id")?);
+        let q = match (
+            c.f64("physical_q05"),
+            c.f64("physical_q50"),
+            c.f64("physical_q95"),
+        ) {
+            (Ok(a), Ok(m), Ok(z)) => (a, m, z),
+            _ => return Ok(None),
+        };
+        for i in 0..b.num_rows() {
+            if name.value(i) == parameter && board.is_null(i) && unit.is_null(i) {
+                let v = |a: &arrow::array::Float64Array| (!a.is_null(i)).then(|| a.value(i));
+                return Ok(match (v(q.0), v(q.1), v(q.2)) {
+                    (Some(a), Some(m), Some(z)) if a.is_finite() && z.is_finite() => {
+                        Some((a, m, z))
+                    }
+                    _ => None,
+                });
+            }
+        }
+    }
+    Ok(None)
+}
+
 /// Of the population locations (`mu_…`) of the summary table at `path` that the one at
 /// `baseline` lacks (a refit's own: the finding's estimates, `refit_estimates`), the one with
 /// the smallest bulk ESS, with that ESS. A refit's population scales (`sigma_…`) are nuisance
@@ -886,7 +917,18 @@ fn refit_estimates(
                 v.extend((0..b.num_rows()).map(|i| a.value(i).exp()));
             }
             v.sort_by(f64::total_cmp);
-            if !v.is_empty() {
+            // With a model-form discrepancy in the refit, the physical value: the draws less
+            // the discrepancy's part the coordinate absorbs (summary's physical quantiles).
+            let physical = physical_quantiles(&dir.join("summary.parquet"), &col)?;
+            if let Some((q05, q50, q95)) = physical {
+                estimates.push(Estimate {
+                    parameter: param.to_string(),
+                    scope: "population median, physical (less the model-form discrepancy's part the fit absorbs)".into(),
+                    median: q50.exp(),
+                    q05: q05.exp(),
+                    q95: q95.exp(),
+                });
+            } else if !v.is_empty() {
                 estimates.push(Estimate {
                     parameter: param.to_string(),
                     scope: "population median".into(),

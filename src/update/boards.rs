@@ -6,7 +6,7 @@
 
 use crate::bayes::modal::{CovariateEffect, Terms, UnitData};
 use crate::bayes::population::PopulationPrior;
-use crate::bayes::smc::{stream_key, Particle};
+use crate::bayes::smc::Particle;
 use crate::bayes::target::{Compose, ErrorModel, ModalTarget, PerMass};
 use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Params, Rom, Setup};
@@ -14,7 +14,7 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::modal::rows::{ModeRow, PairRow};
 use crate::update::enrichment::{board_enrichment, BoardContext, BoardEffect, BoardEnrichment};
 use crate::update::posterior::{
-    discrepancy_json, evidence_json, population_columns, DrawTable, SummaryRow,
+    confounded_draw, discrepancy_json, evidence_json, population_columns, DrawTable, SummaryRow,
 };
 use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
@@ -25,13 +25,7 @@ use crate::update::problem::{
 use crate::update::rom_box::RomBoxViolation;
 use crate::update::sampler::{box_violations, particles_of, Results};
 use anyhow::{anyhow, bail};
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 use std::collections::{BTreeMap, BTreeSet};
-
-/// The stream tag of the draws of the discrepancy's confounded part (`board_tables`).
-const CONFOUNDED_STREAM: u64 = 0x6d66_7061_7274;
 
 /// Prior sd (relative) of the population mean of a shear-deformable board's transverse shear
 /// modulus, at least: no datasheet gives it, and micromechanics (Halpin–Tsai, E-glass fibres
@@ -348,7 +342,7 @@ pub fn board_target(
     pinned.dedup();
     target.errors.discrepancy = discrepancy_for(
         &target,
-        &[],
+        (&[], None),
         spec.discrepancy_freq
             .unwrap_or(crate::bayes::discrepancy::FREE_FIDELITY_FREQ),
         (&pinned, "boards"),
@@ -607,17 +601,12 @@ pub fn board_tables(
         for (b, name) in bt.step.unit_names.iter().enumerate() {
             boards.push(r, i, Some(name), &board_row(p, b, &p.x[b]));
         }
-        let Some(disc) = disc else { continue };
+        if disc.is_none() {
+            continue;
+        }
         // The population mean μ leads g, in the units' coordinates; the shift is common to
         // every unit and to μ (d is shared), so the spreads do not move.
-        let h = &p.g[target.prior.dim()..];
-        let tau = target.errors.discrepancy_scale(h).unwrap_or(0.0);
-        let mut rng =
-            ChaCha8Rng::seed_from_u64(stream_key(&[seed, CONFOUNDED_STREAM, r as u64, i as u64]));
-        let z: Vec<f64> = (0..disc.unit_dim)
-            .map(|_| StandardNormal.sample(&mut rng))
-            .collect();
-        let a = disc.confounded_shift(tau, &z);
+        let a = confounded_draw(target, &p.g, seed, (r, i));
         let mut g = p.g.clone();
         g.iter_mut().zip(&a).for_each(|(v, s)| *v -= s);
         pop_phys.push(r, i, None, &pop_of(&g));

@@ -7,6 +7,47 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::update::problem::StepTarget;
 use std::collections::BTreeSet;
 
+/// The seed stream of the draws of the discrepancy's part the parameters absorb.
+const CONFOUNDED_STREAM: u64 = 0x6d66_7061_7274;
+
+/// One draw, for particle `i` of run `r`, of the part `a` of the model-form discrepancy
+/// that the unit coordinates absorb (`Discrepancy::confounded_shift` at the particle's scale
+/// τ, from the stream keyed by `seed`): a step's physical unit coordinates, and its
+/// population means μ in the same coordinates, are the fitted ones less `a`. Empty without
+/// a discrepancy in the likelihood.
+pub fn confounded_draw(target: &ModalTarget, g: &[f64], seed: u64, at: (usize, usize)) -> Vec<f64> {
+    let Some(disc) = target.errors.discrepancy.as_ref() else {
+        return vec![];
+    };
+    let tau = target
+        .errors
+        .discrepancy_scale(&g[target.prior.dim()..])
+        .unwrap_or(0.0);
+    confounded_draw_at(disc, tau, seed, at)
+}
+
+/// [`confounded_draw`] for a discrepancy `disc` of scale `tau` given from outside the
+/// likelihood (step 2's cut scale).
+pub fn confounded_draw_at(
+    disc: &crate::bayes::discrepancy::Discrepancy,
+    tau: f64,
+    seed: u64,
+    (r, i): (usize, usize),
+) -> Vec<f64> {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(smc::stream_key(&[
+        seed,
+        CONFOUNDED_STREAM,
+        r as u64,
+        i as u64,
+    ]));
+    let z: Vec<f64> = (0..disc.unit_dim)
+        .map(|_| StandardNormal.sample(&mut rng))
+        .collect();
+    disc.confounded_shift(tau, &z)
+}
+
 /// Draws of named scalar columns, one row per (run, draw[, key]).
 pub struct DrawTable {
     pub run: Vec<i32>,
@@ -133,7 +174,7 @@ pub struct SummaryRow {
     pub measurement_id: Option<String>,
     pub s: crate::bayes::diagnostics::Summary,
     /// The physical parameter's summary where a model-form discrepancy is inferred: the
-    /// draws less the discrepancy's part that the parameters absorb (`board_tables`).
+    /// draws less the discrepancy's part that the parameters absorb ([`confounded_draw`]).
     pub physical: Option<crate::bayes::diagnostics::Summary>,
 }
 

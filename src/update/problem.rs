@@ -705,14 +705,15 @@ pub fn model_error_from(
 }
 
 /// The model-form discrepancy of `target`'s updated modes ([`crate::bayes::discrepancy`]),
-/// orthogonal to the relative eigenvalue sensitivities of unit 0's coordinates at x = 0 (the
-/// reference point; step 2 with the auxiliary values `aux`, the step-1 posterior mean), its
+/// orthogonal to the relative eigenvalue sensitivities of unit 0's coordinates near `x_ref`
+/// (the reference point x = 0 where None; step 2 passes its centre fit, where every label is
+/// tracked, with the auxiliary values `aux`, the step-1 posterior mean), its
 /// scale's prior median `fidelity_freq` (relative frequency); the unit coordinates `pinned`
 /// (held by data of their own) absorb none of it. `None` (with an info finding) where the
 /// fidelity is 0, or where the units' coordinates span every mode.
 pub fn discrepancy_for(
     target: &ModalTarget,
-    aux: &[f64],
+    (aux, x_ref): (&[f64], Option<&[f64]>),
     fidelity_freq: f64,
     (pinned, what): (&[usize], &str),
     findings: &mut Findings,
@@ -747,7 +748,7 @@ pub fn discrepancy_for(
     // with the units' common shift at the 1e-4 level its posterior resolves (±0.9 on the
     // solid-truth campaign; the sampler then crawled). The units' common offset is the
     // weighted least-squares fit of the mean log-eigenvalue residuals at the reference point.
-    let x0 = vec![0.0; d];
+    let x0 = x_ref.map_or_else(|| vec![0.0; d], <[f64]>::to_vec);
     let mut sens = sens_at(&x0)?;
     if let Some(l0) = lambda(&x0) {
         let mut r = vec![0.0; nm];
@@ -765,7 +766,11 @@ pub fn discrepancy_for(
             .collect();
         if let Some(v) = weighted_offset(&sens, &r, &w, d) {
             // Within the ROM's verified box.
-            let v: Vec<f64> = v.iter().map(|a| a.clamp(-0.15, 0.15)).collect();
+            let v: Vec<f64> = v
+                .iter()
+                .zip(&x0)
+                .map(|(a, c)| c + a.clamp(-0.15, 0.15))
+                .collect();
             if let Ok(s) = sens_at(&v) {
                 sens = s;
             }

@@ -212,6 +212,31 @@ fn board_draws(path: &Path, board: &str, col: &str) -> Vec<f64> {
     out
 }
 
+/// A population parameter's (q05, q50, q95) in a summary.parquet, fitted and physical (NaN
+/// where null).
+fn summary_quantiles(path: &Path, parameter: &str) -> [[f64; 3]; 2] {
+    use arrow::array::Array;
+    for b in hbmu::io::tables::read_parquet(path).unwrap() {
+        let c = hbmu::io::tables::Cols { batch: &b, path };
+        let name = c.str("parameter").unwrap();
+        let get = |col: &str, i: usize| {
+            let a = c.f64(col).unwrap();
+            if a.is_null(i) {
+                f64::NAN
+            } else {
+                a.value(i)
+            }
+        };
+        for i in 0..b.num_rows() {
+            if name.value(i) == parameter {
+                let q = |pre: &str| ["q05", "q50", "q95"].map(|s| get(&format!("{pre}{s}"), i));
+                return [q(""), q("physical_")];
+            }
+        }
+    }
+    panic!("{}: no row {parameter}", path.display())
+}
+
 /// The distinct values of a string column of a Parquet table.
 fn column_set(path: &Path, col: &str) -> std::collections::BTreeSet<String> {
     let mut out = std::collections::BTreeSet::new();
@@ -660,6 +685,26 @@ fn fixture_refit_pairs_the_fixtures_own_mode_and_updates_it_on_request() {
             .any(|l| l == "fixture_compliance-mode-1");
         assert_eq!(has_label, !extra.is_empty(), "{}", r["labels"]);
     }
+    // With the bolted model's form as a discrepancy in the likelihood, the summary gives the
+    // physical quantiles: the fitted draws less the part of the discrepancy the coordinates
+    // absorb, so at least as wide, and holding the lab's mass.
+    let args: Vec<&str> = small
+        .iter()
+        .chain(&["--enrich-new-modes", "--discrepancy-pct", "1.5"])
+        .copied()
+        .collect();
+    let o = w.joints("jd", "u", &args);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let q = summary_quantiles(&w.p("jd/summary.parquet"), "mu_ln_m_fix");
+    let (fit, phys) = (q[0], q[1]);
+    assert!(phys.iter().all(|v| v.is_finite()), "{q:?}");
+    assert!(phys[2] - phys[0] >= fit[2] - fit[0], "{q:?}");
+    assert!(phys[0] < 0.1f64.ln() && 0.1f64.ln() < phys[2], "{q:?}");
+    // Without it, the cut scale's discrepancy (the likelihood the baseline's) gives them.
+    let q = summary_quantiles(&w.p("jn/summary.parquet"), "mu_ln_m_fix");
+    let (fit, phys) = (q[0], q[1]);
+    assert!(phys.iter().all(|v| v.is_finite()), "{q:?}");
+    assert!(phys[2] - phys[0] >= fit[2] - fit[0], "{q:?}");
     // The updated fixture mode's residual rows: measured at the lab's fixture frequency.
     let rows = residual_rows(&w.p("jn/residuals.parquet"), "fixture_compliance-mode-1");
     assert!(rows.len() >= 3, "{rows:?}");

@@ -83,7 +83,7 @@ pub const SUMMARY: TableSpec = TableSpec {
         c("r_hat", Col::Float64, false, "", "Rank-normalised split R-hat across runs."),
         c("ess_bulk", Col::Float64, false, "", "Bulk effective sample size."),
         c("ess_tail", Col::Float64, false, "", "Tail effective sample size."),
-        c("physical_q05", Col::Float64, true, "", "5 % quantile of the physical parameter (step 1 with a model-form discrepancy): the draws less the discrepancy's part that the parameters absorb, drawn from its prior at the inferred scale τ (the data cannot inform it). The draws in population/boards are the fitted values, which reproduce the data together with the inferred discrepancy; a board's physical value lies within these wider bounds. Null without a discrepancy."),
+        c("physical_q05", Col::Float64, true, "", "5 % quantile of the physical parameter: the draws less the model-form discrepancy's part that the parameters absorb, drawn from its prior at its scale τ (the data cannot inform it). Step 1 (a discrepancy in the likelihood): at the inferred τ; the draws in population/boards are the fitted values, which reproduce the data together with the inferred discrepancy. Step 2 (none in the likelihood): at the cut scale's draw of τ (evidence.json `predictive_discrepancy`), the likelihood and predictions left as they are. A physical value lies within these wider bounds. Null without a discrepancy or cut scale."),
         c("physical_q50", Col::Float64, true, "", "Median of the physical parameter (see physical_q05)."),
         c("physical_q95", Col::Float64, true, "", "95 % quantile of the physical parameter (see physical_q05)."),
     ],

@@ -194,8 +194,10 @@ pub(crate) fn joints_body(
         &results,
         &c.labels,
         &inp.step1,
-        opts.sampler.runs,
-        cut.as_ref().map(|c| (c, cut_seed)),
+        (opts.sampler.runs, opts.sampler.seed),
+        cut.as_ref()
+            .zip(cut_basis.as_ref())
+            .map(|(c, b)| (c, b, cut_seed)),
     );
     let mut outputs = write_joint_tables(&opts.out, &tables, &results, &prov)?;
     clock.lap("tables");
@@ -560,7 +562,7 @@ pub(crate) fn prepare_joints(
     };
     jt.step.target.errors.discrepancy = discrepancy_for(
         &jt.step.target,
-        &draws_mean,
+        (&draws_mean, Some(&centre)),
         // Off unless asked for (`--discrepancy-pct`): bolted, each measurement's joint
         // stiffness is already free, and a per-mode bias common to every assembly spans every
         // shift a common joint effect makes, so no refit could be told from it.
@@ -572,7 +574,7 @@ pub(crate) fn prepare_joints(
         Some(_) => None,
         None => discrepancy_for(
             &jt.step.target,
-            &draws_mean,
+            (&draws_mean, Some(&centre)),
             crate::bayes::discrepancy::BOLTED_FIDELITY_FREQ,
             (&[], "joints"),
             &mut Findings::default(),
