@@ -236,7 +236,7 @@ fn read_summary(path: &Path) -> anyhow::Result<Vec<SummaryRow>> {
         .iter()
         .map(|n| c.f64(n))
         .collect::<Result<_, _>>()?;
-        // Step 2's summary and an older step 1's have no physical bounds.
+        // A summary written before its step had physical bounds has no such columns.
         let phys: Option<(&Float64Array, &Float64Array)> =
             match (c.f64("physical_q05"), c.f64("physical_q95")) {
                 (Ok(a), Ok(b)) => Some((a, b)),

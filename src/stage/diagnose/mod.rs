@@ -123,6 +123,7 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
             (&base1, base.as_ref()),
             &cand,
             (&decided, gate.as_deref()),
+            &Default::default(),
             verbose,
         )
         .map(Some);

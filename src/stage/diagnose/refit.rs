@@ -162,11 +162,16 @@ fn board_refit_options(
 /// the step-2 options `base2`.
 ///
 /// `decided` is asked before the last step is rerun for its convergence ([`run_gated`]).
+/// A step-2 preparation kept between the sampler's runs of one candidate
+/// ([`crate::update::prepare::JointPrep`]).
+pub(super) type PrepMemo = std::cell::RefCell<Option<crate::update::prepare::JointPrep>>;
+
 pub(super) fn run_refit(
     opts: &DiagnoseOptions,
     (base1, base2): (&UpdateOptions, Option<&UpdateOptions>),
     cand: &Candidate,
     (decided, gate): (&dyn Fn() -> Option<String>, Option<&CentreGate>),
+    prep: &PrepMemo,
     verbose: bool,
 ) -> anyhow::Result<StageOutcome> {
     if is_board_mechanism(cand.mechanism) {
@@ -192,7 +197,6 @@ pub(super) fn run_refit(
         let mut o2 = joint_refit_options(opts, base, cand);
         o2.model.enrich_joint = None;
         // The gate's retry reuses the first attempt's preparation (same model spec).
-        let prep = std::cell::RefCell::new(None);
         run_gated(
             o2,
             &base.out,
@@ -215,7 +219,6 @@ pub(super) fn run_refit(
             )
         })?;
         let o = joint_refit_options(opts, base, cand);
-        let prep = std::cell::RefCell::new(None);
         run_gated(
             o,
             &base.out,
@@ -404,6 +407,7 @@ fn new_modes_refit(
     rel: &str,
     r: &mut Refit,
     not_favourable: Option<String>,
+    prep: &PrepMemo,
     verbose: bool,
 ) -> anyhow::Result<()> {
     let ev = read_json(&out.join("evidence.json"))?;
@@ -425,7 +429,6 @@ fn new_modes_refit(
         let mut o = joint_refit_options(opts, base, cand);
         o.out = out.join("new_modes");
         o.model.enrich_new_modes = true;
-        let prep = std::cell::RefCell::new(None);
         run_gated(
             o.clone(),
             &base.out,
@@ -798,7 +801,18 @@ pub(super) fn refit(
         });
     }
     let gate = centre_gate(opts, bases.1, cand, against.located);
-    let r = run_refit(opts, bases, cand, (&decided, gate.as_deref()), verbose).and_then(|_| {
+    // One preparation (centre fit and ROM) for the refit, its gate's retry and its new-mode
+    // refit: the same model, the new mode's label aside (`joint_prep_key`).
+    let prep = PrepMemo::default();
+    let r = run_refit(
+        opts,
+        bases,
+        cand,
+        (&decided, gate.as_deref()),
+        &prep,
+        verbose,
+    )
+    .and_then(|_| {
         let mut r = summarize_refit(candidate_source(cand, &out, &rel), Some(z1), outliers)?;
         if crate::diagnose::library::is_every_joint(Some(cand.mechanism), cand.joint) {
             let by = joint_ratios(&out, board.holes.len())?;
@@ -824,6 +838,7 @@ pub(super) fn refit(
                 &rel,
                 &mut r,
                 not_favourable,
+                &prep,
                 verbose,
             )?;
         }

@@ -4,7 +4,9 @@
 use super::*;
 
 /// The key of a [`JointPrep`]: the step's input files by content and its model spec (not the
-/// sampler's parameters, which do not change the preparation).
+/// sampler's parameters, which do not change the preparation), less `enrich_new_modes`: the
+/// centre is fitted before the new modes are paired, and a ROM of fewer modes than a new
+/// mode needs is rebuilt (`prepare_joints`).
 pub(crate) fn joint_prep_key(prep: &crate::io::manifest::Prepared, spec: &ModelSpec) -> String {
     let mut h = blake3::Hasher::new();
     for f in &prep.inputs {
@@ -13,7 +15,11 @@ pub(crate) fn joint_prep_key(prep: &crate::io::manifest::Prepared, spec: &ModelS
         h.update(f.blake3.as_bytes());
         h.update(&[0]);
     }
-    h.update(serde_json::to_string(spec).unwrap_or_default().as_bytes());
+    let spec = ModelSpec {
+        enrich_new_modes: false,
+        ..spec.clone()
+    };
+    h.update(serde_json::to_string(&spec).unwrap_or_default().as_bytes());
     h.finalize().to_hex().to_string()
 }
 
@@ -513,17 +519,18 @@ pub(crate) fn prepare_joints(
     if let Some(why) = gate.and_then(|g| g(&fit)) {
         bail!("{why}");
     }
+    let rom_options = rom_options_for(
+        &jm.model,
+        c.need,
+        &c.log_axes,
+        &joints::holding_step1_g_z(&opts.model, &inp.step1, &jm.nominal),
+    );
     let rom = match remembered {
-        Some(m) => m.rom,
-        None => model_cache::rom(
+        Some(m) if m.rom.n_modes >= rom_options.n_modes => m.rom,
+        _ => model_cache::rom(
             crate::io::cache::Cache::from_env().as_ref(),
             &jm.model,
-            &rom_options_for(
-                &jm.model,
-                c.need,
-                &c.log_axes,
-                &joints::holding_step1_g_z(&opts.model, &inp.step1, &jm.nominal),
-            ),
+            &rom_options,
         )?,
     };
     *memo = Some(JointPrep {
