@@ -501,35 +501,34 @@ pub fn population_r_hat(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
     population_worst(path, "r_hat", |a, b| a > b, |_| true)
 }
 
-/// The physical 5/50/95 % quantiles of the population-level `parameter` in the summary table
-/// at `path` (those of a step with a model-form discrepancy); None where the table has no
-/// finite ones for it (no discrepancy) or no such row.
-pub fn physical_quantiles(path: &Path, parameter: &str) -> anyhow::Result<Option<(f64, f64, f64)>> {
+/// The physical 5/50/95 % quantiles of every population-level parameter of the summary table
+/// at `path` that has finite ones (a step with a model-form discrepancy or a cut scale), by
+/// name; empty without them.
+pub fn physical_quantiles(path: &Path) -> anyhow::Result<BTreeMap<String, (f64, f64, f64)>> {
+    let mut out = BTreeMap::new();
     for b in tables::read_parquet(path)? {
         let c = Cols { batch: &b, path };
         let name = c.str("parameter")?;
         let (board, unit) = (c.str("board_id")?, c.str("measurement_id")?);
-        let q = match (
+        let (Ok(a), Ok(m), Ok(z)) = (
             c.f64("physical_q05"),
             c.f64("physical_q50"),
             c.f64("physical_q95"),
-        ) {
-            (Ok(a), Ok(m), Ok(z)) => (a, m, z),
-            _ => return Ok(None),
+        ) else {
+            return Ok(out);
         };
         for i in 0..b.num_rows() {
-            if name.value(i) == parameter && board.is_null(i) && unit.is_null(i) {
-                let v = |a: &arrow::array::Float64Array| (!a.is_null(i)).then(|| a.value(i));
-                return Ok(match (v(q.0), v(q.1), v(q.2)) {
-                    (Some(a), Some(m), Some(z)) if a.is_finite() && z.is_finite() => {
-                        Some((a, m, z))
-                    }
-                    _ => None,
-                });
+            let v = |a: &arrow::array::Float64Array| (!a.is_null(i)).then(|| a.value(i));
+            if let (true, Some(a), Some(m), Some(z)) =
+                (board.is_null(i) && unit.is_null(i), v(a), v(m), v(z))
+            {
+                if a.is_finite() && z.is_finite() {
+                    out.insert(name.value(i).to_string(), (a, m, z));
+                }
             }
         }
     }
-    Ok(None)
+    Ok(out)
 }
 
 /// Of the population locations (`mu_…`) of the summary table at `path` that the one at
@@ -902,6 +901,7 @@ fn refit_estimates(
         // common part is the prior's); the per-measurement ratios are `every_joint_estimates`.
         let every_joint = crate::diagnose::library::is_every_joint(mechanism, joint);
         let skip = if every_joint { coords.len() } else { 1 };
+        let physical = physical_quantiles(&dir.join("summary.parquet"))?;
         for cdef in coords.iter().skip(skip) {
             let name = cdef["name"].as_str().unwrap_or_default();
             let param = cdef["report_param"].as_str().unwrap_or_default();
@@ -919,8 +919,7 @@ fn refit_estimates(
             v.sort_by(f64::total_cmp);
             // With a model-form discrepancy in the refit, the physical value: the draws less
             // the discrepancy's part the coordinate absorbs (summary's physical quantiles).
-            let physical = physical_quantiles(&dir.join("summary.parquet"), &col)?;
-            if let Some((q05, q50, q95)) = physical {
+            if let Some(&(q05, q50, q95)) = physical.get(&col) {
                 estimates.push(Estimate {
                     parameter: param.to_string(),
                     scope: "population median, physical (less the model-form discrepancy's part the fit absorbs)".into(),

@@ -14,7 +14,8 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::modal::rows::{ModeRow, PairRow};
 use crate::update::enrichment::{board_enrichment, BoardContext, BoardEffect, BoardEnrichment};
 use crate::update::posterior::{
-    confounded_draw, discrepancy_json, evidence_json, population_columns, DrawTable, SummaryRow,
+    confounded_draw, discrepancy_json, evidence_json, less_confounded, population_columns,
+    DrawTable, SummaryRow,
 };
 use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
@@ -611,12 +612,12 @@ pub fn board_tables(
         g.iter_mut().zip(&a).for_each(|(v, s)| *v -= s);
         pop_phys.push(r, i, None, &pop_of(&g));
         for (b, name) in bt.step.unit_names.iter().enumerate() {
-            let x: Vec<f64> = p.x[b]
-                .iter()
-                .enumerate()
-                .map(|(k, v)| v - a.get(k).copied().unwrap_or(0.0))
-                .collect();
-            boards_phys.push(r, i, Some(name), &board_row(p, b, &x));
+            boards_phys.push(
+                r,
+                i,
+                Some(name),
+                &board_row(p, b, &less_confounded(&p.x[b], &a)),
+            );
         }
     }
     let mut summary = pop.summarize(runs, true);

@@ -17,7 +17,7 @@ use crate::update::enrichment::{
 use crate::update::new_modes::{match_modes, pair_new_modes, NewMode};
 use crate::update::posterior::{
     confounded_draw, confounded_draw_at, discrepancy_columns, discrepancy_json, discrepancy_values,
-    evidence_json, DrawTable, SummaryRow,
+    evidence_json, less_confounded, DrawTable, SummaryRow,
 };
 use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
@@ -921,11 +921,7 @@ pub fn joint_tables(
             }
             pop_phys.push(r, i, None, &row);
             for (b, name) in jt_.step.unit_names.iter().enumerate() {
-                let x: Vec<f64> = p.x[b]
-                    .iter()
-                    .enumerate()
-                    .map(|(k, v)| v - a.get(k).copied().unwrap_or(0.0))
-                    .collect();
+                let x = less_confounded(&p.x[b], &a);
                 jt_phys.push(r, i, Some(name), &enr.report_values(&x));
             }
         }

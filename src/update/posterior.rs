@@ -48,6 +48,14 @@ pub fn confounded_draw_at(
     disc.confounded_shift(tau, &z)
 }
 
+/// The unit coordinates `x` less the confounded part `a` (coordinates beyond `a` as they are).
+pub fn less_confounded(x: &[f64], a: &[f64]) -> Vec<f64> {
+    x.iter()
+        .enumerate()
+        .map(|(k, v)| v - a.get(k).copied().unwrap_or(0.0))
+        .collect()
+}
+
 /// Draws of named scalar columns, one row per (run, draw[, key]).
 pub struct DrawTable {
     pub run: Vec<i32>,

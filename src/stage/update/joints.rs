@@ -664,5 +664,12 @@ mod tests {
             joint_prep_key(&prepared("ab"), &spec(0.2, Mechanism::JointRotation)),
             key
         );
+        // The new-mode refit shares its refit's preparation: the centre is fitted before
+        // new modes are paired.
+        let new_modes = ModelSpec {
+            enrich_new_modes: true,
+            ..spec(0.2, Mechanism::JointRotation)
+        };
+        assert_eq!(joint_prep_key(&prepared("aa"), &new_modes), key);
     }
 }
