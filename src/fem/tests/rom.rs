@@ -5,7 +5,7 @@ use faer::Mat;
 
 use crate::fem::board::Board;
 use crate::fem::model::{FeModel, Setup};
-use crate::fem::rom::{latin_hypercube_params, Rom, RomOptions};
+use crate::fem::rom::{latin_hypercube_params, latin_hypercube_params_log, Rom, RomOptions};
 
 /// Modal assurance criterion of two real shape vectors.
 pub fn mac(a: &[f64], b: &[f64]) -> f64 {
@@ -587,4 +587,105 @@ fn bolted_step2_rom_error_against_the_basis_cap() {
             rom.dim()
         );
     }
+}
+
+/// The adaptive snapshot design against the full one on the built-in (shear-deformable) board,
+/// with step 2's box (a log axis of e^±1 on k_con and the shear modulus's own axis, the cap
+/// raised for them): build time, basis size, and the worst relative frequency error and MAC
+/// of the lowest modes at 24 Latin-hypercube points of another seed. An experiment behind
+/// `RomOptions::adaptive`, run by hand (HBMU_EXP_SETUP = free or bolted).
+#[test]
+#[ignore = "experiment: adaptive against full snapshot design, run by hand"]
+fn adaptive_snapshot_design_against_the_full_one_on_the_default_board() {
+    use crate::fem::params::names;
+    let board = Board::from_toml_str(include_str!("../../../data/boards/default.toml")).unwrap();
+    let bolted = std::env::var("HBMU_EXP_SETUP").map_or(true, |s| s == "bolted");
+    let setup = if bolted { Setup::bolted() } else { Setup::Free };
+    let model = FeModel::build(&board, setup.clone(), board.mesh_for(&setup)).unwrap();
+    let n_modes = if bolted { 7 } else { 8 };
+    let mut log_axes = vec![];
+    if bolted {
+        log_axes.push((names::K_CON.to_string(), 1.0));
+    }
+    let log_axes = crate::fem::rom::with_own_log_axes(&model.map, &log_axes);
+    let max_basis = crate::fem::rom::updating_basis(&model.map, 30, &log_axes);
+    let sample = latin_hypercube_params_log(&model.map, 24, 0.2, &log_axes, 0x00AC_CE55);
+    let pts = board.scan_points_m();
+    let sop = model.shape_operator(&pts).unwrap();
+    let t0 = std::time::Instant::now();
+    let full: Vec<_> = sample
+        .iter()
+        .map(|p| {
+            let m = model.modes(p, n_modes).unwrap();
+            let w = sop.apply(m.shapes.as_ref());
+            (m.freq_hz, w)
+        })
+        .collect();
+    eprintln!(
+        "{} DOFs, {:.2} s per full solve",
+        model.n_dof,
+        t0.elapsed().as_secs_f64() / 24.0
+    );
+    for (adaptive, derivative_snapshots) in [(true, false), (false, true)] {
+        let opts = RomOptions {
+            n_modes,
+            max_basis,
+            log_axes: log_axes.clone(),
+            adaptive,
+            derivative_snapshots,
+            ..RomOptions::default()
+        };
+        let t0 = std::time::Instant::now();
+        let rom = Rom::build(&model, &opts).unwrap();
+        let t_build = t0.elapsed().as_secs_f64();
+        let rsop = rom.shape_operator(&model, &pts).unwrap();
+        let (mut worst_f, mut worst_mac) = (0.0f64, 1.0f64);
+        for (p, (f, wf)) in sample.iter().zip(&full) {
+            let red = rom.eval(p, &rsop).unwrap();
+            for j in 0..n_modes {
+                worst_f = worst_f.max((red.freq_hz[j] - f[j]).abs() / f[j]);
+                worst_mac = worst_mac.min(mac(&col(wf, j), &col(&red.shapes_at_points, j)));
+            }
+        }
+        eprintln!(
+            "adaptive {adaptive}, derivatives {derivative_snapshots}: build {t_build:.1} s, dim {}, worst freq error {worst_f:.2e}, worst MAC {worst_mac:.8}",
+            rom.dim()
+        );
+    }
+}
+
+/// The adaptive design solves the centre and every axis's ends first and keeps the rest of
+/// the full design (a log axis's inner points, the Latin-hypercube points) as its candidates:
+/// together they are the full design's points, none lost and none added.
+#[test]
+fn adaptive_design_solves_the_axis_ends_first_and_keeps_the_rest_as_candidates() {
+    use crate::fem::params::names;
+    use crate::fem::rom::{snapshot_design, LOG_AXIS_POINTS};
+    let board = crate::fem::tests::helpers::thin_board();
+    let model = FeModel::build(&board, Setup::bolted(), &board.mesh).unwrap();
+    let nominal = model.nominal_params();
+    let np = nominal.values.len();
+    let opts = RomOptions {
+        n_random: 5,
+        log_axes: vec![(names::K_CON.to_string(), 1.0)],
+        ..RomOptions::default()
+    };
+    let (first, pool) = snapshot_design(&model, &nominal, &opts);
+    assert_eq!(first.len(), 1 + 2 * np);
+    assert_eq!(pool.len(), LOG_AXIS_POINTS - 2 + 5);
+    let (all, none) = snapshot_design(
+        &model,
+        &nominal,
+        &RomOptions {
+            adaptive: false,
+            ..opts.clone()
+        },
+    );
+    assert!(none.is_empty());
+    let key = |p: &crate::fem::Params| format!("{:?}", p.values);
+    let mut a: Vec<String> = first.iter().chain(&pool).map(key).collect();
+    let mut b: Vec<String> = all.iter().map(key).collect();
+    a.sort();
+    b.sort();
+    assert_eq!(a, b);
 }
