@@ -434,8 +434,8 @@ impl Rom {
     /// ranking candidate snapshot points, not a bound. A few sparse products, no solve.
     fn residual_indicator(&self, model: &FeModel, p: &Params) -> Result<f64, FemError> {
         let c = model.coefficients(p)?;
-        let count = (self.n_modes + 1).min(self.dim() - self.n_rigid);
-        let red = self.eval_lowest(&c.k, &c.m, count)?;
+        // The ROM's own modes (the top one's gap is to the mode below it).
+        let red = self.eval_lowest(&c.k, &c.m, self.n_modes)?;
         let (kv, mv) = (model.k_values(&c.k), model.m_values(&c.m));
         let pat = &model.pattern;
         let n = model.n_dof;
@@ -452,7 +452,7 @@ impl Rom {
         let (mut kx, mut mx) = (vec![0.0; n], vec![0.0; n]);
         let lam = &red.eigenvalues;
         let mut worst = 0.0f64;
-        for j in 0..lam.len().min(self.n_modes) {
+        for j in 0..lam.len() {
             let phi: Vec<f64> = (0..n).map(|i| ritz[(i, j)]).collect();
             pat.matvec(&kv, &phi, &mut kx);
             pat.matvec(&mv, &phi, &mut mx);
