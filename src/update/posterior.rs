@@ -374,18 +374,20 @@ pub fn population_columns<'a>(
 }
 
 /// Posterior-predictive residuals of every accepted paired mode (updating and validation
-/// labels) of the units, from up to `opts.residual_draws` draws per run.
+/// labels) of the units, from up to `draws` equally spaced draws in all, spread evenly over
+/// the runs.
 #[allow(clippy::too_many_arguments)]
 pub fn residuals(
     st: &StepTarget,
     (all_labels, updated): (&[String], &[String]),
     results: &[smc::RunResult<crate::bayes::modal::Terms>],
     setup: &str,
-    draws_per_run: usize,
+    draws: usize,
     model_error_sd: Option<&[f64]>,
 ) -> (Vec<Residual>, Vec<Lost>) {
     use rayon::prelude::*;
     let target = &st.target;
+    let draws_per_run = draws.div_ceil(results.len().max(1));
     let out: Vec<Vec<ResidualRow>> = (0..st.units_all.len())
         .into_par_iter()
         .map(|b| {

@@ -14,7 +14,8 @@ pub struct SamplerParams {
     pub seed: u64,
     pub runs: usize,
     pub smc: SmcOptions,
-    /// Draws per run used for the posterior-predictive residuals.
+    /// Draws used for the posterior-predictive residuals, in all (spread evenly over the
+    /// runs).
     pub residual_draws: usize,
     /// Start tempering from the prior (else from the Laplace-type reference).
     pub from_prior: bool,

@@ -174,6 +174,7 @@ pub(crate) fn joints_body(
         &results,
         c.need,
     ));
+    clock.lap("rom_posterior_check");
     let prov = provenance("update_joints", &prep.fingerprint);
     let (res, lost) = residuals(
         &jt.step,
@@ -184,6 +185,7 @@ pub(crate) fn joints_body(
         None,
     );
     lost_finding(&lost, &mut findings);
+    clock.lap("predictive_residuals");
     let cut = joints::cut_scale(cut_basis.as_ref(), &res, &c.labels.labels);
     if cut_basis.is_some() && cut.is_none() {
         findings.push(Finding::new(
