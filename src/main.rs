@@ -422,9 +422,9 @@ impl UpdateArgs {
                     target_ess: self.target_ess,
                     ..Default::default()
                 },
-                // The residuals' predictive mean then carries a Monte Carlo error of at most
-                // 1/√500 ≈ 4.5 % of the posterior sd, far below the predictive sd (which adds
-                // ε); 250 per run cost 10 s of 90 at 2000 × 4 (1000 full ROM solves per unit).
+                // In all, over the runs: the residuals' predictive mean then carries a Monte
+                // Carlo error of at most 1/√500 ≈ 4.5 % of the posterior sd, far below the
+                // predictive sd (which adds ε). Each draw is a full ROM solve per unit.
                 residual_draws: 500,
                 from_prior: self.from_prior,
                 surrogate: !self.no_surrogate,

@@ -183,13 +183,19 @@ pub fn rom_box_check(
     box_rel: f64,
     n_modes: usize,
 ) -> anyhow::Result<f64> {
-    let log_axes = rom
-        .built_box
-        .as_ref()
-        .map_or(&[][..], |b| b.log_axes.as_slice());
-    let points =
-        crate::fem::rom::latin_hypercube_params_log(&model.map, 8, box_rel, log_axes, 0x00B0_C5EC);
+    let points = rom_box_points(&model.map, rom.built_box.as_ref(), box_rel);
     worst_frequency_error(model, rom, &points, n_modes)
+}
+
+/// [`rom_box_check`]'s 8 points: ±`box_rel`, and the logarithmic axes the ROM records it was
+/// built over (`built`) over their widths.
+fn rom_box_points(
+    map: &crate::fem::params::ParamMap,
+    built: Option<&crate::fem::rom::RomBox>,
+    box_rel: f64,
+) -> Vec<crate::fem::Params> {
+    let log_axes = built.map_or(&[][..], |b| b.log_axes.as_slice());
+    crate::fem::rom::latin_hypercube_params_log(map, 8, box_rel, log_axes, 0x00B0_C5EC)
 }
 
 /// The ROM against the full model where the posterior lies: at `n_points` particles spread
@@ -244,6 +250,38 @@ mod tests {
             needed_half_width: linear,
             needed_g_z_log_box: g_z,
         }
+    }
+
+    /// The box check moves a parameter the ROM was built over on a logarithmic axis across
+    /// that axis (a widened shear modulus, × or ÷ 4 here), the others across ±box_rel; without
+    /// a recorded box, every parameter across ±box_rel.
+    #[test]
+    fn the_box_check_covers_the_axes_the_rom_was_built_over() {
+        let g_z = crate::fem::params::names::G_Z;
+        let map = crate::fem::params::ParamMap {
+            names: vec!["e_x_pa".into(), g_z.into()],
+            nominal: vec![24e9, 3e9],
+            k_coefs: vec![],
+            m_coefs: vec![],
+            core_idx: [0; 4],
+        };
+        let built = crate::fem::rom::RomBox {
+            box_rel: 0.2,
+            log_axes: vec![(g_z.into(), MAX_G_Z_LOG_BOX)],
+        };
+        let rel = |p: &crate::fem::Params, k: usize| p.values[k] / map.nominal[k];
+        let wide = rom_box_points(&map, Some(&built), 0.2);
+        assert_eq!(wide.len(), 8);
+        assert!(wide.iter().all(|p| (rel(p, 0) - 1.0).abs() <= 0.2 + 1e-12));
+        assert!(wide
+            .iter()
+            .all(|p| rel(p, 1).ln().abs() <= MAX_G_Z_LOG_BOX + 1e-12));
+        // 8 Latin-hypercube strata over ln 4 either way: some beyond × or ÷ 2.
+        assert!(wide
+            .iter()
+            .any(|p| rel(p, 1).ln().abs() > std::f64::consts::LN_2));
+        let plain = rom_box_points(&map, None, 0.2);
+        assert!(plain.iter().all(|p| (rel(p, 1) - 1.0).abs() <= 0.2 + 1e-12));
     }
 
     /// Step 1 widens what the posterior pressed, up to the widest boxes, and nothing else.
