@@ -21,7 +21,9 @@
 //!    around x̂_b re-formed at every g from a finite-difference stencil whose model outputs
 //!    are cached (no model evaluation; [`GivenUnits`]). Its mean is the next g; steps 2–3
 //!    repeat (the error scales in g change the units' weights).
-//! 4. q(g) = N(mean, inflation² · cov) of the g chain; q_b = N(x̂_b, inflation² · H_b⁻¹).
+//! 4. q(g) = N(mean, inflation² · cov) of the g chain; q_b = N(mean, inflation² · cov) of
+//!    unit b's conditional normals given g ([`GivenUnits::unit_moments`]) over draws of the
+//!    chain (N(x̂_b, inflation² · H_b⁻¹) where its prior is not a normal).
 //!    Units are independent of g in q; their coupling is restored by the tempering.
 //!
 //! A modular step's groups each carry their own first-step draw, which moves their units:
@@ -507,26 +509,7 @@ fn log_marginal_quadratic_root(m: &[f64], l: &[f64], x_hat: &[f64], r: &[f64], g
     // optimum at its box edge: μ of ln k_con at −1.1e3, sd 5e-10). The form is read as flat
     // there: the gradient keeps only its part in H's range (R's rows are orthogonal, scaled
     // eigenvectors). With H positive definite, g as given.
-    let row_sq: Vec<f64> = (0..d)
-        .map(|k| (0..d).map(|q| r[k * d + q] * r[k * d + q]).sum())
-        .collect();
-    // Flat: zero, or below 1e-12 of the largest curvature (the ramp's crest as far off as
-    // the gradient over that curvature).
-    let flat = 1e-12 * row_sq.iter().fold(0.0f64, |a, &b| a.max(b));
-    let projected: Vec<f64>;
-    let g = if row_sq.iter().any(|&n| n <= flat) {
-        let mut gp = vec![0.0; d];
-        for k in (0..d).filter(|&k| row_sq[k] > flat) {
-            let c = (0..d).map(|q| r[k * d + q] * g[q]).sum::<f64>() / row_sq[k];
-            for q in 0..d {
-                gp[q] += c * r[k * d + q];
-            }
-        }
-        projected = gp;
-        &projected[..]
-    } else {
-        g
-    };
+    let g = &gradient_in_range(r, g);
     let u: Vec<f64> = m.iter().zip(x_hat).map(|(a, b)| a - b).collect();
     let w: Vec<f64> = (0..d)
         .map(|k| (0..d).map(|q| r[k * d + q] * u[q]).sum())
@@ -569,6 +552,90 @@ fn log_marginal_quadratic_root(m: &[f64], l: &[f64], x_hat: &[f64], r: &[f64], g
     let lg_b_lg: f64 = y.iter().map(|v| v * v).sum();
     let cross: f64 = b_inv_lg.iter().zip(&mtw).map(|(a, b)| a * b).sum();
     -0.5 * quad - 0.5 * log_det_c + gu + 0.5 * lg_b_lg - cross
+}
+
+/// The gradient `g` with only its part in the range of H = Rᵀ R (see
+/// [`log_marginal_quadratic_root`]): along a flat row of R (zero, or below 1e-12 of the
+/// largest curvature: the ramp's crest as far off as the gradient over that curvature) a
+/// gradient would make the quadratic an unbounded ramp. With H positive definite, g as given.
+fn gradient_in_range(r: &[f64], g: &[f64]) -> Vec<f64> {
+    let d = g.len();
+    let row_sq: Vec<f64> = (0..d)
+        .map(|k| (0..d).map(|q| r[k * d + q] * r[k * d + q]).sum())
+        .collect();
+    let flat = 1e-12 * row_sq.iter().fold(0.0f64, |a, &b| a.max(b));
+    if row_sq.iter().all(|&n| n > flat) {
+        return g.to_vec();
+    }
+    let mut gp = vec![0.0; d];
+    for k in (0..d).filter(|&k| row_sq[k] > flat) {
+        let c = (0..d).map(|q| r[k * d + q] * g[q]).sum::<f64>() / row_sq[k];
+        for q in 0..d {
+            gp[q] += c * r[k * d + q];
+        }
+    }
+    gp
+}
+
+/// The normal N(x; m, L Lᵀ) · exp(−½ (x − x̂)ᵀ Rᵀ R (x − x̂) + gᵀ (x − x̂)) normalised: its
+/// mean and covariance (row-major). In the prior's whitened coordinates x = m + L z (stable
+/// as L → 0, a population pinned tight), z's precision is B = I + Mᵀ M (M = R L) and its
+/// mean B⁻¹ Lᵀ (g − Rᵀ R u), u = m − x̂; so x's mean is m + L z̄ and its covariance
+/// L B⁻¹ Lᵀ. The gradient keeps its part in H's range ([`gradient_in_range`]).
+fn conditional_normal(
+    m: &[f64],
+    l: &[f64],
+    x_hat: &[f64],
+    r: &[f64],
+    g: &[f64],
+) -> (Vec<f64>, Vec<f64>) {
+    let d = m.len();
+    let g = gradient_in_range(r, g);
+    let u: Vec<f64> = m.iter().zip(x_hat).map(|(a, b)| a - b).collect();
+    let w: Vec<f64> = (0..d)
+        .map(|k| (0..d).map(|q| r[k * d + q] * u[q]).sum())
+        .collect();
+    // g − Rᵀ w, then c = Lᵀ (g − Rᵀ w).
+    let v: Vec<f64> = (0..d)
+        .map(|q| g[q] - (0..d).map(|k| r[k * d + q] * w[k]).sum::<f64>())
+        .collect();
+    let c: Vec<f64> = (0..d)
+        .map(|j| (j..d).map(|q| l[q * d + j] * v[q]).sum())
+        .collect();
+    let mm: Vec<f64> = (0..d * d)
+        .map(|idx| {
+            let (k, j) = (idx / d, idx % d);
+            (j..d).map(|q| r[k * d + q] * l[q * d + j]).sum()
+        })
+        .collect();
+    let b: Vec<f64> = (0..d * d)
+        .map(|idx| {
+            let (i, j) = (idx / d, idx % d);
+            (0..d).map(|k| mm[k * d + i] * mm[k * d + j]).sum::<f64>()
+                + if i == j { 1.0 } else { 0.0 }
+        })
+        .collect();
+    let b_inv = spd_inverse(&b, d);
+    let z: Vec<f64> = (0..d)
+        .map(|i| (0..d).map(|j| b_inv[i * d + j] * c[j]).sum())
+        .collect();
+    let mean: Vec<f64> = (0..d)
+        .map(|i| m[i] + (0..=i).map(|q| l[i * d + q] * z[q]).sum::<f64>())
+        .collect();
+    // L B⁻¹ Lᵀ.
+    let lb: Vec<f64> = (0..d * d)
+        .map(|idx| {
+            let (i, j) = (idx / d, idx % d);
+            (0..=i).map(|q| l[i * d + q] * b_inv[q * d + j]).sum()
+        })
+        .collect();
+    let cov: Vec<f64> = (0..d * d)
+        .map(|idx| {
+            let (i, j) = (idx / d, idx % d);
+            (0..=j).map(|q| lb[i * d + q] * l[j * d + q]).sum()
+        })
+        .collect();
+    (mean, cov)
 }
 
 /// R with Rᵀ R = H⁺, H⁺ the positive semi-definite part of a symmetric H (negative
@@ -624,7 +691,7 @@ fn median_of(vs: &[Vec<f64>]) -> Vec<f64> {
 /// not have. Far from the round's g the added change is an extrapolation, and with units of
 /// several strongly correlated parameters (the boards' moduli and mass scale) it ran ε to
 /// e^-100 on the demo's step 1, so it is the modular step's option, not the default.
-struct GivenUnits<'a, T: Target> {
+pub(super) struct GivenUnits<'a, T: Target> {
     t: &'a T,
     xs: &'a [Vec<f64>],
     /// Per unit: the stencil's steps (empty without `reform`), its points (x̂_b first) and the
@@ -659,7 +726,7 @@ struct RoundQuadratic {
 impl<'a, T: Target> GivenUnits<'a, T> {
     /// The quadratics at `g_round`, with stencils of a fifth of each unit's sd under its
     /// precision `precs[b]` when `reform`.
-    fn new(
+    pub(super) fn new(
         t: &'a T,
         aux: &[f64],
         g_round: &[f64],
@@ -758,6 +825,55 @@ impl<'a, T: Target> GivenUnits<'a, T> {
             },
             evals,
         ))
+    }
+
+    /// Per unit, its mean and covariance over the draws `gs` of g (the law of total
+    /// variance over the conditional normals p(x_b | g) · L̃_b(x_b), L̃_b the round's
+    /// quadratic, [`conditional_normal`]); None for a unit in the point form. A unit the data
+    /// leave loose follows its population, so its spread is the population's over g's
+    /// spread, not its spread at one g: at the mean of a population scale whose posterior
+    /// spans a factor of e in sd, the units' spread was 2–6 times too narrow (the underfill
+    /// campaign's transverse shear moduli, step 1).
+    pub(super) fn unit_moments(&self, gs: &[Vec<f64>]) -> Vec<Option<(Vec<f64>, Vec<f64>)>> {
+        let t = self.t;
+        let d = t.unit_dim();
+        let ctxs: Vec<T::Ctx> = gs.iter().map(|g| t.ctx(g)).collect();
+        (0..self.xs.len())
+            .map(|b| {
+                let q0 = self.at_round[b].as_ref()?;
+                let root = if q0.root.is_empty() {
+                    psd_root(&make_positive(&q0.curvature, d, 0.0), d)
+                } else {
+                    q0.root.clone()
+                };
+                let per: Vec<(Vec<f64>, Vec<f64>)> = ctxs
+                    .iter()
+                    .filter_map(|ctx| {
+                        let (m, l) = t.unit_prior_normal(ctx, b)?;
+                        let (mean, cov) =
+                            conditional_normal(&m, &l, &self.xs[b], &root, &q0.gradient);
+                        (mean.iter().chain(&cov).all(|v| v.is_finite())).then_some((mean, cov))
+                    })
+                    .collect();
+                if per.is_empty() {
+                    return None;
+                }
+                let n = per.len() as f64;
+                let mean: Vec<f64> = (0..d)
+                    .map(|i| per.iter().map(|p| p.0[i]).sum::<f64>() / n)
+                    .collect();
+                let cov: Vec<f64> = (0..d * d)
+                    .map(|idx| {
+                        let (i, j) = (idx / d, idx % d);
+                        per.iter()
+                            .map(|(m, c)| c[idx] + (m[i] - mean[i]) * (m[j] - mean[j]))
+                            .sum::<f64>()
+                            / n
+                    })
+                    .collect();
+                Some((mean, cov))
+            })
+            .collect()
     }
 
     fn log_density(&self, g: &[f64]) -> f64 {
@@ -914,6 +1030,8 @@ pub fn laplace_reference<T: Target>(
     let rounds = opts.rounds.max(1);
     // With quadrature: the units' moments on the last round's grid (see below).
     let mut quad_moments: Option<Vec<Option<(f64, f64)>>> = None;
+    // Without: the units' moments over g's spread under the Laplace form.
+    let mut laplace_moments: Vec<Option<(Vec<f64>, Vec<f64>)>> = vec![];
     for round in 0..rounds {
         let ctx = t.ctx(&g);
         // 2. Units.
@@ -990,12 +1108,20 @@ pub fn laplace_reference<T: Target>(
         g = (0..ng)
             .map(|k| chain.iter().map(|v| v[k]).sum::<f64>() / n)
             .collect();
-        if let (GDensity::Quadrature(q), true) = (&given, round + 1 == rounds) {
-            // The units' moments over g's spread: UNIT_MOMENT_DRAWS draws evenly spaced
-            // along the chain.
-            let k = (chain.len() / UNIT_MOMENT_DRAWS).max(1);
-            let gs: Vec<Vec<f64>> = chain.iter().step_by(k).cloned().collect();
-            quad_moments = Some(q.unit_moments(&gs));
+        if round + 1 == rounds {
+            // The units' moments over g's spread, from draws evenly spaced along the chain.
+            let every = |n: usize| -> Vec<Vec<f64>> {
+                let k = (chain.len() / n).max(1);
+                chain.iter().step_by(k).cloned().collect()
+            };
+            match &given {
+                GDensity::Quadrature(q) => {
+                    quad_moments = Some(q.unit_moments(&every(UNIT_MOMENT_DRAWS)));
+                }
+                GDensity::Laplace(u) => {
+                    laplace_moments = u.unit_moments(&every(LAPLACE_MOMENT_DRAWS))
+                }
+            }
         }
         g_chain = chain;
     }
@@ -1015,6 +1141,17 @@ pub fn laplace_reference<T: Target>(
     let mut units = unit_references(&xs, &precs, c2);
     if let Some(m) = &quad_moments {
         moment_units(&mut units, m, c2);
+    }
+    for (u, m) in units.iter_mut().zip(&laplace_moments) {
+        if let Some((mean, cov)) = m {
+            let q = Mvn::new(
+                mean.clone(),
+                &cov.iter().map(|v| v * c2).collect::<Vec<_>>(),
+            );
+            if q.mean.iter().chain(&q.chol).all(|v| v.is_finite()) {
+                *u = q;
+            }
+        }
     }
     Ok((
         GaussianReference { global, units },
@@ -1133,6 +1270,12 @@ const PRUNE_NATS: f64 = 30.0;
 /// Draws of g over which units take their quadrature moments
 /// ([`super::unit_quadrature::QuadratureUnits::unit_moments`]).
 const UNIT_MOMENT_DRAWS: usize = 16;
+
+/// Draws of g over which units take their moments under the Laplace form
+/// ([`GivenUnits::unit_moments`]): closed forms, unit-sized matrices, so many more than
+/// under quadrature; 64 reach a population scale's tails where a loose unit's spread comes
+/// from.
+const LAPLACE_MOMENT_DRAWS: usize = 64;
 
 /// Ascent steps of a group's g under quadrature (from the base's mean, in its metric).
 const GROUP_ASCENT_STEPS: usize = 6;
@@ -1457,5 +1600,55 @@ mod tests {
         // A flat likelihood carries no information: the integral of the prior is 1.
         let zero = log_marginal_quadratic(&m, &l, &x_hat, &[0.0; 4], &[0.0; 2]);
         assert!(zero.abs() < 1e-14);
+    }
+
+    /// The conditional normal in the whitened form against the precision form written out:
+    /// precision P + H, mean (P + H)⁻¹ (P m + H x̂ + g), P = (L Lᵀ)⁻¹, on a correlated 2-D
+    /// case; and a population pinned tight (L = 1e-7 I) leaves the unit at the population's
+    /// mean with its spread, however sharp the likelihood.
+    #[test]
+    fn a_units_conditional_normal_matches_the_precision_form() {
+        let m = [0.3, -0.2];
+        let l = [0.5, 0.0, 0.2, 0.4];
+        let x_hat = [0.1, 0.05];
+        let h = [40.0, 12.0, 12.0, 9.0];
+        let g = [0.7, -1.1];
+        let (mean, cov) = conditional_normal(&m, &l, &x_hat, &psd_root(&h, 2), &g);
+        let s = lower_times_upper(&l, 2);
+        let p = spd_inverse(&s, 2);
+        let a: Vec<f64> = p.iter().zip(&h).map(|(p, h)| p + h).collect();
+        let a_inv = spd_inverse(&a, 2);
+        let rhs: Vec<f64> = (0..2)
+            .map(|i| {
+                (0..2)
+                    .map(|j| p[i * 2 + j] * m[j] + h[i * 2 + j] * x_hat[j])
+                    .sum::<f64>()
+                    + g[i]
+            })
+            .collect();
+        for i in 0..2 {
+            let want: f64 = (0..2).map(|j| a_inv[i * 2 + j] * rhs[j]).sum();
+            assert!(
+                (mean[i] - want).abs() < 1e-12,
+                "mean {mean:?}, coordinate {i}: {want}"
+            );
+            for j in 0..2 {
+                let c = a_inv[i * 2 + j];
+                assert!(
+                    (cov[i * 2 + j] - c).abs() < 1e-12 * (1.0 + c.abs()),
+                    "{cov:?} vs {a_inv:?}"
+                );
+            }
+        }
+        let tight = [1e-7, 0.0, 0.0, 1e-7];
+        let (mean, cov) = conditional_normal(&m, &tight, &x_hat, &psd_root(&h, 2), &g);
+        assert!(
+            (mean[0] - m[0]).abs() < 1e-11 && (mean[1] - m[1]).abs() < 1e-11,
+            "{mean:?}"
+        );
+        assert!(
+            (cov[0] / 1e-14 - 1.0).abs() < 1e-9 && (cov[3] / 1e-14 - 1.0).abs() < 1e-9,
+            "{cov:?}"
+        );
     }
 }

@@ -361,6 +361,44 @@ mod tests {
         }
     }
 
+    /// The Laplace form's unit moments (`reference::GivenUnits::unit_moments`, the frozen
+    /// quadratic, exact here for g with the round's ε): over one draw of g the closed-form
+    /// conditional posterior; over two draws that differ in the population's μ and σ, the law
+    /// of total variance's pooling of those.
+    #[test]
+    fn laplace_unit_moments_match_the_closed_form() {
+        let (t, _) = five_units();
+        let g_round = [0.3, 0.4f64.ln(), 0.05f64.ln()];
+        let g2 = [0.1, 1.5f64.ln(), 0.05f64.ln()];
+        let xs: Vec<Vec<f64>> = (0..5)
+            .map(|b| vec![conditional(&t, b, &g_round).0])
+            .collect();
+        let precs: Vec<Vec<f64>> = (0..5)
+            .map(|b| vec![1.0 / conditional(&t, b, &g_round).1])
+            .collect();
+        let (u, _) =
+            super::super::reference::GivenUnits::new(&t, &[], &g_round, &xs, &precs, false)
+                .expect("defined");
+        let one = u.unit_moments(&[g_round.to_vec()]);
+        let two = u.unit_moments(&[g_round.to_vec(), g2.to_vec()]);
+        for b in 0..5 {
+            let (m1, v1) = conditional(&t, b, &g_round);
+            let (m2, v2) = conditional(&t, b, &g2);
+            let (qm, qv) = one[b].clone().expect("normal prior");
+            assert!(
+                (qm[0] - m1).abs() < 1e-9 && (qv[0] / v1 - 1.0).abs() < 1e-9,
+                "unit {b}: ({qm:?}, {qv:?}) against ({m1}, {v1})"
+            );
+            let mean = 0.5 * (m1 + m2);
+            let var = 0.5 * (v1 + v2) + 0.25 * (m1 - m2).powi(2);
+            let (qm, qv) = two[b].clone().expect("normal prior");
+            assert!(
+                (qm[0] - mean).abs() < 1e-9 && (qv[0] / var - 1.0).abs() < 1e-9,
+                "unit {b}, two draws: ({qm:?}, {qv:?}) against ({mean}, {var})"
+            );
+        }
+    }
+
     /// A unit's moments over one draw of g are its closed-form conditional posterior's; over
     /// two draws, the law of total variance's pooling of those. Pruned at g's mode and
     /// ±3 sd, the density there is unchanged, with fewer nodes.
