@@ -716,8 +716,13 @@ pub fn check_joint_box(
     if verbose {
         eprintln!("joints: ROM box per coordinate (ln) {bounds:.3?}");
     }
+    let draws: Vec<&[Vec<f64>]> = particles_of(results)
+        .into_iter()
+        .map(|(_, _, p)| p.x.as_slice())
+        .collect();
     let violations = box_violations(
-        results,
+        &draws,
+        "posterior",
         unit_names,
         &coord_names,
         |x| x.to_vec(),

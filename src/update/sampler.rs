@@ -96,17 +96,26 @@ pub const PILOT_INFLATION: f64 = 1.1;
 
 pub type Results = Vec<smc::RunResult<crate::bayes::modal::Terms>>;
 
+/// A check of a step's reference before sampling ([`run_smc`]).
+pub type ReferenceCheck<'a> =
+    dyn Fn(&crate::bayes::reference::GaussianReference) -> anyhow::Result<()> + 'a;
+
 /// `aux`: per run, the auxiliary values its particles carry (step 2: step-1 draws; with
 /// `opts.smc.groups` > 1 group g carries aux[g]); empty for step 1.
 ///
 /// `start`: a unit point known to fit the data (step 2: the joint centre fitted to the mean
 /// bolted modes), where the reference's search begins; None = the prior's centre.
+///
+/// `check_reference`: run on the reference before any sampling (step 1: the ROM-box rule
+/// on the reference's draws); its error stops the run.
+#[allow(clippy::too_many_arguments)]
 pub fn run_smc(
     target: &ModalTarget,
     opts: &SamplerParams,
     what: &str,
     aux: &[Vec<Arc<Vec<f64>>>],
     start: Option<&[f64]>,
+    check_reference: &ReferenceCheck<'_>,
     progress: &(dyn Fn(u64, String) + Sync),
     verbose: bool,
 ) -> anyhow::Result<(Results, Acceleration)> {
@@ -126,6 +135,9 @@ pub fn run_smc(
     let base_ref = base_reference(
         target, opts, what, &all_aux, start, modular, verbose, &mut acc,
     )?;
+    if let Some((q, _)) = &base_ref {
+        check_reference(q)?;
+    }
     let t_base = t_start.elapsed().as_secs_f64();
     let grouped = base_ref.is_some() && modular;
     let _nu = smc::Target::n_units(target);
@@ -693,10 +705,13 @@ fn edge_fraction(
     n_edge as f64 / n_all.max(1) as f64
 }
 
-/// The ROM-box rule: the fraction of posterior draws, per unit parameter, outside the box
-/// the ROM was built and verified for. Returns a description of every violation.
+/// The ROM-box rule: the fraction of `draws` (per draw, every unit's coordinates: the
+/// posterior's particles, or draws of the reference, named by `what`), per unit parameter,
+/// outside the box the ROM was built and verified for. Returns a description of every
+/// violation.
 pub fn box_violations(
-    results: &[smc::RunResult<crate::bayes::modal::Terms>],
+    draws: &[&[Vec<f64>]],
+    what: &str,
     unit_names: &[String],
     param_names: &[String],
     relative: impl Fn(&[f64]) -> Vec<f64>,
@@ -705,11 +720,8 @@ pub fn box_violations(
 ) -> Vec<String> {
     let mut out = vec![];
     for (b, unit) in unit_names.iter().enumerate() {
-        // Each particle's coordinates, once per unit.
-        let rel: Vec<Vec<f64>> = results
-            .iter()
-            .flat_map(|r| r.particles.iter().map(|p| relative(&p.x[b])))
-            .collect();
+        // Each draw's coordinates, once per unit.
+        let rel: Vec<Vec<f64>> = draws.iter().map(|x| relative(&x[b])).collect();
         for (k, pn) in param_names.iter().enumerate() {
             let n = rel.len();
             let mut bad = 0usize;
@@ -724,7 +736,7 @@ pub fn box_violations(
             if frac > tolerance {
                 xs.sort_by(f64::total_cmp);
                 out.push(format!(
-                    "{unit}: {pn}: {:.1} % of the posterior lies outside the ROM's box (posterior median {:.3})",
+                    "{unit}: {pn}: {:.1} % of the {what} lies outside the ROM's box ({what} median {:.3})",
                     100.0 * frac,
                     xs[xs.len() / 2]
                 ));

@@ -55,8 +55,8 @@ fn the_accelerated_pipeline_samples_the_posterior_of_plain_tempering() {
         ..fast.clone()
     };
     let quiet = |_: u64, _: String| {};
-    let (rf, acc) = run_smc(&t, &fast, "boards", &[], None, &quiet, false).unwrap();
-    let (rp, _) = run_smc(&t, &plain, "boards", &[], None, &quiet, false).unwrap();
+    let (rf, acc) = run_smc(&t, &fast, "boards", &[], None, &|_| Ok(()), &quiet, false).unwrap();
+    let (rp, _) = run_smc(&t, &plain, "boards", &[], None, &|_| Ok(()), &quiet, false).unwrap();
     // The accelerations ran: a reference start, a surrogate for every unit, a correction.
     assert_eq!(acc.start, "reference");
     assert_eq!(acc.surrogate_units, t.units.len(), "{acc:?}");

@@ -408,8 +408,9 @@ fn a_posterior_outside_the_rom_box_stops_the_stage_naming_the_parameter() {
 }
 
 /// A board file whose nominal e_x_pa is 20 % low: the posterior (+25 %) presses against the
-/// ±20 % box; step 1 rebuilds the ROM over a box that holds it, checks that ROM against the
-/// full model, samples again and says so, and the posterior is where the data put it.
+/// ±20 % box, and its reference says so before any tempering; step 1 rebuilds the ROM over a
+/// box that holds it, checks that ROM against the full model, samples once and says so, and
+/// the posterior is where the data put it.
 #[test]
 fn a_posterior_just_beyond_the_rom_box_rebuilds_the_rom_and_samples_again() {
     let w = Work::new();
@@ -422,6 +423,10 @@ fn a_posterior_just_beyond_the_rom_box_rebuilds_the_rom_and_samples_again() {
     assert_eq!(widened.len(), 1, "{fs:?}");
     let msg = widened[0]["message"].as_str().unwrap();
     assert!(msg.contains("±20 %") && msg.contains("e_x_pa"), "{msg}");
+    assert!(
+        msg.starts_with("the reference (checked before sampling) pressed"),
+        "{msg}"
+    );
     let check = with_code(&fs, "update.rom_box_check");
     assert_eq!(check.len(), 1, "{fs:?}");
     assert!(check[0]["message"]

@@ -65,7 +65,7 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
     crate::stage::run(spec, opts.force, |prep| {
         // One attempt at the ROM box `opts.model.rom_box`; `carried` are findings of an
         // earlier one.
-        widen_rom_box_once(opts, |o, carried| {
+        widen_rom_box(opts, |o, carried| {
             boards_attempt(o, carried, &board, &paths, prep, verbose)
         })
     })
@@ -132,7 +132,7 @@ pub(crate) fn boards_attempt(
     )?;
     rom_centre_check(&bm.model, &rom, need, &mut findings)?;
     clock.lap("rom_build");
-    // A widened box (step 1's retry, `widen_rom_box_once`) is checked against the full model:
+    // A widened box (step 1's retries, `widen_rom_box`) is checked against the full model:
     // the build's accuracy tests hold for the default box only.
     if opts.model.rom_box > ModelSpec::DEFAULT_ROM_BOX || opts.model.g_z_log_box.is_some() {
         let worst = rom_box_check(&bm.model, &rom, opts.model.rom_box, need)?;
@@ -193,8 +193,17 @@ pub(crate) fn boards_attempt(
     )?;
     report_shape_weights(&shape_weights, "boards", verbose, &mut findings);
     clock.lap("shape_weights");
-    let (results, acceleration) =
-        sample(&bt.step.target, &opts.sampler, "boards", &[], None, verbose)?;
+    // The ROM-box rule on the reference first: a reference that already leaves the box
+    // widens it before any tempering is spent on this ROM.
+    let (results, acceleration) = sample(
+        &bt.step.target,
+        &opts.sampler,
+        "boards",
+        &[],
+        None,
+        &|q| boards::check_board_reference_box(&bm, &bt, q, &opts.model),
+        verbose,
+    )?;
     let sampler_seconds = clock.lap("sampler");
     check_surrogate_edges(&acceleration, &mut findings);
     boards::check_board_box(&bm, &bt, &results, &opts.model)?;
@@ -257,51 +266,71 @@ pub(crate) fn boards_attempt(
     )
 }
 
-/// Runs a step-1 attempt; when its posterior presses against the ROM's box and a box up to
+/// Runs a step-1 attempt; when its reference or posterior presses against the ROM's box
+/// ([`boards::check_board_reference_box`], [`boards::check_board_box`]) and a box up to
 /// [`crate::update::rom_box::MAX_ROM_BOX`] (the shear modulus's axis up to
-/// [`crate::update::rom_box::MAX_G_Z_LOG_BOX`]) would hold it,
-/// rebuilds the ROM over that box and runs once more (the
-/// finding `update.rom_box_widened` says so, and the new ROM is checked against the full
-/// model). A posterior that still presses, or needs more, stops the stage with the message.
-pub(crate) fn widen_rom_box_once(
+/// [`crate::update::rom_box::MAX_G_Z_LOG_BOX`]) would hold it, rebuilds the ROM over that box
+/// and runs again (the finding `update.rom_box_widened` says so, and the new ROM is checked
+/// against the full model), at most [`WIDENINGS`] times. A posterior that still presses, or
+/// needs more, stops the stage with the message.
+pub(crate) fn widen_rom_box(
     opts: &UpdateOptions,
     attempt: impl Fn(&UpdateOptions, &[Finding]) -> anyhow::Result<StageResult>,
 ) -> anyhow::Result<StageResult> {
-    let e = match attempt(opts, &[]) {
-        Err(e) => e,
-        ok => return ok,
-    };
-    let Some(v) = e.downcast_ref::<RomBoxViolation>() else {
-        return Err(e);
-    };
-    let Some(model) = widened(&opts.model, v) else {
-        return Err(e);
-    };
-    let g_z_wider = v.needed_g_z_log_box;
-    let wider = UpdateOptions {
-        model,
-        ..opts.clone()
-    };
-    let what = v
-        .message
-        .lines()
-        .filter_map(|l| l.strip_prefix("  "))
-        .collect::<Vec<_>>()
-        .join("; ");
-    let note = Finding::new(
-        Severity::Warning,
-        "update.rom_box_widened",
-        format!(
-            "the posterior pressed against the ROM's ±{:.0} % box ({}): the ROM was rebuilt over ±{:.0} % around the board file's values{}, checked against the full model (update.rom_box_check), and the sampling run again",
-            100.0 * opts.model.rom_box,
-            what.trim(),
-            100.0 * wider.model.rom_box,
-            match g_z_wider {
-                Some(w) => format!(", the transverse shear modulus's axis over × or ÷ {:.2}", w.exp()),
-                None => String::new(),
-            }
-        ),
-    );
-    eprintln!("update boards: {}", note.message);
-    attempt(&wider, &[note])
+    let mut current = opts.clone();
+    let mut notes: Vec<Finding> = vec![];
+    let mut widenings = 0;
+    loop {
+        let e = match attempt(&current, &notes) {
+            Err(e) => e,
+            ok => return ok,
+        };
+        let Some(v) = e.downcast_ref::<RomBoxViolation>() else {
+            return Err(e);
+        };
+        if widenings == WIDENINGS {
+            return Err(e);
+        }
+        let Some(model) = widened(&current.model, v) else {
+            return Err(e);
+        };
+        let g_z_wider = v.needed_g_z_log_box;
+        let wider = UpdateOptions {
+            model,
+            ..current.clone()
+        };
+        let what = v
+            .message
+            .lines()
+            .filter_map(|l| l.strip_prefix("  "))
+            .collect::<Vec<_>>()
+            .join("; ");
+        let by = if v.message.starts_with("the reference") {
+            "reference (checked before sampling)"
+        } else {
+            "posterior"
+        };
+        let note = Finding::new(
+            Severity::Warning,
+            "update.rom_box_widened",
+            format!(
+                "the {by} pressed against the ROM's ±{:.0} % box ({}): the ROM was rebuilt over ±{:.0} % around the board file's values{}, checked against the full model (update.rom_box_check), and the sampling run again",
+                100.0 * current.model.rom_box,
+                what.trim(),
+                100.0 * wider.model.rom_box,
+                match g_z_wider {
+                    Some(w) => format!(", the transverse shear modulus's axis over × or ÷ {:.2}", w.exp()),
+                    None => String::new(),
+                }
+            ),
+        );
+        eprintln!("update boards: {}", note.message);
+        notes.push(note);
+        current = wider;
+        widenings += 1;
+    }
 }
+
+/// Times step 1 widens the ROM's box: once on the reference's word before sampling, once
+/// more on the posterior's (each widening must widen something, [`widened`]).
+const WIDENINGS: usize = 2;

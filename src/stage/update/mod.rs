@@ -250,6 +250,7 @@ fn sample(
     what: &str,
     aux: &[Vec<std::sync::Arc<Vec<f64>>>],
     start: Option<&[f64]>,
+    check_reference: &crate::update::sampler::ReferenceCheck<'_>,
     verbose: bool,
 ) -> anyhow::Result<(
     crate::update::sampler::Results,
@@ -262,6 +263,7 @@ fn sample(
         what,
         aux,
         start,
+        check_reference,
         &progress_to(&pb),
         verbose,
     )?;
