@@ -33,6 +33,8 @@ pub struct Acceleration {
     pub reference_model_evals: u64,
     pub reference_g_acceptance: f64,
     pub reference_units_converged: Vec<bool>,
+    /// Rounds the reference's construction ran (units, then g) before g's mode settled.
+    pub reference_rounds: usize,
     pub surrogate_units: usize,
     pub surrogate_refused: Vec<String>,
     pub surrogate_degree: Vec<Option<usize>>,
@@ -280,9 +282,11 @@ fn base_reference(
         acc.reference_model_evals = info.model_evals;
         acc.reference_g_acceptance = info.g_acceptance;
         acc.reference_units_converged = info.converged;
+        acc.reference_rounds = info.rounds;
         if verbose {
             eprintln!(
-                "{what}: reference g mean {:.4?}, sd {:.4?}; unit sd {:.3?}",
+                "{what}: reference ({} rounds) g mean {:.4?}, sd {:.4?}; unit sd {:.3?}",
+                info.rounds,
                 q.global.mean,
                 q.global.sd(),
                 q.units.iter().map(|u| u.sd()).collect::<Vec<_>>()
