@@ -512,18 +512,8 @@ fn log_marginal_quadratic_root(m: &[f64], l: &[f64], x_hat: &[f64], r: &[f64], g
     // optimum at its box edge: μ of ln k_con at −1.1e3, sd 5e-10). The form is read as flat
     // there: the gradient keeps only its part in H's range (R's rows are orthogonal, scaled
     // eigenvectors). With H positive definite, g as given.
-    let g = &gradient_in_range(r, g);
-    let u: Vec<f64> = m.iter().zip(x_hat).map(|(a, b)| a - b).collect();
-    let w: Vec<f64> = (0..d)
-        .map(|k| (0..d).map(|q| r[k * d + q] * u[q]).sum())
-        .collect();
-    // M = R L (lower-triangular L, row-major).
-    let mm: Vec<f64> = (0..d * d)
-        .map(|idx| {
-            let (k, j) = (idx / d, idx % d);
-            (j..d).map(|q| r[k * d + q] * l[q * d + j]).sum()
-        })
-        .collect();
+    let Whitened { g, u, w, mm } = whitened(m, l, x_hat, r, g);
+    let g = &g;
     let gram = |left: bool| -> Vec<f64> {
         // I + M Mᵀ (left) or I + Mᵀ M.
         (0..d * d)
@@ -580,6 +570,37 @@ fn gradient_in_range(r: &[f64], g: &[f64]) -> Vec<f64> {
     gp
 }
 
+/// The terms a unit's prior N(m, L Lᵀ) and quadratic likelihood (H = Rᵀ R, gradient g at
+/// x̂) share in the prior's whitened coordinates: the gradient in H's range
+/// ([`gradient_in_range`]), u = m − x̂, w = R u and M = R L (row-major).
+struct Whitened {
+    g: Vec<f64>,
+    u: Vec<f64>,
+    w: Vec<f64>,
+    mm: Vec<f64>,
+}
+
+fn whitened(m: &[f64], l: &[f64], x_hat: &[f64], r: &[f64], g: &[f64]) -> Whitened {
+    let d = m.len();
+    let u: Vec<f64> = m.iter().zip(x_hat).map(|(a, b)| a - b).collect();
+    let w: Vec<f64> = (0..d)
+        .map(|k| (0..d).map(|q| r[k * d + q] * u[q]).sum())
+        .collect();
+    // M = R L (lower-triangular L, row-major).
+    let mm: Vec<f64> = (0..d * d)
+        .map(|idx| {
+            let (k, j) = (idx / d, idx % d);
+            (j..d).map(|q| r[k * d + q] * l[q * d + j]).sum()
+        })
+        .collect();
+    Whitened {
+        g: gradient_in_range(r, g),
+        u,
+        w,
+        mm,
+    }
+}
+
 /// The normal N(x; m, L Lᵀ) · exp(−½ (x − x̂)ᵀ Rᵀ R (x − x̂) + gᵀ (x − x̂)) normalised: its
 /// mean and covariance (row-major). In the prior's whitened coordinates x = m + L z (stable
 /// as L → 0, a population pinned tight), z's precision is B = I + Mᵀ M (M = R L) and its
@@ -593,23 +614,13 @@ fn conditional_normal(
     g: &[f64],
 ) -> (Vec<f64>, Vec<f64>) {
     let d = m.len();
-    let g = gradient_in_range(r, g);
-    let u: Vec<f64> = m.iter().zip(x_hat).map(|(a, b)| a - b).collect();
-    let w: Vec<f64> = (0..d)
-        .map(|k| (0..d).map(|q| r[k * d + q] * u[q]).sum())
-        .collect();
+    let Whitened { g, w, mm, .. } = whitened(m, l, x_hat, r, g);
     // g − Rᵀ w, then c = Lᵀ (g − Rᵀ w).
     let v: Vec<f64> = (0..d)
         .map(|q| g[q] - (0..d).map(|k| r[k * d + q] * w[k]).sum::<f64>())
         .collect();
     let c: Vec<f64> = (0..d)
         .map(|j| (j..d).map(|q| l[q * d + j] * v[q]).sum())
-        .collect();
-    let mm: Vec<f64> = (0..d * d)
-        .map(|idx| {
-            let (k, j) = (idx / d, idx % d);
-            (j..d).map(|q| r[k * d + q] * l[q * d + j]).sum()
-        })
         .collect();
     let b: Vec<f64> = (0..d * d)
         .map(|idx| {

@@ -80,11 +80,13 @@ pub const MAX_G_Z_LOG_BOX: f64 = 1.3862943611198906;
 /// changing, not the ROM.
 pub const MAX_ROM_BOX: f64 = 0.5;
 
-/// The step-1 posterior pressing against the ROM's box: the stage's message, and the relative
-/// half-width (and, where the transverse shear modulus's axis is pressed, its ln half-width)
-/// that would hold what was sampled.
+/// Step 1's reference (before sampling) or posterior pressing against the ROM's box: which
+/// (`by`: "reference" or "posterior"), the stage's message, and the relative half-width (and,
+/// where the transverse shear modulus's axis is pressed, its ln half-width) that would hold
+/// what was drawn.
 #[derive(Debug)]
 pub struct RomBoxViolation {
+    pub by: &'static str,
     pub message: String,
     pub needed_half_width: f64,
     pub needed_g_z_log_box: Option<f64>,
@@ -246,6 +248,7 @@ mod tests {
 
     fn violation(linear: f64, g_z: Option<f64>) -> RomBoxViolation {
         RomBoxViolation {
+            by: "posterior",
             message: String::new(),
             needed_half_width: linear,
             needed_g_z_log_box: g_z,

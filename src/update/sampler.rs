@@ -98,9 +98,10 @@ pub const PILOT_INFLATION: f64 = 1.1;
 
 pub type Results = Vec<smc::RunResult<crate::bayes::modal::Terms>>;
 
-/// A check of a step's reference before sampling ([`run_smc`]).
+/// A check of a step's reference before sampling ([`run_smc`]), given the inflation of its
+/// sds over the Laplace ones (`ReferenceOptions::inflation`).
 pub type ReferenceCheck<'a> =
-    dyn Fn(&crate::bayes::reference::GaussianReference) -> anyhow::Result<()> + 'a;
+    dyn Fn(&crate::bayes::reference::GaussianReference, f64) -> anyhow::Result<()> + 'a;
 
 /// `aux`: per run, the auxiliary values its particles carry (step 2: step-1 draws; with
 /// `opts.smc.groups` > 1 group g carries aux[g]); empty for step 1.
@@ -137,8 +138,8 @@ pub fn run_smc(
     let base_ref = base_reference(
         target, opts, what, &all_aux, start, modular, verbose, &mut acc,
     )?;
-    if let Some((q, _)) = &base_ref {
-        check_reference(q)?;
+    if let Some((q, ropts)) = &base_ref {
+        check_reference(q, ropts.inflation)?;
     }
     let t_base = t_start.elapsed().as_secs_f64();
     let grouped = base_ref.is_some() && modular;

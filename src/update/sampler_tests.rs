@@ -55,8 +55,11 @@ fn the_accelerated_pipeline_samples_the_posterior_of_plain_tempering() {
         ..fast.clone()
     };
     let quiet = |_: u64, _: String| {};
-    let (rf, acc) = run_smc(&t, &fast, "boards", &[], None, &|_| Ok(()), &quiet, false).unwrap();
-    let (rp, _) = run_smc(&t, &plain, "boards", &[], None, &|_| Ok(()), &quiet, false).unwrap();
+    let run = |o: &SamplerParams| {
+        run_smc(&t, o, "boards", &[], None, &|_, _| Ok(()), &quiet, false).unwrap()
+    };
+    let (rf, acc) = run(&fast);
+    let (rp, _) = run(&plain);
     // The accelerations ran: a reference start, a surrogate for every unit, a correction.
     assert_eq!(acc.start, "reference");
     assert_eq!(acc.surrogate_units, t.units.len(), "{acc:?}");

@@ -193,15 +193,20 @@ pub(crate) fn boards_attempt(
     )?;
     report_shape_weights(&shape_weights, "boards", verbose, &mut findings);
     clock.lap("shape_weights");
-    // The ROM-box rule on the reference first: a reference that already leaves the box
-    // widens it before any tempering is spent on this ROM.
+    // The ROM-box rule on the reference first, in the first attempt only: a reference that
+    // already leaves the box widens it before any tempering is spent on this ROM. A later
+    // attempt samples on its widened ROM, and the posterior decides.
+    let first_attempt = carried.is_empty();
     let (results, acceleration) = sample(
         &bt.step.target,
         &opts.sampler,
         "boards",
         &[],
         None,
-        &|q| boards::check_board_reference_box(&bm, &bt, q, &opts.model),
+        &|q, inflation| match first_attempt {
+            true => boards::check_board_reference_box(&bm, &bt, q, inflation, &opts.model),
+            false => Ok(()),
+        },
         verbose,
     )?;
     let sampler_seconds = clock.lap("sampler");
@@ -305,10 +310,9 @@ pub(crate) fn widen_rom_box(
             .filter_map(|l| l.strip_prefix("  "))
             .collect::<Vec<_>>()
             .join("; ");
-        let by = if v.message.starts_with("the reference") {
-            "reference (checked before sampling)"
-        } else {
-            "posterior"
+        let by = match v.by {
+            "reference" => "reference (checked before sampling)",
+            other => other,
         };
         let note = Finding::new(
             Severity::Warning,

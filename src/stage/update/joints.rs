@@ -156,7 +156,7 @@ pub(crate) fn joints_body(
         "joints",
         &jt.aux,
         Some(&centre.coords),
-        &|_| Ok(()),
+        &|_, _| Ok(()),
         verbose,
     )?;
     let sampler_seconds = clock.lap("sampler");
