@@ -19,8 +19,9 @@
 //! 3. g given the units' optima: adaptive random-walk Metropolis on
 //!    log p(g) + Σ_b log ∫ p(x_b | g) L_b(x_b, g) dx_b, each unit's likelihood a quadratic
 //!    around x̂_b re-formed at every g from a finite-difference stencil whose model outputs
-//!    are cached (no model evaluation; [`GivenUnits`]). Its mean is the next g; steps 2–3
-//!    repeat (the error scales in g change the units' weights).
+//!    are cached (no model evaluation; [`GivenUnits`]). Its mode is the next g; steps 2–3
+//!    repeat until that mode settles (the error scales in g change the units' weights), and
+//!    the chain runs in the last round.
 //! 4. q(g) = N(mean, inflation² · cov) of the g chain; q_b = N(mean, inflation² · cov) of
 //!    unit b's conditional normals given g ([`GivenUnits::unit_moments`]) over draws of the
 //!    chain (N(x̂_b, inflation² · H_b⁻¹) where its prior is not a normal).
