@@ -873,19 +873,12 @@ impl<'a, T: Target> GivenUnits<'a, T> {
                 if per.is_empty() {
                     return None;
                 }
+                // Law of total variance: the means' spread plus the mean covariance.
+                let (mean, mut cov) = mean_and_covariance(per.iter().map(|p| p.0.as_slice()));
                 let n = per.len() as f64;
-                let mean: Vec<f64> = (0..d)
-                    .map(|i| per.iter().map(|p| p.0[i]).sum::<f64>() / n)
-                    .collect();
-                let cov: Vec<f64> = (0..d * d)
-                    .map(|idx| {
-                        let (i, j) = (idx / d, idx % d);
-                        per.iter()
-                            .map(|(m, c)| c[idx] + (m[i] - mean[i]) * (m[j] - mean[j]))
-                            .sum::<f64>()
-                            / n
-                    })
-                    .collect();
+                for (_, c) in &per {
+                    cov.iter_mut().zip(c).for_each(|(v, c)| *v += c / n);
+                }
                 Some((mean, cov))
             })
             .collect()
@@ -1095,12 +1088,10 @@ pub fn laplace_reference<T: Target>(
         g_prec = prec;
         let cov = spd_inverse(&g_prec, ng);
         // The rounds alternate between the units given g and g given the units, a
-        // coordinate ascent that converges linearly and, along a ridge, slowly: on the
-        // realistic null campaign's step 1 the per-unit model-error scale ln σ_u moved
-        // -6.0, -6.7, -7.7, -10.3, -11.2, -11.2 over rounds 0-5. Three fixed rounds stopped it
-        // at -7.9, nine times the posterior's σ_u, so every unit's likelihood was ~20 times
-        // too flat in its reference and the tempering took 21 stages instead of 9. So the
-        // rounds go on until g's mode moves by under ROUND_TOLERANCE_SD of its sd (or
+        // coordinate ascent that converges linearly and, along a ridge (an error scale
+        // against the units it weighs), slowly; a fixed count can stop it short, with every
+        // unit's likelihood too flat in q and the tempering paying in stages. So the rounds
+        // go on until g's mode moves by under ROUND_TOLERANCE_SD of its sd (or
         // `opts.rounds` is reached). An earlier round needs only g's mode to place the next
         // units, not the chain's mean: the chain, most of a round's cost, runs in the last
         // round alone.
@@ -1298,16 +1289,14 @@ const PRUNE_NATS: f64 = 30.0;
 /// ([`super::unit_quadrature::QuadratureUnits::unit_moments`]).
 const UNIT_MOMENT_DRAWS: usize = 16;
 
-/// The default cap on the reference's rounds: the alternation settles in 6-7 on the
-/// realistic null campaign's step 1 (see [`laplace_reference`]); a round without the chain
-/// costs one Newton search per unit and one for g, so the cap only bounds a crawl.
+/// The default cap on the reference's rounds: a round without the chain costs one Newton
+/// search per unit and one for g, so the cap only bounds a crawl (see [`laplace_reference`]).
 pub const MAX_ROUNDS: usize = 12;
 
 /// A round whose mode of g moved by less than this many of its sds (every coordinate) from
 /// the previous round's is the last: a shift of δ sds costs a normal reference δ²/2 nats of
 /// KL divergence per coordinate, 0.045 at 0.3, under the 0.058 its inflation by 1.3 already
-/// spends (½ (1/1.69 + ln 1.69 − 1)). Measured on the realistic null campaign's step 1: the
-/// slowest coordinate (a discrepancy weight) then moved 0.27 sd a round at rate ~0.75.
+/// spends (½ (1/1.69 + ln 1.69 − 1)): an argument from the construction, not a fit to a lab.
 const ROUND_TOLERANCE_SD: f64 = 0.3;
 
 /// Draws of g over which units take their moments under the Laplace form
