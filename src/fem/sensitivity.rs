@@ -182,6 +182,62 @@ pub fn eigen_derivatives(
     })
 }
 
+/// ∂f_j/∂p_k (Hz per parameter unit) of `modes` with respect to the parameters `params`
+/// only, n_modes × `params.len()`: the eigenvalue part of [`eigen_derivatives`]. Only the
+/// affine terms whose coefficient moves with one of `params` are visited, each by one
+/// quadratic form φᵀ Tᵢ φ. Why: step 2's centre fit needs the joint stiffness's column
+/// alone, and every term of the bolted model (boards, joints, housing) cost it more than
+/// the FE solve it follows.
+pub fn freq_derivatives_for(
+    model: &FeModel,
+    p: &Params,
+    modes: &Modes,
+    params: &[usize],
+) -> Result<Mat<f64>, FemError> {
+    let c = model.coefficients(p)?;
+    let n = model.n_dof;
+    if modes.shapes.nrows() != n {
+        return Err(FemError::Request(format!(
+            "modes: expected {n} DOFs, found {}",
+            modes.shapes.nrows()
+        )));
+    }
+    if let Some(&k) = params.iter().find(|&&k| k >= p.values.len()) {
+        return Err(FemError::Request(format!(
+            "parameter index {k} beyond the model's {}",
+            p.values.len()
+        )));
+    }
+    let moves = |grad: &[f64]| params.iter().any(|&k| grad[k] != 0.0);
+    let nm = modes.shapes.ncols();
+    let mut d_f = Mat::<f64>::zeros(nm, params.len());
+    for j in 0..nm {
+        let phi = modes.shapes.col_as_slice(j);
+        let lam = modes.eigenvalues[j];
+        let form = |terms: &[Vec<f64>], grads: &[Vec<f64>]| -> Vec<Option<f64>> {
+            terms
+                .iter()
+                .zip(grads)
+                .map(|(t, g)| moves(g).then(|| model.pattern.quadratic_form(t, phi)))
+                .collect()
+        };
+        let a = form(&model.k_terms, &c.k_grad);
+        let b = form(&model.m_terms, &c.m_grad);
+        for (col, &k) in params.iter().enumerate() {
+            let sum = |forms: &[Option<f64>], grads: &[Vec<f64>]| -> f64 {
+                forms
+                    .iter()
+                    .zip(grads)
+                    .filter_map(|(f, g)| f.map(|f| g[k] * f))
+                    .sum()
+            };
+            let dl = sum(&a, &c.k_grad) - lam * sum(&b, &c.m_grad);
+            d_f[(j, col)] = dl / (4.0 * std::f64::consts::PI * lam.max(f64::MIN_POSITIVE).sqrt());
+        }
+    }
+    Ok(d_f)
+}
+
 /// The `%/%` sensitivity table of the lowest `n_modes` modes at `p`: one row per
 /// (mode, parameter), modes outer. Parameters with value 0 get 0.
 pub fn table_percent_per_percent(

@@ -63,6 +63,25 @@ impl Pattern {
         }
     }
 
+    /// xᵀ A x for the full symmetric matrix with values `val`: a gather over the pattern,
+    /// no product vector.
+    pub fn quadratic_form(&self, val: &[f64], x: &[f64]) -> f64 {
+        let mut s = 0.0;
+        for (c, &xc) in x.iter().enumerate().take(self.n) {
+            if xc == 0.0 {
+                continue;
+            }
+            let range = self.col_ptr[c]..self.col_ptr[c + 1];
+            let col: f64 = self.row_idx[range.clone()]
+                .iter()
+                .zip(&val[range])
+                .map(|(&r, v)| v * x[r])
+                .sum();
+            s += xc * col;
+        }
+        s
+    }
+
     /// faer view of the matrix with values `val`.
     pub fn view<'a>(&'a self, val: &'a [f64]) -> SparseColMatRef<'a, usize, f64> {
         SparseColMatRef::new(self.symbolic.as_ref(), val)

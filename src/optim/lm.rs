@@ -13,11 +13,12 @@ pub type WithJacobian = (Vec<f64>, Vec<Vec<f64>>);
 pub type Fitted = (f64, Vec<f64>, Vec<f64>);
 
 /// Levenberg–Marquardt on the residuals and Jacobian `eval` from `x0`, kept inside ±`spans`:
-/// the final sum of squares, point and residuals. It stops when an accepted step moves no coordinate
-/// by more than `STEP_TOL` (1e-4: in the ln units of the centre fits a 0.01 % change, far
-/// below the ROM box it centres) or changes no residual by more than `resid_tol` (a search
-/// along a ridge of the misfit, two parameters trading off, otherwise spends dozens of
-/// solves on steps the residuals do not see).
+/// the final sum of squares, point and residuals. It stops when a step, accepted or only
+/// proposed, moves no coordinate by more than `STEP_TOL` (1e-4: in the ln units of the
+/// centre fits a 0.01 % change, far below the ROM box it centres) or changes no residual by
+/// more than `resid_tol`, measured for an accepted step and predicted by the Jacobian for a
+/// proposed one (a search along a ridge of the misfit, two parameters trading off, otherwise
+/// spends dozens of solves on steps the residuals do not see).
 pub fn levenberg_marquardt(
     eval: &(dyn Fn(&[f64]) -> anyhow::Result<WithJacobian> + Sync),
     x0: Vec<f64>,
@@ -64,6 +65,20 @@ pub fn levenberg_marquardt(
             let y: Vec<f64> = (0..d)
                 .map(|k| (x[k] + delta[k]).clamp(-spans[k], spans[k]))
                 .collect();
+            // A trial the linearisation says is below both tolerances is not solved: at
+            // the minimum, rounding rejects it and μ's growth would spend up to 8
+            // evaluations (FE solves in the centre fits) on steps of 1e-10.
+            let step = y
+                .iter()
+                .zip(&x)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            let predicted = (0..r0.len())
+                .map(|i| (0..d).map(|k| jac[k][i] * (y[k] - x[k])).sum::<f64>().abs())
+                .fold(0.0, f64::max);
+            if step < STEP_TOL || predicted < resid_tol {
+                break;
+            }
             let (r, jac_y) = eval(&y)?;
             let c = sum_sq(&r);
             if c < c0 {
@@ -129,6 +144,33 @@ mod tests {
             "{x:?} vs {a} {b}"
         );
         assert!((c - best).abs() < 1e-9, "{c} vs {best}");
+    }
+
+    /// A search started at the minimiser solves once: the step it proposes there is below
+    /// the tolerances, so no rejected trial is evaluated (before, rounding rejected it and μ
+    /// grew through 8 more evaluations).
+    #[test]
+    fn a_search_at_the_minimum_evaluates_once() {
+        let t: Vec<f64> = (0..8).map(|i| i as f64).collect();
+        let y: Vec<f64> = t
+            .iter()
+            .map(|t| 0.5 - 0.1 * t + 0.01 * (t * 1.7).sin())
+            .collect();
+        let n = t.len() as f64;
+        let (st, sy) = (t.iter().sum::<f64>(), y.iter().sum::<f64>());
+        let stt: f64 = t.iter().map(|v| v * v).sum();
+        let sty: f64 = t.iter().zip(&y).map(|(a, b)| a * b).sum();
+        let b = (n * sty - st * sy) / (n * stt - st * st);
+        let a = (sy - b * st) / n;
+        let calls = std::sync::atomic::AtomicUsize::new(0);
+        let eval = |x: &[f64]| -> anyhow::Result<WithJacobian> {
+            calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let r = t.iter().zip(&y).map(|(t, y)| x[0] + x[1] * t - y).collect();
+            Ok((r, vec![vec![1.0; t.len()], t.clone()]))
+        };
+        let (_, x, _) = levenberg_marquardt(&eval, vec![a, b], &[10.0, 10.0], 1e-6).unwrap();
+        assert_eq!(x, vec![a, b]);
+        assert_eq!(calls.load(std::sync::atomic::Ordering::Relaxed), 1);
     }
 
     /// y = 2 e^{-0.7 t} (+ noise), its residuals and their Jacobian in (ln a, b).

@@ -228,14 +228,19 @@ fn centre_residuals(
     if !jac {
         return Ok((r, vec![]));
     }
-    let d = crate::fem::sensitivity::eigen_derivatives(model, &p, &m, false)?;
+    // The derivatives with respect to the parameters the coordinates move, only.
+    let mut params: Vec<usize> = coords.iter().flatten().map(|&(i, _)| i).collect();
+    params.sort_unstable();
+    params.dedup();
+    let d = crate::fem::sensitivity::freq_derivatives_for(model, &p, &m, &params)?;
+    let col = |i: usize| params.binary_search(&i).expect("a coordinate's parameter");
     let j = coords
         .iter()
         .map(|acts| {
             measured()
                 .map(|(med, b)| {
                     acts.iter()
-                        .map(|&(i, a)| a * p.values[i] * d.d_freq_hz[(b, i)])
+                        .map(|&(i, a)| a * p.values[i] * d[(b, col(i))])
                         .sum::<f64>()
                         / med
                 })

@@ -3,7 +3,7 @@
 
 use crate::fem::model::{FeModel, Setup};
 use crate::fem::params::names;
-use crate::fem::sensitivity::{eigen_derivatives, table_percent_per_percent};
+use crate::fem::sensitivity::{eigen_derivatives, freq_derivatives_for, table_percent_per_percent};
 
 fn check_derivatives(setup: Setup, n_modes: usize) {
     let board = crate::fem::tests::helpers::thin_board();
@@ -13,6 +13,9 @@ fn check_derivatives(setup: Setup, n_modes: usize) {
     let d = eigen_derivatives(&model, &p, &modes, true).unwrap();
     let ds = d.d_shapes.as_ref().unwrap();
     let n = model.n_dof;
+    // The targeted derivatives, for every other parameter in reverse order.
+    let subset: Vec<usize> = (0..p.values.len()).rev().step_by(2).collect();
+    let targeted = freq_derivatives_for(&model, &p, &modes, &subset).unwrap();
     for (k, name) in p.names.iter().enumerate() {
         let h = 1e-4 * p.values[k].abs();
         let (mut pp, mut pm) = (p.clone(), p.clone());
@@ -43,6 +46,17 @@ fn check_derivatives(setup: Setup, n_modes: usize) {
                 "mode {} / {name}: analytic {s_an}, finite difference {s_fd}",
                 j + 1
             );
+            // The targeted frequency derivative, in %/%.
+            if let Some(col) = subset.iter().position(|&i| i == k) {
+                let fd = (mp.freq_hz[j] - mm.freq_hz[j]) / (2.0 * h);
+                let s_fd = p.values[k] / modes.freq_hz[j] * fd;
+                let s_t = p.values[k] / modes.freq_hz[j] * targeted[(j, col)];
+                assert!(
+                    (s_t - s_fd).abs() <= 1e-4 * s_fd.abs().max(1e-2),
+                    "mode {} / {name}: targeted {s_t}, finite difference {s_fd}",
+                    j + 1
+                );
+            }
             // Shape: ‖p (∂φ_an − ∂φ_fd)‖ ≤ 1e-4 ‖φ‖.
             let (mut err, mut nrm) = (0.0f64, 0.0f64);
             for i in 0..n {
