@@ -551,6 +551,25 @@ impl TermBuilder {
         self.coefs.push(coef);
         self.trip.push(trip);
     }
+
+    /// Terms with the same coefficient merged into one (names joined by `+`), in order of
+    /// first appearance: the model is affine, so the sum is exact. Why: the shear-deformable
+    /// plate's rotary inertia scales with `mass_scale` as the board's mass does, and as two
+    /// terms they made M(p) look like a pencil of two matrices, so every ROM evaluation
+    /// whitened it by a Cholesky factor (`fem::rom`), where one term is M(p) ∝ M₀.
+    fn merged(self) -> Self {
+        let mut out = TermBuilder::new();
+        for ((name, coef), trip) in self.names.into_iter().zip(self.coefs).zip(self.trip) {
+            match out.coefs.iter().position(|c| *c == coef) {
+                Some(i) => {
+                    out.names[i] = format!("{}+{name}", out.names[i]);
+                    out.trip[i].extend(trip);
+                }
+                None => out.push(&name, coef, trip),
+            }
+        }
+        out
+    }
 }
 
 /// Triplets of one term: (row, column, value).
@@ -1551,6 +1570,7 @@ impl FeModel {
             }
         }
 
+        let mb = mb.merged();
         // Shared pattern: all element blocks plus joint entries.
         let pattern = Pattern::from_entries(
             n_dof,
