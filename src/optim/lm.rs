@@ -116,6 +116,16 @@ pub fn levenberg_marquardt(
 mod tests {
     use super::*;
 
+    /// The least-squares line y ≈ a + b t by the normal equations' closed form: (a, b).
+    fn line_fit(t: &[f64], y: &[f64]) -> (f64, f64) {
+        let n = t.len() as f64;
+        let (st, sy) = (t.iter().sum::<f64>(), y.iter().sum::<f64>());
+        let stt: f64 = t.iter().map(|v| v * v).sum();
+        let sty: f64 = t.iter().zip(y).map(|(a, b)| a * b).sum();
+        let b = (n * sty - st * sy) / (n * stt - st * st);
+        ((sy - b * st) / n, b)
+    }
+
     /// A linear least-squares problem: the minimiser and its residual are the normal
     /// equations' closed form (y = 1.5 + 0.25 t + noise, fitted by a line).
     #[test]
@@ -127,12 +137,7 @@ mod tests {
             .zip(noise)
             .map(|(t, e)| 1.5 + 0.25 * t + e)
             .collect();
-        let n = t.len() as f64;
-        let (st, sy) = (t.iter().sum::<f64>(), y.iter().sum::<f64>());
-        let stt: f64 = t.iter().map(|v| v * v).sum();
-        let sty: f64 = t.iter().zip(&y).map(|(a, b)| a * b).sum();
-        let b = (n * sty - st * sy) / (n * stt - st * st);
-        let a = (sy - b * st) / n;
+        let (a, b) = line_fit(&t, &y);
         let best: f64 = t.iter().zip(&y).map(|(t, y)| (a + b * t - y).powi(2)).sum();
         let eval = |x: &[f64]| -> anyhow::Result<WithJacobian> {
             let r = t.iter().zip(&y).map(|(t, y)| x[0] + x[1] * t - y).collect();
@@ -156,12 +161,7 @@ mod tests {
             .iter()
             .map(|t| 0.5 - 0.1 * t + 0.01 * (t * 1.7).sin())
             .collect();
-        let n = t.len() as f64;
-        let (st, sy) = (t.iter().sum::<f64>(), y.iter().sum::<f64>());
-        let stt: f64 = t.iter().map(|v| v * v).sum();
-        let sty: f64 = t.iter().zip(&y).map(|(a, b)| a * b).sum();
-        let b = (n * sty - st * sy) / (n * stt - st * st);
-        let a = (sy - b * st) / n;
+        let (a, b) = line_fit(&t, &y);
         let calls = std::sync::atomic::AtomicUsize::new(0);
         let eval = |x: &[f64]| -> anyhow::Result<WithJacobian> {
             calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
