@@ -186,8 +186,8 @@ pub fn eigen_derivatives(
 /// only, n_modes × `params.len()`: the eigenvalue part of [`eigen_derivatives`]. Only the
 /// affine terms whose coefficient moves with one of `params` are visited, each by one
 /// quadratic form φᵀ Tᵢ φ. Why: step 2's centre fit needs the joint stiffness's column
-/// alone, and every term of the bolted model (boards, joints, housing) cost it more than
-/// the FE solve it follows.
+/// alone, and all 47 stiffness terms of the bolted board (core, copper coupling, shear,
+/// joint) cost it more than the FE solve it follows.
 pub fn freq_derivatives_for(
     model: &FeModel,
     p: &Params,
