@@ -278,8 +278,7 @@ fn base_reference(
             // enrichment's refit: ln K and a second joint or fixture coordinate) let the
             // rounds run the noise scales towards zero, a mode of zero spread, before g
             // settles. The first rounds' reference, the construction before the settle rule,
-            // covers the posterior and the tempering corrects it: on the realistic fixture
-            // campaign the settled reference pinned a unit's coordinate to an sd of 8e-10.
+            // covers the posterior, and the tempering corrects it.
             if verbose {
                 eprintln!("{what}: the reference after {} rounds is degenerate ({why}); the reference of the first {DEGENERATE_FALLBACK_ROUNDS} instead", info.rounds);
             }
@@ -312,7 +311,8 @@ fn base_reference(
 }
 
 /// The rounds of the reference rebuilt where the settled one is degenerate: the fixed count
-/// the construction had before it went on until g settles (`bayes::reference::MAX_ROUNDS`).
+/// the construction had before it went on until g settles (up to
+/// `bayes::reference::MAX_ROUNDS`).
 const DEGENERATE_FALLBACK_ROUNDS: usize = 3;
 
 /// A step's base reference and the options it was built with.
