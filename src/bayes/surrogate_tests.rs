@@ -201,3 +201,39 @@ fn the_mode_subspaces_are_exact_at_their_snapshots_and_within_tolerance_in_their
     assert!(worst <= 3.0 * so.tolerance_dll, "max |Δ log L| {worst:.3e}");
     assert!(worst > 0.0, "the target did not solve in the subspace");
 }
+
+/// A surrogate with its leading input fixed (a group's step-1 draw in step 2) is the same
+/// polynomial: its terms match the whole one's wherever the free input goes, and a fixed
+/// value outside the box leaves no restricted polynomial.
+#[test]
+fn the_surrogate_with_its_leading_input_fixed_is_the_same_polynomial() {
+    let (t, samples, eps) = problem(0.004);
+    let s = fit_unit(&t, 0, &samples, &eps, &[], &SurrogateOptions::default(), 11)
+        .expect("a surrogate");
+    assert_eq!(s.inputs.len(), 2);
+    assert!(s.fix_leading(0, &samples[0]).is_none());
+    assert!(s.fix_leading(2, &samples[0]).is_none());
+    let f = s
+        .fix_leading(1, &samples[0])
+        .expect("the sample is inside the box");
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let mut compared = 0;
+    for _ in 0..200 {
+        let mut v = samples[0].clone();
+        v[s.inputs[1]] *= 1.0 + 0.03 * (2.0 * rng.random::<f64>() - 1.0);
+        let (Some(a), Some(b)) = (s.terms(&v), s.terms_fixed(&f, &v)) else {
+            assert!(s.terms_fixed(&f, &v).is_none(), "outside the box for both");
+            continue;
+        };
+        compared += 1;
+        for (x, y) in a.lambda.iter().zip(&b.lambda) {
+            assert!((x - y).abs() <= 1e-12 * x.abs(), "λ {x} against {y}");
+        }
+        assert!((a.mass_g - b.mass_g).abs() <= 1e-12 * a.mass_g.abs());
+    }
+    assert!(compared > 100, "only {compared} points compared");
+    // The leading input far outside the box: every point with it is the ROM's.
+    let mut far = samples[0].clone();
+    far[s.inputs[0]] *= 2.0;
+    assert!(s.fix_leading(1, &far).is_none());
+}

@@ -158,12 +158,7 @@ pub fn run_smc(
     let exact_target = fit_subspaces(target, opts, &base_ref, &surrogates, &mut acc);
     acc.subspace_seconds = t_sub.elapsed().as_secs_f64();
     let exact: &ModalTarget = exact_target.as_ref().unwrap_or(target);
-    let sur = SurrogateTarget {
-        inner: target,
-        surrogates,
-        outside_box: Default::default(),
-        rom_evals: Default::default(),
-    };
+    let sur = SurrogateTarget::new(target, surrogates, &all_aux);
     let starts = run_starts(&sur, opts, &base_ref, grouped, aux, what, &mut acc)?;
     let t_groups = t_start.elapsed().as_secs_f64() - t_base - t_surrogates;
     if verbose {
