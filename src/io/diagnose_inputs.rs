@@ -531,11 +531,8 @@ pub fn physical_quantiles(path: &Path) -> anyhow::Result<BTreeMap<String, (f64, 
     Ok(out)
 }
 
-/// Of the population locations (`mu_…`) of the summary table at `path` that the one at
-/// `baseline` lacks (a refit's own: the finding's estimates, `refit_estimates`), the one with
-/// the smallest bulk ESS, with that ESS. A refit's population scales (`sigma_…`) are nuisance
-/// parameters no finding reports; the runs' agreement on them is R-hat's to judge.
-pub fn population_ess(path: &Path, baseline: &Path) -> anyhow::Result<Option<(String, f64)>> {
+/// The parameters of the summary table at `baseline`, by name.
+fn summary_parameters(baseline: &Path) -> anyhow::Result<std::collections::BTreeSet<String>> {
     let mut known = std::collections::BTreeSet::new();
     for b in tables::read_parquet(baseline)? {
         let c = Cols {
@@ -545,12 +542,29 @@ pub fn population_ess(path: &Path, baseline: &Path) -> anyhow::Result<Option<(St
         let name = c.str("parameter")?;
         known.extend((0..b.num_rows()).map(|i| name.value(i).to_string()));
     }
+    Ok(known)
+}
+
+/// Of the population locations (`mu_…`) of the summary table at `path` that the one at
+/// `baseline` lacks (a refit's own: the finding's estimates, `refit_estimates`), the one with
+/// the smallest bulk ESS, with that ESS. A refit's population scales (`sigma_…`) are nuisance
+/// parameters no finding reports; the runs' agreement on them is R-hat's to judge.
+pub fn population_ess(path: &Path, baseline: &Path) -> anyhow::Result<Option<(String, f64)>> {
+    let known = summary_parameters(baseline)?;
     population_worst(
         path,
         "ess_bulk",
         |a, b| a < b,
         |n| n.starts_with("mu_") && !known.contains(n),
     )
+}
+
+/// Of the population-level parameters of the summary table at `path` that the one at
+/// `baseline` lacks (a refit's own: the mechanism's location and scale), the one with the
+/// largest R-hat across runs, with it.
+pub fn own_population_r_hat(path: &Path, baseline: &Path) -> anyhow::Result<Option<(String, f64)>> {
+    let known = summary_parameters(baseline)?;
+    population_worst(path, "r_hat", |a, b| a > b, |n| !known.contains(n))
 }
 
 /// The population-level row of a summary table, its parameter one `keep` accepts, whose finite
@@ -1099,13 +1113,14 @@ pub fn read_refit(
 mod tests {
     use super::*;
 
-    /// The refit's ESS gate reads its own population locations only (the finding's
-    /// estimates): a parameter the baseline has too (however low its ESS), per-board rows and
-    /// its population scale (a nuisance no finding reports) are not them.
+    /// The refit's gates read its own population-level parameters: the ESS gate its
+    /// locations only (the finding's estimates), the own R-hat its locations and scales. A
+    /// parameter the baseline has too (however low its ESS or high its R-hat) and per-board
+    /// rows are not them; the whole R-hat reads every population-level row.
     #[test]
-    fn the_ess_gate_reads_the_parameters_the_baseline_lacks() {
+    fn the_refit_gates_read_the_parameters_the_baseline_lacks() {
         use crate::update::posterior::SummaryRow;
-        let row = |p: &str, board: Option<&str>, ess: f64| SummaryRow {
+        let row = |p: &str, board: Option<&str>, ess: f64, r_hat: f64| SummaryRow {
             parameter: p.into(),
             board_id: board.map(String::from),
             measurement_id: None,
@@ -1115,7 +1130,7 @@ mod tests {
                 q05: -1.6,
                 q50: 0.0,
                 q95: 1.6,
-                r_hat: 1.0,
+                r_hat,
                 ess_bulk: ess,
                 ess_tail: ess,
             },
@@ -1127,21 +1142,29 @@ mod tests {
             d.path().join("refit.parquet"),
         );
         let prov = Default::default();
-        tables::update::write_summary(&base, &[row("mu_g_z_pa", None, 300.0)], &prov).unwrap();
+        tables::update::write_summary(&base, &[row("mu_g_z_pa", None, 300.0, 1.0)], &prov).unwrap();
         let rows = [
-            row("mu_g_z_pa", None, 81.0),
-            row("temperature_coefficient_per_k", Some("PCB-01"), 20.0),
-            row("mu_temperature_coefficient_per_k", None, 150.0),
-            row("sigma_temperature_coefficient_per_k", None, 65.0),
+            row("mu_g_z_pa", None, 81.0, 1.08),
+            row("temperature_coefficient_per_k", Some("PCB-01"), 20.0, 1.3),
+            row("mu_temperature_coefficient_per_k", None, 150.0, 1.02),
+            row("sigma_temperature_coefficient_per_k", None, 65.0, 1.04),
         ];
         tables::update::write_summary(&refit, &rows, &prov).unwrap();
         assert_eq!(
             population_ess(&refit, &base).unwrap(),
             Some(("mu_temperature_coefficient_per_k".to_string(), 150.0))
         );
-        assert_eq!(population_r_hat(&refit).unwrap().map(|r| r.1), Some(1.0));
+        assert_eq!(
+            population_r_hat(&refit).unwrap(),
+            Some(("mu_g_z_pa".to_string(), 1.08))
+        );
+        assert_eq!(
+            own_population_r_hat(&refit, &base).unwrap(),
+            Some(("sigma_temperature_coefficient_per_k".to_string(), 1.04))
+        );
         let missing = d.path().join("none.parquet");
         assert!(population_ess(&refit, &missing).is_err());
+        assert!(own_population_r_hat(&refit, &missing).is_err());
     }
 
     /// The demo work directory (when `make -C pipelines demo` has run) reads without error,
