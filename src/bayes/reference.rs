@@ -123,8 +123,7 @@ impl GaussianReference {
                 .zip(m.sd())
                 .enumerate()
                 .find_map(|(k, (mu, sd))| {
-                    let scale = 1.0 + mu.abs();
-                    (!mu.is_finite() || !sd.is_finite() || sd <= 1e-8 * scale || sd > 1e3 * scale)
+                    degenerate_coordinate(*mu, sd)
                         .then(|| format!("{what} coordinate {k}: mean {mu:.4e}, sd {sd:.3e}"))
                 })
         };
@@ -140,6 +139,14 @@ impl GaussianReference {
         let x = self.units.iter().map(|u| u.sample(rng)).collect();
         (g, x)
     }
+}
+
+/// A reference coordinate of mean `mu` and sd `sd` that no sampler can start from: not
+/// finite, a spread under 1e-8 of its scale (the data cannot pin a coordinate that tightly
+/// through measurement noise) or over 1e3 of it.
+fn degenerate_coordinate(mu: f64, sd: f64) -> bool {
+    let scale = 1.0 + mu.abs();
+    !mu.is_finite() || !sd.is_finite() || sd <= 1e-8 * scale || sd > 1e3 * scale
 }
 
 /// Tuning of [`laplace_reference`].
@@ -175,6 +182,19 @@ pub struct ReferenceOptions {
     /// ([`Target::unit_prior_normal`]); takes precedence over `reform_curvature`.
     #[serde(default)]
     pub quadrature_units: bool,
+    /// Where the rounds reach a degenerate reference (units whose coordinates can fit their
+    /// modes let the alternation run the noise scales towards zero, a unit of zero spread,
+    /// before g settles), the reference these first rounds gave instead: the construction
+    /// before g's mode had to settle, which covers such a posterior and lets the tempering
+    /// correct it. The rounds stop as soon as a unit's spread collapses, and the fallback
+    /// resumes from the state these rounds left, so it costs no round twice. None: no
+    /// fallback.
+    #[serde(default = "default_fallback_rounds")]
+    pub fallback_rounds: Option<usize>,
+}
+
+fn default_fallback_rounds() -> Option<usize> {
+    Some(FALLBACK_ROUNDS)
 }
 
 impl Default for ReferenceOptions {
@@ -187,6 +207,7 @@ impl Default for ReferenceOptions {
             start: None,
             reform_curvature: false,
             quadrature_units: false,
+            fallback_rounds: default_fallback_rounds(),
         }
     }
 }
@@ -200,8 +221,11 @@ pub struct ReferenceInfo {
     pub g_acceptance: f64,
     /// Per unit: Newton converged (relative step below tolerance) in the last round.
     pub converged: Vec<bool>,
-    /// Rounds run (see [`laplace_reference`]).
+    /// Rounds run (see [`laplace_reference`]); after a fallback, the fallback's.
     pub rounds: usize,
+    /// Why the rounds fell back to their first `ReferenceOptions::fallback_rounds`, and after
+    /// how many.
+    pub fell_back: Option<(usize, String)>,
 }
 
 /// Errors of the construction.
@@ -1024,8 +1048,6 @@ pub fn laplace_reference<T: Target>(
     let mut precs = vec![vec![0.0; d * d]; nu];
     let mut converged = vec![false; nu];
     let mut evals = 0u64;
-    let mut g_acc = f64::NAN;
-    let mut g_chain: Vec<Vec<f64>> = vec![];
     let mut g_prec = vec![0.0; ng * ng];
     let hg0: Vec<f64> = (0..ng)
         .map(|k| {
@@ -1037,34 +1059,61 @@ pub fn laplace_reference<T: Target>(
         .collect();
     let rounds = opts.rounds.max(1);
     let mut g_hat_prev: Option<Vec<f64>> = None;
-    let mut rounds_run = 0;
-    // With quadrature: the units' moments on the last round's grid (see below).
-    let mut quad_moments: Option<Vec<Option<(f64, f64)>>> = None;
-    // Without: the units' moments over g's spread under the Laplace form.
-    let mut laplace_moments: Vec<Option<(Vec<f64>, Vec<f64>)>> = vec![];
-    for round in 0..rounds {
-        let ctx = t.ctx(&g);
-        // 2. Units.
-        let res: Vec<_> = (0..nu)
-            .into_par_iter()
-            .map(|b| {
-                let h: Vec<f64> = if round == 0 {
-                    h0[b].clone()
-                } else {
-                    let inv = spd_inverse(&precs[b], d);
-                    (0..d)
-                        .map(|i| (0.2 * inv[i * d + i].max(0.0).sqrt()).max(1e-14))
-                        .collect()
-                };
-                unit_mode(t, aux, &ctx, b, &xs[b], &h, opts.newton_iterations)
-            })
-            .collect();
-        for (b, (x, p, c, e)) in res.into_iter().enumerate() {
-            xs[b] = x;
-            precs[b] = p;
-            converged[b] = c;
-            evals += e;
+    // The state after the units of round `fallback_rounds` − 1 (g, the units, g's last
+    // precision, the rounds it stands for), and whether the construction resumed from it:
+    // then that round is the last.
+    let fallback = opts.fallback_rounds.filter(|&k| k >= 1 && k < rounds);
+    type Snapshot = (
+        Vec<f64>,
+        Vec<Vec<f64>>,
+        Vec<Vec<f64>>,
+        Vec<bool>,
+        Vec<f64>,
+        usize,
+    );
+    let mut snapshot: Option<Snapshot> = None;
+    let mut fell_back: Option<(usize, String)> = None;
+    let mut round = 0;
+    'construction: loop {
+        if fell_back.is_none() {
+            let ctx = t.ctx(&g);
+            // 2. Units.
+            let res: Vec<_> = (0..nu)
+                .into_par_iter()
+                .map(|b| {
+                    let h: Vec<f64> = if round == 0 {
+                        h0[b].clone()
+                    } else {
+                        let inv = spd_inverse(&precs[b], d);
+                        (0..d)
+                            .map(|i| (0.2 * inv[i * d + i].max(0.0).sqrt()).max(1e-14))
+                            .collect()
+                    };
+                    unit_mode(t, aux, &ctx, b, &xs[b], &h, opts.newton_iterations)
+                })
+                .collect();
+            for (b, (x, p, c, e)) in res.into_iter().enumerate() {
+                xs[b] = x;
+                precs[b] = p;
+                converged[b] = c;
+                evals += e;
+            }
+            if fallback == Some(round + 1) {
+                snapshot = Some((
+                    g.clone(),
+                    xs.clone(),
+                    precs.clone(),
+                    converged.clone(),
+                    g_prec.clone(),
+                    round,
+                ));
+            } else if let (Some(_), Some(why)) = (&snapshot, degenerate_unit(&xs, &precs, d)) {
+                // A unit's spread collapsed: no later round brings it back.
+                fell_back = Some((round + 1, why));
+                (g, xs, precs, converged, g_prec, round) = snapshot.clone().expect("a snapshot");
+            }
         }
+        let last = fell_back.is_some() || round + 1 >= rounds;
         // 3. g given the units.
         let (given, e) = GDensity::new(t, aux, &g, &xs, &precs, opts)?;
         evals += e;
@@ -1100,10 +1149,10 @@ pub fn laplace_reference<T: Target>(
                 (g_hat[k] - p[k]).abs() <= ROUND_TOLERANCE_SD * cov[k * ng + k].max(0.0).sqrt()
             })
         });
-        rounds_run = round + 1;
-        if round + 1 < rounds && !settled {
+        if !last && !settled {
             g_hat_prev = Some(g_hat.clone());
             g = g_hat;
+            round += 1;
             continue;
         }
         let given = match given {
@@ -1123,7 +1172,6 @@ pub fn laplace_reference<T: Target>(
             opts.g_steps,
             seed ^ (round as u64 + 1),
         );
-        g_acc = acc;
         let n = chain.len() as f64;
         g = (0..ng)
             .map(|k| chain.iter().map(|v| v[k]).sum::<f64>() / n)
@@ -1133,20 +1181,62 @@ pub fn laplace_reference<T: Target>(
             let k = (chain.len() / n).max(1);
             chain.iter().step_by(k).cloned().collect()
         };
-        match &given {
-            GDensity::Quadrature(q) => {
-                quad_moments = Some(q.unit_moments(&every(UNIT_MOMENT_DRAWS)));
+        // With quadrature: the units' moments on the last round's grid; without: their
+        // moments over g's spread under the Laplace form.
+        let (quad_moments, laplace_moments) = match &given {
+            GDensity::Quadrature(q) => (Some(q.unit_moments(&every(UNIT_MOMENT_DRAWS))), vec![]),
+            GDensity::Laplace(u) => (None, u.unit_moments(&every(LAPLACE_MOMENT_DRAWS))),
+        };
+        let g_chain = chain;
+        // 4. q.
+        let q = assemble(
+            &g,
+            &g_chain,
+            &xs,
+            &precs,
+            &quad_moments,
+            &laplace_moments,
+            opts,
+        );
+        if fell_back.is_none() {
+            if let (Some(why), Some(snap)) = (
+                q.degeneracy(),
+                snapshot.as_ref().filter(|snap| snap.5 != round),
+            ) {
+                fell_back = Some((round + 1, why));
+                (g, xs, precs, converged, g_prec, round) = snap.clone();
+                continue 'construction;
             }
-            GDensity::Laplace(u) => laplace_moments = u.unit_moments(&every(LAPLACE_MOMENT_DRAWS)),
         }
-        g_chain = chain;
-        break;
+        break 'construction Ok((
+            q,
+            ReferenceInfo {
+                model_evals: evals,
+                g_acceptance: acc,
+                converged,
+                rounds: round + 1,
+                fell_back,
+            },
+        ));
     }
-    // 4. q.
+}
+
+/// The reference from the last round: g's chain (its mean `g`), the units' optima and
+/// precisions, and their moments over g's spread where the round took them.
+fn assemble(
+    g: &[f64],
+    g_chain: &[Vec<f64>],
+    xs: &[Vec<f64>],
+    precs: &[Vec<f64>],
+    quad_moments: &Option<Vec<Option<(f64, f64)>>>,
+    laplace_moments: &[Option<(Vec<f64>, Vec<f64>)>],
+    opts: &ReferenceOptions,
+) -> GaussianReference {
+    let ng = g.len();
     let c2 = opts.inflation * opts.inflation;
     let n = g_chain.len() as f64;
     let mut cov = vec![0.0; ng * ng];
-    for v in &g_chain {
+    for v in g_chain {
         for i in 0..ng {
             for j in 0..ng {
                 cov[i * ng + j] += (v[i] - g[i]) * (v[j] - g[j]) / n;
@@ -1154,12 +1244,12 @@ pub fn laplace_reference<T: Target>(
         }
     }
     cov.iter_mut().for_each(|v| *v *= c2);
-    let global = Mvn::new(g, &cov);
-    let mut units = unit_references(&xs, &precs, c2);
-    if let Some(m) = &quad_moments {
+    let global = Mvn::new(g.to_vec(), &cov);
+    let mut units = unit_references(xs, precs, c2);
+    if let Some(m) = quad_moments {
         moment_units(&mut units, m, c2);
     }
-    for (u, m) in units.iter_mut().zip(&laplace_moments) {
+    for (u, m) in units.iter_mut().zip(laplace_moments) {
         if let Some((mean, cov)) = m {
             let q = Mvn::new(
                 mean.clone(),
@@ -1170,15 +1260,20 @@ pub fn laplace_reference<T: Target>(
             }
         }
     }
-    Ok((
-        GaussianReference { global, units },
-        ReferenceInfo {
-            model_evals: evals,
-            g_acceptance: g_acc,
-            converged,
-            rounds: rounds_run,
-        },
-    ))
+    GaussianReference { global, units }
+}
+
+/// The first unit whose spread (from its precision) is degenerate
+/// ([`degenerate_coordinate`]), as the reference would name it.
+fn degenerate_unit(xs: &[Vec<f64>], precs: &[Vec<f64>], d: usize) -> Option<String> {
+    xs.iter().zip(precs).enumerate().find_map(|(b, (x, p))| {
+        let inv = spd_inverse(p, d);
+        (0..d).find_map(|k| {
+            let sd = inv[k * d + k].max(0.0).sqrt();
+            degenerate_coordinate(x[k], sd)
+                .then(|| format!("unit {b} coordinate {k}: mean {:.4e}, sd {sd:.3e}", x[k]))
+        })
+    })
 }
 
 /// The reference of one group of a modular (cut) posterior: `base`, built with
@@ -1292,6 +1387,14 @@ const UNIT_MOMENT_DRAWS: usize = 16;
 /// The default cap on the reference's rounds: a round without the chain costs one Newton
 /// search per unit and one for g, so the cap only bounds a crawl (see [`laplace_reference`]).
 pub const MAX_ROUNDS: usize = 12;
+
+/// The rounds whose reference replaces a degenerate one (`ReferenceOptions::fallback_rounds`):
+/// the fixed count the construction had before its rounds went on until g settled. Enrichment
+/// refits of step 2 with two or three coordinates a measurement (the realistic fixture's
+/// ln K, m_fix and f_fix; a joint's rotational stiffness) reach a unit sd of ~1e-9 by the
+/// twelfth round; their 3-round reference covers the posterior (posterior sd / reference sd
+/// 0.3-3.5) and the tempering takes 13-14 stages.
+const FALLBACK_ROUNDS: usize = 3;
 
 /// A round whose mode of g moved by less than this many of its sds (every coordinate) from
 /// the previous round's is the last: a shift of δ sds costs a normal reference δ²/2 nats of
@@ -1500,6 +1603,112 @@ fn rwm(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Units of two coordinates, each observed once per coordinate: y_bk ~ N(x_bk, s²),
+    /// x_b ~ N(μ, I), g = (μ_1, μ_2, ln s). Every unit fits its data exactly at x_b = y_b, so
+    /// the alternation (units at their optima, then g at the units' frozen curvature) runs
+    /// s towards zero round by round: the collapse of a step-2 enrichment refit whose
+    /// coordinates can fit a measurement's modes.
+    struct ExactFit {
+        y: Vec<[f64; 2]>,
+    }
+
+    impl Target for ExactFit {
+        type Cache = Vec<f64>;
+        type Ctx = Vec<f64>;
+        fn n_global(&self) -> usize {
+            3
+        }
+        fn n_units(&self) -> usize {
+            self.y.len()
+        }
+        fn unit_dim(&self) -> usize {
+            2
+        }
+        fn sample_prior(&self, rng: &mut ChaCha8Rng) -> (Vec<f64>, Vec<Vec<f64>>) {
+            use rand_distr::{Distribution, StandardNormal};
+            let mut n = || -> f64 { StandardNormal.sample(rng) };
+            let g = vec![n(), n(), 0.1f64.ln() + n()];
+            let x = (0..self.y.len())
+                .map(|_| vec![g[0] + n(), g[1] + n()])
+                .collect();
+            (g, x)
+        }
+        fn log_prior_global(&self, g: &[f64]) -> f64 {
+            use crate::bayes::stats::normal_lpdf;
+            normal_lpdf(g[0], 0.0, 1.0)
+                + normal_lpdf(g[1], 0.0, 1.0)
+                + normal_lpdf(g[2], 0.1f64.ln(), 1.0)
+        }
+        fn ctx(&self, g: &[f64]) -> Vec<f64> {
+            g.to_vec()
+        }
+        fn log_prior_unit(&self, ctx: &Vec<f64>, _b: usize, x: &[f64]) -> f64 {
+            use crate::bayes::stats::normal_lpdf;
+            normal_lpdf(x[0], ctx[0], 1.0) + normal_lpdf(x[1], ctx[1], 1.0)
+        }
+        fn model(&self, _aux: &[f64], _b: usize, x: &[f64]) -> Option<Vec<f64>> {
+            Some(x.to_vec())
+        }
+        fn log_lik(&self, ctx: &Vec<f64>, b: usize, _x: &[f64], c: &Vec<f64>) -> f64 {
+            use crate::bayes::stats::normal_lpdf;
+            let s = ctx[2].exp();
+            normal_lpdf(self.y[b][0], c[0], s) + normal_lpdf(self.y[b][1], c[1], s)
+        }
+        fn to_standard(&self, ctx: &Vec<f64>, _b: usize, x: &[f64]) -> Vec<f64> {
+            vec![x[0] - ctx[0], x[1] - ctx[1]]
+        }
+        fn from_standard(&self, ctx: &Vec<f64>, _b: usize, z: &[f64]) -> Vec<f64> {
+            vec![ctx[0] + z[0], ctx[1] + z[1]]
+        }
+    }
+
+    /// Where the rounds collapse a unit, the construction stops there and returns the
+    /// reference of its first `fallback_rounds`, the very one a construction of that many
+    /// rounds builds; without the fallback the reference is degenerate.
+    #[test]
+    fn a_collapsing_construction_falls_back_to_its_first_rounds() {
+        let t = ExactFit {
+            y: (0..12)
+                .map(|b| [0.3 * (b as f64).sin(), 0.5 * (b as f64 * 0.7).cos()])
+                .collect(),
+        };
+        let opts = ReferenceOptions {
+            g_steps: 2000,
+            ..ReferenceOptions::default()
+        };
+        let none = ReferenceOptions {
+            fallback_rounds: None,
+            ..opts.clone()
+        };
+        let (q_none, info_none) = laplace_reference(&t, &[], &none, 3).unwrap();
+        eprintln!(
+            "without: rounds {}, degenerate {:?}, g {:?}",
+            info_none.rounds,
+            q_none.degeneracy(),
+            q_none.global.mean
+        );
+        assert!(q_none.degeneracy().is_some(), "the toy collapses");
+        let (q, info) = laplace_reference(&t, &[], &opts, 3).unwrap();
+        let (after, why) = info.fell_back.clone().expect("a fallback");
+        eprintln!("with: fell back after {after} rounds ({why}), rounds {}", info.rounds);
+        assert!(q.degeneracy().is_none());
+        assert_eq!(info.rounds, FALLBACK_ROUNDS);
+        assert!(after > FALLBACK_ROUNDS && after <= info_none.rounds);
+        let three = ReferenceOptions {
+            rounds: FALLBACK_ROUNDS,
+            ..none
+        };
+        let (q3, info3) = laplace_reference(&t, &[], &three, 3).unwrap();
+        assert!(info3.fell_back.is_none());
+        assert_eq!(q.global.mean, q3.global.mean);
+        assert_eq!(q.global.chol, q3.global.chol);
+        for (a, b) in q.units.iter().zip(&q3.units) {
+            assert_eq!((&a.mean, &a.chol), (&b.mean, &b.chol));
+        }
+        // Fewer model evaluations than the rounds and the rebuild it replaces.
+        assert!(info.model_evals < info_none.model_evals + info3.model_evals);
+    }
 
     /// The cap of 6ad6da6: a near-singular precision from a round whose Newton search
     /// stopped short (one direction with curvature 1e-6 where round 0's steps were 1e-2)

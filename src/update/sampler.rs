@@ -268,18 +268,11 @@ fn base_reference(
             (q, info) = laplace_reference(target, &aux_mean, &ropts, opts.seed)
                 .map_err(|e| anyhow!("{what}: building the reference: {e}"))?;
         }
-        if let (Some(why), true) = (q.degeneracy(), info.rounds > DEGENERATE_FALLBACK_ROUNDS) {
-            // Units with as many coordinates as a measurement has modes to fit (an
-            // enrichment's refit: ln K and a second joint or fixture coordinate) let the
-            // rounds run the noise scales towards zero, a mode of zero spread, before g
-            // settles. The first rounds' reference, the construction before the settle rule,
-            // covers the posterior, and the tempering corrects it.
-            if verbose {
-                eprintln!("{what}: the reference after {} rounds is degenerate ({why}); the reference of the first {DEGENERATE_FALLBACK_ROUNDS} instead", info.rounds);
-            }
-            ropts.rounds = DEGENERATE_FALLBACK_ROUNDS;
-            (q, info) = laplace_reference(target, &aux_mean, &ropts, opts.seed)
-                .map_err(|e| anyhow!("{what}: building the reference: {e}"))?;
+        if let (Some((after, why)), true) = (&info.fell_back, verbose) {
+            eprintln!(
+                "{what}: the reference after {after} rounds is degenerate ({why}); the reference of the first {} instead",
+                info.rounds
+            );
         }
         if let Some(why) = q.degeneracy() {
             anyhow::bail!(
@@ -304,11 +297,6 @@ fn base_reference(
         Some((Arc::new(q), ropts))
     })
 }
-
-/// The rounds of the reference rebuilt where the settled one is degenerate: the fixed count
-/// the construction had before it went on until g settles (up to
-/// `bayes::reference::MAX_ROUNDS`).
-const DEGENERATE_FALLBACK_ROUNDS: usize = 3;
 
 /// A step's base reference and the options it was built with.
 type BaseReference = Option<(
