@@ -1682,16 +1682,9 @@ mod tests {
             ..opts.clone()
         };
         let (q_none, info_none) = laplace_reference(&t, &[], &none, 3).unwrap();
-        eprintln!(
-            "without: rounds {}, degenerate {:?}, g {:?}",
-            info_none.rounds,
-            q_none.degeneracy(),
-            q_none.global.mean
-        );
         assert!(q_none.degeneracy().is_some(), "the toy collapses");
         let (q, info) = laplace_reference(&t, &[], &opts, 3).unwrap();
-        let (after, why) = info.fell_back.clone().expect("a fallback");
-        eprintln!("with: fell back after {after} rounds ({why}), rounds {}", info.rounds);
+        let (after, _) = info.fell_back.clone().expect("a fallback");
         assert!(q.degeneracy().is_none());
         assert_eq!(info.rounds, FALLBACK_ROUNDS);
         assert!(after > FALLBACK_ROUNDS && after <= info_none.rounds);

@@ -182,7 +182,7 @@ impl UnitSurrogate {
             return None;
         }
         let u = self.whiten(v);
-        if u[..n_fixed].iter().any(|x| !(x.abs() <= 1.0)) {
+        if u[..n_fixed].iter().any(|x| x.is_nan() || x.abs() > 1.0) {
             return None;
         }
         let p = self.degree;
