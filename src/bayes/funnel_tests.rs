@@ -17,14 +17,14 @@ const A: [[f64; 2]; 3] = [[1.0, 0.0], [0.0, 1.0], [0.6, 0.8]];
 const PRIOR_MEDIAN: f64 = 0.05;
 const PRIOR_LOG_SD: f64 = 1.5;
 
-struct Funnel {
+pub(super) struct Funnel {
     y: Vec<[f64; 3]>,
     /// Offer the residual-scaling moves (`Target::log_error_scales`).
     rescale: bool,
 }
 
 impl Funnel {
-    fn new(n_units: usize, eps: [f64; 3], seed: u64, rescale: bool) -> Funnel {
+    pub(super) fn new(n_units: usize, eps: [f64; 3], seed: u64, rescale: bool) -> Funnel {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut n = || -> f64 { StandardNormal.sample(&mut rng) };
         let y = (0..n_units)

@@ -1604,75 +1604,15 @@ fn rwm(
 mod tests {
     use super::*;
 
-    /// Units of two coordinates, each observed once per coordinate: y_bk ~ N(x_bk, s²),
-    /// x_b ~ N(μ, I), g = (μ_1, μ_2, ln s). Every unit fits its data exactly at x_b = y_b, so
-    /// the alternation (units at their optima, then g at the units' frozen curvature) runs
-    /// s towards zero round by round: the collapse of a step-2 enrichment refit whose
-    /// coordinates can fit a measurement's modes.
-    struct ExactFit {
-        y: Vec<[f64; 2]>,
-    }
-
-    impl Target for ExactFit {
-        type Cache = Vec<f64>;
-        type Ctx = Vec<f64>;
-        fn n_global(&self) -> usize {
-            3
-        }
-        fn n_units(&self) -> usize {
-            self.y.len()
-        }
-        fn unit_dim(&self) -> usize {
-            2
-        }
-        fn sample_prior(&self, rng: &mut ChaCha8Rng) -> (Vec<f64>, Vec<Vec<f64>>) {
-            use rand_distr::{Distribution, StandardNormal};
-            let mut n = || -> f64 { StandardNormal.sample(rng) };
-            let g = vec![n(), n(), 0.1f64.ln() + n()];
-            let x = (0..self.y.len())
-                .map(|_| vec![g[0] + n(), g[1] + n()])
-                .collect();
-            (g, x)
-        }
-        fn log_prior_global(&self, g: &[f64]) -> f64 {
-            use crate::bayes::stats::normal_lpdf;
-            normal_lpdf(g[0], 0.0, 1.0)
-                + normal_lpdf(g[1], 0.0, 1.0)
-                + normal_lpdf(g[2], 0.1f64.ln(), 1.0)
-        }
-        fn ctx(&self, g: &[f64]) -> Vec<f64> {
-            g.to_vec()
-        }
-        fn log_prior_unit(&self, ctx: &Vec<f64>, _b: usize, x: &[f64]) -> f64 {
-            use crate::bayes::stats::normal_lpdf;
-            normal_lpdf(x[0], ctx[0], 1.0) + normal_lpdf(x[1], ctx[1], 1.0)
-        }
-        fn model(&self, _aux: &[f64], _b: usize, x: &[f64]) -> Option<Vec<f64>> {
-            Some(x.to_vec())
-        }
-        fn log_lik(&self, ctx: &Vec<f64>, b: usize, _x: &[f64], c: &Vec<f64>) -> f64 {
-            use crate::bayes::stats::normal_lpdf;
-            let s = ctx[2].exp();
-            normal_lpdf(self.y[b][0], c[0], s) + normal_lpdf(self.y[b][1], c[1], s)
-        }
-        fn to_standard(&self, ctx: &Vec<f64>, _b: usize, x: &[f64]) -> Vec<f64> {
-            vec![x[0] - ctx[0], x[1] - ctx[1]]
-        }
-        fn from_standard(&self, ctx: &Vec<f64>, _b: usize, z: &[f64]) -> Vec<f64> {
-            vec![ctx[0] + z[0], ctx[1] + z[1]]
-        }
-    }
-
     /// Where the rounds collapse a unit, the construction stops there and returns the
     /// reference of its first `fallback_rounds`, the very one a construction of that many
-    /// rounds builds; without the fallback the reference is degenerate.
+    /// rounds builds; without the fallback the reference is degenerate. The target is the
+    /// error-scale funnel (`funnel_tests`): two coordinates a unit fit two of its three
+    /// modes exactly, as a step-2 enrichment refit's do, so the alternation runs an error
+    /// scale towards zero.
     #[test]
     fn a_collapsing_construction_falls_back_to_its_first_rounds() {
-        let t = ExactFit {
-            y: (0..12)
-                .map(|b| [0.3 * (b as f64).sin(), 0.5 * (b as f64 * 0.7).cos()])
-                .collect(),
-        };
+        let t = crate::bayes::funnel_tests::Funnel::new(30, [0.01, 0.01, 0.01], 7, false);
         let opts = ReferenceOptions {
             g_steps: 2000,
             ..ReferenceOptions::default()
