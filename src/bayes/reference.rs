@@ -1060,17 +1060,17 @@ pub fn laplace_reference<T: Target>(
     let rounds = opts.rounds.max(1);
     let mut g_hat_prev: Option<Vec<f64>> = None;
     // The state after the units of round `fallback_rounds` − 1 (g, the units, g's last
-    // precision, the rounds it stands for), and whether the construction resumed from it:
-    // then that round is the last.
+    // precision, that round), and whether the construction resumed from it: then that round
+    // is the last.
     let fallback = opts.fallback_rounds.filter(|&k| k >= 1 && k < rounds);
-    type Snapshot = (
-        Vec<f64>,
-        Vec<Vec<f64>>,
-        Vec<Vec<f64>>,
-        Vec<bool>,
-        Vec<f64>,
-        usize,
-    );
+    struct Snapshot {
+        g: Vec<f64>,
+        xs: Vec<Vec<f64>>,
+        precs: Vec<Vec<f64>>,
+        converged: Vec<bool>,
+        g_prec: Vec<f64>,
+        round: usize,
+    }
     let mut snapshot: Option<Snapshot> = None;
     let mut fell_back: Option<(usize, String)> = None;
     let mut round = 0;
@@ -1099,18 +1099,20 @@ pub fn laplace_reference<T: Target>(
                 evals += e;
             }
             if fallback == Some(round + 1) {
-                snapshot = Some((
-                    g.clone(),
-                    xs.clone(),
-                    precs.clone(),
-                    converged.clone(),
-                    g_prec.clone(),
+                snapshot = Some(Snapshot {
+                    g: g.clone(),
+                    xs: xs.clone(),
+                    precs: precs.clone(),
+                    converged: converged.clone(),
+                    g_prec: g_prec.clone(),
                     round,
-                ));
-            } else if let (Some(_), Some(why)) = (&snapshot, degenerate_unit(&xs, &precs, d)) {
+                });
+            } else if let Some(why) = snapshot.as_ref().and(degenerate_unit(&xs, &precs, d)) {
                 // A unit's spread collapsed: no later round brings it back.
                 fell_back = Some((round + 1, why));
-                (g, xs, precs, converged, g_prec, round) = snapshot.clone().expect("a snapshot");
+                let s = snapshot.take().expect("a snapshot");
+                (g, xs, precs, converged, g_prec, round) =
+                    (s.g, s.xs, s.precs, s.converged, s.g_prec, s.round);
             }
         }
         let last = fell_back.is_some() || round + 1 >= rounds;
@@ -1199,12 +1201,12 @@ pub fn laplace_reference<T: Target>(
             opts,
         );
         if fell_back.is_none() {
-            if let (Some(why), Some(snap)) = (
-                q.degeneracy(),
-                snapshot.as_ref().filter(|snap| snap.5 != round),
-            ) {
+            if let (Some(why), Some(s)) =
+                (q.degeneracy(), snapshot.take().filter(|s| s.round != round))
+            {
                 fell_back = Some((round + 1, why));
-                (g, xs, precs, converged, g_prec, round) = snap.clone();
+                (g, xs, precs, converged, g_prec, round) =
+                    (s.g, s.xs, s.precs, s.converged, s.g_prec, s.round);
                 continue 'construction;
             }
         }
@@ -1393,7 +1395,9 @@ pub const MAX_ROUNDS: usize = 12;
 /// refits of step 2 with two or three coordinates a measurement (the realistic fixture's
 /// ln K, m_fix and f_fix; a joint's rotational stiffness) reach a unit sd of ~1e-9 by the
 /// twelfth round; their 3-round reference covers the posterior (posterior sd / reference sd
-/// 0.3-3.5) and the tempering takes 13-14 stages.
+/// 0.1–3.5 over g's coordinates) and the tempering takes 13–15 stages. 3 is not fitted to
+/// those campaigns: it is the count the construction ran on every step before the rounds
+/// went on until g settled (2250d65).
 const FALLBACK_ROUNDS: usize = 3;
 
 /// A round whose mode of g moved by less than this many of its sds (every coordinate) from
