@@ -194,8 +194,9 @@ pub fn quantile(sorted: &[f64], q: f64) -> f64 {
 /// classical threshold of Gelman & Rubin's diagnostic (Gelman et al., Bayesian Data Analysis,
 /// 3rd ed., §11.5). Up to it the runs' spread of the log evidence is its standard error; above
 /// it, runs that sampled different parts of the posterior may each miss mass the others saw.
-/// The updating's own level (1.05) still marks the refit's estimates approximate, and makes
-/// the stage retry it with more particles and runs.
+/// The updating's own level (1.05) still marks the refit's estimates approximate; the stage
+/// retries a refit with more particles and runs above this level, or above 1.05 on the
+/// mechanism's own parameters (`stage::diagnose::refit::retry_rule`).
 pub const MAX_R_HAT_EVIDENCE: f64 = 1.1;
 
 /// The gate on a refit step's worst population-level R-hat (parameter, value) in `dir`: why

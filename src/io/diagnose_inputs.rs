@@ -498,7 +498,12 @@ pub fn evidence_runs(dir: &Path) -> anyhow::Result<Vec<f64>> {
 /// The population-level parameter (no board, no measurement) with the largest R-hat in a
 /// summary table, with that R-hat; None without such rows or R-hats (one run).
 pub fn population_r_hat(path: &Path) -> anyhow::Result<Option<(String, f64)>> {
-    population_worst(path, "r_hat", |a, b| a > b, |_| true)
+    Ok(worst(
+        &population_rows(path)?,
+        |r| r.r_hat,
+        |a, b| a > b,
+        |_| true,
+    ))
 }
 
 /// The physical 5/50/95 % quantiles of every population-level parameter of the summary table
@@ -545,60 +550,88 @@ fn summary_parameters(baseline: &Path) -> anyhow::Result<std::collections::BTree
     Ok(known)
 }
 
-/// Of the population locations (`mu_…`) of the summary table at `path` that the one at
-/// `baseline` lacks (a refit's own: the finding's estimates, `refit_estimates`), the one with
-/// the smallest bulk ESS, with that ESS. A refit's population scales (`sigma_…`) are nuisance
-/// parameters no finding reports; the runs' agreement on them is R-hat's to judge.
-pub fn population_ess(path: &Path, baseline: &Path) -> anyhow::Result<Option<(String, f64)>> {
-    let known = summary_parameters(baseline)?;
-    population_worst(
-        path,
-        "ess_bulk",
-        |a, b| a < b,
-        |n| n.starts_with("mu_") && !known.contains(n),
-    )
+/// What a refit step's retry is decided on (`stage::diagnose::refit::retry_rule`), from its
+/// summary table and its baseline's, each read once.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RefitGates {
+    /// The population-level parameter with the largest R-hat across runs.
+    pub r_hat: Option<(String, f64)>,
+    /// Of the population-level parameters the baseline lacks (a refit's own: the mechanism's
+    /// location and scale), the one with the largest R-hat.
+    pub own_r_hat: Option<(String, f64)>,
+    /// Of the population locations (`mu_…`) the baseline lacks (the finding's estimates,
+    /// `refit_estimates`), the one with the smallest bulk ESS. A refit's population scales
+    /// (`sigma_…`) are nuisance parameters no finding reports; the runs' agreement on them is
+    /// R-hat's to judge.
+    pub own_ess: Option<(String, f64)>,
 }
 
-/// Of the population-level parameters of the summary table at `path` that the one at
-/// `baseline` lacks (a refit's own: the mechanism's location and scale), the one with the
-/// largest R-hat across runs, with it.
-pub fn own_population_r_hat(path: &Path, baseline: &Path) -> anyhow::Result<Option<(String, f64)>> {
+/// The [`RefitGates`] of the summary table at `path` against the one at `baseline`.
+pub fn refit_gates(path: &Path, baseline: &Path) -> anyhow::Result<RefitGates> {
     let known = summary_parameters(baseline)?;
-    population_worst(path, "r_hat", |a, b| a > b, |n| !known.contains(n))
+    let rows = population_rows(path)?;
+    let gt = |a: f64, b: f64| a > b;
+    Ok(RefitGates {
+        r_hat: worst(&rows, |r| r.r_hat, gt, |_| true),
+        own_r_hat: worst(&rows, |r| r.r_hat, gt, |n| !known.contains(n)),
+        own_ess: worst(
+            &rows,
+            |r| r.ess_bulk,
+            |a, b| a < b,
+            |n| n.starts_with("mu_") && !known.contains(n),
+        ),
+    })
 }
 
-/// The population-level row of a summary table, its parameter one `keep` accepts, whose finite
-/// `col` is worst by `worse`.
-fn population_worst(
-    path: &Path,
-    col: &str,
-    worse: impl Fn(f64, f64) -> bool,
-    keep: impl Fn(&str) -> bool,
-) -> anyhow::Result<Option<(String, f64)>> {
-    let mut worst: Option<(String, f64)> = None;
+/// A population-level row (no board, no measurement) of a summary table.
+struct PopulationRow {
+    parameter: String,
+    r_hat: f64,
+    ess_bulk: f64,
+}
+
+/// The population-level rows of the summary table at `path`.
+fn population_rows(path: &Path) -> anyhow::Result<Vec<PopulationRow>> {
+    let mut out = vec![];
     for b in tables::read_parquet(path)? {
         let c = Cols { batch: &b, path };
-        let (name, board, meas, r) = (
+        let (name, board, meas, r_hat, ess) = (
             c.str("parameter")?,
             c.str("board_id")?,
             c.str("measurement_id")?,
-            c.f64(col)?,
+            c.f64("r_hat")?,
+            c.f64("ess_bulk")?,
         );
-        for i in 0..b.num_rows() {
-            use arrow::array::Array;
-            if board.is_valid(i)
-                || meas.is_valid(i)
-                || !r.value(i).is_finite()
-                || !keep(name.value(i))
-            {
-                continue;
-            }
-            if worst.as_ref().is_none_or(|(_, w)| worse(r.value(i), *w)) {
-                worst = Some((name.value(i).to_string(), r.value(i)));
-            }
+        use arrow::array::Array;
+        out.extend(
+            (0..b.num_rows())
+                .filter(|&i| !board.is_valid(i) && !meas.is_valid(i))
+                .map(|i| PopulationRow {
+                    parameter: name.value(i).to_string(),
+                    r_hat: r_hat.value(i),
+                    ess_bulk: ess.value(i),
+                }),
+        );
+    }
+    Ok(out)
+}
+
+/// Of `rows` whose parameter `keep` accepts, the one whose finite `col` is worst by `worse`
+/// (the first on a tie), with that value.
+fn worst(
+    rows: &[PopulationRow],
+    col: impl Fn(&PopulationRow) -> f64,
+    worse: impl Fn(f64, f64) -> bool,
+    keep: impl Fn(&str) -> bool,
+) -> Option<(String, f64)> {
+    let mut out: Option<(String, f64)> = None;
+    for r in rows {
+        let v = col(r);
+        if v.is_finite() && keep(&r.parameter) && out.as_ref().is_none_or(|(_, w)| worse(v, *w)) {
+            out = Some((r.parameter.clone(), v));
         }
     }
-    Ok(worst)
+    out
 }
 
 /// Measurement id → ln of its per-measurement parameters' posterior medians.
@@ -1150,21 +1183,19 @@ mod tests {
             row("sigma_temperature_coefficient_per_k", None, 65.0, 1.04),
         ];
         tables::update::write_summary(&refit, &rows, &prov).unwrap();
+        let gates = refit_gates(&refit, &base).unwrap();
         assert_eq!(
-            population_ess(&refit, &base).unwrap(),
+            gates.own_ess,
             Some(("mu_temperature_coefficient_per_k".to_string(), 150.0))
         );
+        assert_eq!(gates.r_hat, Some(("mu_g_z_pa".to_string(), 1.08)));
+        assert_eq!(gates.r_hat, population_r_hat(&refit).unwrap());
         assert_eq!(
-            population_r_hat(&refit).unwrap(),
-            Some(("mu_g_z_pa".to_string(), 1.08))
-        );
-        assert_eq!(
-            own_population_r_hat(&refit, &base).unwrap(),
+            gates.own_r_hat,
             Some(("sigma_temperature_coefficient_per_k".to_string(), 1.04))
         );
         let missing = d.path().join("none.parquet");
-        assert!(population_ess(&refit, &missing).is_err());
-        assert!(own_population_r_hat(&refit, &missing).is_err());
+        assert!(refit_gates(&refit, &missing).is_err());
     }
 
     /// The demo work directory (when `make -C pipelines demo` has run) reads without error,

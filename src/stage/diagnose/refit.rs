@@ -14,8 +14,8 @@ use crate::diagnose::screen::Candidate;
 use crate::diagnose::select::{self, setup_errors_of, NewModeNote, Refit};
 use crate::diagnose::verdict::{self, quantile, MAX_R_HAT_EVIDENCE};
 use crate::io::diagnose_inputs::{
-    evidence_runs, joint_ratios, own_population_r_hat, population_ess, population_r_hat,
-    read_refit, refit_residuals, sorted_column, RefitSource,
+    evidence_runs, joint_ratios, read_refit, refit_gates, refit_residuals, sorted_column,
+    RefitSource,
 };
 use crate::io::diagnose_inputs::{measurement_errors, setup_errors};
 use crate::io::read_json;
@@ -389,11 +389,11 @@ fn run_gated(
 ) -> anyhow::Result<StageOutcome> {
     let r = step(&o)?;
     let summary = o.out.join("summary.parquet");
-    let base_summary = baseline.join("summary.parquet");
+    let gates = refit_gates(&summary, &baseline.join("summary.parquet"))?;
     let Some((why, more_runs, factor)) = retry_rule(
-        population_r_hat(&summary)?,
-        own_population_r_hat(&summary, &base_summary)?,
-        population_ess(&summary, &base_summary)?,
+        gates.r_hat,
+        gates.own_r_hat,
+        gates.own_ess,
         MIN_ESS_PER_RUN * o.sampler.runs as f64,
     ) else {
         return Ok(r);
