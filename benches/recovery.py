@@ -21,9 +21,8 @@ The truth's generating population mean is what mu_* should cover; the boards' va
 realised draws the per-board rows should cover.
 
 The board rows of one campaign are not independent trials: every board's physical interval
-holds the same shared uncertainty (the model-form discrepancy's part the parameters absorb,
-the balance's common bias), so they cover or miss together, and a binomial test over them
-tests one draw many times. The contrasts are the independent part: per parameter and draw,
+holds the same shared uncertainty (the model-form discrepancy's part the parameters absorb),
+so they cover or miss together, and a binomial test over them tests one draw many times. The contrasts are the independent part: per parameter and draw,
 a board's ln value less the mean over the campaign's boards (a shift common to the boards
 cancels). Their 90 % intervals (from boards.parquet's draws) against the truth's contrasts,
 pooled, get the binomial test too, with the z-scores' sd (1 when the widths are right).

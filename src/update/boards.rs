@@ -19,9 +19,9 @@ use crate::update::posterior::{
 };
 use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
-    all_labels, balance_bias_draw, covariate_offsets, discrepancy_for, mass_obs, modes_needed,
-    predictors, shape_map, thickness_obs, unit_and_residual_data, BoardCoordinates, Labels,
-    MassRow, ModelErrorPrior, ModelSpec, ObsMeta, StepTarget,
+    all_labels, covariate_offsets, discrepancy_for, mass_obs, modes_needed, predictors, shape_map,
+    thickness_obs, unit_and_residual_data, BoardCoordinates, Labels, MassRow, ModelErrorPrior,
+    ModelSpec, ObsMeta, StepTarget,
 };
 use crate::update::rom_box::RomBoxViolation;
 use crate::update::sampler::{box_violations, particles_of, Results};
@@ -429,7 +429,7 @@ fn board_units(
             findings,
         )?;
         data.mass = match masses.get(b) {
-            Some(m) if mass_updated => mass_obs(m, b, findings),
+            Some(m) if mass_updated => mass_obs(m, b, spec.mass_floor_rel, findings),
             Some(_) => None,
             None => {
                 findings.push(Finding::new(
@@ -617,19 +617,16 @@ fn board_box(
     Ok(())
 }
 
-/// Step 1's draws as the tables' rows: the population, the boards, and the summary. The
-/// summary's physical quantiles are those of the draws less what the data cannot inform and
-/// every board shares, one draw of each per particle from streams keyed by `seed`: the
-/// model-form discrepancy's part the parameters absorb (`Discrepancy::confounded_shift`),
-/// and, where boards were weighed, the balance's common bias of sd `balance_bias_rel`
-/// ([`crate::update::problem::balance_bias_draw`]), which divides every mass scale (and with
-/// it the moduli of a per-mass population) by 1 + β. None where neither applies.
+/// Step 1's draws as the tables' rows: the population, the boards, and the summary. With a
+/// model-form discrepancy, the summary's physical quantiles are those of the draws less the
+/// discrepancy's part the parameters absorb (`Discrepancy::confounded_shift`), one draw of
+/// it per particle from the stream keyed by `seed`.
 pub fn board_tables(
     bm: &BoardModel,
     bt: &BoardTarget,
     results: &Results,
     labels: &Labels,
-    (runs, seed, balance_bias_rel): (usize, u64, f64),
+    (runs, seed): (usize, u64),
 ) -> (DrawTable, DrawTable, Vec<SummaryRow>) {
     let (pcols, pop_of) = population_columns(
         &bt.step.target,
@@ -653,19 +650,6 @@ pub fn board_tables(
     let mut boards_phys = DrawTable::new(&bcols);
     let target = &bt.step.target;
     let disc = target.errors.discrepancy.as_ref();
-    // The balance's bias applies to the mass scale's (relative) coordinate where a board was
-    // weighed; a point mass weighed with the board is left as fitted.
-    let mass_coord = bm
-        .param_names
-        .iter()
-        .position(|p| p == crate::fem::params::names::MASS_SCALE)
-        .filter(|_| balance_bias_rel > 0.0 && target.units.iter().any(|u| u.mass.is_some()));
-    let physical = disc.is_some() || mass_coord.is_some();
-    let unbias = |x: &mut [f64], beta: f64| {
-        if let Some(k) = mass_coord {
-            x[k] = (1.0 + x[k]) / (1.0 + beta) - 1.0;
-        }
-    };
     let board_row = |p: &Particle<Terms>, b: usize, x: &[f64]| {
         let v = target.values(&p.aux, b, x);
         let mut row: Vec<f64> = bm.updated.iter().map(|&k| v[k]).collect();
@@ -680,27 +664,27 @@ pub fn board_tables(
         for (b, name) in bt.step.unit_names.iter().enumerate() {
             boards.push(r, i, Some(name), &board_row(p, b, &p.x[b]));
         }
-        if !physical {
+        if disc.is_none() {
             continue;
         }
-        // The population mean μ leads g, in the units' coordinates; both shifts are common to
-        // every unit and to μ, so the spreads do not move (β's scaling of the mass scale's
-        // spread, 3e-4 of it, is left out).
+        // The population mean μ leads g, in the units' coordinates; the shift is common to
+        // every unit and to μ (d is shared), so the spreads do not move.
         let a = confounded_draw(target, &p.g, seed, (r, i));
-        let beta = balance_bias_draw(balance_bias_rel, seed, (r, i));
         let mut g = p.g.clone();
         g.iter_mut().zip(&a).for_each(|(v, s)| *v -= s);
-        unbias(&mut g, beta);
         pop_phys.push(r, i, None, &pop_of(&g));
         for (b, name) in bt.step.unit_names.iter().enumerate() {
-            let mut x = less_confounded(&p.x[b], &a);
-            unbias(&mut x, beta);
-            boards_phys.push(r, i, Some(name), &board_row(p, b, &x));
+            boards_phys.push(
+                r,
+                i,
+                Some(name),
+                &board_row(p, b, &less_confounded(&p.x[b], &a)),
+            );
         }
     }
     let mut summary = pop.summarize(runs, true);
     summary.extend(boards.summarize(runs, true));
-    if physical {
+    if disc.is_some() {
         let mut phys = pop_phys.summarize(runs, true);
         phys.extend(boards_phys.summarize(runs, true));
         for (row, ph) in summary.iter_mut().zip(phys) {
