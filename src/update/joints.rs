@@ -116,12 +116,18 @@ pub fn joint_models(
     // added to the boards: the same point mass in the bolted model, its value from each
     // board's step-1 draw like every board parameter.
     let point_mass = step1_point_mass(step1_enrichment, step1, step1_source)?;
-    let mut baseline = FeModel::build_with(
-        board,
-        Setup::bolted(),
-        board.mesh_for(&Setup::bolted()),
-        model_opts,
-    )?;
+    // Without a joint enrichment the baseline is the model itself: a copy, not a second
+    // assembly (about a second of step 2 on the realistic board).
+    let mut baseline = if enr.joint_model == crate::fem::JointModel::baseline() {
+        model.clone()
+    } else {
+        FeModel::build_with(
+            board,
+            Setup::bolted(),
+            board.mesh_for(&Setup::bolted()),
+            model_opts,
+        )?
+    };
     if let Some(pm) = &point_mass {
         for m in [&mut model, &mut baseline] {
             m.add_point_mass_param(&pm.parameter, pm.x_m, pm.y_m, pm.mean_kg)
