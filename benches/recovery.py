@@ -22,10 +22,12 @@ realised draws the per-board rows should cover.
 
 The board rows of one campaign are not independent trials: every board's physical interval
 holds the same shared uncertainty (the model-form discrepancy's part the parameters absorb),
-so they cover or miss together, and a binomial test over them tests one draw many times. The contrasts are the independent part: per parameter and draw,
-a board's ln value less the mean over the campaign's boards (a shift common to the boards
-cancels). Their 90 % intervals (from boards.parquet's draws) against the truth's contrasts,
-pooled, get the binomial test too, with the z-scores' sd (1 when the widths are right).
+so they cover or miss together, and a binomial test over them tests one draw many times. The
+contrasts take that shared part out: per parameter and draw, a board's ln value less the mean
+over the campaign's boards (a shift common to the boards cancels; n boards leave n - 1 free
+contrasts a parameter, so the test is slightly optimistic). Their 90 % intervals (from
+boards.parquet's draws) against the truth's contrasts, pooled, get the binomial test too,
+with the z-scores' sd (1 when the widths are right).
 """
 import json
 import math
@@ -34,6 +36,12 @@ import sys
 
 import numpy as np
 import pandas as pd
+
+
+def inside_flag(kind, row):
+    """Whether a scored row (board and contrast rows: (board, parameter, inside, ...); the
+    population's: (parameter, inside, ...)) lies inside its interval."""
+    return row[2] if kind in ("board", "contrast") else row[1]
 
 
 def binom_two_sided(k, n, p):
@@ -135,7 +143,7 @@ def main(works):
         for k in pooled:
             pooled[k] += out[k]
         counts = ", ".join(
-            f"{k} {sum(x[{'board': -4, 'contrast': 2}.get(k, 1)] for x in v)}/{len(v)}" for k, v in out.items()
+            f"{k} {sum(inside_flag(k, x) for x in v)}/{len(v)}" for k, v in out.items()
         )
         spread = (max(runs) - min(runs)) if runs else float("nan")
         worst = float(t2.abs().max())
@@ -153,7 +161,7 @@ def main(works):
     print("pooled:")
     for k, v in pooled.items():
         n = len(v)
-        inside_n = sum(x[2] if k in ("board", "contrast") else x[1] for x in v)
+        inside_n = sum(inside_flag(k, x) for x in v)
         if n:
             print(f"  {k}: {inside_n}/{n} = {100 * inside_n / n:.1f} % inside (nominal 90 %), "
                   f"binomial two-sided p = {binom_two_sided(inside_n, n, 0.9):.3f}")

@@ -118,7 +118,7 @@ pub fn joint_models(
     let point_mass = step1_point_mass(step1_enrichment, step1, step1_source)?;
     // Without a joint enrichment the baseline is the model itself: a copy, not a second
     // assembly (about a second of step 2 on the realistic board).
-    let mut baseline = if enr.joint_model == crate::fem::JointModel::baseline() {
+    let mut baseline = if model.setup == Setup::bolted() {
         model.clone()
     } else {
         FeModel::build_with(
