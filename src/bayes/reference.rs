@@ -399,6 +399,41 @@ fn make_positive(a: &[f64], d: usize, floor: f64) -> Vec<f64> {
         .collect()
 }
 
+/// The smallest curvature [`newton_mode`] keeps, relative to each coordinate's own (the
+/// Hessian's eigenvalues after scaling to unit diagonal, [`make_positive_scaled`]).
+const NEWTON_CURVATURE_FLOOR: f64 = 1e-8;
+
+/// [`make_positive`] in the coordinates' own scales: with S = diag(√|a_ii|), the eigenvalues
+/// of S⁻¹ A S⁻¹ are clamped to ≥ `rel_floor`, then scaled back. A floor relative to the
+/// largest diagonal entry depends on the coordinates' units: a board's mass pinned by the
+/// balance to 3e-6 against a shear modulus the modes leave at 3e-2 is a precision ratio of
+/// 1e8, and a floor of 1e-8 of the largest then overwrote the shear modulus's curvature (the
+/// lumped-mass campaign with `--mass-floor 0`, whose Laplace reference then diverged). A
+/// coordinate with zero curvature is scaled by the largest, as before.
+fn make_positive_scaled(a: &[f64], d: usize, rel_floor: f64) -> Vec<f64> {
+    let diag_max = (0..d)
+        .map(|i| a[i * d + i].abs())
+        .filter(|v| v.is_finite())
+        .fold(0.0, f64::max)
+        .max(1e-300);
+    let s: Vec<f64> = (0..d)
+        .map(|i| {
+            let v = a[i * d + i].abs();
+            if v.is_finite() && v > 0.0 {
+                v.sqrt()
+            } else {
+                diag_max.sqrt()
+            }
+        })
+        .collect();
+    let scaled: Vec<f64> = (0..d * d).map(|k| a[k] / (s[k / d] * s[k % d])).collect();
+    make_positive(&scaled, d, rel_floor)
+        .iter()
+        .enumerate()
+        .map(|(k, v)| v * s[k / d] * s[k % d])
+        .collect()
+}
+
 /// Newton's method on one unit's f_b; returns (x̂, precision −∇²f at x̂, converged, evals).
 fn unit_mode<T: Target>(
     t: &T,
@@ -445,8 +480,7 @@ pub(crate) fn newton_mode(
         // Precision = −Hessian, made positive-definite (the objective need not be concave
         // far from the mode).
         let neg: Vec<f64> = hess.iter().map(|v| -v).collect();
-        let diag_max = (0..d).map(|i| neg[i * d + i].abs()).fold(0.0, f64::max);
-        let p = make_positive(&neg, d, 1e-8 * diag_max.max(1e-300));
+        let p = make_positive_scaled(&neg, d, NEWTON_CURVATURE_FLOOR);
         prec = p.clone();
         let mut accepted = false;
         for _ in 0..20 {
@@ -491,8 +525,7 @@ pub(crate) fn newton_mode(
     // Precision at the final point.
     if let Some((_, _, hess)) = fd_newton_terms(f, &x, &h) {
         let neg: Vec<f64> = hess.iter().map(|v| -v).collect();
-        let diag_max = (0..d).map(|i| neg[i * d + i].abs()).fold(0.0, f64::max);
-        prec = make_positive(&neg, d, 1e-8 * diag_max.max(1e-300));
+        prec = make_positive_scaled(&neg, d, NEWTON_CURVATURE_FLOOR);
     }
     (x, prec, converged)
 }
@@ -1652,6 +1685,33 @@ mod tests {
     /// gives a step of 0.2 / √1e-6 = 200 without it; with it, round 0's step. A
     /// well-conditioned precision keeps its own fifth of an sd, and a singular one (an
     /// infinite or NaN sd) falls back to round 0's.
+    #[test]
+    fn newton_keeps_a_weak_coordinates_curvature_beside_a_pinned_one() {
+        // A unit's mass pinned by the balance (sd 2.8e-6) beside a shear modulus the modes
+        // leave at sd 0.03, correlated at 0.5: precisions 1e8 apart. The precision returned
+        // is the Hessian's own; a floor relative to the largest diagonal entry (1e-8 of it,
+        // 1.3e3) raised the weak direction's 833 and broke the reference built on it.
+        let (s1, s2, rho) = (2.8e-6f64, 0.03f64, 0.5f64);
+        let cov = [s1 * s1, rho * s1 * s2, rho * s1 * s2, s2 * s2];
+        let a = spd_inverse(&cov, 2);
+        let centre = [0.3, -0.2];
+        let mut f = |x: &[f64]| -> f64 {
+            let u = [x[0] - centre[0], x[1] - centre[1]];
+            -0.5 * (a[0] * u[0] * u[0] + 2.0 * a[1] * u[0] * u[1] + a[3] * u[1] * u[1])
+        };
+        let (x, prec, converged) = newton_mode(&mut f, &[0.3 + 1e-5, 0.0], &[1e-7, 1e-3], 30);
+        assert!(converged);
+        assert!((x[0] - centre[0]).abs() < 1e-3 * s1, "{x:?}");
+        assert!((x[1] - centre[1]).abs() < 1e-3 * s2, "{x:?}");
+        let got = spd_inverse(&prec, 2);
+        for k in 0..4 {
+            assert!(
+                (got[k] - cov[k]).abs() < 1e-4 * cov[k].abs(),
+                "{got:?} vs {cov:?}"
+            );
+        }
+    }
+
     #[test]
     fn later_round_steps_never_exceed_round_zeros() {
         let hg0 = [1e-2, 1e-2];
