@@ -658,8 +658,9 @@ fn assemble_rom(
     let basis = Mat::from_fn(n, r, |i, j| vecs[j][i]);
     // Vᵀ T V per affine term, the terms in parallel (each product sequential: the same
     // bytes whatever the thread count).
+    let basis_rows = rows_of(&basis, 0, r);
     let project = |val: &Vec<f64>| -> Mat<f64> {
-        let kv = sparse_times(&model.pattern, val, &basis, 0, r);
+        let kv = sparse_times_rows(&model.pattern, val, &basis_rows, r);
         let mut m = at_b(basis.as_ref(), kv.as_ref());
         symmetrize(&mut m);
         m
@@ -1031,11 +1032,32 @@ fn sparse_times(
     j0: usize,
     w: usize,
 ) -> Mat<f64> {
-    let mut out = Mat::<f64>::zeros(x.nrows(), w);
+    sparse_times_rows(pattern, val, &rows_of(x, j0, w), w)
+}
+
+/// X[:, j0 .. j0 + w] row-major ([`super::sparse::Pattern::matmat_rows`]' layout).
+fn rows_of(x: &Mat<f64>, j0: usize, w: usize) -> Vec<f64> {
+    let n = x.nrows();
+    let mut out = vec![0.0; n * w];
     for j in 0..w {
-        pattern.matvec(val, x.col_as_slice(j0 + j), out.col_as_slice_mut(j));
+        for (i, v) in x.col_as_slice(j0 + j).iter().enumerate() {
+            out[i * w + j] = *v;
+        }
     }
     out
+}
+
+/// T X for X given row-major n × w ([`rows_of`]), as a matrix.
+fn sparse_times_rows(
+    pattern: &super::sparse::Pattern,
+    val: &[f64],
+    xr: &[f64],
+    w: usize,
+) -> Mat<f64> {
+    let n = pattern.n;
+    let mut yr = vec![0.0; n * w];
+    pattern.matmat_rows(val, xr, w, &mut yr);
+    Mat::from_fn(n, w, |i, j| yr[i * w + j])
 }
 
 /// Aᵀ B, one sequential faer product.
