@@ -474,6 +474,11 @@ pub struct FeModel {
     pub patches: Vec<Vec<usize>>,
     pub(crate) pattern: Pattern,
     pub(crate) k_terms: Vec<Vec<f64>>,
+    /// Per stiffness term, the runs of its value array that hold its nonzeros
+    /// ([`Pattern::nonzero_runs`]): a joint's or a copper region's term stores the whole
+    /// pattern, mostly zeros, and K(p) is formed for every full solve and every candidate
+    /// point of the ROM's adaptive design.
+    k_runs: Vec<Vec<(usize, usize)>>,
     pub(crate) m_terms: Vec<Vec<f64>>,
     symbolic: Arc<SymbolicCholesky<usize>>,
 }
@@ -1630,6 +1635,7 @@ impl FeModel {
             k_term_names: kb.names,
             m_term_names: mb.names,
             patches,
+            k_runs: k_terms.iter().map(|t| Pattern::nonzero_runs(t)).collect(),
             pattern,
             k_terms,
             m_terms,
@@ -1698,7 +1704,8 @@ impl FeModel {
 
     /// Values of K(p) on the shared pattern.
     pub(crate) fn k_values(&self, coefs: &[f64]) -> Vec<f64> {
-        self.pattern.combine(coefs, &self.k_terms)
+        self.pattern
+            .combine_runs(coefs, &self.k_terms, &self.k_runs)
     }
 
     /// Values of M(p) on the shared pattern.

@@ -445,16 +445,18 @@ impl Rom {
         }
         let y = Mat::from_fn(self.dim(), red.vectors.len(), |i, j| red.vectors[j][i]);
         let ritz = product_seq(self.basis.as_ref(), y.as_ref());
-        let (mut kx, mut mx) = (vec![0.0; n], vec![0.0; n]);
+        // K Φ and M Φ for all the Ritz vectors in one pass over the pattern each.
+        let w = ritz.ncols();
+        let phi = rows_of(&ritz, 0, w);
+        let (mut kx, mut mx) = (vec![0.0; n * w], vec![0.0; n * w]);
+        pat.matmat_rows(&kv, &phi, w, &mut kx);
+        pat.matmat_rows(&mv, &phi, w, &mut mx);
         let lam = &red.eigenvalues;
         let mut worst = 0.0f64;
         for j in 0..lam.len() {
-            let phi: Vec<f64> = (0..n).map(|i| ritz[(i, j)]).collect();
-            pat.matvec(&kv, &phi, &mut kx);
-            pat.matvec(&mv, &phi, &mut mx);
             let r2: f64 = (0..n)
                 .filter(|&i| m_diag[i] > 0.0)
-                .map(|i| (kx[i] - lam[j] * mx[i]).powi(2) / m_diag[i])
+                .map(|i| (kx[i * w + j] - lam[j] * mx[i * w + j]).powi(2) / m_diag[i])
                 .sum();
             let gap = [j.checked_sub(1), Some(j + 1)]
                 .into_iter()

@@ -4,6 +4,9 @@
 
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 
+/// Zeros between two nonzeros of a term that [`Pattern::nonzero_runs`] keeps in one run.
+pub const RUN_GAP: usize = 16;
+
 /// Compressed-column pattern of an `n × n` symmetric matrix, rows sorted per column.
 #[derive(Clone, Debug)]
 pub struct Pattern {
@@ -114,6 +117,45 @@ impl Pattern {
         SparseColMatRef::new(self.symbolic.as_ref(), val)
     }
 
+    /// The runs [start, end) of `vals` outside which every value is zero; gaps shorter
+    /// than [`RUN_GAP`] are kept inside a run (a run's bookkeeping costs more than a few
+    /// zeros).
+    pub fn nonzero_runs(vals: &[f64]) -> Vec<(usize, usize)> {
+        let mut runs: Vec<(usize, usize)> = Vec::new();
+        for (i, v) in vals.iter().enumerate() {
+            if *v == 0.0 {
+                continue;
+            }
+            match runs.last_mut() {
+                Some(last) if i - last.1 < RUN_GAP => last.1 = i + 1,
+                _ => runs.push((i, i + 1)),
+            }
+        }
+        runs
+    }
+
+    /// [`Self::combine`] over each term's [`Self::nonzero_runs`] only: the same sums in the
+    /// same order (the values skipped are zeros), so the same numbers.
+    pub fn combine_runs(
+        &self,
+        coefs: &[f64],
+        terms: &[Vec<f64>],
+        runs: &[Vec<(usize, usize)>],
+    ) -> Vec<f64> {
+        let mut out = vec![0.0; self.row_idx.len()];
+        for ((c, t), rs) in coefs.iter().zip(terms).zip(runs) {
+            if *c == 0.0 {
+                continue;
+            }
+            for &(a, b) in rs {
+                for (o, v) in out[a..b].iter_mut().zip(&t[a..b]) {
+                    *o += c * v;
+                }
+            }
+        }
+        out
+    }
+
     /// Σ cᵢ valsᵢ.
     pub fn combine(&self, coefs: &[f64], terms: &[Vec<f64>]) -> Vec<f64> {
         let mut out = vec![0.0; self.row_idx.len()];
@@ -133,6 +175,37 @@ impl Pattern {
 mod tests {
     use super::*;
     use rand::{RngExt, SeedableRng};
+
+    #[test]
+    fn combining_over_the_nonzero_runs_is_combining_everything() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let n = 30;
+        let pat = Pattern::from_entries(
+            n,
+            (0..n).flat_map(|i| [(i, i), (i, (i + 1) % n), ((i + 1) % n, i)]),
+        );
+        let len = pat.row_idx.len();
+        // A dense term, a term nonzero in two patches, and an all-zero one.
+        let dense: Vec<f64> = (0..len).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let patch: Vec<f64> = (0..len)
+            .map(|i| {
+                if (5..9).contains(&i) || (40..70).contains(&i) {
+                    rng.random_range(-1.0..1.0)
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let terms = vec![dense, patch, vec![0.0; len]];
+        let runs: Vec<_> = terms.iter().map(|t| Pattern::nonzero_runs(t)).collect();
+        assert_eq!(runs[0], vec![(0, len)]);
+        assert_eq!(runs[1], vec![(5, 9), (40, 70)]);
+        assert!(runs[2].is_empty());
+        let coefs = [0.7, -1.3, 2.0];
+        let a = pat.combine_runs(&coefs, &terms, &runs);
+        let b = pat.combine(&coefs, &terms);
+        assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+    }
 
     #[test]
     fn the_multi_column_product_is_the_column_products() {
