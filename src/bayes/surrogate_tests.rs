@@ -237,3 +237,91 @@ fn the_surrogate_with_its_leading_input_fixed_is_the_same_polynomial() {
     far[s.inputs[0]] *= 2.0;
     assert!(s.fix_leading(1, &far).is_none());
 }
+
+/// The correction's evaluation of a group of points together (`ModalTarget::model_shared`):
+/// points that differ in one coordinate share the stiffness terms the other sets, and the
+/// terms and log-likelihoods equal one point at a time to round-off; points that differ in
+/// every coordinate share none and give the same too.
+#[test]
+fn a_group_evaluated_together_gives_each_points_own_terms() {
+    use super::surrogate::{fit_subspace, SubspaceOptions};
+    use std::sync::Arc;
+    let (t, samples, eps) = problem(0.004);
+    let s = Arc::new(
+        fit_unit(&t, 0, &samples, &eps, &[], &SurrogateOptions::default(), 11)
+            .expect("a surrogate"),
+    );
+    let so = SubspaceOptions {
+        rel_tol: 1e-5,
+        max_dim_fraction: 1.0,
+        ..SubspaceOptions::default()
+    };
+    let sub = Arc::new(fit_subspace(&t, 0, &s, &eps, &[], &so, 11).expect("a subspace"));
+    let mut target = t.clone();
+    target.subspaces = vec![Some(Arc::clone(&sub))];
+    let super::target::Compose::Boards {
+        updated,
+        reference,
+        log,
+        ..
+    } = &t.compose
+    else {
+        panic!("a step-1 target");
+    };
+    let unit_x = |v: &[f64]| -> Vec<f64> {
+        updated
+            .iter()
+            .enumerate()
+            .map(|(k, &i)| {
+                if log.get(k).copied().unwrap_or(false) {
+                    (v[i] / reference[k]).ln()
+                } else {
+                    v[i] / reference[k] - 1.0
+                }
+            })
+            .collect()
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let mut u = || 1.6 * rng.random::<f64>() - 0.8;
+    let x0 = unit_x(&s.point(&[u(), u()]));
+    // One coordinate shared, then none.
+    let one: Vec<Vec<f64>> = (0..6)
+        .map(|_| {
+            let x1 = unit_x(&s.point(&[0.0, u()]));
+            vec![x0[0], x1[1]]
+        })
+        .collect();
+    let both: Vec<Vec<f64>> = (0..6).map(|_| unit_x(&s.point(&[u(), u()]))).collect();
+    // The first group shares some stiffness coefficients and not others: both parts of
+    // the shared sum are exercised.
+    let ck = |x: &[f64]| {
+        t.predictor
+            .rom
+            .map
+            .coefficient_values(&t.values(&[], 0, x))
+            .0
+    };
+    let (a, b) = (ck(&one[0]), ck(&one[1]));
+    let same = a
+        .iter()
+        .zip(&b)
+        .filter(|(p, q)| p.to_bits() == q.to_bits())
+        .count();
+    assert!(same > 0 && same < a.len(), "{same} of {} shared", a.len());
+    let mut solved_together = 0;
+    for xs in [one, both] {
+        let refs: Vec<&[f64]> = xs.iter().map(|x| x.as_slice()).collect();
+        let together = target.model_shared(&[], 0, &refs);
+        for (x, c) in xs.iter().zip(&together) {
+            let alone = target.model(&[], 0, x).expect("terms");
+            let c = c.as_ref().expect("terms together");
+            let (la, lc) = (
+                modal::log_lik(&t.units[0], &alone, &eps, &[]),
+                modal::log_lik(&t.units[0], c, &eps, &[]),
+            );
+            assert!((la - lc).abs() <= 1e-9 * la.abs().max(1.0), "{la} vs {lc}");
+            solved_together += 1;
+        }
+    }
+    assert_eq!(solved_together, 12);
+}

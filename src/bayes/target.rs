@@ -486,6 +486,46 @@ impl ModalTarget {
     }
 }
 
+impl ModalTarget {
+    /// [`Target::model`] of unit b at several points `xs` with the same auxiliary values:
+    /// where the unit solves in its mode subspaces, the stiffness terms the points share
+    /// are summed once ([`ModalPredictor::predict_in_modes_shared`]); elsewhere one point
+    /// at a time, as [`Target::model`] does. The correction of step 2's particles to the
+    /// ROM calls it per group (one step-1 draw, ten particles).
+    pub fn model_shared(&self, aux: &[f64], b: usize, xs: &[&[f64]]) -> Vec<Option<Terms>> {
+        let Some(Some(s)) = self.subspaces.get(b).filter(|_| !self.has_covariate()) else {
+            return xs.iter().map(|x| Target::model(self, aux, b, x)).collect();
+        };
+        let data = &self.units[b];
+        let vs: Vec<Vec<f64>> = xs.iter().map(|x| self.values(aux, b, x)).collect();
+        let inside: Vec<usize> = (0..vs.len())
+            .filter(|&i| s.region.box_position(&vs[i]) <= 1.0)
+            .collect();
+        let mut local: Vec<Option<modal::Prediction>> = vec![None; vs.len()];
+        let preds = self.predictor.predict_in_modes_shared(
+            &s.subs,
+            &inside.iter().map(|&i| vs[i].clone()).collect::<Vec<_>>(),
+        );
+        for (&i, p) in inside.iter().zip(preds) {
+            local[i] = p;
+        }
+        vs.iter()
+            .zip(local)
+            .map(|(v, local)| {
+                let pred = match local {
+                    Some(p) => p,
+                    None => self.predictor.predict(v)?,
+                };
+                Some(
+                    self.predictor
+                        .terms(&pred, data, v)
+                        .with_sufficient(data, self.errors.n_modes),
+                )
+            })
+            .collect()
+    }
+}
+
 impl Target for ModalTarget {
     type Cache = Terms;
     type Ctx = Ctx;

@@ -430,7 +430,44 @@ unsafe fn upper_sum_avx2(coefs: &[f64], terms: &[Vec<f64>], r: usize) -> Vec<f64
 #[inline(always)]
 fn upper_sum_body(coefs: &[f64], terms: &[Vec<f64>], r: usize) -> Vec<f64> {
     let mut a = vec![0.0; r * r];
-    for (c, kp) in coefs.iter().zip(terms) {
+    upper_add_body(&mut a, coefs, terms, r, 0..coefs.len().min(terms.len()));
+    a
+}
+
+/// [`upper_sum`] in parts: adds cₖ Tₖ for k in `which` (ascending) to `a`, which holds
+/// the sum of the other terms. Summed in this order, a part shared by several evaluations
+/// (the terms whose coefficients they share) is formed once.
+pub fn upper_add(a: &mut [f64], coefs: &[f64], terms: &[Vec<f64>], r: usize, which: &[usize]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked just above).
+        return unsafe { upper_add_avx2(a, coefs, terms, r, which) };
+    }
+    upper_add_body(a, coefs, terms, r, which.iter().copied())
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn upper_add_avx2(
+    a: &mut [f64],
+    coefs: &[f64],
+    terms: &[Vec<f64>],
+    r: usize,
+    which: &[usize],
+) {
+    upper_add_body(a, coefs, terms, r, which.iter().copied())
+}
+
+#[inline(always)]
+fn upper_add_body(
+    a: &mut [f64],
+    coefs: &[f64],
+    terms: &[Vec<f64>],
+    r: usize,
+    which: impl Iterator<Item = usize>,
+) {
+    for k in which {
+        let (c, kp) = (coefs[k], &terms[k]);
         debug_assert_eq!(kp.len(), r * (r + 1) / 2);
         let mut off = 0;
         for i in 0..r {
@@ -442,7 +479,6 @@ fn upper_sum_body(coefs: &[f64], terms: &[Vec<f64>], r: usize) -> Vec<f64> {
             off += n;
         }
     }
-    a
 }
 
 /// Householder reduction of the full symmetric `a` to tridiagonal (d, e), returning

@@ -1270,6 +1270,14 @@ impl SubspaceRom {
         self.q
     }
 
+    /// Σ cₖ Kₖˢ over the terms k in `which` (ascending), the part of Kˢ that
+    /// [`Rom::eval_nearest_in_parts`] completes.
+    pub fn k_part(&self, ck: &[f64], which: &[usize]) -> Vec<f64> {
+        let mut a = vec![0.0; self.q * self.q];
+        super::dense::upper_add(&mut a, ck, &self.k_flat, self.q, which);
+        a
+    }
+
     /// Wᵀ v: a vector of the ROM's reduced coordinates (length r) in the subspace's.
     pub fn project(&self, v: &[f64]) -> Vec<f64> {
         let q = self.q;
@@ -1378,7 +1386,31 @@ impl Rom {
         cm: &[f64],
         target: &[f64],
     ) -> Result<(f64, Vec<f64>, f64), FemError> {
+        self.eval_nearest_in_parts(sub, ck, cm, target, None)
+    }
+
+    /// [`Self::eval_nearest_in`] with Kˢ's terms outside `shared.1` already summed in
+    /// `shared.0` ([`SubspaceRom::k_part`] at coefficients equal to `ck`'s there): the
+    /// evaluations of one group of particles share every term but their own stiffness's.
+    pub fn eval_nearest_in_parts(
+        &self,
+        sub: &SubspaceRom,
+        ck: &[f64],
+        cm: &[f64],
+        target: &[f64],
+        shared: Option<(&[f64], &[usize])>,
+    ) -> Result<(f64, Vec<f64>, f64), FemError> {
         let (r, q) = (sub.r, sub.q);
+        let k_sum = |ck: &[f64]| -> Vec<f64> {
+            match shared {
+                Some((part, rest)) => {
+                    let mut a = part.to_vec();
+                    super::dense::upper_add(&mut a, ck, &sub.k_flat, q, rest);
+                    a
+                }
+                None => super::dense::upper_sum(ck, &sub.k_flat, q),
+            }
+        };
         let n_mass = sub.m_flat.len().max(1);
         if r != self.dim()
             || cm.len() != n_mass
@@ -1404,7 +1436,7 @@ impl Rom {
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
         if sub.m_flat.is_empty() {
             let d0 = cm[0];
-            let mut a = super::dense::upper_sum(ck, &sub.k_flat, q);
+            let mut a = k_sum(ck);
             let (value, z, overlap) =
                 nearest_ritz(&mut a, q, target, |z: &[f64]| dot(z, target).abs());
             return Ok((
@@ -1417,7 +1449,7 @@ impl Rom {
         // A = L⁻¹ Kˢ L⁻ᵀ; an eigenvector z of A is s = L⁻ᵀ z in the subspace's coordinates
         // (Mˢ-normalised, so y = W s is Mʳ-normalised). The search starts from Lᵀ t, whose
         // s is the reference t itself; overlaps are measured on s, as the ROM's labels are.
-        let ks = super::dense::upper_sum(ck, &sub.k_flat, q);
+        let ks = k_sum(ck);
         let ms = super::dense::upper_sum(cm, &sub.m_flat, q);
         let (l, c) = whiten(symmetric_from_upper(&ks, q), &symmetric_from_upper(&ms, q))
             .map_err(|e| FemError::Factorisation(format!("subspace mass: {e}")))?;

@@ -554,6 +554,10 @@ fn run_starts(
     })
 }
 
+/// Particles evaluated together in the correction to the ROM: a group's (ten in step 2),
+/// at most this many, so that a run without groups still spreads over the threads.
+const SHARED_CHUNK: usize = 16;
+
 /// Correction to the ROM: every particle's units re-evaluated by the ROM and weighted by
 /// L_ROM / L_surrogate, then the correction stage.
 fn correct_to_rom(
@@ -577,16 +581,56 @@ fn correct_to_rom(
         .map(|p| smc::Target::ctx(exact, &p.g))
         .collect();
     let mut lw = vec![0.0; res.particles.len()];
+    // The particles of a group (one step-1 draw each) share all stiffness terms but their
+    // joint's: evaluated together, the shared part is summed once (`model_shared`).
+    let mut by_group: std::collections::BTreeMap<usize, Vec<usize>> = Default::default();
+    for (i, p) in res.particles.iter().enumerate() {
+        by_group.entry(p.group).or_default().push(i);
+    }
+    let chunks: Vec<&[usize]> = by_group
+        .values()
+        .flat_map(|v| v.chunks(SHARED_CHUNK))
+        .collect();
     for b in 0..nu {
         if sur.surrogates[b].is_none() {
             continue;
+        }
+        let mut evaluated: Vec<Option<crate::bayes::modal::Terms>> =
+            vec![None; res.particles.len()];
+        let per_chunk: Vec<Vec<Option<crate::bayes::modal::Terms>>> = chunks
+            .par_iter()
+            .map(|idx| {
+                let p0 = &res.particles[idx[0]];
+                if idx
+                    .iter()
+                    .all(|&i| Arc::ptr_eq(&res.particles[i].aux, &p0.aux))
+                {
+                    let xs: Vec<&[f64]> = idx
+                        .iter()
+                        .map(|&i| res.particles[i].x[b].as_slice())
+                        .collect();
+                    exact.model_shared(&p0.aux, b, &xs)
+                } else {
+                    idx.iter()
+                        .map(|&i| {
+                            let p = &res.particles[i];
+                            smc::Target::model(exact, &p.aux, b, &p.x[b])
+                        })
+                        .collect()
+                }
+            })
+            .collect();
+        for (idx, cs) in chunks.iter().zip(per_chunk) {
+            for (&i, c) in idx.iter().zip(cs) {
+                evaluated[i] = c;
+            }
         }
         res.particles
             .par_iter_mut()
             .zip(ctxs.par_iter())
             .zip(lw.par_iter_mut())
-            .for_each(|((p, ctx), lw)| {
-                let c = smc::Target::model(exact, &p.aux, b, &p.x[b]);
+            .zip(evaluated.into_par_iter())
+            .for_each(|(((p, ctx), lw), c)| {
                 let l = match &c {
                     Some(c) => smc::Target::log_lik(exact, ctx, b, &p.x[b], c),
                     None => f64::NEG_INFINITY,
