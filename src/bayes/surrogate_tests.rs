@@ -110,13 +110,16 @@ fn a_degree_over_the_term_limit_is_not_fitted_and_higher_ones_are_not_tried() {
     assert_eq!(s.degree, 2);
 }
 
-/// The subspaces of the ROM the correction solves in, one per updated mode: verified on the
-/// unit's surrogate box, each smaller than the ROM, exact where its eigenvectors were taken
-/// (the box's centre; to the square of its span tolerance), and within its verified
-/// tolerance of the ROM's log-likelihood on fresh points in the box, through
-/// [`ModalTarget::model`] itself.
-#[test]
-fn the_mode_subspaces_are_exact_at_their_snapshots_and_within_tolerance_in_their_box() {
+/// [`problem`]'s unit 0 with its surrogate and its mode subspaces, fitted with a span
+/// tolerance looser than the default (1e-7): this ROM is small (r = 14), and the looser one
+/// keeps the subspaces strict ones, so the checks on them are not trivially met.
+fn subspace_problem() -> (
+    ModalTarget,
+    std::sync::Arc<super::surrogate::UnitSurrogate>,
+    std::sync::Arc<super::surrogate::UnitSubspace>,
+    Vec<f64>,
+    super::surrogate::SubspaceOptions,
+) {
     use super::surrogate::{fit_subspace, SubspaceOptions};
     use std::sync::Arc;
     let (t, samples, eps) = problem(0.004);
@@ -124,14 +127,48 @@ fn the_mode_subspaces_are_exact_at_their_snapshots_and_within_tolerance_in_their
         fit_unit(&t, 0, &samples, &eps, &[], &SurrogateOptions::default(), 11)
             .expect("a surrogate"),
     );
-    // This ROM is small (r = 14): a looser span tolerance than the default (1e-7) keeps the
-    // subspaces strict ones, so the checks below are not trivially met.
     let so = SubspaceOptions {
         rel_tol: 1e-5,
         max_dim_fraction: 1.0,
         ..SubspaceOptions::default()
     };
     let sub = Arc::new(fit_subspace(&t, 0, &s, &eps, &[], &so, 11).expect("a subspace"));
+    (t, s, sub, eps, so)
+}
+
+/// A step-1 unit's coordinates of the parameter vector v (`Compose::Boards` inverted).
+fn unit_coordinates(t: &ModalTarget, v: &[f64]) -> Vec<f64> {
+    let super::target::Compose::Boards {
+        updated,
+        reference,
+        log,
+        ..
+    } = &t.compose
+    else {
+        panic!("a step-1 target");
+    };
+    updated
+        .iter()
+        .enumerate()
+        .map(|(k, &i)| {
+            if log.get(k).copied().unwrap_or(false) {
+                (v[i] / reference[k]).ln()
+            } else {
+                v[i] / reference[k] - 1.0
+            }
+        })
+        .collect()
+}
+
+/// The subspaces of the ROM the correction solves in, one per updated mode: verified on the
+/// unit's surrogate box, each smaller than the ROM, exact where its eigenvectors were taken
+/// (the box's centre; to the square of its span tolerance), and within its verified
+/// tolerance of the ROM's log-likelihood on fresh points in the box, through
+/// [`ModalTarget::model`] itself.
+#[test]
+fn the_mode_subspaces_are_exact_at_their_snapshots_and_within_tolerance_in_their_box() {
+    use std::sync::Arc;
+    let (t, s, sub, eps, so) = subspace_problem();
     assert!(sub.max_abs_dll <= so.tolerance_dll, "{}", sub.max_abs_dll);
     let r = t.predictor.rom.dim();
     assert_eq!(sub.subs.len(), t.predictor.refs.len());
@@ -170,27 +207,7 @@ fn the_mode_subspaces_are_exact_at_their_snapshots_and_within_tolerance_in_their
             let rel = (a - b) / b;
             assert!(rel.abs() < 1e-4, "mode {m}: {rel:e}");
         }
-        // The unit's coordinates of v, inverting `Compose::Boards`.
-        let super::target::Compose::Boards {
-            updated,
-            reference,
-            log,
-            ..
-        } = &t.compose
-        else {
-            panic!("a step-1 target");
-        };
-        let x: Vec<f64> = updated
-            .iter()
-            .enumerate()
-            .map(|(k, &i)| {
-                if log.get(k).copied().unwrap_or(false) {
-                    (v[i] / reference[k]).ln()
-                } else {
-                    v[i] / reference[k] - 1.0
-                }
-            })
-            .collect();
+        let x = unit_coordinates(&t, &v);
         let tm = target.model(&[], 0, &x).expect("subspace terms");
         let p = t.predictor.predict(&v).expect("ROM");
         let tr = t.predictor.terms(&p, &t.units[0], &v);
@@ -244,43 +261,11 @@ fn the_surrogate_with_its_leading_input_fixed_is_the_same_polynomial() {
 /// every coordinate share none and give the same too.
 #[test]
 fn a_group_evaluated_together_gives_each_points_own_terms() {
-    use super::surrogate::{fit_subspace, SubspaceOptions};
     use std::sync::Arc;
-    let (t, samples, eps) = problem(0.004);
-    let s = Arc::new(
-        fit_unit(&t, 0, &samples, &eps, &[], &SurrogateOptions::default(), 11)
-            .expect("a surrogate"),
-    );
-    let so = SubspaceOptions {
-        rel_tol: 1e-5,
-        max_dim_fraction: 1.0,
-        ..SubspaceOptions::default()
-    };
-    let sub = Arc::new(fit_subspace(&t, 0, &s, &eps, &[], &so, 11).expect("a subspace"));
+    let (t, s, sub, eps, _) = subspace_problem();
     let mut target = t.clone();
     target.subspaces = vec![Some(Arc::clone(&sub))];
-    let super::target::Compose::Boards {
-        updated,
-        reference,
-        log,
-        ..
-    } = &t.compose
-    else {
-        panic!("a step-1 target");
-    };
-    let unit_x = |v: &[f64]| -> Vec<f64> {
-        updated
-            .iter()
-            .enumerate()
-            .map(|(k, &i)| {
-                if log.get(k).copied().unwrap_or(false) {
-                    (v[i] / reference[k]).ln()
-                } else {
-                    v[i] / reference[k] - 1.0
-                }
-            })
-            .collect()
-    };
+    let unit_x = |v: &[f64]| unit_coordinates(&t, v);
     let mut rng = ChaCha8Rng::seed_from_u64(17);
     let mut u = || 1.6 * rng.random::<f64>() - 0.8;
     let x0 = unit_x(&s.point(&[u(), u()]));
