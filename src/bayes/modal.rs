@@ -457,7 +457,7 @@ impl ModalPredictor {
     pub fn predict_in_modes_shared(
         &self,
         subs: &[ModeSubspace],
-        values: &[Vec<f64>],
+        values: &[&[f64]],
     ) -> Vec<Option<Prediction>> {
         let coefs: Vec<Option<(Vec<f64>, Vec<f64>)>> = values
             .iter()

@@ -1680,17 +1680,12 @@ mod tests {
         assert!(info.model_evals < info_none.model_evals + info3.model_evals);
     }
 
-    /// The cap of 6ad6da6: a near-singular precision from a round whose Newton search
-    /// stopped short (one direction with curvature 1e-6 where round 0's steps were 1e-2)
-    /// gives a step of 0.2 / √1e-6 = 200 without it; with it, round 0's step. A
-    /// well-conditioned precision keeps its own fifth of an sd, and a singular one (an
-    /// infinite or NaN sd) falls back to round 0's.
+    /// A unit's mass pinned by the balance (sd 2.8e-6) beside a shear modulus the modes
+    /// leave at sd 0.03, correlated at 0.5: precisions 1e8 apart. The precision returned is
+    /// the Hessian's own; a floor relative to the largest diagonal entry (1e-8 of it, 1.7e3)
+    /// raised the weak direction's (~1.1e3) and broke the reference built on it.
     #[test]
     fn newton_keeps_a_weak_coordinates_curvature_beside_a_pinned_one() {
-        // A unit's mass pinned by the balance (sd 2.8e-6) beside a shear modulus the modes
-        // leave at sd 0.03, correlated at 0.5: precisions 1e8 apart. The precision returned
-        // is the Hessian's own; a floor relative to the largest diagonal entry (1e-8 of it,
-        // 1.3e3) raised the weak direction's 833 and broke the reference built on it.
         let (s1, s2, rho) = (2.8e-6f64, 0.03f64, 0.5f64);
         let cov = [s1 * s1, rho * s1 * s2, rho * s1 * s2, s2 * s2];
         let a = spd_inverse(&cov, 2);
@@ -1712,6 +1707,11 @@ mod tests {
         }
     }
 
+    /// The cap of 6ad6da6: a near-singular precision from a round whose Newton search
+    /// stopped short (one direction with curvature 1e-6 where round 0's steps were 1e-2)
+    /// gives a step of 0.2 / √1e-6 = 200 without it; with it, round 0's step. A
+    /// well-conditioned precision keeps its own fifth of an sd, and a singular one (an
+    /// infinite or NaN sd) falls back to round 0's.
     #[test]
     fn later_round_steps_never_exceed_round_zeros() {
         let hg0 = [1e-2, 1e-2];

@@ -504,7 +504,7 @@ impl ModalTarget {
         let mut local: Vec<Option<modal::Prediction>> = vec![None; vs.len()];
         let preds = self.predictor.predict_in_modes_shared(
             &s.subs,
-            &inside.iter().map(|&i| vs[i].clone()).collect::<Vec<_>>(),
+            &inside.iter().map(|&i| vs[i].as_slice()).collect::<Vec<_>>(),
         );
         for (&i, p) in inside.iter().zip(preds) {
             local[i] = p;
