@@ -21,8 +21,8 @@ The truth's generating population mean is what mu_* should cover; the boards' va
 realised draws the per-board rows should cover.
 
 The board rows of one campaign are not independent trials: every board's physical interval
-holds the same shared uncertainty (the model-form discrepancy's part the parameters absorb),
-so they cover or miss together, and a binomial test over them tests one draw many times. The
+holds the same shared uncertainty (the model-form discrepancy's part the parameters absorb,
+the balance's common bias), so they cover or miss together, and a binomial test over them tests one draw many times. The
 contrasts take that shared part out: per parameter and draw, a board's ln value less the mean
 over the campaign's boards (a shift common to the boards cancels; n boards leave n - 1 free
 contrasts a parameter, so the test is slightly optimistic). Their 90 % intervals (from

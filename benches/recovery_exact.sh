@@ -3,7 +3,7 @@
 # describes exactly: the lab's truth model on the updating model's own free-free mesh (the
 # board file's [mesh], 56 x 35 for the shipped board), so no discretization error is shared
 # by the boards, and the update told that the balance readings carry no buoyancy or
-# calibration error (`--mass-floor 0`; the virtual lab's balance has neither) and that the
+# calibration error (`--balance-bias 0`; the virtual lab's balance has neither) and that the
 # model is exact (`--no-model-error`). On campaigns with the lab's finer truth mesh the
 # boards share the model's discretization error, and per-board coverage is then all or none
 # per parameter whatever the intervals (see the closing notes of issue 9).
@@ -37,7 +37,7 @@ for n in "${names[@]}"; do
     echo "$n: pipeline failed (see $work/make.log)"; tail -5 "$work/make.log"; continue; }
   start=$(date +%s.%N)
   "$hbmu" update boards "$work/ingest" "$work/pair" --extract "$work/extract" \
-    --particles 2000 --runs 4 --no-model-error --mass-floor 0 \
+    --particles 2000 --runs 4 --no-model-error --balance-bias 0 \
     --out "$work/update_boards" --force > "$work/update_boards.log" 2>&1 || {
     echo "$n: update boards failed (see $work/update_boards.log)"; tail -5 "$work/update_boards.log"; continue; }
   echo "$n: $(tail -1 "$work/update_boards.log") [wall $(python3 -c "print(f'{$(date +%s.%N) - $start:.1f}')") s]"

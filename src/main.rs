@@ -307,14 +307,17 @@ struct UpdateArgs {
     /// model's stated fidelity is 1.5]
     #[arg(long, value_name = "PCT")]
     discrepancy_pct: Option<f64>,
-    /// Step 1: floor of the balance term's standard deviation, relative to the weighed mass.
-    /// A balance's readability is not its accuracy: weighing a board against steel
-    /// calibration weights without the air-buoyancy correction shifts its reading by about
-    /// 0.05 %. 0 trusts the readings to their spread and readability (buoyancy-corrected
-    /// readings on a calibrated balance, or a virtual lab's)
-    /// [default: 2e-4]
+    /// Step 1: standard deviation of the balance's error common to every board, relative to
+    /// the weighed mass. A balance's readability is not its accuracy: weighing a board against
+    /// steel calibration weights without the air-buoyancy correction shifts its reading by
+    /// about −0.05 %, and calibration scales every reading alike. Each board's mass term
+    /// holds its readings' own precision; this common part, which the data cannot inform,
+    /// widens the physical masses and moduli (summary.parquet's physical_* columns). 0
+    /// trusts the balance's scale (buoyancy-corrected readings on a calibrated balance, or a
+    /// virtual lab's)
+    /// [default: 3e-4]
     #[arg(long)]
-    mass_floor: Option<f64>,
+    balance_bias: Option<f64>,
 }
 
 #[derive(Subcommand)]
@@ -469,9 +472,9 @@ impl UpdateArgs {
                 discrepancy_freq: self.discrepancy_pct.map(|p| p / 100.0),
                 hold_out_boards: vec![],
                 board_coordinates: Default::default(),
-                mass_floor_rel: self
-                    .mass_floor
-                    .unwrap_or(hbmu::update::problem::ModelSpec::DEFAULT_MASS_FLOOR_REL),
+                balance_bias_rel: self
+                    .balance_bias
+                    .unwrap_or(hbmu::update::problem::ModelSpec::DEFAULT_BALANCE_BIAS_REL),
                 shape_weights: self.shape_weights,
             },
         }
@@ -916,7 +919,7 @@ fn run_update(command: UpdateCommand, verbose: bool) -> anyhow::Result<i32> {
             // Step 2 has neither a balance term nor a model-error term: say so rather than
             // ignore the step-1 options.
             for (given, flag) in [
-                (common.mass_floor.is_some(), "--mass-floor"),
+                (common.balance_bias.is_some(), "--balance-bias"),
                 (common.no_model_error, "--no-model-error"),
             ] {
                 if given {

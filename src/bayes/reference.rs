@@ -408,8 +408,8 @@ const NEWTON_CURVATURE_FLOOR: f64 = 1e-8;
 /// largest diagonal entry depends on the coordinates' units: a board's mass pinned by the
 /// balance to 3e-6 against a shear modulus the modes leave at 3e-2 is a precision ratio of
 /// 1e8, and a floor of 1e-8 of the largest then overwrote the shear modulus's curvature (the
-/// lumped-mass campaign with `--mass-floor 0`, whose Laplace reference then diverged). A
-/// coordinate with zero curvature is scaled by the largest, as before.
+/// lumped-mass campaign with the mass term at the balance's precision, whose Laplace reference
+/// then diverged). A coordinate with zero curvature is scaled by the largest, as before.
 fn make_positive_scaled(a: &[f64], d: usize, rel_floor: f64) -> Vec<f64> {
     let diag_max = (0..d)
         .map(|i| a[i * d + i].abs())

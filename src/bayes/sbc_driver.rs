@@ -100,6 +100,7 @@ pub fn build_target(p: &Problem) -> ModalTarget {
             reference,
             log: vec![],
             per_mass: None,
+            total_mass: None,
         },
         prior: PopulationPrior {
             mu_mean: vec![0.0; d],

@@ -195,6 +195,9 @@ pub enum Compose {
         log: Vec<bool>,
         /// Moduli per unit mass ([`PerMass`]); `None`: every coordinate is its own parameter.
         per_mass: Option<PerMass>,
+        /// The mass coordinate as the weighed total beside a point mass ([`TotalMass`]);
+        /// `None`: the mass coordinate is the board's own mass scale.
+        total_mass: Option<TotalMass>,
     },
     /// Step 2: p[board_params[k]] = aux[unit_board[b] · board_params.len() + k] (the step-1
     /// draw of unit b's board, absolute values) and, log-linearly in the unit's coordinates,
@@ -238,6 +241,43 @@ pub struct PerMass {
     pub specific: Vec<bool>,
 }
 
+/// Step-1 coordinates of a point mass beside the board's mass scale (the diagnosis's
+/// `added_mass` refit): coordinate `mass` is the weighed total, board and point mass,
+/// relative to its nominal, x_T = M / (M₀ + m_ref) − 1, and the board's own mass scale
+/// follows as 1 + x_m = (1 + x_T)(1 + r) − r e^{x_a}, with x_a = ln(m / m_ref) the point
+/// mass's coordinate and r = m_ref / M₀.
+///
+/// Why: the balance weighs the board with the point mass, to 3e-6 of it on a 0.1 mg
+/// balance, so in the parameters themselves the posterior lies along the curved ridge
+/// M₀ (1 + x_m) + m_ref e^{x_a} = M. A Gaussian reference and random-walk moves follow a
+/// curved ridge thinner than their steps badly: the refit took 17–24 tempering stages and
+/// ended short of its ESS (stop 87; stop 88 measured 847 s and R-hat 1.33). In these
+/// coordinates the balance pins x_T alone and the modes, which tell the point mass from a
+/// mass spread over the board, pin x_a; each posterior is close to a normal in them.
+#[derive(Clone, Debug)]
+pub struct TotalMass {
+    /// Index (into the unit coordinates) of the mass coordinate (x_T in place of x_m).
+    pub mass: usize,
+    /// Index of the point mass's logarithmic coordinate x_a.
+    pub point: usize,
+    /// m_ref / M₀: the point mass's reference over the board's nominal mass.
+    pub ratio: f64,
+}
+
+impl TotalMass {
+    /// The board's own mass-scale coordinate x_m at unit coordinates x (x_T at `mass`).
+    pub fn board_mass_coordinate(&self, x: &[f64]) -> f64 {
+        let r = self.ratio;
+        (1.0 + x[self.mass]) * (1.0 + r) - r * x[self.point].exp() - 1.0
+    }
+
+    /// The inverse: x_T from the board's mass-scale coordinate x_m and x_a.
+    pub fn total_coordinate(&self, x_m: f64, x_a: f64) -> f64 {
+        let r = self.ratio;
+        (1.0 + x_m + r * x_a.exp()) / (1.0 + r) - 1.0
+    }
+}
+
 impl PerMass {
     /// Whether coordinate k is a modulus per unit mass.
     pub fn is_specific(&self, k: usize) -> bool {
@@ -252,10 +292,28 @@ impl PerMass {
 }
 
 impl Compose {
+    /// Step 1: the unit coordinates with the mass coordinate as the board's own mass scale
+    /// (x_m; [`TotalMass`] holds the weighed total there), so that every other rule reads
+    /// them as before. Borrowed unchanged without a total-mass coordinate, and in step 2.
+    pub fn board_coordinates<'a>(&self, x: &'a [f64]) -> std::borrow::Cow<'a, [f64]> {
+        match self {
+            Compose::Boards {
+                total_mass: Some(t),
+                ..
+            } => {
+                let mut y = x.to_vec();
+                y[t.mass] = t.board_mass_coordinate(x);
+                std::borrow::Cow::Owned(y)
+            }
+            _ => std::borrow::Cow::Borrowed(x),
+        }
+    }
+
     /// Step 1: a unit's parameters relative to their references, p_k / reference_k − 1 (ln
     /// of it on a logarithmic coordinate), from its coordinates x: x itself unless moduli are
-    /// per unit mass. Step 2: x.
+    /// per unit mass or the mass coordinate is the weighed total. Step 2: x.
     pub fn relative_params(&self, x: &[f64]) -> Vec<f64> {
+        let x = &*self.board_coordinates(x);
         match self {
             Compose::Boards {
                 per_mass: Some(pm), ..
@@ -333,7 +391,9 @@ impl ModalTarget {
                 reference,
                 log,
                 per_mass,
+                ..
             } => {
+                let x = &*self.compose.board_coordinates(x);
                 for (k, &i) in updated.iter().enumerate() {
                     v[i] = if log.get(k).copied().unwrap_or(false) {
                         reference[k] * x[k].exp()
@@ -674,6 +734,7 @@ mod tests {
                 reference,
                 log: vec![],
                 per_mass: None,
+                total_mass: None,
             },
             prior: PopulationPrior {
                 mu_mean: vec![0.0; 4],
@@ -841,6 +902,7 @@ mod tests {
                 mass: 2,
                 specific: vec![true, true, false],
             }),
+            total_mass: None,
         };
         let ratio = |x: &[f64]| {
             let v = t.values(&[], 0, x);
@@ -866,6 +928,48 @@ mod tests {
             let r = v[i] / reference[k] - 1.0;
             assert!((rel[k] - r).abs() < 1e-14, "{k}: {} {r}", rel[k]);
         }
+    }
+
+    /// Beside a point mass the mass coordinate is the weighed total: whatever the point
+    /// mass's coordinate, the board's mass scale and the point mass add up to
+    /// (M₀ + m_ref)(1 + x_T), and the moduli per unit mass follow the board's own mass scale.
+    #[test]
+    fn a_total_mass_coordinate_holds_the_weighed_total_whatever_the_point_mass() {
+        let (m0_g, m_ref_g) = (12.7, 0.127);
+        let t = TotalMass {
+            mass: 1,
+            point: 2,
+            ratio: m_ref_g / m0_g,
+        };
+        let c = Compose::Boards {
+            updated: vec![0, 1, 2],
+            reference: vec![2.0e10, 1.0, 1e-3 * m_ref_g],
+            log: vec![false, false, true],
+            per_mass: Some(PerMass {
+                mass: 1,
+                specific: vec![true, false, false],
+            }),
+            total_mass: Some(t.clone()),
+        };
+        let x_t = 3e-4;
+        for x_a in [-4.0, -1.0, 0.0, 0.7, 2.5] {
+            let x = [0.01, x_t, x_a];
+            let rel = c.relative_params(&x);
+            let total = m0_g * (1.0 + rel[1]) + m_ref_g * rel[2].exp();
+            let want = (m0_g + m_ref_g) * (1.0 + x_t);
+            assert!(
+                (total - want).abs() <= 1e-13 * want,
+                "{x_a}: {total} {want}"
+            );
+            // The modulus per unit mass scale is 1 + x_0 of its reference, as without a
+            // point mass.
+            assert!(((1.0 + rel[0]) / (1.0 + rel[1]) - 1.01).abs() < 1e-14);
+            assert_eq!(rel[2], x_a);
+            let x_m = t.board_mass_coordinate(&x);
+            assert!((t.total_coordinate(x_m, x_a) - x_t).abs() < 1e-15);
+        }
+        // At the point mass's reference, x_T = 0 is the nominal board.
+        assert!(t.board_mass_coordinate(&[0.0, 0.0, 0.0]).abs() < 1e-15);
     }
 
     /// Step 2 carries a board's coefficient in aux after its parameters and scales the

@@ -7,7 +7,7 @@
 use crate::bayes::modal::{CovariateEffect, Terms, UnitData};
 use crate::bayes::population::PopulationPrior;
 use crate::bayes::smc::Particle;
-use crate::bayes::target::{Compose, ErrorModel, ModalTarget, PerMass};
+use crate::bayes::target::{Compose, ErrorModel, ModalTarget, PerMass, TotalMass};
 use crate::fem::params::names;
 use crate::fem::{Board, FeModel, Params, Rom, Setup};
 use crate::findings::{Finding, Findings, Severity};
@@ -19,9 +19,9 @@ use crate::update::posterior::{
 };
 use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
-    all_labels, covariate_offsets, discrepancy_for, mass_obs, modes_needed, predictors, shape_map,
-    thickness_obs, unit_and_residual_data, BoardCoordinates, Labels, MassRow, ModelErrorPrior,
-    ModelSpec, ObsMeta, StepTarget,
+    all_labels, balance_bias_draw, covariate_offsets, discrepancy_for, mass_obs, modes_needed,
+    predictors, shape_map, thickness_obs, unit_and_residual_data, BoardCoordinates, Labels,
+    MassRow, ModelErrorPrior, ModelSpec, ObsMeta, StepTarget,
 };
 use crate::update::rom_box::RomBoxViolation;
 use crate::update::sampler::{box_violations, particles_of, Results};
@@ -160,6 +160,10 @@ pub struct BoardTarget {
     pub d0: usize,
 }
 
+/// The population's coordinate of the mass beside a point mass ([`TotalMass`]): the weighed
+/// total over its nominal (the board's nominal mass and the point mass's reference).
+pub const TOTAL_MASS_SCALE: &str = "total_mass_scale";
+
 /// Step 1's target: the boards with free-free pairs or a mass are its units. `masses`: the
 /// balance's per board; `covariate_values`: a temperature enrichment's column per measurement
 /// with its source; `thickness_m`: the boards' measured core thickness; `model_error`: the
@@ -290,13 +294,30 @@ pub fn board_target(
             format!("moduli per unit mass scale need {} among the updated parameters ({}): the population is formed in the parameters themselves", crate::fem::params::names::MASS_SCALE, param_names[..d0].join(", ")),
         ));
     }
+    // A point mass beside the mass scale: the mass coordinate is the weighed total
+    // (`TotalMass` says why). Not with the core thickness updated, whose share of the mass
+    // the total would have to carry too: there the coordinates stay the parameters.
+    let total_mass = match (&bm.enrichment, mass) {
+        (Some(e), Some(mass)) if !param_names.iter().any(|p| p == names::CORE_THICKNESS) => {
+            match &e.effect {
+                BoardEffect::PointMass { reference_kg, .. } => Some(TotalMass {
+                    mass,
+                    point: d0,
+                    ratio: 1e3 * reference_kg / nominal_mass_g,
+                }),
+                BoardEffect::Covariate { .. } => None,
+            }
+        }
+        _ => None,
+    };
     // The population's coordinates: names and the values x = 0 stands for.
     let (pop_names, pop_reference): (Vec<String>, Vec<f64>) = (0..d)
-        .map(|k| match &per_mass {
-            Some(pm) if pm.is_specific(k) => (
+        .map(|k| match (&per_mass, &total_mass) {
+            (Some(pm), _) if pm.is_specific(k) => (
                 crate::fem::params::names::per_mass_scale(&param_names[k]),
                 reference[k] / reference[pm.mass],
             ),
+            (_, Some(t)) if t.mass == k => (TOTAL_MASS_SCALE.to_string(), reference[k]),
             _ => (param_names[k].clone(), reference[k]),
         })
         .unzip();
@@ -307,6 +328,7 @@ pub fn board_target(
             reference: reference.clone(),
             log: log.clone(),
             per_mass,
+            total_mass,
         },
         prior,
         errors: ErrorModel {
@@ -429,7 +451,7 @@ fn board_units(
             findings,
         )?;
         data.mass = match masses.get(b) {
-            Some(m) if mass_updated => mass_obs(m, b, spec.mass_floor_rel, findings),
+            Some(m) if mass_updated => mass_obs(m, b, findings),
             Some(_) => None,
             None => {
                 findings.push(Finding::new(
@@ -617,16 +639,19 @@ fn board_box(
     Ok(())
 }
 
-/// Step 1's draws as the tables' rows: the population, the boards, and the summary. With a
-/// model-form discrepancy, the summary's physical quantiles are those of the draws less the
-/// discrepancy's part the parameters absorb (`Discrepancy::confounded_shift`), one draw of
-/// it per particle from the stream keyed by `seed`.
+/// Step 1's draws as the tables' rows: the population, the boards, and the summary. The
+/// summary's physical quantiles are those of the draws less what the data cannot inform and
+/// every board shares, one draw of each per particle from streams keyed by `seed`: the
+/// model-form discrepancy's part the parameters absorb (`Discrepancy::confounded_shift`),
+/// and, where boards were weighed, the balance's common bias of sd `balance_bias_rel`
+/// ([`crate::update::problem::balance_bias_draw`]), which divides every mass scale (and with
+/// it the moduli of a per-mass population) by 1 + β. None where neither applies.
 pub fn board_tables(
     bm: &BoardModel,
     bt: &BoardTarget,
     results: &Results,
     labels: &Labels,
-    (runs, seed): (usize, u64),
+    (runs, seed, balance_bias_rel): (usize, u64, f64),
 ) -> (DrawTable, DrawTable, Vec<SummaryRow>) {
     let (pcols, pop_of) = population_columns(
         &bt.step.target,
@@ -650,6 +675,20 @@ pub fn board_tables(
     let mut boards_phys = DrawTable::new(&bcols);
     let target = &bt.step.target;
     let disc = target.errors.discrepancy.as_ref();
+    // The balance's bias applies to the mass scale's (relative) coordinate where a board was
+    // weighed; a point mass weighed with the board is left as fitted (beside one, the
+    // coordinate is the weighed total, `TotalMass`, and the board's own mass takes it all).
+    let mass_coord = bm
+        .param_names
+        .iter()
+        .position(|p| p == crate::fem::params::names::MASS_SCALE)
+        .filter(|_| balance_bias_rel > 0.0 && target.units.iter().any(|u| u.mass.is_some()));
+    let physical = disc.is_some() || mass_coord.is_some();
+    let unbias = |x: &mut [f64], beta: f64| {
+        if let Some(k) = mass_coord {
+            x[k] = (1.0 + x[k]) / (1.0 + beta) - 1.0;
+        }
+    };
     let board_row = |p: &Particle<Terms>, b: usize, x: &[f64]| {
         let v = target.values(&p.aux, b, x);
         let mut row: Vec<f64> = bm.updated.iter().map(|&k| v[k]).collect();
@@ -664,27 +703,27 @@ pub fn board_tables(
         for (b, name) in bt.step.unit_names.iter().enumerate() {
             boards.push(r, i, Some(name), &board_row(p, b, &p.x[b]));
         }
-        if disc.is_none() {
+        if !physical {
             continue;
         }
-        // The population mean μ leads g, in the units' coordinates; the shift is common to
-        // every unit and to μ (d is shared), so the spreads do not move.
+        // The population mean μ leads g, in the units' coordinates; both shifts are common to
+        // every unit and to μ, so the spreads do not move (β's scaling of the mass scale's
+        // spread, 3e-4 of it, is left out).
         let a = confounded_draw(target, &p.g, seed, (r, i));
+        let beta = balance_bias_draw(balance_bias_rel, seed, (r, i));
         let mut g = p.g.clone();
         g.iter_mut().zip(&a).for_each(|(v, s)| *v -= s);
+        unbias(&mut g, beta);
         pop_phys.push(r, i, None, &pop_of(&g));
         for (b, name) in bt.step.unit_names.iter().enumerate() {
-            boards_phys.push(
-                r,
-                i,
-                Some(name),
-                &board_row(p, b, &less_confounded(&p.x[b], &a)),
-            );
+            let mut x = less_confounded(&p.x[b], &a);
+            unbias(&mut x, beta);
+            boards_phys.push(r, i, Some(name), &board_row(p, b, &x));
         }
     }
     let mut summary = pop.summarize(runs, true);
     summary.extend(boards.summarize(runs, true));
-    if disc.is_some() {
+    if physical {
         let mut phys = pop_phys.summarize(runs, true);
         phys.extend(boards_phys.summarize(runs, true));
         for (row, ph) in summary.iter_mut().zip(phys) {

@@ -88,17 +88,17 @@ pub struct ModelSpec {
     /// Step 1: the coordinates the board population is formed in.
     #[serde(default)]
     pub board_coordinates: BoardCoordinates,
-    /// Step 1: the floor of the mass term's sd, relative to the weighed mass
-    /// ([`ModelSpec::DEFAULT_MASS_FLOOR_REL`]; `mass_obs` says why).
-    #[serde(default = "default_mass_floor_rel")]
-    pub mass_floor_rel: f64,
+    /// Step 1: the sd of the balance's error common to every board, relative to the weighed
+    /// mass ([`ModelSpec::DEFAULT_BALANCE_BIAS_REL`]; [`balance_bias_draw`] says why).
+    #[serde(default = "default_balance_bias_rel")]
+    pub balance_bias_rel: f64,
     /// The power of each mode's shape term ([`crate::bayes::shape_weight`]).
     #[serde(default)]
     pub shape_weights: ShapeWeighting,
 }
 
-fn default_mass_floor_rel() -> f64 {
-    ModelSpec::DEFAULT_MASS_FLOOR_REL
+fn default_balance_bias_rel() -> f64 {
+    ModelSpec::DEFAULT_BALANCE_BIAS_REL
 }
 
 #[cfg(test)]
@@ -129,15 +129,19 @@ impl ModelSpec {
             discrepancy_freq: None,
             hold_out_boards: vec![],
             board_coordinates: Default::default(),
-            mass_floor_rel: ModelSpec::DEFAULT_MASS_FLOOR_REL,
+            balance_bias_rel: ModelSpec::DEFAULT_BALANCE_BIAS_REL,
             shape_weights: Default::default(),
         }
     }
 }
 
 impl ModelSpec {
-    /// Default floor of the mass term's sd, relative to the weighed mass (`mass_obs`).
-    pub const DEFAULT_MASS_FLOOR_REL: f64 = 2e-4;
+    /// Default sd of the balance's common error, relative ([`balance_bias_draw`]). A lab
+    /// either corrects for buoyancy (β ≈ 0: a calibrated balance with class-E2 weights errs
+    /// by ~3e-6 at 10 g) or does not (β ≈ −ρ_air/ρ (1 − ρ/ρ_ref) = −4.8e-4 for FR-4 against
+    /// steel), and the campaign does not say which: a zero-mean normal holding both within
+    /// its 90 % interval has sd 4.8e-4 / 1.645 ≈ 3e-4.
+    pub const DEFAULT_BALANCE_BIAS_REL: f64 = 3e-4;
     /// The ROM box the tests verify the ROM over (relative half-width); step 1 widens it
     /// when the posterior presses against it ([`crate::update::rom_box::MAX_ROM_BOX`]).
     pub const DEFAULT_ROM_BOX: f64 = 0.2;
@@ -611,16 +615,23 @@ pub fn unit_data(
     Ok((d, meta))
 }
 
-pub fn mass_obs(
-    m: &MassRow,
-    board_id: &str,
-    floor_rel: f64,
-    findings: &mut Findings,
-) -> Option<MassObs> {
+/// A board's balance observation: the mean of its stable readings, with the sd of that mean
+/// (the readings' spread over √n and the readability's uniform rounding error; one reading
+/// has no spread of its own, so it is taken as one readability step, the order of an
+/// analytical balance's repeatability), never below what a balance may err from board to
+/// board ([`MPE_READABILITY_STEPS`]). The error every board shares is not in it (buoyancy,
+/// calibration: [`balance_bias_draw`]): it moves every board's mass together, and the
+/// contrasts between boards are known to this precision.
+pub fn mass_obs(m: &MassRow, board_id: &str, findings: &mut Findings) -> Option<MassObs> {
     if m.n_stable < 1 || !m.mass_g.is_finite() {
         return None;
     }
     let res2 = m.resolution_g * m.resolution_g / 12.0;
+    let one = if m.n_stable >= 2 {
+        m.std_g
+    } else {
+        m.resolution_g
+    };
     let sd2 = if m.inconsistent {
         findings.push(Finding::new(
             Severity::Warning,
@@ -629,20 +640,66 @@ pub fn mass_obs(
         ));
         m.std_g * m.std_g + res2
     } else {
-        m.std_g * m.std_g / m.n_stable as f64 + res2
+        one * one / f64::from(m.n_stable) + res2
     };
-    // A floor of `floor_rel` (default 2e-4) of the mass: the balance's readability is not its
-    // accuracy. Weighing a board (ρ ≈ 1.9 g/cm³) against steel calibration weights (8 g/cm³)
-    // without the air-buoyancy correction alone shifts the reading by ≈ 0.05 %
-    // (ρ_air V (1 − ρ/ρ_ref)); calibration adds to it. Without the floor a 0.1 mg
-    // readability pins mass_scale to 2e-6, a precision no other part of the model has.
-    // Readings corrected for buoyancy against a calibrated balance (or a virtual lab's,
-    // which has neither error) need no floor: `--mass-floor 0`.
-    let sd = sd2.sqrt().max(floor_rel * m.mass_g.abs()).max(1e-9);
+    // A microgram per gram: no balance a board fits on reads finer, and a log without a
+    // readability and a single reading would otherwise pin the mass exactly.
+    let mpe_sd = MPE_READABILITY_STEPS * m.resolution_g / 3f64.sqrt();
+    let sd = sd2
+        .sqrt()
+        .max(mpe_sd)
+        .max(MIN_MASS_SD_REL * m.mass_g.abs())
+        .max(1e-9);
     Some(MassObs {
         mass_g: m.mass_g,
         sd_g: sd,
     })
+}
+
+/// The smallest sd of a board's mass term, relative to its mass ([`mass_obs`]).
+pub const MIN_MASS_SD_REL: f64 = 1e-6;
+
+/// What a balance may err on one board and not on the next, in readability steps d, taken
+/// as uniform within ± this (sd: it / √3 d). OIML R 76-1 allows a class I balance ±0.5 e
+/// up to 50 000 e, and an analytical balance's verification interval e is at most 10 d
+/// (1 mg on a 0.1 mg balance): ±5 d. Eccentric placement and non-linearity, which differ
+/// between boards, are what that allowance covers once the common calibration is drawn
+/// apart. Without it the mass term of a 0.1 mg balance's repeated readings pinned a board's
+/// mass to 3e-6, and on the realistic lumped-mass campaign step 1's Laplace fit diverged
+/// (the mass held against frequencies a point mass lowers).
+pub const MPE_READABILITY_STEPS: f64 = 5.0;
+
+/// The seed stream of the balance's common bias ([`balance_bias_draw`]).
+const BALANCE_BIAS_STREAM: u64 = 0x6261_6c62_6961;
+
+/// One draw, for particle `i` of run `r`, of the balance's error common to every board, β,
+/// relative: every weighed mass is the board's times 1 + β. Why common and why its scale:
+/// - Weighing a board (ρ ≈ 1.9 g/cm³) against steel calibration weights (8 g/cm³) without
+///   the air-buoyancy correction shifts the reading by ρ_air V (1 − ρ/ρ_ref) ≈ 0.05 %, the
+///   same fraction for every board of one laminate; a calibration error scales every
+///   reading alike. Both are the same on every board of a campaign, and neither is seen in
+///   the readings' spread.
+/// - The frequencies fix each board's stiffness per unit mass, so β moves every board's mass
+///   and moduli together and leaves the data unchanged: the data cannot inform it, and it is
+///   drawn from its prior, N(0, `sd_rel`²) (`--balance-bias`, default
+///   [`ModelSpec::DEFAULT_BALANCE_BIAS_REL`]), into the physical columns only, as the
+///   discrepancy's confounded part is ([`crate::update::posterior::confounded_draw`]).
+///   Treated as independent per board (a floor on each board's term, before), it made every
+///   contrast between boards as uncertain as the common level.
+pub fn balance_bias_draw(sd_rel: f64, seed: u64, (r, i): (usize, usize)) -> f64 {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
+    if sd_rel <= 0.0 {
+        return 0.0;
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(crate::bayes::smc::stream_key(&[
+        seed,
+        BALANCE_BIAS_STREAM,
+        r as u64,
+        i as u64,
+    ]));
+    let z: f64 = StandardNormal.sample(&mut rng);
+    sd_rel * z
 }
 
 /// The prior of step 1's model-error term ([`ErrorModel::model_error_sd`]).
@@ -1022,10 +1079,12 @@ mod mass_term_tests {
     use super::*;
 
     /// The balance term's sd: the spread of the mean and the readability's uniform rounding
-    /// error, never below the floor (relative to the mass); with the floor at 0, the readings'
-    /// own sd; readings ingest flagged as inconsistent keep their full spread.
+    /// error, never below the board-to-board allowance of ±5 readability steps (the common
+    /// part is drawn apart); one reading counts as one readability step; readings ingest
+    /// flagged as inconsistent keep their full spread; a single reading with no readability
+    /// is held to 1e-6 of the mass.
     #[test]
-    fn the_mass_term_sd_is_the_readings_sd_floored() {
+    fn the_mass_term_sd_is_the_readings_sd_of_the_mean() {
         let row = MassRow {
             mass_g: 12.5,
             n_stable: 6,
@@ -1033,23 +1092,77 @@ mod mass_term_tests {
             resolution_g: 1e-4,
             inconsistent: false,
         };
-        let own = (6e-5f64 * 6e-5 / 6.0 + 1e-4 * 1e-4 / 12.0).sqrt();
         let mut f = Findings::default();
-        let floored = mass_obs(&row, "PCB-01", ModelSpec::DEFAULT_MASS_FLOOR_REL, &mut f)
-            .expect("a mass term");
-        assert_eq!(floored.sd_g, 2e-4 * 12.5);
-        assert_eq!(floored.mass_g, 12.5);
-        let bare = mass_obs(&row, "PCB-01", 0.0, &mut f).expect("a mass term");
-        assert!((bare.sd_g - own).abs() < 1e-15, "{} vs {own}", bare.sd_g);
+        let mpe = 5e-4 / 3f64.sqrt();
+        let m = mass_obs(&row, "PCB-01", &mut f).expect("a mass term");
+        assert_eq!(
+            m.sd_g, mpe,
+            "readings' sd of the mean below the balance's allowance"
+        );
+        assert_eq!(m.mass_g, 12.5);
+        // A coarse balance's readings: their own spread.
+        let coarse = MassRow {
+            std_g: 0.5,
+            resolution_g: 0.01,
+            ..row
+        };
+        let own = (0.25f64 / 6.0 + 1e-4 / 12.0).sqrt();
+        let c = mass_obs(&coarse, "PCB-01", &mut f).expect("a mass term");
+        assert!((c.sd_g - own).abs() < 1e-15, "{} vs {own}", c.sd_g);
+        // One reading: one readability step for its spread.
+        let single = MassRow {
+            n_stable: 1,
+            std_g: 0.0,
+            resolution_g: 0.01,
+            ..row
+        };
+        let one = mass_obs(&single, "PCB-01", &mut f).expect("a mass term");
+        assert_eq!(one.sd_g, 0.05 / 3f64.sqrt());
+        let bare = MassRow {
+            resolution_g: 0.0,
+            ..single
+        };
+        let b = mass_obs(&bare, "PCB-01", &mut f).expect("a mass term");
+        assert_eq!(b.sd_g, MIN_MASS_SD_REL * 12.5);
+        assert!(f.0.is_empty());
         let spread = MassRow {
             inconsistent: true,
             ..row
         };
-        let s = mass_obs(&spread, "PCB-01", 0.0, &mut f).expect("a mass term");
-        assert!((s.sd_g - (6e-5f64 * 6e-5 + 1e-4 * 1e-4 / 12.0).sqrt()).abs() < 1e-15);
-        assert_eq!(f.0.len(), 1, "the inconsistent readings are reported");
+        let s = mass_obs(&spread, "PCB-01", &mut f).expect("a mass term");
+        assert_eq!(s.sd_g, mpe);
+        let wide = MassRow {
+            std_g: 0.01,
+            inconsistent: true,
+            ..row
+        };
+        let w = mass_obs(&wide, "PCB-01", &mut f).expect("a mass term");
+        assert!((w.sd_g - (1e-4f64 + 1e-8 / 12.0).sqrt()).abs() < 1e-15);
+        assert_eq!(f.0.len(), 2, "the inconsistent readings are reported");
         let none = MassRow { n_stable: 0, ..row };
-        assert!(mass_obs(&none, "PCB-01", 0.0, &mut f).is_none());
+        assert!(mass_obs(&none, "PCB-01", &mut f).is_none());
+    }
+
+    /// The balance's common bias: zero without a scale, the same for the same particle and
+    /// seed, and over many particles a normal of the given sd.
+    #[test]
+    fn the_balance_bias_is_a_seeded_normal_of_its_scale() {
+        assert_eq!(balance_bias_draw(0.0, 7, (0, 3)), 0.0);
+        assert_eq!(
+            balance_bias_draw(3e-4, 7, (1, 3)),
+            balance_bias_draw(3e-4, 7, (1, 3))
+        );
+        assert_ne!(
+            balance_bias_draw(3e-4, 7, (1, 3)),
+            balance_bias_draw(3e-4, 7, (1, 4))
+        );
+        let n = 20_000;
+        let d: Vec<f64> = (0..n).map(|i| balance_bias_draw(3e-4, 7, (0, i))).collect();
+        let mean = d.iter().sum::<f64>() / n as f64;
+        let sd = (d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n as f64).sqrt();
+        // Standard errors: 3e-4 / √n = 2.1e-6 for the mean, 1.5e-6 for the sd.
+        assert!(mean.abs() < 1e-5, "{mean}");
+        assert!((sd - 3e-4).abs() < 8e-6, "{sd}");
     }
 }
 

@@ -494,18 +494,18 @@ fn unknown_params_are_an_error_and_unknown_modes_a_warning() {
         serde_json::from_slice(&std::fs::read(w.p("u2/update_report.json")).unwrap()).unwrap();
     assert_eq!(r["labels"], serde_json::json!(["torsion-1", "bending-x-1"]));
 
-    // A mass floor that is no relative sd stops step 1 naming the option; step 2, which has
+    // A balance bias that is no relative sd stops step 1 naming the option; step 2, which has
     // no balance term (nor a model-error term), refuses the step-1 options instead of
     // ignoring them.
-    let o = w.update("u3", "coarse.toml", PARAMS, &["--mass-floor=-0.1"]);
+    let o = w.update("u3", "coarse.toml", PARAMS, &["--balance-bias=-0.1"]);
     let err = stderr(&o);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(
-        err.contains("--mass-floor") && err.contains("-0.1"),
+        err.contains("--balance-bias") && err.contains("-0.1"),
         "{err}"
     );
     assert!(!w.p("u3/boards.parquet").exists());
-    for flag in [&["--mass-floor", "0"][..], &["--no-model-error"][..]] {
+    for flag in [&["--balance-bias", "0"][..], &["--no-model-error"][..]] {
         let o = w.joints("j", "u2", flag);
         let err = stderr(&o);
         assert_eq!(o.status.code(), Some(1), "{flag:?}: {err}");

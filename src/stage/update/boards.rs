@@ -18,10 +18,10 @@ pub fn run_boards(opts: &UpdateOptions, verbose: bool) -> anyhow::Result<StageOu
             m.id()
         );
     }
-    if !(opts.model.mass_floor_rel.is_finite() && opts.model.mass_floor_rel >= 0.0) {
+    if !(opts.model.balance_bias_rel.is_finite() && opts.model.balance_bias_rel >= 0.0) {
         bail!(
-            "--mass-floor: expected a finite relative value >= 0, found {}",
-            opts.model.mass_floor_rel
+            "--balance-bias: expected a finite relative value >= 0, found {}",
+            opts.model.balance_bias_rel
         );
     }
     let with_defaults;
@@ -219,7 +219,11 @@ pub(crate) fn boards_attempt(
         &bt,
         &results,
         &labels,
-        (opts.sampler.runs, opts.sampler.seed),
+        (
+            opts.sampler.runs,
+            opts.sampler.seed,
+            opts.model.balance_bias_rel,
+        ),
     );
     let p = opts.out.join("population.parquet");
     write_draws(&p, &POPULATION, &pop, false, &prov)?;
