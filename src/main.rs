@@ -359,6 +359,11 @@ enum UpdateCommand {
         /// new-board prediction on: `report` compares their measurements with it.
         #[arg(long, value_delimiter = ',', value_name = "BOARD,...")]
         hold_out: Vec<String>,
+        /// Free-free measurements left out of the updating (their boards are updated from
+        /// the others), to validate the own-board prediction out of sample: `report` compares
+        /// them with their board's interval.
+        #[arg(long, value_delimiter = ',', value_name = "MEASUREMENT,...")]
+        hold_out_measurements: Vec<String>,
         /// The board population's coordinates: `per-mass` (with mass_scale updated, every
         /// modulus per unit mass scale, the combination free-free frequencies follow) or
         /// `natural` (every parameter as it is).
@@ -471,6 +476,7 @@ impl UpdateArgs {
                 model_error: !self.no_model_error,
                 discrepancy_freq: self.discrepancy_pct.map(|p| p / 100.0),
                 hold_out_boards: vec![],
+                hold_out_measurements: vec![],
                 board_coordinates: Default::default(),
                 balance_bias_rel: self
                     .balance_bias
@@ -883,6 +889,7 @@ fn run_update(command: UpdateCommand, verbose: bool) -> anyhow::Result<i32> {
             enrich_covariate,
             enrich_location,
             hold_out,
+            hold_out_measurements,
             board_coordinates,
         } => {
             use hbmu::diagnose::library::Mechanism;
@@ -891,6 +898,7 @@ fn run_update(command: UpdateCommand, verbose: bool) -> anyhow::Result<i32> {
             opts.model.sigma_prior = sigma_prior.into();
             opts.model.enrich = enrich;
             opts.model.hold_out_boards = hold_out;
+            opts.model.hold_out_measurements = hold_out_measurements;
             opts.model.board_coordinates = board_coordinates.into();
             if enrich == Some(Mechanism::TemperatureStiffness) {
                 opts.model.enrich_covariate = Some(enrich_covariate);

@@ -261,6 +261,19 @@ fn summary_section(pg: &mut Page, md: &mut String, d: &ReportData) {
         let (k, n) = super::validation::held_out_coverage(
             d.intervals
                 .iter()
+                .filter(|i| i.scope == "board" && i.setup == setup && i.used_for_updating),
+        );
+        if n > 0 {
+            rows.push((
+                setup,
+                "updating modes, own board, held-out measurements",
+                k,
+                n,
+            ));
+        }
+        let (k, n) = super::validation::held_out_coverage(
+            d.intervals
+                .iter()
                 .filter(|i| i.scope == "new_board" && i.setup == setup),
         );
         if n > 0 {
@@ -296,7 +309,7 @@ fn summary_section(pg: &mut Page, md: &mut String, d: &ReportData) {
         );
     }
     t.push_str("</table>");
-    pg.p("The predicted 90 % interval (5 % to 95 % quantile of a predicted measurement: the model at posterior draws plus the mode's inferred prediction error) of each board and mode, against the measurements of that board; and the interval of a <em>new</em> board (parameters drawn from the population) against every board's measurements. A calibrated model covers about 90 % of measurements it was not updated with: a board's validation modes, and boards held out of the updating (<code>update boards --hold-out</code>).");
+    pg.p("The predicted 90 % interval (5 % to 95 % quantile of a predicted measurement: the model at posterior draws plus the mode's inferred prediction error) of each board and mode, against the measurements of that board; and the interval of a <em>new</em> board (parameters drawn from the population) against every board's measurements. A calibrated model covers about 90 % of measurements it was not updated with: a board's validation modes, a board's measurements held out of the updating (<code>update boards --hold-out-measurements</code>), and boards held out of it (<code>update boards --hold-out</code>). Its updating modes' own measurements are in-sample: the interval covers them more often.");
     if in_sample.is_finite() {
         let msg = format!(
             "The new-board interval is also compared with the {n_boards} boards the population was learnt from. Those are in-sample, so a calibrated hierarchy covers them more often than 90 %: about {} for {n_boards} boards drawn from a normal population (the classical predictive interval x̄ ± t s √(1 + 1/n)).",

@@ -7,8 +7,18 @@ use std::collections::BTreeMap;
 /// Boards step 1 held out of the updating (update_report.json's `held_out_boards`; absent
 /// in reports written before the option).
 pub fn held_out_boards(update_report: &serde_json::Value) -> Vec<String> {
-    update_report
-        .get("held_out_boards")
+    strings(update_report, "held_out_boards")
+}
+
+/// Measurements step 1 held out of the updating while their boards were updated
+/// (update_report.json's `held_out_measurements`; absent before the option).
+pub fn held_out_measurements(update_report: &serde_json::Value) -> Vec<String> {
+    strings(update_report, "held_out_measurements")
+}
+
+/// The strings of an array member of a JSON document (none where it is absent).
+fn strings(v: &serde_json::Value, key: &str) -> Vec<String> {
+    v.get(key)
         .and_then(|v| v.as_array())
         .into_iter()
         .flatten()

@@ -32,9 +32,13 @@ pub struct Measured {
     pub label: String,
     pub freq_hz: f64,
     pub used_for_updating: bool,
-    /// The board was held out of the updating (`update boards --hold-out`): compared with
-    /// the new-board prediction only.
+    /// The measurement was not used by the updating: its board was held out (`update boards
+    /// --hold-out`), compared with the new-board prediction only; or, with
+    /// `board_updated`, the measurement alone (`--hold-out-measurements`), compared with its
+    /// board's own prediction only.
     pub held_out: bool,
+    /// The measurement's board was updated (from its other measurements).
+    pub board_updated: bool,
 }
 
 /// Key of an interval: (scope, board, setup, label).
@@ -63,8 +67,9 @@ pub struct Interval {
     /// for updating) and how many lie in [q05, q95].
     pub n_measured: usize,
     pub n_inside_90: usize,
-    /// For a new board: the measurements of the held-out boards and how many lie in
-    /// [q05, q95] (0 for a measured board's interval).
+    /// Measurements held out of the updating and how many lie in [q05, q95]: for a new
+    /// board, those of the held-out boards; for a measured board, its own held-out
+    /// measurements (`update boards --hold-out-measurements`).
     pub n_held_out: usize,
     pub n_held_out_inside_90: usize,
 }
@@ -126,9 +131,13 @@ pub fn board_weighted_mean_sd<'a>(
 }
 
 /// Intervals of every (scope, board, setup, label) of the predictions, sorted by key, with
-/// the coverage of the measurements: a board's own measurements for scope `board`; for a new
-/// board, every updated board's measurements of that setup and label, and apart from them
-/// the held-out boards' (the out-of-sample test of the new-board prediction).
+/// the coverage of the measurements: a board's own measurements for scope `board`, and apart
+/// from them its measurements held out of the updating (the out-of-sample test of the
+/// own-board prediction); for a new board, every updated board's measurements of that setup
+/// and label, and apart from them the held-out boards' (the out-of-sample test of the
+/// new-board prediction). A held-out measurement of an updated board is no test of the
+/// new-board prediction (its board is in the population's sample): compared with its own
+/// board's interval only.
 pub fn intervals(preds: &[Pred], measured: &[Measured]) -> Vec<Interval> {
     let mut groups: BTreeMap<Key, (Vec<f64>, Vec<f64>)> = BTreeMap::new();
     for p in preds {
@@ -161,17 +170,15 @@ pub fn intervals(preds: &[Pred], measured: &[Measured]) -> Vec<Interval> {
                         m.setup == setup
                             && m.label == label
                             && m.held_out == held_out
-                            && board_id.as_ref().is_none_or(|b| *b == m.board_id)
+                            && match &board_id {
+                                Some(b) => *b == m.board_id,
+                                None => !(m.held_out && m.board_updated),
+                            }
                     })
                     .map(|m| m.freq_hz)
                     .collect()
             };
-            let meas = compared(false);
-            let held = if board_id.is_none() {
-                compared(true)
-            } else {
-                vec![]
-            };
+            let (meas, held) = (compared(false), compared(true));
             let inside = |f: &[f64]| f.iter().filter(|f| **f >= q05 && **f <= q95).count();
             let (mm, ms) = mean_sd(&model);
             Interval {
@@ -330,7 +337,8 @@ pub fn coverage<'a>(iv: impl IntoIterator<Item = &'a Interval>) -> (usize, usize
         .fold((0, 0), |(a, b), i| (a + i.n_inside_90, b + i.n_measured))
 }
 
-/// Coverage of the held-out boards by the new-board intervals: (inside, measurements).
+/// Coverage of the held-out measurements by the intervals given, (inside, measurements): of
+/// the held-out boards by the new board's, of a board's held-out measurements by its own.
 pub fn held_out_coverage<'a>(iv: impl IntoIterator<Item = &'a Interval>) -> (usize, usize) {
     iv.into_iter().fold((0, 0), |(a, b), i| {
         (a + i.n_held_out_inside_90, b + i.n_held_out)
@@ -338,13 +346,16 @@ pub fn held_out_coverage<'a>(iv: impl IntoIterator<Item = &'a Interval>) -> (usi
 }
 
 /// The free-free coverage of the 90 % intervals, each as (inside, measurements): of the
-/// validation modes by their boards' intervals, of every measurement by the new board's, and of
-/// the held-out boards by the new board's.
+/// validation modes by their boards' intervals, of every measurement by the new board's, of
+/// the held-out boards by the new board's, and of the held-out measurements by their boards'.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FreeCoverage {
     pub validation: (usize, usize),
     pub new_board: (usize, usize),
     pub held_out: (usize, usize),
+    /// The updating modes' measurements held out of the updating, by their own boards'
+    /// intervals (`update boards --hold-out-measurements`).
+    pub held_out_measurements: (usize, usize),
 }
 
 /// [`FreeCoverage`] of a set of intervals.
@@ -360,6 +371,10 @@ pub fn free_coverage(iv: &[Interval]) -> FreeCoverage {
         held_out: held_out_coverage(
             iv.iter()
                 .filter(|i| i.scope == "new_board" && i.setup == "free"),
+        ),
+        held_out_measurements: held_out_coverage(
+            iv.iter()
+                .filter(|i| i.scope == "board" && i.setup == "free" && i.used_for_updating),
         ),
     }
 }
@@ -444,6 +459,7 @@ mod tests {
             freq_hz: f,
             used_for_updating: false,
             held_out: b == "H",
+            board_updated: b != "H",
         };
         // Board A: 90 % interval [99.1, 100.9]; B: [109.1, 110.9]; new: [96, 114]. Board H
         // is held out: compared with the new board only, and apart.
@@ -471,6 +487,25 @@ mod tests {
             .iter()
             .all(|i| i.scope == "new_board" || i.n_held_out == 0));
         assert_eq!(held_out_coverage(&iv), (2, 3));
+        // Board A's measurements held out of the updating (`--hold-out-measurements`):
+        // compared with A's own interval apart from the others, never with the new board's.
+        let mut with_a = meas.clone();
+        for f in [100.5, 101.0, 103.0] {
+            with_a.push(Measured {
+                held_out: true,
+                ..m("A", f)
+            });
+        }
+        let iv_a = intervals(&preds, &with_a);
+        let a = iv_a
+            .iter()
+            .find(|i| i.board_id.as_deref() == Some("A"))
+            .unwrap();
+        assert_eq!((a.n_inside_90, a.n_measured), (1, 2));
+        assert_eq!((a.n_held_out_inside_90, a.n_held_out), (1, 3));
+        let nb = iv_a.iter().find(|i| i.scope == "new_board").unwrap();
+        assert_eq!((nb.n_inside_90, nb.n_measured), (3, 4));
+        assert_eq!((nb.n_held_out_inside_90, nb.n_held_out), (2, 3));
         let t = table2(&preds, &meas, &iv);
         assert_eq!(t.len(), 1);
         assert!((t[0].board_coverage_90 - 0.5).abs() < 1e-12);

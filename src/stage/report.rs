@@ -161,11 +161,17 @@ pub fn run(opts: &ReportOptions, verbose: bool) -> anyhow::Result<StageOutcome> 
 fn summarise(iv: &[Interval], figures: usize, has2: bool) -> BTreeMap<String, serde_json::Value> {
     let c = validation::free_coverage(iv);
     let ((vk, vn), (nk, nn), (hk, hn)) = (c.validation, c.new_board, c.held_out);
+    let (mk, mn) = c.held_out_measurements;
     eprintln!(
-        "report: {} figures; free-free coverage of the 90 % intervals: validation modes {vk}/{vn}, new board {nk}/{nn}{}{}",
+        "report: {} figures; free-free coverage of the 90 % intervals: validation modes {vk}/{vn}, new board {nk}/{nn}{}{}{}",
         figures,
         if hn > 0 {
             format!(", held-out boards by the new board {hk}/{hn}")
+        } else {
+            String::new()
+        },
+        if mn > 0 {
+            format!(", held-out measurements by their own board {mk}/{mn}")
         } else {
             String::new()
         },
@@ -183,6 +189,12 @@ fn summarise(iv: &[Interval], figures: usize, has2: bool) -> BTreeMap<String, se
     );
     if hn > 0 {
         s.insert("held_out_coverage_free".into(), serde_json::json!([hk, hn]));
+    }
+    if mn > 0 {
+        s.insert(
+            "held_out_measurements_coverage_free".into(),
+            serde_json::json!([mk, mn]),
+        );
     }
     s
 }

@@ -429,6 +429,39 @@ fn board_units(
     if board_ids.is_empty() {
         bail!("--hold-out leaves no board to update");
     }
+    // Measurements held out of the updating: each must be a free-free measurement of a board
+    // that is updated (a held-out board's are out already).
+    for m in &spec.hold_out_measurements {
+        let Some(p) = pairs
+            .iter()
+            .find(|p| p.setup == "free" && &p.measurement_id == m)
+        else {
+            let mut free: Vec<&str> = pairs
+                .iter()
+                .filter(|p| p.setup == "free")
+                .map(|p| p.measurement_id.as_str())
+                .collect();
+            free.dedup();
+            bail!(
+                "--hold-out-measurements: {m} is not a free-free measurement with a paired mode in this campaign (free-free measurements: {})",
+                free.join(", ")
+            );
+        };
+        if !board_ids.contains(&p.board_id) {
+            bail!(
+                "--hold-out-measurements: {m} is a measurement of board {}, which is held out as a whole (--hold-out)",
+                p.board_id
+            );
+        }
+        findings.push(
+            Finding::new(
+                Severity::Info,
+                "update.measurement_held_out",
+                format!("measurement {m} of board {} is held out (--hold-out-measurements): its modes are not used; the report compares them with the board's own prediction", p.board_id),
+            )
+            .measurement(m.clone()),
+        );
+    }
     // The balance informs the mass parameters: mass_scale, and an added mass.
     let mass_updated =
         spec.params.iter().any(|p| p == names::MASS_SCALE) || !bm.log_axes.is_empty();
@@ -439,7 +472,11 @@ fn board_units(
     for b in &board_ids {
         let rows: Vec<&PairRow> = pairs
             .iter()
-            .filter(|p| p.setup == "free" && &p.board_id == b)
+            .filter(|p| {
+                p.setup == "free"
+                    && &p.board_id == b
+                    && !spec.hold_out_measurements.contains(&p.measurement_id)
+            })
             .collect();
         let (mut data, (data_all, meta_all)) = unit_and_residual_data(
             &rows,

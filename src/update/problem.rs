@@ -85,6 +85,10 @@ pub struct ModelSpec {
     /// the new-board prediction can be validated on them (the report compares them with it).
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
     pub hold_out_boards: Vec<String>,
+    /// Step 1: free-free measurements left out of the updating while their boards are
+    /// updated from the others, so that the own-board prediction can be validated on them.
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub hold_out_measurements: Vec<String>,
     /// Step 1: the coordinates the board population is formed in.
     #[serde(default)]
     pub board_coordinates: BoardCoordinates,
@@ -128,6 +132,7 @@ impl ModelSpec {
             model_error: false,
             discrepancy_freq: None,
             hold_out_boards: vec![],
+            hold_out_measurements: vec![],
             board_coordinates: Default::default(),
             balance_bias_rel: ModelSpec::DEFAULT_BALANCE_BIAS_REL,
             shape_weights: Default::default(),

@@ -63,7 +63,7 @@ pub const INTERVALS: TableSpec = TableSpec {
         c("q95_hz", Col::Float64, true, "Hz", "95 % quantile."),
         c("n_measured", Col::Int32, false, "", "Measurements compared."),
         c("n_inside_90", Col::Int32, false, "", "Measurements inside [q05, q95]."),
-        c("n_held_out", Col::Int32, false, "", "For a new board: measurements of the boards held out of the updating; 0 for a measured board."),
+        c("n_held_out", Col::Int32, false, "", "Measurements held out of the updating: for a new board, those of the held-out boards (`update boards --hold-out`); for a measured board, its own held-out measurements (`--hold-out-measurements`)."),
         c("n_held_out_inside_90", Col::Int32, false, "", "Held-out measurements inside [q05, q95]."),
     ],
 };
@@ -90,6 +90,7 @@ pub fn read_measured(path: &Path) -> anyhow::Result<Vec<Measured>> {
                 freq_hz: f.value(i),
                 used_for_updating: u.value(i),
                 held_out: false,
+                board_updated: true,
             });
         }
     }
@@ -121,16 +122,18 @@ pub fn read_specimens(path: &Path) -> anyhow::Result<Vec<(String, [Option<f64>; 
     Ok(out)
 }
 
-/// The held-out boards' measured frequencies: their accepted pairs (both setups, read as the
-/// updating reads them), each mode's role taken from the updated boards' residuals.
+/// The measured frequencies step 1 held out: the accepted pairs (read as the updating reads
+/// them) of the held-out boards (both setups) and of the held-out measurements of updated
+/// boards, each mode's role taken from the updated boards' residuals.
 pub fn read_held_out(
     pairs: &Path,
-    boards: &[String],
+    (boards, measurements): (&[String], &[String]),
     roles: &BTreeMap<(String, String), bool>,
 ) -> anyhow::Result<Vec<Measured>> {
     let mut out = vec![];
     for p in crate::io::tables::pairs::read_pairs(pairs)? {
-        if !boards.contains(&p.board_id) {
+        let board_held = boards.contains(&p.board_id);
+        if !board_held && !(p.setup == "free" && measurements.contains(&p.measurement_id)) {
             continue;
         }
         let key = (p.setup, p.label);
@@ -145,6 +148,7 @@ pub fn read_held_out(
             freq_hz: p.freq_hz,
             used_for_updating: *used,
             held_out: true,
+            board_updated: !board_held,
         });
     }
     Ok(out)
@@ -572,6 +576,8 @@ pub struct Sources {
     pub has2: bool,
     pub step1_report: serde_json::Value,
     pub held_out: Vec<String>,
+    /// Free-free measurements step 1 held out while updating their boards.
+    pub held_out_measurements: Vec<String>,
     pub pairs: PathBuf,
     /// Step 2's update_report.json when step 2 ran without a posterior.
     pub step2_note: Option<PathBuf>,
@@ -609,6 +615,7 @@ pub fn locate(w: &Path) -> anyhow::Result<Sources> {
     let has2 = step2.join("joints.parquet").is_file();
     let step1_report = read_json(&step1.join("update_report.json"))?;
     let held_out = sources::held_out_boards(&step1_report);
+    let held_out_measurements = sources::held_out_measurements(&step1_report);
     let pairs = w.join("pair").join("pairs.parquet");
     let mut inputs = vec![
         prop.join("predictions.parquet"),
@@ -685,6 +692,7 @@ pub fn locate(w: &Path) -> anyhow::Result<Sources> {
         has2,
         step1_report,
         held_out,
+        held_out_measurements,
         pairs,
         step2_note,
         ingest_report,
@@ -738,12 +746,16 @@ pub fn read_measurements(
         let note = src.step2_note.as_deref().map(read_json).transpose()?;
         step2_absent = Some(sources::step2_absent(note.as_ref()));
     }
-    if !src.held_out.is_empty() {
+    if !src.held_out.is_empty() || !src.held_out_measurements.is_empty() {
         let roles: BTreeMap<(String, String), bool> = measured
             .iter()
             .map(|m| ((m.setup.clone(), m.label.clone()), m.used_for_updating))
             .collect();
-        measured.extend(read_held_out(&src.pairs, &src.held_out, &roles)?);
+        measured.extend(read_held_out(
+            &src.pairs,
+            (&src.held_out, &src.held_out_measurements),
+            &roles,
+        )?);
     }
     Ok((measured, step2_data, step2_absent))
 }

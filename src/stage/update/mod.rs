@@ -323,6 +323,7 @@ fn finish(
         "evidence": ev,
         "acceleration": acceleration,
         "held_out_boards": opts.model.hold_out_boards,
+        "held_out_measurements": opts.model.hold_out_measurements,
         "findings": findings.0,
     });
     let p = opts.out.join("update_report.json");
