@@ -165,7 +165,7 @@ fn propagate_and_report_give_the_same_bytes_whatever_the_threads_and_the_directo
 /// prediction only, apart from that board's in-sample measurements.
 #[test]
 fn a_held_out_board_is_compared_with_the_new_board_prediction_only() {
-    use arrow::array::{Array, BooleanArray, Int32Array, StringArray};
+    use arrow::array::{Array, BooleanArray, StringArray};
     let work = small_work();
     let t = tempfile::tempdir().unwrap();
     let w = t.path().join("held");
@@ -268,20 +268,13 @@ fn a_held_out_board_is_compared_with_the_new_board_prediction_only() {
     let t2 = hbmu::io::tables::read_parquet(&w.join("report/table2.parquet")).unwrap();
     let (mut n_held, mut n_in, mut labels) = (0, 0, vec![]);
     for b in &t2 {
-        let col = |n: &str| b.column(b.schema().index_of(n).unwrap()).clone();
-        let st = col("setup");
-        let st = st.as_any().downcast_ref::<StringArray>().unwrap();
-        let nh = col("n_held_out");
-        let nh = nh.as_any().downcast_ref::<Int32Array>().unwrap();
-        let nm = col("n_measured");
-        let nm = nm.as_any().downcast_ref::<Int32Array>().unwrap();
-        let lab = col("label");
-        let lab = lab.as_any().downcast_ref::<StringArray>().unwrap();
+        let (st, lab) = (text_column(b, "setup"), text_column(b, "label"));
+        let (nh, nm) = (int_column(b, "n_held_out"), int_column(b, "n_measured"));
         for i in 0..b.num_rows() {
-            if st.value(i) == "free" {
-                n_held += nh.value(i) as usize;
-                n_in += nm.value(i) as usize;
-                labels.push(lab.value(i).to_string());
+            if st[i] == "free" {
+                n_held += nh[i] as usize;
+                n_in += nm[i] as usize;
+                labels.push(lab[i].clone());
             }
         }
     }
@@ -327,13 +320,7 @@ fn a_held_out_board_is_compared_with_the_new_board_prediction_only() {
         hbmu::io::tables::read_parquet(&step1.join("residuals.parquet"))
             .unwrap()
             .iter()
-            .flat_map(|b| {
-                let c = b
-                    .column(b.schema().index_of("measurement_id").unwrap())
-                    .clone();
-                let c = c.as_any().downcast_ref::<StringArray>().unwrap().clone();
-                (0..c.len()).map(move |i| c.value(i).to_string())
-            })
+            .flat_map(|b| text_column(b, "measurement_id"))
             .collect();
     assert!(!residual_measurements.contains(&m), "{m} was used");
     for (stage, args) in [
@@ -350,18 +337,13 @@ fn a_held_out_board_is_compared_with_the_new_board_prediction_only() {
     let iv = hbmu::io::tables::read_parquet(&w.join("report/intervals.parquet")).unwrap();
     let (mut own_held, mut new_held) = (0, 0);
     for b in &iv {
-        let col = |n: &str| b.column(b.schema().index_of(n).unwrap()).clone();
-        let scope = col("scope");
-        let scope = scope.as_any().downcast_ref::<StringArray>().unwrap();
-        let st = col("setup");
-        let st = st.as_any().downcast_ref::<StringArray>().unwrap();
-        let nh = col("n_held_out");
-        let nh = nh.as_any().downcast_ref::<Int32Array>().unwrap();
+        let (scope, st) = (text_column(b, "scope"), text_column(b, "setup"));
+        let nh = int_column(b, "n_held_out");
         for i in 0..b.num_rows() {
-            if st.value(i) == "free" {
-                match scope.value(i) {
-                    "board" => own_held += nh.value(i) as usize,
-                    _ => new_held += nh.value(i) as usize,
+            if st[i] == "free" {
+                match scope[i].as_str() {
+                    "board" => own_held += nh[i] as usize,
+                    _ => new_held += nh[i] as usize,
                 }
             }
         }
@@ -377,6 +359,22 @@ fn a_held_out_board_is_compared_with_the_new_board_prediction_only() {
     );
     let html = std::fs::read_to_string(w.join("report/report.html")).unwrap();
     assert!(html.contains("own board, held-out measurements"));
+}
+
+/// A string column of a record batch.
+fn text_column(b: &arrow::record_batch::RecordBatch, name: &str) -> Vec<String> {
+    use arrow::array::{Array, StringArray};
+    let c = b.column(b.schema().index_of(name).unwrap()).clone();
+    let c = c.as_any().downcast_ref::<StringArray>().unwrap();
+    (0..c.len()).map(|i| c.value(i).to_string()).collect()
+}
+
+/// An Int32 column of a record batch.
+fn int_column(b: &arrow::record_batch::RecordBatch, name: &str) -> Vec<i32> {
+    use arrow::array::{Array, Int32Array};
+    let c = b.column(b.schema().index_of(name).unwrap()).clone();
+    let c = c.as_any().downcast_ref::<Int32Array>().unwrap();
+    (0..c.len()).map(|i| c.value(i)).collect()
 }
 
 fn run_small_pipeline(work: &Path) {

@@ -133,7 +133,8 @@ pub fn read_held_out(
     let mut out = vec![];
     for p in crate::io::tables::pairs::read_pairs(pairs)? {
         let board_held = boards.contains(&p.board_id);
-        if !board_held && !(p.setup == "free" && measurements.contains(&p.measurement_id)) {
+        let measurement_held = p.setup == "free" && measurements.contains(&p.measurement_id);
+        if !(board_held || measurement_held) {
             continue;
         }
         let key = (p.setup, p.label);
