@@ -616,6 +616,12 @@ fn board_box(
             .find(|(n, _)| *n == bm.param_names[k])
             .map(|(_, w)| *w)
     };
+    // A board informed by its mass alone (no paired mode) never evaluates the ROM: its
+    // moduli range as the population's, and the ROM's box says nothing of its posterior.
+    let evaluated = |b: usize| {
+        let u = &bt.step.target.units[b];
+        !u.freq.is_empty() || !u.shapes.is_empty()
+    };
     let violations = box_violations(
         draws,
         what,
@@ -627,6 +633,7 @@ fn board_box(
             Some(w) => (1.0 + x).ln().abs() <= w,
             None => x.abs() <= spec.rom_box,
         },
+        evaluated,
         spec.box_tolerance,
     );
     if !violations.is_empty() {
@@ -639,7 +646,7 @@ fn board_box(
             .filter(|&k| k < bt.d0);
         let (mut reach, mut reach_g_z) = (0.0f64, 0.0f64);
         for units in draws {
-            for x in units.iter() {
+            for (_, x) in units.iter().enumerate().filter(|(b, _)| evaluated(*b)) {
                 let x = bt.step.target.compose.relative_params(x);
                 for (k, v) in x.iter().enumerate() {
                     // A wider linear box does not hold a logarithmic axis.

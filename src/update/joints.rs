@@ -733,6 +733,7 @@ pub fn check_joint_box(
         &coord_names,
         |x| x.to_vec(),
         |k, x| x >= bounds[k].0 && x <= bounds[k].1,
+        |_| true,
         spec.box_tolerance,
     );
     if !violations.is_empty() {

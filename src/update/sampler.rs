@@ -757,8 +757,11 @@ fn edge_fraction(
 
 /// The ROM-box rule: the fraction of `draws` (per draw, every unit's coordinates: the
 /// posterior's particles, or draws of the reference, named by `what`), per unit parameter,
-/// outside the box the ROM was built and verified for. Returns a description of every
+/// outside the box the ROM was built and verified for, over the units `evaluated` marks (those
+/// whose likelihood evaluates the ROM: a unit informed by a mass term alone never does, and
+/// its coordinates may range as widely as the population's). Returns a description of every
 /// violation.
+#[allow(clippy::too_many_arguments)]
 pub fn box_violations(
     draws: &[&[Vec<f64>]],
     what: &str,
@@ -766,10 +769,14 @@ pub fn box_violations(
     param_names: &[String],
     relative: impl Fn(&[f64]) -> Vec<f64>,
     inside: impl Fn(usize, f64) -> bool,
+    evaluated: impl Fn(usize) -> bool,
     tolerance: f64,
 ) -> Vec<String> {
     let mut out = vec![];
     for (b, unit) in unit_names.iter().enumerate() {
+        if !evaluated(b) {
+            continue;
+        }
         // Each draw's coordinates, once per unit.
         let rel: Vec<Vec<f64>> = draws.iter().map(|x| relative(&x[b])).collect();
         for (k, pn) in param_names.iter().enumerate() {
