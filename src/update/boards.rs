@@ -441,6 +441,7 @@ fn board_units(
                 .filter(|p| p.setup == "free")
                 .map(|p| p.measurement_id.as_str())
                 .collect();
+            free.sort_unstable();
             free.dedup();
             bail!(
                 "--hold-out-measurements: {m} is not a free-free measurement with a paired mode in this campaign (free-free measurements: {})",
