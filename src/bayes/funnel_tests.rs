@@ -21,6 +21,8 @@ pub(super) struct Funnel {
     y: Vec<[f64; 3]>,
     /// Offer the residual-scaling moves (`Target::log_error_scales`).
     rescale: bool,
+    /// The start `Target::data_start_global` offers for any other g (None: none).
+    pub(super) restart: Option<Vec<f64>>,
 }
 
 impl Funnel {
@@ -37,7 +39,11 @@ impl Funnel {
                 y
             })
             .collect();
-        Funnel { y, rescale }
+        Funnel {
+            y,
+            rescale,
+            restart: None,
+        }
     }
 
     /// log p(y | ln ε) with the units integrated out.
@@ -168,6 +174,10 @@ impl Target for Funnel {
     }
     fn residual(&self, b: usize, m: usize, c: &[f64; 3]) -> Option<f64> {
         Some(c[m] - self.y[b][m])
+    }
+    fn data_start_global(&self, g: &[f64]) -> Option<(Vec<f64>, String)> {
+        let r = self.restart.as_ref().filter(|r| r.as_slice() != g)?;
+        Some((r.clone(), "a start the data give".into()))
     }
 }
 

@@ -128,6 +128,41 @@ pub struct UnitData {
     pub conditions: Vec<f64>,
 }
 
+/// Per updated mode, the scatter of the units' repeated eigenvalue measurements: the pooled
+/// sd of λ̂ relative to its mean over each unit's measurements of the mode in one condition,
+/// with its degrees of freedom (Σ (n − 1) over those groups). It is the measurement noise ε
+/// (relative, on eigenvalues) estimated without the model: a unit's parameters are the same
+/// in every repeat, so the model cannot explain any of it. None for a mode no unit measured
+/// twice in one condition.
+pub fn repeat_scatter(units: &[UnitData], n_modes: usize) -> Vec<Option<(f64, usize)>> {
+    let mut ss = vec![0.0; n_modes];
+    let mut dof = vec![0usize; n_modes];
+    for u in units {
+        // (mode, condition) → the unit's λ̂ there.
+        let mut groups: std::collections::BTreeMap<(usize, usize), Vec<f64>> =
+            std::collections::BTreeMap::new();
+        for f in &u.freq {
+            if f.mode < n_modes && f.lambda_hat.is_finite() && f.lambda_hat > 0.0 {
+                groups
+                    .entry((f.mode, f.cond))
+                    .or_default()
+                    .push(f.lambda_hat);
+            }
+        }
+        for ((m, _), l) in groups {
+            if l.len() < 2 {
+                continue;
+            }
+            let mean = l.iter().sum::<f64>() / l.len() as f64;
+            ss[m] += l.iter().map(|v| (v / mean - 1.0).powi(2)).sum::<f64>();
+            dof[m] += l.len() - 1;
+        }
+    }
+    (0..n_modes)
+        .map(|m| (dof[m] > 0).then(|| ((ss[m] / dof[m] as f64).sqrt(), dof[m])))
+        .collect()
+}
+
 /// Per-mode blocks of [`Terms::suff`] (then one scalar).
 const SUFF_BLOCKS: usize = 6;
 

@@ -226,6 +226,10 @@ pub struct ReferenceInfo {
     /// Why the rounds fell back to their first `ReferenceOptions::fallback_rounds`, and after
     /// how many.
     pub fell_back: Option<(usize, String)>,
+    /// Why the construction was run again from the start the target's data gave
+    /// ([`Target::data_start_global`]); the counts above are the second run's, but
+    /// `model_evals`, which holds both.
+    pub restarted: Option<String>,
 }
 
 /// Errors of the construction.
@@ -1038,11 +1042,40 @@ fn later_round_steps(g_prec: &[f64], hg0: &[f64]) -> Vec<f64> {
 
 /// The Gaussian reference of `t` (see the module doc); `aux` = the auxiliary values the
 /// units are evaluated with (a representative draw for a modular step, empty otherwise).
+///
+/// The alternation between the units and g is a coordinate ascent, and it can settle in a
+/// basin the data rule out: from the prior's centre, a mode's noise scale that starts large
+/// lets the units' fits ignore that mode, whose misfit then keeps the scale large. A
+/// reference there misplaces the units (and the surrogate boxes built on it): the tempering
+/// still converges, but slowly and on the ROM. Where the target's own data say so
+/// ([`Target::data_start_global`]), the construction runs once more from the start they
+/// give.
 pub fn laplace_reference<T: Target>(
     t: &T,
     aux: &[f64],
     opts: &ReferenceOptions,
     seed: u64,
+) -> Result<(GaussianReference, ReferenceInfo), ReferenceError> {
+    let (q, info) = construct_reference(t, aux, opts, seed, None)?;
+    match t.data_start_global(&q.global.mean) {
+        None => Ok((q, info)),
+        Some((g0, why)) => {
+            let (q2, mut info2) = construct_reference(t, aux, opts, seed, Some(&g0))?;
+            info2.model_evals += info.model_evals;
+            info2.restarted = Some(why);
+            Ok((q2, info2))
+        }
+    }
+}
+
+/// One construction of [`laplace_reference`], g's search starting at `g_start` where given
+/// (else at the prior's centre, its population location at `ReferenceOptions::start`).
+fn construct_reference<T: Target>(
+    t: &T,
+    aux: &[f64],
+    opts: &ReferenceOptions,
+    seed: u64,
+    g_start: Option<&[f64]>,
 ) -> Result<(GaussianReference, ReferenceInfo), ReferenceError> {
     let nu = t.n_units();
     let ng = t.n_global();
@@ -1065,6 +1098,9 @@ pub fn laplace_reference<T: Target>(
             .map(|b| median_of(&draws.iter().map(|(_, x)| x[b].clone()).collect::<Vec<_>>()))
             .collect(),
     };
+    if let Some(g0) = g_start.filter(|g0| g0.len() == ng) {
+        g = g0.to_vec();
+    }
     // Initial finite-difference steps: a hundredth of the prior spread of each coordinate.
     let h0: Vec<Vec<f64>> = (0..nu)
         .map(|b| {
@@ -1251,6 +1287,7 @@ pub fn laplace_reference<T: Target>(
                 converged,
                 rounds: round + 1,
                 fell_back,
+                restarted: None,
             },
         ));
     }
@@ -1678,6 +1715,39 @@ mod tests {
         }
         // Fewer model evaluations than the rounds and the rebuild it replaces.
         assert!(info.model_evals < info_none.model_evals + info3.model_evals);
+    }
+
+    /// Where the target's data reject g's mode ([`Target::data_start_global`]), the reference
+    /// is the construction from the start they give, whole (not a blend of the two), its
+    /// model evaluations those of both constructions, and why is kept; without a start it is
+    /// the first construction's.
+    #[test]
+    fn a_reference_the_data_reject_is_searched_again_from_their_start() {
+        let mut t = crate::bayes::funnel_tests::Funnel::new(30, [0.05, 0.05, 0.05], 7, true);
+        let opts = ReferenceOptions {
+            g_steps: 2000,
+            ..ReferenceOptions::default()
+        };
+        let (q0, info0) = laplace_reference(&t, &[], &opts, 3).unwrap();
+        assert!(info0.restarted.is_none());
+        let g0 = vec![0.2f64.ln(); 3];
+        t.restart = Some(g0.clone());
+        let (q, info) = laplace_reference(&t, &[], &opts, 3).unwrap();
+        let (q1, info1) = construct_reference(&t, &[], &opts, 3, Some(&g0)).unwrap();
+        assert_eq!(info.restarted.as_deref(), Some("a start the data give"));
+        assert_eq!(
+            (&q.global.mean, &q.global.chol),
+            (&q1.global.mean, &q1.global.chol)
+        );
+        for (a, b) in q.units.iter().zip(&q1.units) {
+            assert_eq!((&a.mean, &a.chol), (&b.mean, &b.chol));
+        }
+        assert_eq!(info.model_evals, info0.model_evals + info1.model_evals);
+        assert_eq!(info.rounds, info1.rounds);
+        assert_ne!(
+            q.global.mean, q0.global.mean,
+            "the second search started elsewhere"
+        );
     }
 
     /// A unit's mass pinned by the balance (sd 2.8e-6) beside a shear modulus the modes

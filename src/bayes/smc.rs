@@ -112,6 +112,13 @@ pub trait Target: Sync {
     /// Move g's location of the units' population to the unit point x (a search that knows
     /// where the units are starts its g there); by default g is left as it is.
     fn centre_global_at(&self, _g: &mut [f64], _x: &[f64]) {}
+    /// Where a search for g's mode that ended at `g` sits in a basin the target's own data
+    /// rule out (e.g. a noise scale far above the scatter of a unit's repeated
+    /// measurements): g with those coordinates moved to where the data put them, and why.
+    /// None (the default) where the data say nothing against `g`.
+    fn data_start_global(&self, _g: &[f64]) -> Option<(Vec<f64>, String)> {
+        None
+    }
     /// p(x_b | g) as a normal (mean, lower Cholesky factor of its covariance, row-major),
     /// where it is one; None (the default) otherwise.
     fn unit_prior_normal(&self, _ctx: &Self::Ctx, _b: usize) -> Option<(Vec<f64>, Vec<f64>)> {

@@ -380,7 +380,50 @@ pub struct Ctx {
     pub logs: modal::ErrorLogs,
 }
 
+/// How far above the scatter of a unit's repeated measurements a mode's ε may sit in g's
+/// mode before the reference is searched again from that scatter
+/// ([`ModalTarget::noise_restart`]). The scatter estimates ε itself: the per-unit model error
+/// σ_u carries what differs between units, so the posterior's ε sits at it (on the five
+/// realistic nulls within 0.8–1.3×). A tenfold excess is beyond its sampling error at three
+/// degrees of freedom and more (P(s < σ/10) < 0.002 for χ²₃).
+pub const NOISE_RESTART_FACTOR: f64 = 10.0;
+/// The degrees of freedom a mode's repeat scatter needs before it can overrule g's mode.
+pub const NOISE_RESTART_MIN_DOF: usize = 3;
+
 impl ModalTarget {
+    /// [`Target::data_start_global`]: where g's ε of some mode exceeds
+    /// [`NOISE_RESTART_FACTOR`] times the scatter of the units' repeated measurements of it
+    /// ([`modal::repeat_scatter`], at [`NOISE_RESTART_MIN_DOF`] or more), g with every such
+    /// mode's ln ε at its scatter; None otherwise, or where ε is fixed.
+    pub fn noise_restart(&self, g: &[f64]) -> Option<(Vec<f64>, String)> {
+        if !matches!(self.errors.eps, ErrorPrior::Inferred { .. }) {
+            return None;
+        }
+        let k0 = self.prior.dim();
+        let scatter = modal::repeat_scatter(&self.units, self.errors.n_modes);
+        let mut out = g.to_vec();
+        let mut why = vec![];
+        for (m, sc) in scatter.iter().enumerate() {
+            let Some((s, dof)) = *sc else { continue };
+            let eps = g.get(k0 + m)?.exp();
+            if dof >= NOISE_RESTART_MIN_DOF && s > 0.0 && eps > NOISE_RESTART_FACTOR * s {
+                why.push(format!(
+                    "mode {m}: ε {eps:.2e} against a repeat scatter of {s:.2e} ({dof} dof)"
+                ));
+                out[k0 + m] = s.ln();
+            }
+        }
+        (!why.is_empty()).then(|| {
+            (
+                out,
+                format!(
+                    "the first search ended with ε over {NOISE_RESTART_FACTOR} times the scatter of the units' repeated measurements ({}); searched again from that scatter",
+                    why.join("; ")
+                ),
+            )
+        })
+    }
+
     /// The ROM parameter vector of unit b given the particle's auxiliary values.
     pub fn values(&self, aux: &[f64], b: usize, x: &[f64]) -> Vec<f64> {
         let map = &self.predictor.rom.map;
@@ -645,6 +688,9 @@ impl Target for ModalTarget {
         // g starts with μ, in the units' own coordinates (population.rs).
         g[..x.len()].copy_from_slice(x);
     }
+    fn data_start_global(&self, g: &[f64]) -> Option<(Vec<f64>, String)> {
+        self.noise_restart(g)
+    }
     fn model(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Terms> {
         let data = &self.units[b];
         let t = if self.has_covariate() {
@@ -762,6 +808,62 @@ mod tests {
             coord_obs: vec![],
         };
         (t, updated)
+    }
+
+    /// The reference's restart from the data: a mode whose ε in g sits more than tenfold above
+    /// the scatter of the units' repeated measurements of it is moved to that scatter, the
+    /// others are left as they are; a mode measured once per unit, or with fewer than three
+    /// degrees of freedom, never overrules g; a fixed ε never restarts.
+    #[test]
+    fn a_noise_scale_far_above_the_repeat_scatter_restarts_the_search() {
+        let (mut t, _) = covariate_target();
+        t.covariate = None;
+        t.errors.eps = ErrorPrior::Inferred {
+            median: 1e-3,
+            log_sd: 1.0,
+        };
+        // Mode 0: two units, λ̂ 0.99, 1.01 and 1.98, 1.98, 2.04 (relative deviations ±0.01 and
+        // −0.01, −0.01, +0.02: Σ = 2e-4 + 6e-4 over 1 + 2 dof); mode 1: three
+        // repeats of one unit only (2 dof); mode 2: once per unit; mode 3: none.
+        let obs = |m: usize, l: f64| FreqObs::new(m, l);
+        let a = UnitData {
+            freq: vec![
+                obs(0, 0.99),
+                obs(0, 1.01),
+                obs(1, 5.0),
+                obs(1, 5.05),
+                obs(1, 4.95),
+                obs(2, 3.0),
+            ],
+            ..UnitData::default()
+        };
+        let b = UnitData {
+            freq: vec![obs(0, 1.98), obs(0, 1.98), obs(0, 2.04), obs(2, 3.1)],
+            ..UnitData::default()
+        };
+        t.units = vec![a, b];
+        let sc = modal::repeat_scatter(&t.units, 4);
+        let s0 = ((2.0 * 0.01f64.powi(2) + 2.0 * 0.01f64.powi(2) + 0.02f64.powi(2)) / 3.0).sqrt();
+        let (v0, d0) = sc[0].expect("mode 0 repeated");
+        assert!((v0 - s0).abs() < 1e-12 * s0, "{v0} vs {s0}");
+        assert_eq!(d0, 3);
+        assert_eq!(sc[1].map(|x| x.1), Some(2));
+        assert_eq!((sc[2], sc[3]), (None, None));
+        let k0 = t.prior.dim();
+        let mut g = vec![0.0; t.n_global()];
+        // ε of every mode at 9 × mode 0's scatter: no restart.
+        g[k0..k0 + 4].iter_mut().for_each(|v| *v = (9.0 * s0).ln());
+        assert!(t.noise_restart(&g).is_none());
+        // Mode 0 at 11 ×, modes 1-3 far above anything: only mode 0 restarts.
+        g[k0] = (11.0 * s0).ln();
+        g[k0 + 1..k0 + 4].iter_mut().for_each(|v| *v = 1.0f64.ln());
+        let (g2, why) = t.noise_restart(&g).expect("a restart");
+        assert!((g2[k0] - s0.ln()).abs() < 1e-12, "{why}");
+        assert_eq!(&g2[k0 + 1..], &g[k0 + 1..]);
+        assert_eq!(&g2[..k0], &g[..k0]);
+        assert!(why.contains("mode 0") && !why.contains("mode 1"), "{why}");
+        t.errors.eps = ErrorPrior::Fixed { value: 1e-4 };
+        assert!(t.noise_restart(&g[..t.n_global()]).is_none());
     }
 
     /// With a covariate effect, a board's terms hold one prediction per condition, each the

@@ -35,6 +35,9 @@ pub struct Acceleration {
     pub reference_units_converged: Vec<bool>,
     /// Rounds the reference's construction ran (units, then g) before g's mode settled.
     pub reference_rounds: usize,
+    /// Why the reference was searched again from the scatter of the units' repeated
+    /// measurements (`bayes::reference::laplace_reference`); None where it was not.
+    pub reference_restarted: Option<String>,
     pub surrogate_units: usize,
     pub surrogate_refused: Vec<String>,
     pub surrogate_degree: Vec<Option<usize>>,
@@ -285,6 +288,10 @@ fn base_reference(
         acc.reference_g_acceptance = info.g_acceptance;
         acc.reference_units_converged = info.converged;
         acc.reference_rounds = info.rounds;
+        if let (Some(why), true) = (&info.restarted, verbose) {
+            eprintln!("{what}: reference: {why}");
+        }
+        acc.reference_restarted = info.restarted;
         if verbose {
             eprintln!(
                 "{what}: reference ({} rounds) g mean {:.4?}, sd {:.4?}; unit sd {:.3?}",
@@ -835,9 +842,16 @@ pub fn half_widths(acc: &Acceleration) -> String {
     }
 }
 
-/// The finding when final particles lie beyond their surrogate's box (a cost, not a bias:
-/// the ROM evaluates them).
+/// The findings when the reference was searched twice, and when final particles lie beyond
+/// their surrogate's box (a cost, not a bias: the ROM evaluates them).
 pub fn check_surrogate_edges(acc: &Acceleration, findings: &mut Findings) {
+    if let Some(why) = &acc.reference_restarted {
+        findings.push(Finding::new(
+            Severity::Info,
+            "update.reference_restarted",
+            format!("the tempering's reference: {why}"),
+        ));
+    }
     if acc.surrogate_edge_fraction > 1e-3 {
         findings.push(Finding::new(
             Severity::Info,
