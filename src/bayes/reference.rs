@@ -1098,7 +1098,8 @@ fn construct_reference<T: Target>(
             .map(|b| median_of(&draws.iter().map(|(_, x)| x[b].clone()).collect::<Vec<_>>()))
             .collect(),
     };
-    if let Some(g0) = g_start.filter(|g0| g0.len() == ng) {
+    if let Some(g0) = g_start {
+        debug_assert_eq!(g0.len(), ng, "a start for g of the target's length");
         g = g0.to_vec();
     }
     // Initial finite-difference steps: a hundredth of the prior spread of each coordinate.

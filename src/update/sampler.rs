@@ -288,9 +288,6 @@ fn base_reference(
         acc.reference_g_acceptance = info.g_acceptance;
         acc.reference_units_converged = info.converged;
         acc.reference_rounds = info.rounds;
-        if let (Some(why), true) = (&info.restarted, verbose) {
-            eprintln!("{what}: reference: {why}");
-        }
         acc.reference_restarted = info.restarted;
         if verbose {
             eprintln!(
@@ -844,7 +841,7 @@ pub fn half_widths(acc: &Acceleration) -> String {
 
 /// The findings when the reference was searched twice, and when final particles lie beyond
 /// their surrogate's box (a cost, not a bias: the ROM evaluates them).
-pub fn check_surrogate_edges(acc: &Acceleration, findings: &mut Findings) {
+pub fn acceleration_findings(acc: &Acceleration, findings: &mut Findings) {
     if let Some(why) = &acc.reference_restarted {
         findings.push(Finding::new(
             Severity::Info,

@@ -210,7 +210,7 @@ pub(crate) fn boards_attempt(
         verbose,
     )?;
     let sampler_seconds = clock.lap("sampler");
-    check_surrogate_edges(&acceleration, &mut findings);
+    acceleration_findings(&acceleration, &mut findings);
     boards::check_board_box(&bm, &bt, &results, &opts.model)?;
     let prov = provenance("update_boards", &prep.fingerprint);
     let mut outputs = vec![];

@@ -160,7 +160,7 @@ pub(crate) fn joints_body(
         verbose,
     )?;
     let sampler_seconds = clock.lap("sampler");
-    check_surrogate_edges(&acceleration, &mut findings);
+    acceleration_findings(&acceleration, &mut findings);
     joints::check_joint_box(
         (&jm, &c),
         &centre.coords,

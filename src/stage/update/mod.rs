@@ -41,7 +41,7 @@ use crate::update::problem::{
 use crate::update::rom_box::{
     rom_box_check, rom_centre_check, rom_options_for, widened, RomBoxViolation,
 };
-use crate::update::sampler::{check_surrogate_edges, run_smc, Acceleration, SamplerParams};
+use crate::update::sampler::{acceleration_findings, run_smc, Acceleration, SamplerParams};
 use crate::update::step1::Step1;
 use anyhow::{anyhow, bail, Context};
 use std::collections::BTreeMap;
