@@ -384,7 +384,7 @@ pub struct Ctx {
 /// mode before the reference is searched again from that scatter
 /// ([`ModalTarget::noise_restart`]). The scatter estimates ε itself: the per-unit model error
 /// σ_u carries what differs between units, so the posterior's ε sits at it (on the five
-/// realistic nulls within 0.8–1.3×). A tenfold excess is beyond its sampling error at three
+/// realistic nulls, fold 0 of each: 0.90–1.25×). A tenfold excess is beyond its sampling error at three
 /// degrees of freedom and more (P(s < σ/10) < 0.002 for χ²₃).
 pub const NOISE_RESTART_FACTOR: f64 = 10.0;
 /// The degrees of freedom a mode's repeat scatter needs before it can overrule g's mode.
