@@ -23,6 +23,8 @@ pub(super) struct Funnel {
     rescale: bool,
     /// The start `Target::data_start_global` offers for any other g (None: none).
     pub(super) restart: Option<Vec<f64>>,
+    /// `Target::collapsed_global` reports a collapse where some ln ε_m is below this.
+    pub(super) collapse_below: Option<f64>,
 }
 
 impl Funnel {
@@ -43,6 +45,7 @@ impl Funnel {
             y,
             rescale,
             restart: None,
+            collapse_below: None,
         }
     }
 
@@ -178,6 +181,12 @@ impl Target for Funnel {
     fn data_start_global(&self, g: &[f64]) -> Option<(Vec<f64>, String)> {
         let r = self.restart.as_ref().filter(|r| r.as_slice() != g)?;
         Some((r.clone(), "a start the data give".into()))
+    }
+    fn collapsed_global(&self, g: &[f64]) -> Option<String> {
+        let below = self.collapse_below?;
+        g.iter()
+            .position(|&v| v < below)
+            .map(|m| format!("ln ε_{m} below {below}"))
     }
 }
 

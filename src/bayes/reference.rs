@@ -1177,7 +1177,10 @@ fn construct_reference<T: Target>(
                     g_prec: g_prec.clone(),
                     round,
                 });
-            } else if let Some(why) = snapshot.as_ref().and(degenerate_unit(&xs, &precs, d)) {
+            } else if let Some(why) = snapshot
+                .as_ref()
+                .and_then(|_| degenerate_unit(&xs, &precs, d).or_else(|| t.collapsed_global(&g)))
+            {
                 // A unit's spread collapsed: no later round brings it back.
                 fell_back = Some((round + 1, why));
                 let s = snapshot.take().expect("a snapshot");
@@ -1716,6 +1719,36 @@ mod tests {
         }
         // Fewer model evaluations than the rounds and the rebuild it replaces.
         assert!(info.model_evals < info_none.model_evals + info3.model_evals);
+    }
+
+    /// A collapse of g itself ([`Target::collapsed_global`]: an error scale run far below
+    /// its prior, the units' spreads intact) falls back as a unit's does: the first check
+    /// after the snapshot stops the rounds, and the reference is the first rounds' own, with
+    /// the target's reason, for fewer evaluations than rounds until a unit collapses.
+    #[test]
+    fn a_collapse_of_g_falls_back_to_the_first_rounds() {
+        let mut t = crate::bayes::funnel_tests::Funnel::new(30, [0.05, 0.05, 0.05], 7, false);
+        let opts = ReferenceOptions {
+            g_steps: 2000,
+            ..ReferenceOptions::default()
+        };
+        // The toy's units collapse by themselves, a few rounds after the snapshot.
+        let (q0, info0) = laplace_reference(&t, &[], &opts, 3).unwrap();
+        let (after0, why0) = info0.fell_back.clone().expect("the units collapse");
+        assert!(
+            after0 > FALLBACK_ROUNDS + 1 && why0.starts_with("unit"),
+            "{why0}"
+        );
+        // Every g counts as collapsed: the first check after the snapshot falls back, to
+        // the same first rounds.
+        t.collapse_below = Some(f64::INFINITY);
+        let (q, info) = laplace_reference(&t, &[], &opts, 3).unwrap();
+        let (after, why) = info.fell_back.clone().expect("a fallback");
+        assert_eq!((after, info.rounds), (FALLBACK_ROUNDS + 1, FALLBACK_ROUNDS));
+        assert!(why.contains("ln ε_0 below"), "{why}");
+        assert_eq!(q.global.mean, q0.global.mean);
+        assert_eq!(q.global.chol, q0.global.chol);
+        assert!(info.model_evals < info0.model_evals);
     }
 
     /// Where the target's data reject g's mode ([`Target::data_start_global`]), the reference

@@ -119,6 +119,14 @@ pub trait Target: Sync {
     fn data_start_global(&self, _g: &[f64]) -> Option<(Vec<f64>, String)> {
         None
     }
+    /// Where a search for g's mode has run a coordinate to where the prior puts no mass, in
+    /// the direction a false peak of the search pulls it (e.g. a noise scale towards zero,
+    /// where units that can fit a mode exactly make the Laplace form grow without bound):
+    /// why. None (the default) where nothing has collapsed. The reference then falls back to
+    /// its first rounds (`reference::ReferenceOptions::fallback_rounds`).
+    fn collapsed_global(&self, _g: &[f64]) -> Option<String> {
+        None
+    }
     /// p(x_b | g) as a normal (mean, lower Cholesky factor of its covariance, row-major),
     /// where it is one; None (the default) otherwise.
     fn unit_prior_normal(&self, _ctx: &Self::Ctx, _b: usize) -> Option<(Vec<f64>, Vec<f64>)> {

@@ -390,7 +390,44 @@ pub const NOISE_RESTART_FACTOR: f64 = 10.0;
 /// The degrees of freedom a mode's repeat scatter needs before it can overrule g's mode.
 pub const NOISE_RESTART_MIN_DOF: usize = 3;
 
+/// How many of its prior's sds below the prior's median an error scale (ε or δ) of g may
+/// fall during the reference's search before the search is taken to have collapsed
+/// ([`ModalTarget::collapsed_error_scale`]). The prior is the user's statement of plausible
+/// noise (ε: median 0.5 %, a factor 4.5 per sd for step 2's joints), and below five sds it
+/// holds under 3e-7 of its mass: a joint enrichment's units of two or three coordinates that
+/// each fit a bolted mode exactly reach that only through the Laplace form's false peak at
+/// ε → 0 (the realistic fixture refit ran ln ε of bending-y-1 to −17.0, 7.8 sds, with the
+/// plate modes' ε left at 2–3e-3). A false alarm costs stages, not the answer: the fallback
+/// reference is a valid start, and the tempering corrects it.
+pub const COLLAPSE_PRIOR_SDS: f64 = 5.0;
+
 impl ModalTarget {
+    /// [`Target::collapsed_global`]: the first inferred ln ε or ln δ of g more than
+    /// [`COLLAPSE_PRIOR_SDS`] of its prior's log-sd below the prior's log-median.
+    pub fn collapsed_error_scale(&self, g: &[f64]) -> Option<String> {
+        let mut k = self.prior.dim();
+        for (name, p) in [
+            ("ε", Some(&self.errors.eps)),
+            ("δ", self.errors.delta.as_ref()),
+        ] {
+            let Some(ErrorPrior::Inferred { median, log_sd }) = p else {
+                continue;
+            };
+            for m in 0..self.errors.n_modes {
+                let z = (g.get(k + m)? - median.ln()) / log_sd;
+                if z < -COLLAPSE_PRIOR_SDS {
+                    return Some(format!(
+                        "mode {m}: {name} {:.2e}, {:.1} prior sds below its median {median:.2e}",
+                        g[k + m].exp(),
+                        -z
+                    ));
+                }
+            }
+            k += self.errors.n_modes;
+        }
+        None
+    }
+
     /// [`Target::data_start_global`]: where g's ε of some mode exceeds
     /// [`NOISE_RESTART_FACTOR`] times the scatter of the units' repeated measurements of it
     /// ([`modal::repeat_scatter`], at [`NOISE_RESTART_MIN_DOF`] or more), g with every such
@@ -691,6 +728,9 @@ impl Target for ModalTarget {
     fn data_start_global(&self, g: &[f64]) -> Option<(Vec<f64>, String)> {
         self.noise_restart(g)
     }
+    fn collapsed_global(&self, g: &[f64]) -> Option<String> {
+        self.collapsed_error_scale(g)
+    }
     fn model(&self, aux: &[f64], b: usize, x: &[f64]) -> Option<Terms> {
         let data = &self.units[b];
         let t = if self.has_covariate() {
@@ -864,6 +904,50 @@ mod tests {
         assert!(why.contains("mode 0") && !why.contains("mode 1"), "{why}");
         t.errors.eps = ErrorPrior::Fixed { value: 1e-4 };
         assert!(t.noise_restart(&g[..t.n_global()]).is_none());
+    }
+
+    /// An error scale more than five prior sds below its prior's median is a collapse; four
+    /// are not; a δ is judged against δ's prior, and fixed scales have no coordinates.
+    #[test]
+    fn an_error_scale_far_below_its_prior_is_a_collapsed_search() {
+        let (mut t, _) = covariate_target();
+        t.covariate = None;
+        let (med_e, sd_e, med_d, sd_d) = (5e-3f64, 1.5, 0.1f64, 1.0);
+        t.errors.eps = ErrorPrior::Inferred {
+            median: med_e,
+            log_sd: sd_e,
+        };
+        t.errors.delta = Some(ErrorPrior::Inferred {
+            median: med_d,
+            log_sd: sd_d,
+        });
+        let (k0, n) = (t.prior.dim(), t.errors.n_modes);
+        let mut g = vec![0.0; t.n_global()];
+        g[k0..k0 + n]
+            .iter_mut()
+            .for_each(|v| *v = med_e.ln() - 4.9 * sd_e);
+        g[k0 + n..k0 + 2 * n]
+            .iter_mut()
+            .for_each(|v| *v = med_d.ln() - 4.9 * sd_d);
+        assert!(t.collapsed_error_scale(&g).is_none());
+        g[k0 + 1] = med_e.ln() - 5.1 * sd_e;
+        let why = t.collapsed_error_scale(&g).expect("ε of mode 1 collapsed");
+        assert!(
+            why.starts_with("mode 1: ε") && why.contains("5.1 prior sds"),
+            "{why}"
+        );
+        g[k0 + 1] = med_e.ln();
+        // δ's coordinate at ε's collapse level is 4.9 of its own sds below: fine.
+        g[k0 + n + 2] = med_d.ln() - 4.9 * sd_d;
+        assert!(t.collapsed_error_scale(&g).is_none());
+        g[k0 + n + 2] = med_d.ln() - 5.5 * sd_d;
+        let why = t.collapsed_error_scale(&g).expect("δ of mode 2 collapsed");
+        assert!(why.starts_with("mode 2: δ"), "{why}");
+        // With ε fixed, δ's block starts at k0.
+        t.errors.eps = ErrorPrior::Fixed { value: 1e-4 };
+        let g2 = [&g[..k0], &g[k0 + n..]].concat();
+        let why = t.collapsed_error_scale(&g2).expect("δ of mode 2 collapsed");
+        assert!(why.starts_with("mode 2: δ"), "{why}");
     }
 
     /// With a covariate effect, a board's terms hold one prediction per condition, each the
