@@ -590,8 +590,16 @@ pub fn screen_clause(js: &crate::update::joint_screen::JointScreen) -> String {
         )
         .collect::<Vec<_>>()
         .join(", ");
+    let dropped = match js.dropped_draws.first() {
+        Some(first) => format!(
+            " ({} of {} baseline draws left out, e.g. {first})",
+            js.dropped_draws.len(),
+            js.baseline_draws
+        ),
+        None => String::new(),
+    };
     format!(
-        "the per-assembly screen (each outlier assembly's joints their own stiffness, given the baseline's posterior; log-sd {} a joint) has log Bayes factor {:.1} ± {:.1} over the baseline: {each}",
+        "the per-assembly screen (each outlier assembly's joints their own stiffness, given the baseline's posterior; log-sd {} a joint) has log Bayes factor {:.1} ± {:.1} over the baseline{dropped}: {each}",
         fmt_num(js.contrast_log_sd),
         lbf,
         se
@@ -851,6 +859,7 @@ mod tests {
             log_bayes_factor: Some(224.5),
             log_bayes_factor_se: Some(1.0),
             baseline_draws: 16,
+            dropped_draws: vec![],
             contrast_log_sd: 0.7,
             model_evals: 1000,
             failed: None,
@@ -870,6 +879,17 @@ mod tests {
         );
         assert!(
             s.contains("M058 no joint apart by a practical amount"),
+            "{s}"
+        );
+        assert!(!s.contains("left out"), "{s}");
+        // Draws the screen left out are counted in the sentence, with the first reason.
+        let mut dropped = r.clone();
+        if let Some(js) = dropped.joint_screen.as_mut() {
+            js.dropped_draws = vec!["baseline draw 15: M064: no prediction".into()];
+        }
+        let s = sentence(&compare(&base, &[dropped], &SelectOptions::default())[0]);
+        assert!(
+            s.contains("over the baseline (1 of 16 baseline draws left out, e.g. baseline draw 15: M064: no prediction): M059 joint 3"),
             "{s}"
         );
         // Judged on the screen (no sampler's refit): the screen's Bayes factor is the refit's,
@@ -918,6 +938,7 @@ mod tests {
             log_bayes_factor: Some(lbf),
             log_bayes_factor_se: Some(se),
             baseline_draws: 16,
+            dropped_draws: vec![],
             contrast_log_sd: 0.7,
             model_evals: 0,
             failed: None,

@@ -961,6 +961,7 @@ mod tests {
             log_bayes_factor: Some(-14.7),
             log_bayes_factor_se: Some(0.13),
             baseline_draws: 16,
+            dropped_draws: vec![],
             contrast_log_sd: 0.7,
             model_evals: 19520,
             failed: None,

@@ -111,6 +111,10 @@ pub struct JointScreen {
     pub log_bayes_factor_se: Option<f64>,
     /// Baseline posterior draws averaged over.
     pub baseline_draws: usize,
+    /// Baseline draws left out of the average (every assembly's), each with why: an
+    /// assembly whose integrand could not be evaluated around its mode under that draw.
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub dropped_draws: Vec<String>,
     pub contrast_log_sd: f64,
     pub model_evals: u64,
     /// Why there is no screen (a unit whose integrand could not be evaluated).
@@ -130,6 +134,7 @@ impl JointScreen {
             log_bayes_factor: None,
             log_bayes_factor_se: None,
             baseline_draws: 0,
+            dropped_draws: vec![],
             contrast_log_sd: 0.0,
             model_evals: 0,
             failed: Some(why),
@@ -158,6 +163,24 @@ pub fn joint_prior(n: usize, mu: f64, sigma: f64, s: f64) -> (Vec<f64>, Vec<f64>
         })
         .collect();
     (vec![mu; n], cholesky_jittered(&cov, n).0)
+}
+
+/// The draws every one of `n_units` units could be evaluated under (`ok(u, r)`), and the
+/// others, each with the first unit that could not.
+fn split_draws(
+    n_units: usize,
+    n_draws: usize,
+    ok: impl Fn(usize, usize) -> bool,
+) -> (Vec<usize>, Vec<(usize, usize)>) {
+    let mut kept = vec![];
+    let mut dropped = vec![];
+    for r in 0..n_draws {
+        match (0..n_units).find(|&u| !ok(u, r)) {
+            Some(u) => dropped.push((r, u)),
+            None => kept.push(r),
+        }
+    }
+    (kept, dropped)
 }
 
 /// ln E_r[exp(d_r)] over equally weighted draws, its standard error from the draws' spread
@@ -249,27 +272,46 @@ pub fn screen_joints(
     if draws.is_empty() || units.is_empty() {
         return empty("no baseline draws or no assemblies to screen".into());
     }
-    if let Some(k) = results.iter().position(Option::is_none) {
-        let (u, r) = jobs[k];
+    // A draw under which some assembly's integrand cannot be evaluated around its mode (on
+    // the realistic loose-bolt campaign one of 16 draws: none of a loose assembly's 300
+    // importance draws had a prediction, though its mode had) is left out of the average
+    // for every assembly, and said; more than half of them is no screen.
+    let (kept, dropped) = split_draws(units.len(), draws.len(), |u, r| {
+        results[u * draws.len() + r].is_some()
+    });
+    let dropped_draws: Vec<String> = dropped
+        .iter()
+        .map(|&(r, u)| {
+            format!(
+                "baseline draw {r}: {}: the likelihood could not be evaluated near its mode",
+                units[u].1
+            )
+        })
+        .collect();
+    if kept.len() < dropped.len() || kept.is_empty() {
         return empty(format!(
-            "{}: the likelihood could not be evaluated near its mode at baseline draw {r}",
-            units[u].1
+            "{} of {} baseline draws could not be evaluated, e.g. {}",
+            dropped.len(),
+            draws.len(),
+            dropped_draws[0]
         ));
     }
-    let at = |u: usize, r: usize| results[u * draws.len() + r].as_ref().expect("checked");
-    let mut total_d = vec![0.0; draws.len()];
-    let mut total_se2 = vec![0.0; draws.len()];
+    let at = |u: usize, r: usize| results[u * draws.len() + r].as_ref().expect("kept");
+    let mut total_d = vec![0.0; kept.len()];
+    let mut total_se2 = vec![0.0; kept.len()];
     let mut out_units = vec![];
     for (u, (_, name)) in units.iter().enumerate() {
-        let d: Vec<f64> = (0..draws.len())
-            .map(|r| at(u, r).1.log_z - at(u, r).0.log_z)
+        let d: Vec<f64> = kept
+            .iter()
+            .map(|&r| at(u, r).1.log_z - at(u, r).0.log_z)
             .collect();
-        let se2: Vec<f64> = (0..draws.len())
-            .map(|r| at(u, r).1.log_z_se.powi(2) + at(u, r).0.log_z_se.powi(2))
+        let se2: Vec<f64> = kept
+            .iter()
+            .map(|&r| at(u, r).1.log_z_se.powi(2) + at(u, r).0.log_z_se.powi(2))
             .collect();
-        for r in 0..draws.len() {
-            total_d[r] += d[r];
-            total_se2[r] += se2[r];
+        for k in 0..kept.len() {
+            total_d[k] += d[k];
+            total_se2[k] += se2[k];
         }
         let (lbf, se, w) = mean_exp(&d, &se2);
         // The posterior of y under M1 pooled over the draws (each draw weighted by its
@@ -277,7 +319,7 @@ pub fn screen_joints(
         let mut ratios: Vec<Vec<f64>> = vec![vec![]; n];
         let mut weights = vec![];
         let mut pooled: Vec<(usize, &Vec<f64>)> = vec![];
-        for (r, wr) in w.iter().enumerate() {
+        for (&r, wr) in kept.iter().zip(&w) {
             let z1 = &at(u, r).1;
             for (y, lw) in z1.draws.iter().zip(&z1.log_w) {
                 weights.push(wr * lw.exp());
@@ -302,9 +344,9 @@ pub fn screen_joints(
             .collect();
         // The frequency effect, at the draw that weighs most: the modes with the joints' own
         // stiffnesses (posterior mean) against those with the one stiffness (its mode).
-        let r_top = (0..w.len())
+        let r_top = kept[(0..w.len())
             .max_by(|&a, &b| w[a].total_cmp(&w[b]))
-            .unwrap_or(0);
+            .unwrap_or(0)];
         let mut y_mean = vec![0.0; n];
         for ((_, y), wi) in pooled.iter().zip(&weights) {
             for (m, v) in y_mean.iter_mut().zip(y.iter()) {
@@ -336,8 +378,9 @@ pub fn screen_joints(
                     .total_cmp(&b.ratio_median.ln().abs())
             })
             .map(|j| j.joint);
-        let min_ess = (0..draws.len())
-            .map(|r| at(u, r).1.ess.min(at(u, r).0.ess))
+        let min_ess = kept
+            .iter()
+            .map(|&r| at(u, r).1.ess.min(at(u, r).0.ess))
             .fold(f64::INFINITY, f64::min);
         let u0 = ChaCha8Rng::seed_from_u64(smc::stream_key(&[opts.seed, 0x16, u as u64]))
             .random::<f64>();
@@ -362,6 +405,7 @@ pub fn screen_joints(
         log_bayes_factor: Some(lbf),
         log_bayes_factor_se: Some(se),
         baseline_draws: draws.len(),
+        dropped_draws,
         contrast_log_sd: opts.contrast_log_sd,
         model_evals,
         failed: None,
@@ -434,6 +478,18 @@ mod tests {
         let (l, se, _) = mean_exp(&[0.0, 0.0, 10.0], &[0.0; 3]);
         assert!((l - (10.0 - 3f64.ln())).abs() < 1e-3);
         assert!(se > 0.8, "{se}");
+    }
+
+    /// A draw is kept only where every unit could be evaluated under it; a dropped draw
+    /// names the first unit that could not.
+    #[test]
+    fn a_draw_any_unit_fails_under_is_left_out_for_all() {
+        let bad = [(1usize, 2usize), (0, 2), (2, 4)];
+        let (kept, dropped) = split_draws(3, 6, |u, r| !bad.contains(&(u, r)));
+        assert_eq!(kept, vec![0, 1, 3, 5]);
+        assert_eq!(dropped, vec![(2, 0), (4, 2)]);
+        let (kept, dropped) = split_draws(2, 3, |_, _| true);
+        assert_eq!((kept, dropped), (vec![0, 1, 2], vec![]));
     }
 
     #[test]
