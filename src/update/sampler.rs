@@ -38,6 +38,10 @@ pub struct Acceleration {
     /// Why the reference was searched again from the scatter of the units' repeated
     /// measurements (`bayes::reference::laplace_reference`); None where it was not.
     pub reference_restarted: Option<String>,
+    /// Why the reference is that of the construction's first rounds (a unit's spread or an
+    /// error scale collapsed later: `ReferenceOptions::fallback_rounds`), and after how many
+    /// rounds; None where it is the last round's.
+    pub reference_fell_back: Option<String>,
     pub surrogate_units: usize,
     pub surrogate_refused: Vec<String>,
     pub surrogate_degree: Vec<Option<usize>>,
@@ -289,6 +293,10 @@ fn base_reference(
         acc.reference_units_converged = info.converged;
         acc.reference_rounds = info.rounds;
         acc.reference_restarted = info.restarted;
+        acc.reference_fell_back = info
+            .fell_back
+            .as_ref()
+            .map(|(after, why)| format!("after {after} rounds: {why}"));
         if verbose {
             eprintln!(
                 "{what}: reference ({} rounds) g mean {:.4?}, sd {:.4?}; unit sd {:.3?}",
