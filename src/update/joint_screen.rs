@@ -117,7 +117,8 @@ pub struct JointScreen {
     pub dropped_draws: Vec<String>,
     pub contrast_log_sd: f64,
     pub model_evals: u64,
-    /// Why there is no screen (a unit whose integrand could not be evaluated).
+    /// Why there is no screen (no draws, or more than half of them left out:
+    /// `dropped_draws`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub failed: Option<String>,
     /// Rows of the screened assemblies' residuals averaged over part of the posterior draws
