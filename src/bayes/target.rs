@@ -393,7 +393,7 @@ pub const NOISE_RESTART_MIN_DOF: usize = 3;
 /// How many of its prior's sds below the prior's median an error scale (ε or δ) of g may
 /// fall during the reference's search before the search is taken to have collapsed
 /// ([`ModalTarget::collapsed_error_scale`]). The prior is the user's statement of plausible
-/// noise (ε: median 0.5 %, a factor 4.5 per sd for step 2's joints), and below five sds it
+/// noise (ε: median 0.5 %, a factor 4.5 per sd, the default of both steps), and below five sds it
 /// holds under 3e-7 of its mass: a joint enrichment's units of two or three coordinates that
 /// each fit a bolted mode exactly reach that only through the Laplace form's false peak at
 /// ε → 0 (the realistic fixture refit ran ln ε of bending-y-1 to −17.0, 7.8 sds, with the

@@ -276,7 +276,8 @@ pub fn screen_joints(
     // A draw under which some assembly's integrand cannot be evaluated around its mode (on
     // the realistic loose-bolt campaign one of 16 draws: none of a loose assembly's 300
     // importance draws had a prediction, though its mode had) is left out of the average
-    // for every assembly, and said; more than half of them is no screen.
+    // for every assembly, and said. With more than half of them left out, the average no
+    // longer stands for the baseline's posterior but for a minority of it: no screen.
     let (kept, dropped) = split_draws(units.len(), draws.len(), |u, r| {
         results[u * draws.len() + r].is_some()
     });

@@ -443,11 +443,7 @@ fn new_modes_refit(
     prep: &PrepMemo,
     verbose: bool,
 ) -> anyhow::Result<()> {
-    let ev = read_json(&out.join("evidence.json"))?;
-    let found: Vec<&serde_json::Value> = ev["new_modes"]
-        .as_array()
-        .map(|a| a.iter().collect())
-        .unwrap_or_default();
+    let found = listed_new_modes(out)?;
     let Some(base) = base2.filter(|_| !found.is_empty() && r.failed.is_none()) else {
         return Ok(());
     };
@@ -644,22 +640,35 @@ pub(super) fn cannot_be_favoured(
     let rel = format!("refits/{}", cand.id());
     let out = opts.out.join(&rel);
     let outliers = &a.located.measurements_after_covariates;
-    let mut r = summarize_refit(candidate_source(cand, &out, &rel), Some(a.z1), outliers).ok()?;
+    let r = summarize_refit(candidate_source(cand, &out, &rel), Some(a.z1), outliers).ok()?;
     let after = refit_residuals(&out).ok()?;
-    with_shares(opts, cand, a, &mut r, &after);
-    if !is_board_mechanism(cand.mechanism) && has_new_modes(&out) {
+    judged(opts, cand, a, r, &after, &out)
+}
+
+/// Why the refit `r` of `cand` (its residuals `after`, its directory `out`) cannot be
+/// favoured whatever its Bayes factor: [`select::cannot_be_favoured`] with its shares of the
+/// located misfit, and without its held-out error where it is a joint refit whose enriched
+/// model has modes of its own that the campaign shows ([`new_modes_refit`] judges those).
+fn judged(
+    opts: &DiagnoseOptions,
+    cand: &Candidate,
+    a: &Against,
+    mut r: Refit,
+    after: &[locate::ResidualObs],
+    out: &Path,
+) -> Option<String> {
+    with_shares(opts, cand, a, &mut r, after);
+    if !is_board_mechanism(cand.mechanism) && listed_new_modes(out).is_ok_and(|m| !m.is_empty()) {
         r.held_out.clear();
     }
     select::cannot_be_favoured(a.baseline, &r, &opts.select)
 }
 
-/// Whether a joint refit's directory lists modes its enriched model adds that the campaign
-/// shows (`new_modes` of its evidence.json); false where it cannot be read.
-fn has_new_modes(out: &Path) -> bool {
-    read_json(&out.join("evidence.json"))
-        .ok()
-        .and_then(|ev| ev["new_modes"].as_array().map(|a| !a.is_empty()))
-        .unwrap_or(false)
+/// The modes a joint refit's enriched model adds that the campaign shows (`new_modes` of
+/// its evidence.json; empty where it lists none).
+fn listed_new_modes(out: &Path) -> anyhow::Result<Vec<serde_json::Value>> {
+    let ev = read_json(&out.join("evidence.json"))?;
+    Ok(ev["new_modes"].as_array().cloned().unwrap_or_default())
 }
 
 /// Set a refit's share of the located misfit it leaves and the misfit it removes, from its
@@ -874,12 +883,9 @@ pub(super) fn refit(
             // The refit as summarized here, not read again from its directory; its held-out
             // error aside: the refit that fits the mechanism's own modes is the one whose
             // predictions the held-out modes judge (`new_modes_refit`).
-            let not_favourable = refit_residuals(&out).ok().and_then(|after| {
-                let mut judged = r.clone();
-                with_shares(opts, cand, against, &mut judged, &after);
-                judged.held_out.clear();
-                select::cannot_be_favoured(against.baseline, &judged, &opts.select)
-            });
+            let not_favourable = refit_residuals(&out)
+                .ok()
+                .and_then(|after| judged(opts, cand, against, r.clone(), &after, &out));
             new_modes_refit(
                 opts,
                 bases.1,
