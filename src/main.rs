@@ -422,6 +422,7 @@ impl UpdateArgs {
             board: self.model,
             out: self.out,
             force: self.force,
+            cache: hbmu::io::cache::Cache::from_env(),
             sampler: hbmu::update::sampler::SamplerParams {
                 seed: self.seed,
                 runs: self.runs.max(1),

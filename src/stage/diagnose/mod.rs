@@ -31,6 +31,7 @@ use crate::io::tables::diagnose::{self as diagnose_tables, DiagnosisRow};
 use crate::io::work_dir::WorkDir;
 use crate::stage::{exit, PhaseClock, StageOutcome, StageResult};
 use anyhow::anyhow;
+use anyhow::Context as _;
 use refit::{
     baselines, cannot_be_favoured, centre_gate, load_board, refine_point, run_refit, step1_options,
     step2_options, Against,
@@ -64,11 +65,16 @@ pub fn run(opts: &DiagnoseOptions, verbose: bool) -> anyhow::Result<Option<Stage
     if let Some(b) = &opts.board {
         inputs.push(b.clone());
     }
-    let base = if step2 { Some(step2_options(w)?) } else { None };
+    let mut base = if step2 { Some(step2_options(w)?) } else { None };
     let mut config = serde_json::to_value(opts)?;
     config["step2_options"] = serde_json::to_value(&base)?;
-    let base1 = step1_options(w)?;
+    let mut base1 = step1_options(w)?;
     config["step1_options"] = serde_json::to_value(&base1)?;
+    let (cache, _private_cache) = refit_cache()?;
+    base1.cache = Some(cache.clone());
+    if let Some(b) = base.as_mut() {
+        b.cache = Some(cache);
+    }
     let spec = StageSpec {
         stage: "diagnose".into(),
         inputs,
@@ -419,5 +425,26 @@ fn write_outputs(
         outputs,
         exit_code: exit::OK,
         summary: s,
+    })
+}
+
+/// The cache of model artifacts the refits use: `HBMU_CACHE`'s, or without one a private
+/// cache removed with the returned directory. Refits build some artifacts more than once
+/// (every step-1 refit the model-error term's mesh study, 19 s on the default board; a
+/// located mass's probe and its refit the same ROM, 15 s), and a hit is the build bit for
+/// bit, so the diagnosis is the same either way.
+fn refit_cache() -> anyhow::Result<(crate::io::cache::Cache, Option<tempfile::TempDir>)> {
+    use crate::io::cache::Cache;
+    Ok(match Cache::from_env() {
+        Some(c) => (c, None),
+        None => {
+            let dir = tempfile::Builder::new()
+                .prefix("hbmu-diagnose-cache-")
+                .tempdir()
+                .context(
+                    "creating the diagnosis's private cache of model artifacts (no HBMU_CACHE)",
+                )?;
+            (Cache::new(dir.path()), Some(dir))
+        }
     })
 }

@@ -124,7 +124,7 @@ pub(crate) fn boards_attempt(
     )?;
     let need = bm.need;
     clock.lap("models");
-    let cache = crate::io::cache::Cache::from_env();
+    let cache = opts.cache.clone();
     let rom = model_cache::rom(
         cache.as_ref(),
         &bm.model,

@@ -530,11 +530,7 @@ pub(crate) fn prepare_joints(
     );
     let rom = match remembered {
         Some(m) if m.rom.n_modes >= rom_options.n_modes => m.rom,
-        _ => model_cache::rom(
-            crate::io::cache::Cache::from_env().as_ref(),
-            &jm.model,
-            &rom_options,
-        )?,
+        _ => model_cache::rom(opts.cache.as_ref(), &jm.model, &rom_options)?,
     };
     *memo = Some(JointPrep {
         key,

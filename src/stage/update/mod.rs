@@ -76,6 +76,11 @@ pub struct UpdateOptions {
     pub out: PathBuf,
     #[serde(skip)]
     pub force: bool,
+    /// Where model artifacts (ROMs, the mesh study) are looked up and published: the CLI's
+    /// is `HBMU_CACHE`'s; none builds every one. Not an option of the result (a hit is the
+    /// build, bit for bit), so outside the fingerprint.
+    #[serde(skip)]
+    pub cache: Option<crate::io::cache::Cache>,
     #[serde(flatten)]
     pub sampler: SamplerParams,
     #[serde(flatten)]
