@@ -175,6 +175,14 @@ pub fn run_smc(
             acc.pilot_seconds,
             t_groups - acc.subspace_seconds
         );
+        if !acc.surrogate_refused.is_empty() {
+            eprintln!(
+                "{what}: {} of {} units without a surrogate (the ROM evaluates them), e.g. {}",
+                acc.surrogate_refused.len(),
+                acc.surrogate_refused.len() + acc.surrogate_units,
+                acc.surrogate_refused[0]
+            );
+        }
     }
     let mut out = vec![];
     let (mut t_tempering, mut t_correction) = (0.0, 0.0);
