@@ -10,8 +10,9 @@
 #
 # Usage: benches/own_board_holdout.sh WORK_DIR [WORK_DIR...]   (each a work directory the DAG
 # ran up to `pair`). Env: HBMU (default target/debug/hbmu), PARTICLES, RUNS (default 2000, 4:
-# the issue's sizes), DRAWS (propagate, default 2000), FOLDS (default 1), UPDATE_ARGS (default
-# the DAG's, --rom-basis 30). Folds under WORK_DIR/own-holdout-<k>. Prints per fold the
+# the issue's sizes), DRAWS (propagate, default 2000), FOLDS (default 1), FIRST (the first fold
+# to run, default 0: later folds join the ones already there), UPDATE_ARGS (default the DAG's,
+# --rom-basis 30). Folds under WORK_DIR/own-holdout-<k>. Prints per fold the
 # coverage and, pooled per work directory, per mode.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
@@ -23,7 +24,7 @@ folds=${FOLDS:-1}
 read -r -a update_args <<< "${UPDATE_ARGS:---rom-basis 30}"
 for w in "$@"; do
   w=$(cd "$w" && pwd)
-  for ((k = 0; k < folds; k++)); do
+  for ((k = ${FIRST:-0}; k < folds; k++)); do
     held=$(python3 - "$w/pair/pairs.parquet" "$k" <<'EOF'
 import sys
 import pandas as pd

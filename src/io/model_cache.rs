@@ -61,7 +61,7 @@ fn through<T>(
     }
 }
 
-/// `Rom::build(model, opts)`, through `cache` (the stages pass `Cache::from_env()`).
+/// `Rom::build(model, opts)`, through `cache` (the update steps' `UpdateOptions::cache`).
 pub fn rom(cache: Option<&Cache>, model: &FeModel, opts: &RomOptions) -> anyhow::Result<Rom> {
     let k = key(
         "update-rom",
