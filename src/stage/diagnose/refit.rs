@@ -392,12 +392,11 @@ fn run_gated(
     let r = step(&o)?;
     let summary = o.out.join("summary.parquet");
     let gates = refit_gates(&summary, &baseline.join("summary.parquet"))?;
-    // The ESS rule is for the estimates a finding reports. Where the enriched model has modes
-    // of its own that the campaign shows, they come from the refit that fits those modes too
-    // ([`new_modes_refit`], which has this gate of its own): a retry here would sharpen
-    // quantiles nobody reports (on the realistic fixture campaign, 2 runs of 400 particles).
+    // The ESS rule is for the estimates a finding reports; a retry for estimates another
+    // refit reports would sharpen quantiles nobody reads (on the realistic fixture campaign,
+    // 2 runs of 400 particles).
     let estimates_here =
-        o.model.enrich_new_modes || listed_new_modes(&o.out).unwrap_or_default().is_empty();
+        !judged_by_new_modes_refit(o.model.enrich, o.model.enrich_new_modes, &o.out);
     let rule = |min_ess| {
         retry_rule(
             gates.r_hat.clone(),
@@ -676,10 +675,24 @@ fn judged(
     out: &Path,
 ) -> Option<String> {
     with_shares(opts, cand, a, &mut r, after);
-    if !is_board_mechanism(cand.mechanism) && listed_new_modes(out).is_ok_and(|m| !m.is_empty()) {
+    if judged_by_new_modes_refit(Some(cand.mechanism), false, out) {
         r.held_out.clear();
     }
     select::cannot_be_favoured(a.baseline, &r, &opts.select)
+}
+
+/// Whether the refit of `mechanism` in `out` leaves its estimates and held-out error to the
+/// refit that fits its enriched model's own modes ([`new_modes_refit`]): a joint mechanism
+/// whose evidence.json lists modes of its own that the campaign shows, and not itself that
+/// refit (`fits_new_modes`). False where the evidence cannot be read.
+fn judged_by_new_modes_refit(
+    mechanism: Option<Mechanism>,
+    fits_new_modes: bool,
+    out: &Path,
+) -> bool {
+    mechanism.is_some_and(|m| !is_board_mechanism(m))
+        && !fits_new_modes
+        && listed_new_modes(out).is_ok_and(|m| !m.is_empty())
 }
 
 /// The modes a joint refit's enriched model adds that the campaign shows (`new_modes` of
@@ -1027,6 +1040,31 @@ mod tests {
         assert_eq!(ess_particle_factor(90.0, 200.0), 3);
         assert_eq!(ess_particle_factor(0.0, 200.0), 4);
         assert_eq!(ess_particle_factor(f64::NAN, 200.0), 4);
+    }
+
+    /// A joint refit whose evidence lists modes of its own leaves its estimates and held-out
+    /// error to the refit that fits them; that refit, a board mechanism's, one without such
+    /// modes and one without a readable evidence.json keep their own.
+    #[test]
+    fn only_a_joint_refit_listing_new_modes_is_judged_by_the_new_modes_refit() {
+        use super::judged_by_new_modes_refit as by;
+        use crate::diagnose::library::Mechanism;
+        let t = tempfile::tempdir().unwrap();
+        let (with, without, none) = (t.path().join("a"), t.path().join("b"), t.path().join("c"));
+        for (d, ev) in [
+            (&with, r#"{"new_modes": [{"label": "fixture-1"}]}"#),
+            (&without, r#"{"new_modes": []}"#),
+        ] {
+            std::fs::create_dir_all(d).unwrap();
+            std::fs::write(d.join("evidence.json"), ev).unwrap();
+        }
+        let fixture = Some(Mechanism::FixtureCompliance);
+        assert!(by(fixture, false, &with));
+        assert!(!by(fixture, true, &with));
+        assert!(!by(fixture, false, &without));
+        assert!(!by(fixture, false, &none));
+        assert!(!by(Some(Mechanism::AddedMass), false, &with));
+        assert!(!by(None, false, &with));
     }
 
     /// A refit step is retried where its evidence gives no Bayes factor (any parameter above

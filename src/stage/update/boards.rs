@@ -124,9 +124,9 @@ pub(crate) fn boards_attempt(
     )?;
     let need = bm.need;
     clock.lap("models");
-    let cache = opts.cache.clone();
+    let cache = opts.cache.as_ref();
     let rom = model_cache::rom(
-        cache.as_ref(),
+        cache,
         &bm.model,
         &rom_options_for(&bm.model, need, &bm.log_axes, &opts.model),
     )?;
@@ -161,9 +161,8 @@ pub(crate) fn boards_attempt(
     let measurements_source = paths.measurements.display().to_string();
     let model_error = if opts.model.model_error {
         let (p, n) = model_error_study(&bm.board_nominal, &labels, &bm.all);
-        let spread =
-            model_cache::mesh_study(cache.as_ref(), board, &Setup::Free, &board.mesh, &p, n)
-                .context("the model-error term's mesh study")?;
+        let spread = model_cache::mesh_study(cache, board, &Setup::Free, &board.mesh, &p, n)
+            .context("the model-error term's mesh study")?;
         Some(model_error_from(spread, &labels, &bm.all))
     } else {
         None
