@@ -129,7 +129,7 @@ def contrasts(work, truth):
         lo, hi = np.quantile(c, [0.05, 0.95], axis=0)
         for k, i in enumerate(ids):
             inside_c.append((i, p, bool(lo[k] <= tc[k] <= hi[k])))
-            zs.append((tc[k] - c[:, k].mean()) / c[:, k].std())
+            zs.append((p, (tc[k] - c[:, k].mean()) / c[:, k].std()))
     return inside_c, zs
 
 
@@ -166,7 +166,13 @@ def main(works):
             print(f"  {k}: {inside_n}/{n} = {100 * inside_n / n:.1f} % inside (nominal 90 %), "
                   f"binomial two-sided p = {binom_two_sided(inside_n, n, 0.9):.3f}")
     if z_all:
-        print(f"  contrast z-scores: sd {np.std(z_all):.2f} over {len(z_all)} (1 when the widths are right)")
+        zs = np.array([z for _, z in z_all])
+        print(f"  contrast z-scores: sd {np.std(zs):.2f} over {len(zs)} (1 when the widths are right)")
+        by = {}
+        for p, z in z_all:
+            by.setdefault(p, []).append(z)
+        print("    per parameter: " + ", ".join(
+            f"{p} {np.std(v):.2f} ({sum(abs(x) <= 1.645 for x in v)}/{len(v)} within ±1.645)" for p, v in by.items()))
     print(f"  Table-2 analog: worst |posterior-predictive mean error| of a free-free updating mode "
           f"{100 * worst_t2:.4f} % (target < 0.2 %)")
 

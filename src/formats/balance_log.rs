@@ -246,6 +246,12 @@ pub struct BoardMass {
     pub n_days: usize,
     /// Largest minus smallest of the per-day means, grams (0 for one day).
     pub day_spread_g: f64,
+    /// Sum of squares of the per-day means about their unweighted mean, g² (0 for one day):
+    /// with `n_days - 1` degrees of freedom, what re-placing the board on the pan changes.
+    pub day_means_ss_g2: f64,
+    /// Σ over the days of (the day's share of the stable readings)²: `mass_g` is the
+    /// readings' mean, so its variance is one day mean's times this (1 for one day).
+    pub day_share_sq_sum: f64,
 }
 
 /// Parameters of the mass summary.
@@ -303,6 +309,12 @@ pub fn board_masses(readings: &[Reading], params: MassParams) -> Vec<BoardMass> 
             let day_means: Vec<f64> = by_day.values().map(|(s, k)| s / *k as f64).collect();
             let day_spread = day_means.iter().copied().fold(f64::MIN, f64::max)
                 - day_means.iter().copied().fold(f64::MAX, f64::min);
+            let day_mean = day_means.iter().sum::<f64>() / day_means.len() as f64;
+            let day_ss = day_means.iter().map(|v| (v - day_mean).powi(2)).sum();
+            let share_sq = by_day
+                .values()
+                .map(|(_, k)| (*k as f64 / n as f64).powi(2))
+                .sum();
             BoardMass {
                 board_id: board.to_string(),
                 mass_g: mean,
@@ -312,6 +324,8 @@ pub fn board_masses(readings: &[Reading], params: MassParams) -> Vec<BoardMass> 
                 inconsistent: n > 1 && std > params.max_std_in_d * d.max(f64::MIN_POSITIVE),
                 n_days: by_day.len(),
                 day_spread_g: day_spread,
+                day_means_ss_g2: day_ss,
+                day_share_sq_sum: share_sq,
             }
         })
         .collect()
@@ -369,6 +383,27 @@ mod tests {
         assert!(!m[0].inconsistent);
         assert!((m[1].mass_g - 13.0012).abs() < 1e-9);
         assert_eq!(m[1].n_stable, 1);
+        assert_eq!((m[0].n_days, m[0].day_means_ss_g2), (1, 0.0));
+        assert_eq!(m[0].day_share_sq_sum, 1.0);
+    }
+
+    /// Two days' readings: the day means' sum of squares and each day's share of the mean.
+    #[test]
+    fn re_weighings_on_other_days_give_the_day_means_scatter() {
+        let log = "2025-03-01T09:00:00 B S S 12.0001 g\n\
+            2025-03-01T09:00:01 B S S 12.0003 g\n\
+            2025-03-01T09:00:02 B S S 12.0002 g\n\
+            2025-03-04T09:00:00 B S S 12.0006 g\n";
+        let (r, _) = parse(log.as_bytes(), "a.log");
+        let m = &board_masses(&r, MassParams::default())[0];
+        assert_eq!(m.n_days, 2);
+        // Day means 12.0002 and 12.0006: about 12.0004, 2 × (2e-4)².
+        assert!(
+            (m.day_means_ss_g2 - 8e-8).abs() < 1e-15,
+            "{}",
+            m.day_means_ss_g2
+        );
+        assert!((m.day_share_sq_sum - (0.75f64.powi(2) + 0.25f64.powi(2))).abs() < 1e-15);
     }
 
     #[test]

@@ -283,6 +283,8 @@ pub fn write_outputs(c: &Campaign, out: &Path, fingerprint: &str) -> anyhow::Res
             f64s(ms.iter().map(|m| Some(m.resolution_g))),
             bools(ms.iter().map(|m| Some(m.inconsistent))),
             i32s(ms.iter().map(|m| Some(m.n_days as i32))),
+            f64s(ms.iter().map(|m| Some(m.day_means_ss_g2))),
+            f64s(ms.iter().map(|m| Some(m.day_share_sq_sum))),
         ],
     )?;
 

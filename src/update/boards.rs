@@ -20,8 +20,8 @@ use crate::update::posterior::{
 use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
     all_labels, balance_bias_draw, covariate_offsets, discrepancy_for, mass_obs, modes_needed,
-    predictors, shape_map, thickness_obs, unit_and_residual_data, BoardCoordinates, Labels,
-    MassRow, ModelErrorPrior, ModelSpec, ObsMeta, StepTarget,
+    placement_scatter, predictors, shape_map, thickness_obs, unit_and_residual_data,
+    BoardCoordinates, Labels, MassRow, ModelErrorPrior, ModelSpec, ObsMeta, StepTarget,
 };
 use crate::update::rom_box::RomBoxViolation;
 use crate::update::sampler::{box_violations, particles_of, Results};
@@ -466,6 +466,9 @@ fn board_units(
     // The balance informs the mass parameters: mass_scale, and an added mass.
     let mass_updated =
         spec.params.iter().any(|p| p == names::MASS_SCALE) || !bm.log_axes.is_empty();
+    if mass_updated {
+        balance_placement_findings(masses, findings);
+    }
     let use_shapes = spec.delta.is_some();
     let mut units = vec![];
     let mut units_all = vec![];
@@ -489,7 +492,12 @@ fn board_units(
             findings,
         )?;
         data.mass = match masses.get(b) {
-            Some(m) if mass_updated => mass_obs(m, b, findings),
+            Some(m) if mass_updated => mass_obs(
+                m,
+                b,
+                placement_scatter(masses.values(), m.resolution_g),
+                findings,
+            ),
             Some(_) => None,
             None => {
                 findings.push(Finding::new(
@@ -816,6 +824,36 @@ pub fn board_evidence(
     ev["shape_weights"] = serde_json::to_value(shape_weights)?;
     ev["discrepancy"] = discrepancy_json(&bt.step.target, &labels.labels);
     Ok(ev)
+}
+
+/// Says, once per balance (readability), what each board's mass term allows for the
+/// balance's error between placements: the campaign's own re-weighings, or the OIML bound.
+fn balance_placement_findings(masses: &BTreeMap<String, MassRow>, findings: &mut Findings) {
+    use crate::update::problem::{MIN_PLACEMENT_DF, MPE_READABILITY_STEPS};
+    let mut seen: Vec<f64> = vec![];
+    for m in masses.values() {
+        let d = m.resolution_g;
+        if seen.contains(&d) {
+            continue;
+        }
+        seen.push(d);
+        let message = match placement_scatter(masses.values(), d) {
+            Some(p) => format!(
+                "balance of readability {d} g: {} boards weighed on more than one day give one day's mean an sd of {:.3} mg ({} degrees of freedom); each board's mass term allows that for placing it on the pan, over its number of days, not the OIML allowance of ±{MPE_READABILITY_STEPS} d",
+                p.n_boards,
+                1e3 * p.var_g2.sqrt(),
+                p.df
+            ),
+            None => format!(
+                "balance of readability {d} g: too few boards weighed again on another day to measure what placing a board on the pan errs (fewer than {MIN_PLACEMENT_DF} degrees of freedom); each board's mass term allows the OIML R 76-1 class I bound of ±{MPE_READABILITY_STEPS} d. Weigh each board on two days to have the campaign measure it"
+            ),
+        };
+        findings.push(Finding::new(
+            Severity::Info,
+            "update.balance_placement",
+            message,
+        ));
+    }
 }
 
 #[cfg(test)]

@@ -198,6 +198,11 @@ pub struct MassRow {
     pub std_g: f64,
     pub resolution_g: f64,
     pub inconsistent: bool,
+    /// Days with a stable reading, their means' sum of squares (g²) and Σ (day's share of
+    /// the readings)² (`formats::balance_log::BoardMass`).
+    pub n_days: i32,
+    pub day_means_ss_g2: f64,
+    pub day_share_sq_sum: f64,
 }
 
 /// Where `model` has the core thickness as a parameter: its index, nominal value (m) and the
@@ -620,14 +625,26 @@ pub fn unit_data(
     Ok((d, meta))
 }
 
-/// A board's balance observation: the mean of its stable readings, with the sd of that mean
-/// (the readings' spread over √n and the readability's uniform rounding error; one reading
-/// has no spread of its own, so it is taken as one readability step, the order of an
-/// analytical balance's repeatability), never below what a balance may err from board to
-/// board ([`MPE_READABILITY_STEPS`]). The error every board shares is not in it (buoyancy,
-/// calibration: [`balance_bias_draw`]): it moves every board's mass together, and the
-/// contrasts between boards are known to this precision.
-pub fn mass_obs(m: &MassRow, board_id: &str, findings: &mut Findings) -> Option<MassObs> {
+/// A board's balance observation: the mean of its stable readings, with the sd of that mean.
+/// It is the larger of two:
+/// - the readings' own: their spread over √n and the readability's uniform rounding error
+///   (one reading has no spread of its own, so it is taken as one readability step, the
+///   order of an analytical balance's repeatability; readings ingest flagged as
+///   inconsistent keep their full spread);
+/// - what the balance may err from one placement of a board to the next (eccentric load,
+///   drift between sessions, handling): the campaign's own measure of it, `placement`
+///   ([`placement_scatter`]), times the board's share of its days, where boards were
+///   weighed again on other days; else the OIML allowance ([`MPE_READABILITY_STEPS`]).
+///
+/// The error every board shares is not in it (buoyancy, calibration:
+/// [`balance_bias_draw`]): it moves every board's mass together, and the contrasts between
+/// boards are known to this precision.
+pub fn mass_obs(
+    m: &MassRow,
+    board_id: &str,
+    placement: Option<PlacementScatter>,
+    findings: &mut Findings,
+) -> Option<MassObs> {
     if m.n_stable < 1 || !m.mass_g.is_finite() {
         return None;
     }
@@ -647,12 +664,16 @@ pub fn mass_obs(m: &MassRow, board_id: &str, findings: &mut Findings) -> Option<
     } else {
         one * one / f64::from(m.n_stable) + res2
     };
+    let between_sd2 = match placement {
+        // A day's readings may all print one value: its mean still carries the rounding.
+        Some(p) => p.var_g2.max(res2) * m.day_share_sq_sum.clamp(0.0, 1.0),
+        None => (MPE_READABILITY_STEPS * m.resolution_g).powi(2) / 3.0,
+    };
     // A microgram per gram: no balance a board fits on reads finer, and a log without a
     // readability and a single reading would otherwise pin the mass exactly.
-    let mpe_sd = MPE_READABILITY_STEPS * m.resolution_g / 3f64.sqrt();
     let sd = sd2
+        .max(between_sd2)
         .sqrt()
-        .max(mpe_sd)
         .max(MIN_MASS_SD_REL * m.mass_g.abs())
         .max(1e-9);
     Some(MassObs {
@@ -661,17 +682,63 @@ pub fn mass_obs(m: &MassRow, board_id: &str, findings: &mut Findings) -> Option<
     })
 }
 
+/// The balance's scatter from one placement of a board to the next: the variance of one
+/// day's mean reading, pooled over the boards weighed on more than one day.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct PlacementScatter {
+    /// E[σ²] given the pooled sum of squares S on ν degrees of freedom under the Jeffreys
+    /// prior, S / (ν − 2), g²: the plain S / ν would make the intervals too narrow on the
+    /// few re-weighings a campaign has (the t quantile with ν = 8 is 1.86 against
+    /// 1.645 √(8/6) = 1.90 for this variance).
+    pub var_g2: f64,
+    /// ν: the day means less one per board, summed.
+    pub df: usize,
+    /// Boards weighed on more than one day.
+    pub n_boards: usize,
+}
+
+/// The fewest degrees of freedom that make a placement scatter: E[σ²] is finite from 3.
+pub const MIN_PLACEMENT_DF: usize = 3;
+
+/// The placement scatter of the balance that read `resolution_g` (boards read at the same
+/// readability pool; another balance's readings stay apart), from every board's day means
+/// (a board re-weighed on another day was taken off the pan and put back, so its day means
+/// differ by what a placement errs, which the readings of one session cannot show). None
+/// below [`MIN_PLACEMENT_DF`]. A board whose mass changed between days (ingest warns) pools
+/// too: its scatter widens every board's term, the safe side.
+pub fn placement_scatter<'a>(
+    rows: impl IntoIterator<Item = &'a MassRow>,
+    resolution_g: f64,
+) -> Option<PlacementScatter> {
+    let (mut ss, mut df, mut n_boards) = (0.0, 0usize, 0usize);
+    for m in rows {
+        if m.n_days >= 2 && m.resolution_g == resolution_g && m.day_means_ss_g2.is_finite() {
+            ss += m.day_means_ss_g2;
+            df += m.n_days as usize - 1;
+            n_boards += 1;
+        }
+    }
+    (df >= MIN_PLACEMENT_DF).then(|| PlacementScatter {
+        var_g2: ss / (df as f64 - 2.0),
+        df,
+        n_boards,
+    })
+}
+
 /// The smallest sd of a board's mass term, relative to its mass ([`mass_obs`]).
 pub const MIN_MASS_SD_REL: f64 = 1e-6;
 
 /// What a balance may err on one board and not on the next, in readability steps d, taken
-/// as uniform within ± this (sd: it / √3 d). OIML R 76-1 allows a class I balance ±0.5 e
-/// up to 50 000 e, and an analytical balance's verification interval e is at most 10 d
-/// (1 mg on a 0.1 mg balance): ±5 d. Eccentric placement and non-linearity, which differ
-/// between boards, are what that allowance covers once the common calibration is drawn
-/// apart. Without it the mass term of a 0.1 mg balance's repeated readings pinned a board's
-/// mass to 3e-6, and on the realistic lumped-mass campaign step 1's Laplace fit diverged
-/// (the mass held against frequencies a point mass lowers).
+/// as uniform within ± this (sd: it / √3 d), when the campaign does not measure it itself
+/// ([`placement_scatter`]). OIML R 76-1 allows a class I balance ±0.5 e up to 50 000 e,
+/// and an analytical balance's verification interval e is at most 10 d (1 mg on a 0.1 mg
+/// balance): ±5 d. Eccentric placement and non-linearity, which differ between boards, are
+/// what that allowance covers once the common calibration is drawn apart. It is a bound a
+/// verified balance keeps, not its typical error: where boards were re-weighed, their
+/// scatter is the measure. Without any allowance the mass term of a 0.1 mg balance's
+/// repeated readings pinned a board's mass to 3e-6, and on the realistic lumped-mass
+/// campaign step 1's Laplace fit diverged (the mass held against frequencies a point mass
+/// lowers; the total-mass coordinate has carried that ridge since).
 pub const MPE_READABILITY_STEPS: f64 = 5.0;
 
 /// The seed stream of the balance's common bias ([`balance_bias_draw`]).
@@ -1096,13 +1163,17 @@ mod mass_term_tests {
             std_g: 6e-5,
             resolution_g: 1e-4,
             inconsistent: false,
+            n_days: 1,
+            day_means_ss_g2: 0.0,
+            day_share_sq_sum: 1.0,
         };
         let mut f = Findings::default();
         let mpe = 5e-4 / 3f64.sqrt();
-        let m = mass_obs(&row, "PCB-01", &mut f).expect("a mass term");
-        assert_eq!(
-            m.sd_g, mpe,
-            "readings' sd of the mean below the balance's allowance"
+        let m = mass_obs(&row, "PCB-01", None, &mut f).expect("a mass term");
+        assert!(
+            (m.sd_g - mpe).abs() < 1e-15,
+            "readings' sd of the mean below the balance's allowance: {}",
+            m.sd_g
         );
         assert_eq!(m.mass_g, 12.5);
         // A coarse balance's readings: their own spread.
@@ -1112,7 +1183,7 @@ mod mass_term_tests {
             ..row
         };
         let own = (0.25f64 / 6.0 + 1e-4 / 12.0).sqrt();
-        let c = mass_obs(&coarse, "PCB-01", &mut f).expect("a mass term");
+        let c = mass_obs(&coarse, "PCB-01", None, &mut f).expect("a mass term");
         assert!((c.sd_g - own).abs() < 1e-15, "{} vs {own}", c.sd_g);
         // One reading: one readability step for its spread.
         let single = MassRow {
@@ -1121,31 +1192,78 @@ mod mass_term_tests {
             resolution_g: 0.01,
             ..row
         };
-        let one = mass_obs(&single, "PCB-01", &mut f).expect("a mass term");
-        assert_eq!(one.sd_g, 0.05 / 3f64.sqrt());
+        let one = mass_obs(&single, "PCB-01", None, &mut f).expect("a mass term");
+        assert!((one.sd_g - 0.05 / 3f64.sqrt()).abs() < 1e-15);
         let bare = MassRow {
             resolution_g: 0.0,
             ..single
         };
-        let b = mass_obs(&bare, "PCB-01", &mut f).expect("a mass term");
+        let b = mass_obs(&bare, "PCB-01", None, &mut f).expect("a mass term");
         assert_eq!(b.sd_g, MIN_MASS_SD_REL * 12.5);
         assert!(f.0.is_empty());
         let spread = MassRow {
             inconsistent: true,
             ..row
         };
-        let s = mass_obs(&spread, "PCB-01", &mut f).expect("a mass term");
-        assert_eq!(s.sd_g, mpe);
+        let s = mass_obs(&spread, "PCB-01", None, &mut f).expect("a mass term");
+        assert!((s.sd_g - mpe).abs() < 1e-15);
         let wide = MassRow {
             std_g: 0.01,
             inconsistent: true,
             ..row
         };
-        let w = mass_obs(&wide, "PCB-01", &mut f).expect("a mass term");
+        let w = mass_obs(&wide, "PCB-01", None, &mut f).expect("a mass term");
         assert!((w.sd_g - (1e-4f64 + 1e-8 / 12.0).sqrt()).abs() < 1e-15);
         assert_eq!(f.0.len(), 2, "the inconsistent readings are reported");
         let none = MassRow { n_stable: 0, ..row };
-        assert!(mass_obs(&none, "PCB-01", &mut f).is_none());
+        assert!(mass_obs(&none, "PCB-01", None, &mut f).is_none());
+    }
+
+    /// Boards re-weighed on other days: their day means' scatter, pooled over the boards of
+    /// one readability, on the degrees of freedom they give, replaces the OIML allowance;
+    /// each board's term is it times the board's share of its days.
+    #[test]
+    fn re_weighed_boards_measure_the_balance_between_placements() {
+        let two_days = MassRow {
+            mass_g: 12.5,
+            n_stable: 6,
+            std_g: 6e-5,
+            resolution_g: 1e-4,
+            inconsistent: false,
+            n_days: 2,
+            day_means_ss_g2: 2e-9,
+            day_share_sq_sum: 0.5,
+        };
+        let three_days = MassRow {
+            n_days: 3,
+            day_means_ss_g2: 1e-9,
+            ..two_days.clone()
+        };
+        let other_balance = MassRow {
+            resolution_g: 1e-3,
+            day_means_ss_g2: 1.0,
+            ..two_days.clone()
+        };
+        let rows = [two_days.clone(), three_days, other_balance];
+        // Two boards of ν 1 and 2: none below 3 degrees of freedom.
+        assert_eq!(placement_scatter(&rows[..1], 1e-4), None);
+        let p = placement_scatter(&rows, 1e-4).expect("three degrees of freedom");
+        assert_eq!((p.df, p.n_boards), (3, 2));
+        assert!((p.var_g2 - 3e-9).abs() < 1e-22, "S / (ν - 2): {}", p.var_g2);
+        let mut f = Findings::default();
+        let m = mass_obs(&two_days, "PCB-01", Some(p), &mut f).expect("a mass term");
+        // One day's variance over the board's two days: √(3e-9 × 0.5), above the readings'.
+        assert!((m.sd_g - 1.5e-9f64.sqrt()).abs() < 1e-18, "{}", m.sd_g);
+        // A scatter below the rounding of a day's mean: the rounding.
+        let tight = PlacementScatter { var_g2: 0.0, ..p };
+        let t = mass_obs(&two_days, "PCB-01", Some(tight), &mut f).expect("a mass term");
+        let own = (3.6e-9f64 / 6.0 + 1e-8 / 12.0).sqrt();
+        assert!(
+            (t.sd_g - own).abs() < 1e-18,
+            "the readings' own: {} vs {own}",
+            t.sd_g
+        );
+        assert!(f.0.is_empty());
     }
 
     /// The balance's common bias: zero without a scale, the same for the same particle and

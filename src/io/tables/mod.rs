@@ -395,6 +395,20 @@ pub const MASSES: TableSpec = TableSpec {
             "",
             "Days (timestamp dates) with a stable reading.",
         ),
+        c(
+            "day_means_ss_g2",
+            Col::Float64,
+            false,
+            "g²",
+            "Sum of squares of the board's per-day mean readings about their mean (n_days - 1 degrees of freedom; 0 for one day): what re-placing the board changes. update pools it over the boards into the balance's placement scatter.",
+        ),
+        c(
+            "day_share_sq_sum",
+            Col::Float64,
+            false,
+            "",
+            "Sum over the days of (the day's share of the stable readings)²: mass_g's variance is one day mean's times this (1 for one day).",
+        ),
     ],
 };
 

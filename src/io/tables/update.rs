@@ -209,6 +209,11 @@ pub fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
             c.f64("resolution_g")?,
             c.bool("inconsistent")?,
         );
+        let (days, ss, share) = (
+            c.i32("n_days")?,
+            c.f64("day_means_ss_g2")?,
+            c.f64("day_share_sq_sum")?,
+        );
         for i in 0..b.num_rows() {
             out.insert(
                 bid.value(i).to_string(),
@@ -218,6 +223,9 @@ pub fn read_masses(path: &Path) -> anyhow::Result<BTreeMap<String, MassRow>> {
                     std_g: s.value(i),
                     resolution_g: r.value(i),
                     inconsistent: inc.value(i),
+                    n_days: days.value(i),
+                    day_means_ss_g2: ss.value(i),
+                    day_share_sq_sum: share.value(i),
                 },
             );
         }
