@@ -14,7 +14,7 @@
 //!   operator at the points, so uᵀψ = (Pᵀu)ᵀ y and ψᵀψ = yᵀ (PᵀP) y: the r-vector Pᵀu and the
 //!   r × r Gram matrix PᵀP are precomputed once per observation, and no shape is ever
 //!   expanded to the points in the sampler's hot path;
-//! - mass term: the balance mean m̂ ~ N(m(θ), s²), s² = std²/n_stable + resolution²/12.
+//! - mass term: the balance mean m̂ ~ N(m(θ), s²), s from `update::problem::mass_obs`.
 //!
 //! Mode tracking: the model's modes are matched to the updated labels by the largest
 //! overlap |yᵀ y_ref| with the label's reduced vector at the ROM centre (M₀-inner product,

@@ -627,14 +627,15 @@ pub fn unit_data(
 
 /// A board's balance observation: the mean of its stable readings, with the sd of that mean.
 /// It is the larger of two:
-/// - the readings' own: their spread over √n and the readability's uniform rounding error
-///   (one reading has no spread of its own, so it is taken as one readability step, the
-///   order of an analytical balance's repeatability; readings ingest flagged as
-///   inconsistent keep their full spread);
+/// - the readings' own: their spread over √n and the rounding error no number of readings
+///   averages out ([`systematic_rounding_var`]; one reading has no spread of its own, so
+///   it is taken as one readability step, the order of an analytical balance's
+///   repeatability; readings ingest flagged as inconsistent keep their full spread);
 /// - what the balance may err from one placement of a board to the next (eccentric load,
 ///   drift between sessions, handling): the campaign's own measure of it, `placement`
-///   ([`placement_scatter`]), times the board's share of its days, where boards were
-///   weighed again on other days; else the OIML allowance ([`MPE_READABILITY_STEPS`]).
+///   ([`placement_scatter`]), times the board's share of its days, with the rounding's
+///   systematic part, where boards were weighed again on other days; else the OIML
+///   allowance ([`MPE_READABILITY_STEPS`]).
 ///
 /// The error every board shares is not in it (buoyancy, calibration:
 /// [`balance_bias_draw`]): it moves every board's mass together, and the contrasts between
@@ -648,25 +649,26 @@ pub fn mass_obs(
     if m.n_stable < 1 || !m.mass_g.is_finite() {
         return None;
     }
-    let res2 = m.resolution_g * m.resolution_g / 12.0;
     let one = if m.n_stable >= 2 {
         m.std_g
     } else {
         m.resolution_g
     };
+    let rounding2 =
+        systematic_rounding_var(m.resolution_g, if m.n_stable >= 2 { m.std_g } else { 0.0 });
     let sd2 = if m.inconsistent {
         findings.push(Finding::new(
             Severity::Warning,
             "update.mass_inconsistent",
             format!("board {board_id}: the balance readings disagree (ingest flagged them); the mass term uses their full spread, not the spread of the mean"),
         ));
-        m.std_g * m.std_g + res2
+        m.std_g * m.std_g + rounding2
     } else {
-        one * one / f64::from(m.n_stable) + res2
+        one * one / f64::from(m.n_stable) + rounding2
     };
     let between_sd2 = match placement {
-        // A day's readings may all print one value: its mean still carries the rounding.
-        Some(p) => p.var_g2.max(res2) * m.day_share_sq_sum.clamp(0.0, 1.0),
+        // The day means' scatter holds the rounding's random part, not its systematic one.
+        Some(p) => p.var_g2 * m.day_share_sq_sum.clamp(0.0, 1.0) + rounding2,
         None => (MPE_READABILITY_STEPS * m.resolution_g).powi(2) / 3.0,
     };
     // A microgram per gram: no balance a board fits on reads finer, and a log without a
@@ -680,6 +682,27 @@ pub fn mass_obs(
         mass_g: m.mass_g,
         sd_g: sd,
     })
+}
+
+/// The variance of the rounding error that the mean of readings rounded to `d` keeps
+/// however many there are, given the readings' sample sd `s_obs` (g).
+/// - Readings that never vary (s_obs = 0, or a single reading) may all carry one rounding
+///   error: uniform within ±d/2 over the unknown true value, d²/12.
+/// - Noise dithers the rounding: for a Gaussian input of sd σ, the mean of the rounded
+///   readings is biased by a periodic function of the true value whose first harmonic has
+///   amplitude (d/π) e^(−2π²σ²/d²) (Widrow & Kollár 2008, *Quantization Noise*, ch. 5), and the
+///   rest of the rounding error is noise the readings' spread already shows. The systematic
+///   variance left is taken as d²/12 · e^(−4π²σ²/d²): exact at σ = 0, the first harmonic's
+///   decay beyond (about 2e-3 × d²/12 at σ = 0.4 d, a repeatability analytical balances
+///   quote).
+/// - σ² is the readings' variance less the rounding's own d²/12, which their spread holds.
+pub fn systematic_rounding_var(d: f64, s_obs: f64) -> f64 {
+    if d <= 0.0 || !d.is_finite() {
+        return 0.0;
+    }
+    let uniform = d * d / 12.0;
+    let sigma2 = (s_obs * s_obs - uniform).max(0.0);
+    uniform * (-4.0 * std::f64::consts::PI.powi(2) * sigma2 / (d * d)).exp()
 }
 
 /// The balance's scatter from one placement of a board to the next: the variance of one
@@ -1150,8 +1173,8 @@ pub fn covariate_offsets(
 mod mass_term_tests {
     use super::*;
 
-    /// The balance term's sd: the spread of the mean and the readability's uniform rounding
-    /// error, never below the board-to-board allowance of ±5 readability steps (the common
+    /// The balance term's sd: the spread of the mean and the rounding's systematic part,
+    /// never below the board-to-board allowance of ±5 readability steps (the common
     /// part is drawn apart); one reading counts as one readability step; readings ingest
     /// flagged as inconsistent keep their full spread; a single reading with no readability
     /// is held to 1e-6 of the mass.
@@ -1182,7 +1205,8 @@ mod mass_term_tests {
             resolution_g: 0.01,
             ..row
         };
-        let own = (0.25f64 / 6.0 + 1e-4 / 12.0).sqrt();
+        // Their spread (50 d) dithers the rounding: none of it stays systematic.
+        let own = (0.25f64 / 6.0).sqrt();
         let c = mass_obs(&coarse, "PCB-01", None, &mut f).expect("a mass term");
         assert!((c.sd_g - own).abs() < 1e-15, "{} vs {own}", c.sd_g);
         // One reading: one readability step for its spread.
@@ -1213,7 +1237,7 @@ mod mass_term_tests {
             ..row
         };
         let w = mass_obs(&wide, "PCB-01", None, &mut f).expect("a mass term");
-        assert!((w.sd_g - (1e-4f64 + 1e-8 / 12.0).sqrt()).abs() < 1e-15);
+        assert!((w.sd_g - 0.01).abs() < 1e-15);
         assert_eq!(f.0.len(), 2, "the inconsistent readings are reported");
         let none = MassRow { n_stable: 0, ..row };
         assert!(mass_obs(&none, "PCB-01", None, &mut f).is_none());
@@ -1252,18 +1276,46 @@ mod mass_term_tests {
         assert!((p.var_g2 - 3e-9).abs() < 1e-22, "S / (ν - 2): {}", p.var_g2);
         let mut f = Findings::default();
         let m = mass_obs(&two_days, "PCB-01", Some(p), &mut f).expect("a mass term");
-        // One day's variance over the board's two days: √(3e-9 × 0.5), above the readings'.
-        assert!((m.sd_g - 1.5e-9f64.sqrt()).abs() < 1e-18, "{}", m.sd_g);
-        // A scatter below the rounding of a day's mean: the rounding.
+        // One day's variance over the board's two days, 3e-9 × 0.5, above the readings'
+        // 3.6e-9 / 6, with the rounding's systematic part (readings 0.6 d apart: 1.8e-5 of
+        // d²/12).
+        let q = systematic_rounding_var(1e-4, 6e-5);
+        assert!(q > 0.0 && q < 2e-5 * 1e-8 / 12.0, "{q}");
+        assert!((m.sd_g - (1.5e-9 + q).sqrt()).abs() < 1e-18, "{}", m.sd_g);
+        // A scatter below the readings' own: theirs.
         let tight = PlacementScatter { var_g2: 0.0, ..p };
         let t = mass_obs(&two_days, "PCB-01", Some(tight), &mut f).expect("a mass term");
-        let own = (3.6e-9f64 / 6.0 + 1e-8 / 12.0).sqrt();
+        let own = (3.6e-9f64 / 6.0 + q).sqrt();
         assert!(
             (t.sd_g - own).abs() < 1e-18,
             "the readings' own: {} vs {own}",
             t.sd_g
         );
         assert!(f.0.is_empty());
+    }
+
+    /// Rounding to d: all of it systematic when the readings never vary (d²/12), the first
+    /// harmonic's e^(−4π²σ²/d²) of it under Gaussian noise of sd σ (the readings' variance
+    /// less d²/12), nothing without a readability.
+    #[test]
+    fn noise_dithers_the_rounding_out_of_the_mean() {
+        let d = 1e-4;
+        assert_eq!(systematic_rounding_var(d, 0.0), d * d / 12.0);
+        assert_eq!(
+            systematic_rounding_var(d, 0.2 * d),
+            d * d / 12.0,
+            "below d/√12"
+        );
+        let at = |sigma: f64| systematic_rounding_var(d, (sigma * sigma + d * d / 12.0).sqrt());
+        let expect = d * d / 12.0 * (-4.0 * std::f64::consts::PI.powi(2) * 0.16).exp();
+        assert!(
+            (at(0.4 * d) - expect).abs() < 1e-6 * expect,
+            "{}",
+            at(0.4 * d)
+        );
+        assert!(at(0.4 * d) < 2e-3 * d * d / 12.0);
+        assert!(at(0.1 * d) < d * d / 12.0 && at(0.1 * d) > at(0.2 * d));
+        assert_eq!(systematic_rounding_var(0.0, 1.0), 0.0);
     }
 
     /// The balance's common bias: zero without a scale, the same for the same particle and
