@@ -21,7 +21,8 @@ use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
     all_labels, balance_bias_draw, covariate_offsets, discrepancy_for, mass_obs, modes_needed,
     placement_scatter, predictors, shape_map, thickness_obs, unit_and_residual_data,
-    BoardCoordinates, Labels, MassRow, ModelErrorPrior, ModelSpec, ObsMeta, StepTarget,
+    BoardCoordinates, Labels, MassRow, ModelErrorPrior, ModelSpec, ObsMeta, PlacementScatter,
+    StepTarget,
 };
 use crate::update::rom_box::RomBoxViolation;
 use crate::update::sampler::{box_violations, particles_of, Results};
@@ -466,9 +467,12 @@ fn board_units(
     // The balance informs the mass parameters: mass_scale, and an added mass.
     let mass_updated =
         spec.params.iter().any(|p| p == names::MASS_SCALE) || !bm.log_axes.is_empty();
-    if mass_updated {
-        balance_placement_findings(masses, findings);
-    }
+    // One placement scatter per balance (readability), said once and used by every board.
+    let placements = if mass_updated {
+        balance_placements(masses, findings)
+    } else {
+        vec![]
+    };
     let use_shapes = spec.delta.is_some();
     let mut units = vec![];
     let mut units_all = vec![];
@@ -492,12 +496,13 @@ fn board_units(
             findings,
         )?;
         data.mass = match masses.get(b) {
-            Some(m) if mass_updated => mass_obs(
-                m,
-                b,
-                placement_scatter(masses.values(), m.resolution_g),
-                findings,
-            ),
+            Some(m) if mass_updated => {
+                let placement = placements
+                    .iter()
+                    .find(|(d, _)| *d == m.resolution_g)
+                    .and_then(|(_, p)| *p);
+                mass_obs(m, b, placement, findings)
+            }
             Some(_) => None,
             None => {
                 findings.push(Finding::new(
@@ -826,18 +831,23 @@ pub fn board_evidence(
     Ok(ev)
 }
 
-/// Says, once per balance (readability), what each board's mass term allows for the
-/// balance's error between placements: the campaign's own re-weighings, or the OIML bound.
-fn balance_placement_findings(masses: &BTreeMap<String, MassRow>, findings: &mut Findings) {
+/// The placement scatter of each balance (readability) of `masses`, and a finding per
+/// balance saying what each board's mass term allows for the balance's error between
+/// placements: the campaign's own re-weighings, or the OIML bound.
+fn balance_placements(
+    masses: &BTreeMap<String, MassRow>,
+    findings: &mut Findings,
+) -> Vec<(f64, Option<PlacementScatter>)> {
     use crate::update::problem::{MIN_PLACEMENT_DF, MPE_READABILITY_STEPS};
-    let mut seen: Vec<f64> = vec![];
+    let mut out: Vec<(f64, Option<PlacementScatter>)> = vec![];
     for m in masses.values() {
         let d = m.resolution_g;
-        if seen.contains(&d) {
+        if out.iter().any(|(seen, _)| *seen == d) {
             continue;
         }
-        seen.push(d);
-        let message = match placement_scatter(masses.values(), d) {
+        let placement = placement_scatter(masses.values(), d);
+        out.push((d, placement));
+        let message = match placement {
             Some(p) => format!(
                 "balance of readability {d} g: {} boards weighed on more than one day give one day's mean an sd of {:.3} mg ({} degrees of freedom); each board's mass term allows that for placing it on the pan, over its number of days, not the OIML allowance of ±{MPE_READABILITY_STEPS} d",
                 p.n_boards,
@@ -854,6 +864,7 @@ fn balance_placement_findings(masses: &BTreeMap<String, MassRow>, findings: &mut
             message,
         ));
     }
+    out
 }
 
 #[cfg(test)]

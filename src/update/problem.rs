@@ -649,13 +649,13 @@ pub fn mass_obs(
     if m.n_stable < 1 || !m.mass_g.is_finite() {
         return None;
     }
-    let one = if m.n_stable >= 2 {
-        m.std_g
+    // One reading has no spread of its own: none for the rounding, one step for its noise.
+    let (spread, one) = if m.n_stable >= 2 {
+        (m.std_g, m.std_g)
     } else {
-        m.resolution_g
+        (0.0, m.resolution_g)
     };
-    let rounding2 =
-        systematic_rounding_var(m.resolution_g, if m.n_stable >= 2 { m.std_g } else { 0.0 });
+    let rounding2 = systematic_rounding_var(m.resolution_g, spread);
     let sd2 = if m.inconsistent {
         findings.push(Finding::new(
             Severity::Warning,
