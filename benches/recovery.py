@@ -25,9 +25,10 @@ holds the same shared uncertainty (the model-form discrepancy's part the paramet
 the balance's common bias), so they cover or miss together, and a binomial test over them tests one draw many times. The
 contrasts take that shared part out: per parameter and draw, a board's ln value less the mean
 over the campaign's boards (a shift common to the boards cancels; n boards leave n - 1 free
-contrasts a parameter, so the test is slightly optimistic). Their 90 % intervals (from
-boards.parquet's draws) against the truth's contrasts, pooled, get the binomial test too,
-with the z-scores' sd (1 when the widths are right).
+contrasts a parameter, so the test is slightly optimistic). Their 90 % intervals (from the
+physical draws, boards_physical.parquet, where step 1 wrote them, else boards.parquet's
+fitted draws; HBMU_RECOVERY_FIT=1 takes the fitted ones) against the truth's contrasts,
+pooled, get the binomial test too, with the z-scores' sd (1 when the widths are right).
 """
 import json
 import math
@@ -114,7 +115,8 @@ def one(work):
 def contrasts(work, truth):
     """Per parameter and board: whether the truth's contrast (ln value less the boards' mean ln
     value) is inside the 90 % interval of the draws' contrasts, and its z-score."""
-    b = pd.read_parquet(f"{work}/update_boards/boards.parquet")
+    phys = f"{work}/update_boards/boards_physical.parquet"
+    b = pd.read_parquet(phys if os.path.exists(phys) and not USE_FIT else f"{work}/update_boards/boards.parquet")
     tb = {x["board_id"]: x for x in truth["boards"]}
     ids = sorted(i for i in b["board_id"].unique() if i in tb)
     inside_c, zs = [], []

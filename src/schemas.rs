@@ -23,6 +23,7 @@ pub fn generate() -> BTreeMap<String, String> {
         &crate::io::tables::pairs::PRESENCE,
         &crate::io::tables::update::POPULATION,
         &crate::io::tables::update::BOARDS,
+        &crate::io::tables::update::BOARDS_PHYSICAL,
         &crate::io::tables::update::SUMMARY,
         &crate::io::tables::update::STAGES,
         &crate::io::tables::update::RESIDUALS,

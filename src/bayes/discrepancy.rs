@@ -155,6 +155,19 @@ impl Discrepancy {
             .collect()
     }
 
+    /// The unit coordinates that absorb part of the discrepancy (seen by the modes and not
+    /// held by data of their own): the nonzero rows of L.
+    pub fn absorbing(&self) -> Vec<usize> {
+        let d = self.unit_dim;
+        (0..d)
+            .filter(|k| {
+                self.confounded[k * d..(k + 1) * d]
+                    .iter()
+                    .any(|v| *v != 0.0)
+            })
+            .collect()
+    }
+
     /// Coordinates in the global vector: ln τ, ln σ_u and w.
     pub fn dim(&self) -> usize {
         2 + self.k

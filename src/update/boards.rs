@@ -14,8 +14,8 @@ use crate::findings::{Finding, Findings, Severity};
 use crate::modal::rows::{ModeRow, PairRow};
 use crate::update::enrichment::{board_enrichment, BoardContext, BoardEffect, BoardEnrichment};
 use crate::update::posterior::{
-    confounded_draw, discrepancy_json, evidence_json, less_confounded, population_columns,
-    DrawTable, SummaryRow,
+    carried_deviation, confounded_draw, discrepancy_json, evidence_json, less_confounded,
+    population_columns, DrawTable, SummaryRow,
 };
 use crate::update::problem::CovariateColumn;
 use crate::update::problem::{
@@ -701,7 +701,8 @@ fn board_box(
 /// summary's physical quantiles are those of the draws less what the data cannot inform and
 /// every board shares, one draw of each per particle from streams keyed by `seed`: the
 /// model-form discrepancy's part the parameters absorb (`Discrepancy::confounded_shift`),
-/// and, where boards were weighed, the balance's common bias of sd `balance_bias_rel`
+/// with each board's deviation from the population mean carried to the sensitivities at the
+/// centre that leaves ([`carried_deviation`]), and, where boards were weighed, the balance's common bias of sd `balance_bias_rel`
 /// ([`crate::update::problem::balance_bias_draw`]), which divides every mass scale (and with
 /// it the moduli of a per-mass population) by 1 + β. None where neither applies.
 pub fn board_tables(
@@ -710,7 +711,7 @@ pub fn board_tables(
     results: &Results,
     labels: &Labels,
     (runs, seed, balance_bias_rel): (usize, u64, f64),
-) -> (DrawTable, DrawTable, Vec<SummaryRow>) {
+) -> BoardTables {
     let (pcols, pop_of) = population_columns(
         &bt.step.target,
         &bt.pop_names,
@@ -771,10 +772,21 @@ pub fn board_tables(
         let beta = balance_bias_draw(balance_bias_rel, seed, (r, i));
         let mut g = p.g.clone();
         g.iter_mut().zip(&a).for_each(|(v, s)| *v -= s);
+        let carry = disc.and_then(|disc| physical_sensitivities(target, p, &a, disc));
         unbias(&mut g, beta);
         pop_phys.push(r, i, None, &pop_of(&g));
         for (b, name) in bt.step.unit_names.iter().enumerate() {
-            let mut x = less_confounded(&p.x[b], &a);
+            // Each board's deviation from the population mean, carried to the physical
+            // centre's sensitivities ([`carried_deviation`]); without them, shifted alone.
+            let carried = carry.as_ref().and_then(|(sf, sp, absorbing)| {
+                let n = a.len();
+                let dev: Vec<f64> = (0..n).map(|k| p.x[b][k] - p.g[k]).collect();
+                let c = carried_deviation((sf, sp), target.errors.n_modes, absorbing, &dev)?;
+                let mut x = p.x[b].clone();
+                (0..n).for_each(|k| x[k] = p.g[k] - a[k] + c[k]);
+                Some(x)
+            });
+            let mut x = carried.unwrap_or_else(|| less_confounded(&p.x[b], &a));
             unbias(&mut x, beta);
             boards_phys.push(r, i, Some(name), &board_row(p, b, &x));
         }
@@ -789,7 +801,52 @@ pub fn board_tables(
             row.physical = Some(ph.s);
         }
     }
-    (pop, boards, summary)
+    BoardTables {
+        population: pop,
+        boards,
+        summary,
+        physical: physical.then_some(boards_phys),
+    }
+}
+
+/// Step 1's draws as tables ([`board_tables`]).
+pub struct BoardTables {
+    pub population: DrawTable,
+    /// The fitted draws, the ones the predictions use.
+    pub boards: DrawTable,
+    pub summary: Vec<SummaryRow>,
+    /// The boards' physical draws (the summary's physical quantiles are theirs), where
+    /// there are any.
+    pub physical: Option<DrawTable>,
+}
+
+/// The relative eigenvalue sensitivities of unit 0's model at the particle's population mean
+/// (the fitted centre) and at that mean less the discrepancy's absorbed part `a` (the
+/// physical centre), and the coordinates that absorb (`Discrepancy::absorbing`); `None`
+/// without an absorbed part or where the model is undefined at either.
+fn physical_sensitivities(
+    target: &ModalTarget,
+    p: &Particle<Terms>,
+    a: &[f64],
+    disc: &crate::bayes::discrepancy::Discrepancy,
+) -> Option<(Vec<f64>, Vec<f64>, Vec<usize>)> {
+    use crate::bayes::smc::Target;
+    let n = a.len();
+    if n == 0 || n > p.g.len() {
+        return None;
+    }
+    let nm = target.errors.n_modes;
+    let lambda = |x: &[f64]| -> Option<Vec<f64>> {
+        let t = target.model(&p.aux, 0, x)?;
+        let l = t.lambda[..nm].to_vec();
+        l.iter().all(|v| v.is_finite() && *v > 0.0).then_some(l)
+    };
+    let centre = &p.g[..n];
+    let physical: Vec<f64> = centre.iter().zip(a).map(|(c, a)| c - a).collect();
+    let h = crate::update::problem::SENSITIVITY_STEP;
+    let sf = crate::bayes::discrepancy::sensitivities(lambda, centre, nm, h)?;
+    let sp = crate::bayes::discrepancy::sensitivities(lambda, &physical, nm, h)?;
+    Some((sf, sp, disc.absorbing()))
 }
 
 /// Step 1's evidence.json.

@@ -863,6 +863,10 @@ pub fn model_error_from(
     }
 }
 
+/// The central differences' step of the modes' sensitivities to the unit coordinates (relative
+/// coordinates: 0.1 %).
+pub const SENSITIVITY_STEP: f64 = 1e-3;
+
 /// The model-form discrepancy of `target`'s updated modes ([`crate::bayes::discrepancy`]),
 /// orthogonal to the relative eigenvalue sensitivities of unit 0's coordinates near `x_ref`
 /// (the reference point x = 0 where None; step 2 passes its centre fit, where every label is
@@ -892,7 +896,7 @@ pub fn discrepancy_for(
         l.iter().all(|v| v.is_finite() && *v > 0.0).then_some(l)
     };
     let sens_at = |x0: &[f64]| {
-        sensitivities(lambda, x0, nm, 1e-3)
+        sensitivities(lambda, x0, nm, SENSITIVITY_STEP)
             .filter(|s| s.iter().all(|v| v.is_finite()))
             .ok_or_else(|| anyhow!("{what}: the model-form discrepancy: the model is undefined (or a label lost) within 0.1 % of {x0:?}"))
     };

@@ -67,6 +67,18 @@ pub const BOARDS: TableSpec = TableSpec {
     ],
 };
 
+pub const BOARDS_PHYSICAL: TableSpec = TableSpec {
+    name: "boards_physical",
+    doc: "Step-1 physical draws of every board's parameters, beside boards.parquet and with its columns, rows and draws, where step 1 inferred the model-form discrepancy or weighed the boards: each draw less what the data cannot inform, one draw of it per particle. The discrepancy's part the parameters absorb moves the boards' common centre (a: the population's physical means are the fitted ones less a), each board's deviation from the population mean is carried to the modes' sensitivities at that physical centre (the deviation there that moves the modes as the fitted one does), and the balance's common bias divides every mass scale. The summary's physical_q05/q50/q95 are these draws' quantiles; the fitted draws (boards.parquet) are the ones the predictions use. A contrast between boards (a board's value over the boards' mean) is to be read here.",
+    open: true,
+    columns: &[
+        c("run", Col::Int32, false, "", "Independent SMC run (ArviZ chain)."),
+        c("draw", Col::Int32, false, "", "Particle index within the run."),
+        c("board_id", Col::Utf8, false, "", "Board."),
+        c("mass_g", Col::Float64, false, "g", "Model mass of the board at this physical draw."),
+    ],
+};
+
 pub const SUMMARY: TableSpec = TableSpec {
     name: "summary",
     doc: "Posterior summary, one row per parameter (and board or measurement where it has one): moments and quantiles over all runs' draws; rank-normalised split R-hat and bulk/tail ESS across runs (Vehtari et al. 2021, the definitions ArviZ uses).",
@@ -83,7 +95,7 @@ pub const SUMMARY: TableSpec = TableSpec {
         c("r_hat", Col::Float64, false, "", "Rank-normalised split R-hat across runs."),
         c("ess_bulk", Col::Float64, false, "", "Bulk effective sample size."),
         c("ess_tail", Col::Float64, false, "", "Tail effective sample size."),
-        c("physical_q05", Col::Float64, true, "", "5 % quantile of the physical parameter: the draws less the model-form discrepancy's part that the parameters absorb, drawn from its prior at its scale τ (the data cannot inform it). Step 1 (a discrepancy in the likelihood): at the inferred τ; the draws in population/boards are the fitted values, which reproduce the data together with the inferred discrepancy. Step 2 (none in the likelihood): at the cut scale's draw of τ (evidence.json `predictive_discrepancy`), the likelihood and predictions left as they are. Step 1 where boards were weighed: also the balance's error common to every board, drawn from its prior (`--balance-bias`), which divides every mass scale, the moduli of a per-mass population and the masses by 1 + β (each board's mass term holds only its readings' own precision). A physical value lies within these wider bounds. Null without either (no discrepancy, cut scale or weighed board)."),
+        c("physical_q05", Col::Float64, true, "", "5 % quantile of the physical parameter: the draws less the model-form discrepancy's part that the parameters absorb, drawn from its prior at its scale τ (the data cannot inform it). Step 1 (a discrepancy in the likelihood): at the inferred τ, each board's deviation from the population mean carried to the modes' sensitivities at the physical centre (boards_physical.parquet holds these draws); the draws in population/boards are the fitted values, which reproduce the data together with the inferred discrepancy. Step 2 (none in the likelihood): at the cut scale's draw of τ (evidence.json `predictive_discrepancy`), the likelihood and predictions left as they are. Step 1 where boards were weighed: also the balance's error common to every board, drawn from its prior (`--balance-bias`), which divides every mass scale, the moduli of a per-mass population and the masses by 1 + β (each board's mass term holds only its readings' own precision). A physical value lies within these wider bounds. Null without either (no discrepancy, cut scale or weighed board)."),
         c("physical_q50", Col::Float64, true, "", "Median of the physical parameter (see physical_q05)."),
         c("physical_q95", Col::Float64, true, "", "95 % quantile of the physical parameter (see physical_q05)."),
     ],

@@ -213,7 +213,12 @@ pub(crate) fn boards_attempt(
     boards::check_board_box(&bm, &bt, &results, &opts.model)?;
     let prov = provenance("update_boards", &prep.fingerprint);
     let mut outputs = vec![];
-    let (pop, boards_t, summary) = boards::board_tables(
+    let boards::BoardTables {
+        population: pop,
+        boards: boards_t,
+        summary,
+        physical,
+    } = boards::board_tables(
         &bm,
         &bt,
         &results,
@@ -230,6 +235,20 @@ pub(crate) fn boards_attempt(
     let p = opts.out.join("boards.parquet");
     write_draws(&p, &BOARDS, &boards_t, true, &prov)?;
     outputs.push(p);
+    let p = opts.out.join("boards_physical.parquet");
+    match &physical {
+        Some(t) => {
+            write_draws(&p, &BOARDS_PHYSICAL, t, true, &prov)?;
+            outputs.push(p);
+        }
+        // Not one of an earlier run's left beside this run's draws.
+        None => match std::fs::remove_file(&p) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(anyhow::Error::from(e).context(format!("removing {}", p.display())))
+            }
+            _ => {}
+        },
+    }
     let p = opts.out.join("summary.parquet");
     write_summary(&p, &summary, &prov)?;
     outputs.push(p);

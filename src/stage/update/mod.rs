@@ -24,7 +24,7 @@ use crate::io::modes_table::read_modes_table;
 use crate::io::tables::update::{
     provenance, read_masses, read_pairs, read_presence, read_specimen_thickness, read_step1,
     read_step1_enrichment, write_draws, write_residuals, write_stages, write_summary, BOARDS,
-    POPULATION,
+    BOARDS_PHYSICAL, POPULATION,
 };
 use crate::io::tables::update::{read_covariate, write_joint_tables};
 use crate::io::tables::{self, Cols};
