@@ -702,8 +702,8 @@ fn board_box(
 /// every board shares, one draw of each per particle from streams keyed by `seed`: the
 /// model-form discrepancy's part the parameters absorb (`Discrepancy::confounded_shift`),
 /// with each board's deviation from the population mean carried to the sensitivities at the
-/// centre that leaves ([`carried_deviation`]), and, where boards were weighed, the balance's common bias of sd `balance_bias_rel`
-/// ([`crate::update::problem::balance_bias_draw`]), which divides every mass scale (and with
+/// centre that leaves ([`carried_deviation`]), and, where boards were weighed, the balance's
+/// common bias of sd `balance_bias_rel` ([`crate::update::problem::balance_bias_draw`]), which divides every mass scale (and with
 /// it the moduli of a per-mass population) by 1 + β. None where neither applies.
 pub fn board_tables(
     bm: &BoardModel,
@@ -830,17 +830,12 @@ fn physical_sensitivities(
     a: &[f64],
     disc: &crate::bayes::discrepancy::Discrepancy,
 ) -> Option<(Vec<f64>, Vec<f64>, Vec<usize>)> {
-    use crate::bayes::smc::Target;
     let n = a.len();
     if n == 0 || n > p.g.len() {
         return None;
     }
     let nm = target.errors.n_modes;
-    let lambda = |x: &[f64]| -> Option<Vec<f64>> {
-        let t = target.model(&p.aux, 0, x)?;
-        let l = t.lambda[..nm].to_vec();
-        l.iter().all(|v| v.is_finite() && *v > 0.0).then_some(l)
-    };
+    let lambda = |x: &[f64]| crate::update::problem::unit0_eigenvalues(target, &p.aux, x);
     let centre = &p.g[..n];
     let physical: Vec<f64> = centre.iter().zip(a).map(|(c, a)| c - a).collect();
     let h = crate::update::problem::SENSITIVITY_STEP;

@@ -863,6 +863,16 @@ pub fn model_error_from(
     }
 }
 
+/// Unit 0's eigenvalues of the updated modes at the unit coordinates `x` (with the auxiliary
+/// values `aux`), `None` where the model is undefined or an eigenvalue is not positive: what
+/// the modes' sensitivities to the unit coordinates are taken of.
+pub fn unit0_eigenvalues(target: &ModalTarget, aux: &[f64], x: &[f64]) -> Option<Vec<f64>> {
+    let nm = target.errors.n_modes;
+    let t = smc::Target::model(target, aux, 0, x)?;
+    let l = t.lambda[..nm].to_vec();
+    l.iter().all(|v| v.is_finite() && *v > 0.0).then_some(l)
+}
+
 /// The central differences' step of the modes' sensitivities to the unit coordinates (relative
 /// coordinates: 0.1 %).
 pub const SENSITIVITY_STEP: f64 = 1e-3;
@@ -890,11 +900,7 @@ pub fn discrepancy_for(
     }
     let nm = target.errors.n_modes;
     let d = smc::Target::unit_dim(target);
-    let lambda = |x: &[f64]| -> Option<Vec<f64>> {
-        let t = smc::Target::model(target, aux, 0, x)?;
-        let l = t.lambda[..nm].to_vec();
-        l.iter().all(|v| v.is_finite() && *v > 0.0).then_some(l)
-    };
+    let lambda = |x: &[f64]| unit0_eigenvalues(target, aux, x);
     let sens_at = |x0: &[f64]| {
         sensitivities(lambda, x0, nm, SENSITIVITY_STEP)
             .filter(|s| s.iter().all(|v| v.is_finite()))
