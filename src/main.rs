@@ -296,8 +296,10 @@ struct UpdateArgs {
     #[arg(long)]
     force: bool,
     /// Step 1: take the model as exact, without the per-mode model-error term (a relative
-    /// eigenvalue error common to a board's measurements, its prior sd from how the model's
-    /// frequencies move on finer meshes).
+    /// eigenvalue error, its prior sd from how the model's frequencies move on finer meshes).
+    /// Where step 1 infers the model-form discrepancy (the default) the mesh's error is
+    /// common to the boards and part of it, and the mesh study is only recorded; without one
+    /// (`--discrepancy-pct 0`) the term is each board's own.
     #[arg(long)]
     no_model_error: bool,
     /// The model's stated fidelity, in % of frequency: the prior median of the scale of the

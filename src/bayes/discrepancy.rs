@@ -4,7 +4,8 @@
 //! The model eigenvalue of mode m becomes λ_m(θ) (1 + d_m) for every unit. Why this form:
 //! - A plate model misses physics a real board has (transverse shear and rotary inertia, the
 //!   copper as layers, the contact patch of a joint). What it misses is the same on every
-//!   board of a campaign, so it is common to the units, not independent between them. It is
+//!   board of a campaign, so it is common to the units, not independent between them (so is
+//!   one mesh's discretization error: `update::problem::ModelErrorPrior`). It is
 //!   a bias per mode and setup, and nothing in the per-unit terms covers it: the units'
 //!   parameters take up what they can and the rest shows up as a systematic residual that the
 //!   intervals, narrowed by hundreds of measurements, miss.

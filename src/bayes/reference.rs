@@ -726,6 +726,46 @@ fn psd_root(h: &[f64], d: usize) -> Vec<f64> {
         .collect()
 }
 
+/// How far from a unit's optimum, in the round's posterior sds along a direction, the
+/// crest of its quadratic likelihood may sit ([`trusted_root`]).
+const TRUST_SDS: f64 = 3.0;
+
+/// R with Rᵀ R = H', H' the positive part of a unit's likelihood curvature `h` at its optimum
+/// x̂, raised where needed so that the quadratic's crest, along each of H's eigenvectors
+/// v, lies within [`TRUST_SDS`] of the round's posterior sd (1/√(vᵀ P v), P = `prec`) of
+/// x̂: curvature λ ≥ |vᵀ g| / (TRUST_SDS · sd). Why: a direction of slight curvature with a
+/// gradient along it (the data's pull balanced by the prior's) makes a crest far beyond
+/// any point the curvature was measured at, whose height ½ (vᵀg)²/λ is unbounded as λ → 0.
+/// g's density then buys that height by widening the population: on a campaign with an
+/// unmodelled mass on every board, the boards' transverse shear moduli (data slope 15 per
+/// unit, curvature near zero) ran σ of that coordinate to e²⁵ in one round, then the units
+/// to e⁶⁹ and the reference to a degenerate μ. Past the round's posterior bulk the
+/// quadratic is extrapolation; the reference is only a proposal, the tempering corrects it.
+/// Directions flat to 1e-12 of the largest curvature stay flat ([`gradient_in_range`]).
+fn trusted_root(h: &[f64], g: &[f64], prec: &[f64], d: usize) -> Vec<f64> {
+    let (mut lam, u) = clamped_eigen(h, d, 0.0);
+    let flat = 1e-12 * lam.iter().fold(0.0f64, |a, &b| a.max(b));
+    for (k, l) in lam.iter_mut().enumerate() {
+        if l.is_nan() || *l <= flat {
+            continue;
+        }
+        let v = |j: usize| u[j * d + k];
+        let gk: f64 = (0..d).map(|j| v(j) * g[j]).sum();
+        let pk: f64 = (0..d)
+            .map(|i| v(i) * (0..d).map(|j| prec[i * d + j] * v(j)).sum::<f64>())
+            .sum();
+        if pk > 0.0 && pk.is_finite() && gk.is_finite() {
+            *l = l.max(gk.abs() * pk.sqrt() / TRUST_SDS);
+        }
+    }
+    (0..d * d)
+        .map(|idx| {
+            let (k, j) = (idx / d, idx % d);
+            lam[k].sqrt() * u[j * d + k]
+        })
+        .collect()
+}
+
 /// x with Lᵀ x = y, L lower-triangular row-major.
 fn upper_solve_transposed(l: &[f64], d: usize, y: &[f64]) -> Vec<f64> {
     let mut x = y.to_vec();
@@ -880,7 +920,7 @@ impl<'a, T: Target> GivenUnits<'a, T> {
                 let (curvature, root) = if reform {
                     (h, vec![])
                 } else {
-                    (vec![], psd_root(&h, d))
+                    (vec![], trusted_root(&h, &gradient, &precs[b], d))
                 };
                 Some(RoundQuadratic {
                     root,
@@ -1894,6 +1934,52 @@ mod tests {
         let a = log_marginal_quadratic(&m, &l, &[0.1, 0.0], &h, &[1.5, 0.0]);
         let b = log_marginal_quadratic(&m, &l, &[0.1, 0.0], &h, &[0.0, 0.0]);
         assert!((a - b).abs() > 1e-3);
+    }
+
+    /// A direction of slight curvature with a gradient along it (the data's pull on a unit
+    /// coordinate they barely see, balanced by its prior) has its crest within
+    /// [`TRUST_SDS`] round sds of the optimum, so the marginal stays bounded however wide
+    /// the population's prior grows; with the plain root it grows to the crest's height
+    /// ½ g²/λ (here 1.1e6 nats), which ran a campaign's σ of a shear modulus to e²⁵. A
+    /// well-curved direction keeps its curvature.
+    #[test]
+    fn a_slightly_curved_ramp_has_its_crest_within_reach() {
+        let h = [4.0, 0.0, 0.0, 1e-4];
+        let sd1 = 0.03;
+        let prec = [8.0, 0.0, 0.0, 1.0 / (sd1 * sd1)];
+        let g = [0.7, 15.0];
+        let r = trusted_root(&h, &g, &prec, 2);
+        let rtr = |r: &[f64]| -> Vec<f64> {
+            (0..4)
+                .map(|idx| {
+                    (0..2)
+                        .map(|k| r[k * 2 + idx / 2] * r[k * 2 + idx % 2])
+                        .sum()
+                })
+                .collect()
+        };
+        let hr = rtr(&r);
+        assert!((hr[0] - 4.0).abs() < 1e-9 && hr[1].abs() < 1e-9, "{hr:?}");
+        let crest = g[1] / hr[3];
+        assert!(
+            crest <= TRUST_SDS * sd1 * (1.0 + 1e-9) && crest > 0.5 * TRUST_SDS * sd1,
+            "crest at {crest}"
+        );
+        let plain = psd_root(&h, 2);
+        let x_hat = [0.1, 0.0];
+        let mut worst: f64 = f64::NEG_INFINITY;
+        let mut plain_best: f64 = f64::NEG_INFINITY;
+        for s in [0.03, 1.0, 1e2, 1e4, 1e6] {
+            let l = [0.5, 0.0, 0.0, s];
+            let m = [0.3, 0.0];
+            worst = worst.max(log_marginal_quadratic_root(&m, &l, &x_hat, &r, &g));
+            plain_best = plain_best.max(log_marginal_quadratic_root(&m, &l, &x_hat, &plain, &g));
+        }
+        assert!(worst < 2.0, "trusted marginal up to {worst}");
+        assert!(plain_best > 1e5, "plain marginal up to {plain_best}");
+        // Without a gradient along it, the slight curvature is kept.
+        let hr = rtr(&trusted_root(&h, &[0.7, 0.0], &prec, 2));
+        assert!((hr[3] - 1e-4).abs() < 1e-12, "{hr:?}");
     }
 
     /// The closed form against a brute-force 2-D quadrature of the same integral.

@@ -336,7 +336,7 @@ pub fn board_target(
             n_modes: labels.labels.len(),
             eps: spec.eps,
             delta: spec.delta,
-            model_error_sd: model_error.as_ref().map(|m| m.sd_updated.clone()),
+            model_error_sd: None,
             discrepancy: None,
         },
         units,
@@ -372,6 +372,16 @@ pub fn board_target(
         (&pinned, "boards"),
         findings,
     )?;
+    // The mesh's error is common to the boards: with the discrepancy inferred it is part of
+    // d ([`ModelErrorPrior::common_to_boards`]); without one, each board's term.
+    let model_error = match &target.errors.discrepancy {
+        Some(_) => model_error.map(ModelErrorPrior::common_to_boards),
+        None => model_error,
+    };
+    target.errors.model_error_sd = model_error
+        .as_ref()
+        .and_then(|m| m.board_sd(true))
+        .map(<[f64]>::to_vec);
     Ok(BoardTarget {
         step: StepTarget {
             target,

@@ -811,6 +811,39 @@ pub struct ModelErrorPrior {
     /// The sds of the updated labels, in their order.
     #[serde(skip)]
     pub sd_updated: Vec<f64>,
+    /// Whether b is each board's own (independent between boards, integrated out per board).
+    /// False where the step infers the model-form discrepancy: one mesh's error on boards
+    /// whose parameters differ by a few per cent is the same on every board, so it is part of
+    /// the discrepancy common to them, and only the sds' record stays
+    /// ([`ModelErrorPrior::common_to_boards`]).
+    pub per_board: bool,
+}
+
+impl ModelErrorPrior {
+    /// The term taken by the discrepancy common to the boards, not drawn per board.
+    ///
+    /// Why: a discretization error is a function of the mesh and of the mode's wavelength over
+    /// the element size. Every board runs on the same mesh, with moduli and thickness a few
+    /// per cent from the others', so the error is nearly the same on every board (a tenth of
+    /// itself apart in rms over the modes for moduli 4 % apart, most of that in a pair of
+    /// modes near veering: the test `one_meshs_error_is_nearly_the_same_on_boards_a_few_per_
+    /// cent_apart`). What differs between boards is a model error varying between boards,
+    /// which the discrepancy's per-unit part σ_u takes, inferred from the boards themselves.
+    /// Drawn in full and independently per board, the term let each board depart from the
+    /// others by the whole mesh error in the modes the mesh resolves worst, and widened every
+    /// contrast between boards along those modes.
+    pub fn common_to_boards(mut self) -> Self {
+        self.per_board = false;
+        self
+    }
+    /// The per-board sds (of every label, or of the updated ones) where the term is each
+    /// board's own; `None` where the common discrepancy took it.
+    pub fn board_sd(&self, updated_only: bool) -> Option<&[f64]> {
+        self.per_board.then_some(match updated_only {
+            true => self.sd_updated.as_slice(),
+            false => self.sd.as_slice(),
+        })
+    }
 }
 
 /// Floor of a label's model-error sd, relative to the largest of the labels: a mode whose
@@ -860,6 +893,7 @@ pub fn model_error_from(
         sd: all.model_mode.iter().map(|&mm| sd_of(mm)).collect(),
         sd_updated: updated.model_mode.iter().map(|&mm| sd_of(mm)).collect(),
         spread,
+        per_board: true,
     }
 }
 

@@ -142,7 +142,8 @@ pub fn board_offsets(
 
 /// The model-error term's prior sd per free label from step 1's evidence.json
 /// (`model_error`: `labels`, `sd`; `ev` is the document, None when there is none, `source` names
-/// it in messages); zeros when step 1 ran without it. A label step 1 did not
+/// it in messages); zeros when step 1 ran without it, or where its discrepancy took it
+/// (`per_board: false`). A label step 1 did not
 /// give an sd (paired differently since) gets the largest of the others, and a finding.
 pub fn model_error_sd(
     ev: Option<&serde_json::Value>,
@@ -154,7 +155,9 @@ pub fn model_error_sd(
         return Ok(vec![0.0; labels.len()]);
     };
     let me = &ev["model_error"];
-    if me.is_null() {
+    // `per_board: false`: the discrepancy common to the boards took the term (step 1's
+    // `ModelErrorPrior::common_to_boards`); absent in step-1 outputs from before it existed.
+    if me.is_null() || me["per_board"].as_bool() == Some(false) {
         return Ok(vec![0.0; labels.len()]);
     }
     let (Some(ls), Some(sd)) = (me["labels"].as_array(), me["sd"].as_array()) else {

@@ -984,6 +984,46 @@ fn a_bolted_measurement_without_a_step1_posterior_is_reported_and_the_screen_nam
     }
 }
 
+/// The mesh's error is each board's own term only where step 1 infers no discrepancy common to
+/// the boards: with one (two modes, one modulus updated) it is part of that discrepancy, and
+/// evidence.json says so (`model_error.per_board` false, the mesh study's sds kept for the
+/// record); with none (two modes, two moduli and the weighed mass: nothing is left that the
+/// parameters cannot absorb) the term stays per board; `--no-model-error` drops it.
+#[test]
+fn the_mesh_error_is_common_to_the_boards_where_the_discrepancy_is_inferred() {
+    let w = Work::new();
+    w.chain();
+    for (out, params, extra, common) in [
+        ("a", PARAMS, &[][..], Some(false)),
+        ("b", "e_x_pa", &[][..], Some(true)),
+        ("c", "e_x_pa", &["--no-model-error"][..], None),
+    ] {
+        let o = w.update(out, "coarse.toml", params, extra);
+        assert_eq!(o.status.code(), Some(0), "{out}: {}", stderr(&o));
+        let ev: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(w.p(out).join("evidence.json")).unwrap())
+                .unwrap();
+        let me = &ev["model_error"];
+        match common {
+            None => assert!(me.is_null(), "{out}: {me}"),
+            Some(common) => {
+                assert_eq!(
+                    ev["discrepancy"].is_null(),
+                    !common,
+                    "{out}: {}",
+                    ev["discrepancy"]
+                );
+                assert_eq!(me["per_board"].as_bool(), Some(!common), "{out}: {me}");
+                let sd = me["sd"].as_array().unwrap();
+                assert!(
+                    !sd.is_empty() && sd.iter().all(|v| v.as_f64().unwrap() > 0.0),
+                    "{out}: {me}"
+                );
+            }
+        }
+    }
+}
+
 /// The shape terms' weights (`--shape-weights`): `auto` records one per updated mode in
 /// evidence.json, each 1 over its design effect 1 + (J − 1) max(ρ, 0) with J the mode's shape
 /// observations; a run given that file takes the same weights and, with the same seed, gives

@@ -263,7 +263,7 @@ pub(crate) fn boards_attempt(
         &results,
         "free",
         opts.sampler.residual_draws,
-        bt.model_error.as_ref().map(|m| m.sd.as_slice()),
+        bt.model_error.as_ref().and_then(|m| m.board_sd(false)),
     );
     lost_finding(&lost, &mut findings);
     let p = opts.out.join("residuals.parquet");
