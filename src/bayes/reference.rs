@@ -718,6 +718,12 @@ fn conditional_normal(
 /// eigenvalues taken as 0): R = Λ^½ Uᵀ, row-major d × d.
 fn psd_root(h: &[f64], d: usize) -> Vec<f64> {
     let (lam, u) = clamped_eigen(h, d, 0.0);
+    eigen_root(&lam, &u, d)
+}
+
+/// R with Rᵀ R = U Λ Uᵀ: row k is √λ_k times eigenvector k (`u` row-major, eigenvectors in
+/// its columns; Λ ≥ 0).
+fn eigen_root(lam: &[f64], u: &[f64], d: usize) -> Vec<f64> {
     (0..d * d)
         .map(|idx| {
             let (k, j) = (idx / d, idx % d);
@@ -732,8 +738,8 @@ const TRUST_SDS: f64 = 3.0;
 
 /// R with Rᵀ R = H', H' the positive part of a unit's likelihood curvature `h` at its optimum
 /// x̂, raised where needed so that the quadratic's crest, along each of H's eigenvectors
-/// v, lies within [`TRUST_SDS`] of the round's posterior sd (1/√(vᵀ P v), P = `prec`) of
-/// x̂: curvature λ ≥ |vᵀ g| / (TRUST_SDS · sd). Why: a direction of slight curvature with a
+/// v, lies within [`TRUST_SDS`] sds of x̂, sd = 1/√(vᵀ P v) the round's posterior sd along v
+/// (P = `prec`, the other directions held): curvature λ ≥ |vᵀ g| / (TRUST_SDS · sd). Why: a direction of slight curvature with a
 /// gradient along it (the data's pull balanced by the prior's) makes a crest far beyond
 /// any point the curvature was measured at, whose height ½ (vᵀg)²/λ is unbounded as λ → 0.
 /// g's density then buys that height by widening the population: on a campaign with an
@@ -758,12 +764,7 @@ fn trusted_root(h: &[f64], g: &[f64], prec: &[f64], d: usize) -> Vec<f64> {
             *l = l.max(gk.abs() * pk.sqrt() / TRUST_SDS);
         }
     }
-    (0..d * d)
-        .map(|idx| {
-            let (k, j) = (idx / d, idx % d);
-            lam[k].sqrt() * u[j * d + k]
-        })
-        .collect()
+    eigen_root(&lam, &u, d)
 }
 
 /// x with Lᵀ x = y, L lower-triangular row-major.
