@@ -713,8 +713,9 @@ fn board_box(
 /// model-form discrepancy's part the parameters absorb (`Discrepancy::confounded_shift`),
 /// with each board's deviation from the population mean carried to the sensitivities at the
 /// centre that leaves ([`carried_deviation`]), and, where boards were weighed, the balance's
-/// common bias of sd `balance_bias_rel` ([`crate::update::problem::balance_bias_draw`]), which divides every mass scale (and with
-/// it the moduli of a per-mass population) by 1 + β. None where neither applies.
+/// common bias of sd `balance_bias_rel` ([`crate::update::problem::balance_bias_draw`]),
+/// which divides every mass scale (and with it the moduli of a per-mass population) by
+/// 1 + β. None where neither applies.
 pub fn board_tables(
     bm: &BoardModel,
     bt: &BoardTarget,

@@ -155,10 +155,20 @@ pub fn model_error_sd(
         return Ok(vec![0.0; labels.len()]);
     };
     let me = &ev["model_error"];
-    // `per_board: false`: the discrepancy common to the boards took the term (step 1's
-    // `ModelErrorPrior::common_to_boards`); absent in step-1 outputs from before it existed.
-    if me.is_null() || me["per_board"].as_bool() == Some(false) {
+    if me.is_null() {
         return Ok(vec![0.0; labels.len()]);
+    }
+    // `per_board: false`: the discrepancy common to the boards took the term (step 1's
+    // `ModelErrorPrior::common_to_boards`); absent in step-1 outputs from before it existed,
+    // where the term was each board's.
+    match &me["per_board"] {
+        serde_json::Value::Null | serde_json::Value::Bool(true) => {}
+        serde_json::Value::Bool(false) => return Ok(vec![0.0; labels.len()]),
+        other => {
+            return Err(format!(
+                "{source}: model_error: expected `per_board` true or false, found {other}"
+            ))
+        }
     }
     let (Some(ls), Some(sd)) = (me["labels"].as_array(), me["sd"].as_array()) else {
         return Err(format!(
@@ -259,6 +269,50 @@ pub fn as_updated(rom: Rom, cap: usize) -> Rom {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Step 1's model-error sds reach propagate where they were each board's own term
+    /// (`per_board` true, or absent in outputs from before the field), by label, a label
+    /// without one taking the largest with a finding; none where the common discrepancy took
+    /// the term (`per_board` false) or step 1 had none; a malformed `per_board` is an error
+    /// naming the file.
+    #[test]
+    fn the_model_error_sds_reach_propagate_only_where_they_are_each_boards_own() {
+        let labels: Vec<String> = ["a", "b", "c"].iter().map(|s| s.to_string()).collect();
+        let doc = |per_board: serde_json::Value| {
+            let mut me = serde_json::json!({"labels": ["a", "b"], "sd": [1e-4, 3e-4]});
+            if !per_board.is_null() {
+                me["per_board"] = per_board;
+            }
+            serde_json::json!({ "model_error": me })
+        };
+        for pb in [serde_json::Value::Null, serde_json::json!(true)] {
+            let mut f = Findings::default();
+            let sd = model_error_sd(Some(&doc(pb.clone())), "ev.json", &labels, &mut f).unwrap();
+            assert_eq!(sd, vec![1e-4, 3e-4, 3e-4], "per_board {pb}");
+            assert_eq!(f.0.len(), 1, "{:?}", f.0);
+            assert_eq!(f.0[0].code, "propagate.model_error_missing");
+        }
+        let mut f = Findings::default();
+        let none = vec![0.0; 3];
+        let common = doc(serde_json::json!(false));
+        assert_eq!(
+            model_error_sd(Some(&common), "ev.json", &labels, &mut f),
+            Ok(none.clone())
+        );
+        let absent = serde_json::json!({"model_error": null});
+        assert_eq!(
+            model_error_sd(Some(&absent), "ev.json", &labels, &mut f),
+            Ok(none.clone())
+        );
+        assert_eq!(model_error_sd(None, "ev.json", &labels, &mut f), Ok(none));
+        assert!(f.0.is_empty(), "{:?}", f.0);
+        let bad = doc(serde_json::json!("no"));
+        let err = model_error_sd(Some(&bad), "ev.json", &labels, &mut f).unwrap_err();
+        assert!(
+            err.contains("ev.json") && err.contains("per_board"),
+            "{err}"
+        );
+    }
     use crate::fem::model::Setup;
     use crate::fem::rom::RomOptions;
     use crate::fem::tests::helpers::{build, plain_board};

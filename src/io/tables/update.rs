@@ -201,7 +201,7 @@ pub const RESIDUALS: TableSpec = TableSpec {
         c("freq_hz", Col::Float64, false, "Hz", "Identified frequency."),
         c("model_freq_hz_mean", Col::Float64, false, "Hz", "Posterior mean of the model frequency of this board/measurement."),
         c("model_freq_hz_sd", Col::Float64, false, "Hz", "Posterior standard deviation of the model frequency (parameter uncertainty)."),
-        c("predictive_sd_hz", Col::Float64, false, "Hz", "Posterior-predictive standard deviation of a measurement: parameter uncertainty, for updated modes the inferred prediction error, and (step 1 with its model-error term) the model error's prior spread of the label (evidence.json's model_error)."),
+        c("predictive_sd_hz", Col::Float64, false, "Hz", "Posterior-predictive standard deviation of a measurement: parameter uncertainty, for updated modes the inferred prediction error, and (step 1 with its model-error term each board's own, evidence.json's model_error.per_board) the model error's prior spread of the label."),
         c("rel_residual", Col::Float64, false, "", "(freq_hz - model_freq_hz_mean) / model_freq_hz_mean."),
         c("std_residual", Col::Float64, false, "", "(freq_hz - model_freq_hz_mean) / predictive_sd_hz."),
         c("mac", Col::Float64, true, "", "MAC of the measured shape and the model shape (posterior mean); null without a usable shape."),
